@@ -1,0 +1,285 @@
+"""Camera and IMU calibration types and the project's calibration file (kalibr-style YAML).
+
+Names follow kalibr: distortion models `radtan` (k1, k2, p1, p2[, k3]) and `equidistant`
+(k1..k4, OpenCV fisheye); IMU noise keys are kalibr's. `T_body_cam` maps camera points into the body
+(= IMU) frame. `time_offset_ns` follows kalibr's timeshift: t_imu = t_cam + time_offset_ns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from vio import VioError
+from vio.geometry import inv_T, is_se3
+
+DISTORTION_MODELS = ("radtan", "equidistant", "none")
+_DISTORTION_ALIASES = {
+    "radtan": "radtan",
+    "radial-tangential": "radtan",
+    "plumb_bob": "radtan",
+    "equidistant": "equidistant",
+    "fisheye": "equidistant",
+    "kannala_brandt": "equidistant",
+    "none": "none",
+}
+
+
+def normalise_distortion_model(name: str) -> str:
+    """Map the many spellings used by kalibr/EuRoC/ROS onto our three model names."""
+    key = str(name).strip().lower()
+    if key not in _DISTORTION_ALIASES:
+        raise VioError(f"unknown distortion model {name!r}; expected one of {sorted(_DISTORTION_ALIASES)}")
+    return _DISTORTION_ALIASES[key]
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """Pinhole camera with lens distortion and its mounting on the body."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion_model: str = "radtan"
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
+    T_body_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    rate_hz: float = 20.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "distortion_model", normalise_distortion_model(self.distortion_model))
+        object.__setattr__(self, "distortion", tuple(float(d) for d in self.distortion))
+        object.__setattr__(self, "T_body_cam", np.asarray(self.T_body_cam, dtype=float))
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise VioError on values no real camera has; catches most typos in calibration files."""
+        if not (self.fx > 0 and self.fy > 0):
+            raise VioError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not (self.width > 0 and self.height > 0):
+            raise VioError(f"resolution must be positive, got {self.width}x{self.height}")
+        if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
+            raise VioError(f"principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image")
+        n = len(self.distortion)
+        if self.distortion_model == "radtan" and n not in (4, 5):
+            raise VioError(f"radtan distortion needs 4 or 5 coefficients, got {n}")
+        if self.distortion_model == "equidistant" and n != 4:
+            raise VioError(f"equidistant distortion needs 4 coefficients, got {n}")
+        if not is_se3(self.T_body_cam, tol=1e-4):
+            raise VioError("T_body_cam is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        if self.distortion_model == "none":
+            return np.zeros(4)
+        return np.asarray(self.distortion, dtype=float)
+
+    def project(self, p_cam: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) of camera-frame points (N, 3) with lens distortion applied.
+
+        Points must be in front of the camera (z > 0); callers filter those first.
+        """
+        p = np.asarray(p_cam, dtype=np.float64).reshape(-1, 1, 3)
+        if len(p) == 0:
+            return np.zeros((0, 2))
+        zero = np.zeros(3)
+        if self.distortion_model == "equidistant":
+            uv, _ = cv2.fisheye.projectPoints(p, zero, zero, self.K, self.dist_coeffs)
+        else:
+            uv, _ = cv2.projectPoints(p, zero, zero, self.K, self.dist_coeffs)
+        return uv.reshape(-1, 2)
+
+    def undistort_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Normalised image coordinates (x/z, y/z), shape (N, 2), of distorted pixels (N, 2)."""
+        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        if self.distortion_model == "equidistant":
+            out = cv2.fisheye.undistortPoints(pts, self.K, self.dist_coeffs)
+        else:
+            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
+            out = cv2.undistortPointsIter(pts, self.K, self.dist_coeffs, None, None, crit)
+        return out.reshape(-1, 2)
+
+    def with_T_body_cam(self, T: np.ndarray) -> CameraCalibration:
+        return replace(self, T_body_cam=np.asarray(T, dtype=float))
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise model (kalibr/EuRoC units).
+
+    Discrete per-sample standard deviations are density * sqrt(rate) for white noise and
+    random_walk / sqrt(rate) for the bias step, see `discrete_sigmas`.
+    """
+
+    gyroscope_noise_density: float = 1.6968e-04  # rad/s/sqrt(Hz)
+    gyroscope_random_walk: float = 1.9393e-05  # rad/s^2/sqrt(Hz)
+    accelerometer_noise_density: float = 2.0e-3  # m/s^2/sqrt(Hz)
+    accelerometer_random_walk: float = 3.0e-3  # m/s^3/sqrt(Hz)
+    rate_hz: float = 200.0
+
+    def __post_init__(self) -> None:
+        for name in ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                     "accelerometer_random_walk", "rate_hz"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise VioError(f"IMU noise {name} must be a positive number, got {v!r}")
+
+    def discrete_sigmas(self) -> dict[str, float]:
+        """Per-sample sigmas at `rate_hz`: white noise of one sample and the bias step between samples."""
+        r = self.rate_hz
+        return {
+            "gyro": self.gyroscope_noise_density * math.sqrt(r),
+            "accel": self.accelerometer_noise_density * math.sqrt(r),
+            "gyro_bias_step": self.gyroscope_random_walk / math.sqrt(r),
+            "accel_bias_step": self.accelerometer_random_walk / math.sqrt(r),
+        }
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """Everything the estimator needs to know about the sensor head."""
+
+    cam0: CameraCalibration
+    cam1: CameraCalibration
+    imu: ImuNoise = field(default_factory=ImuNoise)
+    time_offset_ns: int = 0  # t_imu = t_cam + time_offset_ns
+
+    @property
+    def T_cam1_cam0(self) -> np.ndarray:
+        return inv_T(self.cam1.T_body_cam) @ self.cam0.T_body_cam
+
+    @property
+    def baseline_m(self) -> float:
+        return float(np.linalg.norm(self.T_cam1_cam0[:3, 3]))
+
+
+# ---------------------------------------------------------------------------------------------- file I/O
+
+def _camera_to_dict(cam: CameraCalibration) -> dict:
+    return {
+        "camera_model": "pinhole",
+        "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+        "distortion_model": cam.distortion_model,
+        "distortion_coeffs": list(cam.distortion),
+        "resolution": [cam.width, cam.height],
+        "rate_hz": cam.rate_hz,
+        "T_body_cam": [list(map(float, row)) for row in cam.T_body_cam],
+    }
+
+
+def _need(d: dict, key: str, where: str):
+    if key not in d:
+        raise VioError(f"{where}: missing key '{key}'")
+    return d[key]
+
+
+def camera_from_dict(d: dict, where: str) -> CameraCalibration:
+    """Build a camera from our/kalibr-style keys; errors name `where` and the key."""
+    try:
+        fx, fy, cx, cy = (float(x) for x in _need(d, "intrinsics", where))
+        w, h = (int(x) for x in _need(d, "resolution", where))
+        model = str(d.get("camera_model", "pinhole"))
+        if model != "pinhole":
+            raise VioError(f"{where}: camera_model '{model}' is not supported (only 'pinhole')")
+        if "T_body_cam" in d:
+            T = np.asarray(d["T_body_cam"], dtype=float).reshape(4, 4)
+        elif "T_cam_imu" in d:
+            T = inv_T(np.asarray(d["T_cam_imu"], dtype=float).reshape(4, 4))
+        else:
+            raise VioError(f"{where}: missing key 'T_body_cam' (or kalibr's 'T_cam_imu')")
+        return CameraCalibration(
+            fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
+            distortion_model=str(d.get("distortion_model", "radtan")),
+            distortion=tuple(float(x) for x in d.get("distortion_coeffs", [0, 0, 0, 0])),
+            T_body_cam=T, rate_hz=float(d.get("rate_hz", 20.0)),
+        )
+    except VioError as e:
+        if str(e).startswith(where):
+            raise
+        raise VioError(f"{where}: {e}") from None
+    except (TypeError, ValueError) as e:
+        raise VioError(f"{where}: malformed value ({e})") from None
+
+
+def calibration_to_dict(calib: StereoCalibration) -> dict:
+    imu = calib.imu
+    return {
+        "cam0": _camera_to_dict(calib.cam0),
+        "cam1": _camera_to_dict(calib.cam1),
+        "imu": {
+            "gyroscope_noise_density": imu.gyroscope_noise_density,
+            "gyroscope_random_walk": imu.gyroscope_random_walk,
+            "accelerometer_noise_density": imu.accelerometer_noise_density,
+            "accelerometer_random_walk": imu.accelerometer_random_walk,
+            "update_rate": imu.rate_hz,
+        },
+        "time_offset_ns": int(calib.time_offset_ns),
+    }
+
+
+def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibration:
+    if not isinstance(d, dict):
+        raise VioError(f"{where}: expected a mapping with cam0, cam1, imu")
+    cam0 = camera_from_dict(_need(d, "cam0", where), f"{where}: cam0")
+    cam1 = camera_from_dict(_need(d, "cam1", where), f"{where}: cam1")
+    imu_d = d.get("imu", {}) or {}
+    try:
+        imu = ImuNoise(
+            gyroscope_noise_density=float(imu_d.get("gyroscope_noise_density", ImuNoise.gyroscope_noise_density)),
+            gyroscope_random_walk=float(imu_d.get("gyroscope_random_walk", ImuNoise.gyroscope_random_walk)),
+            accelerometer_noise_density=float(
+                imu_d.get("accelerometer_noise_density", ImuNoise.accelerometer_noise_density)),
+            accelerometer_random_walk=float(
+                imu_d.get("accelerometer_random_walk", ImuNoise.accelerometer_random_walk)),
+            rate_hz=float(imu_d.get("update_rate", imu_d.get("rate_hz", ImuNoise.rate_hz))),
+        )
+    except VioError as e:
+        raise VioError(f"{where}: imu: {e}") from None
+    except (TypeError, ValueError) as e:
+        raise VioError(f"{where}: imu: malformed value ({e})") from None
+    return StereoCalibration(cam0=cam0, cam1=cam1, imu=imu, time_offset_ns=int(d.get("time_offset_ns", 0)))
+
+
+def load_yaml(path: Path) -> dict:
+    """Read YAML, tolerating OpenCV's '%YAML:1.0' first line (EuRoC, VINS) that PyYAML rejects."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise VioError(f"{path}: cannot read ({e.strerror})") from None
+    lines = text.splitlines()
+    if lines and lines[0].startswith("%YAML:"):
+        lines = lines[1:]
+    text = "\n".join(lines).replace("!!opencv-matrix", "")
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise VioError(f"{path}: not valid YAML ({e})") from None
+    if not isinstance(data, dict):
+        raise VioError(f"{path}: expected a YAML mapping at top level")
+    return data
+
+
+def load_calibration(path: str | Path) -> StereoCalibration:
+    """Load the project's calibration file (see docs/formats.md)."""
+    return calibration_from_dict(load_yaml(Path(path)), where=str(path))
+
+
+def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
+    Path(path).write_text(
+        "# Kestrel VIO calibration (T_body_cam maps camera points into the body/IMU frame;\n"
+        "# t_imu = t_cam + time_offset_ns)\n" + yaml.safe_dump(calibration_to_dict(calib), sort_keys=False)
+    )

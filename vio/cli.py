@@ -1,0 +1,77 @@
+"""`vio` command line.
+
+Each subcommand lives in its own module with `add_arguments(parser)` and `run(args) -> int`. Command
+modules import heavy dependencies (gtsam, depthai, pymavlink, matplotlib) inside `run`, so that
+`vio --help` stays fast and a broken optional dependency breaks only the command that needs it."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from vio import VioError, __version__
+
+# name -> (module, one-line help). Modules define add_arguments(parser) and run(args) -> exit code.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("vio.sim.cli", "generate a synthetic stereo+IMU flight (EuRoC format) with known truth"),
+    "replay": ("vio.replay", "run the estimator on a recorded EuRoC dataset; write trajectory and stats"),
+    "eval": ("vio.evaluation", "compare an estimated trajectory with ground truth (ATE, RPE, plot)"),
+    "config": ("vio.config_cli", "check or show the configuration file"),
+    "calib": ("calib.cli", "import, show and check calibrations; IMU noise; camera-IMU time offset"),
+    "record": ("drivers.record", "record live sensors to a EuRoC dataset"),
+    "run": ("vio.service", "onboard daemon: sensors -> estimator -> MAVLink"),
+    "status": ("vio.status", "show the health of a running `vio run`"),
+}
+
+# Exit codes shared by all commands.
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_CONFIG = 3
+
+
+def _module_available(module: str) -> bool:
+    return importlib.util.find_spec(module.rsplit(".", 1)[0]) is not None and \
+        importlib.util.find_spec(module) is not None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vio",
+        description="Kestrel VIO: stereo visual-inertial odometry for drones.",
+    )
+    parser.add_argument("--version", action="version", version=f"kestrel-vio {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        if not _module_available(module):
+            continue
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        importlib.import_module(module).add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except VioError as e:
+        print(f"vio {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        print(f"vio {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

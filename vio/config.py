@@ -1,0 +1,218 @@
+"""One validated configuration for the whole program, read from a TOML file.
+
+Every section is a frozen dataclass; each field carries its help text and bounds, so that the loader can
+reject a bad file with a message naming the file, the key and the reason, and `vio config show` can print
+the effective values. Unknown keys are errors (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_type_hints
+
+from vio import VioError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+def opt(default: Any, help: str, *, min: float | None = None, max: float | None = None,
+        choices: tuple | None = None) -> Any:
+    """A config field with its documentation and validation bounds."""
+    meta = {"help": help, "min": min, "max": max, "choices": choices}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    max_features: int = opt(200, "features kept per left image", min=10, max=2000)
+    min_distance_px: int = opt(20, "minimum spacing between detected features", min=1, max=200)
+    grid_cols: int = opt(8, "detection grid columns (spreads features over the image)", min=1, max=64)
+    grid_rows: int = opt(6, "detection grid rows", min=1, max=64)
+    klt_window_px: int = opt(21, "KLT window size (odd)", min=5, max=99)
+    klt_pyramid_levels: int = opt(3, "KLT pyramid levels", min=0, max=8)
+    fb_check_px: float = opt(1.0, "forward-backward KLT error above which a track is dropped", min=0.05, max=20)
+    ransac_threshold_px: float = opt(1.0, "RANSAC inlier threshold on temporal matches", min=0.1, max=20)
+    stereo_max_epipolar_px: float = opt(2.0, "max distance of a right match from the epipolar line", min=0.1, max=20)
+    min_depth_m: float = opt(0.2, "stereo depth below which a match is rejected", min=0.01, max=100)
+    max_depth_m: float = opt(40.0, "stereo depth beyond which a match is rejected", min=0.5, max=1000)
+    use_imu_prediction: bool = opt(True, "predict feature motion from the gyro (keeps tracks in fast yaw)")
+    clahe: bool = opt(False, "contrast-limited histogram equalisation before tracking")
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    lag_s: float = opt(2.0, "fixed-lag smoother window length", min=0.2, max=60)
+    keyframe_min_parallax_px: float = opt(10.0, "median parallax that makes a new keyframe", min=0.0, max=200)
+    keyframe_max_interval_s: float = opt(0.25, "longest time between keyframes", min=0.01, max=10)
+    keyframe_min_tracks: int = opt(50, "tracked features below which a keyframe is forced", min=0, max=2000)
+    pixel_sigma: float = opt(1.0, "std of feature measurements", min=0.05, max=20)
+    huber_k: float = opt(1.345, "Huber threshold (in sigmas) of the robust visual loss", min=0.1, max=100)
+    min_tracks_ok: int = opt(15, "tracked features below which tracking is lost", min=3, max=1000)
+    max_speed_m_s: float = opt(30.0, "velocity above which the estimate is implausible (reset)", min=1, max=1000)
+    max_gyro_bias_rad_s: float = opt(0.3, "gyro bias above which the estimate is implausible", min=0.01, max=10)
+    max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    static_window_s: float = opt(0.5, "still IMU needed for a static start", min=0.05, max=30)
+    static_gyro_std_rad_s: float = opt(0.02, "gyro std under which the vehicle counts as still", min=1e-4, max=1)
+    static_accel_std_m_s2: float = opt(0.5, "accel std under which the vehicle counts as still", min=1e-3, max=10)
+    allow_moving_start: bool = opt(True, "initialise in motion by visual-inertial alignment")
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    url: str = opt("", "mavutil connection string (udpout:127.0.0.1:14550, /dev/ttyAMA0:921600); empty = off")
+    rate_hz: float = opt(30.0, "output rate of pose messages", min=1, max=200)
+    messages: list = opt(["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"],
+                         "messages to send")
+    system_id: int = opt(0, "our system id; 0 = take the autopilot's from its heartbeat", min=0, max=255)
+    target_system: int = opt(1, "autopilot system id used until its heartbeat is seen", min=1, max=255)
+    mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "body(IMU)->vehicle FRD mounting roll/pitch/yaw [deg]")
+    mount_offset_m: list = opt([0.0, 0.0, 0.0], "IMU position in the vehicle FRD frame [m]")
+    delay_ms: float = opt(0.0, "extra latency to report/document for VISO_DELAY_MS", min=0, max=1000)
+    origin_lat_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN latitude; nan = do not send")
+    origin_lon_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN longitude")
+    origin_alt_m: float = opt(0.0, "SET_GPS_GLOBAL_ORIGIN altitude (AMSL)")
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    kind: str = opt("oak", "sensor source", choices=("oak", "euroc", "fake"))
+    dataset: str = opt("", "EuRoC dataset path when kind = 'euroc'")
+    calibration: str = opt("", "calibration file; empty = from the device / dataset")
+    fps: float = opt(20.0, "camera frame rate", min=1, max=120)
+    width: int = opt(640, "camera width", min=64, max=4096)
+    height: int = opt(400, "camera height", min=64, max=4096)
+    imu_rate_hz: float = opt(200.0, "IMU rate", min=50, max=2000)
+    imu: str = opt("oak", "IMU source", choices=("oak", "serial", "mavlink", "none"))
+    serial_port: str = opt("/dev/ttyUSB0", "serial IMU port")
+    serial_baud: int = opt(921600, "serial IMU baud rate", min=1200, max=12_000_000)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    record_dir: str = opt("", "record sensors to this EuRoC folder while running; empty = off")
+    trajectory_file: str = opt("", "append the estimated trajectory (TUM) here; empty = off")
+    status_file: str = opt("/run/kestrel-vio/status.json", "health file read by `vio status`")
+    queue_frames: int = opt(4, "camera frames buffered before the oldest is dropped", min=1, max=100)
+    log_level: str = opt("INFO", "logging level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+@dataclass(frozen=True)
+class VioConfig:
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    source: SourceConfig = field(default_factory=SourceConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+
+
+
+def _section_types() -> dict[str, type]:
+    return get_type_hints(VioConfig)
+
+
+def _check_value(where: str, name: str, fld: dataclasses.Field, typ: Any, value: Any) -> Any:
+    """Coerce int->float, check type, bounds and choices; raise VioError naming the key."""
+    tname = getattr(typ, "__name__", str(typ))
+    if typ is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    ok = (typ is bool and isinstance(value, bool)) or (
+        typ is not bool and not isinstance(value, bool) and isinstance(value, typ))
+    if not ok:
+        raise VioError(f"{where}: '{name}' must be {tname}, got {type(value).__name__} {value!r}")
+    meta = fld.metadata
+    if isinstance(value, float) and math.isnan(value) and meta.get("min") is None:
+        return value
+    if meta.get("min") is not None and (value < meta["min"] or (isinstance(value, float) and math.isnan(value))):
+        raise VioError(f"{where}: '{name}' = {value!r} is below the minimum {meta['min']}")
+    if meta.get("max") is not None and value > meta["max"]:
+        raise VioError(f"{where}: '{name}' = {value!r} is above the maximum {meta['max']}")
+    if meta.get("choices") and value not in meta["choices"]:
+        raise VioError(f"{where}: '{name}' = {value!r} is not one of {list(meta['choices'])}")
+    return value
+
+
+def _build_section(cls: type, data: Any, where: str) -> Any:
+    if not isinstance(data, dict):
+        raise VioError(f"{where}: expected a table of settings, got {type(data).__name__}")
+    hints = get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            hint = difflib.get_close_matches(key, list(fields), n=1)
+            more = f" (did you mean '{hint[0]}'?)" if hint else f"; known keys: {', '.join(fields)}"
+            raise VioError(f"{where}: unknown key '{key}'{more}")
+        kwargs[key] = _check_value(where, key, fields[key], hints[key], value)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict, source: str = "config") -> VioConfig:
+    """Validate a parsed TOML mapping into a VioConfig; every error names `source`, section and key."""
+    types = _section_types()
+    sections = {}
+    for name, value in data.items():
+        if name not in types:
+            hint = difflib.get_close_matches(name, list(types), n=1)
+            more = f" (did you mean [{hint[0]}]?)" if hint else f"; known sections: {', '.join(types)}"
+            raise VioError(f"{source}: unknown section [{name}]{more}")
+        sections[name] = _build_section(types[name], value, f"{source}: [{name}]")
+    return VioConfig(**sections)
+
+
+def load_config(path: str | Path | None) -> VioConfig:
+    """Load and validate a TOML config file; None gives the defaults."""
+    if path is None:
+        return VioConfig()
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise VioError(f"{path}: cannot read config ({e.strerror})") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+        raise VioError(f"{path}: not valid TOML ({e})") from None
+    return config_from_dict(data, str(path))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def config_to_toml(cfg: VioConfig, with_help: bool = True) -> str:
+    """Effective configuration as TOML (loadable again), with each key's help as a comment."""
+    out = []
+    for sec in dataclasses.fields(cfg):
+        section = getattr(cfg, sec.name)
+        out.append(f"[{sec.name}]")
+        for f in dataclasses.fields(section):
+            line = f"{f.name} = {_toml_value(getattr(section, f.name))}"
+            if with_help and f.metadata.get("help"):
+                line = f"{line:<48} # {f.metadata['help']}"
+            out.append(line)
+        out.append("")
+    return "\n".join(out)

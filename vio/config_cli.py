@@ -1,0 +1,24 @@
+"""`vio config check FILE` and `vio config show [FILE]`."""
+
+from __future__ import annotations
+
+import argparse
+
+from vio.config import config_to_toml, load_config
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="config_cmd", metavar="ACTION", required=True)
+    c = sub.add_parser("check", help="validate a TOML config file")
+    c.add_argument("file")
+    s = sub.add_parser("show", help="print the effective config (defaults merged with FILE)")
+    s.add_argument("file", nargs="?")
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.file)
+    if args.config_cmd == "check":
+        print(f"{args.file}: OK")
+    else:
+        print(config_to_toml(cfg), end="")
+    return 0

@@ -1,0 +1,106 @@
+"""Rotations and rigid transforms on numpy arrays.
+
+Quaternions are Hamilton; arrays carry their component order in the name (`q_wxyz`, `q_xyzw`).
+Conversions go through scipy's Rotation so we do not hand-roll quaternion algebra.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+GRAVITY_M_S2 = 9.81
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 cross-product matrix: skew(a) @ b == a x b."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def quat_wxyz_to_rot(q_wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrix (..., 3, 3) from Hamilton quaternions (..., 4) in w,x,y,z order (normalised here)."""
+    q = np.asarray(q_wxyz, dtype=float)
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()
+
+
+def rot_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Hamilton quaternion(s) w,x,y,z with w >= 0 from rotation matrix/matrices."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()[..., [3, 0, 1, 2]]
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis * angle, rad)."""
+    return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, rad) of a rotation matrix."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 transform from rotation R (3x3) and translation t (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (or a stack of them, shape (..., 4, 4))."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
+    """p_a = T_a_b @ p_b for points p_b of shape (N, 3)."""
+    return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (robust to round-off)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def is_rotation(R: np.ndarray, tol: float = 1e-6) -> bool:
+    """True if R is orthonormal with determinant +1 within tol."""
+    R = np.asarray(R, dtype=float)
+    return R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
+
+
+def is_se3(T: np.ndarray, tol: float = 1e-6) -> bool:
+    """True if T is a valid 4x4 rigid transform."""
+    T = np.asarray(T, dtype=float)
+    return T.shape == (4, 4) and is_rotation(T[:3, :3], tol) and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
+
+
+def roll_pitch_yaw(R_world_body: np.ndarray) -> np.ndarray:
+    """Z-Y-X Euler angles (roll, pitch, yaw) in rad of a world(z-up)<-body rotation."""
+    return Rotation.from_matrix(R_world_body).as_euler("ZYX")[::-1].copy()
+
+
+def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
+    """R_world_body with zero yaw that makes the measured specific force point along world +z.
+
+    A still accelerometer reads R_world_body^T @ [0, 0, g]; the smallest rotation taking the measured
+    direction onto +z leaves yaw unobservable, as it is.
+    """
+    a = np.asarray(accel_body, dtype=float)
+    n = np.linalg.norm(a)
+    if n < 1e-6:
+        raise ValueError("accelerometer reads zero: cannot find gravity")
+    z_body = a / n
+    R, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [z_body])
+    R_wb = R.as_matrix()
+    yaw = roll_pitch_yaw(R_wb)[2]
+    return so3_exp(np.array([0.0, 0.0, -yaw])) @ R_wb

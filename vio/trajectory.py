@@ -1,0 +1,138 @@
+"""Trajectories (time stamps + poses T_world_body) and the TUM file format used by evo.
+
+TUM lines are `t x y z qx qy qz qw` with t in seconds; inside we keep integer nanoseconds. Seconds are
+written with 9 decimals so that a round trip keeps the nanoseconds exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from vio import VioError
+from vio.geometry import quat_wxyz_to_rot
+
+
+@dataclass
+class Trajectory:
+    """N poses of the body in the world: t_ns (N,) int64, p (N, 3) metres, q_wxyz (N, 4) Hamilton."""
+
+    t_ns: np.ndarray
+    p: np.ndarray
+    q_wxyz: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.t_ns = np.asarray(self.t_ns, dtype=np.int64).reshape(-1)
+        self.p = np.asarray(self.p, dtype=float).reshape(-1, 3)
+        q = np.asarray(self.q_wxyz, dtype=float).reshape(-1, 4)
+        n = np.linalg.norm(q, axis=1, keepdims=True)
+        if len(q) and (not np.all(np.isfinite(q)) or np.any(n < 1e-9)):
+            raise VioError("trajectory has an invalid (zero or non-finite) quaternion")
+        self.q_wxyz = q / np.where(n > 0, n, 1.0)
+        if not (len(self.t_ns) == len(self.p) == len(self.q_wxyz)):
+            raise VioError("trajectory arrays differ in length")
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @classmethod
+    def from_poses(cls, t_ns: np.ndarray, T_world_body: np.ndarray) -> Trajectory:
+        T = np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4)
+        q = Rotation.from_matrix(T[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
+        return cls(t_ns, T[:, :3, 3], q)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        return self.t_ns * 1e-9
+
+    def rotations(self) -> np.ndarray:
+        """(N, 3, 3) rotation matrices R_world_body."""
+        return quat_wxyz_to_rot(self.q_wxyz) if len(self) else np.zeros((0, 3, 3))
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) transforms T_world_body."""
+        T = np.tile(np.eye(4), (len(self), 1, 1))
+        T[:, :3, :3] = self.rotations()
+        T[:, :3, 3] = self.p
+        return T
+
+    def subset(self, idx: np.ndarray) -> Trajectory:
+        return Trajectory(self.t_ns[idx], self.p[idx], self.q_wxyz[idx])
+
+    def path_length_m(self) -> float:
+        return float(np.sum(np.linalg.norm(np.diff(self.p, axis=0), axis=1))) if len(self) > 1 else 0.0
+
+    def interpolate(self, t_ns: np.ndarray) -> Trajectory:
+        """Poses at `t_ns` (linear in position, slerp in rotation); times must lie inside the span."""
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        if len(self) < 2:
+            raise VioError("need at least two poses to interpolate")
+        if t_ns.min() < self.t_ns[0] or t_ns.max() > self.t_ns[-1]:
+            raise VioError("interpolation times lie outside the trajectory")
+        rel = (self.t_ns - self.t_ns[0]).astype(float)
+        q_rel = (t_ns - self.t_ns[0]).astype(float)
+        p = np.stack([np.interp(q_rel, rel, self.p[:, k]) for k in range(3)], axis=1)
+        slerp = Slerp(rel, Rotation.from_quat(self.q_wxyz[:, [1, 2, 3, 0]]))
+        q = slerp(q_rel).as_quat()[:, [3, 0, 1, 2]]
+        return Trajectory(t_ns, p, q)
+
+
+def write_tum(traj: Trajectory, path: str | Path) -> None:
+    """Write `t x y z qx qy qz qw` lines (t in seconds, 9 decimals)."""
+    with open(path, "w") as f:
+        f.write("# timestamp[s] x y z qx qy qz qw  (T_world_body)\n")
+        for t, p, q in zip(traj.t_ns, traj.p, traj.q_wxyz):
+            f.write(format_tum_line(int(t), p, q))
+
+
+def format_tum_line(t_ns: int, p: np.ndarray, q_wxyz: np.ndarray) -> str:
+    sec, ns = divmod(int(t_ns), 1_000_000_000)
+    return (f"{sec}.{ns:09d} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+            f"{q_wxyz[1]:.9f} {q_wxyz[2]:.9f} {q_wxyz[3]:.9f} {q_wxyz[0]:.9f}\n")
+
+
+def _seconds_to_ns(text: str) -> int:
+    """Exact seconds->ns for decimal strings (float64 would lose ns at epoch-scale stamps)."""
+    text = text.strip()
+    if "e" in text.lower():
+        return int(round(float(text) * 1e9))
+    neg = text.startswith("-")
+    whole, _, frac = text.lstrip("+-").partition(".")
+    ns = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9] or "0")
+    return -ns if neg else ns
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory; errors name the file and line."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as e:
+        raise VioError(f"{path}: cannot read ({e.strerror})") from None
+    except UnicodeDecodeError:
+        raise VioError(f"{path}: not a text file") from None
+    t, p, q = [], [], []
+    for i, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise VioError(f"{path}:{i}: expected 8 values 't x y z qx qy qz qw', got {len(parts)}")
+        try:
+            t.append(_seconds_to_ns(parts[0]))
+            vals = [float(x) for x in parts[1:]]
+        except ValueError:
+            raise VioError(f"{path}:{i}: not a number in {s!r}") from None
+        if not np.all(np.isfinite(vals)):
+            raise VioError(f"{path}:{i}: non-finite value")
+        p.append(vals[0:3])
+        q.append([vals[6], vals[3], vals[4], vals[5]])
+        if len(t) > 1 and t[-1] <= t[-2]:
+            raise VioError(f"{path}:{i}: time stamp not increasing")
+    if not t:
+        raise VioError(f"{path}: no poses")
+    return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(q))
