@@ -51,3 +51,36 @@ class NavState:
     quality: int = 100
     omega_body: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: bool = True
+
+
+@dataclass(frozen=True)
+class FeatureFrame:
+    """Front-end output for one stereo frame: the contract between front end and back end.
+
+    Row k describes the track `ids[k]` (ids are unique for the life of a track and never reused).
+    Coordinates are *undistorted pixels* of an ideal pinhole camera with the same K as the real one
+    (cam0 K for `uv0`, cam1 K for `uv1`), so the back end can use plain pinhole projection factors with
+    `Cal3_S2(K)` and `T_body_cam` as body_P_sensor. `uv1` and `depth_m` are NaN where no stereo match
+    passed the checks. `depth_m` is the triangulated depth along cam0's optical axis.
+    """
+
+    t_ns: int  # camera time stamp (camera clock; the estimator applies the calibration's time offset)
+    ids: np.ndarray  # (N,) int64 track ids
+    uv0: np.ndarray  # (N, 2) float undistorted pixels in cam0
+    uv1: np.ndarray  # (N, 2) float undistorted pixels in cam1, NaN without stereo match
+    depth_m: np.ndarray  # (N,) float depth in cam0, NaN without stereo match
+    track_len: np.ndarray  # (N,) int number of frames this track has been seen (1 = new)
+    parallax_px: float = 0.0  # median parallax of tracks shared with the last keyframe (rotation-compensated)
+    tracking_ok: bool = True  # False: bad frame (black, blurred, out of order...): no usable observations
+    reason: str = ""  # why tracking_ok is False, for logs
+    timings_ms: dict = field(default_factory=dict)  # per-stage front-end timings
+
+    @property
+    def n_stereo(self) -> int:
+        return int(np.count_nonzero(np.isfinite(self.depth_m)))
+
+    @staticmethod
+    def empty(t_ns: int, reason: str) -> FeatureFrame:
+        z = np.zeros((0, 2))
+        return FeatureFrame(t_ns, np.zeros(0, np.int64), z, z.copy(), np.zeros(0), np.zeros(0, np.int64),
+                            tracking_ok=False, reason=reason)
