@@ -49,8 +49,14 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, help_text) in COMMANDS.items():
         if not _module_available(module):
             continue
+        try:
+            mod = importlib.import_module(module)
+        except Exception as e:  # a broken optional module must not take the whole CLI down
+            logging.getLogger(__name__).debug("command %s unavailable: %s", name, e)
+            sub.add_parser(name, help=f"{help_text} (unavailable: {e})")
+            continue
         p = sub.add_parser(name, help=help_text, description=help_text)
-        importlib.import_module(module).add_arguments(p)
+        mod.add_arguments(p)
         p.set_defaults(_module=module)
     return parser
 
@@ -60,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    if getattr(args, "command", None) and not hasattr(args, "_module"):
+        print(f"vio {args.command}: this command is unavailable in this installation", file=sys.stderr)
+        return EXIT_FAILURE
     if not getattr(args, "command", None):
         parser.print_help()
         return EXIT_USAGE
