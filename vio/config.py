@@ -107,6 +107,13 @@ class RunConfig:
     trajectory_file: str = opt("", "append the estimated trajectory (TUM) here; empty = off")
     status_file: str = opt("/run/kestrel-vio/status.json", "health file read by `vio status`")
     queue_frames: int = opt(4, "camera frames buffered before the oldest is dropped", min=1, max=100)
+    queue_imu: int = opt(4000, "IMU samples buffered (20 s at 200 Hz); overflow is counted and logged",
+                         min=100, max=1_000_000)
+    source_timeout_s: float = opt(2.0, "no sensor data for this long = source lost; it is reopened", min=0.2, max=60)
+    reconnect_max_s: float = opt(5.0, "longest wait between attempts to reopen a lost source", min=0.1, max=300)
+    max_imu_gap_s: float = opt(0.5, "IMU gap after which the estimator is reset", min=0.02, max=60)
+    stall_timeout_s: float = opt(20.0, "inputs flowing but no pose for this long = stalled: the systemd "
+                                 "watchdog stops being fed (restart)", min=1, max=3600)
     log_level: str = opt("INFO", "logging level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
 
