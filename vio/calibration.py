@@ -109,7 +109,8 @@ class CameraCalibration:
             out = cv2.fisheye.undistortPoints(pts, self.K, self.dist_coeffs)
         else:
             crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
-            out = cv2.undistortPointsIter(pts, self.K, self.dist_coeffs, None, None, crit)
+            # undistortPointsIter is gone in OpenCV 5; undistortPoints takes the criteria (needs explicit R, P)
+            out = cv2.undistortPoints(pts, self.K, self.dist_coeffs, None, np.eye(3), np.eye(3), crit)
         return out.reshape(-1, 2)
 
     def with_T_body_cam(self, T: np.ndarray) -> CameraCalibration:
