@@ -61,6 +61,15 @@ class BackendConfig:
     max_speed_m_s: float = opt(30.0, "velocity above which the estimate is implausible (reset)", min=1, max=1000)
     max_gyro_bias_rad_s: float = opt(0.3, "gyro bias above which the estimate is implausible", min=0.01, max=10)
     max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
+    imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities", min=0.1, max=100)
+    extra_iterations: int = opt(1, "extra smoother relinearisation passes per keyframe", min=0, max=10)
+    max_landmarks: int = opt(120, "landmarks observed per keyframe (longest tracks first)", min=10, max=2000)
+    max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
+    min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
+    max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
+    outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
+    lost_timeout_s: float = opt(1.0, "tracking lost this long -> reset", min=0.05, max=60)
+    zupt_max_parallax_px: float = opt(0.5, "parallax under which a still IMU also means still vision", min=0, max=20)
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,8 @@ class InitConfig:
     static_gyro_std_rad_s: float = opt(0.02, "gyro std under which the vehicle counts as still", min=1e-4, max=1)
     static_accel_std_m_s2: float = opt(0.5, "accel std under which the vehicle counts as still", min=1e-3, max=10)
     allow_moving_start: bool = opt(True, "initialise in motion by visual-inertial alignment")
+    moving_window_s: float = opt(1.0, "frames collected for the in-motion alignment", min=0.2, max=10)
+    moving_min_frames: int = opt(6, "frames with a visual pose needed for the in-motion alignment", min=3, max=100)
 
 
 @dataclass(frozen=True)
