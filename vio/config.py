@@ -47,6 +47,14 @@ class FrontendConfig:
     max_depth_m: float = opt(40.0, "stereo depth beyond which a match is rejected", min=0.5, max=1000)
     use_imu_prediction: bool = opt(True, "predict feature motion from the gyro (keeps tracks in fast yaw)")
     clahe: bool = opt(False, "contrast-limited histogram equalisation before tracking")
+    fast_threshold: int = opt(20, "FAST corner threshold (halved once when too few corners)", min=1, max=255)
+    gain_compensation: bool = opt(True, "scale each image to the previous one's mean brightness before KLT")
+    min_mean_intensity: float = opt(12.0, "mean grey level below which a frame is too dark", min=0, max=255)
+    max_saturated_fraction: float = opt(0.7, "fraction of pixels >= 250 above which a frame is saturated",
+                                        min=0.0, max=1.0)
+    min_gradient_energy: float = opt(2.0, "mean |gradient| (grey levels/px, half resolution) below which a "
+                                     "frame is too blurred or textureless", min=0.0, max=255)
+    min_features_ok: int = opt(10, "tracked features below which the frame is reported as not ok", min=0, max=2000)
 
 
 @dataclass(frozen=True)
