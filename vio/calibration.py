@@ -172,11 +172,11 @@ class StereoCalibration:
 def _camera_to_dict(cam: CameraCalibration) -> dict:
     return {
         "camera_model": "pinhole",
-        "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+        "intrinsics": [float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)],  # numpy scalars break yaml
         "distortion_model": cam.distortion_model,
         "distortion_coeffs": list(cam.distortion),
-        "resolution": [cam.width, cam.height],
-        "rate_hz": cam.rate_hz,
+        "resolution": [int(cam.width), int(cam.height)],
+        "rate_hz": float(cam.rate_hz),
         "T_body_cam": [list(map(float, row)) for row in cam.T_body_cam],
     }
 
