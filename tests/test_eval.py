@@ -1,0 +1,262 @@
+"""Trajectory evaluation: alignment, ATE, RPE, coverage, evo cross-check and the `vio eval` command."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vio import VioError
+from vio.cli import main
+from vio.evaluation import align_4dof, associate, evaluate, load_trajectory
+from vio.geometry import make_T, so3_exp
+from vio.trajectory import Trajectory, write_tum
+
+RATE_HZ = 50
+
+
+def _flight(duration_s: float = 60.0, t0_ns: int = 1_700_000_000_000_000_000) -> Trajectory:
+    """A smooth 3D figure with heading along the velocity and a little roll/pitch."""
+    t = np.arange(int(duration_s * RATE_HZ)) / RATE_HZ
+    p = np.stack([2.0 * np.sin(0.3 * t), 1.5 * np.sin(0.2 * t + 1.0), 1.0 + 0.3 * np.sin(0.5 * t)], axis=1)
+    v = np.gradient(p, t, axis=0)
+    yaw = np.arctan2(v[:, 1], v[:, 0])
+    R = np.stack([so3_exp([0, 0, y]) @ so3_exp([0.1 * np.sin(0.7 * s), 0.05 * np.cos(0.4 * s), 0])
+                  for y, s in zip(yaw, t)])
+    T = np.tile(np.eye(4), (len(t), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, p
+    return Trajectory.from_poses(t0_ns + np.round(t * 1e9).astype(np.int64), T)
+
+
+def _line(n: int = 500, speed_m_s: float = 1.0) -> Trajectory:
+    t = np.arange(n) / RATE_HZ
+    p = np.stack([speed_m_s * t, np.zeros(n), np.ones(n)], axis=1)
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    return Trajectory(np.round(t * 1e9).astype(np.int64) + 10**18, p, q)
+
+
+def _moved(traj: Trajectory, T_new_old: np.ndarray) -> Trajectory:
+    return Trajectory.from_poses(traj.t_ns, T_new_old @ traj.poses())
+
+
+@pytest.fixture(scope="module")
+def gt() -> Trajectory:
+    return _flight()
+
+
+def test_self_is_zero(gt):
+    r = evaluate(gt, gt)
+    assert r.n_matched == len(gt)
+    for a in (r.ate_4dof, r.ate_se3):
+        assert a.trans_m.rmse < 1e-9 and a.trans_m.max < 1e-9
+        assert a.rot_deg.max < 1e-4
+    assert r.rpe and all(s.trans_pct < 1e-7 and s.rot_deg_per_m < 1e-4 for s in r.rpe)
+    assert r.coverage == pytest.approx(1.0)
+    assert r.longest_gap_s == pytest.approx(1 / RATE_HZ)
+    assert r.path_length_m == pytest.approx(gt.path_length_m())
+
+
+def test_rigid_transform_is_removed_by_se3_and_4dof_keeps_tilt(gt):
+    T = make_T(so3_exp([0.2, -0.1, 1.3]), [5.0, -2.0, 0.7])
+    r = evaluate(_moved(gt, T), gt)
+    assert r.ate_se3.trans_m.rmse < 1e-6
+    assert r.ate_se3.rot_deg.max < 1e-4
+    assert np.allclose(r.ate_se3.T_gtworld_estworld, np.linalg.inv(T), atol=1e-6)
+    # the 4-DoF fit cannot undo roll/pitch: a large error remains, and the relative errors do not care
+    assert r.ate_4dof.trans_m.rmse > 0.05
+    assert r.ate_4dof.rot_deg.mean > 5.0
+    assert all(s.trans_pct < 1e-6 for s in r.rpe)
+
+
+def test_yaw_and_translation_are_removed_by_4dof(gt):
+    T = make_T(so3_exp([0, 0, -2.5]), [1.0, 2.0, 3.0])
+    r = evaluate(_moved(gt, T), gt)
+    assert r.ate_4dof.trans_m.rmse < 1e-9
+    assert r.ate_4dof.rot_deg.max < 1e-4
+    assert np.allclose(r.ate_4dof.T_gtworld_estworld, np.linalg.inv(T), atol=1e-9)
+
+
+def test_4dof_differs_from_se3_when_roll_pitch_wrong(gt):
+    """A 3 degree roll of the whole estimate: SE(3) hides it, 4-DoF shows it as ~3 degrees."""
+    r = evaluate(_moved(gt, make_T(so3_exp([math.radians(3.0), 0, 0]), np.zeros(3))), gt)
+    assert r.ate_se3.rot_deg.rmse < 1e-4
+    assert r.ate_4dof.rot_deg.mean == pytest.approx(3.0, abs=0.05)
+    assert r.ate_4dof.trans_m.rmse > 10 * r.ate_se3.trans_m.rmse + 0.01
+
+
+def test_known_alternating_height_error(gt):
+    """+-d in z on alternate poses: neither yaw nor a translation can remove it, so 4-DoF ATE is exactly d."""
+    d = 0.05
+    p = gt.p.copy()
+    p[:, 2] += d * np.where(np.arange(len(gt)) % 2 == 0, 1.0, -1.0)
+    r = evaluate(Trajectory(gt.t_ns, p, gt.q_wxyz), gt)
+    assert r.ate_4dof.trans_m.rmse == pytest.approx(d, rel=1e-9)
+    assert r.ate_4dof.trans_m.max == pytest.approx(d, rel=1e-9)
+    assert r.ate_se3.trans_m.rmse == pytest.approx(d, rel=0.01)
+
+
+def test_known_noise(gt):
+    sigma = 0.02
+    rng = np.random.default_rng(3)
+    r = evaluate(Trajectory(gt.t_ns, gt.p + rng.normal(0, sigma, gt.p.shape), gt.q_wxyz), gt)
+    assert r.ate_se3.trans_m.rmse == pytest.approx(sigma * math.sqrt(3), rel=0.05)
+    assert r.ate_4dof.trans_m.rmse == pytest.approx(sigma * math.sqrt(3), rel=0.05)
+
+
+def test_rpe_scale_drift_is_percent_of_distance():
+    gt = _line()
+    est = Trajectory(gt.t_ns, gt.p * [1.01, 1, 1], gt.q_wxyz)
+    r = evaluate(est, gt, rpe_lengths_m=(1.0, 5.0))
+    assert [s.length_m for s in r.rpe] == [1.0, 5.0]
+    for s in r.rpe:
+        assert s.trans_pct == pytest.approx(1.0, rel=1e-6)
+        assert s.n_pairs > 0
+    # 10 m path: no 20 m segments, so that length is left out
+    assert [s.length_m for s in evaluate(est, gt, rpe_lengths_m=(2.0, 20.0)).rpe] == [2.0]
+
+
+def test_rpe_yaw_drift_is_deg_per_metre():
+    gt = _line()
+    k_deg_per_m = 0.5
+    dist = gt.p[:, 0] - gt.p[0, 0]
+    T = gt.poses()
+    T[:, :3, :3] = np.stack([so3_exp([0, 0, math.radians(k_deg_per_m * s)]) for s in dist])
+    r = evaluate(Trajectory.from_poses(gt.t_ns, T), gt, rpe_lengths_m=(1.0, 3.0))
+    for s in r.rpe:
+        assert s.rot_deg_per_m == pytest.approx(k_deg_per_m, rel=1e-6)
+
+
+def test_coverage_and_gaps(gt):
+    t_s = (gt.t_ns - gt.t_ns[0]) * 1e-9
+    keep = ((t_s >= 5.0) & (t_s < 20.0)) | (t_s >= 30.0)
+    r = evaluate(gt.subset(np.flatnonzero(keep)), gt, rpe_lengths_m=(2.0,))
+    span = t_s[-1]
+    assert r.gt_span_s == pytest.approx(span)
+    assert r.coverage == pytest.approx((span - 5.0 - 10.0 - 1 / RATE_HZ) / span, abs=1e-6)
+    assert r.longest_gap_s == pytest.approx(10.0 + 1 / RATE_HZ, abs=1e-6)
+    # segments across the gap are not counted
+    full = evaluate(gt, gt, rpe_lengths_m=(2.0,))
+    assert 0 < r.rpe[0].n_pairs < full.rpe[0].n_pairs - 100
+    # max gap above the hole: counted as covered
+    assert evaluate(gt.subset(np.flatnonzero(keep)), gt, max_gap_s=20.0).coverage > r.coverage + 0.15
+
+
+def test_association_nearest_and_interpolated(gt):
+    """Estimates 7 ms after each GT stamp: nearest pairing carries a timing error, interpolated GT none."""
+    t = gt.t_ns[:-1] + 7_000_000
+    est = gt.interpolate(t)
+    idx, _ = associate(est, gt, 6_000_000)
+    assert len(idx) == 0
+    near = evaluate(est, gt, max_dt_ms=10.0)
+    assert near.n_matched == len(est)
+    assert near.ate_se3.trans_m.rmse > 1e-3
+    interp = evaluate(est, gt, max_dt_ms=10.0, interpolate=True)
+    assert interp.interpolated and interp.n_matched == len(est)
+    assert interp.ate_se3.trans_m.rmse < 1e-9 and interp.ate_4dof.trans_m.rmse < 1e-9
+
+
+def test_no_overlap_is_a_clear_error(gt):
+    later = Trajectory(gt.t_ns + 10**12, gt.p, gt.q_wxyz)
+    with pytest.raises(VioError, match=r"only 0 estimated poses have ground truth within 20 ms"):
+        evaluate(later, gt)
+
+
+def test_align_4dof_is_pure_yaw():
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(50, 3))
+    T = align_4dof(p, p @ so3_exp([0.3, 0.2, 0.1]).T)
+    assert np.allclose(T[2, :3], [0, 0, 1]) and np.allclose(T[:3, 2], [0, 0, 1])
+
+
+def _evo_ape_se3(est: Trajectory, gt: Trajectory, max_dt_s: float) -> float:
+    from evo.core import metrics, sync
+    from evo.core.trajectory import PoseTrajectory3D
+
+    ref = PoseTrajectory3D(positions_xyz=gt.p, orientations_quat_wxyz=gt.q_wxyz, timestamps=gt.t_s)
+    e = PoseTrajectory3D(positions_xyz=est.p, orientations_quat_wxyz=est.q_wxyz, timestamps=est.t_s)
+    ref, e = sync.associate_trajectories(ref, e, max_diff=max_dt_s)
+    e.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    return float(ape.get_statistic(metrics.StatisticsType.rmse))
+
+
+def _noisy_moved(gt: Trajectory, seed: int) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    drift = np.cumsum(rng.normal(0, 0.002, gt.p.shape), axis=0)
+    noisy = Trajectory(gt.t_ns, gt.p + drift, gt.q_wxyz)
+    return _moved(noisy, make_T(so3_exp([0.05, -0.02, 0.9]), [0.4, -1.0, 0.2]))
+
+
+def test_ate_se3_matches_evo(gt):
+    est = _noisy_moved(gt, 1).subset(np.arange(0, len(gt), 3))
+    ours = evaluate(est, gt, max_dt_ms=5.0).ate_se3.trans_m.rmse
+    assert ours > 0.01
+    assert ours == pytest.approx(_evo_ape_se3(est, gt, 0.005), abs=1e-6)
+
+
+def test_ate_se3_matches_evo_on_euroc_v102(v102_path):
+    gt = load_trajectory(v102_path)
+    assert len(gt) == 16702
+    est = _noisy_moved(gt, 2).subset(np.arange(0, len(gt), 10))
+    est = Trajectory(est.t_ns + 3_000_000, est.p, est.q_wxyz)  # 3 ms stamp offset: nearest association
+    ours = evaluate(est, gt, max_dt_ms=4.0)
+    assert ours.n_matched == len(est)
+    assert ours.ate_se3.trans_m.rmse == pytest.approx(_evo_ape_se3(est, gt, 0.004), abs=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ loading + CLI
+
+def test_load_euroc_csv_folder_and_tum(tmp_path, gt):
+    csv = tmp_path / "gt.csv"
+    rows = [f"{t}," + ",".join(repr(float(x)) for x in (*p, *q)) for t, p, q in zip(gt.t_ns[:20], gt.p, gt.q_wxyz)]
+    csv.write_text("#timestamp,px,py,pz,qw,qx,qy,qz\n" + "\n".join(rows) + "\n")
+    a = load_trajectory(csv)
+    assert np.array_equal(a.t_ns, gt.t_ns[:20])
+    assert np.allclose(a.p, gt.p[:20]) and np.allclose(a.q_wxyz, gt.q_wxyz[:20])
+    (tmp_path / "ds" / "mav0" / "state_groundtruth_estimate0").mkdir(parents=True)
+    (tmp_path / "ds" / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_text(csv.read_text())
+    assert np.array_equal(load_trajectory(tmp_path / "ds").t_ns, a.t_ns)
+    write_tum(gt, tmp_path / "gt.tum")
+    assert np.array_equal(load_trajectory(tmp_path / "gt.tum").t_ns, gt.t_ns)
+
+
+def test_cli_writes_summary_json_and_plot(tmp_path, gt, capsys):
+    write_tum(gt, tmp_path / "gt.txt")
+    write_tum(_noisy_moved(gt, 4), tmp_path / "est.txt")
+    rc = main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--plot",
+               str(tmp_path / "e.png"), "--json", str(tmp_path / "e.json"), "--rpe-lengths", "1,5"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "ATE 4-DoF" in out and "ATE SE(3)" in out and "RPE     5 m" in out and "coverage" in out
+    d = json.loads((tmp_path / "e.json").read_text())
+    assert d["n_matched"] == len(gt)
+    assert d["ate_se3"]["trans_m"]["rmse"] > 0 and len(d["rpe"]) == 2
+    assert np.array(d["ate_se3"]["T_gtworld_estworld"]).shape == (4, 4)
+    assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "missing.txt: file not found"),
+    ("malformed", "bad.txt:3: expected 8 values"),
+    ("nonnumber", "bad.txt:1: not a number"),
+    ("no_overlap", "only 0 estimated poses have ground truth"),
+])
+def test_cli_errors(tmp_path, gt, capsys, case, message):
+    write_tum(gt, tmp_path / "gt.txt")
+    est = tmp_path / "bad.txt"
+    if case == "missing":
+        est = tmp_path / "missing.txt"
+    elif case == "malformed":
+        est.write_text("# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")
+    elif case == "nonnumber":
+        est.write_text("1.0 0 0 zero 0 0 0 1\n")
+    else:
+        write_tum(Trajectory(gt.t_ns - 10**12, gt.p, gt.q_wxyz), est)
+    rc = main(["eval", str(est), str(tmp_path / "gt.txt")])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert message in err and err.startswith("vio eval: error:")
+    assert "Traceback" not in err
