@@ -104,6 +104,8 @@ class MavlinkConfig:
     origin_lat_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN latitude; nan = do not send")
     origin_lon_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN longitude")
     origin_alt_m: float = opt(0.0, "SET_GPS_GLOBAL_ORIGIN altitude (AMSL)")
+    link_timeout_s: float = opt(3.0, "autopilot heartbeat silence after which the link counts as lost",
+                                min=0.5, max=60)
 
 
 @dataclass(frozen=True)
