@@ -1,0 +1,124 @@
+"""`vio calib import|show|check|imu-noise|time-offset`.
+
+Heavy modules (cv2-based checks, allantools, matplotlib, depthai) are imported inside the actions so that
+`vio --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("kalibr", "euroc", "depthai", "opencv")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="calib_cmd", metavar="ACTION", required=True)
+
+    s = sub.add_parser("import", help="convert kalibr/EuRoC/depthai/OpenCV calibration to the project's file",
+                       description="kalibr: camchain-imucam.yaml [imu.yaml]; euroc: dataset folder or "
+                       "cam0/cam1[/imu0] sensor.yaml; depthai: calibration JSON; opencv: stereo yaml/xml "
+                       "(K1 D1 K2 D2 R T image size)")
+    s.add_argument("format", choices=FORMATS)
+    s.add_argument("files", nargs="+", type=Path)
+    s.add_argument("-o", "--output", type=Path, required=True, help="project calibration YAML to write")
+    s.add_argument("--cam-rate", type=float, default=20.0, help="camera frame rate [Hz] (files rarely say)")
+    s.add_argument("--translation-unit", choices=("m", "cm", "mm"), default="m",
+                   help="opencv only: unit of T (that of the calibration target)")
+
+    s = sub.add_parser("show", help="print a calibration file in human-readable form")
+    s.add_argument("file", type=Path)
+
+    s = sub.add_parser("check", help="check a calibration against a EuRoC recording (PASS/WARN/FAIL)")
+    s.add_argument("calibration", type=Path, help="project calibration YAML ('-' = the dataset's own)")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--max-frames", type=int, default=40, help="stereo pairs to use (evenly spread)")
+
+    s = sub.add_parser("imu-noise", help="IMU noise densities and random walks from Allan deviation")
+    s.add_argument("dataset", type=Path, help="EuRoC dataset (or its imu0/data.csv)")
+    s.add_argument("--start", type=float, default=None, help="first second to use (from the IMU start)")
+    s.add_argument("--end", type=float, default=None, help="last second to use (from the IMU start)")
+    s.add_argument("--plot", type=Path, help="write the Allan deviation plot (PNG)")
+    s.add_argument("-o", "--output", type=Path, help="write kalibr-style imu.yaml with the fitted noise")
+
+    s = sub.add_parser("time-offset", help="estimate the camera-IMU time offset (t_imu = t_cam + offset)")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("--calibration", type=Path, help="project calibration YAML (default: the dataset's)")
+    s.add_argument("--max-offset-ms", type=float, default=100.0, help="search range +-")
+    s.add_argument("--plot", type=Path, help="write the rate curves and correlation (PNG)")
+
+
+def _run_import(args: argparse.Namespace) -> int:
+    from calib.importers import import_calibration
+    from calib.show import format_calibration
+    from vio.calibration import save_calibration
+
+    kwargs = {"cam_rate_hz": args.cam_rate}
+    if args.format == "opencv":
+        kwargs["translation_unit"] = args.translation_unit
+    calib, notes = import_calibration(args.format, args.files, **kwargs)
+    save_calibration(calib, args.output)
+    print(format_calibration(calib, title=f"imported {args.format}: {' '.join(map(str, args.files))}"))
+    if notes.messages:  # each was logged as a warning when it arose
+        print(f"{len(notes.messages)} note(s) about assumptions/approximations: see the warnings above")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _run_show(args: argparse.Namespace) -> int:
+    from calib.show import format_calibration
+    from vio.calibration import load_calibration
+
+    print(format_calibration(load_calibration(args.file), title=str(args.file)))
+    return 0
+
+
+def _run_check(args: argparse.Namespace) -> int:
+    from calib.check import check_calibration, format_report
+    from vio.calibration import load_calibration
+
+    calib = None if str(args.calibration) == "-" else load_calibration(args.calibration)
+    results = check_calibration(args.dataset, calib, max_frames=args.max_frames)
+    print(format_report(results))
+    return 1 if any(r.verdict == "FAIL" for r in results) else 0
+
+
+def _run_imu_noise(args: argparse.Namespace) -> int:
+    from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
+
+    imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
+    result = analyse_imu(imu)
+    print(format_noise(result, source))
+    if args.plot:
+        from calib.allan import plot_allan
+
+        plot_allan(result, args.plot)
+        print(f"wrote {args.plot}")
+    if args.output:
+        write_imu_yaml(result.noise, args.output)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _run_time_offset(args: argparse.Namespace) -> int:
+    from calib.time_offset import estimate_time_offset_dataset
+
+    est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
+    print(est.summary())
+    if args.plot:
+        from calib.time_offset import plot_time_offset
+
+        plot_time_offset(est, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+_ACTIONS = {"import": _run_import, "show": _run_show, "check": _run_check, "imu-noise": _run_imu_noise,
+            "time-offset": _run_time_offset}
+
+
+def run(args: argparse.Namespace) -> int:
+    return _ACTIONS[args.calib_cmd](args)

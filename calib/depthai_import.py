@@ -1,0 +1,139 @@
+"""depthai (OAK) calibration -> StereoCalibration: the one conversion used by `vio calib import depthai` and
+by the live camera driver, so both read the device EEPROM the same way.
+
+depthai stores extrinsics in centimetres and with OpenCV's convention (getCameraExtrinsics(a, b) maps
+points of camera a into camera b, i.e. it is T_b_a); we ask for metres explicitly. Lenses are either
+OpenCV's 14-coefficient rational model (k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty) or fisheye (k1..k4). Our
+radtan model keeps k1 k2 p1 p2 k3 only; the dropped terms are reported, never silently lost.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vio import VioError
+from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration
+from vio.geometry import inv_T
+
+log = logging.getLogger(__name__)
+
+RADTAN_KEEP = 5  # k1 k2 p1 p2 k3
+_RATIONAL_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tx", "ty")
+
+
+@dataclass
+class ImportNotes:
+    """Things an importer had to approximate or assume; shown to the user and logged."""
+
+    messages: list[str] = field(default_factory=list)
+
+    def add(self, msg: str) -> None:
+        self.messages.append(msg)
+        log.warning(msg)
+
+
+def rational_to_radtan(coeffs, where: str, notes: ImportNotes | None = None,
+                       tol: float = 1e-9) -> tuple[float, ...]:
+    """OpenCV distortion vector (4, 5, 8, 12 or 14 values) -> radtan (k1, k2, p1, p2, k3).
+
+    The higher rational/prism/tilt terms cannot be represented; if any is non-zero the caller hears which.
+    """
+    d = [float(x) for x in np.asarray(coeffs, dtype=float).ravel()]
+    if len(d) not in (4, 5, 8, 12, 14):
+        raise VioError(f"{where}: OpenCV distortion needs 4, 5, 8, 12 or 14 coefficients, got {len(d)}")
+    extra = {n: v for n, v in zip(_RATIONAL_NAMES[RADTAN_KEEP:], d[RADTAN_KEEP:]) if abs(v) > tol}
+    if extra and notes is not None:
+        shown = ", ".join(f"{k}={v:.4g}" for k, v in extra.items())
+        notes.add(f"{where}: rational-model terms {shown} are non-zero but radtan keeps only k1 k2 p1 p2 k3; "
+                  "expect extra error near the image border (recalibrate with a 5-coefficient model to avoid)")
+    return tuple(d[:RADTAN_KEEP])
+
+
+def _camera(handler, socket, T_body_cam: np.ndarray, where: str, notes: ImportNotes, rate_hz: float,
+            size: tuple[int, int] | None) -> CameraCalibration:
+    import depthai as dai
+
+    K, w, h = handler.getDefaultIntrinsics(socket)
+    if size is not None and tuple(size) != (w, h):  # depthai scales/crops K for the resolution streamed
+        w, h = int(size[0]), int(size[1])
+        K = handler.getCameraIntrinsics(socket, w, h)
+    K = np.asarray(K, dtype=float)
+    if w <= 0 or h <= 0:
+        raise VioError(f"{where}: calibration has no image size")
+    dist = handler.getDistortionCoefficients(socket)
+    model = handler.getDistortionModel(socket)
+    if model == dai.CameraModel.Fisheye:
+        dmodel, dcoef = "equidistant", tuple(float(x) for x in dist[:4])
+    elif model == dai.CameraModel.Perspective:
+        dmodel, dcoef = "radtan", rational_to_radtan(dist, where, notes)
+    else:
+        raise VioError(f"{where}: depthai camera model {model.name} is not supported (Perspective or Fisheye)")
+    return CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=w, height=h,
+                             distortion_model=dmodel, distortion=dcoef, T_body_cam=T_body_cam, rate_hz=rate_hz)
+
+
+def _imu_noise(handler, notes: ImportNotes, rate_hz: float) -> ImuNoise:
+    """IMU noise from the EEPROM when it was filled in (most devices leave it zero): mean over axes."""
+    default = ImuNoise(rate_hz=rate_hz)
+    try:
+        n = handler.getImuNoiseParameters()
+    except RuntimeError:
+        n = None
+
+    def mean(sensor, attr: str) -> float:
+        vals = [getattr(getattr(sensor, ax), attr) for ax in ("x", "y", "z")]
+        vals = [float(v) for v in vals if v > 0]
+        return float(np.mean(vals)) if vals else 0.0
+
+    if n is None:
+        notes.add("depthai: no IMU noise parameters; using the project defaults (run `vio calib imu-noise`)")
+        return default
+    vals = {
+        "gyroscope_noise_density": mean(n.gyroscope, "noiseDensity"),
+        "gyroscope_random_walk": mean(n.gyroscope, "randomWalk"),
+        "accelerometer_noise_density": mean(n.accelerometer, "noiseDensity"),
+        "accelerometer_random_walk": mean(n.accelerometer, "randomWalk"),
+    }
+    missing = [k for k, v in vals.items() if v <= 0]
+    if missing:
+        notes.add(f"depthai: IMU noise {', '.join(missing)} not in the calibration; using project defaults for "
+                  "those (measure them with `vio calib imu-noise`)")
+        for k in missing:
+            vals[k] = getattr(default, k)
+    return ImuNoise(**vals, rate_hz=rate_hz)
+
+
+def stereo_from_depthai(handler, left=None, right=None, *, size: tuple[int, int] | None = None,
+                        cam_rate_hz: float = 20.0, imu_rate_hz: float = 200.0,
+                        notes: ImportNotes | None = None) -> StereoCalibration:
+    """Convert a `dai.CalibrationHandler` (device EEPROM or JSON export) into our StereoCalibration.
+
+    cam0/cam1 are the stereo left/right sockets recorded in the calibration unless given; `size` (w, h)
+    rescales the intrinsics to the streamed resolution (default: the calibrated one). Without IMU
+    extrinsics the body frame is put at cam0 (a warning says so), which is only right for vision-only use.
+    """
+    import depthai as dai
+
+    notes = notes if notes is not None else ImportNotes()
+    try:
+        left = left if left is not None else handler.getStereoLeftCameraId()
+        right = right if right is not None else handler.getStereoRightCameraId()
+    except RuntimeError:
+        left, right = dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C
+    meter = dai.LengthUnit.METER
+    try:
+        T_right_left = np.asarray(handler.getCameraExtrinsics(left, right, unit=meter), dtype=float)
+    except RuntimeError as e:
+        raise VioError(f"depthai: no extrinsics between {left.name} and {right.name} ({e})") from None
+    try:
+        T_body_cam0 = np.asarray(handler.getCameraToImuExtrinsics(left, unit=meter), dtype=float)
+    except RuntimeError:
+        notes.add(f"depthai: calibration has no IMU extrinsics; body frame set to {left.name} (cam0)")
+        T_body_cam0 = np.eye(4)
+    T_body_cam1 = T_body_cam0 @ inv_T(T_right_left)
+    cam0 = _camera(handler, left, T_body_cam0, f"depthai {left.name}", notes, cam_rate_hz, size)
+    cam1 = _camera(handler, right, T_body_cam1, f"depthai {right.name}", notes, cam_rate_hz, size)
+    return StereoCalibration(cam0, cam1, _imu_noise(handler, notes, imu_rate_hz), time_offset_ns=0)

@@ -1,0 +1,293 @@
+"""Importers from other tools' calibration files into the project's StereoCalibration.
+
+Each importer takes the files the tool writes, unmodified, and returns (StereoCalibration, ImportNotes):
+notes list what had to be assumed (no IMU extrinsics, dropped distortion terms, ...). Conventions:
+- kalibr: T_cam_imu maps IMU points into the camera (so T_body_cam = inv(T_cam_imu)); T_cn_cnm1 maps cam
+  n-1 into cam n; timeshift_cam_imu is seconds with t_imu = t_cam + shift, the same as ours.
+- EuRoC sensor.yaml: T_BS maps sensor points into the body.
+- OpenCV stereoCalibrate: R, T map cam1 (left) points into cam2 (right): T_cam1_cam0 = [R | T].
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from calib.depthai_import import ImportNotes, rational_to_radtan, stereo_from_depthai
+from vio import VioError
+from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, camera_from_dict, load_yaml
+from vio.geometry import inv_T, rotation_angle_deg
+
+log = logging.getLogger(__name__)
+
+IMU_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+            "accelerometer_random_walk")
+# T_cn_cnm1 and T_cam_imu of cam1 must agree to this (kalibr writes both from one solution).
+CHAIN_TOL_M = 1e-3
+CHAIN_TOL_DEG = 0.1
+
+
+def _matrix(d: dict, key: str, where: str) -> np.ndarray:
+    try:
+        T = np.asarray(d[key], dtype=float)
+        return T.reshape(4, 4)
+    except KeyError:
+        raise VioError(f"{where}: missing key '{key}'") from None
+    except (TypeError, ValueError):
+        raise VioError(f"{where}: key '{key}' is not a 4x4 matrix") from None
+
+
+# ---------------------------------------------------------------------------------------------- kalibr
+
+def imu_noise_from_kalibr(path: Path) -> ImuNoise:
+    """kalibr imu.yaml (input form, flat keys) or its results form (nested under imu0)."""
+    d = load_yaml(path)
+    if "imu0" in d and isinstance(d["imu0"], dict):
+        d = d["imu0"]
+    missing = [k for k in IMU_KEYS if k not in d]
+    if missing:
+        raise VioError(f"{path}: missing key '{missing[0]}' (kalibr imu.yaml needs {', '.join(IMU_KEYS)})")
+    try:
+        return ImuNoise(**{k: float(d[k]) for k in IMU_KEYS}, rate_hz=float(d.get("update_rate", 200.0)))
+    except (TypeError, ValueError) as e:
+        raise VioError(f"{path}: malformed IMU noise value ({e})") from None
+    except VioError as e:
+        raise VioError(f"{path}: {e}") from None
+
+
+def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
+    """kalibr camchain-imucam.yaml (or camchain.yaml) [+ imu.yaml]; the order of files does not matter."""
+    notes = ImportNotes()
+    chain_path, imu_path = None, None
+    for f in files:
+        d = load_yaml(f)
+        if "cam0" in d:
+            chain_path, chain = f, d
+        else:
+            imu_path = f
+    if chain_path is None:
+        raise VioError(f"kalibr: none of {[str(f) for f in files]} has a 'cam0' entry (camchain-imucam.yaml)")
+    if "cam1" not in chain:
+        raise VioError(f"{chain_path}: missing key 'cam1' (a stereo camera chain is needed)")
+    c0, c1 = dict(chain["cam0"]), dict(chain["cam1"])
+    where0, where1 = f"{chain_path}: cam0", f"{chain_path}: cam1"
+    if "T_cam_imu" not in c0:
+        notes.add(f"{where0}: no T_cam_imu (camchain.yaml without IMU); body frame set to cam0")
+        c0["T_cam_imu"] = np.eye(4)
+    T_cam0_imu = _matrix(c0, "T_cam_imu", where0)
+    if "T_cn_cnm1" in c1:
+        T_c1_c0 = _matrix(c1, "T_cn_cnm1", where1)
+        if "T_cam_imu" in c1:
+            derived = T_c1_c0 @ T_cam0_imu
+            given = _matrix(c1, "T_cam_imu", where1)
+            dT = inv_T(derived) @ given
+            if np.linalg.norm(dT[:3, 3]) > CHAIN_TOL_M or rotation_angle_deg(dT[:3, :3]) > CHAIN_TOL_DEG:
+                notes.add(f"{where1}: T_cam_imu and T_cn_cnm1 @ cam0.T_cam_imu disagree by "
+                          f"{np.linalg.norm(dT[:3, 3]) * 1000:.2f} mm / {rotation_angle_deg(dT[:3, :3]):.3f} deg; "
+                          "using T_cn_cnm1 (the stereo extrinsic is what depth depends on)")
+        c1["T_cam_imu"] = T_c1_c0 @ T_cam0_imu
+    elif "T_cam_imu" not in c1:
+        raise VioError(f"{where1}: missing key 'T_cn_cnm1' (or 'T_cam_imu')")
+    for c in (c0, c1):
+        c.setdefault("rate_hz", cam_rate_hz)
+        c["T_cam_imu"] = np.asarray(c["T_cam_imu"], dtype=float).tolist()
+    cam0 = camera_from_dict(c0, where0)
+    cam1 = camera_from_dict(c1, where1)
+    shifts = [float(c.get("timeshift_cam_imu", 0.0)) for c in (c0, c1)]
+    if abs(shifts[0] - shifts[1]) > 1e-4:
+        notes.add(f"{chain_path}: cam0/cam1 timeshift_cam_imu differ ({shifts[0]:.6f} vs {shifts[1]:.6f} s); "
+                  "using cam0's (stereo frames are hardware-synchronised here)")
+    if imu_path is not None:
+        imu = imu_noise_from_kalibr(imu_path)
+    else:
+        imu = ImuNoise()
+        notes.add("kalibr: no imu.yaml given; IMU noise set to the project defaults")
+    return StereoCalibration(cam0, cam1, imu, time_offset_ns=int(round(shifts[0] * 1e9))), notes
+
+
+# ----------------------------------------------------------------------------------------------- EuRoC
+
+def import_euroc(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
+    """A EuRoC dataset folder, or its cam0, cam1 [, imu0] sensor.yaml files in that order."""
+    from vio.io.euroc import find_mav0, read_camera_yaml, read_imu_yaml
+
+    notes = ImportNotes()
+    files = [Path(f) for f in files]
+    if len(files) == 1 and files[0].is_dir():
+        mav0 = find_mav0(files[0])
+        files = [mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml", mav0 / "imu0" / "sensor.yaml"]
+        files = [f for f in files if f.is_file() or "cam" in f.parent.name]
+    if len(files) not in (2, 3):
+        raise VioError("euroc: give the dataset folder or cam0/sensor.yaml cam1/sensor.yaml [imu0/sensor.yaml]")
+    cam0, cam1 = read_camera_yaml(files[0]), read_camera_yaml(files[1])
+    if len(files) == 3:
+        imu = read_imu_yaml(files[2])
+        T_BS_imu = load_yaml(files[2]).get("T_BS", {}).get("data")
+        if T_BS_imu is not None and not np.allclose(np.asarray(T_BS_imu, float).reshape(4, 4), np.eye(4)):
+            # our body frame is the IMU: re-express camera mounts relative to it
+            T_B_imu = np.asarray(T_BS_imu, float).reshape(4, 4)
+            cam0 = cam0.with_T_body_cam(inv_T(T_B_imu) @ cam0.T_body_cam)
+            cam1 = cam1.with_T_body_cam(inv_T(T_B_imu) @ cam1.T_body_cam)
+            notes.add(f"{files[2]}: IMU T_BS is not identity; camera extrinsics re-expressed in the IMU frame")
+    else:
+        imu = ImuNoise()
+        notes.add("euroc: no imu0/sensor.yaml; IMU noise set to the project defaults")
+    return StereoCalibration(cam0, cam1, imu), notes
+
+
+# ---------------------------------------------------------------------------------------------- OpenCV
+
+_SIZE_KEYS = (("image_width", "image_height"), ("width", "height"))
+
+
+def _fs_mat(fs, key: str, where: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    node = fs.getNode(key)
+    if node.empty():
+        raise VioError(f"{where}: missing key '{key}'")
+    m = node.mat()
+    if m is None:
+        m = np.asarray([node.at(i).real() for i in range(node.size())]) if node.isSeq() else None
+    if m is None:
+        raise VioError(f"{where}: key '{key}' is not a matrix")
+    m = np.asarray(m, dtype=float)
+    if shape is not None:
+        if m.size != int(np.prod(shape)):
+            raise VioError(f"{where}: key '{key}' has {m.size} values, expected {int(np.prod(shape))}")
+        m = m.reshape(shape)
+    return m
+
+
+def _fs_size(fs, where: str) -> tuple[int, int]:
+    for key in ("image_size", "imageSize", "size"):
+        node = fs.getNode(key)
+        if not node.empty():
+            vals = node.mat().ravel() if node.mat() is not None else [node.at(i).real() for i in range(node.size())]
+            if len(vals) == 2:
+                return int(vals[0]), int(vals[1])
+    for kw, kh in _SIZE_KEYS:
+        if not fs.getNode(kw).empty() and not fs.getNode(kh).empty():
+            return int(fs.getNode(kw).real()), int(fs.getNode(kh).real())
+    raise VioError(f"{where}: missing image size (key 'image_size' [w, h] or 'image_width'/'image_height')")
+
+
+_UNIT_TO_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
+                  translation_unit: str = "m") -> tuple[StereoCalibration, ImportNotes]:
+    """OpenCV stereo YAML/XML (cv2.FileStorage) with K1 D1 K2 D2 R T and the image size.
+
+    OpenCV files have no IMU: the body frame is cam0 (noted). T is in the unit of the calibration target,
+    hence `translation_unit`; a baseline over 1 m is flagged as a likely unit mistake.
+    """
+    import cv2
+
+    notes = ImportNotes()
+    if len(files) != 1:
+        raise VioError("opencv: give exactly one stereo calibration file")
+    path = Path(files[0])
+    if not path.is_file():
+        raise VioError(f"{path}: file not found")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        raise VioError(f"{path}: not an OpenCV FileStorage file ({e.msg.strip() if hasattr(e, 'msg') else e})") \
+            from None
+    if not fs.isOpened():
+        raise VioError(f"{path}: cannot open as an OpenCV FileStorage file")
+    where = str(path)
+    try:
+        K = [_fs_mat(fs, k, where, (3, 3)) for k in ("K1", "K2")]
+        D = [_fs_mat(fs, k, where).ravel() for k in ("D1", "D2")]
+        R = _fs_mat(fs, "R", where)
+        if R.size == 3:  # Rodrigues vector
+            R = cv2.Rodrigues(R.reshape(3, 1))[0]
+        R = R.reshape(3, 3)
+        t = _fs_mat(fs, "T", where, (3,)) * _UNIT_TO_M[translation_unit]
+        w, h = _fs_size(fs, where)
+        model_node = fs.getNode("distortion_model")
+        model = model_node.string() if not model_node.empty() else "radtan"
+    finally:
+        fs.release()
+    if np.linalg.norm(t) > 1.0:
+        notes.add(f"{where}: baseline {np.linalg.norm(t):.3f} m is implausible for a drone stereo head; "
+                  "was T in mm? (use --translation-unit mm)")
+    T_c1_c0 = np.eye(4)
+    T_c1_c0[:3, :3], T_c1_c0[:3, 3] = R, t
+    notes.add(f"{where}: OpenCV stereo files have no IMU extrinsics; body frame set to cam0")
+    cams = []
+    for i in range(2):
+        if model.lower() in ("fisheye", "equidistant"):
+            dmodel, dcoef = "equidistant", tuple(D[i][:4])
+        else:
+            dmodel, dcoef = "radtan", rational_to_radtan(D[i], f"{where}: D{i + 1}", notes)
+        T_body_cam = np.eye(4) if i == 0 else inv_T(T_c1_c0)
+        cams.append(CameraCalibration(fx=K[i][0, 0], fy=K[i][1, 1], cx=K[i][0, 2], cy=K[i][1, 2], width=w,
+                                      height=h, distortion_model=dmodel, distortion=dcoef,
+                                      T_body_cam=T_body_cam, rate_hz=cam_rate_hz))
+    return StereoCalibration(cams[0], cams[1], ImuNoise()), notes
+
+
+def write_opencv_stereo(calib: StereoCalibration, path: Path) -> None:
+    """The inverse of import_opencv (for tools that want OpenCV's file); T in metres."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    T = calib.T_cam1_cam0
+    fs.write("image_width", calib.cam0.width)
+    fs.write("image_height", calib.cam0.height)
+    fs.write("K1", calib.cam0.K)
+    fs.write("D1", calib.cam0.dist_coeffs.reshape(1, -1))
+    fs.write("K2", calib.cam1.K)
+    fs.write("D2", calib.cam1.dist_coeffs.reshape(1, -1))
+    fs.write("R", T[:3, :3])
+    fs.write("T", T[:3, 3].reshape(3, 1))
+    if calib.cam0.distortion_model == "equidistant":
+        fs.write("distortion_model", "fisheye")
+    fs.release()
+
+
+# --------------------------------------------------------------------------------------------- depthai
+
+def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
+    """depthai calibration JSON (CalibrationHandler.eepromToJsonFile / the device's backup), read by depthai."""
+    if len(files) != 1:
+        raise VioError("depthai: give exactly one calibration JSON file")
+    path = Path(files[0])
+    if not path.is_file():
+        raise VioError(f"{path}: file not found")
+    try:
+        import depthai as dai
+    except ImportError as e:
+        raise VioError(f"depthai is not installed ({e})") from None
+    try:
+        handler = dai.CalibrationHandler(str(path))
+    except RuntimeError as e:
+        raise VioError(f"{path}: depthai cannot read this calibration ({e})") from None
+    notes = ImportNotes()
+    try:
+        calib = stereo_from_depthai(handler, cam_rate_hz=cam_rate_hz, notes=notes)
+    except VioError as e:
+        raise VioError(f"{path}: {e}") from None
+    return calib, notes
+
+
+IMPORTERS: dict[str, Callable[..., tuple[StereoCalibration, ImportNotes]]] = {
+    "kalibr": import_kalibr,
+    "euroc": import_euroc,
+    "depthai": import_depthai,
+    "opencv": import_opencv,
+}
+
+
+def import_calibration(fmt: str, files: Sequence[str | Path], **kwargs) -> tuple[StereoCalibration, ImportNotes]:
+    if fmt not in IMPORTERS:
+        raise VioError(f"unknown calibration format {fmt!r}; expected one of {sorted(IMPORTERS)}")
+    paths = [Path(f) for f in files]
+    for p in paths:
+        if not p.exists():
+            raise VioError(f"{p}: file not found")
+    return IMPORTERS[fmt](paths, **kwargs)

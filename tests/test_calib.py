@@ -1,0 +1,221 @@
+"""Calibration tools: importers round-trip on real-format files, show, checks, Allan deviation, time offset."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.importers import import_calibration, write_opencv_stereo
+from calib.show import camera_axes, format_calibration
+from vio import VioError
+from vio.calibration import load_calibration, save_calibration
+from vio.geometry import inv_T, make_T, so3_exp
+
+DATA = Path(__file__).parent / "data" / "calib"
+
+
+def _same_calib(a, b, tol=1e-9) -> None:
+    for ca, cb in ((a.cam0, b.cam0), (a.cam1, b.cam1)):
+        np.testing.assert_allclose(ca.K, cb.K, atol=tol)
+        np.testing.assert_allclose(ca.distortion, cb.distortion, atol=tol)
+        np.testing.assert_allclose(ca.T_body_cam, cb.T_body_cam, atol=max(tol, 1e-9))
+        assert (ca.width, ca.height, ca.distortion_model) == (cb.width, cb.height, cb.distortion_model)
+    assert a.imu == b.imu
+    assert a.time_offset_ns == b.time_offset_ns
+
+
+def _roundtrip(calib, tmp_path):
+    out = tmp_path / "calib.yaml"
+    save_calibration(calib, out)
+    back = load_calibration(out)
+    _same_calib(calib, back)
+    return back
+
+
+# ------------------------------------------------------------------------------------------ importers
+
+def test_kalibr_import_matches_published_euroc_values(tmp_path, v101_path):
+    calib, notes = import_calibration("kalibr", [DATA / "kalibr_imu.yaml", DATA / "kalibr_camchain_imucam.yaml"])
+    assert notes.messages == []
+    # kalibr T_cam_imu is the inverse of EuRoC's T_BS; both files describe the same sensor
+    euroc, _ = import_calibration("euroc", [v101_path])
+    np.testing.assert_allclose(calib.cam0.T_body_cam, euroc.cam0.T_body_cam, atol=1e-9)
+    np.testing.assert_allclose(calib.cam1.T_body_cam, euroc.cam1.T_body_cam, atol=1e-9)
+    assert calib.time_offset_ns == -5_200_000  # timeshift_cam_imu -0.0052 s: t_imu = t_cam + shift
+    assert calib.imu.gyroscope_noise_density == pytest.approx(1.6968e-4)
+    assert calib.imu.rate_hz == 200.0
+    assert calib.baseline_m == pytest.approx(0.1101, abs=2e-4)
+    _roundtrip(calib, tmp_path)
+
+
+def test_kalibr_inconsistent_chain_is_reported(tmp_path):
+    text = (DATA / "kalibr_camchain_imucam.yaml").read_text()
+    # shift cam1's T_cam_imu x translation by 5 cm so it disagrees with T_cn_cnm1
+    text = text.replace("-0.04490198068248875", "0.00509801931751125")
+    f = tmp_path / "camchain-imucam.yaml"
+    f.write_text(text)
+    calib, notes = import_calibration("kalibr", [f])
+    assert any("disagree" in m for m in notes.messages)
+    assert any("no imu.yaml" in m for m in notes.messages)
+    assert calib.baseline_m == pytest.approx(0.1101, abs=2e-4)  # T_cn_cnm1 wins
+
+
+def test_kalibr_errors_name_file_and_key(tmp_path):
+    f = tmp_path / "bad.yaml"
+    f.write_text((DATA / "kalibr_camchain_imucam.yaml").read_text().replace("intrinsics:", "intrinsix:"))
+    with pytest.raises(VioError, match=r"bad\.yaml: cam0: missing key 'intrinsics'"):
+        import_calibration("kalibr", [f])
+    g = tmp_path / "imu.yaml"
+    g.write_text("accelerometer_noise_density: 0.01\nupdate_rate: 100\n")
+    with pytest.raises(VioError, match=r"imu\.yaml: missing key 'gyroscope_noise_density'"):
+        import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml", g])
+
+
+def test_euroc_import_roundtrip(tmp_path, v101_path):
+    calib, _ = import_calibration("euroc", [v101_path])
+    assert calib.cam0.fx == pytest.approx(458.654)
+    assert calib.cam1.distortion[0] == pytest.approx(-0.28368365)
+    assert calib.imu.accelerometer_random_walk == pytest.approx(3.0e-3)
+    mav0 = v101_path / "mav0"
+    by_files, _ = import_calibration(
+        "euroc", [mav0 / "cam0/sensor.yaml", mav0 / "cam1/sensor.yaml", mav0 / "imu0/sensor.yaml"])
+    _same_calib(calib, by_files)
+    _roundtrip(calib, tmp_path)
+
+
+def test_opencv_import_units_and_convention(tmp_path):
+    calib, notes = import_calibration("opencv", [DATA / "opencv_stereo.yaml"], translation_unit="mm")
+    assert calib.baseline_m == pytest.approx(0.07512, abs=1e-4)
+    # R, T from stereoCalibrate map cam0 points into cam1: T_cam1_cam0 must reproduce them
+    np.testing.assert_allclose(calib.T_cam1_cam0[:3, 3], [-0.07512, 0.00021, -0.00034], atol=1e-9)
+    assert calib.cam0.width == 1280 and calib.cam1.cy == pytest.approx(398.6)
+    assert len(calib.cam0.distortion) == 5
+    np.testing.assert_allclose(calib.cam0.T_body_cam, np.eye(4))
+    assert any("no IMU extrinsics" in m for m in notes.messages)
+    _roundtrip(calib, tmp_path)
+    # the default unit (m) flags the mm file as implausible
+    _, notes_m = import_calibration("opencv", [DATA / "opencv_stereo.yaml"])
+    assert any("implausible" in m for m in notes_m.messages)
+    # writer -> reader is the identity on the stereo part
+    out = tmp_path / "stereo.yaml"
+    write_opencv_stereo(calib, out)
+    back, _ = import_calibration("opencv", [out])
+    np.testing.assert_allclose(back.T_cam1_cam0, calib.T_cam1_cam0, atol=1e-12)
+    np.testing.assert_allclose(back.cam1.K, calib.cam1.K)
+
+
+def test_opencv_rational_model_keeps_five_and_says_so(tmp_path):
+    import cv2
+
+    f = tmp_path / "rational.yml"
+    fs = cv2.FileStorage(str(f), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_size", np.array([640, 400]))
+    for k in ("K1", "K2"):
+        fs.write(k, np.array([[400.0, 0, 320], [0, 400, 200], [0, 0, 1]]))
+    fs.write("D1", np.array([[0.1, -0.2, 0.001, 0.002, 0.03, 0.5, 0, 0]]))
+    fs.write("D2", np.array([[0.1, -0.2, 0.001, 0.002, 0.03, 0, 0, 0]]))
+    fs.write("R", np.zeros((3, 1)))  # Rodrigues form
+    fs.write("T", np.array([[-0.05], [0.0], [0.0]]))
+    fs.release()
+    calib, notes = import_calibration("opencv", [f])
+    assert calib.cam0.distortion == (0.1, -0.2, 0.001, 0.002, 0.03)
+    assert any("k4=0.5" in m and "D1" in m for m in notes.messages)
+    assert not any("D2" in m for m in notes.messages)
+
+
+def test_opencv_missing_key(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text((DATA / "opencv_stereo.yaml").read_text().replace("K2:", "KK2:"))
+    with pytest.raises(VioError, match=r"s\.yaml: missing key 'K2'"):
+        import_calibration("opencv", [f])
+
+
+def _depthai_json(tmp_path, with_imu: bool = True, fisheye: bool = False) -> tuple[Path, np.ndarray, np.ndarray]:
+    """A realistic OAK-D style calibration written by depthai itself (translations in cm)."""
+    dai = pytest.importorskip("depthai")
+    h = dai.CalibrationHandler()
+    h.setBoardInfo("OAK-D-TEST", "R1")
+    left, right, rgb = dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C, dai.CameraBoardSocket.CAM_A
+    for sock, (fx, cx) in ((left, (798.1, 651.2)), (right, (797.4, 638.9)), (rgb, (1490.0, 960.0))):
+        size = (1920, 1080) if sock == rgb else (1280, 800)
+        h.setCameraIntrinsics(sock, [[fx, 0, cx], [0, fx + 0.6, 401.3], [0, 0, 1]], size[0], size[1])
+        h.setCameraType(sock, dai.CameraModel.Fisheye if fisheye else dai.CameraModel.Perspective)
+    d_left = [-4.21, 12.3, 0.0011, -0.0007, 4.6, -4.1, 12.0, 4.9, 0, 0, 0, 0, 0, 0]
+    h.setDistortionCoefficients(left, d_left)
+    h.setDistortionCoefficients(right, [0.02, -0.01, 0.0002, 0.0001, 0.003] + [0.0] * 9)
+    h.setDistortionCoefficients(rgb, [0.0] * 14)
+    R_rl = so3_exp(np.array([0.002, -0.004, 0.001]))
+    h.setCameraExtrinsics(left, right, R_rl.tolist(), [-7.51, 0.02, -0.05], [-7.5, 0, 0])
+    h.setCameraExtrinsics(right, rgb, np.eye(3).tolist(), [3.75, 0, 0], [3.75, 0, 0])
+    T_right_left = make_T(R_rl, np.array([-0.0751, 0.0002, -0.0005]))
+    T_left_imu = make_T(so3_exp(np.array([0.0, 0.0, np.pi / 2])), np.array([0.0105, -0.0021, 0.0082]))
+    if with_imu:
+        h.setImuExtrinsics(left, T_left_imu[:3, :3].tolist(), (T_left_imu[:3, 3] * 100).tolist(), [1, 0, 1])
+    h.setStereoLeft(left, np.eye(3).tolist())
+    h.setStereoRight(right, np.eye(3).tolist())
+    path = tmp_path / "oak_calib.json"
+    assert h.eepromToJsonFile(str(path))
+    return path, T_right_left, T_left_imu
+
+
+def test_depthai_import_metres_and_frames(tmp_path):
+    path, T_right_left, T_left_imu = _depthai_json(tmp_path)
+    calib, notes = import_calibration("depthai", [path])
+    assert calib.cam0.width == 1280 and calib.cam0.fx == pytest.approx(798.1, abs=1e-3)
+    np.testing.assert_allclose(calib.T_cam1_cam0, T_right_left, atol=1e-6)  # cm -> m and direction
+    np.testing.assert_allclose(calib.cam0.T_body_cam, inv_T(T_left_imu), atol=1e-6)
+    assert calib.baseline_m == pytest.approx(0.0751, abs=1e-4)
+    assert calib.cam0.distortion == pytest.approx((-4.21, 12.3, 0.0011, -0.0007, 4.6), abs=1e-6)
+    assert any("k4=-4.1" in m for m in notes.messages)  # dropped rational terms are reported
+    _roundtrip(calib, tmp_path)
+
+
+def test_depthai_without_imu_and_fisheye(tmp_path):
+    path, T_right_left, _ = _depthai_json(tmp_path, with_imu=False, fisheye=True)
+    calib, notes = import_calibration("depthai", [path])
+    np.testing.assert_allclose(calib.cam0.T_body_cam, np.eye(4))
+    np.testing.assert_allclose(calib.T_cam1_cam0, T_right_left, atol=1e-6)
+    assert calib.cam0.distortion_model == "equidistant" and len(calib.cam0.distortion) == 4
+    assert any("no IMU extrinsics" in m for m in notes.messages)
+
+
+def test_depthai_bad_file(tmp_path):
+    pytest.importorskip("depthai")
+    f = tmp_path / "x.json"
+    f.write_text("{not json")
+    with pytest.raises(VioError, match=r"x\.json"):
+        import_calibration("depthai", [f])
+
+
+def test_unknown_format_and_missing_file(tmp_path):
+    with pytest.raises(VioError, match="unknown calibration format"):
+        import_calibration("matlab", [DATA / "kalibr_imu.yaml"])
+    with pytest.raises(VioError, match="file not found"):
+        import_calibration("kalibr", [tmp_path / "nope.yaml"])
+
+
+# ------------------------------------------------------------------------------------------------ show
+
+def test_show_reports_geometry(v101_path):
+    calib, _ = import_calibration("euroc", [v101_path])
+    text = format_calibration(calib)
+    assert "baseline       110.08 mm" in text
+    assert "rotation angle 0.818 deg" in text
+    axes = camera_axes(calib.cam0)
+    # the VI-sensor cameras look along body +z (within 1.5 deg), image right is body +y
+    assert axes["forward(z)"][0] == "+z" and axes["forward(z)"][1] < 2.0
+    assert axes["right(x)"][0] == "+y"
+
+
+def test_cli_import_and_show(tmp_path, capsys):
+    from vio.cli import main
+
+    out = tmp_path / "c.yaml"
+    rc = main(["calib", "import", "kalibr", str(DATA / "kalibr_camchain_imucam.yaml"),
+               str(DATA / "kalibr_imu.yaml"), "-o", str(out)])
+    assert rc == 0 and out.is_file()
+    assert main(["calib", "show", str(out)]) == 0
+    assert "time offset      -5.200 ms" in capsys.readouterr().out
+    assert main(["calib", "show", str(tmp_path / "missing.yaml")]) == 1
