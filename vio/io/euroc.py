@@ -10,6 +10,7 @@ recorder can drop, is skipped with a warning and counted in `stats`.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -67,10 +68,12 @@ class DatasetStats:
     warnings: list[str] = field(default_factory=list)
 
 
-def _read_csv(path: Path, min_cols: int, max_cols: int | None = None) -> tuple[np.ndarray, list[list[str]]]:
+def _read_csv(path: Path, min_cols: int, max_cols: int | None = None,
+              numeric: int = 0) -> tuple[np.ndarray, list[list[str]]]:
     """Parse a EuRoC csv: '#' header, integer-ns first column. Returns (stamps, other columns as text).
 
     Enforces strictly increasing stamps: duplicates or reordering mean a broken file, not dropped data.
+    The first `numeric` columns after the stamp must be finite numbers (checked here to name the line).
     """
     if not path.is_file():
         raise VioError(f"{path}: file not found")
@@ -95,6 +98,13 @@ def _read_csv(path: Path, min_cols: int, max_cols: int | None = None) -> tuple[n
         if stamps and t <= stamps[-1]:
             what = "duplicate" if t == stamps[-1] else "out-of-order"
             raise VioError(f"{path}:{lineno}: {what} time stamp {t} (previous {stamps[-1]})")
+        for k in range(1, min(numeric, len(parts) - 1) + 1):
+            try:
+                ok = math.isfinite(float(parts[k]))
+            except ValueError:
+                ok = False
+            if not ok:
+                raise VioError(f"{path}:{lineno}: column {k + 1} value {parts[k]!r} is not a finite number")
         stamps.append(t)
         rest.append(parts[1:])
     return np.array(stamps, dtype=np.int64), rest
@@ -118,7 +128,7 @@ def _floats(path: Path, stamps: np.ndarray, rows: list[list[str]], ncols: int, t
 
 
 def read_imu_csv(path: Path) -> ImuData:
-    stamps, rows = _read_csv(path, 7, 7)
+    stamps, rows = _read_csv(path, 7, 7, numeric=6)
     vals = _floats(path, stamps, rows, 6, "gyro/accel value")
     if len(stamps) < 2:
         raise VioError(f"{path}: fewer than 2 IMU samples")
@@ -126,7 +136,7 @@ def read_imu_csv(path: Path) -> ImuData:
 
 
 def read_groundtruth_csv(path: Path) -> GroundTruth:
-    stamps, rows = _read_csv(path, 8)
+    stamps, rows = _read_csv(path, 8, numeric=16)
     ncols = min(len(r) for r in rows) if rows else 7
     ncols = 16 if ncols >= 16 else 7
     vals = _floats(path, stamps, rows, ncols, "ground-truth value")

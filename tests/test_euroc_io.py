@@ -1,0 +1,230 @@
+"""EuRoC ASL reader and writer: the real V1_01 excerpt, broken copies of it, and a writer round trip."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vio import VioError
+from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration
+from vio.io.euroc import EurocDataset, EurocWriter
+from vio.types import ImuSample, StereoFrame
+
+N_FRAMES, N_IMU, N_GT = 95, 29120, 2895
+T_FIRST = 1403715273262142976
+
+
+@pytest.fixture(scope="module")
+def v101(v101_path) -> EurocDataset:
+    return EurocDataset(v101_path)
+
+
+def test_reads_v101_excerpt(v101):
+    ds = v101
+    assert len(ds) == N_FRAMES and len(ds.imu) == N_IMU
+    assert ds.frame_t[0] == T_FIRST and ds.frame_t[-1] == 1403715277962142976
+    assert np.all(np.diff(ds.frame_t) > 0) and np.all(np.diff(ds.imu.t_ns) > 0)
+    assert ds.imu.gyro[0] == pytest.approx([-0.0020943951023931952, 0.017453292519943295, 0.07749261878854824])
+    assert ds.imu.accel[0] == pytest.approx([9.0874956666666655, 0.13075533333333333, -3.6938381666666662])
+    gt = ds.groundtruth
+    assert gt is not None and len(gt.trajectory) == N_GT
+    assert gt.trajectory.p[0] == pytest.approx([0.878895, 2.1834, 0.948427])
+    assert gt.gyro_bias[0] == pytest.approx([-0.00224703, 0.0215352, 0.0770299])
+    c = ds.calibration
+    assert (c.cam0.fx, c.cam0.fy, c.cam0.cx, c.cam0.cy) == (458.654, 457.296, 367.215, 248.375)
+    assert (c.cam1.fx, c.cam1.fy, c.cam1.cx, c.cam1.cy) == (457.587, 456.134, 379.999, 255.238)
+    assert (c.cam0.width, c.cam0.height, c.cam0.distortion_model) == (752, 480, "radtan")
+    assert c.cam0.distortion == pytest.approx((-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
+    assert c.cam0.T_body_cam[0] == pytest.approx([0.0148655429818, -0.999880929698, 0.00414029679422,
+                                                  -0.0216401454975])
+    assert c.baseline_m == pytest.approx(0.110, abs=0.001)
+    assert c.imu.gyroscope_noise_density == 1.6968e-04 and c.imu.accelerometer_random_walk == 3.0e-3
+    assert c.time_offset_ns == 0
+    assert ds.stats.missing_images == ds.stats.unpaired_frames == 0
+
+
+def test_events_in_time_order_imu_first(v101):
+    t_end = int(v101.frame_t[9])
+    events = list(v101.events(t_end_ns=t_end))
+    frames = [e for e in events if isinstance(e, StereoFrame)]
+    assert len(frames) == 10
+    assert all(isinstance(e, (ImuSample, StereoFrame)) for e in events)
+    t = [e.t_ns for e in events]
+    assert t == sorted(t) and t[-1] == t_end
+    for k, e in enumerate(events):
+        if isinstance(e, StereoFrame):
+            # every image stamp is also an IMU stamp: that IMU sample comes just before the frame
+            assert isinstance(events[k - 1], ImuSample) and events[k - 1].t_ns == e.t_ns
+    f = frames[0]
+    assert f.left.shape == (480, 752) and f.left.dtype == np.uint8 and f.right.shape == (480, 752)
+    n_imu = sum(isinstance(e, ImuSample) for e in events)
+    assert n_imu == int(np.count_nonzero(v101.imu.t_ns <= t_end))
+
+
+def test_events_after_last_frame_are_imu(v101):
+    tail = list(v101.events(t_start_ns=int(v101.frame_t[-1]) + 1))
+    assert len(tail) == int(np.count_nonzero(v101.imu.t_ns > v101.frame_t[-1]))
+    assert all(isinstance(e, ImuSample) for e in tail)
+
+
+# ------------------------------------------------------------------------------------------------ broken copies
+
+def _copy(src: Path, dst: Path, link_images: str = "folder") -> Path:
+    """A copy of the dataset with the csv/yaml files copied and the images linked (no 70 MB copy).
+
+    link_images: 'folder' links each data/ folder; 'files' makes real data/ folders of per-image links,
+    so single images can be removed or replaced.
+    """
+    for sub in ("cam0", "cam1", "imu0", "state_groundtruth_estimate0"):
+        s, d = src / "mav0" / sub, dst / "mav0" / sub
+        d.mkdir(parents=True)
+        for f in s.iterdir():
+            if f.is_file():
+                shutil.copyfile(f, d / f.name)
+        if (s / "data").is_dir():
+            if link_images == "folder":
+                os.symlink(s / "data", d / "data")
+            else:
+                (d / "data").mkdir()
+                for img in (s / "data").iterdir():
+                    os.symlink(img, d / "data" / img.name)
+    return dst
+
+
+def _edit_line(path: Path, lineno: int, new: str | None) -> None:
+    lines = path.read_text().splitlines()
+    if new is None:
+        del lines[lineno - 1]
+    else:
+        lines[lineno - 1] = new
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _break(mav0: Path, case: str) -> str:
+    """Apply one defect; return the text the error must contain."""
+    imu = mav0 / "imu0" / "data.csv"
+    cam0 = mav0 / "cam0" / "data.csv"
+    lines = imu.read_text().splitlines()
+    if case == "no_mav0":
+        shutil.rmtree(mav0)
+        return f"{mav0.parent}: no mav0/ folder"
+    if case == "no_cam1":
+        shutil.rmtree(mav0 / "cam1")
+        return f"{mav0 / 'cam1'}: folder missing"
+    if case == "no_imu_csv":
+        imu.unlink()
+        return f"{imu}: file not found"
+    if case == "columns":
+        _edit_line(imu, 5, lines[4].rsplit(",", 1)[0])
+        return f"{imu}:5: expected 7 comma-separated values, got 6"
+    if case == "not_number":
+        parts = lines[6].split(",")
+        parts[2] = "abc"
+        _edit_line(imu, 7, ",".join(parts))
+        return f"{imu}:7: column 3 value 'abc' is not a finite number"
+    if case == "bad_stamp":
+        _edit_line(imu, 3, "12x4" + lines[2][lines[2].index(","):])
+        return f"{imu}:3: time stamp '12x4' is not an integer"
+    if case == "unsorted":
+        c = cam0.read_text().splitlines()
+        c[3], c[4] = c[4], c[3]
+        cam0.write_text("\n".join(c) + "\n")
+        return f"{cam0}:5: out-of-order time stamp"
+    if case == "duplicate":
+        _edit_line(imu, 11, lines[9])
+        return f"{imu}:11: duplicate time stamp"
+    if case == "gt_nan":
+        gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
+        g = gt.read_text().splitlines()
+        parts = g[1].split(",")
+        parts[4] = "nan"
+        _edit_line(gt, 2, ",".join(parts))
+        return f"{gt}:2: column 5 value 'nan' is not a finite number"
+    raise AssertionError(case)
+
+
+@pytest.mark.parametrize("case", ["no_mav0", "no_cam1", "no_imu_csv", "columns", "not_number", "bad_stamp",
+                                  "unsorted", "duplicate", "gt_nan"])
+def test_broken_dataset_errors(v101_path, tmp_path, case):
+    root = _copy(v101_path, tmp_path / "ds")
+    expected = _break(root / "mav0", case)
+    with pytest.raises(VioError) as e:
+        EurocDataset(root)
+    assert expected in str(e.value)
+
+
+def test_corrupt_and_missing_images_are_skipped_and_counted(v101_path, tmp_path, caplog):
+    root = _copy(v101_path, tmp_path / "ds", link_images="files")
+    t = np.loadtxt(v101_path / "mav0" / "cam0" / "data.csv", delimiter=",", dtype=np.int64, usecols=0)
+    corrupt = root / "mav0" / "cam0" / "data" / f"{t[3]}.png"
+    corrupt.unlink()
+    corrupt.write_bytes(b"\x89PNG\r\n\x1a\n" + b"broken" * 50)
+    (root / "mav0" / "cam0" / "data" / f"{t[10]}.png").unlink()
+    (root / "mav0" / "cam1" / "data" / f"{t[20]}.png").unlink()
+    with caplog.at_level(logging.WARNING, logger="vio.io.euroc"):
+        ds = EurocDataset(root)
+        assert ds.stats.missing_images == 2
+        frames = list(ds.frames(0, 25))
+    assert ds.stats.unreadable_images == 1
+    assert [f.t_ns for f in frames] == [int(x) for k, x in enumerate(t[:25]) if k not in (3, 10)]
+    no_right = [f for f in frames if f.right is None]
+    assert [f.t_ns for f in no_right] == [t[20]]
+    text = caplog.text
+    assert f"{corrupt}: unreadable image" in text
+    assert f"image {t[10]}.png (t={t[10]}) listed but missing" in text
+    assert len(ds.stats.warnings) == 3
+
+
+# ------------------------------------------------------------------------------------------------ writer
+
+def _calibration() -> StereoCalibration:
+    T1 = np.eye(4)
+    T1[0, 3] = 0.1
+    cam0 = CameraCalibration(400.0, 401.5, 320.25, 200.75, 640, 400, "radtan", (-0.1, 0.01, 1e-4, -2e-4))
+    cam1 = CameraCalibration(399.0, 400.5, 321.0, 199.5, 640, 400, "radtan", (-0.11, 0.012, 0.0, 0.0), T1)
+    return StereoCalibration(cam0, cam1, ImuNoise(1e-4, 2e-5, 1e-3, 4e-3, 400.0), time_offset_ns=-1234567)
+
+
+def test_writer_reader_round_trip(tmp_path):
+    rng = np.random.default_rng(7)
+    calib = _calibration()
+    t0 = 1_600_000_000_000_000_000
+    imgs = [(rng.integers(0, 256, (400, 640), dtype=np.uint8), rng.integers(0, 256, (400, 640), dtype=np.uint8))
+            for _ in range(3)]
+    imu = [ImuSample(t0 + k * 2_500_000, rng.normal(size=3), rng.normal(size=3) * 9.81) for k in range(60)]
+    with EurocWriter(tmp_path / "rec", calib) as w:
+        for s in imu:
+            w.write_imu(s)
+            if s.t_ns % 50_000_000 == 0 and len(imgs) > w.frames_written:
+                left, right = imgs[w.frames_written]
+                w.write_frame(StereoFrame(s.t_ns, left, right))
+        w.write_groundtruth(t0, np.array([1.0, 2.0, 3.0]), np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3),
+                            np.zeros(3))
+        w.write_groundtruth(t0 + 10**8, np.array([1.5, 2.0, 3.0]), np.array([0.0, 1, 0, 0]), np.ones(3),
+                            np.zeros(3), np.zeros(3))
+    ds = EurocDataset(tmp_path / "rec")
+    assert len(ds) == 3 and len(ds.imu) == 60
+    assert np.array_equal(ds.imu.t_ns, [s.t_ns for s in imu])
+    assert np.array_equal(ds.imu.gyro, [s.gyro for s in imu]) and np.array_equal(ds.imu.accel, [s.accel for s in imu])
+    for f, (left, right) in zip(ds.frames(), imgs, strict=True):
+        assert np.array_equal(f.left, left) and np.array_equal(f.right, right)
+    c = ds.calibration
+    assert c.time_offset_ns == calib.time_offset_ns
+    for a, b in ((c.cam0, calib.cam0), (c.cam1, calib.cam1)):
+        assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+        assert a.distortion == b.distortion and np.array_equal(a.T_body_cam, b.T_body_cam)
+    assert c.imu == calib.imu
+    gt = ds.groundtruth
+    assert gt is not None and np.array_equal(gt.trajectory.t_ns, [t0, t0 + 10**8])
+    assert gt.trajectory.p[1] == pytest.approx([1.5, 2.0, 3.0]) and gt.v_world[1] == pytest.approx([1, 1, 1])
+
+
+def test_writer_refuses_to_overwrite(tmp_path):
+    EurocWriter(tmp_path / "rec", _calibration()).close()
+    with pytest.raises(VioError, match="already holds a dataset"):
+        EurocWriter(tmp_path / "rec", _calibration())
