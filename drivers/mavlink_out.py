@@ -1,0 +1,401 @@
+"""MAVLink output of the VIO estimate to ArduPilot and PX4 (VISION_POSITION_ESTIMATE, VISION_SPEED_ESTIMATE,
+ODOMETRY), with our HEARTBEAT, TIMESYNC answers, link health, reconnection and an optional EKF origin.
+
+Why the shape: the estimator must never wait on a serial port, so `send_state()` only keeps the newest
+state; the actual sending happens in `poll()` (called by our own thread after `start()`, or inline from
+`send_state()` when no thread runs) on a fixed schedule at `rate_hz`, always with the newest state and
+never twice the same one. Link problems (unplugged serial, refused socket) close the connection and
+reopen it with a back-off; each transition is logged once, not each failed write.
+
+Time stamps: `time_usec` is the state's own time (NavState.t_ns, host CLOCK_MONOTONIC) / 1000, and our
+TIMESYNC answers use the same clock, so PX4 can map our stamps onto its clock; ArduPilot estimates the
+offset from the stamps themselves (its VISO_DELAY_MS covers the remaining latency).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.mavlink_frames import mount_transform, to_vehicle_odometry, upper_triangle
+from vio import VioError
+from vio.config import MavlinkConfig
+from vio.types import NavState
+
+os.environ["MAVLINK20"] = "1"  # ODOMETRY (id 331) exists only in MAVLink 2; must precede the dialect import
+from pymavlink import mavutil  # noqa: E402
+
+mavutil.set_dialect("ardupilotmega")  # re-import as the v2.0 dialect even if mavutil was imported before
+mavlink = mavutil.mavlink
+
+log = logging.getLogger(__name__)
+
+SUPPORTED_MESSAGES = ("VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY")
+OUR_COMPONENT = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
+HEARTBEAT_PERIOD_NS = 1_000_000_000
+ORIGIN_REPEATS = 3  # SET_GPS_GLOBAL_ORIGIN / SET_HOME_POSITION sends after each link-up, 1 s apart
+RECONNECT_MIN_S, RECONNECT_MAX_S = 0.5, 5.0
+# Heartbeats from these vehicle types are not an autopilot (GCS, other companions, cameras...).
+_NOT_AUTOPILOT_TYPES = {mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL,
+                        mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_ADSB}
+
+
+def open_connection(url: str, source_system: int) -> mavutil.mavfile:
+    """Open a mavutil connection from `udpout:H:P`, `udpin:H:P`, `tcp:H:P` or a serial `DEVICE[:BAUD]`.
+
+    mavutil would read `/dev/ttyAMA0:921600` as a UDP address, so serial devices are split here.
+    """
+    kw = {"source_system": source_system, "source_component": OUR_COMPONENT, "dialect": "ardupilotmega"}
+    if url.startswith("tcp:"):  # one attempt: mavutil's own retries sleep (and print) inside our loop
+        return mavutil.mavlink_connection(url, retries=0, **kw)
+    if url.startswith(("udpout:", "udpin:", "udp:", "tcpin:", "udpbcast:")):
+        return mavutil.mavlink_connection(url, **kw)
+    device, _, baud = url.partition(":")
+    if url.startswith("/dev/") or url.upper().startswith("COM"):
+        if baud and not baud.isdigit():
+            raise VioError(f"[mavlink] url {url!r}: baud rate {baud!r} is not a number")
+        return mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
+    raise VioError(f"[mavlink] url {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
+                   "or a serial device such as /dev/ttyAMA0:921600")
+
+
+@dataclass
+class MavlinkStats:
+    """Counters for `vio status` and tests; `sent` is per message name."""
+
+    states_in: int = 0
+    states_sent: int = 0
+    states_superseded: int = 0  # replaced by a newer state before their send slot
+    states_not_tracking: int = 0
+    sent: dict = field(default_factory=dict)
+    autopilot_heartbeats: int = 0
+    timesync_answered: int = 0
+    link_losses: int = 0
+    reconnects: int = 0
+    io_errors: int = 0
+    last_latency_ms: float = float("nan")  # send time - state time (meaningful when t_ns is host time)
+
+
+class MavlinkOutput:
+    """Sends NavStates to an autopilot over MAVLink 2 as component 197 (visual-inertial odometry).
+
+    Use `send_state()` (or call the object: it is a NavState sink), optionally `start()` a background
+    thread for exact-rate sending and prompt TIMESYNC answers, and `close()` at the end.
+    `clock_ns` is injectable so that scheduling is testable without real time.
+    """
+
+    def __init__(self, cfg: MavlinkConfig, url: str | None = None,
+                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        self.cfg = cfg
+        self.url = url if url is not None else cfg.url
+        if not self.url:
+            raise VioError("[mavlink] url is empty: give a connection string such as udpout:127.0.0.1:14550")
+        bad = [m for m in cfg.messages if m not in SUPPORTED_MESSAGES]
+        if bad:
+            raise VioError(f"[mavlink] messages: unknown {bad}; supported: {list(SUPPORTED_MESSAGES)}")
+        for key in ("mount_rpy_deg", "mount_offset_m"):
+            v = getattr(cfg, key)
+            if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+                raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
+        self.T_frd_body = mount_transform(cfg.mount_rpy_deg, cfg.mount_offset_m)
+        self._clock = clock_ns
+        self._period_ns = int(round(1e9 / cfg.rate_hz))
+        self._timeout_ns = int(cfg.link_timeout_s * 1e9)
+        self.stats = MavlinkStats()
+        self.target_system = cfg.target_system
+        self.system_id = cfg.system_id or cfg.target_system
+
+        self._conn: mavutil.mavfile | None = None
+        self._reopen_at_ns = 0
+        self._backoff_s = RECONNECT_MIN_S
+        self._conn_failed_logged = False
+        self._pending: NavState | None = None
+        self._last_sent_t_ns: int | None = None
+        self._next_send_ns = 0
+        self._next_heartbeat_ns = 0
+        self._last_ap_heartbeat_ns: int | None = None
+        self._link_up = False
+        self._origin_left = 0
+        self._next_origin_ns = 0
+        self._reset_offset = 0  # resets forced here, added to the estimator's reset_counter
+        self._last_reset_counter: int | None = None
+        self._tracking: bool | None = None
+        self._lock = threading.RLock()  # guards the connection and the schedule
+        self._pending_lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._open()
+
+    # ---------------------------------------------------------------- public API
+
+    @property
+    def link_up(self) -> bool:
+        """True while the autopilot's heartbeats arrive (within link_timeout_s)."""
+        return self._link_up
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None
+
+    def send_state(self, state: NavState) -> None:
+        """Offer the newest estimate; it is sent in the next slot of the `rate_hz` schedule, or never
+        if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
+        goes out) and sends nothing."""
+        with self._pending_lock:
+            self.stats.states_in += 1
+            changed = self._tracking is not None and state.tracking != self._tracking
+            self._tracking = state.tracking
+            if not state.tracking:
+                self.stats.states_not_tracking += 1
+                self._pending = None
+            elif self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns:
+                pass  # not newer than what the autopilot already has
+            else:
+                if self._pending is not None:
+                    self.stats.states_superseded += 1
+                self._pending = state
+        if changed:
+            self._on_tracking_change(state.tracking)
+        if self._thread is None:
+            self.poll()
+        else:
+            self._wake.set()
+
+    __call__ = send_state  # NavStateSink: sink(state)
+
+    def force_reset(self) -> None:
+        """Bump reset_counter without an estimator reset (e.g. the estimator was re-created and its own
+        counter restarted), so the autopilot drops its old reference."""
+        with self._pending_lock:
+            self._reset_offset += 1
+
+    def start(self) -> MavlinkOutput:
+        """Run `poll()` in a daemon thread on the send/heartbeat schedule (at least every 10 ms)."""
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="mavlink-out", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the thread and close the connection; safe to call twice."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        with self._lock:
+            self._close_conn()
+
+    def __enter__(self) -> MavlinkOutput:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def poll(self) -> None:
+        """Do what is due now: reconnect, read the autopilot (HEARTBEAT, TIMESYNC), link health, our
+        heartbeat, origin messages, and the pose messages of the newest state."""
+        with self._lock:
+            now = self._clock()
+            if self._conn is None and (now < self._reopen_at_ns or not self._open()):
+                return
+            self._read_incoming(now)
+            self._update_link(now)
+            if now >= self._next_heartbeat_ns:
+                self._next_heartbeat_ns = _next_slot(self._next_heartbeat_ns, HEARTBEAT_PERIOD_NS, now)
+                self._send(mavlink.MAVLink_heartbeat_message(
+                    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                    mavlink.MAV_STATE_ACTIVE, 3), "HEARTBEAT")
+            if self._origin_left > 0 and now >= self._next_origin_ns:
+                self._send_origin()
+                self._origin_left -= 1
+                self._next_origin_ns = now + 1_000_000_000
+            if now >= self._next_send_ns:
+                with self._pending_lock:
+                    state, self._pending = self._pending, None
+                if state is not None:
+                    self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
+                    self._send_state_messages(state, now)
+
+    # ---------------------------------------------------------------- messages
+
+    def build_messages(self, state: NavState) -> list:
+        """The configured pose messages for one state (pymavlink message objects, not yet packed)."""
+        od = to_vehicle_odometry(state.t_ns, state.T_world_body, state.v_world, state.omega_body,
+                                 state.cov_pose, state.cov_vel, self.T_frd_body)
+        usec = state.t_ns // 1000
+        reset = (state.reset_counter + self._reset_offset) % 256
+        pose_cov = upper_triangle(od.cov_pose_ned)
+        out = []
+        for name in self.cfg.messages:
+            if name == "VISION_POSITION_ESTIMATE":
+                out.append(mavlink.MAVLink_vision_position_estimate_message(
+                    usec, *od.p_ned, *od.rpy, pose_cov, reset))
+            elif name == "VISION_SPEED_ESTIMATE":
+                out.append(mavlink.MAVLink_vision_speed_estimate_message(
+                    usec, *od.v_ned, [float(x) for x in od.cov_v_ned.ravel()], reset))
+            elif name == "ODOMETRY":
+                vel_cov = np.zeros((6, 6))
+                vel_cov[:3, :3] = od.cov_v_frd
+                vel_cov[3:, 3:] = np.diag([np.nan] * 3)  # angular-rate variance: not estimated
+                out.append(mavlink.MAVLink_odometry_message(
+                    usec, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, *od.p_ned,
+                    [float(x) for x in od.q_ned_frd_wxyz], *od.v_frd, *od.omega_frd, pose_cov,
+                    upper_triangle(vel_cov), reset, mavlink.MAV_ESTIMATOR_TYPE_VIO,
+                    int(min(max(state.quality, 1), 100))))
+        return out
+
+    def _send_state_messages(self, state: NavState, now: int) -> None:
+        if self._last_reset_counter is not None and state.reset_counter != self._last_reset_counter:
+            log.info("estimator reset: reset_counter %d -> %d", self._last_reset_counter, state.reset_counter)
+            self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
+        self._last_reset_counter = state.reset_counter
+        for msg in self.build_messages(state):
+            if not self._send(msg, msg.get_type()):
+                return
+        self._last_sent_t_ns = state.t_ns
+        self.stats.states_sent += 1
+        self.stats.last_latency_ms = (now - state.t_ns) / 1e6
+
+    def _send_origin(self) -> None:
+        lat, lon = int(round(self.cfg.origin_lat_deg * 1e7)), int(round(self.cfg.origin_lon_deg * 1e7))
+        alt_mm = int(round(self.cfg.origin_alt_m * 1000))
+        self._send(mavlink.MAVLink_set_gps_global_origin_message(self.target_system, lat, lon, alt_mm, 0),
+                   "SET_GPS_GLOBAL_ORIGIN")
+        self._send(mavlink.MAVLink_set_home_position_message(
+            self.target_system, lat, lon, alt_mm, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0),
+            "SET_HOME_POSITION")
+
+    def _statustext(self, severity: int, text: str) -> None:
+        self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")
+
+    def _on_tracking_change(self, tracking: bool) -> None:
+        if tracking:
+            log.info("tracking regained: pose output resumes")
+        else:
+            log.warning("tracking lost: pose output paused")
+        with self._lock:
+            if self._conn is not None:
+                self._statustext(mavlink.MAV_SEVERITY_INFO if tracking else mavlink.MAV_SEVERITY_WARNING,
+                                 "VIO tracking regained" if tracking else "VIO tracking lost")
+
+    # ---------------------------------------------------------------- link
+
+    def _read_incoming(self, now: int) -> None:
+        for _ in range(100):  # bounded: a flood of input must not starve our output
+            try:
+                msg = self._conn.recv_match(blocking=False)
+            except Exception as e:  # serial unplugged, socket reset: pyserial/socket raise various types
+                self._io_failed(e)
+                return
+            if msg is None:
+                return
+            kind = msg.get_type()
+            if kind == "HEARTBEAT":
+                if msg.type in _NOT_AUTOPILOT_TYPES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+                    continue
+                self._last_ap_heartbeat_ns = now
+                self.stats.autopilot_heartbeats += 1
+                sysid = msg.get_srcSystem()
+                if sysid != self.target_system or (self.cfg.system_id == 0 and sysid != self.system_id):
+                    log.info("autopilot is system %d; sending as %d/%d", sysid,
+                             self.cfg.system_id or sysid, OUR_COMPONENT)
+                    self.target_system = sysid
+                    if self.cfg.system_id == 0:
+                        self.system_id = sysid
+                        self._conn.mav.srcSystem = sysid
+            elif kind == "TIMESYNC" and msg.tc1 == 0:
+                # A request: answer with our clock (the one NavState.t_ns uses) and echo its ts1.
+                self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
+                self.stats.timesync_answered += 1
+
+    def _update_link(self, now: int) -> None:
+        up = self._last_ap_heartbeat_ns is not None and now - self._last_ap_heartbeat_ns < self._timeout_ns
+        if up and not self._link_up:
+            log.info("autopilot link up (system %d) on %s", self.target_system, self.url)
+            if math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg):
+                self._origin_left, self._next_origin_ns = ORIGIN_REPEATS, now
+        elif self._link_up and not up:
+            self.stats.link_losses += 1
+            log.warning("autopilot link lost: no heartbeat for %.1f s", self.cfg.link_timeout_s)
+        self._link_up = up
+
+    def _send(self, msg: object, name: str) -> bool:
+        if self._conn is None:
+            return False
+        try:
+            self._conn.mav.send(msg)
+        except Exception as e:
+            self._io_failed(e)
+            return False
+        if getattr(self._conn, "portdead", False):  # mavutil's serial write swallows the error
+            self._io_failed(OSError("serial write failed"))
+            return False
+        self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+        return True
+
+    def _open(self) -> bool:
+        try:
+            self._conn = open_connection(self.url, self.system_id)
+        except VioError:
+            raise
+        except Exception as e:
+            self._conn = None
+            self._reopen_at_ns = self._clock() + int(self._backoff_s * 1e9)
+            if not self._conn_failed_logged:
+                log.warning("cannot open %s (%s); retrying every <= %.0f s", self.url, e, RECONNECT_MAX_S)
+                self._conn_failed_logged = True
+            else:
+                log.debug("cannot open %s: %s", self.url, e)
+            self._backoff_s = min(self._backoff_s * 2, RECONNECT_MAX_S)
+            return False
+        if self._conn_failed_logged:
+            log.info("reconnected to %s", self.url)
+            self.stats.reconnects += 1
+        self._conn_failed_logged = False
+        self._backoff_s = RECONNECT_MIN_S
+        return True
+
+    def _io_failed(self, e: Exception) -> None:
+        self.stats.io_errors += 1
+        if not self._conn_failed_logged:
+            log.warning("link error on %s (%s: %s); reconnecting", self.url, type(e).__name__, e)
+            self._conn_failed_logged = True
+        self._close_conn()
+        self._reopen_at_ns = self._clock() + int(self._backoff_s * 1e9)
+
+    def _close_conn(self) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except Exception as e:  # closing a dead port may fail too; nothing left to do
+                log.debug("close failed: %s", e)
+            self._conn = None
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.poll()
+            except Exception:  # keep the output alive; the next poll reconnects if needed
+                log.exception("mavlink output step failed")
+            now = self._clock()
+            wake = min(self._next_heartbeat_ns, now + 10_000_000)  # 10 ms: prompt TIMESYNC answers
+            if self._pending is not None:
+                wake = min(wake, self._next_send_ns)
+            self._wake.wait(max(wake - now, 100_000) / 1e9)
+            self._wake.clear()
+
+
+def _next_slot(slot_ns: int, period_ns: int, now_ns: int) -> int:
+    """Next slot of a fixed grid (no drift from late wake-ups); re-anchor after a gap of a whole period."""
+    nxt = slot_ns + period_ns
+    return nxt if nxt > now_ns else now_ns + period_ns
