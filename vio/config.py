@@ -225,7 +225,9 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, float) and math.isnan(v):
         return "nan"
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # escape quote, backslash and control characters (a raw newline would make invalid TOML)
+        return '"' + "".join("\\" + c if c in '"\\' else f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F
+                             else c for c in v) + '"'
     if isinstance(v, list):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     return repr(v)

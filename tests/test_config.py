@@ -1,0 +1,115 @@
+"""The TOML configuration: defaults, `vio config show` round trip, and errors that name file and key."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from vio import VioError
+from vio.cli import main
+from vio.config import VioConfig, config_from_dict, config_to_toml, load_config
+
+
+def _same(a: VioConfig, b: VioConfig) -> bool:
+    """Equality that treats NaN as equal to NaN (defaults use NaN for 'not set')."""
+    def norm(x):
+        if isinstance(x, float) and math.isnan(x):
+            return "nan"
+        if isinstance(x, dict):
+            return {k: norm(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [norm(v) for v in x]
+        return x
+    return norm(dataclasses.asdict(a)) == norm(dataclasses.asdict(b))
+
+
+def test_defaults_load_and_are_valid():
+    cfg = load_config(None)
+    assert _same(cfg, VioConfig())
+    # every default passes its own field's validation (a default outside its bounds is a bug)
+    assert _same(config_from_dict(dataclasses.asdict(cfg), "defaults"), cfg)
+
+
+def test_every_field_is_documented():
+    for sec in dataclasses.fields(VioConfig):
+        for f in dataclasses.fields(getattr(VioConfig(), sec.name)):
+            assert f.metadata.get("help"), f"[{sec.name}] {f.name} has no help text"
+
+
+def _show(capsys, path=None) -> str:
+    assert main(["-q", "config", "show"] + ([str(path)] if path else [])) == 0
+    return capsys.readouterr().out
+
+
+def test_show_output_reloads_to_the_same_config(tmp_path, capsys):
+    out = tmp_path / "shown.toml"
+    out.write_text(_show(capsys))
+    assert _same(load_config(out), VioConfig())
+
+
+def test_show_of_a_file_reloads_to_that_file(tmp_path, capsys):
+    src = tmp_path / "mine.toml"
+    src.write_text(
+        "[frontend]\nmax_features = 150\nclahe = true\n"
+        "[source]\nkind = \"euroc\"\ndataset = 'C:\\data \"V1\"\\tab\there'\nfps = 30\n"
+        "[mavlink]\nmount_rpy_deg = [180.0, 0.0, 90.0]\norigin_lat_deg = 47.5\n"
+        "[run]\ntrajectory_file = \"\"\"two\nlines\"\"\"\n"
+    )
+    cfg = load_config(src)
+    assert cfg.frontend.max_features == 150 and cfg.frontend.clahe is True
+    assert cfg.source.fps == 30.0 and isinstance(cfg.source.fps, float)
+    assert cfg.source.dataset == 'C:\\data "V1"\\tab\there'
+    assert cfg.run.trajectory_file == "two\nlines"
+    shown = tmp_path / "shown.toml"
+    shown.write_text(_show(capsys, src))
+    assert _same(load_config(shown), cfg)
+    assert config_to_toml(load_config(shown)) == config_to_toml(cfg)
+
+
+def _write(tmp_path, text: str):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("[frontend]\nmax_featurs = 100\n", "[frontend]: unknown key 'max_featurs' (did you mean 'max_features'?)"),
+    ("[frontend]\nzzz = 1\n", "[frontend]: unknown key 'zzz'; known keys: max_features"),
+    ("[frontend]\nmax_features = \"200\"\n", "[frontend]: 'max_features' must be int, got str '200'"),
+    ("[frontend]\nmax_features = 200.5\n", "[frontend]: 'max_features' must be int, got float 200.5"),
+    ("[frontend]\nclahe = 1\n", "[frontend]: 'clahe' must be bool, got int 1"),
+    ("[backend]\nlag_s = true\n", "[backend]: 'lag_s' must be float, got bool True"),
+    ("[frontend]\nmax_features = 5\n", "[frontend]: 'max_features' = 5 is below the minimum 10"),
+    ("[frontend]\nmax_features = 100000\n", "[frontend]: 'max_features' = 100000 is above the maximum 2000"),
+    ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is below the minimum"),
+    ("[source]\nkind = \"webcam\"\n", "[source]: 'kind' = 'webcam' is not one of ['oak', 'euroc', 'fake']"),
+    ("[frontnd]\nmax_features = 100\n", "unknown section [frontnd] (did you mean [frontend]?)"),
+    ("[zebra]\n", "unknown section [zebra]; known sections: frontend"),
+    ("frontend = 3\n", "[frontend]: expected a table of settings, got int"),
+    ("[frontend]\nmax_features = \n", "not valid TOML"),
+    ("[frontend]\nmax_features = 100\nmax_features = 120\n", "not valid TOML"),
+])
+def test_errors_name_file_and_key(tmp_path, text, expected):
+    path = _write(tmp_path, text)
+    with pytest.raises(VioError) as e:
+        load_config(path)
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: ")
+    assert expected in msg
+
+
+def test_bad_toml_names_the_line(tmp_path):
+    path = _write(tmp_path, "[frontend]\nmax_features = 100\nclahe = yes\n")
+    with pytest.raises(VioError, match=r"bad\.toml: not valid TOML .*line 3"):
+        load_config(path)
+
+
+def test_missing_and_binary_files(tmp_path):
+    with pytest.raises(VioError, match=r"nope\.toml: cannot read config"):
+        load_config(tmp_path / "nope.toml")
+    p = tmp_path / "bin.toml"
+    p.write_bytes(b"\xff\xfe\x00junk")
+    with pytest.raises(VioError, match=r"bin\.toml: not valid TOML"):
+        load_config(p)
