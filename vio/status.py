@@ -1,0 +1,122 @@
+"""`vio status`: the daemon's health for a person on the drone's shell (or a script: see the exit codes).
+
+Reads the JSON status file that `vio run` rewrites every second. Exit codes: 0 healthy; 1 running but
+unhealthy or degraded (no recent pose, tracking lost, stuck thread); 4 not running: the file is missing,
+unreadable, stale (not rewritten for `--stale-s` seconds) or written by a stopped daemon.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+EXIT_HEALTHY = 0
+EXIT_UNHEALTHY = 1
+EXIT_NOT_RUNNING = 4
+DEFAULT_STATUS_FILE = "/run/kestrel-vio/status.json"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--file", help=f"status file (default: [run] status_file of --config, else {DEFAULT_STATUS_FILE})")
+    p.add_argument("--config", help="take the status file path from this TOML config")
+    p.add_argument("--stale-s", type=float, default=3.0, help="older than this = daemon not running (default 3)")
+    p.add_argument("--json", action="store_true", help="print the raw status JSON")
+
+
+def read_status(path: Path) -> dict[str, Any]:
+    """Parse the status file; OSError / ValueError mean 'not running' to the caller."""
+    data = json.loads(path.read_text())
+    if not isinstance(data, dict) or "state" not in data:
+        raise ValueError("not a kestrel-vio status file")
+    return data
+
+
+def evaluate(status: dict[str, Any], now_unix: float, stale_s: float) -> tuple[int, str]:
+    """Exit code and a one-word verdict for a parsed status."""
+    age = now_unix - float(status.get("written_unix", 0))
+    if status.get("state") == "stopped":
+        return EXIT_NOT_RUNNING, "STOPPED"
+    if age > stale_s:
+        return EXIT_NOT_RUNNING, f"STALE ({age:.0f} s old: daemon not running or hung)"
+    if status.get("healthy"):
+        return EXIT_HEALTHY, "HEALTHY"
+    return EXIT_UNHEALTHY, "UNHEALTHY"
+
+
+def _fmt(v: Any, unit: str = "", nd: int = 1) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}{unit}"
+    return f"{v}{unit}"
+
+
+def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
+    """Readable multi-line report; every field tolerates absence (an older daemon, a starting one)."""
+    r = s.get("rates_hz", {})
+    e = s.get("estimator", {})
+    src = s.get("source", {})
+    mav = s.get("mavlink", {})
+    lat = s.get("latency_ms") or {}
+    up = float(s.get("uptime_s", 0))
+    lines = [
+        f"kestrel-vio: {verdict}   state {s.get('state')}   pid {s.get('pid')}   "
+        f"up {int(up // 3600)}h{int(up % 3600 // 60):02d}m{int(up % 60):02d}s   "
+        f"(status {now_unix - float(s.get('written_unix', now_unix)):.1f} s old)",
+        f"  sensors   {src.get('kind', '-')}: {'connected' if src.get('connected') else 'NOT DELIVERING'}, "
+        f"camera {_fmt(r.get('camera'), ' Hz')}, IMU {_fmt(r.get('imu'), ' Hz', 0)}, "
+        f"disconnects {_fmt(src.get('disconnects'))}, frames dropped {_fmt(src.get('frames_dropped'))}, "
+        f"IMU lost {_fmt(src.get('imu_overflow'))}",
+        f"  estimator {_fmt(r.get('estimator'), ' Hz')}, tracking {_fmt(e.get('tracking'))}, "
+        f"quality {_fmt(e.get('quality'))}, tracks {_fmt(e.get('tracks'))}, "
+        f"resets {_fmt(e.get('reset_counter'))} (daemon-forced {_fmt(e.get('daemon_resets'))}), "
+        f"last pose {_fmt(e.get('last_pose_age_s'), ' s ago', 2)}",
+        f"  position  {e.get('position_m') or '-'} m (world, z up)   "
+        f"latency frame->output p50 {_fmt(lat.get('p50'), ' ms')} max {_fmt(lat.get('max'), ' ms')}",
+        f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
+        f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}",
+    ]
+    rec = s.get("recording")
+    if rec:
+        lines.append(f"  recording {rec.get('dir')}: {rec.get('frames')} frames, {rec.get('imu')} IMU, "
+                     f"{rec.get('frames_dropped')} frames dropped")
+    wd = s.get("watchdog") or {}
+    lines.append(f"  watchdog  {'on' if wd.get('enabled') else 'off (not under systemd)'}"
+                 f"{', fed' if wd.get('fed') else ', NOT fed' if wd.get('enabled') else ''}")
+    for w in s.get("warnings") or []:
+        lines.append(f"  WARNING   {w}")
+    return "\n".join(lines)
+
+
+def _status_path(args: argparse.Namespace) -> Path:
+    if args.file:
+        return Path(args.file)
+    if args.config:
+        from vio.config import load_config
+
+        return Path(load_config(args.config).run.status_file)
+    return Path(DEFAULT_STATUS_FILE)
+
+
+def run(args: argparse.Namespace) -> int:
+    path = _status_path(args)
+    try:
+        status = read_status(path)
+    except FileNotFoundError:
+        print(f"kestrel-vio: NOT RUNNING ({path} does not exist; is the service started? "
+              "try: systemctl status kestrel-vio)", file=sys.stderr)
+        return EXIT_NOT_RUNNING
+    except (OSError, ValueError) as e:
+        print(f"kestrel-vio: UNKNOWN ({path}: cannot read status: {e})", file=sys.stderr)
+        return EXIT_NOT_RUNNING
+    now = time.time()
+    code, verdict = evaluate(status, now, args.stale_s)
+    if args.json:
+        print(json.dumps(status, indent=1))
+    else:
+        print(format_status(status, verdict, now))
+    return code
