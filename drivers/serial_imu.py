@@ -1,0 +1,132 @@
+"""IMU over a serial port (USB-UART or a microcontroller) speaking the protocol of serial_protocol.py.
+
+A reader thread owns the port: it reads whatever bytes are waiting, parses them, converts the device
+stamps to the host clock (timesync.ClockSync) and pushes ImuSamples into a bounded queue. So the camera
+path never waits on the UART, and a slow consumer costs counted IMU drops rather than a stalled reader.
+The port is reopened with exponential backoff when it disappears (cable pulled, MCU reset).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from drivers.serial_protocol import FrameParser
+from drivers.source import DropOldestQueue, Message, SensorSource
+from drivers.timesync import ClockSync, StreamMonitor
+from vio.types import ImuSample
+
+log = logging.getLogger(__name__)
+
+
+def _default_serial_factory(port: str, baud: int, timeout: float) -> Any:
+    import serial  # pyserial; imported here so the module loads without it
+
+    return serial.Serial(port, baud, timeout=timeout)
+
+
+class SerialImuSource(SensorSource):
+    """ImuSamples from a serial IMU, stamped on the host monotonic clock."""
+
+    name = "serial_imu"
+
+    def __init__(self, port: str, baud: int = 921600, *, nominal_rate_hz: float = 400.0,
+                 serial_factory: Callable[..., Any] | None = None, queue_size: int = 4000,
+                 read_timeout_s: float = 0.02, backoff_max_s: float = 5.0,
+                 clock: ClockSync | None = None) -> None:
+        self.port = port
+        self.baud = baud
+        self._factory = serial_factory or _default_serial_factory
+        self._read_timeout = read_timeout_s
+        self._backoff_max = backoff_max_s
+        self.parser = FrameParser()
+        self.clock = clock or ClockSync()
+        self.monitor = StreamMonitor("serial IMU", nominal_rate_hz)
+        self._queue = DropOldestQueue(queue_size)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.state = "stopped"
+        self.open_failures = 0
+        self.disconnects = 0
+        self.last_error = ""
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self.state = "connecting"
+        self._thread = threading.Thread(target=self._run, name="serial-imu", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self.state = "stopped"
+
+    def poll(self) -> list[Message]:
+        return self._queue.drain()
+
+    # -- reader thread -------------------------------------------------------------------------------------
+    def _run(self) -> None:
+        backoff = 0.1
+        while not self._stop.is_set():
+            try:
+                ser = self._factory(self.port, self.baud, self._read_timeout)
+            except Exception as e:  # pyserial raises SerialException/OSError/ValueError for a bad port
+                self.open_failures += 1
+                msg = f"cannot open serial IMU port {self.port} at {self.baud} baud: {e}"
+                if msg != self.last_error:
+                    log.error("%s; retrying with backoff", msg)
+                self.last_error = msg
+                self.state = "disconnected"
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self._backoff_max)
+                continue
+            log.info("serial IMU port %s open at %d baud", self.port, self.baud)
+            self.state = "running"
+            backoff = 0.1
+            try:
+                self._pump(ser)
+            except Exception as e:  # unplugged mid-flight: SerialException / OSError from read()
+                self.disconnects += 1
+                self.last_error = f"serial IMU port {self.port} lost: {e}"
+                log.error("%s; reconnecting", self.last_error)
+                self.state = "disconnected"
+            finally:
+                with contextlib.suppress(Exception):  # closing a vanished port may fail too
+                    ser.close()
+
+    def _pump(self, ser: Any) -> None:
+        while not self._stop.is_set():
+            waiting = getattr(ser, "in_waiting", 0) or 0
+            data = ser.read(max(1, min(waiting, 4096)))
+            t_arrival = time.monotonic_ns()
+            if data:
+                self.feed(data, t_arrival)
+
+    def feed(self, data: bytes, t_arrival_ns: int) -> None:
+        """Parse bytes that arrived at `t_arrival_ns` (host clock) and queue the samples. Public so that
+        tests and tools can drive the parser and clock sync without a port."""
+        raws = self.parser.feed(data)
+        # add the whole chunk before converting: the chunk's last frame has the least latency, and early on
+        # (before the first fit) converting frame by frame would collapse a burst onto one arrival stamp
+        for raw in raws:
+            self.clock.add(raw.t_us * 1000, t_arrival_ns)
+        for raw in raws:
+            t_host = self.clock.to_host(raw.t_us * 1000)
+            if t_host is None or not self.monitor.check(t_host):
+                continue
+            self._queue.put(ImuSample(t_host, raw.gyro, raw.accel))
+
+    def health(self) -> dict[str, Any]:
+        return {"name": self.name, "state": self.state, "port": self.port, "baud": self.baud,
+                "open_failures": self.open_failures, "disconnects": self.disconnects,
+                "queue_dropped": self._queue.dropped, "last_error": self.last_error,
+                "parser": self.parser.stats.as_dict(), "stream": self.monitor.as_dict(),
+                "clock": self.clock.as_dict()}

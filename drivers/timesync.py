@@ -1,0 +1,174 @@
+"""Device clock -> host clock for sensors that stamp with their own clock (serial IMU, flight controller).
+
+Model: arrival_host = a + (1 + drift) * t_device + delay, with delay >= 0 (USB/UART latency, OS
+scheduling) and rarely near its minimum. The least-delayed samples therefore form the LOWER envelope of
+(t_device, arrival - t_device); we take the minimum of each block (default 1 s) over a sliding window
+(default 20 s) and fit a line through those minima. The intercept is the clock offset plus the minimum
+transport latency (which cannot be separated from the offset without a round trip; it is small and
+constant, and the calibration's camera-IMU time offset absorbs it). The slope is the drift.
+
+Why not a plain average: mean(arrival - t_device) includes the mean latency, which varies with load,
+so averaging moves every stamp by tens of ms whenever the host is busy.
+
+`StreamMonitor` checks any stamped stream for gaps, non-monotonic stamps and time jumps and counts them,
+so data problems are reported, never silently smoothed over.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ClockEstimate:
+    offset_ns: float  # host - device at t_ref_dev_ns
+    drift_ppm: float  # (host rate / device rate - 1) * 1e6
+    t_ref_dev_ns: int
+    n_blocks: int
+
+
+class ClockSync:
+    """Running lower-envelope fit of host arrival time against device time."""
+
+    def __init__(self, block_s: float = 1.0, window_s: float = 20.0, max_jump_s: float = 0.5,
+                 max_drift_ppm: float = 1000.0) -> None:
+        self.block_ns = int(block_s * 1e9)
+        self.window_blocks = max(2, int(round(window_s / block_s)))
+        self.max_jump_ns = int(max_jump_s * 1e9)
+        self.max_drift = max_drift_ppm * 1e-6
+        self._blocks: deque[tuple[int, int]] = deque()  # (t_dev at block min, min(host - dev)) per block
+        self._cur: tuple[int, int] | None = None  # current block's best (t_dev, host - dev)
+        self._cur_start: int | None = None
+        self._est: ClockEstimate | None = None
+        self._last_dev: int | None = None
+        self.resets = 0
+
+    def reset(self) -> None:
+        """Forget everything (device restarted or its clock jumped)."""
+        self._blocks.clear()
+        self._cur = None
+        self._cur_start = None
+        self._est = None
+        self._last_dev = None
+        self.resets += 1
+
+    def add(self, t_dev_ns: int, t_host_ns: int) -> None:
+        """Add one (device stamp, host arrival stamp) pair."""
+        d = t_host_ns - t_dev_ns
+        # arrivals far EARLIER than predicted mean the device clock jumped ahead; far later ones are only a
+        # stalled reader (delay is unbounded above) and must not restart the sync
+        if self._est is not None and self._predict_offset(t_dev_ns) - d > self.max_jump_ns:
+            log.warning("device clock jumped by %.3f s against the host: clock sync restarted",
+                        (self._predict_offset(t_dev_ns) - d) / 1e9)
+            self.reset()
+        if self._last_dev is not None and t_dev_ns < self._last_dev:
+            log.warning("device clock went backwards by %.3f s: clock sync restarted",
+                        (self._last_dev - t_dev_ns) / 1e9)
+            self.reset()
+        self._last_dev = t_dev_ns
+        if self._cur_start is None:
+            self._cur_start = t_dev_ns
+        if t_dev_ns - self._cur_start >= self.block_ns:
+            if self._cur is not None:
+                self._blocks.append(self._cur)
+                while len(self._blocks) > self.window_blocks:
+                    self._blocks.popleft()
+                self._refit()
+            self._cur = None
+            self._cur_start = t_dev_ns
+        if self._cur is None or d < self._cur[1]:
+            self._cur = (t_dev_ns, d)
+
+    def _refit(self) -> None:
+        t = np.array([b[0] for b in self._blocks], dtype=np.float64)
+        d = np.array([b[1] for b in self._blocks], dtype=np.float64)
+        t_ref = int(t[-1])
+        if len(t) >= 3:
+            slope, icpt = np.polyfit(t - t_ref, d, 1)
+            slope = float(np.clip(slope, -self.max_drift, self.max_drift))
+            # lower envelope: shift the line down to touch the lowest residual (no point lies below it)
+            icpt = float(np.min(d - slope * (t - t_ref)))
+        else:
+            slope, icpt = 0.0, float(np.min(d))
+        self._est = ClockEstimate(icpt, slope * 1e6, t_ref, len(t))
+
+    def _predict_offset(self, t_dev_ns: int) -> float:
+        e = self._est
+        assert e is not None
+        return e.offset_ns + e.drift_ppm * 1e-6 * (t_dev_ns - e.t_ref_dev_ns)
+
+    def to_host(self, t_dev_ns: int) -> int | None:
+        """Host-clock stamp of a device stamp; before the first block closes, the running minimum of
+        (host - device) is used; None before any sample."""
+        if self._est is not None:
+            return int(round(t_dev_ns + self._predict_offset(t_dev_ns)))
+        if self._cur is not None:
+            return int(t_dev_ns + self._cur[1])
+        return None
+
+    @property
+    def estimate(self) -> ClockEstimate | None:
+        return self._est
+
+    def as_dict(self) -> dict:
+        e = self._est
+        return {"offset_ns": None if e is None else round(e.offset_ns),
+                "drift_ppm": None if e is None else round(e.drift_ppm, 3),
+                "blocks": 0 if e is None else e.n_blocks, "resets": self.resets}
+
+
+class StreamMonitor:
+    """Counts gaps, non-monotonic stamps and time jumps of one stamped stream and logs each event once."""
+
+    def __init__(self, name: str, nominal_rate_hz: float, gap_factor: float = 2.5, jump_s: float = 1.0) -> None:
+        self.name = name
+        self.period_ns = int(1e9 / nominal_rate_hz)
+        self.gap_ns = int(gap_factor * self.period_ns)
+        self.jump_ns = int(jump_s * 1e9)
+        self.last_t: int | None = None
+        self.count = 0
+        self.gaps = 0
+        self.missing_estimate = 0  # samples that the gaps imply were lost
+        self.non_monotonic = 0
+        self.jumps = 0
+        self.max_dt_ns = 0
+
+    def check(self, t_ns: int) -> bool:
+        """Record one stamp. False means the sample must be dropped (not after the previous one)."""
+        self.count += 1
+        if self.last_t is None:
+            self.last_t = t_ns
+            return True
+        dt = t_ns - self.last_t
+        if dt <= 0:
+            self.non_monotonic += 1
+            if self._should_log(self.non_monotonic):
+                log.warning("%s: non-monotonic stamp %d after %d (dt %d ns); sample dropped",
+                            self.name, t_ns, self.last_t, dt)
+            return False
+        if dt > self.jump_ns:
+            self.jumps += 1
+            log.warning("%s: time jump of %.3f s", self.name, dt / 1e9)
+        elif dt > self.gap_ns:
+            self.gaps += 1
+            self.missing_estimate += int(round(dt / self.period_ns)) - 1
+            if self._should_log(self.gaps):
+                log.warning("%s: gap of %.1f ms (nominal %.1f ms)", self.name, dt / 1e6, self.period_ns / 1e6)
+        self.max_dt_ns = max(self.max_dt_ns, dt)
+        self.last_t = t_ns
+        return True
+
+    @staticmethod
+    def _should_log(n: int) -> bool:
+        """Log the first 10 events of a kind, then every 100th: a broken sensor must not flood the log."""
+        return n <= 10 or n % 100 == 0
+
+    def as_dict(self) -> dict:
+        return {"count": self.count, "gaps": self.gaps, "missing_estimate": self.missing_estimate,
+                "non_monotonic": self.non_monotonic, "jumps": self.jumps, "max_dt_ms": self.max_dt_ns / 1e6}

@@ -1,0 +1,220 @@
+"""Serial IMU: protocol, resynchronising parser, clock sync, and the threaded source on a real pty."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+import tty
+
+import numpy as np
+import pytest
+
+from drivers.reference_sender import LinkFaults, corrupt_link, imu_frames
+from drivers.serial_imu import SerialImuSource
+from drivers.serial_protocol import IMU_FRAME_SIZE, FrameParser, crc16, encode_imu
+from drivers.timesync import ClockSync, StreamMonitor
+from vio.types import ImuSample
+
+RATE = 400.0
+
+
+def test_crc_is_ccitt_false() -> None:
+    assert crc16(b"123456789") == 0x29B1  # the published check value of CRC-16/CCITT-FALSE
+
+
+def test_encode_decode_round_trip_and_scale() -> None:
+    f = encode_imu(7, 123456789, np.array([0.1, -0.2, 3.0]), np.array([-9.81, 0.0, 1e-5]))
+    assert len(f) == IMU_FRAME_SIZE
+    (raw,) = FrameParser().feed(f)
+    assert raw.seq == 7 and raw.t_us == 123456789
+    np.testing.assert_allclose(raw.gyro, [0.1, -0.2, 3.0], atol=1e-6)
+    np.testing.assert_allclose(raw.accel, [-9.81, 0.0, 1e-5], atol=1e-5)
+
+
+def test_byte_by_byte_feed_and_split_sync() -> None:
+    frames = list(imu_frames(20, RATE))
+    stream = b"\xa5" + b"".join(f.data for f in frames)  # a lone first sync byte is garbage
+    p = FrameParser()
+    got = [r.seq for i in range(len(stream)) for r in p.feed(stream[i:i + 1])]
+    assert got == list(range(20))
+    assert p.stats.bytes_discarded == 1 and p.stats.crc_errors == 0
+
+
+def test_parser_recovers_every_good_frame_and_counts_every_bad_one() -> None:
+    frames = list(imu_frames(4000, RATE))
+    faults = LinkFaults(garbage=0.05, truncate=0.03, bitflip=0.03, baud_burst=0.02)
+    stream, intact, damaged = corrupt_link(frames, faults, seed=3)
+    assert damaged > 100 and intact[-1] == len(frames) - 1
+    p = FrameParser()
+    rng = np.random.default_rng(1)
+    got, i = [], 0
+    while i < len(stream):  # random read sizes, as a UART driver returns them
+        n = int(rng.integers(1, 200))
+        got += p.feed(stream[i:i + n])
+        i += n
+    assert [r.seq for r in got] == [frames[k].seq for k in intact]
+    for r in got[:50]:
+        f = frames[r.seq]
+        np.testing.assert_allclose(r.gyro, f.gyro, atol=1e-6)
+    s = p.stats
+    assert s.seq_lost == damaged  # every damaged frame is accounted for
+    assert s.crc_errors + s.bad_length > 0 and s.bytes_discarded > 0
+    assert s.bytes_in == len(stream)
+
+
+def test_clock_sync_recovers_offset_and_drift_from_positive_delays() -> None:
+    rng = np.random.default_rng(0)
+    offset_ns, drift = 5_000_000_000, 50e-6  # host runs 50 ppm fast against the device
+    cs = ClockSync(block_s=1.0, window_s=20.0)
+    t_dev = np.arange(0, int(30e9), int(2.5e6))
+    delay = rng.exponential(2e6, size=len(t_dev)) + 3e5  # >= 0.3 ms, mean 2.3 ms, heavy tail
+    host = offset_ns + t_dev * (1 + drift) + delay
+    for td, th in zip(t_dev, host):
+        cs.add(int(td), int(th))
+    est = cs.estimate
+    assert est is not None
+    assert abs(est.drift_ppm - 50.0) < 5.0
+    # converted stamps sit at the true sample time plus about the minimum latency, not the mean one
+    err = np.array([cs.to_host(int(td)) - (offset_ns + td * (1 + drift)) for td in t_dev[-400:]])
+    assert np.all(np.abs(err - 3e5) < 2e5), (err.min(), err.max())
+
+
+def test_clock_sync_restarts_on_device_reset() -> None:
+    cs = ClockSync(block_s=0.1)
+    for k in range(100):
+        cs.add(k * 10_000_000, 1_000_000_000 + k * 10_000_000)
+    cs.add(0, 2_000_000_000)  # device rebooted: its clock starts again at 0
+    assert cs.resets == 1
+    assert cs.to_host(0) == 2_000_000_000
+
+
+def test_stream_monitor_counts_gaps_jumps_and_reversals() -> None:
+    m = StreamMonitor("imu", 200.0)
+    stamps = [0, 5, 10, 30, 35, 35, 34, 2000, 2005]
+    kept = [m.check(t * 1_000_000) for t in stamps]
+    assert kept == [True, True, True, True, True, False, False, True, True]
+    assert (m.gaps, m.missing_estimate, m.non_monotonic, m.jumps) == (1, 3, 2, 1)
+
+
+def _pty_pair() -> tuple[int, str]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    tty.setraw(master)
+    return master, os.ttyname(slave)
+
+
+def test_source_on_pty_at_400hz_with_faults() -> None:
+    """The threaded source reads a real pseudo-terminal fed at 400 Hz in real time through a faulty link."""
+    master, path = _pty_pair()
+    frames = list(imu_frames(int(1.5 * RATE), RATE, t0_us=time.monotonic_ns() // 1000))
+    stream_parts = []
+    intact_all: list[int] = []
+    damaged_all = 0
+    chunk = 8
+    for j in range(0, len(frames), chunk):
+        part, intact, damaged = corrupt_link(frames[j:j + chunk], LinkFaults(0.05, 0.02, 0.02, 0.02), seed=j)
+        stream_parts.append(part)
+        intact_all += [j + k for k in intact]
+        damaged_all += damaged
+    last_ok = intact_all[-1] == len(frames) - 1
+    if not last_ok:
+        stream_parts.append(frames[-1].data)  # resend the last frame so a trailing loss shows in the sequence
+    want = len(intact_all) + (0 if last_ok else 1)
+    src = SerialImuSource(path, 921600, nominal_rate_hz=RATE)
+    src.start()
+    try:
+        t0 = time.monotonic()
+        for j, part in enumerate(stream_parts):  # paced like the sensor: 8 frames every 20 ms
+            due = t0 + (j + 1) * chunk / RATE
+            time.sleep(max(0.0, due - time.monotonic()))
+            os.write(master, part)
+        got: list[ImuSample] = []
+        deadline = time.monotonic() + 5.0
+        while len(got) < want and time.monotonic() < deadline:
+            got += src.poll()
+            time.sleep(0.01)
+    finally:
+        src.stop()
+        os.close(master)
+    h = src.health()
+    assert h["parser"]["frames_ok"] == want
+    assert h["parser"]["seq_lost"] == damaged_all - (0 if last_ok else 1)
+    assert len(got) + h["stream"]["non_monotonic"] == want
+    t = np.array([s.t_ns for s in got])
+    assert np.all(np.diff(t) > 0)
+    # host stamps land near "now": within 50 ms of when the frames were produced
+    assert abs(int(t[-1]) - frames[-1].t_us * 1000) < 50_000_000
+    assert h["clock"]["blocks"] >= 1
+
+
+def test_source_survives_missing_port_and_reports_it() -> None:
+    src = SerialImuSource("/dev/does-not-exist-kestrel", 115200, backoff_max_s=0.05)
+    src.start()
+    deadline = time.monotonic() + 2.0
+    while src.open_failures < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    src.stop()
+    h = src.health()
+    assert h["open_failures"] >= 2 and "does-not-exist-kestrel" in h["last_error"]
+    assert src.poll() == []
+
+
+def test_source_reconnects_after_unplug() -> None:
+    """A port that raises mid-read (cable pulled) is reopened; data after the reconnect flows again."""
+    frames = list(imu_frames(40, RATE, t0_us=time.monotonic_ns() // 1000))
+    opened = []
+
+    class FlakyPort:
+        """Delivers its frames in real time (none before its device time), then fails if asked to."""
+
+        def __init__(self, frames: list, fail: bool) -> None:
+            self.frames, self.fail, self.in_waiting = list(frames), fail, 0
+
+        def read(self, n: int) -> bytes:
+            time.sleep(0.005)
+            now_us = time.monotonic_ns() // 1000
+            ready = [f for f in self.frames if f.t_us <= now_us]
+            self.frames = self.frames[len(ready):]
+            if not ready and not self.frames and self.fail:
+                raise OSError(5, "Input/output error")
+            return b"".join(f.data for f in ready)
+
+        def close(self) -> None:
+            pass
+
+    def factory(port: str, baud: int, timeout: float) -> FlakyPort:
+        opened.append(port)
+        first = len(opened) == 1
+        return FlakyPort(frames[:20] if first else frames[20:], fail=first)
+
+    src = SerialImuSource("/dev/ttyFAKE", 921600, serial_factory=factory, nominal_rate_hz=RATE)
+    src.start()
+    got: list = []
+    deadline = time.monotonic() + 3.0
+    while len(got) < 40 and time.monotonic() < deadline:
+        got += src.poll()
+        time.sleep(0.01)
+    src.stop()
+    assert len(got) == 40 and src.disconnects == 1 and len(opened) >= 2
+
+
+def test_c_sender_is_byte_identical() -> None:
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    src = os.path.join(os.path.dirname(__file__), "..", "tools", "serial_imu_sender.c")
+    exe = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"kestrel_sender_{os.getpid()}")
+    subprocess.run([cc, "-std=c99", "-Wall", "-Werror", "-DKESTREL_SENDER_MAIN", "-o", exe, src], check=True)
+    try:
+        frames = list(imu_frames(50, RATE, t0_us=2**40 + 17))
+        lines = []
+        for f in frames:
+            g = np.round(f.gyro / 1e-6).astype(int)
+            a = np.round(f.accel / 1e-5).astype(int)
+            lines.append(" ".join(map(str, [f.seq, f.t_us, *g, *a])))
+        res = subprocess.run([exe], input="\n".join(lines) + "\n", capture_output=True, text=True, check=True)
+        assert res.stdout.split() == [f.data.hex() for f in frames]
+    finally:
+        os.unlink(exe)
