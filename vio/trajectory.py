@@ -89,19 +89,26 @@ def write_tum(traj: Trajectory, path: str | Path) -> None:
 
 
 def format_tum_line(t_ns: int, p: np.ndarray, q_wxyz: np.ndarray) -> str:
-    sec, ns = divmod(int(t_ns), 1_000_000_000)
-    return (f"{sec}.{ns:09d} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+    sign = "-" if t_ns < 0 else ""
+    sec, ns = divmod(abs(int(t_ns)), 1_000_000_000)
+    return (f"{sign}{sec}.{ns:09d} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
             f"{q_wxyz[1]:.9f} {q_wxyz[2]:.9f} {q_wxyz[3]:.9f} {q_wxyz[0]:.9f}\n")
 
 
 def _seconds_to_ns(text: str) -> int:
-    """Exact seconds->ns for decimal strings (float64 would lose ns at epoch-scale stamps)."""
+    """Exact seconds->ns for decimal strings (float64 would lose ns at epoch-scale stamps); digits beyond
+    the ns are rounded."""
     text = text.strip()
     if "e" in text.lower():
-        return int(round(float(text) * 1e9))
+        v = float(text)
+        if not np.isfinite(v):
+            raise ValueError(f"not a finite time: {text!r}")
+        return int(round(v * 1e9))
     neg = text.startswith("-")
     whole, _, frac = text.lstrip("+-").partition(".")
-    ns = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9] or "0")
+    if not (whole + frac).isdigit():
+        raise ValueError(f"not a decimal number: {text!r}")
+    ns = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9]) + (frac[9:10] >= "5")
     return -ns if neg else ns
 
 
@@ -129,6 +136,8 @@ def read_tum(path: str | Path) -> Trajectory:
             raise VioError(f"{path}:{i}: not a number in {s!r}") from None
         if not np.all(np.isfinite(vals)):
             raise VioError(f"{path}:{i}: non-finite value")
+        if np.linalg.norm(vals[3:7]) < 1e-9:
+            raise VioError(f"{path}:{i}: zero quaternion")
         p.append(vals[0:3])
         q.append([vals[6], vals[3], vals[4], vals[5]])
         if len(t) > 1 and t[-1] <= t[-2]:

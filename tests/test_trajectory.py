@@ -1,0 +1,114 @@
+"""Trajectory container, interpolation and the TUM file format."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vio import VioError
+from vio.geometry import make_T, rotation_angle_deg, so3_exp
+from vio.trajectory import Trajectory, read_tum, write_tum
+
+
+def _random(n: int = 50, seed: int = 0, t0_ns: int = 1403715273262142976) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    t = t0_ns + np.cumsum(rng.integers(1, 10**8, n))  # arbitrary ns, not multiples of anything
+    q = rng.normal(size=(n, 4))
+    return Trajectory(t, rng.normal(scale=50.0, size=(n, 3)), q)
+
+
+def test_tum_round_trip_keeps_nanoseconds(tmp_path):
+    tr = _random()
+    write_tum(tr, tmp_path / "a.txt")
+    back = read_tum(tmp_path / "a.txt")
+    assert back.t_ns.dtype == np.int64 and np.array_equal(back.t_ns, tr.t_ns)
+    assert np.allclose(back.p, tr.p, atol=1e-6)
+    # q and -q are the same rotation
+    dots = np.abs(np.sum(back.q_wxyz * tr.q_wxyz, axis=1))
+    assert np.allclose(dots, 1.0, atol=1e-8)
+
+
+def test_tum_negative_and_zero_stamps_round_trip(tmp_path):
+    tr = Trajectory([-1_500_000_001, -1, 0, 7], np.zeros((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1)))
+    write_tum(tr, tmp_path / "n.txt")
+    assert np.array_equal(read_tum(tmp_path / "n.txt").t_ns, tr.t_ns)
+
+
+def test_tum_reader_accepts_other_writers(tmp_path):
+    """evo/ORB-SLAM style: float seconds, commas, exponent stamps, more than 9 decimals (rounded to ns)."""
+    (tmp_path / "b.txt").write_text(
+        "# comment\n\n"
+        "1403715273.2621429 1 2 3 0 0 0 1\n"
+        "1403715273.3121431045,1,2,3,0,0,0,1\n"
+        "1.4037152734e9 1 2 3 0 0 0 2\n")
+    tr = read_tum(tmp_path / "b.txt")
+    assert tr.t_ns.tolist() == [1403715273262142900, 1403715273312143105, 1403715273400000000]
+    assert np.allclose(tr.q_wxyz[2], [1, 0, 0, 0])  # normalised
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n", "x.txt:2: expected 8 values"),
+    ("1.0 0 0 0 0 0 0 1 9\n", "x.txt:1: expected 8 values"),
+    ("# h\n1.0 0 0 zero 0 0 0 1\n", "x.txt:2: not a number"),
+    ("1.0_0 0 0 0 0 0 0 1\n", "x.txt:1: not a number"),
+    ("1e400 0 0 0 0 0 0 1\n", "x.txt:1: not a number"),
+    ("1.0 0 0 nan 0 0 0 1\n", "x.txt:1: non-finite value"),
+    ("1.0 0 0 0 0 0 0 0\n", "x.txt:1: zero quaternion"),
+    ("1.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n", "x.txt:2: time stamp not increasing"),
+    ("2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n", "x.txt:2: time stamp not increasing"),
+    ("# only a header\n", "x.txt: no poses"),
+])
+def test_tum_errors_name_file_and_line(tmp_path, text, expected):
+    (tmp_path / "x.txt").write_text(text)
+    with pytest.raises(VioError) as e:
+        read_tum(tmp_path / "x.txt")
+    assert expected in str(e.value)
+
+
+def test_tum_unreadable_files(tmp_path):
+    with pytest.raises(VioError, match=r"nope\.txt: cannot read"):
+        read_tum(tmp_path / "nope.txt")
+    (tmp_path / "bin.txt").write_bytes(b"\x89PNG\xff\xfe")
+    with pytest.raises(VioError, match=r"bin\.txt: not a text file"):
+        read_tum(tmp_path / "bin.txt")
+
+
+def test_poses_round_trip_and_path_length():
+    tr = _random(20)
+    back = Trajectory.from_poses(tr.t_ns, tr.poses())
+    assert np.allclose(back.poses(), tr.poses(), atol=1e-12)
+    assert tr.path_length_m() == pytest.approx(np.sum(np.linalg.norm(np.diff(tr.p, axis=0), axis=1)))
+    sub = tr.subset(np.array([0, 5]))
+    assert len(sub) == 2 and sub.path_length_m() == pytest.approx(np.linalg.norm(tr.p[5] - tr.p[0]))
+
+
+def test_interpolation_linear_position_and_slerp():
+    T0 = make_T(np.eye(3), [0.0, 0.0, 0.0])
+    T1 = make_T(so3_exp([0, 0, math.radians(90)]), [2.0, -4.0, 1.0])
+    tr = Trajectory.from_poses([1_000, 3_000], np.stack([T0, T1]))
+    mid = tr.interpolate(np.array([1_000, 1_500, 2_000, 3_000]))
+    assert mid.t_ns.tolist() == [1_000, 1_500, 2_000, 3_000]
+    assert np.allclose(mid.p[1], [0.5, -1.0, 0.25]) and np.allclose(mid.p[2], [1.0, -2.0, 0.5])
+    R = mid.rotations()
+    assert rotation_angle_deg(R[1]) == pytest.approx(22.5) and rotation_angle_deg(R[2]) == pytest.approx(45.0)
+    assert np.allclose(R[2], so3_exp([0, 0, math.radians(45)]))
+    assert np.allclose(mid.poses()[[0, 3]], tr.poses(), atol=1e-12)  # exact at the knots
+
+
+def test_interpolation_errors():
+    tr = _random(5)
+    with pytest.raises(VioError, match="outside the trajectory"):
+        tr.interpolate(np.array([tr.t_ns[0] - 1]))
+    with pytest.raises(VioError, match="outside the trajectory"):
+        tr.interpolate(np.array([tr.t_ns[-1] + 1]))
+    with pytest.raises(VioError, match="at least two poses"):
+        tr.subset(np.array([0])).interpolate(tr.t_ns[:1])
+
+
+def test_invalid_construction():
+    with pytest.raises(VioError, match="differ in length"):
+        Trajectory([1, 2], np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (2, 1)))
+    with pytest.raises(VioError, match="invalid"):
+        Trajectory([1], np.zeros((1, 3)), [[0.0, 0, 0, 0]])
