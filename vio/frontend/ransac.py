@@ -1,0 +1,31 @@
+"""Outlier rejection of frame-to-frame feature matches.
+
+KLT happily follows a patch onto a moving object, an occlusion boundary or a repeated texture; such
+tracks disagree with the rigid motion that the other tracks share. RANSAC on the fundamental matrix of the
+undistorted matches finds that motion without needing the IMU (whose bias is not known here). In pure
+rotation or standstill F is not unique, but every rigid-scene point still fits some F of the consensus,
+so the inlier test keeps working; it is only the F itself that we never use.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+MIN_POINTS = 12  # below this a consensus is not meaningful; keep everything
+
+
+def temporal_inliers(uv_prev: np.ndarray, uv_cur: np.ndarray, threshold_px: float,
+                     confidence: float = 0.995) -> np.ndarray:
+    """Boolean mask of matches (undistorted pixels, N x 2 each) consistent with one rigid motion."""
+    n = len(uv_prev)
+    if n < MIN_POINTS:
+        return np.ones(n, bool)
+    if np.median(np.linalg.norm(uv_cur - uv_prev, axis=1)) < threshold_px:
+        # (near) standstill: the 8-point fit on noise is arbitrary; flow itself is the test
+        return np.linalg.norm(uv_cur - uv_prev, axis=1) < 3.0 * threshold_px
+    F, mask = cv2.findFundamentalMat(uv_prev.astype(np.float64), uv_cur.astype(np.float64),
+                                     cv2.FM_RANSAC, threshold_px, confidence, 200)
+    if F is None or mask is None:
+        return np.ones(n, bool)
+    return mask.ravel().astype(bool)

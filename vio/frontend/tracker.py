@@ -1,0 +1,280 @@
+"""Stereo KLT tracker: StereoFrame (+ gyro rotation prior) -> FeatureFrame.
+
+Per frame: check the image, compensate brightness, track the previous left features with KLT started at
+their gyro-predicted position (forward-backward checked), drop matches that disagree with the common rigid
+motion (RANSAC), top the features up with FAST corners spread over a grid, match all of them into the right
+image and triangulate. Tracking runs on raw images; only the output is undistorted (same K).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+
+from vio.calibration import StereoCalibration
+from vio.config import FrontendConfig
+from vio.frontend.quality import image_problem
+from vio.frontend.ransac import temporal_inliers
+from vio.frontend.stereo import StereoMatcher, klt_fb
+from vio.frontend.undistort import distort_px, rotate_px, undistort_px
+from vio.types import FeatureFrame, StereoFrame
+
+log = logging.getLogger(__name__)
+
+BORDER_PX = 8  # new features keep this far from the border so the KLT window stays inside
+
+
+class StereoTracker:
+    """Feature tracks over a stereo stream; one instance per camera head (not thread-safe)."""
+
+    def __init__(self, calib: StereoCalibration, cfg: FrontendConfig | None = None) -> None:
+        self.calib = calib
+        self.cfg = cfg or FrontendConfig()
+        self.cam0 = calib.cam0
+        self.K0 = calib.cam0.K
+        self.stereo = StereoMatcher(calib, self.cfg)
+        w = self.cfg.klt_window_px | 1
+        self._klt = dict(winSize=(w, w), maxLevel=self.cfg.klt_pyramid_levels,
+                         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        self._fast = cv2.FastFeatureDetector_create(self.cfg.fast_threshold, True)
+        self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.cfg.clahe else None
+        self._next_id = 0
+        self._last_t: int | None = None
+        self.frames_bad = 0
+        self._reset()
+
+    # ---------------------------------------------------------------------------------------- state
+    def _reset(self) -> None:
+        """Forget all tracks: the next good frame starts fresh (new ids, new keyframe reference)."""
+        self._prev_img: np.ndarray | None = None
+        self._ids = np.zeros(0, np.int64)
+        self._raw = np.zeros((0, 2), np.float32)  # raw left pixels of the live tracks
+        self._uv = np.zeros((0, 2))  # undistorted left pixels
+        self._len = np.zeros(0, np.int64)
+        self._depth = np.zeros(0)  # last stereo depth per track (NaN: none)
+        self._kf_ids = np.zeros(0, np.int64)
+        self._kf_uv = np.zeros((0, 2))
+        self._R_kf_cur = np.eye(3)
+        self._want_keyframe = True
+        self._prev_mean = 0.0
+
+    @property
+    def raw_uv0(self) -> np.ndarray:
+        """Raw (distorted) left pixels of the tracks in the last FeatureFrame, same row order (debug view)."""
+        return self._raw.astype(np.float64)
+
+    def mark_keyframe(self) -> None:
+        """The back end took the last processed frame as keyframe: measure parallax against it from now on."""
+        self._kf_ids = self._ids.copy()
+        self._kf_uv = self._uv.copy()
+        self._R_kf_cur = np.eye(3)
+        self._want_keyframe = False
+
+    def _bad(self, t_ns: int, reason: str, reset: bool = True) -> FeatureFrame:
+        self.frames_bad += 1
+        log.warning("front end: frame t=%d not used: %s", t_ns, reason)
+        if reset:
+            self._reset()
+        return FeatureFrame.empty(t_ns, reason)
+
+    # ---------------------------------------------------------------------------------------- steps
+    def _prepare(self, img: np.ndarray, which: str) -> tuple[np.ndarray | None, str]:
+        """Grey uint8 image of the calibrated size, or None and the reason."""
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if img.dtype != np.uint8:
+            return None, f"{which} image has dtype {img.dtype}, expected uint8"
+        cam = self.cam0
+        if img.shape != (cam.height, cam.width):
+            return None, f"{which} image is {img.shape[1]}x{img.shape[0]}, calibration says {cam.width}x{cam.height}"
+        return img, ""
+
+    def _predict(self, R_prev_cur: np.ndarray | None) -> np.ndarray:
+        """Start positions (raw pixels) for KLT: the previous positions rotated by the gyro prior."""
+        if R_prev_cur is None or not self.cfg.use_imu_prediction or len(self._uv) == 0:
+            return self._raw.copy()
+        uv_pred, front = rotate_px(self.K0, R_prev_cur.T, self._uv)
+        raw_pred = distort_px(self.cam0, uv_pred).astype(np.float32)
+        h, w = self._prev_img.shape
+        inside = front & np.all(np.isfinite(raw_pred), axis=1)
+        inside &= (raw_pred[:, 0] >= 0) & (raw_pred[:, 0] < w) & (raw_pred[:, 1] >= 0) & (raw_pred[:, 1] < h)
+        return np.where(inside[:, None], raw_pred, self._raw)
+
+    def _track(self, img: np.ndarray, R_prev_cur: np.ndarray | None) -> np.ndarray:
+        """Track live features into `img`; returns the boolean mask of survivors and updates positions."""
+        n = len(self._raw)
+        if n == 0 or self._prev_img is None:
+            return np.zeros(n, bool)
+        p1, ok = klt_fb(self._prev_img, img, self._raw, self._predict(R_prev_cur), self._klt, self.cfg.fb_check_px)
+        self._raw = np.where(ok[:, None], p1, self._raw).astype(np.float32)
+        return ok
+
+    def _detect(self, img: np.ndarray) -> np.ndarray:
+        """New raw corners (M, 2) that top the tracks up to max_features, spread over the grid cells."""
+        cfg = self.cfg
+        need_total = cfg.max_features - len(self._raw)
+        if need_total <= 0:
+            return np.zeros((0, 2), np.float32)
+        h, w = img.shape
+        mask = np.zeros((h, w), np.uint8)
+        mask[BORDER_PX:h - BORDER_PX, BORDER_PX:w - BORDER_PX] = 255
+        r = cfg.min_distance_px
+        for x, y in self._raw:
+            cv2.circle(mask, (int(round(x)), int(round(y))), r, 0, -1)
+        kps = self._fast.detect(img, mask)
+        if len(kps) < need_total and cfg.fast_threshold > 2:
+            self._fast.setThreshold(max(1, cfg.fast_threshold // 2))
+            kps = self._fast.detect(img, mask)
+            self._fast.setThreshold(cfg.fast_threshold)
+        if not kps:
+            return np.zeros((0, 2), np.float32)
+        pts = cv2.KeyPoint_convert(kps)
+        resp = np.fromiter((k.response for k in kps), float, len(kps))
+        order = np.argsort(-resp)
+        pts = pts[order]
+        cw, ch = w / cfg.grid_cols, h / cfg.grid_rows
+        cells = cfg.grid_cols * cfg.grid_rows
+
+        def cell_of(p: np.ndarray) -> np.ndarray:
+            return (np.minimum(p[:, 1] // ch, cfg.grid_rows - 1) * cfg.grid_cols
+                    + np.minimum(p[:, 0] // cw, cfg.grid_cols - 1)).astype(int)
+
+        quota = -(-cfg.max_features // cells)
+        have = np.bincount(cell_of(self._raw), minlength=cells) if len(self._raw) else np.zeros(cells, int)
+        need = np.maximum(quota - have, 0)
+        cand_cell = cell_of(pts)
+        taken: list[int] = []
+        used = np.zeros(len(pts), bool)
+        # pass 1 fills each cell up to its quota (spread); pass 2 tops up from the best corners anywhere
+        for per_cell in (True, False):
+            for i in range(len(pts)):
+                if len(taken) >= need_total:
+                    break
+                if used[i] or (per_cell and need[cand_cell[i]] <= 0):
+                    continue
+                x, y = int(pts[i, 0]), int(pts[i, 1])
+                if mask[y, x] == 0:
+                    continue
+                used[i] = True
+                taken.append(i)
+                need[cand_cell[i]] -= 1
+                cv2.circle(mask, (x, y), r, 0, -1)
+        return pts[taken].astype(np.float32).reshape(-1, 2)
+
+    def _parallax(self) -> float:
+        """Median distance of shared tracks from their keyframe position rotated into this frame [px]."""
+        if len(self._kf_ids) == 0 or len(self._ids) == 0:
+            return 0.0
+        common, i_kf, i_cur = np.intersect1d(self._kf_ids, self._ids, assume_unique=True, return_indices=True)
+        if len(common) == 0:
+            return 0.0
+        pred, front = rotate_px(self.K0, self._R_kf_cur.T, self._kf_uv[i_kf])
+        d = np.linalg.norm(self._uv[i_cur] - pred, axis=1)[front]
+        return float(np.median(d)) if len(d) else 0.0
+
+    # ---------------------------------------------------------------------------------------- main
+    def process(self, frame: StereoFrame, R_cam0prev_cam0cur: np.ndarray | None = None) -> FeatureFrame:
+        """Track one stereo frame. `R_cam0prev_cam0cur` (from `GyroPrior`) maps current cam0 points into the
+        previous frame's cam0; None when no gyro is available (tracking then starts from zero motion)."""
+        t_start = time.perf_counter()
+        t_ns = int(frame.t_ns)
+        if self._last_t is not None and t_ns <= self._last_t:
+            # keep the tracks: the next in-order frame continues from the last good one
+            return self._bad(t_ns, f"time stamp {t_ns} not after the previous frame {self._last_t}", reset=False)
+        timings: dict[str, float] = {}
+
+        def lap(name: str, t0: float) -> float:
+            t1 = time.perf_counter()
+            timings[name] = (t1 - t0) * 1e3
+            return t1
+
+        left, why = self._prepare(frame.left, "left")
+        if left is None:
+            return self._bad(t_ns, why)
+        why = image_problem(left, self.cfg)
+        if why:
+            self._last_t = t_ns
+            return self._bad(t_ns, why)
+        right, note = None, ""
+        if frame.right is None:
+            note = "no right image: mono only"
+        else:
+            right, why_r = self._prepare(frame.right, "right")
+            why_r = why_r or image_problem(right, self.cfg)
+            if why_r:
+                right, note = None, f"right image unusable ({why_r}): mono only"
+        t = lap("check", t_start)
+
+        left, right = self._normalise(left, right)
+        t = lap("preprocess", t)
+
+        had_prev = self._prev_img is not None
+        R = None if R_cam0prev_cam0cur is None else np.asarray(R_cam0prev_cam0cur, dtype=float)
+        prev_uv = self._uv
+        ok = self._track(left, R)
+        t = lap("track", t)
+        uv_cur = undistort_px(self.cam0, self._raw[ok])
+        inl = temporal_inliers(prev_uv[ok], uv_cur, self.cfg.ransac_threshold_px)
+        keep = np.flatnonzero(ok)[inl]
+        n_tracked_klt, n_ransac_out = int(ok.sum()), int((~inl).sum())
+        self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep] + 1
+        self._depth, self._uv = self._depth[keep], uv_cur[inl]
+        if R is not None and had_prev:
+            self._R_kf_cur = self._R_kf_cur @ R
+        t = lap("ransac", t)
+
+        new = self._detect(left)
+        if len(new):
+            m = len(new)
+            self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + m, dtype=np.int64)])
+            self._next_id += m
+            self._raw = np.concatenate([self._raw, new]).astype(np.float32)
+            self._uv = np.concatenate([self._uv, undistort_px(self.cam0, new)])
+            self._len = np.concatenate([self._len, np.ones(m, np.int64)])
+            self._depth = np.concatenate([self._depth, np.full(m, np.nan)])
+        t = lap("detect", t)
+
+        n = len(self._ids)
+        uv1, depth = np.full((n, 2), np.nan), np.full(n, np.nan)
+        if right is not None and n:
+            res = self.stereo.match(left, right, self._raw, self._uv, self._depth)
+            uv1, depth = res.uv1, res.depth_m
+        self._depth = depth.copy()
+        t = lap("stereo", t)
+
+        self._prev_img = left
+        self._last_t = t_ns
+        if self._want_keyframe:
+            self.mark_keyframe()
+        parallax = self._parallax()
+        timings["total"] = (time.perf_counter() - t_start) * 1e3
+        ff = FeatureFrame(t_ns, self._ids.copy(), self._uv.copy(), uv1, depth, self._len.copy(),
+                          parallax_px=parallax, reason=note, timings_ms=timings)
+        log.debug("front end t=%d: %d features (%d tracked, %d RANSAC outliers, %d new), %d stereo, "
+                  "parallax %.1f px, %.1f ms", t_ns, n, n_tracked_klt - n_ransac_out, n_ransac_out, len(new),
+                  ff.n_stereo, parallax, timings["total"])
+        if n < self.cfg.min_features_ok:
+            return self._bad(t_ns, f"only {n} features (< {self.cfg.min_features_ok})")
+        return ff
+
+    def _normalise(self, left: np.ndarray, right: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """CLAHE, or a global gain that keeps brightness steady so KLT's constant-brightness model holds."""
+        if self._clahe is not None:
+            return self._clahe.apply(left), None if right is None else self._clahe.apply(right)
+        if not self.cfg.gain_compensation:
+            return left, right
+        m_left = float(cv2.mean(left)[0])
+        if self._prev_img is not None:
+            gain = self._prev_mean / max(m_left, 1.0)
+            if abs(gain - 1.0) > 0.03:
+                left = cv2.convertScaleAbs(left, alpha=gain)
+                m_left *= gain
+        self._prev_mean = m_left
+        if right is not None:
+            gain_r = m_left / max(float(cv2.mean(right)[0]), 1.0)
+            if abs(gain_r - 1.0) > 0.05:
+                right = cv2.convertScaleAbs(right, alpha=gain_r)
+        return left, right
