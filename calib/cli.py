@@ -86,12 +86,20 @@ def _run_check(args: argparse.Namespace) -> int:
     return 1 if any(r.verdict == "FAIL" for r in results) else 0
 
 
+def _reference_noise(dataset: Path):
+    """The dataset's own imu0/sensor.yaml noise, to compare against (None when absent)."""
+    from vio.io.euroc import read_imu_yaml
+
+    yaml_path = (dataset / "mav0" / "imu0" / "sensor.yaml") if dataset.is_dir() else dataset.parent / "sensor.yaml"
+    return read_imu_yaml(yaml_path) if yaml_path.is_file() else None
+
+
 def _run_imu_noise(args: argparse.Namespace) -> int:
     from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
 
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
-    print(format_noise(result, source))
+    print(format_noise(result, source, _reference_noise(args.dataset)))
     if args.plot:
         from calib.allan import plot_allan
 
