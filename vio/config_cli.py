@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
+from vio import VioError
 from vio.config import config_to_toml, load_config
 
 
@@ -16,7 +18,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = load_config(args.file)
+    from vio.cli import EXIT_CONFIG
+
+    try:
+        cfg = load_config(args.file)
+    except VioError as e:  # an invalid config has its own exit code, as in `vio run`
+        print(f"vio config: error: {e}", file=sys.stderr)
+        return EXIT_CONFIG
     if args.config_cmd == "check":
         print(f"{args.file}: OK")
     else:

@@ -1,0 +1,94 @@
+"""The `vio` command line: help, exit codes, and errors as one line on stderr (no traceback)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+
+from vio import cli
+from vio.cli import EXIT_CONFIG, EXIT_FAILURE, EXIT_OK, EXIT_USAGE, main
+
+
+def _vio(*args: str) -> subprocess.CompletedProcess:
+    """The real entry point in a fresh interpreter (catches import-time problems main() would hide)."""
+    return subprocess.run([sys.executable, "-m", "vio.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_help_lists_the_available_commands():
+    r = _vio("--help")
+    assert r.returncode == 0 and r.stderr == ""
+    for name in ("eval", "config"):
+        assert name in r.stdout
+    for name, (module, _) in cli.COMMANDS.items():
+        if cli._module_available(module):
+            assert re.search(rf"^ +{name}\b", r.stdout, re.M), f"{name} missing from vio --help"
+
+
+def test_config_check_bad_file_in_a_subprocess(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[frontend]\nmax_featurs = 100\n")
+    r = _vio("config", "check", str(bad))
+    assert r.returncode == EXIT_CONFIG
+    assert r.stdout == ""
+    assert r.stderr.strip() == (f"vio config: error: {bad}: [frontend]: unknown key 'max_featurs' "
+                                "(did you mean 'max_features'?)")
+
+
+def test_no_command_prints_help(capsys):
+    assert main([]) == EXIT_USAGE
+    assert "COMMAND" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and "kestrel-vio" in capsys.readouterr().out
+
+
+def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
+    for argv in (["frobnicate"], ["eval"], ["config"]):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == EXIT_USAGE
+        assert "usage:" in capsys.readouterr().err
+
+
+def test_config_check_good_file(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    good.write_text("[frontend]\nmax_features = 120\n[source]\nkind = 'euroc'\n")
+    assert main(["-q", "config", "check", str(good)]) == EXIT_OK
+    out = capsys.readouterr()
+    assert out.out.strip() == f"{good}: OK" and out.err == ""
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("[backend]\nlag_s = 0.0\n", "[backend]: 'lag_s' = 0.0 is below the minimum 0.2"),
+    ("[backend\n", "not valid TOML"),
+    ("[nonsense]\n", "unknown section [nonsense]"),
+])
+def test_config_check_bad_files(tmp_path, capsys, text, expected):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    assert main(["-q", "config", "check", str(bad)]) == EXIT_CONFIG
+    out = capsys.readouterr()
+    assert out.out == ""
+    assert out.err.startswith(f"vio config: error: {bad}: ") and expected in out.err
+    assert "Traceback" not in out.err and len(out.err.strip().splitlines()) == 1
+
+
+def test_config_check_missing_file(tmp_path, capsys):
+    assert main(["-q", "config", "check", str(tmp_path / "none.toml")]) == EXIT_CONFIG
+    assert "none.toml: cannot read config" in capsys.readouterr().err
+
+
+def test_broken_command_module_does_not_take_the_cli_down(tmp_path, monkeypatch, capsys):
+    (tmp_path / "kestrel_broken_cmd.py").write_text("raise ImportError('needs libfoo')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(cli.COMMANDS, "broken", ("kestrel_broken_cmd", "a command whose module fails"))
+    assert main(["-q", "config", "show"]) == EXIT_OK  # the others still work
+    capsys.readouterr()
+    assert main(["broken"]) == EXIT_FAILURE
+    assert "vio broken: this command is unavailable" in capsys.readouterr().err
