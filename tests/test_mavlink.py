@@ -1,0 +1,439 @@
+"""MAVLink output: frame conversions against hand-derived truth, every sent message decoded by pymavlink
+from a fake autopilot on UDP loopback, scheduling with a fake clock, and one real-time run for the rate,
+heartbeat and link-loss contracts."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.mavlink_frames import (
+    R_NED_WORLD,
+    mount_rpy_deg_from_matrix,
+    mount_transform,
+    to_vehicle_odometry,
+    upper_triangle,
+)
+from drivers.mavlink_out import MavlinkOutput, mavlink, mavutil
+from vio import VioError
+from vio.config import MavlinkConfig
+from vio.geometry import make_T, so3_exp
+from vio.types import NavState
+
+# A level vehicle whose FRD body looks along world x: body x = world x, y = -world y, z = -world z.
+R_LEVEL = np.diag([1.0, -1.0, -1.0])
+R_CAM_FWD = np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])  # optical axes (right, down, forward) in FRD
+R_CAM_DOWN = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # optical axes, image top towards the nose
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    v = {"x": [1.0, 0, 0], "y": [0, 1.0, 0], "z": [0, 0, 1.0]}[axis]
+    return so3_exp(np.radians(deg) * np.array(v))
+
+
+def odom(R_wb: np.ndarray, p=(0, 0, 0), v=(0, 0, 0), w=(0, 0, 0), rpy=(0, 0, 0), off=(0, 0, 0),
+         cov_pose=None, cov_vel=None):
+    return to_vehicle_odometry(0, make_T(R_wb, np.array(p, float)), np.array(v, float), np.array(w, float),
+                               np.eye(6) * 1e-2 if cov_pose is None else cov_pose,
+                               np.eye(3) * 1e-2 if cov_vel is None else cov_vel, mount_transform(rpy, off))
+
+
+def random_spd(n: int, seed: int) -> np.ndarray:
+    A = np.random.default_rng(seed).normal(size=(n, n))
+    return A @ A.T * 1e-3 + np.eye(n) * 1e-4
+
+
+# ------------------------------------------------------------------ frames
+
+
+def test_position_velocity_attitude_in_ned_for_known_orientations():
+    o = odom(R_LEVEL, p=(1, 2, 3), v=(0.5, -1, 2))
+    np.testing.assert_allclose(o.p_ned, [1, -2, -3])
+    np.testing.assert_allclose(o.v_ned, [0.5, 1, -2])
+    np.testing.assert_allclose(o.v_frd, [0.5, 1, -2])  # level, nose along world x: FRD == local NED axes
+    np.testing.assert_allclose(o.rpy, [0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(o.q_ned_frd_wxyz, [1, 0, 0, 0], atol=1e-12)
+    # Turned left by 90 deg (counter-clockwise seen from above, world z up): yaw -90 deg in NED.
+    o = odom(rot("z", 90) @ R_LEVEL, v=(0, 1, 0))
+    np.testing.assert_allclose(np.degrees(o.rpy), [0, 0, -90], atol=1e-9)
+    np.testing.assert_allclose(o.v_frd, [1, 0, 0], atol=1e-12)  # moving along its nose
+    # Nose up 10 deg: a rotation about world -y (= FRD +y) -> pitch +10.
+    np.testing.assert_allclose(np.degrees(odom(rot("y", -10) @ R_LEVEL).rpy), [0, 10, 0], atol=1e-9)
+    # Right wing (world -y) down 20 deg: rotation about the nose (world +x) by +20 deg -> roll +20.
+    np.testing.assert_allclose(np.degrees(odom(rot("x", 20) @ R_LEVEL).rpy), [20, 0, 0], atol=1e-9)
+
+
+def test_lever_arm_moves_position_and_adds_rotation_velocity():
+    # IMU 0.1 m in front of the reference point, vehicle level at the origin, yawing right at 1 rad/s.
+    o = odom(R_LEVEL, w=(0, 0, 1), off=(0.1, 0, 0))
+    np.testing.assert_allclose(o.p_ned, [-0.1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(o.omega_frd, [0, 0, 1])
+    np.testing.assert_allclose(o.v_frd, [0, -0.1, 0], atol=1e-12)  # the tail swings left in a right turn
+    np.testing.assert_allclose(o.v_ned, [0, -0.1, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("R_frd_body,rpy_deg", [
+    (np.eye(3), [0, 0, 0]),
+    (np.diag([1.0, -1.0, -1.0]), [180, 0, 0]),  # FLU IMU
+    (R_CAM_FWD, [90, 0, 90]),
+    (R_CAM_DOWN, [0, 0, 90]),
+    (rot("y", -30) @ R_CAM_FWD, [60, 0, 90]),  # forward camera tilted 30 deg down
+])
+def test_documented_mounts_give_a_level_vehicle(R_frd_body, rpy_deg):
+    np.testing.assert_allclose(mount_rpy_deg_from_matrix(R_frd_body), rpy_deg, atol=1e-9)
+    np.testing.assert_allclose(mount_transform(rpy_deg, [0, 0, 0])[:3, :3], R_frd_body, atol=1e-12)
+    # The IMU's attitude on a level vehicle is R_world_frd @ R_frd_body; the output must then be level.
+    o = odom(R_LEVEL @ R_frd_body, rpy=rpy_deg, w=R_frd_body.T @ np.array([0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(o.rpy, [0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(o.omega_frd, [0.1, 0.2, 0.3], atol=1e-12)
+
+
+def test_upper_triangle_order_matches_mavlink():
+    M = np.arange(36.0).reshape(6, 6)
+    ut = upper_triangle(M)
+    assert len(ut) == 21
+    assert [ut[i] for i in (0, 6, 11, 15, 18, 20)] == [M[i, i] for i in range(6)]  # the diagonal
+    assert ut[1] == M[0, 1] and ut[5] == M[0, 5] and ut[7] == M[1, 2]
+
+
+def test_pose_covariance_level_vehicle_is_the_block_swap():
+    cov = random_spd(6, 0)  # GTSAM order: rotation (body) then translation (body)
+    o = odom(R_LEVEL, cov_pose=cov)
+    expect = np.block([[cov[3:, 3:], cov[3:, :3]], [cov[:3, 3:], cov[:3, :3]]])
+    np.testing.assert_allclose(o.cov_pose_ned, expect, atol=1e-12)
+    # Yawed 90 deg: north/east variances swap.
+    o = odom(rot("z", 90) @ R_LEVEL, cov_pose=np.diag([1e-4, 2e-4, 3e-4, 1.0, 4.0, 9.0]))
+    np.testing.assert_allclose(np.diag(o.cov_pose_ned)[:3], [4.0, 1.0, 9.0], atol=1e-9)
+
+
+def test_pose_covariance_matches_finite_difference_jacobian():
+    """Generic attitude, mount and lever arm: J from perturbing T_world_body by Exp(xi) on the right."""
+    R_wb = so3_exp([0.3, -0.2, 1.1])
+    T = make_T(R_wb, np.array([1.0, -2.0, 0.5]))
+    rpy_m, off = [10.0, -5.0, 30.0], [0.05, -0.02, 0.1]
+    T_fb = mount_transform(rpy_m, off)
+
+    def f(xi: np.ndarray) -> np.ndarray:
+        Tp = T @ make_T(so3_exp(xi[:3]), xi[3:])
+        o = to_vehicle_odometry(0, Tp, np.zeros(3), np.zeros(3), np.eye(6), np.eye(3), T_fb)
+        return np.concatenate([o.p_ned, o.rpy])
+
+    h, J = 1e-6, np.zeros((6, 6))
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = h
+        J[:, k] = (f(e) - f(-e)) / (2 * h)
+    cov = random_spd(6, 1)
+    o = to_vehicle_odometry(0, T, np.zeros(3), np.zeros(3), cov, np.eye(3), T_fb)
+    np.testing.assert_allclose(o.cov_pose_ned, J @ cov @ J.T, rtol=1e-5, atol=1e-10)
+
+
+def test_velocity_covariance_rotates_into_ned():
+    cv = random_spd(3, 2)
+    o = odom(R_LEVEL, cov_vel=cv)
+    np.testing.assert_allclose(o.cov_v_ned, R_NED_WORLD @ cv @ R_NED_WORLD.T)
+    np.testing.assert_allclose(o.cov_v_frd, o.cov_v_ned)  # at rest and level the two frames coincide
+
+
+# ------------------------------------------------------------------ fake autopilot
+
+
+class FakeAutopilot:
+    """A MAVLink endpoint on UDP loopback playing the flight controller: it decodes everything it gets."""
+
+    def __init__(self, sysid: int = 7) -> None:
+        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=sysid, source_component=1,
+                                               dialect="ardupilotmega")
+        self.port = self.conn.port.getsockname()[1]
+        self.received: list = []
+
+    def drain(self, wait_s: float = 0.05) -> list:
+        end = time.monotonic() + wait_s
+        got = []
+        while True:
+            m = self.conn.recv_match(blocking=False)
+            if m is not None:
+                got.append(m)
+            elif time.monotonic() > end:
+                break
+            else:
+                time.sleep(0.002)
+        self.received += got
+        return got
+
+    def heartbeat(self) -> None:
+        self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                                     mavlink.MAV_STATE_STANDBY)
+
+    def of(self, kind: str, msgs: list | None = None) -> list:
+        return [m for m in (self.received if msgs is None else msgs) if m.get_type() == kind]
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 10_000_000_000
+
+    def __call__(self) -> int:
+        return self.t
+
+    def advance(self, s: float) -> None:
+        self.t += int(s * 1e9)
+
+
+def state(t_ns: int, **kw) -> NavState:
+    base = dict(T_world_body=make_T(R_LEVEL, np.array([1.0, 2.0, 3.0])), v_world=np.array([0.5, -1.0, 2.0]),
+                omega_body=np.array([0.0, 0.0, 0.0]), cov_pose=np.diag([1e-4, 2e-4, 3e-4, 0.01, 0.02, 0.03]),
+                cov_vel=np.diag([0.001, 0.002, 0.003]), quality=80)
+    base.update(kw)
+    return NavState(t_ns=t_ns, **base)
+
+
+@pytest.fixture
+def ap():
+    a = FakeAutopilot()
+    yield a
+    a.conn.close()
+
+
+def make_out(ap: FakeAutopilot, clock=None, **cfg) -> MavlinkOutput:
+    c = MavlinkConfig(**cfg)
+    return MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", **({"clock_ns": clock} if clock else {}))
+
+
+def test_every_message_decodes_with_the_expected_fields(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock)
+    out.poll()  # our first heartbeat tells the udpin fake where we are
+    ap.drain()
+    ap.heartbeat()
+    time.sleep(0.02)
+    clock.advance(0.1)
+    out.poll()
+    assert out.link_up and out.target_system == 7
+    s = state(123_456_789_000, reset_counter=2)
+    out.send_state(s)
+    got = ap.drain()
+    expect = odom(R_LEVEL, p=(1, 2, 3), v=(0.5, -1, 2), cov_pose=s.cov_pose, cov_vel=s.cov_vel)
+    (vpe,), (vse,), (odo,) = ap.of("VISION_POSITION_ESTIMATE", got), ap.of("VISION_SPEED_ESTIMATE", got), \
+        ap.of("ODOMETRY", got)
+    for m in (vpe, vse, odo):
+        assert (m.get_srcSystem(), m.get_srcComponent()) == (7, 197)  # autopilot's system id, VIO component
+        assert m.reset_counter == 2
+    assert vpe.usec == vse.usec == odo.time_usec == 123_456_789
+    np.testing.assert_allclose([vpe.x, vpe.y, vpe.z], [1, -2, -3], rtol=1e-6)
+    np.testing.assert_allclose([vpe.roll, vpe.pitch, vpe.yaw], [0, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(vpe.covariance, upper_triangle(expect.cov_pose_ned), rtol=1e-6)
+    np.testing.assert_allclose([vpe.covariance[i] for i in (0, 6, 11, 15, 18, 20)],
+                               [0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4], rtol=1e-6)
+    np.testing.assert_allclose([vse.x, vse.y, vse.z], [0.5, 1, -2], rtol=1e-6)
+    np.testing.assert_allclose(vse.covariance, [0.001, 0, 0, 0, 0.002, 0, 0, 0, 0.003], rtol=1e-6)
+    assert (odo.frame_id, odo.child_frame_id) == (mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD)
+    assert odo.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_VIO and odo.quality == 80
+    np.testing.assert_allclose(odo.q, [1, 0, 0, 0], atol=1e-6)
+    np.testing.assert_allclose([odo.x, odo.y, odo.z, odo.vx, odo.vy, odo.vz], [1, -2, -3, 0.5, 1, -2], rtol=1e-6)
+    np.testing.assert_allclose(odo.pose_covariance, vpe.covariance)
+    # body-frame velocity: the world covariance rotated, plus the attitude uncertainty of a moving body
+    np.testing.assert_allclose([odo.velocity_covariance[i] for i in (0, 1, 2, 6, 7, 11)],
+                               upper_triangle(expect.cov_v_frd), rtol=1e-6)
+    assert all(np.isnan([odo.velocity_covariance[i] for i in (15, 18, 20)]))  # rate variance unknown
+    hb = ap.of("HEARTBEAT")
+    assert hb and hb[-1].type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    assert hb[-1].autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    out.close()
+
+
+def test_reset_counter_follows_estimator_wraps_and_can_be_forced(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    counters = []
+    for i, rc in enumerate([0, 1, 1, 255, 256]):
+        clock.advance(0.1)
+        out.send_state(state(1_000_000_000 * (i + 1), reset_counter=rc, cov_pose=np.eye(6) * (1 + rc)))
+        counters += [m.reset_counter for m in ap.of("ODOMETRY", ap.drain())]
+    out.force_reset()
+    clock.advance(0.1)
+    out.send_state(state(9_000_000_000, reset_counter=256))
+    counters += [m.reset_counter for m in ap.of("ODOMETRY", ap.drain())]
+    assert counters == [0, 1, 1, 255, 0, 1]
+    assert "STATUSTEXT" in out.stats.sent  # the resets were announced
+    out.close()
+
+
+def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock)
+    out.send_state(state(1_000_000_000))
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1
+    clock.advance(0.01)  # inside the 33 ms slot: this one waits...
+    out.send_state(state(1_010_000_000))
+    out.send_state(state(1_020_000_000, tracking=False, quality=0))  # ...and is cancelled by the loss
+    for _ in range(10):
+        clock.advance(0.05)
+        out.send_state(state(clock.t, tracking=False, quality=0))
+    got = ap.drain()
+    assert not [m for m in got if m.get_type() in ("ODOMETRY", "VISION_POSITION_ESTIMATE",
+                                                   "VISION_SPEED_ESTIMATE")]
+    assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
+    clock.advance(0.05)
+    out.send_state(state(clock.t))
+    got = ap.drain()
+    assert len(ap.of("ODOMETRY", got)) == 1 and ap.of("STATUSTEXT", got)[0].text == "VIO tracking regained"
+    out.close()
+
+
+def test_rate_limit_sends_newest_state_once(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock, rate_hz=30.0, messages=["VISION_POSITION_ESTIMATE"])
+    for _ in range(400):  # 2 s of a 200 Hz estimator
+        clock.advance(0.005)
+        out.send_state(state(clock.t, T_world_body=make_T(R_LEVEL, np.array([clock.t * 1e-9, 0, 0]))))
+    for _ in range(20):  # nothing new: polling must not resend the last one
+        clock.advance(0.05)
+        out.poll()
+    msgs = ap.of("VISION_POSITION_ESTIMATE", ap.drain(0.2))
+    assert len(msgs) == 61  # the first state at once, then 30 Hz for 1.995 s: the slots follow a fixed grid
+    stamps = [m.usec for m in msgs]
+    assert stamps == sorted(set(stamps))
+    # each message carries the newest state of its slot (at most one 5 ms input period old)
+    np.testing.assert_allclose([m.x - msgs[0].x for m in msgs], np.arange(61) / 30.0, atol=0.0051)
+    # a slower estimator (20 Hz) is forwarded completely, each state once
+    n0 = len(msgs)
+    for _ in range(20):
+        clock.advance(0.05)
+        out.send_state(state(clock.t))
+    assert len(ap.of("VISION_POSITION_ESTIMATE", ap.drain())) == 20 and n0 == 61
+    out.close()
+
+
+def test_timesync_request_is_answered_with_our_monotonic_clock(ap):
+    out = make_out(ap, FakeClock())
+    out.poll()
+    ap.drain()
+    ap.conn.mav.timesync_send(0, 987_654_321)
+    ap.conn.mav.timesync_send(5, 42)  # an answer to someone else's request: not ours to answer
+    time.sleep(0.02)
+    before = time.monotonic_ns()
+    out.poll()
+    replies = ap.of("TIMESYNC", ap.drain())
+    assert len(replies) == 1 and replies[0].ts1 == 987_654_321
+    assert before <= replies[0].tc1 <= time.monotonic_ns()
+    out.close()
+
+
+def test_origin_is_sent_after_link_up_and_repeated(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out.poll()
+    ap.drain()
+    assert not ap.of("SET_GPS_GLOBAL_ORIGIN")  # not before the autopilot is there
+    ap.heartbeat()
+    time.sleep(0.02)
+    for _ in range(6):
+        out.poll()
+        clock.advance(0.6)
+    ap.drain()
+    origins = ap.of("SET_GPS_GLOBAL_ORIGIN")
+    assert len(origins) == 3 and len(ap.of("SET_HOME_POSITION")) == 3
+    o = origins[0]
+    assert (o.target_system, o.latitude, o.longitude, o.altitude) == (7, 473977419, 85455938, 488000)
+    out.close()
+
+
+def test_bad_configuration_names_the_key():
+    with pytest.raises(VioError, match="messages"):
+        MavlinkOutput(MavlinkConfig(messages=["ODOMETRY", "ATTITUDE"]), "udpout:127.0.0.1:14550")
+    with pytest.raises(VioError, match="mount_rpy_deg"):
+        MavlinkOutput(MavlinkConfig(mount_rpy_deg=[0.0, 0.0]), "udpout:127.0.0.1:14550")
+    with pytest.raises(VioError, match="url"):
+        MavlinkOutput(MavlinkConfig(), "")
+    with pytest.raises(VioError, match="baud"):
+        MavlinkOutput(MavlinkConfig(), "/dev/ttyAMA0:fast")
+    with pytest.raises(VioError, match="expected"):
+        MavlinkOutput(MavlinkConfig(), "ttyAMA0")
+
+
+def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
+    clock = FakeClock()
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens on `port` now
+    caplog.set_level(logging.DEBUG, logger="drivers.mavlink_out")
+    out = MavlinkOutput(MavlinkConfig(), f"tcp:127.0.0.1:{port}", clock_ns=clock)
+    for _ in range(20):
+        clock.advance(1.0)
+        out.send_state(state(clock.t))
+    assert not out.connected
+    assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 1
+    server = socket.socket()
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", port))
+    server.listen(1)
+    clock.advance(6.0)
+    out.send_state(state(clock.t))
+    assert out.connected and out.stats.reconnects == 1
+    peer, _ = server.accept()
+    peer.settimeout(2.0)
+    parser = mavlink.MAVLink(None)
+    msgs = parser.parse_buffer(peer.recv(4096)) or []
+    assert {m.get_type() for m in msgs} >= {"HEARTBEAT", "ODOMETRY"}
+    out.close()
+    peer.close()
+    server.close()
+
+
+# ------------------------------------------------------------------ real time
+
+
+def test_real_time_rate_heartbeat_and_link_loss(ap, caplog):
+    """Background thread at 30 Hz fed at 100 Hz; the autopilot goes silent for 1.2 s and comes back."""
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_out")
+    out = MavlinkOutput(MavlinkConfig(rate_hz=30.0, link_timeout_s=0.5, messages=["ODOMETRY"]),
+                        f"udpout:127.0.0.1:{ap.port}").start()
+    stop = threading.Event()
+
+    def feed() -> None:
+        while not stop.is_set():
+            out.send_state(state(time.monotonic_ns()))
+            time.sleep(0.01)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    counts: list[tuple[float, int, int]] = []  # (time, odometry so far, heartbeats so far)
+    silent = (4.0, 5.2)
+    t_start = time.monotonic()
+    next_hb = t_start
+    while (t := time.monotonic() - t_start) < 6.5:
+        if time.monotonic() >= next_hb:
+            next_hb += 0.25
+            if not silent[0] <= t < silent[1]:
+                ap.heartbeat()
+            if ap.of("TIMESYNC") == [] and t > 1.0:
+                ap.conn.mav.timesync_send(0, 1)
+        ap.drain(0.01)
+        counts.append((time.monotonic() - t_start, len(ap.of("ODOMETRY")), len(ap.of("HEARTBEAT"))))
+    stop.set()
+    feeder.join()
+    out.close()
+
+    def at(t: float) -> tuple[float, int, int]:
+        return min(counts, key=lambda c: abs(c[0] - t))
+
+    (ta, na, ha), (tb, nb, hb) = at(0.5), at(3.5)
+    rate = (nb - na) / (tb - ta)
+    assert abs(rate - 30.0) <= 1.5, f"output rate {rate:.2f} Hz over {tb - ta:.2f} s"
+    assert 2 <= hb - ha <= 4  # our heartbeat at 1 Hz over 3 s
+    assert out.stats.link_losses == 1
+    assert out.stats.timesync_answered >= 1 and ap.of("TIMESYNC")
+    lost = [r for r in caplog.records if "link lost" in r.getMessage()]
+    up = [r for r in caplog.records if "link up" in r.getMessage()]
+    assert len(lost) == 1 and len(up) == 2  # one line per transition, no flood
+    assert len(caplog.records) < 10
+    (tc, nc, _), (td, nd, _) = at(silent[1] + 0.3), at(6.4)
+    assert nd - nc >= 0.8 * 30 * (td - tc)  # output went on through and after the silence
+
