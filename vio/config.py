@@ -77,7 +77,8 @@ class BackendConfig:
     max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
     lost_timeout_s: float = opt(1.0, "tracking lost this long -> reset", min=0.05, max=60)
-    zupt_max_parallax_px: float = opt(0.5, "parallax under which a still IMU also means still vision", min=0, max=20)
+    zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
+                                  min=0, max=20)
 
 
 @dataclass(frozen=True)
