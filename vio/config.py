@@ -121,6 +121,9 @@ class SourceConfig:
     imu: str = opt("oak", "IMU source", choices=("oak", "serial", "mavlink", "none"))
     serial_port: str = opt("/dev/ttyUSB0", "serial IMU port")
     serial_baud: int = opt(921600, "serial IMU baud rate", min=1200, max=12_000_000)
+    serial_imu_rate_hz: float = opt(400.0, "serial IMU sample rate (gap detection)", min=10, max=4000)
+    oak_device: str = opt("", "OAK device id or name; empty = the first one found")
+    realtime: bool = opt(True, "fake/euroc: release data at the pace of its stamps (false = as fast as read)")
 
 
 @dataclass(frozen=True)
