@@ -1,0 +1,248 @@
+"""Fixed-lag visual-inertial smoother on keyframes (GTSAM IncrementalFixedLagSmoother).
+
+State per keyframe i: pose X(i) = T_world_body, velocity V(i) (world), IMU bias B(i); consecutive
+keyframes are tied by a CombinedImuFactor (bias random walk inside). Each stereo track becomes a landmark
+L(j) in the world, created from its stereo depth the first time it is seen at a keyframe and observed by
+Huber-robust pinhole projection factors in cam0 (and cam1 where the front end found a stereo match),
+with body_P_sensor = T_body_cam so the smoother works on body poses directly.
+
+Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
+the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
+the last keyframe that saw it; a track seen again after its landmark left gets a fresh landmark.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from vio.calibration import StereoCalibration
+from vio.config import BackendConfig
+from vio.types import FeatureFrame
+
+log = logging.getLogger(__name__)
+
+# gtsam's C++ exceptions (IndeterminantLinearSystemException, ValuesKeyDoesNotExist, ...) reach Python
+# through pybind11 as these built-in types; nothing else is caught.
+GTSAM_ERRORS = (RuntimeError, ValueError, IndexError)
+
+
+class SmootherFailure(Exception):
+    """The optimisation failed or produced an implausible state: the estimator must reset."""
+
+
+@dataclass
+class KeyframeEstimate:
+    """Optimised state of the newest keyframe."""
+
+    t_ns: int
+    index: int
+    pose: gtsam.Pose3
+    velocity: np.ndarray
+    bias: gtsam.imuBias.ConstantBias
+    n_visual: int  # projection factors added at this keyframe
+    n_landmarks: int  # landmarks observed at this keyframe
+
+
+@dataclass
+class _Landmark:
+    key: int
+    last_t_s: float
+
+
+def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
+    return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(values, dtype=float))
+
+
+class VioSmoother:
+    """Keyframe graph + fixed-lag smoother. Create, `initialize` once, then `add_keyframe` per keyframe."""
+
+    def __init__(self, calib: StereoCalibration, cfg: BackendConfig) -> None:
+        self.cfg = cfg
+        self.calib = calib
+        self.K0 = gtsam.Cal3_S2(calib.cam0.fx, calib.cam0.fy, 0.0, calib.cam0.cx, calib.cam0.cy)
+        self.K1 = gtsam.Cal3_S2(calib.cam1.fx, calib.cam1.fy, 0.0, calib.cam1.cx, calib.cam1.cy)
+        self.P_body_cam0 = gtsam.Pose3(calib.cam0.T_body_cam)
+        self.P_body_cam1 = gtsam.Pose3(calib.cam1.T_body_cam)
+        self.T_body_cam0 = calib.cam0.T_body_cam
+        pix = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
+        self.pixel_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k), pix)
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.01)
+        params.relinearizeSkip = 1
+        params.findUnusedFactorSlots = True
+        self.smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
+        self.landmarks: dict[int, _Landmark] = {}
+        self._next_landmark = 0
+        self.index = -1
+        self.t0_ns = 0
+        self.last: KeyframeEstimate | None = None
+        self._estimate: gtsam.Values | None = None
+
+    # -- helpers -------------------------------------------------------------------------------------
+    def _t_s(self, t_ns: int) -> float:
+        """Smoother time in seconds relative to the first keyframe (float64 keeps sub-us precision)."""
+        return (t_ns - self.t0_ns) * 1e-9
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float]) -> None:
+        try:
+            self.smoother.update(graph, values, stamps)
+            for _ in range(self.cfg.extra_iterations):
+                self.smoother.update()
+            self._estimate = self.smoother.calculateEstimate()
+        except GTSAM_ERRORS as e:
+            first_line = str(e).splitlines()[0] if str(e) else ""
+            raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
+
+    # -- API -----------------------------------------------------------------------------------------
+    def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
+                   accel_bias: np.ndarray, *, sigma_rp_rad: float = 0.02, sigma_yaw_rad: float = 1e-3,
+                   sigma_p_m: float = 1e-3, sigma_v_m_s: float = 0.05, sigma_bg: float = 0.005,
+                   sigma_ba: float = 0.1, features: FeatureFrame | None = None) -> KeyframeEstimate:
+        """First keyframe with priors: position and yaw are gauge freedoms (pinned), roll/pitch come
+        from gravity, velocity and biases from the initialiser with honest uncertainty."""
+        self.t0_ns = t_ns
+        self.index = 0
+        pose = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
+        bias = gtsam.imuBias.ConstantBias(np.asarray(accel_bias, float), np.asarray(gyro_bias, float))
+        graph = gtsam.NonlinearFactorGraph()
+        # Pose3 tangent is (rot, trans) in the body frame; yaw is about world z, which for a near-level
+        # start is close to body z, so a body-frame diagonal is a fair approximation.
+        graph.add(gtsam.PriorFactorPose3(X(0), pose, _sigmas([sigma_rp_rad, sigma_rp_rad, sigma_yaw_rad] +
+                                                              [sigma_p_m] * 3)))
+        graph.add(gtsam.PriorFactorVector(V(0), np.asarray(v_world, float), _sigmas([sigma_v_m_s] * 3)))
+        graph.add(gtsam.PriorFactorConstantBias(B(0), bias, _sigmas([sigma_ba] * 3 + [sigma_bg] * 3)))
+        values = gtsam.Values()
+        values.insert(X(0), pose)
+        values.insert(V(0), np.asarray(v_world, float))
+        values.insert(B(0), bias)
+        stamps = {X(0): 0.0, V(0): 0.0, B(0): 0.0}
+        n_vis, n_lm = 0, 0
+        if features is not None:
+            n_vis, n_lm = self._add_visual(graph, values, stamps, features, pose, 0, 0.0)
+        self._update(graph, values, stamps)
+        return self._finish(t_ns, n_vis, n_lm)
+
+    def add_keyframe(self, t_ns: int, pim: gtsam.PreintegratedCombinedMeasurements,
+                     features: FeatureFrame | None, zero_velocity: bool = False) -> KeyframeEstimate:
+        """Add keyframe i+1 tied to i by `pim` (integrated from i's stamp to t_ns with i's bias)."""
+        if self.last is None:
+            raise SmootherFailure("add_keyframe before initialize")
+        prev = self.last
+        i, j = self.index, self.index + 1
+        t_s = self._t_s(t_ns)
+        pred = pim.predict(gtsam.NavState(prev.pose, prev.velocity), prev.bias)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.CombinedImuFactor(X(i), V(i), X(j), V(j), B(i), B(j), pim))
+        values = gtsam.Values()
+        values.insert(X(j), pred.pose())
+        values.insert(V(j), pred.velocity())
+        values.insert(B(j), prev.bias)
+        stamps = {X(j): t_s, V(j): t_s, B(j): t_s}
+        if zero_velocity:
+            # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
+            # the IMU alone would integrate during hover-on-ground and before take-off.
+            graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), _sigmas([0.01] * 3)))
+            graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(), _sigmas([1e-3] * 3 + [2e-3] * 3)))
+        n_vis, n_lm = 0, 0
+        if features is not None and features.tracking_ok:
+            n_vis, n_lm = self._add_visual(graph, values, stamps, features, pred.pose(), j, t_s)
+        self.index = j
+        self._update(graph, values, stamps)
+        return self._finish(t_ns, n_vis, n_lm)
+
+    def _finish(self, t_ns: int, n_vis: int, n_lm: int) -> KeyframeEstimate:
+        est = self._estimate
+        j = self.index
+        try:
+            pose = est.atPose3(X(j))
+            vel = np.asarray(est.atVector(V(j)), float)
+            bias = est.atConstantBias(B(j))
+        except GTSAM_ERRORS as e:
+            raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
+        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm)
+        self._forget_old_landmarks(self._t_s(t_ns))
+        return self.last
+
+    def _forget_old_landmarks(self, t_s: float) -> None:
+        horizon = t_s - self.cfg.lag_s
+        if len(self.landmarks) > 4 * self.cfg.max_landmarks:
+            self.landmarks = {tid: lm for tid, lm in self.landmarks.items() if lm.last_t_s >= horizon}
+
+    def _active(self, track_id: int, t_s: float) -> _Landmark | None:
+        """The track's landmark if it is still inside the smoother window (margin for round-off)."""
+        lm = self.landmarks.get(track_id)
+        if lm is None or lm.last_t_s < t_s - self.cfg.lag_s + 1e-3:
+            return None
+        return lm
+
+    def _add_visual(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
+                    ff: FeatureFrame, pose_pred: gtsam.Pose3, j: int, t_s: float) -> tuple[int, int]:
+        """Projection factors for the tracks of one keyframe; new stereo tracks become landmarks.
+
+        Observations of known landmarks whose reprojection from the predicted pose is far off are
+        skipped (outlier or landmark gone wrong) before they can pull the solution.
+        """
+        cfg = self.cfg
+        T_world_cam0 = pose_pred.matrix() @ self.T_body_cam0
+        R_c_w = T_world_cam0[:3, :3].T
+        t_c_w = -R_c_w @ T_world_cam0[:3, 3]
+        K0 = self.K0.K()
+        Kinv = np.linalg.inv(K0)
+        gate2 = cfg.outlier_gate_px ** 2
+        n_vis, n_lm, n_new = 0, 0, 0
+        stereo = np.isfinite(ff.depth_m)
+        order = np.argsort(-ff.track_len)  # long tracks first: they constrain the motion best
+        for k in order:
+            tid = int(ff.ids[k])
+            uv0 = ff.uv0[k]
+            lm = self._active(tid, t_s)
+            if lm is not None:
+                p_w = self._estimate.atPoint3(lm.key) if self._estimate.exists(lm.key) else None
+                if p_w is None:
+                    continue
+                p_c = R_c_w @ p_w + t_c_w
+                if p_c[2] <= 0.05:
+                    continue
+                uv_pred = K0[:2, :2] @ (p_c[:2] / p_c[2]) + K0[:2, 2]
+                if np.sum((uv_pred - uv0) ** 2) > gate2:
+                    continue
+                key = lm.key
+            else:
+                if n_new >= cfg.max_new_landmarks or not stereo[k]:
+                    continue
+                d = float(ff.depth_m[k])
+                if not (cfg.min_depth_m <= d <= cfg.max_depth_m):
+                    continue
+                p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
+                key = L(self._next_landmark)
+                self._next_landmark += 1
+                values.insert(key, T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3])
+                lm = _Landmark(key, t_s)
+                self.landmarks[tid] = lm
+                n_new += 1
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv0, self.pixel_noise, X(j), key, self.K0, False, False,
+                                                           self.P_body_cam0))
+            n_vis += 1
+            if stereo[k]:
+                graph.add(gtsam.GenericProjectionFactorCal3_S2(ff.uv1[k], self.pixel_noise, X(j), key, self.K1,
+                                                               False, False, self.P_body_cam1))
+                n_vis += 1
+            lm.last_t_s = t_s
+            stamps[key] = t_s
+            n_lm += 1
+            if n_lm >= cfg.max_landmarks:
+                break
+        return n_vis, n_lm
+
+    def marginal_covariances(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marginal covariance of the newest pose (6x6, rot then trans, body tangent) and velocity."""
+        try:
+            return (np.asarray(self.smoother.marginalCovariance(X(self.index))),
+                    np.asarray(self.smoother.marginalCovariance(V(self.index))))
+        except GTSAM_ERRORS as e:
+            raise SmootherFailure(f"marginal covariance failed: {e}") from None

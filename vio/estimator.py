@@ -1,0 +1,323 @@
+"""The estimator facade: IMU samples and stereo frames in, NavStates out. No I/O, no threads.
+
+`feed_imu` returns the IMU-rate propagated state; `feed_frame` runs the front end and the back end and
+returns the state at the frame (also handed to every `listeners` callback, the replay's output sinks).
+Frame stamps are on the camera clock and are moved onto the IMU clock with the calibration's
+`time_offset_ns` (t_imu = t_cam + offset); a frame waits until the IMU has reached its stamp.
+
+Life cycle: uninitialised -> (static or in-motion) initialisation -> tracking. Keyframes go through the
+fixed-lag smoother; other frames get the IMU prediction from the last keyframe. Failures (smoother
+exception, implausible velocity/bias, tracking lost for too long) reset the estimator: it re-initialises
+from the IMU/vision, keeps the last position and heading as the new origin, and bumps `reset_counter`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from vio.backend.preintegration import ImuBuffer, combined_params
+from vio.backend.smoother import SmootherFailure, VioSmoother
+from vio.calibration import StereoCalibration
+from vio.config import VioConfig
+from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+from vio.init.moving_init import MovingInitializer
+from vio.init.static_init import InitialState, is_still, static_initialize
+from vio.propagator import Propagator
+from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
+
+log = logging.getLogger(__name__)
+
+IMU_KEEP_S = 3.0  # IMU history kept behind the newest sample (init windows, pending frames)
+
+
+@dataclass
+class FrameTimings:
+    """Wall-clock cost of the last processed frame."""
+
+    frontend_ms: float = 0.0
+    backend_ms: float = 0.0
+    keyframe: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def make_tracker(calib: StereoCalibration, cfg: VioConfig):
+    """The project's stereo front end; imported lazily so the back end runs (and is tested) without it."""
+    from vio.frontend.tracker import StereoTracker
+
+    return StereoTracker(calib, cfg.frontend)
+
+
+class Estimator:
+    """Stereo-inertial odometry: feed IMU samples and frames in time order."""
+
+    def __init__(self, calib: StereoCalibration, cfg: VioConfig | None = None, tracker=None) -> None:
+        self.calib = calib
+        self.cfg = cfg or VioConfig()
+        self.bcfg = self.cfg.backend
+        self.tracker = tracker
+        self.params = combined_params(calib.imu, self.bcfg.imu_noise_scale)
+        self.imu = ImuBuffer()
+        self.propagator = Propagator()
+        self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
+        self.listeners: list[Callable[[NavState], None]] = []
+        self.reset_counter = 0
+        self.timings = FrameTimings()
+        self.frames_processed = 0
+        self.keyframes = 0
+        self._pending: deque[StereoFrame | FeatureFrame] = deque()
+        self._smoother: VioSmoother | None = None
+        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._last_frame_t: int | None = None
+        self._last_kf_t: int | None = None
+        self._lost_since: int | None = None
+        self._cov_pose = np.eye(6) * 1e-2
+        self._cov_vel = np.eye(3) * 1e-2
+        self._anchor: np.ndarray | None = None  # pose to continue from after a reset
+        self._latest: NavState | None = None
+        self._quality = 0
+        self._tracking = False
+        self._was_keyframe = False
+        self._prev_ff: FeatureFrame | None = None
+        self._flow_px = float("inf")  # median feature motion since the previous frame
+
+    # -- public API ------------------------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        return self._smoother is not None
+
+    def latest(self) -> NavState | None:
+        """Newest frame-rate state (None before initialisation)."""
+        return self._latest
+
+    def feed_imu(self, s: ImuSample) -> NavState | None:
+        """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
+        if not self.imu.add(s):
+            return None
+        self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
+        self._drain(final=False)
+        if self.initialized and self.propagator.add(s):
+            return self._propagated_state()
+        return None
+
+    def feed_frame(self, frame: StereoFrame) -> NavState | None:
+        """Add a stereo frame; returns the state at the newest frame processed by this call."""
+        self._pending.append(frame)
+        return self._drain(final=False)
+
+    def feed_features(self, ff: FeatureFrame) -> NavState | None:
+        """Add a front-end result directly (tests, or a front end running elsewhere)."""
+        self._pending.append(ff)
+        return self._drain(final=False)
+
+    def flush(self) -> NavState | None:
+        """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value."""
+        return self._drain(final=True)
+
+    def reset(self, reason: str) -> None:
+        """Drop the smoother and re-initialise; the last pose becomes the new start (yaw and position)."""
+        self.reset_counter += 1
+        if self._latest is not None:
+            self._anchor = self._latest.T_world_body.copy()
+        log.warning("estimator reset #%d: %s", self.reset_counter, reason)
+        self._smoother = None
+        self._pim = None
+        self._last_kf_t = None
+        self._lost_since = None
+        self.moving_init.clear()
+
+    # -- frame pipeline --------------------------------------------------------------------------------
+    def _drain(self, final: bool) -> NavState | None:
+        out = None
+        last_imu = self.imu.last_t_ns
+        while self._pending:
+            t_imu = self._pending[0].t_ns + self.calib.time_offset_ns
+            if not final and (last_imu is None or last_imu < t_imu):
+                break
+            st = self._process(self._pending.popleft())
+            if st is not None:
+                out = st
+        return out
+
+    def _camera_rotation_prior(self, t0: int, t1: int) -> np.ndarray:
+        """R_cam0prev_cam0cur from the gyro (bias-corrected) for the front end's KLT prediction."""
+        bg = self._latest.gyro_bias if self._latest is not None else np.zeros(3)
+        ts, gyro, _ = self.imu.window(t0, t1)
+        knots = np.concatenate([[t0], ts[(ts > t0) & (ts < t1)], [t1]])
+        R = np.eye(3)
+        for a, b in zip(knots[:-1], knots[1:]):
+            w = 0.5 * (self.imu.at(int(a))[0] + self.imu.at(int(b))[0]) - bg
+            R = R @ so3_exp(w * (b - a) * 1e-9)
+        R_bc = self.calib.cam0.T_body_cam[:3, :3]
+        return R_bc.T @ R @ R_bc
+
+    def _process(self, item: StereoFrame | FeatureFrame) -> NavState | None:
+        t = int(item.t_ns) + self.calib.time_offset_ns
+        if not self.imu.t:
+            return None
+        if self._last_frame_t is not None and t <= self._last_frame_t:
+            log.warning("frame at %d not after the previous one (%d): dropped", t, self._last_frame_t)
+            return None
+        t_start = time.perf_counter()
+        if isinstance(item, FeatureFrame):
+            ff = item
+        else:
+            if self.tracker is None:
+                self.tracker = make_tracker(self.calib, self.cfg)
+            prior = None if self._last_frame_t is None else self._camera_rotation_prior(self._last_frame_t, t)
+            ff = self.tracker.process(item, prior)
+        t_front = time.perf_counter()
+        prev_t = self._last_frame_t
+        self._last_frame_t = t
+        self._flow_px = median_flow_px(self._prev_ff, ff)
+        self._prev_ff = ff
+        self.frames_processed += 1
+        try:
+            st = self._track(t, prev_t, ff) if self.initialized else self._try_init(t, ff)
+        except SmootherFailure as e:
+            self.reset(str(e))
+            st = None
+        t_end = time.perf_counter()
+        self.timings = FrameTimings((t_front - t_start) * 1e3, (t_end - t_front) * 1e3,
+                                    self.timings.keyframe if st is None else self._was_keyframe)
+        if st is not None:
+            self._latest = st
+            for sink in self.listeners:
+                sink(st)
+        return st
+
+    def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
+        icfg = self.cfg.init
+        ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
+        # a smooth constant-velocity motion looks still to the IMU: the images must agree
+        init = static_initialize(ts, gyro, accel, t, icfg) if self._looks_still_visually(ff) else None
+        if init is None and icfg.allow_moving_start:
+            init = self.moving_init.add(t, ff, self.imu)
+        if init is None:
+            return None
+        return self._start(init, ff)
+
+    def _start(self, init: InitialState, ff: FeatureFrame) -> NavState:
+        T = init.T_world_body
+        v = init.v_world
+        if self._anchor is not None:
+            # Continue from where the estimate was: same position and heading, fresh roll/pitch.
+            yaw_old = roll_pitch_yaw(self._anchor[:3, :3])[2]
+            yaw_new = roll_pitch_yaw(T[:3, :3])[2]
+            T_fix = make_T(so3_exp(np.array([0.0, 0.0, yaw_old - yaw_new])), np.zeros(3))
+            T = T_fix @ T
+            T[:3, 3] = self._anchor[:3, 3]
+            v = T_fix[:3, :3] @ v
+        static = init.method == "static"
+        self._smoother = VioSmoother(self.calib, self.bcfg)
+        est = self._smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
+                                        sigma_v_m_s=0.01 if static else 0.1,
+                                        sigma_bg=0.005 if static else 0.02, features=ff)
+        self.moving_init.clear()
+        log.info("initialised (%s) at t=%d: roll/pitch %.2f/%.2f deg", init.method, init.t_ns,
+                 *np.degrees(roll_pitch_yaw(T[:3, :3])[:2]))
+        return self._after_keyframe(init.t_ns, est, ff)
+
+    def _after_keyframe(self, t: int, est, ff: FeatureFrame) -> NavState:
+        self._last_kf_t = t
+        self.keyframes += 1
+        self._was_keyframe = True
+        self._pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
+        if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
+            self.tracker.mark_keyframe()
+        try:
+            self._cov_pose, self._cov_vel = self._smoother.marginal_covariances()
+        except SmootherFailure as e:
+            log.debug("no covariance at keyframe: %s", e)
+        pose = est.pose.matrix()
+        bias = est.bias
+        self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
+        ts, g, a = self.imu.window(t + 1, self.imu.last_t_ns or t)
+        for k in range(len(ts)):
+            self.propagator.add(ImuSample(int(ts[k]), g[k], a[k]))
+        self._update_health(t, ff)
+        return self._state(t, pose, est.velocity, bias)
+
+    def _update_health(self, t: int, ff: FeatureFrame | None) -> None:
+        n = len(ff.ids) if ff is not None and ff.tracking_ok else 0
+        self._quality = int(np.clip(round(100 * n / (4 * self.bcfg.min_tracks_ok)), 0, 100))
+        self._tracking = n >= self.bcfg.min_tracks_ok
+        if self._tracking:
+            self._lost_since = None
+        elif self._lost_since is None:
+            self._lost_since = t
+
+    def _looks_still_visually(self, ff: FeatureFrame) -> bool:
+        """Images agree with stillness, or carry no information (no tracks: trust the IMU)."""
+        if not ff.tracking_ok or len(ff.ids) < self.bcfg.min_tracks_ok:
+            return True
+        return self._flow_px <= self.bcfg.zupt_max_flow_px
+
+    def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:
+        b = self.bcfg
+        if (t - self._last_kf_t) * 1e-9 >= b.keyframe_max_interval_s:
+            return True
+        if not ff.tracking_ok:
+            return False
+        return ff.parallax_px >= b.keyframe_min_parallax_px or len(ff.ids) < b.keyframe_min_tracks
+
+    def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
+        self.imu.integrate(self._pim, prev_t, t)
+        self._was_keyframe = False
+        if not self._is_keyframe(t, ff):
+            last = self._smoother.last
+            nav = self._pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
+            self._update_health(t, ff)
+            st = self._state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
+        else:
+            icfg = self.cfg.init
+            ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
+            still = is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
+            est = self._smoother.add_keyframe(t, self._pim, ff, zero_velocity=still)
+            self._check_plausible(est)
+            st = self._after_keyframe(t, est, ff)
+        if self._lost_since is not None and (t - self._lost_since) * 1e-9 > self.bcfg.lost_timeout_s:
+            self.reset(f"tracking lost for {(t - self._lost_since) * 1e-9:.2f} s")
+        return st
+
+    def _check_plausible(self, est) -> None:
+        b = self.bcfg
+        speed = float(np.linalg.norm(est.velocity))
+        bg = float(np.max(np.abs(est.bias.gyroscope())))
+        ba = float(np.max(np.abs(est.bias.accelerometer())))
+        if not np.all(np.isfinite(est.pose.matrix())) or speed > b.max_speed_m_s:
+            raise SmootherFailure(f"implausible speed {speed:.1f} m/s")
+        if bg > b.max_gyro_bias_rad_s or ba > b.max_accel_bias_m_s2:
+            raise SmootherFailure(f"implausible bias: gyro {bg:.3f} rad/s, accel {ba:.3f} m/s^2")
+
+    # -- outputs ---------------------------------------------------------------------------------------
+    def _state(self, t: int, T_world_body: np.ndarray, v_world: np.ndarray,
+               bias: gtsam.imuBias.ConstantBias) -> NavState:
+        gyro_bias = np.asarray(bias.gyroscope(), float)
+        return NavState(t_ns=int(t), T_world_body=np.asarray(T_world_body, float), v_world=np.asarray(v_world, float),
+                        gyro_bias=gyro_bias, accel_bias=np.asarray(bias.accelerometer(), float),
+                        cov_pose=self._cov_pose, cov_vel=self._cov_vel, reset_counter=self.reset_counter,
+                        quality=self._quality, omega_body=self.imu.at(t)[0] - gyro_bias, tracking=self._tracking)
+
+    def _propagated_state(self) -> NavState:
+        p = self.propagator
+        return NavState(t_ns=int(p.t_ns), T_world_body=p.pose(), v_world=p.v.copy(), gyro_bias=p.gyro_bias,
+                        accel_bias=p.accel_bias, cov_pose=self._cov_pose, cov_vel=self._cov_vel,
+                        reset_counter=self.reset_counter, quality=self._quality, omega_body=p.omega.copy(),
+                        tracking=self._tracking)
+
+
+def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:
+    """Median image motion of the tracks shared by two frames (inf when there is nothing to compare)."""
+    if prev is None or not (prev.tracking_ok and cur.tracking_ok):
+        return float("inf")
+    _, ip, ic = np.intersect1d(prev.ids, cur.ids, return_indices=True)
+    if len(ip) < 5:
+        return float("inf")
+    return float(np.median(np.linalg.norm(cur.uv0[ic] - prev.uv0[ip], axis=1)))
