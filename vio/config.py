@@ -35,7 +35,7 @@ def opt(default: Any, help: str, *, min: float | None = None, max: float | None 
 @dataclass(frozen=True)
 class FrontendConfig:
     max_features: int = opt(200, "features kept per left image", min=10, max=2000)
-    min_distance_px: int = opt(20, "minimum spacing between detected features", min=1, max=200)
+    min_distance_px: int = opt(15, "minimum spacing between detected features", min=1, max=200)
     grid_cols: int = opt(8, "detection grid columns (spreads features over the image)", min=1, max=64)
     grid_rows: int = opt(6, "detection grid rows", min=1, max=64)
     klt_window_px: int = opt(21, "KLT window size (odd)", min=5, max=99)
