@@ -96,10 +96,11 @@ class StereoMatcher:
         return self.calib.cam1.project(p1)
 
     def match(self, left: np.ndarray, right: np.ndarray, uv0_raw: np.ndarray, uv0: np.ndarray,
-              depth_guess: np.ndarray) -> StereoResult:
+              depth_guess: np.ndarray, search: np.ndarray | None = None) -> StereoResult:
         """Match raw left pixels `uv0_raw` (undistorted: `uv0`) into `right`; see the module doc.
 
         `depth_guess` is each track's last depth (NaN when it had none): known depths get a short search.
+        `search` (default all) selects the points to match at all; the others stay NaN.
         """
         n = len(uv0_raw)
         out = StereoResult(np.full((n, 2), np.nan), np.full((n, 2), np.nan), np.full(n, np.nan))
@@ -112,7 +113,8 @@ class StereoMatcher:
         guess = np.clip(np.nan_to_num(guess, nan=0.0), 0, [w - 1, h - 1])
         p1 = np.zeros((n, 2))
         ok = np.zeros(n, bool)
-        for sel, params in ((known, self.klt_known), (~known, self.klt_new)):
+        search = np.ones(n, bool) if search is None else search
+        for sel, params in ((known & search, self.klt_known), (~known & search, self.klt_new)):
             if sel.any():
                 p1[sel], ok[sel] = klt_fb(left, right, uv0_raw[sel], guess[sel], params, self.cfg.fb_check_px)
         out.n_klt_fail = int(n - ok.sum())
