@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.fake import imu_signal
 from drivers.serial_protocol import encode_imu
 
 
@@ -33,14 +34,6 @@ class SentFrame:
     gyro: np.ndarray
     accel: np.ndarray
     data: bytes
-
-
-def imu_signal(k: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """Gentle deterministic motion: slow sinusoidal rates and gravity plus a small oscillation."""
-    t = k / rate_hz
-    gyro = np.array([0.10 * np.sin(2.0 * t), 0.05 * np.cos(1.3 * t), 0.02 * np.sin(0.7 * t)])
-    accel = np.array([0.3 * np.sin(1.1 * t), 0.2 * np.cos(0.9 * t), 9.81 + 0.1 * np.sin(3.0 * t)])
-    return gyro, accel
 
 
 def imu_frames(n: int, rate_hz: float = 400.0, t0_us: int = 1_000_000, seq0: int = 0) -> Iterator[SentFrame]:

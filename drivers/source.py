@@ -159,13 +159,13 @@ def open_source(cfg: SourceConfig, dai_module: Any = None,
         from drivers.fake import FakeSource
 
         cam: SensorSource = FakeSource(width=cfg.width, height=cfg.height, fps=cfg.fps,
-                                       imu_rate_hz=cfg.imu_rate_hz)
+                                       imu_rate_hz=cfg.imu_rate_hz, realtime=cfg.realtime)
     elif cfg.kind == "euroc":
         from drivers.fake import EurocSource
 
         if not cfg.dataset:
             raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
-        cam = EurocSource(cfg.dataset)
+        cam = EurocSource(cfg.dataset, realtime=cfg.realtime)
     elif cfg.kind == "oak":
         from drivers.depthai_camera import OakSource
 
@@ -177,7 +177,7 @@ def open_source(cfg: SourceConfig, dai_module: Any = None,
         from drivers.serial_imu import SerialImuSource
 
         return CombinedSource(cam, SerialImuSource(cfg.serial_port, cfg.serial_baud,
-                                                   nominal_rate_hz=cfg.imu_rate_hz,
+                                                   nominal_rate_hz=cfg.serial_imu_rate_hz,
                                                    serial_factory=serial_factory))
     if cfg.imu == "mavlink":
         raise VioError("[source] imu = 'mavlink' is not implemented yet; use 'oak' or 'serial'")
