@@ -85,6 +85,7 @@ class Estimator:
         self._tracking = False
         self._was_keyframe = False
         self._prev_ff: FeatureFrame | None = None
+        self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
 
     # -- public API ------------------------------------------------------------------------------------
@@ -176,6 +177,7 @@ class Estimator:
         prev_t = self._last_frame_t
         self._last_frame_t = t
         self._flow_px = median_flow_px(self._prev_ff, ff)
+        self.last_features = ff
         self._prev_ff = ff
         self.frames_processed += 1
         try:
