@@ -29,7 +29,7 @@ from vio.config import VioConfig
 from vio.geometry import make_T, roll_pitch_yaw, so3_exp
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
-from vio.propagator import Propagator
+from vio.propagator import Propagator, rodrigues
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -154,7 +154,7 @@ class Estimator:
         R = np.eye(3)
         for a, b in zip(knots[:-1], knots[1:]):
             w = 0.5 * (self.imu.at(int(a))[0] + self.imu.at(int(b))[0]) - bg
-            R = R @ so3_exp(w * (b - a) * 1e-9)
+            R = R @ rodrigues(w * (b - a) * 1e-9)
         R_bc = self.calib.cam0.T_body_cam[:3, :3]
         return R_bc.T @ R @ R_bc
 
@@ -233,10 +233,11 @@ class Estimator:
         self._pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
         if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
             self.tracker.mark_keyframe()
-        try:
-            self._cov_pose, self._cov_vel = self._smoother.marginal_covariances()
-        except SmootherFailure as e:
-            log.debug("no covariance at keyframe: %s", e)
+        if (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
+            try:
+                self._cov_pose, self._cov_vel = self._smoother.marginal_covariances()
+            except SmootherFailure as e:
+                log.debug("no covariance at keyframe: %s", e)
         pose = est.pose.matrix()
         bias = est.bias
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))

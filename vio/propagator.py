@@ -10,10 +10,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from vio.geometry import GRAVITY_M_S2, so3_exp
+from vio.geometry import GRAVITY_M_S2, skew
 from vio.types import ImuSample
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])
+
+
+def rodrigues(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a small rotation vector; plain numpy because this runs at IMU rate."""
+    a = float(np.sqrt(phi @ phi))
+    K = skew(phi)
+    if a < 1e-8:
+        return np.eye(3) + K
+    return np.eye(3) + (np.sin(a) / a) * K + ((1 - np.cos(a)) / (a * a)) * (K @ K)
 
 
 class Propagator:
@@ -56,7 +65,7 @@ class Propagator:
             g0, a0 = self._last[0] - self.gyro_bias, self._last[1] - self.accel_bias
         dt = (s.t_ns - self.t_ns) * 1e-9
         w = 0.5 * (g0 + g1)
-        R1 = self.R @ so3_exp(w * dt)
+        R1 = self.R @ rodrigues(w * dt)
         acc_w = 0.5 * (self.R @ a0 + R1 @ a1) + GRAVITY_WORLD
         self.p = self.p + self.v * dt + 0.5 * acc_w * dt * dt
         self.v = self.v + acc_w * dt

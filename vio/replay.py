@@ -136,7 +136,9 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     frames = 0
     t_first = None
     wall0 = time.perf_counter()
-    for ev in dataset.events():
+    # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
+    t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
+    for ev in dataset.events(t_end_ns=t_end):
         if realtime:
             t_data = ev.t_ns
             if t_first is None:
