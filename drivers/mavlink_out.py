@@ -14,9 +14,11 @@ offset from the stamps themselves (its VISO_DELAY_MS covers the remaining latenc
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -54,7 +56,10 @@ def open_connection(url: str, source_system: int) -> mavutil.mavfile:
     """
     kw = {"source_system": source_system, "source_component": OUR_COMPONENT, "dialect": "ardupilotmega"}
     if url.startswith("tcp:"):  # one attempt: mavutil's own retries sleep (and print) inside our loop
-        return mavutil.mavlink_connection(url, retries=0, **kw)
+        conn = mavutil.mavlink_connection(url, retries=0, **kw)
+        # mavutil only prints on a closed peer and returns no data forever; make it an error we handle.
+        conn.handle_eof = conn.handle_disconnect = _peer_closed
+        return conn
     if url.startswith(("udpout:", "udpin:", "udp:", "tcpin:", "udpbcast:")):
         return mavutil.mavlink_connection(url, **kw)
     device, _, baud = url.partition(":")
@@ -64,6 +69,10 @@ def open_connection(url: str, source_system: int) -> mavutil.mavfile:
         return mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
     raise VioError(f"[mavlink] url {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
                    "or a serial device such as /dev/ttyAMA0:921600")
+
+
+def _peer_closed() -> None:
+    raise ConnectionResetError("peer closed the connection")
 
 
 @dataclass
@@ -131,8 +140,10 @@ class MavlinkOutput:
         self._pending_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._open()
+        self._open()  # raises VioError for a malformed url; a missing device is retried later
+        self._wake_r, self._wake_w = os.pipe()  # lets send_state()/close() interrupt the thread's select()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
 
     # ---------------------------------------------------------------- public API
 
@@ -145,10 +156,21 @@ class MavlinkOutput:
     def connected(self) -> bool:
         return self._conn is not None
 
-    def send_state(self, state: NavState) -> None:
+    def health(self) -> dict:
+        """Flat snapshot for the status file: link, ids and counters."""
+        st = self.stats
+        return {"link_up": self._link_up, "connected": self.connected, "url": self.url,
+                "system_id": self.system_id, "target_system": self.target_system,
+                "states_sent": st.states_sent, "states_superseded": st.states_superseded,
+                "states_not_tracking": st.states_not_tracking, "autopilot_heartbeats": st.autopilot_heartbeats,
+                "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
+                "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms}
+
+    def send_state(self, state: NavState) -> bool:
         """Offer the newest estimate; it is sent in the next slot of the `rate_hz` schedule, or never
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
-        goes out) and sends nothing."""
+        goes out) and sends nothing. Returns whether the state was taken for sending."""
+        taken = False
         with self._pending_lock:
             self.stats.states_in += 1
             changed = self._tracking is not None and state.tracking != self._tracking
@@ -162,12 +184,14 @@ class MavlinkOutput:
                 if self._pending is not None:
                     self.stats.states_superseded += 1
                 self._pending = state
+                taken = True
         if changed:
             self._on_tracking_change(state.tracking)
         if self._thread is None:
             self.poll()
         else:
-            self._wake.set()
+            self._wake()
+        return taken
 
     __call__ = send_state  # NavStateSink: sink(state)
 
@@ -188,12 +212,20 @@ class MavlinkOutput:
     def close(self) -> None:
         """Stop the thread and close the connection; safe to call twice."""
         self._stop.set()
-        self._wake.set()
+        self._wake()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
         with self._lock:
             self._close_conn()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._wake_r = self._wake_w = -1
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):  # pipe full (already woken) or closed
+            os.write(self._wake_w, b"w")
 
     def __enter__(self) -> MavlinkOutput:
         return self
@@ -388,11 +420,19 @@ class MavlinkOutput:
             except Exception:  # keep the output alive; the next poll reconnects if needed
                 log.exception("mavlink output step failed")
             now = self._clock()
-            wake = min(self._next_heartbeat_ns, now + 10_000_000)  # 10 ms: prompt TIMESYNC answers
+            wake = min(self._next_heartbeat_ns, now + 100_000_000)
             if self._pending is not None:
                 wake = min(wake, self._next_send_ns)
-            self._wake.wait(max(wake - now, 100_000) / 1e9)
-            self._wake.clear()
+            timeout_s = max(wake - now, 100_000) / 1e9
+            fd = getattr(self._conn, "fd", None)
+            fds = [self._wake_r] if fd is None else [self._wake_r, fd]
+            if fd is None:
+                timeout_s = min(timeout_s, 0.005)  # no pollable fd: check the input every 5 ms
+            # Wake on incoming bytes too: PX4 drops TIMESYNC round trips slower than ~10 ms.
+            with contextlib.suppress(OSError, ValueError):
+                select.select(fds, [], [], timeout_s)
+            with contextlib.suppress(OSError):
+                os.read(self._wake_r, 4096)
 
 
 def _next_slot(slot_ns: int, period_ns: int, now_ns: int) -> int:

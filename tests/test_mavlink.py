@@ -382,9 +382,14 @@ def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
     parser = mavlink.MAVLink(None)
     msgs = parser.parse_buffer(peer.recv(4096)) or []
     assert {m.get_type() for m in msgs} >= {"HEARTBEAT", "ODOMETRY"}
-    out.close()
-    peer.close()
+    peer.close()  # the autopilot side goes away: one warning, no busy loop of empty reads, then retries
     server.close()
+    for _ in range(20):
+        clock.advance(0.5)
+        out.poll()
+    assert not out.connected and out.stats.io_errors >= 1
+    assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 2
+    out.close()
 
 
 # ------------------------------------------------------------------ real time
