@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -228,20 +229,28 @@ class ScriptedEstimator:
         return NavState(f.t_ns, T, np.zeros(3))
 
 
+@dataclass
+class MavStats:
+    states_sent: int = 0
+    autopilot_heartbeats: int = 3
+
+
 class RecordingMavlink:
+    """Shaped like drivers.mavlink_out.MavlinkOutput: send_state, poll, close, link_up, stats."""
+
+    link_up = True
+
     def __init__(self) -> None:
         self.states: list[NavState] = []
         self.closed = False
+        self.stats = MavStats()
 
-    def send_state(self, s: NavState) -> bool:
+    def send_state(self, s: NavState) -> None:
         self.states.append(s)
-        return True
+        self.stats.states_sent += 1
 
     def poll(self) -> None:
         return None
-
-    def health(self) -> dict:
-        return {"link_up": True, "heartbeats": 3}
 
     def close(self) -> None:
         self.closed = True
@@ -295,7 +304,8 @@ def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, noti
         assert mavs[0].states[-1].reset_counter >= 1
         assert _wait(lambda: (tmp_path / "status.json").exists(), 3.0)
         status = json.loads((tmp_path / "status.json").read_text())
-        assert status["mavlink"]["state"] == "up" and status["estimator"]["tracks"] == 99
+        assert status["mavlink"]["state"] == "up" and status["mavlink"]["autopilot_heartbeats"] == 3
+        assert status["mavlink"]["sent"] > 0 and status["estimator"]["tracks"] == 99
         assert status["source"]["driver"]["name"] == "scripted"
     finally:
         t0 = time.monotonic()

@@ -27,6 +27,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -309,6 +310,8 @@ class EstimatorWorker(Worker):
         self._reset_base = 0
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
+        self._arrivals: deque[int] = deque(maxlen=64)  # frames fed, not yet processed (they wait for IMU)
+        self._processed = 0
 
     def loop(self) -> None:
         self.estimator = self._make()
@@ -328,15 +331,32 @@ class EstimatorWorker(Worker):
                     if self._last_imu_t is not None and s.t_ns - self._last_imu_t > self.max_gap_ns:
                         self._reset(f"IMU gap of {(s.t_ns - self._last_imu_t) / 1e9:.2f} s")
                     self._last_imu_t = s.t_ns
-                    self._emit(self.estimator.feed_imu(s), None)
+                    self._emit(self.estimator.feed_imu(s))
                 if item is not None:
                     self.frames += 1
-                    self._emit(self.estimator.feed_frame(item[1]), item[0])
+                    self._arrivals.append(item[0])
+                    self._emit(self.estimator.feed_frame(item[1]))
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
 
-    def _emit(self, result: Any, arrival_ns: int | None) -> None:
+    def _frame_arrival(self) -> int:
+        """Arrival time of the frame a state came from, or -1 for an IMU-rate state.
+
+        A frame waits inside the estimator until the IMU reaches its stamp, so its state may come out of a
+        later feed_imu(); the estimator's `frames_processed` counter tells which call finished a frame."""
+        done = getattr(self.estimator, "frames_processed", None)
+        if done is None:  # an estimator without the counter: only feed_frame results count as frame states
+            return self._arrivals.pop() if self._arrivals else -1
+        arrival = -1
+        while self._processed < done and self._arrivals:
+            arrival = self._arrivals.popleft()
+            self._processed += 1
+        self._processed = done
+        return arrival
+
+    def _emit(self, result: Any) -> None:
+        arrival_ns = self._frame_arrival()
         for state in _as_states(result):
             if self._reset_base:
                 state = dataclasses.replace(state, reset_counter=state.reset_counter + self._reset_base)
@@ -345,23 +365,24 @@ class EstimatorWorker(Worker):
             if state.tracking:
                 self.good_states += 1
                 self.last_state_time = time.monotonic()
-            # IMU-rate states carry no frame: their latency is measured from the newest frame behind them
-            self.out.publish(Output(state, arrival_ns if arrival_ns is not None else -1, _now_ns()))
+            self.out.publish(Output(state, arrival_ns, _now_ns()))
 
     def _reset(self, why: str) -> None:
         self.resets += 1
-        log.warning("estimator reset #%d: %s", self.resets, why)
+        log.warning("daemon-forced estimator reset #%d: %s", self.resets, why)
         last = self.last_state.reset_counter if self.last_state is not None else -1
         reset = getattr(self.estimator, "reset", None)
         if callable(reset):
             try:
-                reset()
+                reset(why)  # keeps the last pose as the new origin and bumps the estimator's reset_counter
                 return
             except Exception as e:
                 log.warning("estimator reset() failed (%s); creating a new estimator", e)
         self.estimator = self._make()
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
         self._last_imu_t = None
+        self._arrivals.clear()
+        self._processed = 0
 
 
 class OutputWorker(Worker):
@@ -375,7 +396,8 @@ class OutputWorker(Worker):
         self.trajectory_file = trajectory_file
         self.reconnect_max_s = reconnect_max_s
         self.mav: Any = None
-        self.sent = 0
+        self.offered = 0  # states handed to the MAVLink output (it sends the newest at its own rate)
+        self._sent_base = 0  # states sent by MAVLink outputs closed since start
         self.errors = 0
         self.latency_ms: deque[float] = deque(maxlen=200)
         self._seq = 0
@@ -416,8 +438,8 @@ class OutputWorker(Worker):
             self._tum.write(format_tum_line(s.t_ns, s.T_world_body[:3, 3], rot_to_quat_wxyz(s.T_world_body[:3, :3])))
         if self.mav is not None:
             try:
-                if self.mav.send_state(s) is not False:
-                    self.sent += 1
+                self.mav.send_state(s)
+                self.offered += 1
             except Exception as e:
                 self._mav_failed(e)
         if out.arrival_ns >= 0:
@@ -434,10 +456,21 @@ class OutputWorker(Worker):
     def _mav_failed(self, e: Exception) -> None:
         self.errors += 1
         log.warning("MAVLink error: %s: %s; reopening", type(e).__name__, e)
-        with contextlib.suppress(Exception):
-            self.mav.close()
-        self.mav = None
+        self._close_mav()
         self._next_open = time.monotonic() + self._backoff
+
+    def _close_mav(self) -> None:
+        mav, self.mav = self.mav, None
+        if mav is not None:
+            self._sent_base += _mavlink_sent(mav)
+            with contextlib.suppress(Exception):
+                mav.close()
+
+    @property
+    def sent(self) -> int:
+        """Pose states that went out on the link (cumulative over reconnects)."""
+        mav = self.mav
+        return self._sent_base + (_mavlink_sent(mav) if mav is not None else 0)
 
     def link(self) -> dict:
         if self._open is None:
@@ -447,10 +480,7 @@ class OutputWorker(Worker):
         return _mavlink_health(self.mav)
 
     def close(self) -> None:
-        if self.mav is not None:
-            with contextlib.suppress(Exception):
-                self.mav.close()
-            self.mav = None
+        self._close_mav()
         if self._tum is not None:
             self._tum.close()
             self._tum = None
@@ -546,15 +576,18 @@ def _as_states(result: Any) -> list[NavState]:
     return [s for s in result if isinstance(s, NavState)]
 
 
+def _mavlink_sent(mav: Any) -> int:
+    stats = getattr(mav, "stats", None)
+    return int(getattr(stats, "states_sent", 0))
+
+
 def _mavlink_health(mav: Any) -> dict:
-    h = getattr(mav, "health", None)
-    h = h() if callable(h) else h
-    if dataclasses.is_dataclass(h):
-        h = dataclasses.asdict(h)
-    if not isinstance(h, dict):
-        h = {}
-    out = {k: v for k, v in h.items() if isinstance(v, (int, float, str, bool)) or v is None}
-    link_up = out.get("link_up", out.get("connected"))
+    """Link state and the scalar counters of drivers.mavlink_out.MavlinkOutput (link_up, stats)."""
+    stats = getattr(mav, "stats", None)
+    h = dataclasses.asdict(stats) if dataclasses.is_dataclass(stats) else {}
+    out = {k: v for k, v in h.items()
+           if isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
+    link_up = getattr(mav, "link_up", None)
     out["state"] = "up" if link_up else "down" if link_up is not None else "open"
     return out
 
@@ -854,7 +887,7 @@ def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
     def make(calib: Any) -> Any:
         from vio.estimator import Estimator as VioEstimator
 
-        return VioEstimator(cfg, calib)
+        return VioEstimator(calib, cfg)
     return make
 
 
