@@ -139,6 +139,11 @@ def test_coverage_and_gaps(gt):
     # segments across the gap are not counted
     full = evaluate(gt, gt, rpe_lengths_m=(2.0,))
     assert 0 < r.rpe[0].n_pairs < full.rpe[0].n_pairs - 100
+    # cropping the ground truth to the estimate's span (+- max_dt: one more GT pose at 4.98 s) leaves only
+    # the inner gap uncovered
+    cropped = evaluate(gt.subset(np.flatnonzero(keep)), gt, rpe_lengths_m=(2.0,), crop_gt=True)
+    assert cropped.gt_span_s == pytest.approx(span - 4.98)
+    assert cropped.coverage == pytest.approx((span - 5.0 - 10.0 - 1 / RATE_HZ) / (span - 4.98), abs=1e-6)
     # max gap above the hole: counted as covered
     assert evaluate(gt.subset(np.flatnonzero(keep)), gt, max_gap_s=20.0).coverage > r.coverage + 0.15
 

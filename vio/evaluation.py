@@ -268,13 +268,20 @@ def relative_errors(T_est: np.ndarray, T_gt: np.ndarray, length_m: float,
 
 def evaluate(est: Trajectory, gt: Trajectory, *, max_dt_ms: float = DEFAULT_MAX_DT_MS, interpolate: bool = False,
              rpe_lengths_m: tuple[float, ...] = DEFAULT_RPE_LENGTHS_M,
-             max_gap_s: float = DEFAULT_MAX_GAP_S) -> EvalResult:
+             max_gap_s: float = DEFAULT_MAX_GAP_S, crop_gt: bool = False) -> EvalResult:
     """Compare `est` with `gt` (both T_world_body, each in its own world frame).
 
-    Raises VioError when fewer than 3 estimates have ground truth within `max_dt_ms`.
+    `crop_gt` first cuts the ground truth to the estimate's time span (+- max_dt), so that coverage
+    measures only gaps inside the run (for a run on part of a sequence). Raises VioError when fewer than
+    3 estimates have ground truth within `max_dt_ms`.
     """
     if len(gt) == 0 or len(est) == 0:
         raise VioError("empty trajectory")
+    if crop_gt:
+        margin = int(round(max_dt_ms * 1e6))
+        gt = gt.subset(np.flatnonzero((gt.t_ns >= est.t_ns[0] - margin) & (gt.t_ns <= est.t_ns[-1] + margin)))
+        if len(gt) == 0:
+            raise VioError(f"no ground truth within the estimate's span {est.t_s[0]:.3f}..{est.t_s[-1]:.3f} s")
     idx, gt_m = associate(est, gt, int(round(max_dt_ms * 1e6)), interpolate)
     if len(idx) < 3:
         raise VioError(
@@ -382,6 +389,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"RPE segment lengths in metres (default {','.join(f'{x:g}' for x in DEFAULT_RPE_LENGTHS_M)})")
     p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
                    help="time between estimates above which it counts as a gap (default %(default)s)")
+    p.add_argument("--crop-gt", action="store_true",
+                   help="cut the ground truth to the estimate's time span (coverage then ignores the rest)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -390,7 +399,7 @@ def run(args: argparse.Namespace) -> int:
     est = load_trajectory(args.est)
     gt = load_trajectory(args.gt)
     result = evaluate(est, gt, max_dt_ms=args.max_dt_ms, interpolate=args.interpolate,
-                      rpe_lengths_m=args.rpe_lengths, max_gap_s=args.max_gap_s)
+                      rpe_lengths_m=args.rpe_lengths, max_gap_s=args.max_gap_s, crop_gt=args.crop_gt)
     print(f"estimate: {args.est}\nground truth: {args.gt}")
     print(result.summary())
     if args.json:
