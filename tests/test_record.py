@@ -1,0 +1,135 @@
+"""`vio record`: bit-exact round trip through a EuRoC dataset, and what a signal or a kill leaves behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.fake import EurocSource, FakeSource
+from drivers.record import record
+from vio import VioError
+from vio.io.euroc import EurocDataset
+from vio.types import ImuSample, StereoFrame
+
+T0 = 1_000_000_000_000
+
+
+def _fake(**kw) -> FakeSource:
+    return FakeSource(width=160, height=100, fps=20, imu_rate_hz=200, duration_s=1.0, t0_ns=T0,
+                      realtime=False, **kw)
+
+
+def test_record_replay_round_trip_is_bit_exact(tmp_path: Path) -> None:
+    stats = record(_fake(), tmp_path / "ds")
+    ds = EurocDataset(tmp_path / "ds")
+    want = list(_fake().messages())
+    want_imu = [m for m in want if isinstance(m, ImuSample)]
+    want_frames = [m for m in want if isinstance(m, StereoFrame)]
+    assert stats.imu == len(want_imu) == len(ds.imu) == 201
+    assert stats.frames == len(want_frames) == len(ds) == 21
+    np.testing.assert_array_equal(ds.imu.t_ns, [m.t_ns for m in want_imu])
+    assert np.array_equal(ds.imu.gyro, np.array([m.gyro for m in want_imu]))  # exact, not approximately
+    assert np.array_equal(ds.imu.accel, np.array([m.accel for m in want_imu]))
+    got_frames = list(ds.frames())
+    for a, b in zip(got_frames, want_frames):
+        assert a.t_ns == b.t_ns
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+    # the calibration travels with the data
+    c0, w0 = ds.calibration.cam0, _fake().calibration().cam0
+    np.testing.assert_allclose(c0.K, w0.K)
+    np.testing.assert_allclose(c0.T_body_cam, w0.T_body_cam, atol=1e-12)
+    assert abs(ds.calibration.baseline_m - 0.075) < 1e-12
+    # events() merges the streams back in time order, as `vio replay` consumes them
+    ev = list(ds.events())
+    assert len(ev) == 222 and all(a.t_ns <= b.t_ns for a, b in zip(ev, ev[1:]))
+
+
+def test_record_stops_on_event_and_refuses_to_overwrite(tmp_path: Path) -> None:
+    stop = threading.Event()
+    src = FakeSource(width=64, height=64, fps=20, realtime=True)
+    threading.Timer(0.4, stop.set).start()
+    stats = record(src, tmp_path / "ds", stop=stop)
+    assert stats.frames >= 3 and stats.imu >= 40
+    assert len(EurocDataset(tmp_path / "ds").imu) == stats.imu
+    with pytest.raises(VioError, match="refusing to overwrite"):
+        record(_fake(), tmp_path / "ds")
+
+
+def test_euroc_source_replays_a_dataset_unchanged(v101_path: Path, tmp_path: Path) -> None:
+    src = EurocSource(v101_path, realtime=False, batch=500)
+    ds = EurocDataset(v101_path)
+    t_end = int(ds.frame_t[10])
+    stats = record(src, tmp_path / "copy", duration_s=(t_end - int(ds.imu.t_ns[0])) / 1e9)
+    copy = EurocDataset(tmp_path / "copy")
+    assert stats.frames == len(copy) == 11
+    n = len(copy.imu)
+    np.testing.assert_array_equal(copy.imu.t_ns, ds.imu.t_ns[:n])
+    assert np.array_equal(copy.imu.gyro, ds.imu.gyro[:n])
+    assert np.array_equal(copy.frame(3).left, ds.frame(3).left)
+
+
+def _start_recorder(tmp_path: Path, out: Path) -> subprocess.Popen:
+    cfg = tmp_path / "rec.toml"
+    cfg.write_text('[source]\nkind = "fake"\nwidth = 160\nheight = 100\nfps = 20.0\nimu_rate_hz = 200.0\n')
+    return subprocess.Popen([sys.executable, "-m", "vio.cli", "record", str(out), "--config", str(cfg),
+                             "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _wait_rows(path: Path, rows: int, proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.is_file() and path.read_text().count("\n") > rows:
+            return
+        if proc.poll() is not None:
+            raise AssertionError(f"recorder exited early: {proc.stdout.read().decode()}")
+        time.sleep(0.05)
+    raise AssertionError(f"recorder wrote fewer than {rows} rows to {path} in {timeout_s} s")
+
+
+def test_killed_recorder_leaves_a_readable_dataset(tmp_path: Path) -> None:
+    """SIGKILL (power cut) after a few seconds: everything but about the last second is readable."""
+    out = tmp_path / "ds"
+    proc = _start_recorder(tmp_path, out)
+    try:
+        imu_csv = out / "mav0" / "imu0" / "data.csv"
+        _wait_rows(imu_csv, 10, proc)
+        time.sleep(2.5)
+        t_kill = time.monotonic_ns()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    ds = EurocDataset(out)
+    # stamps are host monotonic ns of the recorder, the same clock as ours: at most ~1 s was lost
+    assert t_kill - int(ds.imu.t_ns[-1]) < 1_200_000_000
+    assert (ds.imu.t_ns[-1] - ds.imu.t_ns[0]) > 2.0e9
+    assert len(ds) >= 40 and len(list(ds.frames())) == len(ds)
+
+
+def test_sigterm_flushes_and_exits_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    proc = _start_recorder(tmp_path, out)
+    try:
+        _wait_rows(out / "mav0" / "imu0" / "data.csv", 10, proc)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        t_term = time.monotonic_ns()
+        rc = proc.wait(timeout=15)
+        log = proc.stdout.read().decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == 0, log
+    assert "SIGTERM received" in log and "recorded" in log
+    ds = EurocDataset(out)
+    assert t_term - int(ds.imu.t_ns[-1]) < 100_000_000  # flushed up to the signal, not the last fsync
