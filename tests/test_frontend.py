@@ -1,0 +1,289 @@
+"""Stereo front end: geometry on synthetic scenes with exact truth, robustness to bad frames, real EuRoC data."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from vio.calibration import CameraCalibration, StereoCalibration
+from vio.config import FrontendConfig
+from vio.frontend import GyroPrior, StereoTracker, integrate_gyro
+from vio.frontend.debug_view import TrackImageWriter
+from vio.frontend.gyro import body_to_camera_rotation
+from vio.frontend.ransac import temporal_inliers
+from vio.frontend.runner import run_frontend
+from vio.frontend.undistort import bearings, distort_px, undistort_px
+from vio.geometry import inv_T, make_T, so3_exp
+from vio.types import ImuSample, StereoFrame
+
+W, H = 752, 480
+RADTAN = (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+EQUIDISTANT = (0.012, -0.006, 0.003, -0.0008)
+
+
+def _calib(model: str = "radtan") -> StereoCalibration:
+    """EuRoC-like head: cam1 11 cm to the right of cam0, turned by half a degree, different principal point."""
+    dist = RADTAN if model == "radtan" else EQUIDISTANT
+    T_body_cam0 = make_T(np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]), np.array([0.05, 0.0, 0.0]))
+    T_cam0_cam1 = make_T(so3_exp([0.004, -0.008, 0.003]), np.array([0.11, 0.002, -0.001]))
+    cam0 = CameraCalibration(458.0, 457.0, 367.0, 248.0, W, H, model, dist, T_body_cam0)
+    cam1 = CameraCalibration(457.5, 456.0, 380.0, 255.0, W, H, model, dist, T_body_cam0 @ T_cam0_cam1)
+    return StereoCalibration(cam0, cam1)
+
+
+def _texture(seed: int = 0, size: int = 1536) -> np.ndarray:
+    """Multi-scale noise with rectangles: corners at every scale, no repetition."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((size, size), np.float32)
+    for s in (3, 9, 27):
+        n = cv2.resize(rng.standard_normal((size // s, size // s)).astype(np.float32), (size, size),
+                       interpolation=cv2.INTER_CUBIC)
+        img += n * s ** 0.5
+    img = (img - img.mean()) / img.std() * 35 + 128
+    for _ in range(400):
+        x, y = rng.integers(0, size, 2)
+        w, h = rng.integers(8, 60, 2)
+        cv2.rectangle(img, (int(x), int(y)), (int(x + w), int(y + h)), float(rng.integers(20, 235)), -1)
+    return np.clip(cv2.GaussianBlur(img, (0, 0), 1.0), 0, 255).astype(np.uint8)
+
+
+class PlaneScene:
+    """Textured plane n . p = d (in the world frame) rendered through the real lens model by ray casting."""
+
+    half_m = 6.0  # the texture covers [-half_m, half_m]^2 of the plane's (x, y)
+
+    def __init__(self, d: float = 3.0, tilt: float = 0.25) -> None:
+        self.n = np.array([0.0, -tilt, 1.0])
+        self.d = d
+        self.tex = _texture()
+        ys, xs = np.mgrid[0:H, 0:W]
+        self._pix = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+        self._rays: dict[int, np.ndarray] = {}
+
+    def render(self, cam: CameraCalibration, T_world_cam: np.ndarray) -> np.ndarray:
+        key = id(cam)
+        if key not in self._rays:
+            self._rays[key] = bearings(cam, undistort_px(cam, self._pix))
+        rays = self._rays[key] @ T_world_cam[:3, :3].T
+        o = T_world_cam[:3, 3]
+        s = (self.d - self.n @ o) / (rays @ self.n)
+        p = o + rays * s[:, None]
+        scale = self.tex.shape[0] / (2 * self.half_m)
+        mx = ((p[:, 0] + self.half_m) * scale).reshape(H, W).astype(np.float32)
+        my = ((p[:, 1] + self.half_m) * scale).reshape(H, W).astype(np.float32)
+        return cv2.remap(self.tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+    def stereo(self, calib: StereoCalibration, T_world_cam0: np.ndarray, t_ns: int) -> StereoFrame:
+        T_cam0_cam1 = inv_T(calib.cam0.T_body_cam) @ calib.cam1.T_body_cam
+        return StereoFrame(t_ns, self.render(calib.cam0, T_world_cam0),
+                           self.render(calib.cam1, T_world_cam0 @ T_cam0_cam1))
+
+    def depth(self, uv0: np.ndarray) -> np.ndarray:
+        """True cam0 depth of undistorted cam0 pixels when cam0 is at the world origin."""
+        x = np.column_stack([(uv0[:, 0] - 367.0) / 458.0, (uv0[:, 1] - 248.0) / 457.0, np.ones(len(uv0))])
+        return self.d / (x @ self.n)
+
+
+def _homography(Hm: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    x = np.column_stack([uv, np.ones(len(uv))]) @ Hm.T
+    return x[:, :2] / x[:, 2:]
+
+
+def _inside(uv: np.ndarray, margin: float) -> np.ndarray:
+    return (uv[:, 0] > margin) & (uv[:, 0] < W - margin) & (uv[:, 1] > margin) & (uv[:, 1] < H - margin)
+
+
+@pytest.fixture(scope="module")
+def scene() -> PlaneScene:
+    return PlaneScene()
+
+
+@pytest.fixture(scope="module")
+def calib() -> StereoCalibration:
+    return _calib()
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+
+@pytest.mark.parametrize("model", ["radtan", "equidistant"])
+def test_undistortion_round_trip(model: str) -> None:
+    cam = _calib(model).cam0
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([5, 5], [W - 5, H - 5], (500, 2))
+    und = undistort_px(cam, uv)
+    assert np.abs(distort_px(cam, und) - uv).max() < 1e-3
+    # the undistorted pixel really is K times the ray that the lens model projects onto uv
+    assert np.abs(cam.project(bearings(cam, und)) - uv).max() < 1e-3
+    # distortion is not negligible at the border (so the test would notice a missing undistortion)
+    assert np.abs(und - uv).max() > (20 if model == "radtan" else 1)
+
+
+def test_stereo_depth_on_known_plane(scene: PlaneScene, calib: StereoCalibration) -> None:
+    ff = StereoTracker(calib).process(scene.stereo(calib, np.eye(4), 1_000))
+    assert ff.tracking_ok, ff.reason
+    ok = np.isfinite(ff.depth_m)
+    assert ok.sum() >= 150, f"only {ok.sum()} of {len(ok)} features have stereo depth"
+    rel = np.abs(ff.depth_m[ok] - scene.depth(ff.uv0[ok])) / scene.depth(ff.uv0[ok])
+    assert np.median(rel) < 0.01
+    assert np.percentile(rel, 95) < 0.03
+    # uv1 is the undistorted cam1 pixel of the same 3D point
+    p0 = bearings(calib.cam0, ff.uv0[ok]) * ff.depth_m[ok, None]
+    T_1_0 = calib.T_cam1_cam0
+    p1 = p0 @ T_1_0[:3, :3].T + T_1_0[:3, 3]
+    uv1 = p1[:, :2] / p1[:, 2:] * [calib.cam1.fx, calib.cam1.fy] + [calib.cam1.cx, calib.cam1.cy]
+    assert np.median(np.linalg.norm(uv1 - ff.uv1[ok], axis=1)) < 0.5
+
+
+def test_imu_prediction_keeps_tracks_in_fast_yaw(scene: PlaneScene, calib: StereoCalibration) -> None:
+    """12 deg of yaw between frames (about 100 px): KLT from the gyro-predicted start keeps the tracks."""
+    R = so3_exp([0.0, np.radians(12.0), 0.0])  # about cam0's y axis (down): the image pans sideways
+    f0 = scene.stereo(calib, np.eye(4), 1_000)
+    f1 = scene.stereo(calib, make_T(R, np.zeros(3)), 50_001_000)
+    K = calib.cam0.K
+    results = {}
+    for use_prior in (True, False):
+        tr = StereoTracker(calib)
+        a = tr.process(f0)
+        b = tr.process(f1, R if use_prior else None)
+        common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+        results[use_prior] = len(common)
+        if use_prior:
+            pred_all = _homography(K @ R.T @ np.linalg.inv(K), a.uv0)  # pure rotation: infinite homography
+            n_in = int(np.sum(_inside(pred_all, 25)))
+            assert len(common) >= 0.9 * n_in, f"kept {len(common)} of {n_in} trackable features"
+            pred = pred_all[ia]
+            err = np.linalg.norm(b.uv0[ib] - pred, axis=1)[_inside(pred, 10)]
+            assert np.median(err) < 0.3
+            assert np.percentile(err, 99) < 2.0
+            assert b.parallax_px < 1.0  # pure rotation: no parallax once rotation-compensated
+    assert results[False] < 0.5 * results[True], "the test motion is too easy to show the prediction"
+
+
+def test_gyro_integration_to_camera_rotation() -> None:
+    w = np.array([0.3, -1.2, 2.5])
+    t = np.arange(0, 101) * 1_000_000  # 1 kHz over 100 ms
+    gyro = np.tile(w, (len(t), 1))
+    R_b = integrate_gyro(t, gyro, 10_000_000, 60_000_000)
+    assert np.allclose(R_b, so3_exp(w * 0.05), atol=1e-9)
+    calib = _calib()
+    prior = GyroPrior(calib.cam0.T_body_cam)
+    assert prior.rotation(10_000_000, 60_000_000) is None  # nothing buffered: no prior
+    for ti, g in zip(t, gyro):
+        prior.add(ImuSample(int(ti), g, np.zeros(3)))
+    R_c = prior.rotation(10_000_000, 60_000_000)
+    R_bc = calib.cam0.T_body_cam[:3, :3]
+    assert np.allclose(R_c, so3_exp(R_bc.T @ w * 0.05), atol=1e-9)
+    assert np.allclose(body_to_camera_rotation(R_b, calib.cam0.T_body_cam), R_c)
+
+
+def test_ransac_flags_outliers() -> None:
+    rng = np.random.default_rng(3)
+    K = _calib().cam0.K
+    p = rng.uniform([-3, -2, 2], [3, 2, 8], (200, 3))
+    T = make_T(so3_exp([0.02, -0.05, 0.01]), np.array([0.3, 0.05, 0.1]))  # cam_cur <- cam_prev
+    q = p @ T[:3, :3].T + T[:3, 3]
+    uv_a = (p / p[:, 2:]) @ K.T
+    uv_b = (q / q[:, 2:]) @ K.T
+    uv_a, uv_b = uv_a[:, :2] + rng.normal(0, 0.2, (200, 2)), uv_b[:, :2] + rng.normal(0, 0.2, (200, 2))
+    bad = rng.choice(200, 20, replace=False)
+    uv_b[bad] += rng.uniform(4, 15, (20, 2)) * rng.choice([-1, 1], (20, 2))
+    inl = temporal_inliers(uv_a, uv_b, 1.0)
+    assert (~inl[bad]).sum() >= 18
+    good = np.setdiff1d(np.arange(200), bad)
+    assert inl[good].mean() > 0.95
+
+
+# ------------------------------------------------------------------------------------------- bad frames
+
+def test_bad_frames_are_reported_and_tracking_recovers(scene: PlaneScene, calib: StereoCalibration) -> None:
+    frames = [scene.stereo(calib, make_T(so3_exp([0, 0.002 * i, 0]), [0.01 * i, 0, 0]), 1_000 + i * 50_000_000)
+              for i in range(4)]
+    tr = StereoTracker(calib)
+    first = tr.process(frames[0])
+    assert first.tracking_ok and first.n_stereo > 100
+    t = frames[1].t_ns
+
+    # out of order: reported, tracks kept (the next frame continues them)
+    late = tr.process(dataclasses.replace(frames[0], t_ns=first.t_ns))
+    assert not late.tracking_ok and "not after" in late.reason and len(late.ids) == 0
+    cont = tr.process(frames[1])
+    assert cont.tracking_ok and np.median(cont.track_len) == 2
+
+    # missing right image: mono observations only, still tracking
+    mono = tr.process(dataclasses.replace(frames[2], right=None))
+    assert mono.tracking_ok and len(mono.ids) > 100 and mono.n_stereo == 0
+    assert np.all(np.isnan(mono.uv1)) and "mono" in mono.reason
+
+    bad_images = {
+        "dark": np.full((H, W), 3, np.uint8),
+        "saturated": np.full((H, W), 255, np.uint8),
+        "blurred": cv2.GaussianBlur(frames[3].left, (0, 0), 12),
+    }
+    for i, (word, img) in enumerate(bad_images.items()):
+        t += 10_000_000_000
+        ff = tr.process(StereoFrame(t + i, img, frames[3].right))
+        # a blurred image is caught by its gradient energy or, failing that, by finding no corners
+        assert not ff.tracking_ok and (word in ff.reason or "features" in ff.reason), ff.reason
+        assert len(ff.ids) == 0
+        # the next good frame re-detects from scratch: new ids, all tracks new
+        t += 1
+        good = tr.process(dataclasses.replace(frames[3], t_ns=t + i))
+        assert good.tracking_ok and len(good.ids) >= 150 and good.n_stereo >= 100
+        assert np.all(good.track_len == 1) and good.ids.min() > first.ids.max()
+
+    # a wrong image size is a bad frame with a clear reason, not an exception
+    small = tr.process(StereoFrame(t + 100, frames[3].left[:200], frames[3].right))
+    assert not small.tracking_ok and "calibration" in small.reason
+
+
+def test_gain_change_keeps_tracks(scene: PlaneScene, calib: StereoCalibration) -> None:
+    f0 = scene.stereo(calib, np.eye(4), 1_000)
+    f1 = scene.stereo(calib, make_T(so3_exp([0, 0.01, 0]), [0.02, 0, 0]), 50_001_000)
+    dim = StereoFrame(f1.t_ns, cv2.convertScaleAbs(f1.left, alpha=0.6), cv2.convertScaleAbs(f1.right, alpha=0.6))
+    tr = StereoTracker(calib)
+    a = tr.process(f0)
+    b = tr.process(dim)
+    assert b.tracking_ok
+    assert np.count_nonzero(b.track_len > 1) >= 0.9 * len(a.ids)
+
+
+def test_debug_view_writes_images(tmp_path, scene: PlaneScene, calib: StereoCalibration) -> None:
+    tr = StereoTracker(calib)
+    writer = TrackImageWriter(tmp_path / "tracks", calib)
+    for i in range(2):
+        f = scene.stereo(calib, make_T(np.eye(3), [0.02 * i, 0, 0]), 1_000 + i * 50_000_000)
+        writer.write(f, tr.process(f))
+    files = sorted((tmp_path / "tracks").glob("*.png"))
+    assert len(files) == 2
+    img = cv2.imread(str(files[-1]))
+    assert img.shape == (H, 2 * W, 3)
+    assert np.count_nonzero(img[..., 1] != img[..., 2]) > 500  # coloured track marks were drawn
+
+
+def test_config_is_respected(scene: PlaneScene, calib: StereoCalibration) -> None:
+    cfg = dataclasses.replace(FrontendConfig(), max_features=60, clahe=True)
+    ff = StereoTracker(calib, cfg).process(scene.stereo(calib, np.eye(4), 1_000))
+    assert ff.tracking_ok and 0 < len(ff.ids) <= 60
+
+
+# ------------------------------------------------------------------------------------------- real data
+
+def test_real_euroc_excerpt_stereo_and_stable_tracks(v101_path) -> None:
+    from vio.io.euroc import EurocDataset
+
+    ds = EurocDataset(v101_path)
+    out = [ff for _, ff in run_frontend(ds, max_frames=30)]
+    assert all(ff.tracking_ok for ff in out)
+    n_stereo = np.array([ff.n_stereo for ff in out])
+    assert n_stereo.min() >= 120, f"stereo features per frame: min {n_stereo.min()}, mean {n_stereo.mean():.0f}"
+    # the excerpt is practically static: tracks live on and stay put
+    a, b = out[5], out[-1]
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    assert len(common) >= 0.9 * len(a.ids)
+    assert np.median(np.linalg.norm(a.uv0[ia] - b.uv0[ib], axis=1)) < 0.3
+    # room depths: the Vicon room is a few metres across
+    d = np.concatenate([ff.depth_m[np.isfinite(ff.depth_m)] for ff in out])
+    assert 1.0 < np.median(d) < 5.0
