@@ -15,6 +15,7 @@ offset from the stamps themselves (its VISO_DELAY_MS covers the remaining latenc
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -433,6 +434,21 @@ class MavlinkOutput:
                 select.select(fds, [], [], timeout_s)
             with contextlib.suppress(OSError):
                 os.read(self._wake_r, 4096)
+
+
+def restamp_to_host_clock(sink: Callable[[NavState], object]) -> Callable[[NavState], None]:
+    """Wrap a sink so that replayed states (dataset time) carry host CLOCK_MONOTONIC stamps like live ones.
+
+    The offset is fixed at the first state, so a real-time replay keeps its spacing; TIMESYNC answers and
+    time_usec then share one clock, as PX4 requires.
+    """
+    offset: list[int] = []
+
+    def push(state: NavState) -> None:
+        if not offset:
+            offset.append(time.monotonic_ns() - state.t_ns)
+        sink(dataclasses.replace(state, t_ns=state.t_ns + offset[0]))
+    return push
 
 
 def _next_slot(slot_ns: int, period_ns: int, now_ns: int) -> int:

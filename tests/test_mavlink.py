@@ -19,7 +19,7 @@ from drivers.mavlink_frames import (
     to_vehicle_odometry,
     upper_triangle,
 )
-from drivers.mavlink_out import MavlinkOutput, mavlink, mavutil
+from drivers.mavlink_out import MavlinkOutput, mavlink, mavutil, restamp_to_host_clock
 from vio import VioError
 from vio.config import MavlinkConfig
 from vio.geometry import make_T, so3_exp
@@ -342,6 +342,17 @@ def test_origin_is_sent_after_link_up_and_repeated(ap):
     o = origins[0]
     assert (o.target_system, o.latitude, o.longitude, o.altitude) == (7, 473977419, 85455938, 488000)
     out.close()
+
+
+def test_replayed_states_are_restamped_onto_the_host_clock_keeping_their_spacing():
+    got: list[NavState] = []
+    push = restamp_to_host_clock(got.append)
+    t_data = 1_403_715_273_262_142_976  # EuRoC (Unix epoch) stamp
+    before = time.monotonic_ns()
+    push(state(t_data))
+    push(state(t_data + 50_000_000))
+    assert before <= got[0].t_ns <= time.monotonic_ns()
+    assert got[1].t_ns - got[0].t_ns == 50_000_000
 
 
 def test_bad_configuration_names_the_key():

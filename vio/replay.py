@@ -31,6 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", "-o", metavar="TUM", help="write the trajectory here (TUM: t x y z qx qy qz qw)")
     p.add_argument("--stats", metavar="JSON", help="write per-frame timings and the real-time factor here")
     p.add_argument("--realtime", action="store_true", help="pace the replay at sensor rate")
+    p.add_argument("--mavlink", metavar="URL", help="also send the states to an autopilot (udpout:HOST:PORT, "
+                   "/dev/ttyAMA0:921600, ...); implies --realtime")
     p.add_argument("--config", metavar="FILE", help="TOML configuration (defaults otherwise)")
     p.add_argument("--calibration", metavar="YAML", help="calibration file instead of the dataset's sensor.yaml")
     p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
@@ -186,12 +188,20 @@ def run(args: argparse.Namespace) -> int:
     tum = TumSink(args.output) if args.output else None
     if tum is not None:
         sinks.append(tum)
+    mav = None
+    if args.mavlink:
+        from drivers.mavlink_out import MavlinkOutput, restamp_to_host_clock
+
+        mav = MavlinkOutput(cfg.mavlink, args.mavlink).start()
+        sinks.append(restamp_to_host_clock(mav))
     try:
-        res = replay(dataset, cfg, sinks, realtime=args.realtime, show_tracks=args.show_tracks,
-                     max_frames=args.max_frames, progress=not args.no_progress)
+        res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
+                     show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress)
     finally:
         if tum is not None:
             tum.close()
+        if mav is not None:
+            mav.close()
     print(f"replay: {res.frames} frames, {len(res.states)} poses, {res.data_s:.1f} s of data in {res.wall_s:.1f} s "
           f"(real-time factor {res.realtime_factor:.2f}), {res.resets} resets")
     if res.frame_stats:
