@@ -114,6 +114,9 @@ class MavlinkOutput:
             v = getattr(cfg, key)
             if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
                 raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
+        if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
+            log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
+                        "estimate twice; send one kind")
         self.T_frd_body = mount_transform(cfg.mount_rpy_deg, cfg.mount_offset_m)
         self._clock = clock_ns
         self._period_ns = int(round(1e9 / cfg.rate_hz))

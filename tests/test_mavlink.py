@@ -207,7 +207,7 @@ def make_out(ap: FakeAutopilot, clock=None, **cfg) -> MavlinkOutput:
 
 def test_every_message_decodes_with_the_expected_fields(ap):
     clock = FakeClock()
-    out = make_out(ap, clock)
+    out = make_out(ap, clock, messages=["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"])
     out.poll()  # our first heartbeat tells the udpin fake where we are
     ap.drain()
     ap.heartbeat()
@@ -266,7 +266,7 @@ def test_reset_counter_follows_estimator_wraps_and_can_be_forced(ap):
 
 def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     clock = FakeClock()
-    out = make_out(ap, clock)
+    out = make_out(ap, clock, messages=["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"])
     out.send_state(state(1_000_000_000))
     assert len(ap.of("ODOMETRY", ap.drain())) == 1
     clock.advance(0.01)  # inside the 33 ms slot: this one waits...

@@ -96,8 +96,8 @@ class InitConfig:
 class MavlinkConfig:
     url: str = opt("", "mavutil connection string (udpout:127.0.0.1:14550, /dev/ttyAMA0:921600); empty = off")
     rate_hz: float = opt(30.0, "output rate of pose messages", min=1, max=200)
-    messages: list = opt(["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"],
-                         "messages to send")
+    messages: list = opt(["ODOMETRY"], "messages to send: ODOMETRY (PX4 and ArduPilot) or "
+                         "VISION_POSITION_ESTIMATE + VISION_SPEED_ESTIMATE (older ArduPilot); not both kinds")
     system_id: int = opt(0, "our system id; 0 = take the autopilot's from its heartbeat", min=0, max=255)
     target_system: int = opt(1, "autopilot system id used until its heartbeat is seen", min=1, max=255)
     mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "body(IMU)->vehicle FRD mounting roll/pitch/yaw [deg]")
