@@ -37,13 +37,14 @@ class InitialState:
 
 
 def _block_means(t_ns: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Means of consecutive BLOCK_S blocks (at least one block)."""
+    """Means of consecutive BLOCK_S blocks, leaving out partial blocks."""
     edges = ((t_ns - t_ns[0]) // int(BLOCK_S * 1e9)).astype(np.int64)
     n = int(edges[-1]) + 1
     sums = np.zeros((n, x.shape[1]))
     np.add.at(sums, edges, x)
-    counts = np.bincount(edges, minlength=n)[:, None]
-    return sums[counts[:, 0] > 0] / counts[counts[:, 0] > 0]
+    counts = np.bincount(edges, minlength=n)
+    full = counts >= max(1, counts.max() // 2)  # a partial block of one or two samples is only noise
+    return sums[full] / counts[full, None]
 
 
 def is_still(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, cfg: InitConfig) -> bool:

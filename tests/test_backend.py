@@ -1,0 +1,123 @@
+"""Back-end pieces on exact synthetic data and the real EuRoC excerpt: pre-integration, initialisation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vio.backend.preintegration import ImuBuffer, combined_params
+from vio.backend.synthetic import Motion, SyntheticScene, imu_samples, synthetic_calibration
+from vio.calibration import ImuNoise
+from vio.config import InitConfig
+from vio.geometry import rotation_angle_deg
+from vio.init.moving_init import MovingInitializer
+from vio.init.static_init import is_still, static_initialize
+from vio.io.euroc import EurocDataset
+
+
+def test_noise_densities_become_continuous_covariances():
+    noise = ImuNoise(1e-3, 2e-5, 3e-2, 4e-4)
+    p = combined_params(noise, noise_scale=2.0)
+    assert np.allclose(p.getGyroscopeCovariance(), np.eye(3) * (2e-3) ** 2)
+    assert np.allclose(p.getAccelerometerCovariance(), np.eye(3) * (6e-2) ** 2)
+    assert np.allclose(p.getBiasOmegaCovariance(), np.eye(3) * (4e-5) ** 2)
+    assert np.allclose(p.getBiasAccCovariance(), np.eye(3) * (8e-4) ** 2)
+
+
+def test_preintegration_between_off_grid_stamps_matches_truth():
+    import gtsam
+
+    mot = Motion(speed=1.5, seed=3)
+    buf = ImuBuffer()
+    for s in imu_samples(mot, 0.0, 3.0):
+        buf.add(s)
+    t0, t1 = 1_002_500_000, 2_497_500_000  # between IMU samples, like a camera with a time offset
+    pim = gtsam.PreintegratedCombinedMeasurements(combined_params(ImuNoise()), gtsam.imuBias.ConstantBias())
+    buf.integrate(pim, t0, t1)
+    T0 = mot.pose(t0 * 1e-9)
+    nav = pim.predict(gtsam.NavState(gtsam.Pose3(T0), mot.velocity(t0 * 1e-9)), gtsam.imuBias.ConstantBias())
+    T1 = mot.pose(t1 * 1e-9)
+    assert np.linalg.norm(nav.pose().translation() - T1[:3, 3]) < 2e-3
+    assert rotation_angle_deg(nav.pose().rotation().matrix().T @ T1[:3, :3]) < 0.05
+    assert abs(pim.deltaTij() - 1.495) < 1e-9
+
+
+def test_buffer_drops_out_of_order_samples():
+    buf = ImuBuffer()
+    s = imu_samples(Motion(), 0.0, 0.02)
+    assert buf.add(s[1]) and not buf.add(s[0]) and not buf.add(s[1])
+    assert len(buf) == 1
+
+
+def test_static_init_on_real_excerpt(v101_path):
+    """Roll/pitch within 1 deg of GT and gyro bias close to GT's from 0.5 s of real still IMU."""
+    ds = EurocDataset(v101_path)
+    t_init = int(ds.frame_t[0]) + 500_000_000
+    m = (ds.imu.t_ns >= t_init - 500_000_000) & (ds.imu.t_ns <= t_init)
+    init = static_initialize(ds.imu.t_ns[m], ds.imu.gyro[m], ds.imu.accel[m], t_init, InitConfig())
+    assert init is not None and init.method == "static"
+    gt = ds.groundtruth
+    k = int(np.argmin(np.abs(gt.trajectory.t_ns - t_init)))
+    R_gt = gt.trajectory.rotations()[k]
+    z = np.array([0.0, 0.0, 1.0])
+    tilt_deg = np.degrees(np.arccos(np.clip((init.T_world_body[:3, :3].T @ z) @ (R_gt.T @ z), -1, 1)))
+    assert tilt_deg < 1.0
+    assert np.linalg.norm(init.gyro_bias - gt.gyro_bias[k]) < 0.003
+    assert np.allclose(init.v_world, 0)
+
+
+def test_moving_imu_is_not_still_and_short_window_is_refused():
+    mot = Motion(speed=2.0, seed=1)
+    s = imu_samples(mot, 1.0, 1.6)
+    t = np.array([x.t_ns for x in s])
+    g = np.array([x.gyro for x in s])
+    a = np.array([x.accel for x in s])
+    cfg = InitConfig(static_gyro_std_rad_s=0.005, static_accel_std_m_s2=0.02)
+    assert not is_still(t, g, a, cfg)
+    assert static_initialize(t[:20], g[:20], a[:20], int(t[19]), InitConfig()) is None
+
+
+def test_moving_init_recovers_gravity_velocity_and_gyro_bias():
+    calib = synthetic_calibration()
+    mot = Motion(speed=1.5, seed=2)
+    scene = SyntheticScene(calib, seed=2)
+    bg = np.array([0.05, -0.03, 0.07])
+    buf = ImuBuffer()
+    for s in imu_samples(mot, 2.0, 4.0, gyro_bias=bg):
+        buf.add(s)
+    params = combined_params(calib.imu)
+    init = None
+    mi = MovingInitializer(calib, InitConfig(moving_window_s=1.0), params)
+    for k in range(21):
+        t_ns = 2_000_000_000 + k * 50_000_000
+        ff = scene.observe(t_ns, mot.pose(t_ns * 1e-9))
+        init = mi.add(t_ns, ff, buf)
+        if init is not None:
+            break
+    assert init is not None and init.method == "moving"
+    t = init.t_ns * 1e-9
+    R_true = mot.pose(t)[:3, :3]
+    z = np.array([0.0, 0.0, 1.0])
+    tilt_deg = np.degrees(np.arccos(np.clip((init.T_world_body[:3, :3].T @ z) @ (R_true.T @ z), -1, 1)))
+    assert tilt_deg < 0.5
+    assert np.linalg.norm(init.gyro_bias - bg) < 0.005
+    # velocity in the body frame does not depend on the unobservable yaw
+    v_body_est = init.T_world_body[:3, :3].T @ init.v_world
+    v_body_true = R_true.T @ mot.velocity(t)
+    assert np.linalg.norm(v_body_est - v_body_true) < 0.03
+    assert np.linalg.norm(v_body_true) > 0.2  # the test really runs in motion
+
+
+@pytest.mark.parametrize("n_obs", [0, 30])
+def test_synthetic_scene_observations_are_exact_projections(n_obs):
+    calib = synthetic_calibration()
+    scene = SyntheticScene(calib, seed=0)
+    T = Motion(seed=0).pose(1.0)
+    ff = scene.observe(0, T, max_features=n_obs)
+    assert len(ff.ids) == n_obs
+    if n_obs:
+        p_w = scene.points[ff.ids]
+        T_c_w = np.linalg.inv(T @ calib.cam0.T_body_cam)
+        p_c = p_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        uv = p_c[:, :2] / p_c[:, 2:] * [calib.cam0.fx, calib.cam0.fy] + [calib.cam0.cx, calib.cam0.cy]
+        assert np.allclose(uv, ff.uv0)
