@@ -276,3 +276,85 @@ def test_allan_v101_uses_still_start(v101_path):
     res = analyse_imu(imu)
     # rotor vibration, not sensor noise, dominates this span: well above the datasheet-like sensor.yaml
     assert res.noise.accelerometer_noise_density > 5 * 2.0e-3
+
+
+# ------------------------------------------------------------------------------------------ time offset
+
+def _rotation_only_recording(root: Path, offset_s: float, duration_s: float = 8.0, w: int = 320, h: int = 200,
+                             seed: int = 0, gyro_bias=(0.01, -0.02, 0.015)):
+    """EuRoC recording of a camera turning inside a textured sphere (no parallax), with a known offset.
+
+    A frame stamped t_cam shows the orientation at IMU time t_cam + offset (t_imu = t_cam + offset).
+    """
+    import cv2
+    from scipy.spatial.transform import Rotation
+
+    from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration
+    from vio.io.euroc import EurocWriter
+    from vio.types import ImuSample, StereoFrame
+
+    rng = np.random.default_rng(seed)
+    pano = np.zeros((512, 1024), np.float32)
+    for s in (2, 4, 8, 16):
+        pano += cv2.resize(rng.standard_normal((512 // s, 1024 // s)).astype(np.float32), (1024, 512),
+                           interpolation=cv2.INTER_CUBIC)
+    pano = cv2.normalize(pano, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    freq, amp, phase = rng.uniform(0.3, 1.2, (3, 3)), rng.uniform(0.1, 0.3, (3, 3)), rng.uniform(0, 6.3, (3, 3))
+
+    def rotvec(t):  # orientation of the body in the world as a smooth rotation vector
+        t = np.atleast_1d(t)[:, None, None]
+        return np.sum(amp * np.sin(2 * np.pi * freq * t + phase), axis=2)
+
+    def omega_body(t, eps=1e-5):
+        R0, R1 = Rotation.from_rotvec(rotvec(t - eps)), Rotation.from_rotvec(rotvec(t + eps))
+        return (R0.inv() * R1).as_rotvec() / (2 * eps)
+
+    f = 0.6 * w
+    T_bc = make_T(np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]), np.array([0.05, 0.0, 0.0]))
+    cam = CameraCalibration(f, f, w / 2, h / 2, w, h, "radtan", (0, 0, 0, 0), T_bc, 20.0)
+    cal = StereoCalibration(cam, cam, ImuNoise())  # the file does not know the offset
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(cam.K).T
+    t_imu = np.arange(0.0, duration_s, 0.005)
+    gyro = omega_body(t_imu) + np.asarray(gyro_bias) + 0.003 * rng.standard_normal((len(t_imu), 3))
+    t_cam = np.arange(0.3, duration_s - 0.3, 0.05)
+    base = 10**18
+    with EurocWriter(root, cal) as wr:
+        events = [(t, 0, i) for i, t in enumerate(t_imu)] + [(t, 1, i) for i, t in enumerate(t_cam)]
+        for t, kind, i in sorted(events):
+            t_ns = base + int(round(t * 1e9))
+            if kind == 0:
+                wr.write_imu(ImuSample(t_ns, gyro[i], np.array([0.0, 0.0, 9.81])))
+                continue
+            R_wc = Rotation.from_rotvec(rotvec(t + offset_s)[0]).as_matrix() @ T_bc[:3, :3]
+            d = rays @ R_wc.T
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            mx = ((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi) * 1024).astype(np.float32).reshape(h, w)
+            my = ((np.pi / 2 - np.arcsin(np.clip(d[:, 2], -1, 1))) / np.pi * 512).astype(np.float32).reshape(h, w)
+            img = cv2.remap(pano, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            wr.write_frame(StereoFrame(t_ns, img, img))
+    return root
+
+
+@pytest.mark.parametrize("offset_ms", [8.0, -23.0])
+def test_time_offset_recovers_injected_offset(tmp_path, offset_ms):
+    from calib.time_offset import estimate_time_offset_dataset
+
+    root = _rotation_only_recording(tmp_path / "rec", offset_ms / 1e3)
+    est = estimate_time_offset_dataset(root)
+    assert est.observable
+    assert est.offset_s * 1e3 == pytest.approx(offset_ms, abs=1.0)
+    assert est.sigma_s < 1e-3
+    np.testing.assert_allclose(est.gyro_bias, [0.01, -0.02, 0.015], atol=3e-3)
+
+
+def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
+    from vio.cli import main
+
+    root = _rotation_only_recording(tmp_path / "rec", 0.008, duration_s=5.0)
+    assert main(["calib", "time-offset", str(root), "--plot", str(tmp_path / "to.png")]) == 0
+    out = capsys.readouterr().out
+    assert "t_imu = t_cam + offset" in out and (tmp_path / "to.png").is_file()
+    # the V1_01 excerpt hardly moves: the tool must say the offset is not observable
+    assert main(["calib", "time-offset", str(v101_path)]) == 0
+    assert "too little rotation" in capsys.readouterr().out
