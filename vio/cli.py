@@ -17,6 +17,7 @@ from vio import VioError, __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("vio.sim.cli", "generate a synthetic stereo+IMU flight (EuRoC format) with known truth"),
     "replay": ("vio.replay", "run the estimator on a recorded EuRoC dataset; write trajectory and stats"),
+    "demo": ("vio.demo", "simulate a short flight, replay it and print accuracy and speed"),
     "eval": ("vio.evaluation", "compare an estimated trajectory with ground truth (ATE, RPE, plot)"),
     "config": ("vio.config_cli", "check or show the configuration file"),
     "calib": ("calib.cli", "import, show and check calibrations; IMU noise; camera-IMU time offset"),
