@@ -21,12 +21,11 @@ from __future__ import annotations
 
 import datetime
 import logging
-import threading
 from typing import Any
 
 import numpy as np
 
-from drivers.source import DropOldestQueue, Message, SensorSource
+from drivers.source import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import StreamMonitor
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
@@ -45,7 +44,7 @@ def timedelta_ns(td: datetime.timedelta) -> int:
     return ((td.days * 86400 + td.seconds) * 1_000_000 + td.microseconds) * 1000
 
 
-class OakSource(SensorSource):
+class OakSource(ThreadedSource):
     """Stereo frames and IMU samples from an OAK device (OAK-D, OAK-D Lite/Pro/W, ...)."""
 
     name = "oak"
@@ -54,6 +53,7 @@ class OakSource(SensorSource):
                  fps: float = 20.0, imu_rate_hz: float = 200.0, enable_imu: bool = True, device_id: str = "",
                  frame_queue: int = 4, imu_queue: int = 4000, backoff_s: float = 0.5,
                  backoff_max_s: float = 10.0) -> None:
+        super().__init__()
         if cfg is not None:
             width, height, fps, imu_rate_hz = cfg.width, cfg.height, cfg.fps, cfg.imu_rate_hz
             enable_imu = cfg.imu == "oak"
@@ -67,12 +67,9 @@ class OakSource(SensorSource):
         self._frames = DropOldestQueue(frame_queue)
         self._imu = DropOldestQueue(imu_queue)
         self._backoff = (backoff_s, backoff_max_s)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._calib: StereoCalibration | None = None
         self.frame_monitor = StreamMonitor("OAK frames", fps)
         self.imu_monitor = StreamMonitor("OAK IMU", imu_rate_hz)
-        self.state = "stopped"
         self.connects = 0
         self.disconnects = 0
         self.no_device_tries = 0
@@ -83,24 +80,11 @@ class OakSource(SensorSource):
         self.device_name = ""
 
     # -- interface -----------------------------------------------------------------------------------------
-    def start(self) -> None:
-        if self._thread is not None:
-            return
+    def _before_start(self) -> None:
         if self._dai is None:
-            import depthai
+            import depthai  # imported here: `vio --help` and non-OAK setups must not need it
 
             self._dai = depthai
-        self._stop.clear()
-        self.state = "connecting"
-        self._thread = threading.Thread(target=self._run, name="oak", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        self.state = "stopped"
 
     def poll(self) -> list[Message]:
         return self._imu.drain() + self._frames.drain()

@@ -157,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, h)
     log.info("recorded %d stereo frames and %d IMU samples over %.2f s to %s (dropped: %d out of order)",
              stats.frames, stats.imu, stats.span_s, args.out, stats.dropped_out_of_order)
+    log.info("source health at the end: %s", stats.source_health)
     if stats.frames == 0 and stats.imu == 0:
         log.error("nothing was recorded; source health: %s", stats.source_health)
         return 1

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from drivers.serial_protocol import FrameParser
-from drivers.source import DropOldestQueue, Message, SensorSource
+from drivers.source import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import ClockSync, StreamMonitor
 from vio.types import ImuSample
 
@@ -29,7 +28,7 @@ def _default_serial_factory(port: str, baud: int, timeout: float) -> Any:
     return serial.Serial(port, baud, timeout=timeout)
 
 
-class SerialImuSource(SensorSource):
+class SerialImuSource(ThreadedSource):
     """ImuSamples from a serial IMU, stamped on the host monotonic clock."""
 
     name = "serial_imu"
@@ -38,6 +37,7 @@ class SerialImuSource(SensorSource):
                  serial_factory: Callable[..., Any] | None = None, queue_size: int = 4000,
                  read_timeout_s: float = 0.02, backoff_max_s: float = 5.0,
                  clock: ClockSync | None = None) -> None:
+        super().__init__()
         self.port = port
         self.baud = baud
         self._factory = serial_factory or _default_serial_factory
@@ -47,27 +47,10 @@ class SerialImuSource(SensorSource):
         self.clock = clock or ClockSync()
         self.monitor = StreamMonitor("serial IMU", nominal_rate_hz)
         self._queue = DropOldestQueue(queue_size)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.state = "stopped"
+        self.join_timeout_s = 2.0
         self.open_failures = 0
         self.disconnects = 0
         self.last_error = ""
-
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._stop.clear()
-        self.state = "connecting"
-        self._thread = threading.Thread(target=self._run, name="serial-imu", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        self.state = "stopped"
 
     def poll(self) -> list[Message]:
         return self._queue.drain()

@@ -78,6 +78,41 @@ class SensorSource(ABC):
         self.stop()
 
 
+class ThreadedSource(SensorSource):
+    """A source whose device is read by its own thread (`_run`, which must return soon after `_stop` is
+    set). Subclasses set up their fields before calling this __init__ or after; start/stop are shared."""
+
+    join_timeout_s = 5.0
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.state = "stopped"
+
+    def _before_start(self) -> None:
+        """Hook for imports or checks that must happen in the caller's thread."""
+
+    @abstractmethod
+    def _run(self) -> None:
+        """Reader loop: connect, read, reconnect with backoff until `_stop` is set."""
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._before_start()
+        self._stop.clear()
+        self.state = "connecting"
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.join_timeout_s)
+            self._thread = None
+        self.state = "stopped"
+
+
 class DropOldestQueue:
     """Thread-safe bounded FIFO that drops the OLDEST item when full: for sensors, fresh data beats stale.
 

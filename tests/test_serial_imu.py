@@ -144,8 +144,9 @@ def test_source_on_pty_at_400hz_with_faults() -> None:
     assert len(got) + h["stream"]["non_monotonic"] == want
     t = np.array([s.t_ns for s in got])
     assert np.all(np.diff(t) > 0)
-    # host stamps land near "now": within 50 ms of when the frames were produced
-    assert abs(int(t[-1]) - frames[-1].t_us * 1000) < 50_000_000
+    # stamps are on the host clock (the sender stamped with monotonic us): only the pty latency and this
+    # test's own pacing delays separate them; accuracy is tested deterministically in the ClockSync test
+    assert 0 <= int(t[-1]) - frames[-1].t_us * 1000 < 250_000_000
     assert h["clock"]["blocks"] >= 1
 
 
