@@ -129,6 +129,7 @@ class Photometric:
     offset: float = 0.0
 
     def __post_init__(self) -> None:
+        self._noise_bank: np.ndarray | None = None
         self._phase = self.rng.uniform(0, 2 * np.pi)
         self._period = self.rng.uniform(8.0, 20.0)
         n = self.rng.poisson(self.jump_rate_hz * self.duration_s) if self.jump_rate_hz > 0 else 0
@@ -143,5 +144,12 @@ class Photometric:
         """8-bit image: gain, additive Gaussian noise, rounding and saturation."""
         out = img * np.float32(self.gain(t_s))
         if self.noise_sigma > 0:
-            out += self.rng.standard_normal(out.shape, dtype=np.float32) * np.float32(self.noise_sigma)
+            # a random window of a twice-as-large noise field: drawing fresh normals per frame costs more
+            # than the rendering of the frame; windows at random offsets are uncorrelated in practice
+            h, w = out.shape
+            if self._noise_bank is None or self._noise_bank.shape != (2 * h, 2 * w):
+                self._noise_bank = self.rng.standard_normal((2 * h, 2 * w), dtype=np.float32) * \
+                    np.float32(self.noise_sigma)
+            y0, x0 = int(self.rng.integers(h)), int(self.rng.integers(w))
+            out += self._noise_bank[y0:y0 + h, x0:x0 + w]
         return np.clip(out + 0.5, 0, 255).astype(np.uint8)

@@ -167,20 +167,14 @@ class Scene:
         o = np.asarray(origin, dtype=float)
         dt = d[0].dtype if np.issubdtype(d[0].dtype, np.floating) else np.float64
         with np.errstate(divide="ignore", invalid="ignore"):
-            inv = [(1.0 / np.asarray(c, dtype=dt)) for c in d]
-            # the room, from inside: leave through the nearest plane ahead on each axis
-            t = None
-            face = None
-            for k in range(3):
-                pos = d[k] > 0
-                tk = np.where(pos, dt.type(self.hi[0, k] - o[k]), dt.type(self.lo[0, k] - o[k])) * inv[k]
-                fk = (2 * k + pos).astype(np.int16)
-                if t is None:
-                    t, face = tk, fk
-                else:
-                    closer = tk < t
-                    t = np.where(closer, tk, t)
-                    face = np.where(closer, fk, face)
+            # a tiny offset keeps exact zeros (and -0.0) from making -inf/nan hits
+            inv = [(1.0 / (np.asarray(c, dtype=dt) + dt.type(1e-30))) for c in d]
+            # the room, from inside: on each axis the plane ahead is the one at positive distance
+            tk = [np.maximum(dt.type(self.lo[0, k] - o[k]) * inv[k], dt.type(self.hi[0, k] - o[k]) * inv[k])
+                  for k in range(3)]
+            t = np.minimum(np.minimum(tk[0], tk[1]), tk[2])
+            face = np.where(tk[0] == t, (d[0] > 0).astype(np.int16),
+                            np.where(tk[1] == t, 2 + (d[1] > 0), 4 + (d[2] > 0))).astype(np.int16)
             for b in range(1, len(self.boxes)):
                 win = (...,) if windows is None else windows[b - 1]
                 if win is None:

@@ -1,0 +1,249 @@
+"""Synthetic flight generator: exact IMU, render/projection consistency, dataset files, CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from vio import VioError
+from vio.cli import main
+from vio.geometry import GRAVITY_M_S2, so3_exp, so3_log
+from vio.io.euroc import EurocDataset
+from vio.sim import default_calibration
+from vio.sim.generate import T0_NS, SimConfig, simulate
+from vio.sim.imu import ImuModel, synthesize
+from vio.sim.motion import FLIGHT_BOX_HI, FLIGHT_BOX_LO, PROFILES, make_profile
+from vio.sim.observe import observe, project_visible
+from vio.sim.render import CameraRenderer
+from vio.sim.scene import default_scene
+
+# small images and coarse textures keep these tests fast; geometry does not depend on either
+TINY = dict(width=188, height=120, texels_per_m=40.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return default_scene(seed=3, ppm=60.0)
+
+
+@pytest.fixture(scope="module")
+def calib():
+    return default_calibration(width=376, height=240)
+
+
+def _integrate(motion, rate_hz: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    """Trapezoidal strapdown integration of the exact IMU from the true initial state."""
+    t = np.arange(int(seconds * rate_hz) + 1) / rate_hz
+    imu = synthesize(motion, t, ImuModel(noise=None), np.random.default_rng(0))
+    R, v, p = motion.rotation(t[:1])[0], motion.velocity(t[:1])[0], motion.position(t[:1])[0]
+    g, dt = np.array([0.0, 0.0, GRAVITY_M_S2]), 1.0 / rate_hz
+    for i in range(len(t) - 1):
+        R_next = R @ so3_exp(0.5 * (imu.gyro[i] + imu.gyro[i + 1]) * dt)
+        v_next = v + 0.5 * (R @ imu.accel[i] + R_next @ imu.accel[i + 1]) * dt - g * dt
+        p = p + 0.5 * (v + v_next) * dt
+        v, R = v_next, R_next
+    return p - motion.position(t[-1:])[0], so3_log(R.T @ motion.rotation(t[-1:])[0])
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_integrating_exact_imu_reproduces_truth(profile):
+    motion = make_profile(profile, 6.0, seed=1, still_s=0.5)
+    dp, dr = _integrate(motion, 200.0, 4.0)
+    assert np.linalg.norm(dp) < 1e-3 and np.linalg.norm(dr) < 1e-4
+    dp_fine, _ = _integrate(motion, 800.0, 4.0)
+    assert np.linalg.norm(dp_fine) < np.linalg.norm(dp) / 4  # second-order scheme converges: signal exact
+
+
+def test_derivatives_match_finite_differences():
+    m = make_profile("aggressive", 10.0, seed=4, still_s=1.0)
+    t, h = np.linspace(0.5, 9.5, 37), 1e-5
+    assert np.allclose(m.velocity(t), (m.position(t + h) - m.position(t - h)) / (2 * h), atol=1e-6)
+    assert np.allclose(m.acceleration(t), (m.velocity(t + h) - m.velocity(t - h)) / (2 * h), atol=1e-5)
+    R0, R1 = m.rotation(t - h), m.rotation(t + h)
+    w_fd = np.array([so3_log(a.T @ b) for a, b in zip(R0, R1)]) / (2 * h)
+    assert np.allclose(m.angular_velocity_body(t), w_fd, atol=1e-6)
+
+
+def test_still_start_then_moving():
+    m = make_profile("survey", 20.0, seed=2, still_s=2.0)
+    t = np.linspace(0, 2.0, 41)
+    assert np.abs(m.velocity(t)).max() == 0 and np.abs(m.angular_velocity_body(t)).max() == 0
+    f = m.specific_force_body(t)
+    assert np.allclose(np.linalg.norm(f, axis=1), GRAVITY_M_S2)
+    assert np.linalg.norm(m.velocity(np.array([8.0]))) > 0.1
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_profiles_fly_in_the_room_at_the_advertised_pace(profile, calib, scene):
+    speeds, yaw_rates = [], []
+    for seed in range(4):
+        m = make_profile(profile, 60.0, seed=seed)
+        lo, hi = m.position_bounds()
+        assert np.all(lo >= FLIGHT_BOX_LO) and np.all(hi <= FLIGHT_BOX_HI)
+        t = np.linspace(0, 60, 1201)
+        T = m.pose(t)
+        for cam in (calib.cam0, calib.cam1):
+            p_cam = (T @ cam.T_body_cam)[:, :3, 3]
+            room_lo, room_hi = scene.lo[0], scene.hi[0]
+            assert np.all(p_cam - room_lo >= 1.0) and np.all(room_hi - p_cam >= 1.0)
+            assert scene.contains(p_cam, margin=0.8).all()
+        speeds.append(np.linalg.norm(m.velocity(t), axis=1).max())
+        yaw_rates.append(np.abs(m.yaw_rate(t)).max())
+    limits = {"hover": (0.0, 0.3, 0.0, 0.2), "survey": (0.35, 0.8, 0.1, 0.5), "aggressive": (1.0, 2.5, 1.5, 2.3)}
+    v_lo, v_hi, w_lo, w_hi = limits[profile]
+    assert v_lo <= min(speeds) and max(speeds) <= v_hi
+    assert w_lo <= min(yaw_rates) and max(yaw_rates) <= w_hi
+
+
+def test_rendered_depth_reprojects_onto_its_pixel(calib, scene):
+    r = CameraRenderer(calib.cam0, scene)
+    T_wc = make_profile("aggressive", 20.0, seed=5).pose(np.array([9.0]))[0] @ calib.cam0.T_body_cam
+    img, depth, _ = r.render(T_wc)
+    assert img.shape == (240, 376) and np.isfinite(depth).all() and depth.min() > 0.5
+    rng = np.random.default_rng(0)
+    u, v = rng.integers(0, 376, 200), rng.integers(0, 240, 200)
+    p_cam = depth[v, u, None] * np.stack([r.x[v, u], r.y[v, u], np.ones(200)], axis=1)
+    assert np.abs(calib.cam0.project(p_cam) - np.stack([u, v], axis=1)).max() < 1e-3
+
+
+def test_scene_points_are_drawn_where_the_calibration_projects_them(calib, scene):
+    """Landmarks sampled on the surfaces, projected with the calibration, meet the rendered depth map."""
+    r = CameraRenderer(calib.cam0, scene)
+    m = make_profile("survey", 30.0, seed=6)
+    checked = 0
+    for t in (3.0, 11.0, 23.0):
+        T_wc = m.pose(np.array([t]))[0] @ calib.cam0.T_body_cam
+        _, depth, _ = r.render(T_wc)
+        pts = scene.sample_points(3000, np.random.default_rng(int(t)))
+        uv, vis, p_cam = project_visible(scene, calib.cam0, T_wc, pts)
+        px = np.round(uv[vis]).astype(int)
+        rendered = depth[px[:, 1], px[:, 0]]
+        rel = np.abs(rendered - p_cam[vis, 2]) / p_cam[vis, 2]
+        assert np.median(rel) < 0.005 and np.mean(rel < 0.03) > 0.9  # misses: points on an edge pixel
+        checked += int(vis.sum())
+    assert checked > 300
+
+
+def test_stereo_images_agree_on_scene_points(calib, scene):
+    """The same landmark has the same brightness in both (noise-free) images: extrinsics and intrinsics
+    used for rendering are the calibration's."""
+    m = make_profile("survey", 30.0, seed=7)
+    T_wb = m.pose(np.array([12.0]))[0]
+    imgs, uvs, vis = [], [], np.ones(4000, bool)
+    pts = scene.sample_points(4000, np.random.default_rng(1))
+    for cam in (calib.cam0, calib.cam1):
+        T_wc = T_wb @ cam.T_body_cam
+        img, _, _ = CameraRenderer(cam, scene).render(T_wc)
+        uv, v, _ = project_visible(scene, cam, T_wc, pts)
+        imgs.append(img)
+        uvs.append(uv)
+        vis &= v & (uv[:, 0] > 2) & (uv[:, 0] < cam.width - 3) & (uv[:, 1] > 2) & (uv[:, 1] < cam.height - 3)
+    assert vis.sum() > 200
+
+    def sample(img, uv):
+        m = uv[vis].astype(np.float32).reshape(-1, 1, 2)
+        return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR)[:, 0]
+
+    a, b = sample(imgs[0], uvs[0]), sample(imgs[1], uvs[1])
+    same = np.median(np.abs(a - b))
+    shuffled = np.median(np.abs(a - np.roll(b, 7)))
+    assert same < 1.5 and shuffled > 10 * same  # 1 px of extrinsic error gives ~4 grey levels
+
+
+def test_observe_gives_consistent_stereo_features(calib, scene):
+    m = make_profile("hover", 10.0, seed=8)
+    T_wb = m.pose(np.array([5.0]))[0]
+    pts = scene.sample_points(2000, np.random.default_rng(2))
+    ff = observe(scene, calib, T_wb, pts, t_ns=123)
+    assert ff.t_ns == 123 and len(ff.ids) > 100 and ff.n_stereo > 0.5 * len(ff.ids)
+    s = np.isfinite(ff.depth_m)
+    p0 = np.column_stack([(ff.uv0[s] - calib.cam0.K[:2, 2]) / [calib.cam0.fx, calib.cam0.fy], np.ones(s.sum())])
+    p0 *= ff.depth_m[s, None]
+    p1 = p0 @ calib.T_cam1_cam0[:3, :3].T + calib.T_cam1_cam0[:3, 3]
+    uv1 = p1[:, :2] / p1[:, 2:] * [calib.cam1.fx, calib.cam1.fy] + calib.cam1.K[:2, 2]
+    assert np.abs(uv1 - ff.uv1[s]).max() < 1e-6
+    world = pts[ff.ids[s]]
+    T_wc = T_wb @ calib.cam0.T_body_cam
+    assert np.allclose(p0 @ T_wc[:3, :3].T + T_wc[:3, 3], world, atol=1e-9)
+
+
+def test_dataset_reads_back_with_offset_drops_and_truth(tmp_path):
+    cfg = SimConfig(profile="aggressive", duration_s=2.0, seed=3, variant="realistic", still_start_s=0.5,
+                    time_offset_ms=5.0, drop_frames=0.4, **TINY)
+    s = simulate(tmp_path / "d", cfg)
+    ds = EurocDataset(tmp_path / "d")
+    assert ds.calibration.time_offset_ns == 5_000_000
+    assert s.frames == 41 and s.dropped_left + s.dropped_right > 0
+    assert len(ds.cam0_t) == 41 - s.dropped_left and len(ds.cam1_t) == 41 - s.dropped_right
+    assert len(ds.imu) == 401 and len(ds.groundtruth.trajectory) == 401
+    # image stamps are shifted: t_imu = t_cam + offset lands exactly on the IMU grid
+    assert np.isin(ds.cam0_t + ds.calibration.time_offset_ns, ds.imu.t_ns).all()
+    assert ((ds.cam0_t - (T0_NS - 5_000_000)) % 50_000_000 == 0).all()
+    gt = ds.groundtruth
+    m = make_profile("aggressive", 2.0, seed=3, still_s=0.5)
+    t = (gt.trajectory.t_ns - T0_NS) * 1e-9
+    assert np.abs(gt.trajectory.p - m.position(t)).max() < 1e-9
+    assert np.abs(gt.v_world - m.velocity(t)).max() < 1e-9
+    # the IMU minus the true biases is the exact signal plus noise and vibration of the configured size
+    resid = ds.imu.gyro - gt.gyro_bias - m.angular_velocity_body(t)
+    assert 0.001 < resid.std() < 0.05
+    kinds = [type(e).__name__ for e in ds.events()]
+    assert kinds.count("StereoFrame") == len(ds.cam0_t) and kinds.count("ImuSample") == 401
+    frame = next(ds.frames())
+    assert frame.left.dtype == np.uint8 and frame.left.shape == (120, 188)
+
+
+def test_same_seed_same_bytes_other_seed_differs(tmp_path):
+    cfg = SimConfig(duration_s=0.3, variant="hard", **TINY)
+    for name, c in (("a", cfg), ("b", cfg), ("c", dataclasses.replace(cfg, seed=1))):
+        simulate(tmp_path / name, c)
+
+    def content(name):
+        mav0 = tmp_path / name / "mav0"
+        return {p.relative_to(mav0).as_posix(): p.read_bytes() for p in sorted(mav0.rglob("*")) if p.is_file()}
+
+    assert content("a") == content("b")
+    assert content("a") != content("c")
+
+
+def test_refuses_to_overwrite_without_flag(tmp_path):
+    cfg = SimConfig(duration_s=0.2, variant="clean", **TINY)
+    simulate(tmp_path / "d", cfg)
+    with pytest.raises(VioError, match="overwrite"):
+        simulate(tmp_path / "d", cfg)
+    simulate(tmp_path / "d", dataclasses.replace(cfg, duration_s=0.1), overwrite=True)
+    assert len(list((tmp_path / "d" / "mav0" / "cam0" / "data").iterdir())) == 3
+
+
+def test_bad_config_values_are_named():
+    with pytest.raises(VioError, match="drop_frames"):
+        SimConfig(drop_frames=1.5).resolved()
+    with pytest.raises(VioError, match="variant"):
+        SimConfig(variant="nice").resolved()
+
+
+def test_imu_noise_has_the_configured_density():
+    m = make_profile("hover", 30.0, seed=0, still_s=30.0)
+    t = np.arange(6000) / 200.0
+    calib = default_calibration()
+    imu = synthesize(m, t, ImuModel(noise=calib.imu), np.random.default_rng(0))
+    sig = calib.imu.discrete_sigmas()
+    assert abs(np.std(imu.gyro - imu.gyro_bias, axis=0).mean() / sig["gyro"] - 1) < 0.05
+    vib = synthesize(m, t, ImuModel(noise=None, vibration_m_s2=0.5), np.random.default_rng(0))
+    assert 0.2 < np.std(vib.accel[:, 2]) < 1.0
+
+
+def test_cli_writes_dataset_and_reports(tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--profile", "hover",
+               "--variant", "clean", "--no-progress", "--time-offset-ms", "-2"])
+    assert rc == 0
+    assert "11 stereo frames" in capsys.readouterr().out
+    assert EurocDataset(out).calibration.time_offset_ns == -2_000_000
+    assert main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--no-progress"]) == 1
+    assert "overwrite" in capsys.readouterr().err
+    assert main(["simulate", str(tmp_path / "x"), "--size", "big"]) == 1
+    assert "--size" in capsys.readouterr().err

@@ -1,0 +1,231 @@
+"""Write a synthetic flight as a EuRoC ASL dataset with exact ground truth.
+
+Clocks: the truth (and the IMU) run on one clock; a frame exposed at true time t gets the camera stamp
+t_cam = t - time_offset, so the dataset obeys the calibration's t_imu = t_cam + time_offset_ns (recorded in
+mav0/kestrel.yaml). A positive `time_offset_ms` therefore stamps images *earlier* than the IMU samples
+taken at the same instant. The run's settings go to `<out>/simulation.yaml`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from vio import VioError
+from vio.calibration import ImuNoise, StereoCalibration
+from vio.geometry import rot_to_quat_wxyz
+from vio.sim import default_calibration
+from vio.sim.imu import ImuModel, ImuStream, random_bias, synthesize
+from vio.sim.motion import PROFILES, Motion, make_profile
+from vio.sim.render import CameraRenderer, Photometric
+from vio.sim.scene import Scene, default_scene
+from vio.types import ImuSample, StereoFrame
+
+log = logging.getLogger(__name__)
+
+T0_NS = 1_600_000_000_000_000_000  # stamp of the flight start: EuRoC-like epoch nanoseconds
+
+# Named presets of the realism knobs; explicit SimConfig/CLI values override them.
+VARIANTS: dict[str, dict[str, float]] = {
+    "clean": dict(gyro_bias=0.005, accel_bias=0.05, vibration=0.0, plain_fraction=0.0, exposure_ms=0.0,
+                  image_noise=0.0, gain_drift=0.0, gain_jumps_hz=0.0, drop_frames=0.0),
+    "realistic": dict(gyro_bias=0.02, accel_bias=0.1, vibration=0.3, plain_fraction=0.15, exposure_ms=4.0,
+                      image_noise=1.5, gain_drift=0.1, gain_jumps_hz=0.05, drop_frames=0.0),
+    "hard": dict(gyro_bias=0.08, accel_bias=0.3, vibration=1.0, plain_fraction=0.4, exposure_ms=12.0,
+                 image_noise=4.0, gain_drift=0.25, gain_jumps_hz=0.3, drop_frames=0.05),
+}
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that defines a simulated flight; equal configs give byte-identical datasets.
+
+    Realism fields left at None take the value of `variant` (see VARIANTS)."""
+
+    profile: str = "survey"
+    duration_s: float = 30.0
+    seed: int = 0
+    variant: str = "realistic"
+    rate_hz: float = 20.0  # camera
+    imu_rate_hz: float = 200.0
+    still_start_s: float = 2.0
+    time_offset_ms: float = 0.0  # t_imu = t_cam + offset
+    camera_model: str = "radtan"
+    width: int = 752
+    height: int = 480
+    texels_per_m: float = 200.0
+    imu_noise: bool = True  # white noise and bias random walk with ImuNoise() (EuRoC) densities
+    gyro_bias: float | None = None  # |b_g| at start [rad/s]
+    accel_bias: float | None = None  # |b_a| at start [m/s^2]
+    vibration: float | None = None  # motor vibration amplitude in accel [m/s^2]
+    plain_fraction: float | None = None  # share of the room's wall area painted plain (low texture)
+    exposure_ms: float | None = None  # motion blur from the motion during this exposure; 0 = none
+    image_noise: float | None = None  # Gaussian pixel noise sigma [grey levels]
+    gain_drift: float | None = None  # amplitude of slow log-gain drift
+    gain_jumps_hz: float | None = None  # rate of sudden exposure jumps
+    drop_frames: float | None = None  # probability that a frame loses left, right or both images
+
+    def resolved(self) -> SimConfig:
+        """Copy with the variant's values filled in and every value checked (VioError naming the field)."""
+        if self.variant not in VARIANTS:
+            raise VioError(f"simulate: unknown variant {self.variant!r}; expected one of {list(VARIANTS)}")
+        if self.profile not in PROFILES:
+            raise VioError(f"simulate: unknown profile {self.profile!r}; expected one of {list(PROFILES)}")
+        filled = {k: v for k, v in VARIANTS[self.variant].items() if getattr(self, k) is None}
+        cfg = dataclasses.replace(self, **filled)
+        checks = {"duration_s": (0.1, 3600), "rate_hz": (1, 200), "imu_rate_hz": (10, 5000), "still_start_s": (0, 600),
+                  "time_offset_ms": (-1000, 1000), "width": (16, 4096), "height": (16, 4096),
+                  "texels_per_m": (10, 1000), "gyro_bias": (0, 1), "accel_bias": (0, 5), "vibration": (0, 20),
+                  "plain_fraction": (0, 1), "exposure_ms": (0, 100), "image_noise": (0, 100),
+                  "gain_drift": (0, 2), "gain_jumps_hz": (0, 10), "drop_frames": (0, 1)}
+        for name, (lo, hi) in checks.items():
+            v = getattr(cfg, name)
+            if not (lo <= v <= hi):
+                raise VioError(f"simulate: {name} = {v} is outside [{lo}, {hi}]")
+        if cfg.imu_rate_hz < cfg.rate_hz:
+            raise VioError(f"simulate: imu_rate_hz {cfg.imu_rate_hz} is below the camera rate {cfg.rate_hz}")
+        return cfg
+
+
+@dataclass
+class SimSummary:
+    path: Path
+    frames: int
+    imu_samples: int
+    duration_s: float
+    path_length_m: float
+    max_speed_m_s: float
+    max_yaw_rate_rad_s: float
+    dropped_left: int
+    dropped_right: int
+
+    def line(self) -> str:
+        return (f"{self.path}: {self.frames} stereo frames, {self.imu_samples} IMU samples, {self.duration_s:.1f} s, "
+                f"path {self.path_length_m:.1f} m, max speed {self.max_speed_m_s:.2f} m/s, "
+                f"max yaw rate {self.max_yaw_rate_rad_s:.2f} rad/s, dropped left/right images "
+                f"{self.dropped_left}/{self.dropped_right}")
+
+
+@dataclass
+class Simulation:
+    """The pieces of a resolved config, for callers that want truth without writing files."""
+
+    config: SimConfig
+    calibration: StereoCalibration
+    motion: Motion
+    scene: Scene
+    imu: ImuStream
+    frame_t_s: np.ndarray  # true exposure times (IMU clock), seconds from start
+
+
+def _grid(duration_s: float, rate_hz: float) -> np.ndarray:
+    """Sample times [s] of a rate over the duration, rounded to whole ns so file stamps are exact."""
+    n = int(np.floor(duration_s * rate_hz + 1e-9)) + 1
+    return np.round(np.arange(n) * (1e9 / rate_hz)) * 1e-9
+
+
+def build(cfg: SimConfig) -> Simulation:
+    """Resolve the config and make calibration, trajectory, scene and IMU (no rendering yet)."""
+    cfg = cfg.resolved()
+    rng = np.random.default_rng([cfg.seed, 1])
+    noise = ImuNoise(rate_hz=cfg.imu_rate_hz)
+    calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
+                                int(round(cfg.time_offset_ms * 1e6)))
+    motion = make_profile(cfg.profile, cfg.duration_s, cfg.seed, still_s=cfg.still_start_s)
+    scene = default_scene(cfg.seed, cfg.texels_per_m, cfg.plain_fraction)
+    model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
+                     tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
+    imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))
+    return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz))
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    mav0 = out / "mav0"
+    if mav0.exists() and any(mav0.iterdir()):
+        if not overwrite:
+            raise VioError(f"{out}: already holds a dataset; pass --overwrite to replace it")
+        shutil.rmtree(mav0)  # stale images of the old run would otherwise stay listed nowhere but on disk
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = False,
+             progress: bool = False) -> SimSummary:
+    """Render and write the flight to `out` (EuRoC ASL layout, with ground truth at the IMU rate)."""
+    from vio.io.euroc import EurocWriter
+
+    out = Path(out)
+    sim = build(cfg)
+    cfg = sim.config
+    _prepare_out(out, overwrite)
+    (out / "simulation.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    calib, motion, imu = sim.calibration, sim.motion, sim.imu
+    cams = [(CameraRenderer(c, sim.scene), c.T_body_cam) for c in (calib.cam0, calib.cam1)]
+    photo_rng = np.random.default_rng([cfg.seed, 3])
+    photometric = [Photometric(photo_rng, cfg.duration_s, cfg.gain_drift, cfg.gain_jumps_hz,
+                               noise_sigma=cfg.image_noise, offset=off) for off in (0.0, 0.04)]
+    drop_rng = np.random.default_rng([cfg.seed, 4])
+    imu_ns = T0_NS + np.round(imu.t_s * 1e9).astype(np.int64)
+    T_wb = motion.pose(sim.frame_t_s)
+    v_w = motion.velocity(sim.frame_t_s)
+    w_b = motion.angular_velocity_body(sim.frame_t_s)
+    exposure_s = cfg.exposure_ms * 1e-3
+    dropped = [0, 0]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(sim.frame_t_s), unit="frame", desc="rendering", leave=False)
+    with EurocWriter(out, calib, overwrite=True) as writer:
+        i_imu = 0
+        for k, t in enumerate(sim.frame_t_s):
+            t_cam = int(T0_NS + round(t * 1e9) - calib.time_offset_ns)
+            while i_imu < len(imu_ns) and imu_ns[i_imu] <= t_cam:
+                writer.write_imu(ImuSample(int(imu_ns[i_imu]), imu.gyro[i_imu], imu.accel[i_imu]))
+                i_imu += 1
+            images = []
+            for (renderer, T_bc), photo in zip(cams, photometric):
+                img, depth, _ = renderer.render(T_wb[k] @ T_bc)
+                if exposure_s > 0:
+                    R_wc = T_wb[k, :3, :3] @ T_bc[:3, :3]
+                    v_cam_w = v_w[k] + T_wb[k, :3, :3] @ np.cross(w_b[k], T_bc[:3, 3])
+                    flow = renderer.pixel_flow(depth, R_wc.T @ v_cam_w, T_bc[:3, :3].T @ w_b[k])
+                    img = renderer.motion_blur(img, flow, exposure_s)
+                images.append(photo.apply(img, t))
+            if cfg.drop_frames > 0 and drop_rng.random() < cfg.drop_frames:
+                which = int(drop_rng.integers(3))  # 0: left, 1: right, 2: both
+                if which in (0, 2):
+                    images[0] = None
+                    dropped[0] += 1
+                if which in (1, 2):
+                    images[1] = None
+                    dropped[1] += 1
+            if images[0] is not None or images[1] is not None:
+                writer.write_frame(StereoFrame(t_cam, images[0], images[1], seq=k))
+            if bar is not None:
+                bar.update(1)
+        for i in range(i_imu, len(imu_ns)):
+            writer.write_imu(ImuSample(int(imu_ns[i]), imu.gyro[i], imu.accel[i]))
+        _write_truth(writer, imu_ns, motion, imu)
+    if bar is not None:
+        bar.close()
+    p = motion.position(imu.t_s)
+    summary = SimSummary(out, len(sim.frame_t_s), len(imu_ns), float(imu.t_s[-1]),
+                         float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()),
+                         float(np.linalg.norm(motion.velocity(imu.t_s), axis=1).max()),
+                         float(np.abs(motion.yaw_rate(imu.t_s)).max()), dropped[0], dropped[1])
+    log.info("simulated %s", summary.line())
+    return summary
+
+
+def _write_truth(writer, imu_ns: np.ndarray, motion: Motion, imu: ImuStream) -> None:
+    """Ground truth at every IMU sample: p, q_wxyz, v, gyro and accel bias (EuRoC column order)."""
+    T = motion.pose(imu.t_s)
+    q = rot_to_quat_wxyz(T[:, :3, :3])
+    v = motion.velocity(imu.t_s)
+    for i, t in enumerate(imu_ns):
+        writer.write_groundtruth(int(t), T[i, :3, 3], q[i], v[i], imu.gyro_bias[i], imu.accel_bias[i])
