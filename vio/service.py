@@ -135,24 +135,31 @@ class Output:
 
 
 class LatestState:
-    """One-slot mailbox: the output side only ever wants the newest state."""
+    """Mailbox from estimator to output: the newest state (MAVLink only wants that) plus a short queue of
+    the per-frame states (the TUM log wants every one; 200 Hz IMU-rate states would otherwise hide them)."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_frames: int = 100) -> None:
         self._cv = threading.Condition()
         self._item: Output | None = None
+        self._frames: deque[Output] = deque(maxlen=max_frames)
         self._seq = 0
 
     def publish(self, out: Output) -> None:
         with self._cv:
             self._item = out
+            if out.arrival_ns >= 0:
+                self._frames.append(out)
             self._seq += 1
             self._cv.notify_all()
 
-    def wait_newer(self, seq: int, timeout_s: float) -> tuple[int, Output | None]:
+    def wait_newer(self, seq: int, timeout_s: float) -> tuple[int, Output | None, list[Output]]:
+        """(sequence number, newest state if newer than `seq`, frame states published since the last call)."""
         with self._cv:
             if self._seq == seq:
                 self._cv.wait(timeout_s)
-            return self._seq, (self._item if self._seq != seq else None)
+            frames = list(self._frames)
+            self._frames.clear()
+            return self._seq, (self._item if self._seq != seq else None), frames
 
     def wake(self) -> None:
         with self._cv:
@@ -413,9 +420,11 @@ class OutputWorker(Worker):
             while not self.stop_event.is_set():
                 self.beat()
                 self._ensure_mavlink()
-                self._seq, out = self.latest.wait_newer(self._seq, 0.02)
+                self._seq, out, frames = self.latest.wait_newer(self._seq, 0.02)
                 if out is not None:
-                    self._handle(out)
+                    self._send(out.state)
+                for f in frames:
+                    self._frame_done(f)
                 self._poll()
         finally:
             self.close()
@@ -432,18 +441,21 @@ class OutputWorker(Worker):
             self._next_open = time.monotonic() + self._backoff
             self._backoff = min(self._backoff * 2, self.reconnect_max_s)
 
-    def _handle(self, out: Output) -> None:
-        s = out.state
-        if self._tum is not None and s.tracking and out.arrival_ns >= 0:  # one TUM pose per camera frame
-            self._tum.write(format_tum_line(s.t_ns, s.T_world_body[:3, 3], rot_to_quat_wxyz(s.T_world_body[:3, :3])))
+    def _send(self, s: NavState) -> None:
         if self.mav is not None:
             try:
                 self.mav.send_state(s)
                 self.offered += 1
             except Exception as e:
                 self._mav_failed(e)
-        if out.arrival_ns >= 0:
-            self.latency_ms.append((_now_ns() - out.arrival_ns) / 1e6)
+
+    def _frame_done(self, out: Output) -> None:
+        """Per camera frame: TUM line, and the latency from frame arrival until its state (or a newer one
+        propagated from it) has been handed to the MAVLink output."""
+        s = out.state
+        if self._tum is not None and s.tracking:
+            self._tum.write(format_tum_line(s.t_ns, s.T_world_body[:3, 3], rot_to_quat_wxyz(s.T_world_body[:3, :3])))
+        self.latency_ms.append((_now_ns() - out.arrival_ns) / 1e6)
 
     def _poll(self) -> None:
         if self.mav is None:
@@ -582,9 +594,13 @@ def _mavlink_sent(mav: Any) -> int:
 
 
 def _mavlink_health(mav: Any) -> dict:
-    """Link state and the scalar counters of drivers.mavlink_out.MavlinkOutput (link_up, stats)."""
+    """Link state and the scalar counters of drivers.mavlink_out.MavlinkOutput (health(), else stats)."""
     stats = getattr(mav, "stats", None)
-    h = dataclasses.asdict(stats) if dataclasses.is_dataclass(stats) else {}
+    try:
+        h = mav.health() if hasattr(mav, "health") else dataclasses.asdict(stats) if dataclasses.is_dataclass(
+            stats) else {}
+    except Exception as e:  # display only
+        h = {"health_error": str(e)}
     out = {k: v for k, v in h.items()
            if isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
     link_up = getattr(mav, "link_up", None)
@@ -875,12 +891,13 @@ def _json_default(o: Any) -> Any:
 
 
 def _estimator_tracks(est: Any) -> int | None:
-    for name in ("n_tracks", "tracks"):
-        v = getattr(est, name, None)
-        v = v() if callable(v) else v
-        if isinstance(v, (int, np.integer)):
-            return int(v)
-    return None
+    """Tracked features in the newest frame (the estimator's `n_tracks`, else its last FeatureFrame)."""
+    v = getattr(est, "n_tracks", None)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    ff = getattr(est, "last_features", None)
+    ids = getattr(ff, "ids", None)
+    return len(ids) if ids is not None else None
 
 
 def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
