@@ -501,3 +501,28 @@ def test_vio_run_replays_euroc_as_live(tmp_path: Path, notify_socket, v101_path:
     assert rc == 0 and took < 2.0, log_path.read_text()[-3000:]
     t_s = [float(line.split()[0]) for line in traj.read_text().splitlines()]
     assert all(np.diff(t_s) > 0.04)  # 20 Hz frames, not 200 Hz IMU states
+
+
+def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
+    if importlib.util.find_spec("drivers.fake") is None:
+        pytest.skip("drivers/fake.py not in this tree yet")
+    from drivers.fake import FakeSource
+    from vio.io.euroc import EurocDataset
+
+    cfg = config_from_dict({"run": {"status_file": "", "record_dir": str(tmp_path / "rec")}})
+
+    class AnyCalibEstimator(ScriptedEstimator):
+        def __init__(self, calib) -> None:
+            super().__init__("calib", [])
+
+    svc = Service(cfg, source_factory=lambda: _started(FakeSource(width=96, height=64)),
+                  estimator_factory=AnyCalibEstimator, notifier=SdNotifier(""))
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    assert _wait(lambda: svc.recorder.frames >= 10, 10)
+    svc.request_stop()
+    runner.join(5)
+    (dataset_dir,) = (tmp_path / "rec").iterdir()
+    ds = EurocDataset(dataset_dir)
+    assert len(ds) == svc.recorder.frames and len(ds.imu) == svc.recorder.imu
+    assert len(ds.imu) >= 9 * len(ds)  # 200 Hz IMU vs 20 Hz frames
