@@ -358,3 +358,51 @@ def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
     # the V1_01 excerpt hardly moves: the tool must say the offset is not observable
     assert main(["calib", "time-offset", str(v101_path)]) == 0
     assert "too little rotation" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------------------------------ check
+
+def _perturbed(calib, rotvec_cam1):
+    """cam1 turned by a small rotation about its own axes (a miscalibrated stereo extrinsic)."""
+    from dataclasses import replace
+
+    T = calib.cam1.T_body_cam @ make_T(so3_exp(np.asarray(rotvec_cam1)), np.zeros(3))
+    return replace(calib, cam1=calib.cam1.with_T_body_cam(T))
+
+
+def test_check_passes_euroc_and_fails_bad_extrinsics(v101_path):
+    from calib.check import check_calibration, format_report
+
+    good = {r.name: r for r in check_calibration(v101_path, None, max_frames=6)}
+    for name in ("stereo epipolar error", "rectified row alignment", "reprojection consistency",
+                 "gravity magnitude when still", "gravity direction vs ground truth"):
+        assert good[name].verdict == "PASS", format_report(list(good.values()))
+    calib, _ = import_calibration("euroc", [v101_path])
+    # 0.5 deg about cam1's x axis moves epipolar lines vertically by ~4 px
+    bad = {r.name: r for r in check_calibration(v101_path, _perturbed(calib, [np.radians(0.5), 0, 0]),
+                                                 max_frames=6)}
+    assert bad["stereo epipolar error"].verdict == "FAIL" and bad["stereo epipolar error"].value > 2.0
+    assert bad["rectified row alignment"].verdict == "FAIL"
+    assert "overall: FAIL" in format_report(list(bad.values()))
+
+
+def test_check_swapped_cameras_put_points_behind(v101_path):
+    from dataclasses import replace
+
+    from calib.check import check_calibration
+
+    calib, _ = import_calibration("euroc", [v101_path])
+    swapped = replace(calib, cam0=calib.cam1, cam1=calib.cam0)
+    res = {r.name: r for r in check_calibration(v101_path, swapped, max_frames=4)}
+    assert res["reprojection consistency"].verdict == "FAIL"
+
+
+def test_check_resolution_mismatch(v101_path, tmp_path):
+    from dataclasses import replace
+
+    from calib.check import check_calibration
+
+    calib, _ = import_calibration("euroc", [v101_path])
+    small = replace(calib, cam0=replace(calib.cam0, width=640, cx=320.0))
+    with pytest.raises(VioError, match="752x480 but the calibration is for 640x480"):
+        check_calibration(v101_path, small, max_frames=2)

@@ -1,0 +1,257 @@
+"""`vio calib check CALIB DATASET`: does a calibration fit a EuRoC recording? PASS / WARN / FAIL per check.
+
+Checks and thresholds (pixels are cam1 pixels; "median" is over all stereo matches of the sampled frames):
+- stereo epipolar error: distance of the right match from the epipolar line of T_cam1_cam0 after
+  undistortion. A good calibration gives well under a pixel; a cam1 rotation error of 0.1 deg already adds
+  0.1 * pi / 180 * f, about 0.8 px at f = 460.  PASS median < 0.5 px, WARN < 1.5 px, else FAIL.
+- rectified row alignment: the same matches found again in images rectified with cv2.stereoRectify/remap;
+  rows must agree.  PASS median |dy| < 0.5 px, WARN < 1.5 px, else FAIL.
+- reprojection consistency: stereo matches triangulated and reprojected (with distortion) into both
+  cameras; also the share of points in front of both cameras (a swapped pair or a sign error in the
+  baseline puts them behind).  PASS median < 0.5 px and >= 95 % in front, WARN < 1.5 px and >= 80 %.
+- gravity when still: on the longest still span, |mean accel| must be g (PASS within 0.2 m/s^2, WARN
+  0.5); with ground truth, the accel direction must match gravity seen through the GT attitude (PASS < 2
+  deg, WARN < 5 deg). The accel spread and gyro mean are reported (vibration, gyro bias).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vio import VioError
+from vio.calibration import StereoCalibration
+from vio.geometry import GRAVITY_M_S2, skew
+
+log = logging.getLogger(__name__)
+
+PX_PASS, PX_WARN = 0.5, 1.5
+IN_FRONT_PASS, IN_FRONT_WARN = 0.95, 0.80
+G_PASS, G_WARN = 0.2, 0.5  # m/s^2
+TILT_PASS_DEG, TILT_WARN_DEG = 2.0, 5.0
+DEFAULT_DEPTH_M = 4.0  # where the right-image search starts
+_KLT = {"winSize": (21, 21), "maxLevel": 4,
+        "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)}
+
+
+@dataclass
+class CheckResult:
+    name: str
+    verdict: str  # PASS, WARN, FAIL or SKIP
+    value: float
+    unit: str
+    detail: str
+
+
+def _grade(value: float, pass_max: float, warn_max: float) -> str:
+    if not np.isfinite(value):
+        return "FAIL"
+    return "PASS" if value < pass_max else "WARN" if value < warn_max else "FAIL"
+
+
+# ------------------------------------------------------------------------------------------ matching
+
+@dataclass
+class StereoMatches:
+    uv0: np.ndarray  # (N, 2) raw pixels in cam0
+    uv1: np.ndarray  # (N, 2) raw pixels in cam1
+    frame_of: np.ndarray  # (N,) index into the sampled frames
+
+
+def _expected_shift_px(calib: StereoCalibration) -> np.ndarray:
+    """Pixel shift of a point at DEFAULT_DEPTH_M straight ahead from cam0 to cam1 (the KLT start)."""
+    T = calib.T_cam1_cam0
+    p1 = T[:3, :3] @ np.array([0.0, 0.0, DEFAULT_DEPTH_M]) + T[:3, 3]
+    uv1 = calib.cam1.K @ (p1 / p1[2])
+    return uv1[:2] - calib.cam0.K[:2, 2]
+
+
+def match_stereo(img0: np.ndarray, img1: np.ndarray, shift: np.ndarray, max_corners: int = 400):
+    """Corners of img0 and their KLT matches in img1 (forward-backward checked)."""
+    from vio.frontend.stereo import klt_fb
+
+    p0 = cv2.goodFeaturesToTrack(img0, max_corners, 0.01, 12)
+    if p0 is None:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    p0 = p0.reshape(-1, 2).astype(np.float64)
+    p1, ok = klt_fb(img0, img1, p0, p0 + shift, _KLT, 0.5)
+    return p0[ok], p1[ok]
+
+
+def collect_matches(dataset, calib: StereoCalibration, max_frames: int) -> tuple[StereoMatches, list[int]]:
+    n = len(dataset)
+    idx = sorted(set(np.linspace(0, n - 1, min(max_frames, n)).round().astype(int).tolist()))
+    shift = _expected_shift_px(calib)
+    uv0, uv1, fr, used = [], [], [], []
+    for k in idx:
+        f = dataset.frame(k)
+        if f is None or f.right is None:
+            continue
+        a, b = match_stereo(f.left, f.right, shift)
+        uv0.append(a)
+        uv1.append(b)
+        fr.append(np.full(len(a), len(used)))
+        used.append(k)
+    if not used:
+        raise VioError("no stereo pair could be read from the dataset")
+    return StereoMatches(np.vstack(uv0), np.vstack(uv1), np.concatenate(fr)), used
+
+
+# -------------------------------------------------------------------------------------------- checks
+
+def epipolar_errors_px(calib: StereoCalibration, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
+    """Distance (cam1 pixels) of each right point from the epipolar line of its left point."""
+    T = calib.T_cam1_cam0
+    E = skew(T[:3, 3]) @ T[:3, :3]  # x1^T E x0 = 0 for x1 = R x0 + t
+    x0 = np.column_stack([calib.cam0.undistort_normalized(uv0), np.ones(len(uv0))])
+    x1 = np.column_stack([calib.cam1.undistort_normalized(uv1), np.ones(len(uv1))])
+    lines = x0 @ E.T
+    num = np.abs(np.sum(x1 * lines, axis=1))
+    return num / np.linalg.norm(lines[:, :2], axis=1) * calib.cam1.fx
+
+
+def check_epipolar(calib: StereoCalibration, m: StereoMatches) -> CheckResult:
+    e = epipolar_errors_px(calib, m.uv0, m.uv1)
+    med = float(np.median(e))
+    return CheckResult("stereo epipolar error", _grade(med, PX_PASS, PX_WARN), med, "px",
+                       f"median of {len(e)} matches; 90% {np.percentile(e, 90):.2f} px, "
+                       f"{np.mean(e < 1.0) * 100:.0f}% under 1 px")
+
+
+def rectify_maps(calib: StereoCalibration):
+    """cv2 rectification maps and projection matrices for the calibrated pair (radtan or equidistant)."""
+    c0, c1 = calib.cam0, calib.cam1
+    T = calib.T_cam1_cam0
+    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]).reshape(3, 1)
+    size = (c0.width, c0.height)
+    if c0.distortion_model == "equidistant":
+        R0, R1, P0, P1, _ = cv2.fisheye.stereoRectify(c0.K, c0.dist_coeffs, c1.K, c1.dist_coeffs, size, R, t,
+                                                      flags=cv2.CALIB_ZERO_DISPARITY, balance=0.0)
+        maps = [cv2.fisheye.initUndistortRectifyMap(c.K, c.dist_coeffs, R, P, size, cv2.CV_32FC1)
+                for c, R, P in ((c0, R0, P0), (c1, R1, P1))]
+    else:
+        R0, R1, P0, P1, *_ = cv2.stereoRectify(c0.K, c0.dist_coeffs, c1.K, c1.dist_coeffs, size, R, t,
+                                               flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+        maps = [cv2.initUndistortRectifyMap(c.K, c.dist_coeffs, R, P, size, cv2.CV_32FC1)
+                for c, R, P in ((c0, R0, P0), (c1, R1, P1))]
+    return maps, P0, P1
+
+
+def check_rectified_rows(calib: StereoCalibration, dataset, frames: list[int]) -> CheckResult:
+    maps, P0, P1 = rectify_maps(calib)
+    # disparity start: horizontal shift of a point at DEFAULT_DEPTH_M in the rectified pair
+    shift = np.array([P1[0, 3] / DEFAULT_DEPTH_M, 0.0])
+    dys = []
+    for k in frames:
+        f = dataset.frame(k)
+        if f is None or f.right is None:
+            continue
+        r0 = cv2.remap(f.left, *maps[0], cv2.INTER_LINEAR)
+        r1 = cv2.remap(f.right, *maps[1], cv2.INTER_LINEAR)
+        a, b = match_stereo(r0, r1, shift)
+        dys.append(b[:, 1] - a[:, 1])
+    dy = np.concatenate(dys) if dys else np.zeros(0)
+    if len(dy) == 0:
+        return CheckResult("rectified row alignment", "FAIL", float("nan"), "px", "no matches after rectification")
+    med = float(np.median(np.abs(dy)))
+    return CheckResult("rectified row alignment", _grade(med, PX_PASS, PX_WARN), med, "px",
+                       f"median |dy| of {len(dy)} matches in {len(dys)} rectified pairs; mean dy {np.mean(dy):+.2f} px "
+                       "(a constant dy means a rotation about the baseline)")
+
+
+def check_reprojection(calib: StereoCalibration, m: StereoMatches) -> CheckResult:
+    T = calib.T_cam1_cam0
+    x0 = calib.cam0.undistort_normalized(m.uv0)
+    x1 = calib.cam1.undistort_normalized(m.uv1)
+    X = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), T[:3, :4], x0.T, x1.T)
+    X = (X[:3] / X[3]).T
+    X1 = X @ T[:3, :3].T + T[:3, 3]
+    front = (X[:, 2] > 0) & (X1[:, 2] > 0)
+    share = float(np.mean(front)) if len(front) else 0.0
+    if front.sum() < 10:
+        return CheckResult("reprojection consistency", "FAIL", float("nan"), "px",
+                           f"only {front.sum()} of {len(front)} triangulated points lie in front of both cameras "
+                           "(cam0/cam1 swapped or baseline sign wrong?)")
+    e0 = np.linalg.norm(calib.cam0.project(X[front]) - m.uv0[front], axis=1)
+    e1 = np.linalg.norm(calib.cam1.project(X1[front]) - m.uv1[front], axis=1)
+    med = float(np.median(np.concatenate([e0, e1])))
+    verdict = _grade(med, PX_PASS, PX_WARN)
+    if share < IN_FRONT_WARN:
+        verdict = "FAIL"
+    elif share < IN_FRONT_PASS and verdict == "PASS":
+        verdict = "WARN"
+    depth = np.median(X[front, 2])
+    return CheckResult("reprojection consistency", verdict, med, "px",
+                       f"{share * 100:.0f}% of points in front of both cameras, median depth {depth:.2f} m")
+
+
+def check_gravity(dataset) -> list[CheckResult]:
+    from calib.allan import find_still_span
+
+    imu = dataset.imu
+    try:
+        a, b, how = find_still_span(imu, dataset.groundtruth)
+    except VioError as e:
+        return [CheckResult("gravity when still", "SKIP", float("nan"), "", str(e))]
+    sel = (imu.t_ns >= a) & (imu.t_ns <= b)
+    acc, gyr = imu.accel[sel], imu.gyro[sel]
+    mean = acc.mean(axis=0)
+    g_err = abs(float(np.linalg.norm(mean)) - GRAVITY_M_S2)
+    span = f"{(b - a) / 1e9:.1f} s still ({how})"
+    out = [CheckResult("gravity magnitude when still", _grade(g_err, G_PASS, G_WARN), g_err, "m/s^2",
+                       f"|mean accel| {np.linalg.norm(mean):.3f} vs g {GRAVITY_M_S2}; {span}; accel spread "
+                       f"{np.linalg.norm(acc.std(axis=0)):.3f} m/s^2, gyro mean {np.linalg.norm(gyr.mean(axis=0)):.4f} "
+                       "rad/s (bias)")]
+    gt = dataset.groundtruth
+    if gt is not None:
+        traj = gt.trajectory
+        tsel = (traj.t_ns >= a) & (traj.t_ns <= b)
+        if tsel.any():
+            from vio.geometry import quat_wxyz_to_rot
+
+            R_wb = quat_wxyz_to_rot(traj.q_wxyz[tsel])
+            g_body = np.einsum("nji,j->ni", R_wb, np.array([0.0, 0.0, 1.0])).mean(axis=0)  # R^T z, averaged
+            ang = float(np.degrees(np.arccos(np.clip(g_body @ mean / np.linalg.norm(g_body) / np.linalg.norm(mean),
+                                                     -1, 1))))
+            out.append(CheckResult("gravity direction vs ground truth", _grade(ang, TILT_PASS_DEG, TILT_WARN_DEG),
+                                   ang, "deg", "angle between mean accel and world z seen through the GT attitude "
+                                   "(tests IMU axes/GT alignment, and the accel bias)"))
+    return out
+
+
+def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None = None,
+                      max_frames: int = 40) -> list[CheckResult]:
+    """All checks; `calib` None uses the dataset's own sensor.yaml calibration."""
+    from vio.io.euroc import EurocDataset
+
+    ds = EurocDataset(dataset_path, calibration=calib)
+    calib = ds.calibration
+    results: list[CheckResult] = []
+    first = ds.frame(0)
+    if first is not None:
+        h, w = first.left.shape[:2]
+        if (w, h) != (calib.cam0.width, calib.cam0.height):
+            raise VioError(f"{dataset_path}: images are {w}x{h} but the calibration is for "
+                           f"{calib.cam0.width}x{calib.cam0.height}")
+    if len(ds):
+        m, frames = collect_matches(ds, calib, max_frames)
+        if len(m.uv0) < 20:
+            results.append(CheckResult("stereo matching", "FAIL", len(m.uv0), "matches",
+                                       "too few left-right matches to check the stereo calibration"))
+        else:
+            results += [check_epipolar(calib, m), check_rectified_rows(calib, ds, frames),
+                        check_reprojection(calib, m)]
+    results += check_gravity(ds)
+    return results
+
+
+def format_report(results: list[CheckResult]) -> str:
+    lines = [f"{r.verdict:4s}  {r.name}: {r.value:.3g} {r.unit}  ({r.detail})" for r in results]
+    worst = "FAIL" if any(r.verdict == "FAIL" for r in results) else \
+        "WARN" if any(r.verdict == "WARN" for r in results) else "PASS"
+    lines.append(f"overall: {worst}")
+    return "\n".join(lines)
