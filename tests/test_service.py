@@ -526,3 +526,34 @@ def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
     ds = EurocDataset(dataset_dir)
     assert len(ds) == svc.recorder.frames and len(ds.imu) == svc.recorder.imu
     assert len(ds.imu) >= 9 * len(ds)  # 200 Hz IMU vs 20 Hz frames
+
+
+def test_a_driver_that_reconnects_itself_is_not_restarted(tmp_path: Path, monkeypatch) -> None:
+    """An OAK driver reports state 'disconnected' and reconnects on its own: the daemon counts the loss,
+    waits for the data to return, and does not tear the driver down in the middle of its reconnect."""
+    import vio.service as service
+
+    monkeypatch.setattr(service, "FIRST_DATA_TIMEOUT_S", 0.3)
+    cfg = config_from_dict({"run": {"status_file": "", "source_timeout_s": 0.3}})
+    events: list = []
+    silent = threading.Event()
+
+    class SelfHealing(ScriptedSource):
+        def health(self) -> dict:
+            return {"state": "disconnected" if silent.is_set() else "running", "last_error": "USB reset"}
+
+    svc = Service(cfg, source_factory=lambda: _started(SelfHealing(events, silent, [])),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []), notifier=SdNotifier(""))
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    try:
+        assert _wait(lambda: svc.ready, 5.0)
+        silent.set()
+        assert _wait(lambda: svc.source.disconnects == 1 and svc.source.last_error.startswith("driver"), 3.0)
+        time.sleep(0.5)
+        silent.clear()
+        assert _wait(lambda: svc.source.connected, 3.0)
+    finally:
+        svc.request_stop()
+        runner.join(5)
+    assert events == ["start", "stop"]

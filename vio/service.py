@@ -50,6 +50,9 @@ from vio.types import ImuSample, NavState, StereoFrame
 log = logging.getLogger(__name__)
 
 STATUS_VERSION = 1
+FIRST_DATA_TIMEOUT_S = 10.0  # an OAK boots its firmware before the first frame
+# driver states (drivers/source.py health()) in which the driver is reconnecting by itself
+SELF_HEALING_STATES = ("connecting", "no_device", "disconnected")
 JOIN_BUDGET_S = 1.6  # shutdown must finish within 2 s of SIGTERM; keep a margin for the final status write
 
 
@@ -226,6 +229,7 @@ class SourceWorker(Worker):
         self.last_frame = 0.0
         self.last_imu = 0.0
         self.last_error = ""
+        self._lost_at = 0.0
         self.calibration: Any = None
         self.calibration_ready = threading.Event()
         self.source: Any = None
@@ -239,9 +243,9 @@ class SourceWorker(Worker):
                 self._pump()
                 backoff = 0.2
             except VioError as e:
-                self._lost(str(e))
+                self._lost(f"{e}; reopening")
             except Exception as e:  # driver bugs and device errors alike: log, back off, reopen
-                self._lost(f"{type(e).__name__}: {e}")
+                self._lost(f"{type(e).__name__}: {e}; reopening")
             finally:
                 self._close()
             if self.stop_event.is_set():
@@ -251,9 +255,10 @@ class SourceWorker(Worker):
 
     def _lost(self, why: str) -> None:
         if self.connected or why != self.last_error:  # one line per event, not per retry
-            log.warning("source lost: %s; reopening (backoff up to %.1f s)", why, self.reconnect_max_s)
+            log.warning("source lost: %s", why)
         if self.connected:
             self.disconnects += 1
+            self._lost_at = time.monotonic()
         self.connected = False
         self.last_error = why
 
@@ -264,17 +269,25 @@ class SourceWorker(Worker):
                 src.stop()
 
     def _pump(self) -> None:
-        self.last_data = time.monotonic()
+        opened = time.monotonic()
+        got_data = False
         for msg in _iter_messages(self.source, self.stop_event):
             now = time.monotonic()
             self.beat()
             if msg is None:
-                if now - self.last_data > self.timeout_s:
-                    raise VioError(f"no sensor data for {now - self.last_data:.1f} s")
+                quiet = now - (self.last_data if got_data else opened)
+                # an OAK needs seconds to boot its firmware: allow more before the first data
+                if quiet > (self.timeout_s if got_data else max(self.timeout_s, FIRST_DATA_TIMEOUT_S)):
+                    h = _source_health(self.source)
+                    if h.get("state") in SELF_HEALING_STATES:  # the driver reconnects itself: let it
+                        self._lost(f"driver {h['state']}: {h.get('last_error') or 'no data'}; waiting for it")
+                        continue
+                    raise VioError(f"no sensor data for {quiet:.1f} s")
                 continue
+            got_data = True
             if not self.connected:
                 log.info("source connected: data flowing%s",
-                         f" again after {now - self.last_data:.1f} s" if self.disconnects else "")
+                         f" again after {now - self._lost_at:.1f} s" if self.disconnects else "")
                 self.connected = True
                 self.last_error = ""
             self.last_data = now
