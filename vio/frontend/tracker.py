@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 
 import cv2
 import numpy as np
@@ -25,6 +26,7 @@ from vio.types import FeatureFrame, StereoFrame
 log = logging.getLogger(__name__)
 
 BORDER_PX = 8  # new features keep this far from the border so the KLT window stays inside
+DRIFT_CHECK_FRAMES = 5  # baseline (frames) of the second RANSAC that catches slowly drifting tracks
 STEREO_RETRY_EVERY = 4  # frames between stereo searches for a track whose last stereo match failed
 
 
@@ -62,6 +64,7 @@ class StereoTracker:
         self._R_kf_cur = np.eye(3)
         self._want_keyframe = True
         self._prev_mean = 0.0
+        self._hist: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=DRIFT_CHECK_FRAMES)
 
     @property
     def raw_uv0(self) -> np.ndarray:
@@ -177,6 +180,26 @@ class StereoTracker:
                 cv2.circle(mask, (x, y), cfg.min_distance_px, 0, -1)
         return pts[taken].astype(np.float32).reshape(-1, 2)
 
+    def _drift_outliers(self) -> np.ndarray:
+        """Mask of tracks inconsistent with the rigid motion since DRIFT_CHECK_FRAMES ago.
+
+        Frame-to-frame KLT errors of a tenth of a pixel add up (patches deform as the view changes); over a
+        longer baseline the drift shows up against the epipolar geometry that the other tracks agree on.
+        """
+        bad = np.zeros(len(self._ids), bool)
+        if len(self._hist) == self._hist.maxlen:
+            old_ids, old_uv = self._hist[0]
+            _, i_old, i_cur = np.intersect1d(old_ids, self._ids, assume_unique=True, return_indices=True)
+            inl = temporal_inliers(old_uv[i_old], self._uv[i_cur], self.cfg.ransac_threshold_px)
+            bad[i_cur[~inl]] = True
+        return bad
+
+    def _drop(self, bad: np.ndarray) -> None:
+        if bad.any():
+            keep = ~bad
+            self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep]
+            self._depth, self._uv = self._depth[keep], self._uv[keep]
+
     def _parallax(self) -> float:
         """Median distance of shared tracks from their keyframe position rotated into this frame [px]."""
         if len(self._kf_ids) == 0 or len(self._ids) == 0:
@@ -235,6 +258,7 @@ class StereoTracker:
         n_tracked_klt, n_ransac_out = int(ok.sum()), int((~inl).sum())
         self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep] + 1
         self._depth, self._uv = self._depth[keep], uv_cur[inl]
+        self._drop(self._drift_outliers())
         if R is not None and had_prev:
             self._R_kf_cur = self._R_kf_cur @ R
         t = lap("ransac", t)
@@ -268,6 +292,7 @@ class StereoTracker:
         self._frame_count += 1
         if self._want_keyframe:
             self.mark_keyframe()
+        self._hist.append((self._ids.copy(), self._uv.copy()))
         parallax = self._parallax()
         timings["total"] = (time.perf_counter() - t_start) * 1e3
         ff = FeatureFrame(t_ns, self._ids.copy(), self._uv.copy(), uv1, depth, self._len.copy(),
