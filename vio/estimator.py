@@ -281,7 +281,12 @@ class Estimator:
         else:
             icfg = self.cfg.init
             ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
-            still = is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
+            # Slow forward flight looks still to both the IMU (constant velocity) and the images (little flow
+            # near the focus of expansion), so the estimated speed must agree too.
+            last = self._smoother.last
+            v_pred = self._pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
+            still = (is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
+                     and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
             est = self._smoother.add_keyframe(t, self._pim, ff, zero_velocity=still)
             self._check_plausible(est)
             st = self._after_keyframe(t, est, ff)
