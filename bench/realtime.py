@@ -1,0 +1,68 @@
+"""Real-time benchmark of the whole pipeline on one core.
+
+    python bench/realtime.py DATASET [--json out.json] [--config FILE] [--all-cores]
+
+Pins the process to CPU 0 and limits OpenMP/BLAS/OpenCV to one thread (as `taskset -c 0` with
+OMP/OPENBLAS/MKL_NUM_THREADS=1 would), replays the dataset as fast as possible and prints the real-time
+factor (data seconds / wall seconds), per-frame front-end/back-end/total times and the back-end time per
+10 s segment, which must stay flat over a long flight (fixed-lag smoother).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset")
+    ap.add_argument("--json", help="write the summary here")
+    ap.add_argument("--config", help="TOML configuration")
+    ap.add_argument("--all-cores", action="store_true", help="do not pin to CPU 0")
+    args = ap.parse_args(argv)
+    if not args.all_cores and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {0})
+    import cv2
+
+    cv2.setNumThreads(1)
+    from vio import VioError
+    from vio.config import load_config
+    from vio.io.euroc import EurocDataset
+    from vio.replay import replay
+
+    try:
+        ds = EurocDataset(args.dataset)
+        res = replay(ds, load_config(args.config), progress=False)
+    except VioError as e:
+        print(f"realtime: {e}", file=sys.stderr)
+        return 1
+    d = res.stats_dict()
+    per = d.pop("per_frame")
+    t = np.array([f["t_ns"] for f in per], dtype=np.int64)
+    seg = ((t - t[0]) // 10_000_000_000) if len(t) else np.zeros(0, np.int64)
+    d["backend_ms_per_10s"] = [float(np.mean([f["backend_ms"] for f, s in zip(per, seg) if s == k]))
+                               for k in range(int(seg.max()) + 1)] if len(seg) else []
+    d["dataset"] = str(args.dataset)
+    d["cpu"] = "all" if args.all_cores else "cpu0"
+    print(f"{args.dataset}: {d['frames']} frames, {d['data_s']:.1f} s data in {d['wall_s']:.1f} s -> "
+          f"real-time factor {d['realtime_factor']:.2f}; resets {d['resets']}, keyframes {d['keyframes']}")
+    for k, v in d["timing_ms"].items():
+        print(f"  {k:<12} mean {v['mean']:6.1f}  p50 {v['p50']:6.1f}  p95 {v['p95']:6.1f}  max {v['max']:6.1f}")
+    print("  back end per 10 s [ms]: " + " ".join(f"{x:.1f}" for x in d["backend_ms_per_10s"]))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(d, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
