@@ -143,7 +143,8 @@ def _status(**kw) -> dict:
 
 def test_status_verdicts() -> None:
     assert evaluate(_status(), 1001.0, 3.0)[0] == EXIT_HEALTHY
-    assert evaluate(_status(healthy=False, state="degraded"), 1001.0, 3.0)[0] == EXIT_UNHEALTHY
+    assert evaluate(_status(healthy=False, state="degraded"), 1001.0, 3.0) == (EXIT_UNHEALTHY, "DEGRADED")
+    assert evaluate(_status(healthy=False, state="unhealthy"), 1001.0, 3.0) == (EXIT_UNHEALTHY, "UNHEALTHY")
     assert evaluate(_status(), 1010.0, 3.0)[0] == EXIT_NOT_RUNNING  # stale file: daemon dead or hung
     assert evaluate(_status(state="stopped"), 1000.5, 3.0)[0] == EXIT_NOT_RUNNING
 

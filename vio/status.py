@@ -3,6 +3,8 @@
 Reads the JSON status file that `vio run` rewrites every second. Exit codes: 0 healthy; 1 running but
 unhealthy or degraded (no recent pose, tracking lost, stuck thread); 4 not running: the file is missing,
 unreadable, stale (not rewritten for `--stale-s` seconds) or written by a stopped daemon.
+"Healthy" means state `running`: sensors delivering, a fresh tracked pose, every thread alive, no warnings
+(autopilot link down, frames dropped, tracking lost make it `degraded`).
 """
 
 from __future__ import annotations
@@ -44,7 +46,8 @@ def evaluate(status: dict[str, Any], now_unix: float, stale_s: float) -> tuple[i
         return EXIT_NOT_RUNNING, f"STALE ({age:.0f} s old: daemon not running or hung)"
     if status.get("healthy"):
         return EXIT_HEALTHY, "HEALTHY"
-    return EXIT_UNHEALTHY, "UNHEALTHY"
+    state = str(status.get("state", "unhealthy")).upper()
+    return EXIT_UNHEALTHY, state if state in ("STARTING", "DEGRADED") else "UNHEALTHY"
 
 
 def _fmt(v: Any, unit: str = "", nd: int = 1) -> str:
