@@ -71,12 +71,16 @@ class CameraRenderer:
         depth, face = self.scene.cast(o, d, self._windows(inv_T(T_world_cam)))
         mx, my = self.scene.texture_coords(o, d, depth, face)
         sharp = cv2.remap(self.scene.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        # texels per pixel, widened on oblique surfaces: blend in the smaller atlas level against aliasing
-        axis = self.scene.face_axis[face]
-        dn = np.abs(np.where(axis == 0, d[0], np.where(axis == 1, d[1], d[2])))
-        footprint = depth * self._texels_per_px * self.norm * np.sqrt(self.norm / np.maximum(dn, 1e-3))
-        w = np.clip((footprint - 1.0) * (1.0 / (MIP_FACTOR - 1)), 0.0, 1.0)
+        # texels per pixel, widened on oblique surfaces: blend in the smaller atlas level against aliasing.
+        # It varies slowly, so it is evaluated on every 4th pixel and interpolated.
+        sub = (slice(None, None, 4), slice(None, None, 4))
+        axis = self.scene.face_axis[face[sub]]
+        dn = np.abs(np.where(axis == 0, d[0][sub], np.where(axis == 1, d[1][sub], d[2][sub])))
+        norm = self.norm[sub]
+        footprint = depth[sub] * self._texels_per_px * norm * np.sqrt(norm / np.maximum(dn, 1e-3))
+        w = np.clip((footprint - 1.0) * (1.0 / (MIP_FACTOR - 1)), 0.0, 1.0).astype(np.float32)
         if w.max() > 0:
+            w = cv2.resize(w, (self.cam.width, self.cam.height), interpolation=cv2.INTER_LINEAR)
             k = np.float32(1.0 / MIP_FACTOR)
             off = np.float32(0.5 / MIP_FACTOR - 0.5)
             small = cv2.remap(self.scene.atlas_small, mx * k + off, my * k + off, cv2.INTER_LINEAR,
