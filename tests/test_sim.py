@@ -98,7 +98,9 @@ def test_profiles_fly_in_the_room_at_the_advertised_pace(profile, calib, scene):
     assert w_lo <= min(yaw_rates) and max(yaw_rates) <= w_hi
 
 
-def test_rendered_depth_reprojects_onto_its_pixel(calib, scene):
+@pytest.mark.parametrize("model", ["radtan", "equidistant"])
+def test_rendered_depth_reprojects_onto_its_pixel(model, scene):
+    calib = default_calibration(model, width=376, height=240)
     r = CameraRenderer(calib.cam0, scene)
     T_wc = make_profile("aggressive", 20.0, seed=5).pose(np.array([9.0]))[0] @ calib.cam0.T_body_cam
     img, depth, _ = r.render(T_wc)

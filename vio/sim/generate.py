@@ -218,7 +218,7 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
                          float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()),
                          float(np.linalg.norm(motion.velocity(imu.t_s), axis=1).max()),
                          float(np.abs(motion.yaw_rate(imu.t_s)).max()), dropped[0], dropped[1])
-    log.info("simulated %s", summary.line())
+    log.debug("simulated %s", summary.line())  # the CLI prints the line itself
     return summary
 
 
