@@ -1,0 +1,106 @@
+"""Benchmark suite: its pure parts (memory growth, ratios, verdicts, flight cache) and one smoke run of the whole
+suite on a tiny flight. No timing assertions: the numbers are only checked for being there and sane."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from bench import run_suite  # noqa: E402
+from bench.flights import FlightSpec, ensure_flight  # noqa: E402
+from bench.live import memory_growth  # noqa: E402
+from vio import VioError  # noqa: E402
+
+
+def test_memory_growth_uses_plateau_medians() -> None:
+    t = np.arange(0.0, 100.0, 0.5)
+    rss = np.full_like(t, 200.0)
+    rss[t > 50] += 3.0  # a real step of 3 MB
+    rss[(t > 15) & (t < 16)] += 80.0  # a transient spike inside the early window: the median ignores it
+    g = memory_growth(t, rss, 0.0, 100.0)
+    assert g["early_mb"] == pytest.approx(200.0)
+    assert g["growth_mb"] == pytest.approx(3.0)
+    g = memory_growth(t, rss, 60.0, 100.0)  # both windows after the step
+    assert g["growth_mb"] == pytest.approx(0.0)
+
+
+def test_memory_growth_rejects_too_short_traces() -> None:
+    with pytest.raises(VioError, match="too few RSS samples"):
+        memory_growth(np.array([0.0, 0.5]), np.array([1.0, 1.0]), 0.0, 1.0)
+    with pytest.raises(VioError, match="no time span"):
+        memory_growth(np.array([0.0]), np.array([1.0]), 5.0, 5.0)
+
+
+def _run(name: str, ate: float, total_ms: list[float], wall_s: float) -> run_suite.RunResult:
+    r = run_suite.RunResult(name, "ds", "0", ok=True, frames=len(total_ms), data_s=10.0, wall_s=wall_s, cpu_s=wall_s)
+    r.per_frame_ms = {k: total_ms for k in run_suite.STAGES}
+    r.timing_ms = {k: {} for k in run_suite.STAGES}
+    r.accuracy = {"ate_se3_m": ate, "ate_4dof_m": ate, "rpe_pct": 2 * ate}
+    return r
+
+
+def test_ratios_this_over_other() -> None:
+    this = {"f": _run("f", 0.2, [20.0] * 10, 5.0)}
+    other = {"f": _run("f", 0.1, [10.0] * 10, 2.5), "g": _run("g", 0.1, [10.0], 1.0)}
+    r = run_suite.ratios(this, other)
+    assert set(r["flights"]) == {"f"}
+    assert r["flights"]["f"]["ate_se3_m"] == pytest.approx(2.0)
+    assert r["speed"]["total_ms_mean"] == pytest.approx(2.0)
+    assert r["speed"]["rtf"] == pytest.approx((10 / 5.0) / (20 / 3.5))  # other pools f and g
+
+
+def test_verdicts_pass_miss_and_missing() -> None:
+    head = {"rtf_one_core": 3.5, "p99_frame_ms": 40.0, "latency_p50_ms": math.nan, "memory_growth_mb": 5.0,
+            "synthetic_ate_m": None, "synthetic_rpe_pct": 0.5}
+    v = run_suite.verdicts(head)
+    assert v == {"rtf_one_core": "PASS", "p99_frame_ms": "MISS", "latency_p50_ms": "n/a",
+                 "memory_growth_mb": "PASS", "synthetic_ate_m": "n/a", "synthetic_rpe_pct": "PASS"}
+
+
+def test_compare_rejects_unknown_revision(tmp_path: Path) -> None:
+    with pytest.raises(VioError, match="no-such-rev"):
+        run_suite.worktree_for("no-such-rev", tmp_path)
+
+
+def test_flight_cache_generates_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    spec = FlightSpec("hover", 3.0, 4, "clean", "188x120")
+    path = ensure_flight(spec, tmp_path)
+    assert (path / "mav0" / "cam0" / "data.csv").is_file() and path.name == spec.key
+    assert not list(tmp_path.glob(".*partial*"))
+
+    def no_subprocess(*a, **k):
+        raise AssertionError("a cached flight was generated again")
+
+    monkeypatch.setattr(subprocess, "run", no_subprocess)
+    assert ensure_flight(spec, tmp_path) == path
+
+
+def test_suite_smoke_run_writes_report_and_json(tmp_path: Path) -> None:
+    out, report = tmp_path / "results", tmp_path / "benchmarks.md"
+    rc = run_suite.main(["--plan", "smoke", "--out", str(out), "--report", str(report), "--work", str(tmp_path)])
+    assert rc == 0
+    res = json.loads((out / "suite.json").read_text())
+    assert not res["headline"]["failed_runs"]
+    assert set(res["verdicts"].values()) <= {"PASS", "MISS"}  # every target measured
+    run = next(iter(res["runs"].values()))
+    assert run["frames"] > 50 and 0 < run["accuracy"]["ate_se3_m"] < 1.0
+    assert run["output_ms"]["n"] > 0 and run["timing_ms"]["total_ms"]["p99"] > 0
+    assert res["speed"]["all_cores"]["frames"] == run["frames"]
+    assert res["live"]["latency_ms"]["n"] > 10 and res["live"]["memory"]["peak_rss_mb"] > 50
+    assert any("estimator.py" in r["function"] for r in res["profile"]["cumulative"])
+    text = report.read_text()
+    for heading in ("## Targets", "## Accuracy", "## Speed", "## Latency", "## Memory", "## Profile"):
+        assert heading in text
+    for png in [*res["plots"].values(), "memory_rss.png"]:
+        assert (out / png).stat().st_size > 1000
+        assert f"{out.name}/{png}" in text
