@@ -53,18 +53,19 @@ def render(res: dict, out_rel: str) -> str:
           "One `vio replay` per flight, on one core. ATE: RMSE of positions after SE(3) / 4-DoF alignment; RPE: "
           "mean translation drift in % of distance over the segment lengths the path allows "
           "(docs/evaluation.md).", "",
-          "| flight | frames | ATE SE(3) [m] | ATE 4-DoF [m] | RPE [%] | RPE [deg/m] | coverage | resets | plot |",
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+          "| flight | frames | ATE SE(3) [m] | ATE 4-DoF [m] | RPE [%] | RPE [deg/m] | coverage | resets | RTF "
+          "| plot |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for key, r in res["runs"].items():
         plot = res["plots"].get(key)
         link = f"[png]({out_rel}/{plot})" if plot else ""
         if not r["ok"]:
-            L.append(f"| {key} | {r['frames']} | failed: {r['error'][:120]} | | | | | | |")
+            L.append(f"| {key} | {r['frames']} | failed: {r['error'][:120]} | | | | | | | |")
             continue
         a = r["accuracy"]
         L.append(f"| {key} | {r['frames']} | {_f(a['ate_se3_m'], 3)} | {_f(a['ate_4dof_m'], 3)} | "
                  f"{_f(a['rpe_pct'])} | {_f(a['rpe_deg_per_m'], 3)} | {100 * (a['coverage'] or 0):.0f} % | "
-                 f"{r['resets']} | {link} |")
+                 f"{r['resets']} | {_f(r['rtf'])} | {link} |")
     sp = res["speed"]
     L += ["", "## Speed", "",
           "Per-frame times in ms as mean / p50 / p99. Front end and back end come from the replay's own stats; "

@@ -103,6 +103,7 @@ class RunResult:
     wall_s: float = 0.0
     cpu_s: float = 0.0
     resets: int = 0
+    vio_module: str = ""  # the vio package the replay imported (this tree, or the --compare worktree)
     timing_ms: dict = field(default_factory=dict)
     output_ms: dict = field(default_factory=dict)
     accuracy: dict = field(default_factory=dict)
@@ -167,7 +168,8 @@ def run_replay(name: str, dataset: Path, run_dir: Path, src_root: Path, one_core
     res.per_frame_ms = {k: [f[k] for f in per_frame] for k in STAGES}
     res.timing_ms = {k: summary_ms(v) for k, v in res.per_frame_ms.items()}
     if out_json.is_file():
-        res.output_ms = json.loads(out_json.read_text()).get("output_ms", {})
+        oj = json.loads(out_json.read_text())
+        res.output_ms, res.vio_module = oj.get("output_ms", {}), oj.get("vio_module", "")
     try:
         ev = evaluate(read_tum(tum), load_trajectory(dataset), crop_gt=crop_gt)
     except VioError as e:
@@ -228,6 +230,16 @@ def profile_table(pstats_path: Path, top: int = 15) -> dict[str, list[dict]]:
             "own": sorted(rows, key=lambda r: -r["tottime_s"])[:top], "total_s": st.total_tt}
 
 
+def wait_for_low_load(limit: float, max_wait_s: float) -> None:
+    """Timings are only comparable on an otherwise idle machine: wait for it, but not forever."""
+    t0 = time.monotonic()
+    while os.getloadavg()[0] >= limit and time.monotonic() - t0 < max_wait_s:
+        log.info("load average %.2f >= %.2f: waiting", os.getloadavg()[0], limit)
+        time.sleep(30)
+    if os.getloadavg()[0] >= limit:
+        log.warning("load average still %.2f after %.0f min: measuring anyway", os.getloadavg()[0], max_wait_s / 60)
+
+
 def machine_info() -> dict:
     from importlib.metadata import version
 
@@ -276,7 +288,7 @@ def plot_rss(live: dict, path: Path) -> None:
 # ------------------------------------------------------------------------------------------------ compare
 
 def worktree_for(rev: str, work: Path) -> Path:
-    """A detached git worktree of `rev` under `work` (reused when it exists)."""
+    """A detached git worktree of `rev` under `work` (removed again after the comparison)."""
     p = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=REPO, capture_output=True,
                        text=True)
     if p.returncode != 0:
@@ -348,11 +360,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--report", default=str(REPO / "docs" / "benchmarks.md"), help="Markdown report to write")
     ap.add_argument("--work", default="/tmp/kestrel-bench", help="flight cache, run outputs, worktrees")
     ap.add_argument("--compare", metavar="REV", help="also run accuracy and speed on git revision REV")
+    ap.add_argument("--wait-load", type=float, metavar="L",
+                    help="first wait (up to --wait-max minutes) until the 1-min load average is below L")
+    ap.add_argument("--wait-max", type=float, default=30.0, metavar="MIN", help="longest wait for --wait-load")
     ap.add_argument("--skip", nargs="*", default=[], choices=("live", "profile", "allcores"),
                     help="leave parts out (e.g. while iterating)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     plan = PLANS[args.plan or ("quick" if args.quick else "full")]
+    if args.wait_load:
+        wait_for_low_load(args.wait_load, args.wait_max * 60)
     try:
         return _run(plan, args)
     except VioError as e:
@@ -414,7 +431,10 @@ def _run(plan: Plan, args: argparse.Namespace) -> int:
         wt = worktree_for(args.compare, work)
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=wt, capture_output=True,
                              text=True).stdout.strip()
-        other = run_accuracy_and_speed(plan, work, run_root / f"compare-{rev}", wt)
+        try:
+            other = run_accuracy_and_speed(plan, work, run_root / f"compare-{rev}", wt)
+        finally:  # leave the shared repository's worktree list as it was
+            subprocess.run(["git", "worktree", "remove", "--force", str(wt)], cwd=REPO, capture_output=True)
         compare = {"rev": args.compare, "sha": rev, "ratios": ratios(runs, other),
                    "runs": {k: r.to_dict() for k, r in other.items()}}
         _print_ratios(compare)
