@@ -61,7 +61,8 @@ class FrontendConfig:
 class BackendConfig:
     lag_s: float = opt(2.0, "fixed-lag smoother window length", min=0.2, max=60)
     keyframe_min_parallax_px: float = opt(10.0, "median parallax that makes a new keyframe", min=0.0, max=200)
-    keyframe_max_interval_s: float = opt(0.25, "longest time between keyframes", min=0.01, max=10)
+    keyframe_max_interval_s: float = opt(0.4, "longest time between keyframes", min=0.01, max=10)
+    keyframe_min_interval_s: float = opt(0.2, "shortest time between keyframes (caps the solver rate)", min=0, max=10)
     keyframe_min_tracks: int = opt(50, "tracked features below which a keyframe is forced", min=0, max=2000)
     pixel_sigma: float = opt(1.0, "std of feature measurements", min=0.05, max=20)
     huber_k: float = opt(1.345, "Huber threshold (in sigmas) of the robust visual loss", min=0.1, max=100)
@@ -70,8 +71,12 @@ class BackendConfig:
     max_gyro_bias_rad_s: float = opt(0.3, "gyro bias above which the estimate is implausible", min=0.01, max=10)
     max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
     imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities", min=0.1, max=100)
-    extra_iterations: int = opt(1, "extra smoother relinearisation passes per keyframe", min=0, max=10)
-    max_landmarks: int = opt(120, "landmarks observed per keyframe (longest tracks first)", min=10, max=2000)
+    extra_iterations: int = opt(1, "extra relinearisation passes per keyframe, only when the solve moved the newest "
+                                "pose by more than extra_iteration_gate", min=0, max=10)
+    extra_iteration_gate: float = opt(0.02, "newest-pose correction [m, rad] that triggers the extra passes",
+                                      min=0, max=10)
+    max_landmarks: int = opt(60, "landmarks observed per keyframe (spread over the image, long tracks first)",
+                             min=10, max=2000)
     max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
     max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)

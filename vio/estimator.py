@@ -264,8 +264,11 @@ class Estimator:
 
     def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:
         b = self.bcfg
-        if (t - self._last_kf_t) * 1e-9 >= b.keyframe_max_interval_s:
+        dt = (t - self._last_kf_t) * 1e-9
+        if dt >= b.keyframe_max_interval_s:
             return True
+        if dt < b.keyframe_min_interval_s:  # the solve is the expensive part: bounded rate
+            return False
         if not ff.tracking_ok:
             return False
         return ff.parallax_px >= b.keyframe_min_parallax_px or len(ff.ids) < b.keyframe_min_tracks

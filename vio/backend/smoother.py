@@ -46,6 +46,7 @@ class KeyframeEstimate:
     bias: gtsam.imuBias.ConstantBias
     n_visual: int  # projection factors added at this keyframe
     n_landmarks: int  # landmarks observed at this keyframe
+    extra_passes: int = 0  # relinearisation passes after the first update
 
 
 @dataclass
@@ -88,15 +89,24 @@ class VioSmoother:
         """Smoother time in seconds relative to the first keyframe (float64 keeps sub-us precision)."""
         return (t_ns - self.t0_ns) * 1e-9
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float]) -> None:
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
+                j: int, pose_pred: gtsam.Pose3) -> int:
+        """One iSAM2 update; extra relinearisation passes only when it moved the newest pose a lot (then
+        the linearisation point was poor). Returns the number of extra passes made."""
+        extra = 0
         try:
             self.smoother.update(graph, values, stamps)
-            for _ in range(self.cfg.extra_iterations):
-                self.smoother.update()
+            if self.cfg.extra_iterations > 0:
+                corr = pose_pred.localCoordinates(self.smoother.calculateEstimatePose3(X(j)))
+                if float(np.max(np.abs(corr))) > self.cfg.extra_iteration_gate:
+                    for _ in range(self.cfg.extra_iterations):
+                        self.smoother.update()
+                        extra += 1
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
             first_line = str(e).splitlines()[0] if str(e) else ""
             raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
+        return extra
 
     # -- API -----------------------------------------------------------------------------------------
     def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
@@ -124,8 +134,8 @@ class VioSmoother:
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, pose, 0, 0.0)
-        self._update(graph, values, stamps)
-        return self._finish(t_ns, n_vis, n_lm)
+        extra = self._update(graph, values, stamps, 0, pose)
+        return self._finish(t_ns, n_vis, n_lm, extra)
 
     def add_keyframe(self, t_ns: int, pim: gtsam.PreintegratedCombinedMeasurements,
                      features: FeatureFrame | None, zero_velocity: bool = False) -> KeyframeEstimate:
@@ -152,10 +162,10 @@ class VioSmoother:
         if features is not None and features.tracking_ok:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, pred.pose(), j, t_s)
         self.index = j
-        self._update(graph, values, stamps)
-        return self._finish(t_ns, n_vis, n_lm)
+        extra = self._update(graph, values, stamps, j, pred.pose())
+        return self._finish(t_ns, n_vis, n_lm, extra)
 
-    def _finish(self, t_ns: int, n_vis: int, n_lm: int) -> KeyframeEstimate:
+    def _finish(self, t_ns: int, n_vis: int, n_lm: int, extra: int) -> KeyframeEstimate:
         est = self._estimate
         j = self.index
         try:
@@ -164,7 +174,7 @@ class VioSmoother:
             bias = est.atConstantBias(B(j))
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
-        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm)
+        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -196,8 +206,7 @@ class VioSmoother:
         gate2 = cfg.outlier_gate_px ** 2
         n_vis, n_lm, n_new = 0, 0, 0
         stereo = np.isfinite(ff.depth_m)
-        order = np.argsort(-ff.track_len)  # long tracks first: they constrain the motion best
-        for k in order:
+        for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
             uv0 = ff.uv0[k]
             lm = self._active(tid, t_s)
@@ -246,3 +255,29 @@ class VioSmoother:
                     np.asarray(self.smoother.marginalCovariance(V(self.index))))
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"marginal covariance failed: {e}") from None
+
+
+def spread_order(uv: np.ndarray, track_len: np.ndarray, width: int, height: int, cols: int = 6,
+                 rows: int = 4) -> np.ndarray:
+    """Track indices ordered so that any prefix is spread over the image, long tracks first.
+
+    Round-robin over a grid: the longest track of every occupied cell, then the second longest of every
+    cell, ... A bounded number of landmarks then constrains rotation and translation as well as all of
+    them would, instead of clustering on one textured corner. Vectorised (this runs per keyframe).
+    """
+    n = len(track_len)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    cx = np.clip((uv[:, 0] * cols / width).astype(np.int64), 0, cols - 1)
+    cy = np.clip((uv[:, 1] * rows / height).astype(np.int64), 0, rows - 1)
+    cell = cy * cols + cx
+    by_len = np.argsort(-np.asarray(track_len), kind="stable")
+    by_cell = by_len[np.argsort(cell[by_len], kind="stable")]  # grouped by cell, longest first inside
+    cell_sorted = cell[by_cell]
+    starts = np.flatnonzero(np.r_[True, cell_sorted[1:] != cell_sorted[:-1]])
+    rank = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
+    rank_of = np.empty(n, np.int64)
+    rank_of[by_cell] = rank
+    len_pos = np.empty(n, np.int64)
+    len_pos[by_len] = np.arange(n)
+    return np.lexsort((len_pos, rank_of))
