@@ -17,6 +17,7 @@ import numpy as np
 
 from vio.calibration import StereoCalibration
 from vio.config import FrontendConfig
+from vio.frontend.anchor import AnchorRefiner, Anchors
 from vio.frontend.quality import image_problem
 from vio.frontend.ransac import temporal_inliers
 from vio.frontend.stereo import StereoMatcher, klt_fb
@@ -26,7 +27,6 @@ from vio.types import FeatureFrame, StereoFrame
 log = logging.getLogger(__name__)
 
 BORDER_PX = 8  # new features keep this far from the border so the KLT window stays inside
-DRIFT_CHECK_FRAMES = 5  # baseline (frames) of the second RANSAC that catches slowly drifting tracks
 STEREO_RETRY_EVERY = 4  # frames between stereo searches for a track whose last stereo match failed
 
 
@@ -44,6 +44,9 @@ class StereoTracker:
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._fast = cv2.FastFeatureDetector_create(self.cfg.fast_threshold, True)
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.cfg.clahe else None
+        c = self.cfg
+        self._anchor = (AnchorRefiner(c.anchor_patch_px | 1, min_ncc=c.anchor_min_ncc,
+                                      renew_deform=c.anchor_renew_deform) if c.anchor_patch_px else None)
         self._next_id = 0
         self._last_t: int | None = None
         self._frame_count = 0
@@ -59,12 +62,13 @@ class StereoTracker:
         self._uv = np.zeros((0, 2))  # undistorted left pixels
         self._len = np.zeros(0, np.int64)
         self._depth = np.zeros(0)  # last stereo depth per track (NaN: none)
+        self._anc = Anchors.empty(self._anchor.p ** 2) if self._anchor else None
         self._kf_ids = np.zeros(0, np.int64)
         self._kf_uv = np.zeros((0, 2))
         self._R_kf_cur = np.eye(3)
         self._want_keyframe = True
         self._prev_mean = 0.0
-        self._hist: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=DRIFT_CHECK_FRAMES)
+        self._hist: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.cfg.drift_check_frames)
 
     @property
     def raw_uv0(self) -> np.ndarray:
@@ -181,7 +185,7 @@ class StereoTracker:
         return pts[taken].astype(np.float32).reshape(-1, 2)
 
     def _drift_outliers(self) -> np.ndarray:
-        """Mask of tracks inconsistent with the rigid motion since DRIFT_CHECK_FRAMES ago.
+        """Mask of tracks inconsistent with the rigid motion since `drift_check_frames` ago.
 
         Frame-to-frame KLT errors of a tenth of a pixel add up (patches deform as the view changes); over a
         longer baseline the drift shows up against the epipolar geometry that the other tracks agree on.
@@ -194,11 +198,32 @@ class StereoTracker:
             bad[i_cur[~inl]] = True
         return bad
 
+    def _keep(self, keep: np.ndarray) -> None:
+        """Keep only the tracks `keep` (index or mask) in every per-track array."""
+        self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep]
+        self._depth, self._uv = self._depth[keep], self._uv[keep]
+        if self._anc is not None:
+            self._anc = self._anc.take(keep)
+
     def _drop(self, bad: np.ndarray) -> None:
         if bad.any():
-            keep = ~bad
-            self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep]
-            self._depth, self._uv = self._depth[keep], self._uv[keep]
+            self._keep(~bad)
+
+    def _refine(self, img: np.ndarray, ok: np.ndarray) -> None:
+        """Affine refinement of the KLT survivors against their anchor patches (anchor.py); clears `ok` of
+        tracks whose patch no longer matches."""
+        idx = np.flatnonzero(ok)
+        if self._anc is None or len(idx) == 0:
+            return
+        anc = self._anc.take(idx)
+        pos, ncc = self._anchor.refine(img, self._raw[idx], anc)
+        h, w = img.shape
+        good = (ncc >= self._anchor.min_ncc) & np.all(np.isfinite(pos), axis=1)
+        good &= (pos[:, 0] >= 0) & (pos[:, 0] <= w - 1) & (pos[:, 1] >= 0) & (pos[:, 1] <= h - 1)
+        good &= np.linalg.norm(pos - self._raw[idx], axis=1) < 2.0
+        self._raw[idx[good]] = pos[good]
+        self._anc.A[idx] = anc.A
+        ok[idx[~good]] = False
 
     def _parallax(self) -> float:
         """Median distance of shared tracks from their keyframe position rotated into this frame [px]."""
@@ -252,13 +277,20 @@ class StereoTracker:
         prev_uv = self._uv
         ok = self._track(left, R)
         t = lap("track", t)
+        self._refine(left, ok)
+        t = lap("refine", t)
         uv_cur = undistort_px(self.cam0, self._raw[ok])
         inl = temporal_inliers(prev_uv[ok], uv_cur, self.cfg.ransac_threshold_px)
         keep = np.flatnonzero(ok)[inl]
         n_tracked_klt, n_ransac_out = int(ok.sum()), int((~inl).sum())
-        self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep] + 1
-        self._depth, self._uv = self._depth[keep], uv_cur[inl]
+        self._keep(keep)
+        self._len += 1
+        self._uv = uv_cur[inl]
         self._drop(self._drift_outliers())
+        if self._anc is not None:
+            renew = self._anchor.needs_renewal(self._anc)
+            if renew.any():
+                self._anc.replace(renew, self._anchor.build(left, self._raw[renew]))
         if R is not None and had_prev:
             self._R_kf_cur = self._R_kf_cur @ R
         t = lap("ransac", t)
@@ -272,6 +304,8 @@ class StereoTracker:
             self._uv = np.concatenate([self._uv, undistort_px(self.cam0, new)])
             self._len = np.concatenate([self._len, np.ones(m, np.int64)])
             self._depth = np.concatenate([self._depth, np.full(m, np.nan)])
+            if self._anc is not None:
+                self._anc = self._anc.concat(self._anchor.build(left, new))
         t = lap("detect", t)
 
         n = len(self._ids)
