@@ -121,3 +121,20 @@ def test_synthetic_scene_observations_are_exact_projections(n_obs):
         p_c = p_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
         uv = p_c[:, :2] / p_c[:, 2:] * [calib.cam0.fx, calib.cam0.fy] + [calib.cam0.cx, calib.cam0.cy]
         assert np.allclose(uv, ff.uv0)
+
+
+def test_spread_order_round_robins_cells_longest_first():
+    from vio.backend.smoother import spread_order
+
+    rng = np.random.default_rng(0)
+    # 40 long tracks crowded in the top-left cell, 6 short ones elsewhere
+    others = [[400, 300], [700, 450], [100, 400], [600, 50], [300, 200], [720, 10]]
+    uv = np.vstack([rng.uniform(0, 50, (40, 2)), others])
+    track_len = np.r_[rng.integers(10, 30, 40), np.ones(6, int)]
+    order = spread_order(uv, track_len, 752, 480)
+    assert sorted(order.tolist()) == list(range(46))
+    first7 = set(order[:7].tolist())
+    assert set(range(40, 46)) <= first7  # every occupied cell is represented in the first picks
+    crowded = [k for k in order if k < 40]
+    assert np.all(np.diff(track_len[crowded]) <= 0)  # inside a cell: longest first
+    assert len(spread_order(np.zeros((0, 2)), np.zeros(0, int), 752, 480)) == 0

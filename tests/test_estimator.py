@@ -102,3 +102,16 @@ def test_frames_wait_for_imu_and_out_of_order_frames_are_dropped():
     assert st is not None and est.initialized
     assert est.feed_features(scene.observe(650_000_000, mot.pose(0.65))) is None
     assert est.latest() is st
+
+
+def test_keyframe_rate_is_capped_by_the_minimum_interval():
+    import dataclasses
+
+    cfg = VioConfig()
+    # every frame asks to be a keyframe (parallax threshold 0): only the interval limit decides
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, keyframe_min_parallax_px=0.0,
+                                                               keyframe_min_interval_s=0.2))
+    est = Estimator(synthetic_calibration(), cfg)
+    states, _, _, _ = _run(est, duration_s=4.0, still_s=1.0, seed=2)
+    span_s = (states[-1].t_ns - states[0].t_ns) * 1e-9
+    assert abs(est.keyframes - (span_s / 0.2 + 1)) <= 1
