@@ -127,6 +127,9 @@ def render(res: dict, out_rel: str) -> str:
         L += ["", "| speed | ratio |", "| --- | --- |"]
         L += [f"| {k} | {_f(x)} |" for k, x in cmp_["ratios"]["speed"].items()]
     L += ["", "## How it is measured", "",
+          "Reproduce with `python bench/run_suite.py` (the first run generates the flights, about 2 GB under "
+          "`/tmp/kestrel-bench`; `--wait-load 1.5` waits for an idle machine first), `--quick` for a shorter "
+          "set, and `--compare REV` to add this/REV ratios for accuracy and speed.", "",
           "- Flights: `vio simulate` (profiles survey and aggressive, variants clean and realistic, seeds as "
           "listed), cached under `/tmp/kestrel-bench/flights` by their parameters; the EuRoC excerpt "
           "(V1_01_easy, 95 frames, nearly still) is evaluated against the part of the ground truth it spans.",
