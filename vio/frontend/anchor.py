@@ -69,7 +69,7 @@ def _inv2(M: np.ndarray) -> np.ndarray:
 class AnchorRefiner:
     """Builds anchor patches and refines tracked positions against them (all tracks at once, vectorised)."""
 
-    def __init__(self, patch_px: int = 15, iterations: int = 3, min_ncc: float = 0.85, renew_deform: float = 0.4
+    def __init__(self, patch_px: int = 15, iterations: int = 2, min_ncc: float = 0.85, renew_deform: float = 0.4
                  ) -> None:
         half = patch_px // 2
         self.iterations = iterations
@@ -78,26 +78,29 @@ class AnchorRefiner:
         r = np.arange(-half, half + 1, dtype=np.float32)
         gy, gx = np.meshgrid(r, r, indexing="ij")
         self.off = np.column_stack([gx.ravel(), gy.ravel()])  # (P*P, 2) template coordinates (x, y)
+        self.off_h = np.vstack([self.off.T, np.ones(len(self.off), np.float32)])  # (3, P*P) homogeneous
         r1 = np.arange(-half - 1, half + 2, dtype=np.float32)
         gy1, gx1 = np.meshgrid(r1, r1, indexing="ij")
         self.off_border = np.column_stack([gx1.ravel(), gy1.ravel()])  # with a 1 px border for gradients
         self.p = 2 * half + 1
 
     @staticmethod
-    def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Bilinear samples of `img` at xy (N, K, 2) -> (N, K) float32; outside the image replicates the border."""
-        n, k = xy.shape[:2]
-        if n == 0:
-            return np.zeros((0, k), np.float32)
-        m = np.ascontiguousarray(xy, dtype=np.float32)
-        return cv2.remap(img, m, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+    def _sample(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+        """Bilinear samples of `img` at (mx, my), both (N, K) -> (N, K) float32; outside the image replicates
+        the border."""
+        if mx.shape[0] == 0:
+            return np.zeros(mx.shape, np.float32)
+        return cv2.remap(img, np.ascontiguousarray(mx, dtype=np.float32), np.ascontiguousarray(my, dtype=np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
 
     def build(self, img: np.ndarray, pts: np.ndarray) -> Anchors:
         """Anchors for raw positions pts (N, 2) in img (identity warp)."""
         n, p = len(pts), self.p
         if n == 0:
             return Anchors.empty(p * p)
-        big = self._sample(img, pts[:, None, :].astype(np.float32) + self.off_border[None]).reshape(n, p + 2, p + 2)
+        c = pts.astype(np.float32)
+        big = self._sample(img, c[:, 0, None] + self.off_border[None, :, 0], c[:, 1, None] + self.off_border[None, :, 1]
+                           ).reshape(n, p + 2, p + 2)
         tpl, inv_std = _normalise(big[:, 1:-1, 1:-1].reshape(n, -1))
         gx = (0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2])).reshape(n, -1) * inv_std
         gy = (0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1])).reshape(n, -1) * inv_std
@@ -110,28 +113,39 @@ class AnchorRefiner:
         return Anchors(tpl.astype(np.float32), J, np.repeat(np.eye(2, dtype=np.float32)[None], n, axis=0))
 
     def _warped(self, img: np.ndarray, A: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return _normalise(self._sample(img, self.off[None] @ A.transpose(0, 2, 1) + t[:, None, :]))[0]
+        """Normalised image samples under the warps (A, t): (N, P*P)."""
+        n = len(t)
+        xy = (np.concatenate([A, t[:, :, None]], axis=2).reshape(2 * n, 3) @ self.off_h).reshape(n, 2, -1)
+        return _normalise(self._sample(img, xy[:, 0], xy[:, 1]))[0]
 
     def refine(self, img: np.ndarray, pos: np.ndarray, anchors: Anchors) -> tuple[np.ndarray, np.ndarray]:
-        """Refined raw positions (N, 2) and their NCC with the anchor; updates anchors.A in place.
+        """Refined raw positions (N, 2) and their NCC with the anchor (-1 where the warp diverged); updates
+        anchors.A in place.
 
         Inverse compositional: the warp W(x) = A x + t maps template coordinates into the image; each step
         solves for an increment of the template's own warp and composes its inverse, A <- A M, t <- t - A M d
-        with M = (I + D)^-1, so the Jacobian stays the template's, computed once in build()."""
+        with M = (I + D)^-1, so the Jacobian stays the template's, computed once in build(). The NCC is that of
+        the last warp sampled (before the last, small step): one image sampling fewer per frame."""
         n = len(pos)
         if n == 0:
             return pos.copy(), np.zeros(0)
         t = pos.astype(np.float32)
         A = anchors.A.astype(np.float32)
         eye = np.eye(2, dtype=np.float32)[None]
-        for _ in range(self.iterations):
-            r = self._warped(img, A, t) - anchors.tpl
-            dp = (anchors.J @ r[:, :, None])[:, :, 0]
-            A = A @ _inv2(eye + dp[:, :4].reshape(n, 2, 2))
-            t = t - (A @ dp[:, 4:, None])[:, :, 0]
-        ncc = np.einsum("nk,nk->n", self._warped(img, A, t), anchors.tpl) / anchors.tpl.shape[1]
+        ncc = np.zeros(n, np.float32)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            for _ in range(self.iterations):
+                r = self._warped(img, A, t) - anchors.tpl
+                ncc = 1.0 - 0.5 * np.einsum("nk,nk->n", r, r) / r.shape[1]  # both sides have unit RMS
+                dp = (anchors.J @ r[:, :, None])[:, :, 0]
+                A = A @ _inv2(eye + dp[:, :4].reshape(n, 2, 2))
+                t = t - (A @ dp[:, 4:, None])[:, :, 0]
+            det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+        bad = ~(np.isfinite(t).all(axis=1) & (det > 0.1) & (det < 10.0))
+        ncc[bad] = -1.0
+        A[bad] = np.eye(2)
         anchors.A[:] = A
-        return t.astype(np.float64), ncc
+        return t.astype(np.float64), ncc.astype(np.float64)
 
     def needs_renewal(self, anchors: Anchors) -> np.ndarray:
         """Rows whose warp deforms the patch by more than `renew_deform` (largest |singular value - 1|)."""

@@ -27,6 +27,7 @@ from vio.types import FeatureFrame, StereoFrame
 log = logging.getLogger(__name__)
 
 BORDER_PX = 8  # new features keep this far from the border so the KLT window stays inside
+REFINE_MAX_SHIFT_PX = 2.0  # a refinement that moves the KLT result further found another patch
 STEREO_RETRY_EVERY = 4  # frames between stereo searches for a track whose last stereo match failed
 
 
@@ -117,7 +118,10 @@ class StereoTracker:
         n = len(self._raw)
         if n == 0 or self._prev_img is None:
             return np.zeros(n, bool)
-        p1, ok = klt_fb(self._prev_img, img, self._raw, self._predict(R_prev_cur), self._klt, self.cfg.fb_check_px)
+        # with anchor refinement, the NCC against the first appearance checks each match more strictly than the
+        # forward-backward pass would, at a fraction of its cost
+        p1, ok = klt_fb(self._prev_img, img, self._raw, self._predict(R_prev_cur), self._klt, self.cfg.fb_check_px,
+                        backward=self._anchor is None)
         self._raw = np.where(ok[:, None], p1, self._raw).astype(np.float32)
         return ok
 
@@ -211,19 +215,17 @@ class StereoTracker:
 
     def _refine(self, img: np.ndarray, ok: np.ndarray) -> None:
         """Affine refinement of the KLT survivors against their anchor patches (anchor.py); clears `ok` of
-        tracks whose patch no longer matches."""
-        idx = np.flatnonzero(ok)
-        if self._anc is None or len(idx) == 0:
+        tracks whose patch no longer matches or that the refinement moved far from the KLT result."""
+        if self._anc is None or not ok.any():
             return
-        anc = self._anc.take(idx)
-        pos, ncc = self._anchor.refine(img, self._raw[idx], anc)
+        # all rows at once: the few KLT failures are dropped anyway, and subsetting would copy the anchors
+        pos, ncc = self._anchor.refine(img, self._raw, self._anc)
         h, w = img.shape
         good = (ncc >= self._anchor.min_ncc) & np.all(np.isfinite(pos), axis=1)
         good &= (pos[:, 0] >= 0) & (pos[:, 0] <= w - 1) & (pos[:, 1] >= 0) & (pos[:, 1] <= h - 1)
-        good &= np.linalg.norm(pos - self._raw[idx], axis=1) < 2.0
-        self._raw[idx[good]] = pos[good]
-        self._anc.A[idx] = anc.A
-        ok[idx[~good]] = False
+        good &= np.linalg.norm(pos - self._raw, axis=1) < REFINE_MAX_SHIFT_PX
+        ok &= good
+        self._raw[ok] = pos[ok]
 
     def _parallax(self) -> float:
         """Median distance of shared tracks from their keyframe position rotated into this frame [px]."""
