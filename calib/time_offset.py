@@ -26,12 +26,13 @@ import cv2
 import numpy as np
 
 from vio import VioError
-from vio.calibration import CameraCalibration
+from vio.calibration import CameraCalibration, StereoCalibration
 from vio.geometry import so3_log
 
 log = logging.getLogger(__name__)
 
 MIN_TRACKS = 15  # frame pairs with fewer surviving tracks are skipped
+MAX_DEPTH_M = 60.0  # farther stereo points carry no depth information for PnP
 MIN_RATE_STD_RAD_S = 0.1  # less rotation excitation than this: the offset is not observable
 OUTLIER_MADS = 5.0  # frame pairs whose residual exceeds this many robust sigmas are dropped
 ROTATION_ONLY_PX = 1.0  # a pure-rotation fit explaining matches to this median error means no parallax
@@ -47,6 +48,7 @@ class VisualRotations:
     t1_ns: np.ndarray
     theta_cam: np.ndarray  # (N, 3) rad
     n_tracks: np.ndarray
+    info_cam: np.ndarray  # (N, 3, 3) information (inverse covariance) of theta_cam, unit image noise
 
 
 @dataclass
@@ -105,53 +107,99 @@ def relative_rotation(x0: np.ndarray, x1: np.ndarray, f_px: float) -> tuple[np.n
     R_rot, err = _rotation_from_bearings(b0, b1)
     if np.median(err) * f_px < ROTATION_ONLY_PX:
         n_in = int(np.sum(err * f_px < 3 * ROTATION_ONLY_PX))
-        return (R_rot, n_in) if n_in >= MIN_TRACKS else None
+        return (R_rot, n_in, n_in * np.eye(3)) if n_in >= MIN_TRACKS else None
     E, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f_px)
     if E is None or E.shape != (3, 3):
         return None
     n, R_1_0, _, mask = cv2.recoverPose(E, x0, x1, np.eye(3), mask=mask)
     if n < MIN_TRACKS:
         return None
-    return R_1_0.T, int(n)
+    return R_1_0.T, int(n), int(n) * np.eye(3)
+
+
+def stereo_pnp_rotation(calib: StereoCalibration, img0_left: np.ndarray, img0_right: np.ndarray,
+                        img1_left: np.ndarray, f_px: float, max_corners: int = 300) -> tuple[np.ndarray, int] | None:
+    """R_c0_c1 of cam0 between two frames from stereo-triangulated points of frame 0 seen in frame 1 (PnP).
+
+    Metric 3D points remove the rotation/translation ambiguity that an essential matrix has with a
+    narrow field of view (a sideways step looks much like a pan)."""
+    from calib.check import _expected_shift_px, match_stereo, triangulate
+    from vio.frontend.stereo import klt_fb
+
+    uv0, uv0r = match_stereo(img0_left, img0_right, _expected_shift_px(calib), max_corners)
+    if len(uv0) < MIN_TRACKS:
+        return None
+    X, front = triangulate(calib, uv0, uv0r)
+    keep = front & (X[:, 2] < MAX_DEPTH_M)
+    if keep.sum() < MIN_TRACKS:
+        return None
+    uv1, ok = klt_fb(img0_left, img1_left, uv0[keep], uv0[keep], _KLT, 0.5)
+    if ok.sum() < MIN_TRACKS:
+        return None
+    X, x1 = X[keep][ok], calib.cam0.undistort_normalized(uv1[ok])
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(X, x1, np.eye(3), None, reprojectionError=2.0 / f_px,
+                                                 iterationsCount=200, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+    if not found or inliers is None or len(inliers) < MIN_TRACKS:
+        return None
+    inl = inliers.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(X[inl], x1[inl], np.eye(3), None, rvec, tvec)
+    # rotation information with the translation marginalised: few or clustered points leave the rotation
+    # entangled with the translation, and those pairs must count for less
+    _, J = cv2.projectPoints(X[inl], rvec, tvec, np.eye(3), None)
+    J = J[:, :6]
+    try:
+        cov_rot = np.linalg.inv(J.T @ J)[:3, :3]
+        info = np.linalg.inv(cov_rot)
+    except np.linalg.LinAlgError:
+        return None
+    return cv2.Rodrigues(rvec)[0].T, len(inl), info
 
 
 def visual_rotations(dataset, cam: CameraCalibration, step: int = 1, max_corners: int = 300,
                      t_start_ns: int | None = None, t_end_ns: int | None = None) -> VisualRotations:
-    """Rotations of cam0 between frames k and k+step of a EurocDataset (left images only)."""
+    """Rotations of cam0 between frames k and k+step of a EurocDataset: stereo PnP when the right image is
+    there, else from the left images alone (essential matrix or pure rotation)."""
+    from calib.check import normalise_contrast
     from vio.frontend.stereo import klt_fb
+    from vio.types import StereoFrame
 
-    t0s, t1s, thetas, ns = [], [], [], []
+    calib = dataset.calibration
+    t0s, t1s, thetas, ns, infos = [], [], [], [], []
     prev = None
-    for k in range(len(dataset)):
+    for k in range(0, len(dataset), step):
         t = int(dataset.frame_t[k])
         if (t_start_ns is not None and t < t_start_ns) or (t_end_ns is not None and t > t_end_ns):
-            continue
-        if k % step:
             continue
         frame = dataset.frame(k)
         if frame is None:
             prev = None
             continue
-        img = frame.left
+        frame = StereoFrame(frame.t_ns, normalise_contrast(frame.left),
+                            None if frame.right is None else normalise_contrast(frame.right), frame.seq)
         if prev is not None:
-            t_prev, img_prev = prev
-            p0 = cv2.goodFeaturesToTrack(img_prev, max_corners, 0.01, 10)
-            if p0 is not None and len(p0) >= MIN_TRACKS:
-                p0 = p0.reshape(-1, 2).astype(np.float64)
-                p1, ok = klt_fb(img_prev, img, p0, p0, _KLT, 0.5)
-                if ok.sum() >= MIN_TRACKS:
-                    x0 = cam.undistort_normalized(p0[ok])
-                    x1 = cam.undistort_normalized(p1[ok])
-                    res = relative_rotation(x0, x1, cam.fx)
-                    if res is not None:
-                        t0s.append(t_prev)
-                        t1s.append(t)
-                        thetas.append(so3_log(res[0]))
-                        ns.append(res[1])
-        prev = (t, img)
+            res = None
+            if prev.right is not None:
+                res = stereo_pnp_rotation(calib, prev.left, prev.right, frame.left, cam.fx, max_corners)
+            if res is None:
+                p0 = cv2.goodFeaturesToTrack(prev.left, max_corners, 0.01, 10)
+                if p0 is not None and len(p0) >= MIN_TRACKS:
+                    p0 = p0.reshape(-1, 2).astype(np.float64)
+                    p1, ok = klt_fb(prev.left, frame.left, p0, p0, _KLT, 0.5)
+                    if ok.sum() >= MIN_TRACKS:
+                        res = relative_rotation(cam.undistort_normalized(p0[ok]),
+                                                cam.undistort_normalized(p1[ok]), cam.fx)
+            if res is not None:
+                t0s.append(prev.t_ns)
+                t1s.append(t)
+                thetas.append(so3_log(res[0]))
+                ns.append(res[1])
+                infos.append(res[2])
+        prev = frame
     if len(t0s) < 10:
         raise VioError(f"only {len(t0s)} usable frame pairs for the time offset (need 10); too little texture?")
-    return VisualRotations(np.array(t0s, np.int64), np.array(t1s, np.int64), np.array(thetas), np.array(ns))
+    return VisualRotations(np.array(t0s, np.int64), np.array(t1s, np.int64), np.array(thetas), np.array(ns),
+                           np.array(infos))
 
 
 # ---------------------------------------------------------------------------------------------- offset
@@ -168,13 +216,16 @@ def _interp3(tq: np.ndarray, ts: np.ndarray, G: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(tq, ts, G[:, k]) for k in range(3)])
 
 
-def _costs(theta_b: np.ndarray, Gd: np.ndarray, dt: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cost per offset over the pairs idx with the bias solved in closed form; also the biases."""
-    th, D, w = theta_b[idx], Gd[:, idx], dt[idx]
-    # residual r = th - D + b w  =>  b = sum w (D - th) / sum w^2
-    b = np.einsum("i,dik->dk", w, D - th[None]) / np.sum(w * w)
+def _costs(theta_b: np.ndarray, Gd: np.ndarray, dt: np.ndarray, W: np.ndarray,
+           idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted cost sum r^T W r per offset over the pairs idx, the bias solved in closed form; also the biases."""
+    th, D, w, Wi = theta_b[idx], Gd[:, idx], dt[idx], W[idx]
+    # r = th - D + b w  =>  (sum w^2 W) b = sum w W (D - th)
+    A = np.einsum("i,ijk->jk", w * w, Wi)
+    rhs = np.einsum("i,ijk,dik->dj", w, Wi, D - th[None])
+    b = np.linalg.solve(A, rhs.T).T
     r = th[None] - D + b[:, None, :] * w[None, :, None]
-    return np.einsum("dik,dik->d", r, r), b
+    return np.einsum("dij,ijk,dik->d", r, Wi, r), b
 
 
 def _parabola_min(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -199,21 +250,25 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
     if inside.sum() < 10:
         raise VioError("the IMU does not cover the frames (+- the search range); wrong clocks or files?")
     t0, t1 = t0[inside], t1[inside]
-    theta_b = vis.theta_cam[inside] @ np.asarray(R_body_cam)[:3, :3].T  # theta_body = R_bc theta_cam
+    R_bc = np.asarray(R_body_cam)[:3, :3]
+    theta_b = vis.theta_cam[inside] @ R_bc.T  # theta_body = R_bc theta_cam
+    W = np.einsum("ij,njk,lk->nil", R_bc, vis.info_cam[inside], R_bc)
+    W = W / np.median(np.trace(W, axis1=1, axis2=2) / 3)  # unit typical weight: cost stays in rad^2
     dt = t1 - t0
     grid = np.arange(-max_offset_s, max_offset_s + 0.5 * grid_step_s, grid_step_s)
     Gd = np.stack([_interp3(t1 + d, ts, G) - _interp3(t0 + d, ts, G) for d in grid])  # (n_d, N, 3)
     # one robust pass: pairs KLT got wrong (fast turns, blur) would drag the bias and the offset
-    cost, biases = _costs(theta_b, Gd, dt, np.arange(len(t0)))
+    cost, biases = _costs(theta_b, Gd, dt, W, np.arange(len(t0)))
     i_best = int(np.argmin(cost))
-    r = np.linalg.norm(theta_b - Gd[i_best] + biases[i_best] * dt[:, None], axis=1)
+    res = theta_b - Gd[i_best] + biases[i_best] * dt[:, None]
+    r = np.sqrt(np.einsum("ij,ijk,ik->i", res, W, res))  # Mahalanobis-like, in typical-pair rad
     good = r < max(OUTLIER_MADS * 1.4826 * np.median(r), 1e-4)
     if (~good).any():
         log.info("time offset: %d of %d frame pairs rejected as outliers", int((~good).sum()), len(good))
-    theta_b, Gd, dt, t0, t1 = theta_b[good], Gd[:, good], dt[good], t0[good], t1[good]
+    theta_b, Gd, dt, t0, t1, W = theta_b[good], Gd[:, good], dt[good], t0[good], t1[good], W[good]
     n = len(t0)
     all_idx = np.arange(n)
-    cost, biases = _costs(theta_b, Gd, dt, all_idx)
+    cost, biases = _costs(theta_b, Gd, dt, W, all_idx)
     d_hat, curv = _parabola_min(grid, cost)
     i_best = int(np.argmin(cost))
     s2 = cost[i_best] / max(3 * n - 4, 1)
@@ -225,7 +280,7 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
     for _ in range(n_boot):
         starts = rng.integers(0, max(n - block, 0) + 1, n_blocks)
         idx = (starts[:, None] + np.arange(min(block, n))[None, :]).ravel()
-        boots.append(_parabola_min(grid, _costs(theta_b, Gd, dt, idx)[0])[0])
+        boots.append(_parabola_min(grid, _costs(theta_b, Gd, dt, W, idx)[0])[0])
     sigma_boot = float(np.std(boots))
     vis_rate = np.linalg.norm(theta_b, axis=1) / dt
     bias = biases[i_best]
