@@ -30,24 +30,26 @@ class Anchors:
     tpl: np.ndarray  # (N, P*P) normalised template intensities
     J: np.ndarray  # (N, 6, P*P) Gauss-Newton step per residual: H^-1 SD^T (constant in the inverse form)
     A: np.ndarray  # (N, 2, 2) current warp's linear part (template -> current image)
+    std: np.ndarray  # (N,) grey-level standard deviation of the template (contrast)
 
     @classmethod
     def empty(cls, p2: int) -> Anchors:
-        return cls(np.zeros((0, p2), np.float32), np.zeros((0, 6, p2), np.float32), np.zeros((0, 2, 2), np.float32))
+        return cls(np.zeros((0, p2), np.float32), np.zeros((0, 6, p2), np.float32), np.zeros((0, 2, 2), np.float32),
+                   np.zeros(0, np.float32))
 
     def __len__(self) -> int:
         return len(self.tpl)
 
     def take(self, idx: np.ndarray) -> Anchors:
-        return Anchors(self.tpl[idx], self.J[idx], self.A[idx])
+        return Anchors(self.tpl[idx], self.J[idx], self.A[idx], self.std[idx])
 
     def concat(self, other: Anchors) -> Anchors:
         return Anchors(np.concatenate([self.tpl, other.tpl]), np.concatenate([self.J, other.J]),
-                       np.concatenate([self.A, other.A]))
+                       np.concatenate([self.A, other.A]), np.concatenate([self.std, other.std]))
 
     def replace(self, mask: np.ndarray, other: Anchors) -> None:
         """Rows `mask` take the (len == mask.sum()) rows of `other`."""
-        self.tpl[mask], self.J[mask], self.A[mask] = other.tpl, other.J, other.A
+        self.tpl[mask], self.J[mask], self.A[mask], self.std[mask] = other.tpl, other.J, other.A, other.std
 
 
 def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,17 +112,20 @@ class AnchorRefiner:
         # a little damping of the linear part keeps weakly textured patches from wild warps
         H += np.diag([1.0, 1.0, 1.0, 1.0, 0.0, 0.0]) * (1e-2 * p * p) + np.eye(6) * 1e-6
         J = (np.linalg.inv(H) @ sd).astype(np.float32)
-        return Anchors(tpl.astype(np.float32), J, np.repeat(np.eye(2, dtype=np.float32)[None], n, axis=0))
+        return Anchors(tpl.astype(np.float32), J, np.repeat(np.eye(2, dtype=np.float32)[None], n, axis=0),
+                       np.where(inv_std[:, 0] > 0, 1.0 / np.maximum(inv_std[:, 0], 1e-9), 0.0).astype(np.float32))
 
-    def _warped(self, img: np.ndarray, A: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Normalised image samples under the warps (A, t): (N, P*P)."""
+    def _warped(self, img: np.ndarray, A: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised image samples under the warps (A, t): (N, P*P), and 1/std of the raw samples (N, 1)."""
         n = len(t)
         xy = (np.concatenate([A, t[:, :, None]], axis=2).reshape(2 * n, 3) @ self.off_h).reshape(n, 2, -1)
-        return _normalise(self._sample(img, xy[:, 0], xy[:, 1]))[0]
+        return _normalise(self._sample(img, xy[:, 0], xy[:, 1]))
 
-    def refine(self, img: np.ndarray, pos: np.ndarray, anchors: Anchors) -> tuple[np.ndarray, np.ndarray]:
-        """Refined raw positions (N, 2) and their NCC with the anchor (-1 where the warp diverged); updates
-        anchors.A in place.
+    def refine(self, img: np.ndarray, pos: np.ndarray, anchors: Anchors
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Refined raw positions (N, 2), their NCC with the anchor (-1 where the warp diverged) and the contrast
+        ratio (patch std now / at the anchor; a blurred or washed-out patch matches after normalisation but its
+        position is unreliable); updates anchors.A in place.
 
         Inverse compositional: the warp W(x) = A x + t maps template coordinates into the image; each step
         solves for an increment of the template's own warp and composes its inverse, A <- A M, t <- t - A M d
@@ -128,14 +133,16 @@ class AnchorRefiner:
         the last warp sampled (before the last, small step): one image sampling fewer per frame."""
         n = len(pos)
         if n == 0:
-            return pos.copy(), np.zeros(0)
+            return pos.copy(), np.zeros(0), np.zeros(0)
         t = pos.astype(np.float32)
         A = anchors.A.astype(np.float32)
         eye = np.eye(2, dtype=np.float32)[None]
         ncc = np.zeros(n, np.float32)
+        inv_std = np.zeros((n, 1), np.float32)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             for _ in range(self.iterations):
-                r = self._warped(img, A, t) - anchors.tpl
+                w, inv_std = self._warped(img, A, t)
+                r = w - anchors.tpl
                 ncc = 1.0 - 0.5 * np.einsum("nk,nk->n", r, r) / r.shape[1]  # both sides have unit RMS
                 dp = (anchors.J @ r[:, :, None])[:, :, 0]
                 A = A @ _inv2(eye + dp[:, :4].reshape(n, 2, 2))
@@ -145,7 +152,9 @@ class AnchorRefiner:
         ncc[bad] = -1.0
         A[bad] = np.eye(2)
         anchors.A[:] = A
-        return t.astype(np.float64), ncc.astype(np.float64)
+        std_now = np.where(inv_std[:, 0] > 0, 1.0 / np.maximum(inv_std[:, 0], 1e-9), 0.0)
+        contrast = std_now / np.maximum(anchors.std, 1e-3)
+        return t.astype(np.float64), ncc.astype(np.float64), contrast
 
     def needs_renewal(self, anchors: Anchors) -> np.ndarray:
         """Rows whose warp deforms the patch by more than `renew_deform` (largest |singular value - 1|)."""

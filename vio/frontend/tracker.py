@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 BORDER_PX = 8  # new features keep this far from the border so the KLT window stays inside
 REFINE_MAX_SHIFT_PX = 2.0  # a refinement that moves the KLT result further found another patch
+MAX_CONTRAST_CHANGE = 3.0  # patch std vs its anchor's (after gain compensation): beyond, blur or glare
 STEREO_RETRY_EVERY = 4  # frames between stereo searches for a track whose last stereo match failed
 
 
@@ -219,9 +220,10 @@ class StereoTracker:
         if self._anc is None or not ok.any():
             return
         # all rows at once: the few KLT failures are dropped anyway, and subsetting would copy the anchors
-        pos, ncc = self._anchor.refine(img, self._raw, self._anc)
+        pos, ncc, contrast = self._anchor.refine(img, self._raw, self._anc)
         h, w = img.shape
         good = (ncc >= self._anchor.min_ncc) & np.all(np.isfinite(pos), axis=1)
+        good &= (contrast > 1.0 / MAX_CONTRAST_CHANGE) & (contrast < MAX_CONTRAST_CHANGE)
         good &= (pos[:, 0] >= 0) & (pos[:, 0] <= w - 1) & (pos[:, 1] >= 0) & (pos[:, 1] <= h - 1)
         good &= np.linalg.norm(pos - self._raw, axis=1) < REFINE_MAX_SHIFT_PX
         ok &= good
