@@ -10,6 +10,7 @@ from collections import deque
 
 import numpy as np
 
+from vio import VioError
 from vio.geometry import so3_exp
 from vio.types import ImuSample
 
@@ -56,7 +57,17 @@ class GyroPrior:
         self.keep_ns = int(keep_s * 1e9)
         self._t: deque[int] = deque()
         self._w: deque[np.ndarray] = deque()
-        self.gyro_bias = np.zeros(3)  # the back end may set its estimate here
+        self.gyro_bias = np.zeros(3)  # set_gyro_bias() keeps it at the back end's estimate
+
+    def set_gyro_bias(self, gyro_bias: np.ndarray) -> None:
+        """Use the back end's gyro bias estimate [rad/s, body frame] from now on.
+
+        Without it the bias rotates the KLT start by bias * dt per frame and the parallax measure sees the
+        accumulated rotation error as fake parallax. Call after each back-end update (cheap: a copy)."""
+        b = np.asarray(gyro_bias, dtype=float).reshape(-1)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise VioError(f"gyro bias must be 3 finite numbers [rad/s], got {gyro_bias!r}")
+        self.gyro_bias = b.copy()
 
     def add(self, s: ImuSample) -> None:
         if self._t and s.t_ns <= self._t[-1]:
