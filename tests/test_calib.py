@@ -418,3 +418,16 @@ def test_time_offset_on_simulated_flight(tmp_path):
     est = estimate_time_offset_dataset(tmp_path / "sim")
     assert est.observable
     assert est.offset_s * 1e3 == pytest.approx(8.0, abs=1.0)
+
+
+def test_depthai_conversion_scales_to_streamed_size(tmp_path):
+    """The driver passes device.readCalibration() and its stream size: K must follow the resolution."""
+    dai = pytest.importorskip("depthai")
+    from calib.depthai_import import stereo_from_depthai
+
+    path, T_right_left, _ = _depthai_json(tmp_path)
+    full = stereo_from_depthai(dai.CalibrationHandler(str(path)))
+    half = stereo_from_depthai(dai.CalibrationHandler(str(path)), size=(640, 400), cam_rate_hz=30.0)
+    assert (half.cam0.width, half.cam0.height, half.cam0.rate_hz) == (640, 400, 30.0)
+    assert half.cam0.fx == pytest.approx(full.cam0.fx / 2, rel=1e-6)
+    np.testing.assert_allclose(half.T_cam1_cam0, T_right_left, atol=1e-6)
