@@ -67,6 +67,8 @@ def render(res: dict, out_rel: str) -> str:
         L.append(f"| {key} | {r['frames']} | {_f(a['ate_se3_m'], 3)} | {_f(a['ate_4dof_m'], 3)} | "
                  f"{_f(a['rpe_pct'])} | {_f(a['rpe_deg_per_m'], 3)} | {100 * (a['coverage'] or 0):.0f} % | "
                  f"{r['resets']} | {_f(r['rtf'])} | {link} |")
+    for note in res.get("notes", []):
+        L += ["", note]
     sp = res["speed"]
     if len(sp.get("repeat_ate_se3_m") or []) > 1:
         L += ["", f"Repeatability: `{sp['one_core']['name']}` replayed {len(sp['repeat_ate_se3_m'])} times (one "

@@ -443,12 +443,15 @@ def _run(plan: Plan, args: argparse.Namespace) -> int:
                    "runs": {k: r.to_dict() for k, r in other.items()}}
         _print_ratios(compare)
 
+    notes = []
+    if plan.euroc and not any(k.startswith("euroc") for k in runs):
+        notes.append(f"The real EuRoC excerpt was not found at {EUROC_EXCERPT}: skipped.")
     head = headline(runs, speed["one_core_pooled"], live)
     info["load_avg_end"] = os.getloadavg()
     info["suite_wall_s"] = time.perf_counter() - t_start
     result = {"info": info, "plan": asdict(plan), "headline": head, "verdicts": verdicts(head),
               "runs": {k: r.to_dict() for k, r in runs.items()}, "speed": speed, "live": live, "profile": prof,
-              "plots": plots, "compare": compare}
+              "plots": plots, "compare": compare, "notes": notes}
     result = _json_safe(result)
     (out / "suite.json").write_text(json.dumps(result, indent=1) + "\n")
     write_report(result, Path(args.report), out)

@@ -3,6 +3,7 @@ suite on a tiny flight. No timing assertions: the numbers are only checked for b
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -85,8 +86,11 @@ def test_flight_cache_generates_once(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert ensure_flight(spec, tmp_path) == path
 
 
-def test_suite_smoke_run_writes_report_and_json(tmp_path: Path) -> None:
+def test_suite_smoke_run_writes_report_and_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out, report = tmp_path / "results", tmp_path / "benchmarks.md"
+    # ask for the real EuRoC excerpt where there is none: the report must say it was skipped
+    monkeypatch.setattr(run_suite, "EUROC_EXCERPT", tmp_path / "no-euroc")
+    monkeypatch.setitem(run_suite.PLANS, "smoke", dataclasses.replace(run_suite.PLANS["smoke"], euroc=True))
     rc = run_suite.main(["--plan", "smoke", "--out", str(out), "--report", str(report), "--work", str(tmp_path)])
     assert rc == 0
     res = json.loads((out / "suite.json").read_text())
@@ -99,6 +103,7 @@ def test_suite_smoke_run_writes_report_and_json(tmp_path: Path) -> None:
     assert res["live"]["latency_ms"]["n"] > 10 and res["live"]["memory"]["peak_rss_mb"] > 50
     assert any("estimator.py" in r["function"] for r in res["profile"]["cumulative"])
     text = report.read_text()
+    assert f"not found at {tmp_path / 'no-euroc'}: skipped" in text
     for heading in ("## Targets", "## Accuracy", "## Speed", "## Latency", "## Memory", "## Profile"):
         assert heading in text
     for png in [*res["plots"].values(), "memory_rss.png"]:
