@@ -4,7 +4,8 @@ by the live camera driver, so both read the device EEPROM the same way.
 depthai stores extrinsics in centimetres and with OpenCV's convention (getCameraExtrinsics(a, b) maps
 points of camera a into camera b, i.e. it is T_b_a); we ask for metres explicitly. Lenses are either
 OpenCV's 14-coefficient rational model (k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty) or fisheye (k1..k4). Our
-radtan model keeps k1 k2 p1 p2 k3 only; the dropped terms are reported, never silently lost.
+radtan model is OpenCV's own pinhole model, so the coefficients are kept exactly; only trailing zero groups
+are trimmed (14 -> 8 or 5), which keeps the file readable by tools that know only 5.
 """
 
 from __future__ import annotations
@@ -15,13 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vio import VioError
-from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration
+from vio.calibration import RADTAN_LENGTHS, CameraCalibration, ImuNoise, StereoCalibration
 from vio.geometry import inv_T
 
 log = logging.getLogger(__name__)
 
-RADTAN_KEEP = 5  # k1 k2 p1 p2 k3
-_RATIONAL_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tx", "ty")
 
 
 @dataclass
@@ -35,21 +34,22 @@ class ImportNotes:
         log.warning(msg)
 
 
-def rational_to_radtan(coeffs, where: str, notes: ImportNotes | None = None,
-                       tol: float = 1e-9) -> tuple[float, ...]:
-    """OpenCV distortion vector (4, 5, 8, 12 or 14 values) -> radtan (k1, k2, p1, p2, k3).
+def opencv_to_radtan(coeffs, where: str, tol: float = 1e-12) -> tuple[float, ...]:
+    """OpenCV distortion vector (4, 5, 8, 12 or 14 values) -> our radtan coefficients, exactly.
 
-    The higher rational/prism/tilt terms cannot be represented; if any is non-zero the caller hears which.
+    Trailing groups that are all zero are dropped (14 -> 12 -> 8 -> 5), so a plain 5-coefficient lens stays
+    a 5-coefficient lens in the file; nothing non-zero is ever cut (cutting OAK's k4..k6 moves border pixels
+    by tens of pixels).
     """
     d = [float(x) for x in np.asarray(coeffs, dtype=float).ravel()]
-    if len(d) not in (4, 5, 8, 12, 14):
+    if len(d) not in RADTAN_LENGTHS:
         raise VioError(f"{where}: OpenCV distortion needs 4, 5, 8, 12 or 14 coefficients, got {len(d)}")
-    extra = {n: v for n, v in zip(_RATIONAL_NAMES[RADTAN_KEEP:], d[RADTAN_KEEP:]) if abs(v) > tol}
-    if extra and notes is not None:
-        shown = ", ".join(f"{k}={v:.4g}" for k, v in extra.items())
-        notes.add(f"{where}: rational-model terms {shown} are non-zero but radtan keeps only k1 k2 p1 p2 k3; "
-                  "expect extra error near the image border (recalibrate with a 5-coefficient model to avoid)")
-    return tuple(d[:RADTAN_KEEP])
+    if not all(np.isfinite(d)):
+        raise VioError(f"{where}: non-finite distortion coefficient in {d}")
+    for n in (5, 8, 12):
+        if len(d) > n and all(abs(v) <= tol for v in d[n:]):
+            return tuple(d[:n])
+    return tuple(d)
 
 
 def _camera(handler, socket, T_body_cam: np.ndarray, where: str, notes: ImportNotes, rate_hz: float,
@@ -68,7 +68,7 @@ def _camera(handler, socket, T_body_cam: np.ndarray, where: str, notes: ImportNo
     if model == dai.CameraModel.Fisheye:
         dmodel, dcoef = "equidistant", tuple(float(x) for x in dist[:4])
     elif model == dai.CameraModel.Perspective:
-        dmodel, dcoef = "radtan", rational_to_radtan(dist, where, notes)
+        dmodel, dcoef = "radtan", opencv_to_radtan(dist, where)
     else:
         raise VioError(f"{where}: depthai camera model {model.name} is not supported (Perspective or Fisheye)")
     return CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=w, height=h,

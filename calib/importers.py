@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.depthai_import import ImportNotes, rational_to_radtan, stereo_from_depthai
+from calib.depthai_import import ImportNotes, opencv_to_radtan, stereo_from_depthai
 from vio import VioError
 from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, camera_from_dict, load_yaml
 from vio.geometry import inv_T, rotation_angle_deg
@@ -223,7 +223,7 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
         if model.lower() in ("fisheye", "equidistant"):
             dmodel, dcoef = "equidistant", tuple(D[i][:4])
         else:
-            dmodel, dcoef = "radtan", rational_to_radtan(D[i], f"{where}: D{i + 1}", notes)
+            dmodel, dcoef = "radtan", opencv_to_radtan(D[i], f"{where}: D{i + 1}")
         T_body_cam = np.eye(4) if i == 0 else inv_T(T_c1_c0)
         cams.append(CameraCalibration(fx=K[i][0, 0], fy=K[i][1, 1], cx=K[i][0, 2], cy=K[i][1, 2], width=w,
                                       height=h, distortion_model=dmodel, distortion=dcoef,

@@ -106,7 +106,7 @@ def test_opencv_import_units_and_convention(tmp_path):
     np.testing.assert_allclose(back.cam1.K, calib.cam1.K)
 
 
-def test_opencv_rational_model_keeps_five_and_says_so(tmp_path):
+def test_opencv_rational_model_is_kept_exactly(tmp_path):
     import cv2
 
     f = tmp_path / "rational.yml"
@@ -120,9 +120,13 @@ def test_opencv_rational_model_keeps_five_and_says_so(tmp_path):
     fs.write("T", np.array([[-0.05], [0.0], [0.0]]))
     fs.release()
     calib, notes = import_calibration("opencv", [f])
-    assert calib.cam0.distortion == (0.1, -0.2, 0.001, 0.002, 0.03)
-    assert any("k4=0.5" in m and "D1" in m for m in notes.messages)
-    assert not any("D2" in m for m in notes.messages)
+    assert calib.cam0.distortion == (0.1, -0.2, 0.001, 0.002, 0.03, 0.5, 0.0, 0.0)  # k4 kept: rational model
+    assert calib.cam1.distortion == (0.1, -0.2, 0.001, 0.002, 0.03)  # all-zero k4..k6 trimmed
+    # the kept model projects exactly like OpenCV's own 8-coefficient call
+    pts = np.array([[0.3, -0.2, 1.0], [-0.6, 0.4, 1.0]])
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), calib.cam0.K, np.array(calib.cam0.distortion))
+    np.testing.assert_allclose(calib.cam0.project(pts), ref.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(calib.cam0.undistort_normalized(calib.cam0.project(pts)), pts[:, :2], atol=1e-6)
 
 
 def test_opencv_missing_key(tmp_path):
@@ -167,8 +171,9 @@ def test_depthai_import_metres_and_frames(tmp_path):
     np.testing.assert_allclose(calib.T_cam1_cam0, T_right_left, atol=1e-6)  # cm -> m and direction
     np.testing.assert_allclose(calib.cam0.T_body_cam, inv_T(T_left_imu), atol=1e-6)
     assert calib.baseline_m == pytest.approx(0.0751, abs=1e-4)
-    assert calib.cam0.distortion == pytest.approx((-4.21, 12.3, 0.0011, -0.0007, 4.6), abs=1e-6)
-    assert any("k4=-4.1" in m for m in notes.messages)  # dropped rational terms are reported
+    # the full rational model survives (k4..k6 of an OAK lens are large; dropping them moves pixels by tens)
+    assert calib.cam0.distortion[:5] == pytest.approx((-4.21, 12.3, 0.0011, -0.0007, 4.6), abs=1e-6)
+    assert len(calib.cam0.distortion) == 8 and calib.cam0.distortion[5] == pytest.approx(-4.1, abs=1e-6)
     _roundtrip(calib, tmp_path)
 
 

@@ -270,7 +270,9 @@ def test_calibration_from_eeprom_json_at_streamed_resolution() -> None:
     np.testing.assert_allclose(calib.T_cam1_cam0, T_C_B, atol=1e-6)
     np.testing.assert_allclose(calib.cam0.T_body_cam, inv_T(T_C_imu) @ T_C_B, atol=1e-6)
     np.testing.assert_allclose(calib.cam1.T_body_cam, inv_T(T_C_imu), atol=1e-6)
-    assert calib.cam0.distortion_model == "radtan" and len(calib.cam0.distortion) == 5
+    # OAK mono lenses use the rational model: all 8 non-zero coefficients are kept, in OpenCV order
+    assert calib.cam0.distortion_model == "radtan" and len(calib.cam0.distortion) == 8
+    np.testing.assert_allclose(calib.cam0.distortion, cams[1]["distortionCoeff"][:8], rtol=1e-6)
 
 
 def test_no_device_then_plugged_in() -> None:

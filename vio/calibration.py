@@ -1,8 +1,9 @@
 """Camera and IMU calibration types and the project's calibration file (kalibr-style YAML).
 
-Names follow kalibr: distortion models `radtan` (k1, k2, p1, p2[, k3]) and `equidistant`
-(k1..k4, OpenCV fisheye); IMU noise keys are kalibr's. `T_body_cam` maps camera points into the body
-(= IMU) frame. `time_offset_ns` follows kalibr's timeshift: t_imu = t_cam + time_offset_ns.
+Names follow kalibr: distortion models `radtan` (OpenCV's pinhole model: k1, k2, p1, p2[, k3[, k4, k5, k6
+[, s1..s4[, tx, ty]]]], i.e. 4, 5, 8, 12 or 14 coefficients, so the rational model of OAK cameras is kept
+exactly) and `equidistant` (k1..k4, OpenCV fisheye); IMU noise keys are kalibr's. `T_body_cam` maps
+camera points into the body (= IMU) frame. `time_offset_ns` follows kalibr's timeshift: t_imu = t_cam + time_offset_ns.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from vio import VioError
 from vio.geometry import inv_T, is_se3
 
 DISTORTION_MODELS = ("radtan", "equidistant", "none")
+RADTAN_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV's pinhole model accepts
 _DISTORTION_ALIASES = {
     "radtan": "radtan",
     "radial-tangential": "radtan",
@@ -68,8 +70,8 @@ class CameraCalibration:
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
             raise VioError(f"principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image")
         n = len(self.distortion)
-        if self.distortion_model == "radtan" and n not in (4, 5):
-            raise VioError(f"radtan distortion needs 4 or 5 coefficients, got {n}")
+        if self.distortion_model == "radtan" and n not in RADTAN_LENGTHS:
+            raise VioError(f"radtan distortion needs 4, 5, 8, 12 or 14 coefficients (OpenCV order), got {n}")
         if self.distortion_model == "equidistant" and n != 4:
             raise VioError(f"equidistant distortion needs 4 coefficients, got {n}")
         if not is_se3(self.T_body_cam, tol=1e-4):
@@ -109,8 +111,10 @@ class CameraCalibration:
             out = cv2.fisheye.undistortPoints(pts, self.K, self.dist_coeffs)
         else:
             crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
-            # undistortPointsIter is gone in OpenCV 5; undistortPoints takes the criteria (needs explicit R, P)
-            out = cv2.undistortPoints(pts, self.K, self.dist_coeffs, None, np.eye(3), np.eye(3), crit)
+            if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+                out = cv2.undistortPointsIter(pts, self.K, self.dist_coeffs, None, None, crit)
+            else:  # OpenCV 5 folded the criteria into undistortPoints (needs explicit R, P)
+                out = cv2.undistortPoints(pts, self.K, self.dist_coeffs, None, np.eye(3), np.eye(3), crit)
         return out.reshape(-1, 2)
 
     def with_T_body_cam(self, T: np.ndarray) -> CameraCalibration:
