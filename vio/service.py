@@ -925,7 +925,8 @@ def _default_mavlink_factory(cfg: VioConfig) -> Callable[[], Any]:
     def make() -> Any:
         from drivers.mavlink_out import MavlinkOutput
 
-        return MavlinkOutput(cfg.mavlink, cfg.mavlink.url)
+        # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips)
+        return MavlinkOutput(cfg.mavlink, cfg.mavlink.url).start()
     return make
 
 
