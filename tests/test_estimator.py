@@ -115,3 +115,20 @@ def test_keyframe_rate_is_capped_by_the_minimum_interval():
     states, _, _, _ = _run(est, duration_s=4.0, still_s=1.0, seed=2)
     span_s = (states[-1].t_ns - states[0].t_ns) * 1e-9
     assert abs(est.keyframes - (span_s / 0.2 + 1)) <= 1
+
+
+def test_covariance_grows_between_keyframe_marginals():
+    est = Estimator(synthetic_calibration())
+    kf_flags: list[bool] = []
+    est.listeners.append(lambda st: kf_flags.append(est._was_keyframe))
+    states, _, _, _ = _run(est, duration_s=4.0, still_s=1.0, seed=5)
+    assert len(states) == len(kf_flags) and sum(kf_flags) >= 4
+    grew = 0
+    for prev, cur, is_kf in zip(states[:-1], states[1:], kf_flags[1:]):
+        assert np.all(np.linalg.eigvalsh(cur.cov_pose) > 0) and np.all(np.linalg.eigvalsh(cur.cov_vel) > 0)
+        if not is_kf:  # IMU-only prediction: position uncertainty can only grow
+            assert np.trace(cur.cov_pose[3:, 3:]) >= np.trace(prev.cov_pose[3:, 3:]) - 1e-12
+            grew += np.trace(cur.cov_pose[3:, 3:]) > np.trace(prev.cov_pose[3:, 3:])
+    assert grew > 10
+    marg_pose, marg_vel = est._smoother.marginal_covariances()
+    assert np.all(np.linalg.eigvalsh(marg_pose) > 0)

@@ -90,7 +90,8 @@ class BackendConfig:
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
     lost_timeout_s: float = opt(1.0, "tracking lost this long -> reset", min=0.05, max=60)
     zupt_max_speed_m_s: float = opt(0.05, "estimated speed above which no zero-velocity update is made", min=0, max=5)
-    covariance_every_kf: int = opt(4, "marginal covariances every N keyframes (they cost a few ms)", min=1, max=1000)
+    covariance_every_kf: int = opt(5, "marginal covariances every N keyframes (they cost a few ms); grown with "
+                                   "the IMU in between", min=1, max=1000)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

@@ -77,8 +77,10 @@ class Estimator:
         self._last_frame_t: int | None = None
         self._last_kf_t: int | None = None
         self._lost_since: int | None = None
-        self._cov_pose = np.eye(6) * 1e-2
+        self._cov_pose = np.eye(6) * 1e-2  # reported with the newest frame state
         self._cov_vel = np.eye(3) * 1e-2
+        self._kf_cov_pose = self._cov_pose  # at the last keyframe (marginal, or grown since the last marginal)
+        self._kf_cov_vel = self._cov_vel
         self._anchor: np.ndarray | None = None  # pose to continue from after a reset
         self._latest: NavState | None = None
         self._quality = 0
@@ -230,14 +232,18 @@ class Estimator:
         self._last_kf_t = t
         self.keyframes += 1
         self._was_keyframe = True
+        first = self._pim is None  # (re)start: always a marginal
+        if not first:  # grown up to this keyframe; replaced below when a marginal is due
+            self._kf_cov_pose, self._kf_cov_vel = self._grown_covariance(self._pim)
+        if first or (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
+            try:
+                self._kf_cov_pose, self._kf_cov_vel = self._smoother.marginal_covariances()
+            except SmootherFailure as e:
+                log.debug("no covariance at keyframe: %s", e)
+        self._cov_pose, self._cov_vel = self._kf_cov_pose, self._kf_cov_vel
         self._pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
         if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
             self.tracker.mark_keyframe()
-        if (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
-            try:
-                self._cov_pose, self._cov_vel = self._smoother.marginal_covariances()
-            except SmootherFailure as e:
-                log.debug("no covariance at keyframe: %s", e)
         pose = est.pose.matrix()
         bias = est.bias
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
@@ -279,6 +285,7 @@ class Estimator:
         if not self._is_keyframe(t, ff):
             last = self._smoother.last
             nav = self._pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
+            self._cov_pose, self._cov_vel = self._grown_covariance(self._pim)
             self._update_health(t, ff)
             st = self._state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
         else:
@@ -296,6 +303,28 @@ class Estimator:
         if self._lost_since is not None and (t - self._lost_since) * 1e-9 > self.bcfg.lost_timeout_s:
             self.reset(f"tracking lost for {(t - self._lost_since) * 1e-9:.2f} s")
         return st
+
+    def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:
+        """Last keyframe covariance grown by the IMU pre-integration since then.
+
+        A marginal from the smoother costs milliseconds, so it is computed only every
+        `covariance_every_kf` keyframes; in between, the pre-integration noise (rotation, position,
+        velocity) and the keyframe's velocity uncertainty times dt are added, with the keyframe
+        covariance rotated into the new body frame (translation coupling of the adjoint ignored).
+        Conservative: it grows until the next marginal replaces it.
+        """
+        C = np.asarray(pim.preintMeasCov())
+        dR = pim.deltaRij().matrix()
+        dt = pim.deltaTij()
+        R_wi = self._smoother.last.pose.rotation().matrix()
+        R_wj = R_wi @ dR
+        A = np.zeros((6, 6))
+        A[:3, :3] = A[3:, 3:] = dR.T
+        cov = A @ self._kf_cov_pose @ A.T
+        cov[:3, :3] += C[:3, :3]
+        cov[3:, 3:] += dR.T @ C[3:6, 3:6] @ dR + dt * dt * (R_wj.T @ self._kf_cov_vel @ R_wj)
+        cov_v = self._kf_cov_vel + R_wi @ C[6:9, 6:9] @ R_wi.T
+        return 0.5 * (cov + cov.T), 0.5 * (cov_v + cov_v.T)
 
     def _check_plausible(self, est) -> None:
         b = self.bcfg
