@@ -132,3 +132,11 @@ def test_covariance_grows_between_keyframe_marginals():
     assert grew > 10
     marg_pose, marg_vel = est._smoother.marginal_covariances()
     assert np.all(np.linalg.eigvalsh(marg_pose) > 0)
+
+
+def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():
+    est = Estimator(synthetic_calibration())
+    _run(est, duration_s=3.0, still_s=1.0, seed=6)
+    bg = np.asarray(est._smoother.last.bias.gyroscope())
+    assert np.allclose(est.gyro_prior.gyro_bias, bg)
+    assert np.linalg.norm(bg - [0.04, -0.02, 0.06]) < 0.01  # the simulated bias, not zero

@@ -26,10 +26,11 @@ from vio.backend.preintegration import ImuBuffer, combined_params
 from vio.backend.smoother import SmootherFailure, VioSmoother
 from vio.calibration import StereoCalibration
 from vio.config import VioConfig
+from vio.frontend.gyro import GyroPrior
 from vio.geometry import make_T, roll_pitch_yaw, so3_exp
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
-from vio.propagator import Propagator, rodrigues
+from vio.propagator import Propagator
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,8 @@ class Estimator:
         self.params = combined_params(calib.imu, self.bcfg.imu_noise_scale)
         self.imu = ImuBuffer()
         self.propagator = Propagator()
+        # KLT rotation prior for the front end, on the IMU clock (offset applied here), with our gyro bias
+        self.gyro_prior = GyroPrior(calib.cam0.T_body_cam, 0, keep_s=IMU_KEEP_S)
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self.listeners: list[Callable[[NavState], None]] = []
         self.reset_counter = 0
@@ -104,6 +107,7 @@ class Estimator:
         if not self.imu.add(s):
             return None
         self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
+        self.gyro_prior.add(s)
         self._drain(final=False)
         if self.initialized and self.propagator.add(s):
             return self._propagated_state()
@@ -148,18 +152,6 @@ class Estimator:
                 out = st
         return out
 
-    def _camera_rotation_prior(self, t0: int, t1: int) -> np.ndarray:
-        """R_cam0prev_cam0cur from the gyro (bias-corrected) for the front end's KLT prediction."""
-        bg = self._latest.gyro_bias if self._latest is not None else np.zeros(3)
-        ts, gyro, _ = self.imu.window(t0, t1)
-        knots = np.concatenate([[t0], ts[(ts > t0) & (ts < t1)], [t1]])
-        R = np.eye(3)
-        for a, b in zip(knots[:-1], knots[1:]):
-            w = 0.5 * (self.imu.at(int(a))[0] + self.imu.at(int(b))[0]) - bg
-            R = R @ rodrigues(w * (b - a) * 1e-9)
-        R_bc = self.calib.cam0.T_body_cam[:3, :3]
-        return R_bc.T @ R @ R_bc
-
     def _process(self, item: StereoFrame | FeatureFrame) -> NavState | None:
         t = int(item.t_ns) + self.calib.time_offset_ns
         if not self.imu.t:
@@ -173,7 +165,7 @@ class Estimator:
         else:
             if self.tracker is None:
                 self.tracker = make_tracker(self.calib, self.cfg)
-            prior = None if self._last_frame_t is None else self._camera_rotation_prior(self._last_frame_t, t)
+            prior = None if self._last_frame_t is None else self.gyro_prior.rotation(self._last_frame_t, t)
             ff = self.tracker.process(item, prior)
         t_front = time.perf_counter()
         prev_t = self._last_frame_t
@@ -246,6 +238,7 @@ class Estimator:
             self.tracker.mark_keyframe()
         pose = est.pose.matrix()
         bias = est.bias
+        self.gyro_prior.set_gyro_bias(bias.gyroscope())  # no gyro-bias rotation as fake parallax
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
         ts, g, a = self.imu.window(t + 1, self.imu.last_t_ns or t)
         for k in range(len(ts)):
