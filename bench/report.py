@@ -48,6 +48,11 @@ def render(res: dict, out_rel: str) -> str:
     for key, label, op, limit in TARGETS:
         extra = f" (CPU time: {_f(head.get('rtf_one_core_cpu'))})" if key == "rtf_one_core" else ""
         L.append(f"| {label} | {_f(head.get(key), 3)}{extra} | {op} {limit:g} | {verdict[key]} |")
+    if head.get("frame_to_output_p50_ms") is not None:
+        L += ["", "Latency is measured on the poses as sent: between camera frames the daemon sends IMU-propagated "
+              "states, so a message's `time_usec` is usually a recent IMU sample. The visual update itself (camera "
+              "frame arrival until its state reaches the MAVLink output, the daemon's own measure) takes "
+              f"{_f(head['frame_to_output_p50_ms'], 1)} ms at the median."]
     if head.get("failed_runs"):
         L += ["", f"Runs without a result: {', '.join(head['failed_runs'])} (see the tables)."]
     L += ["", "## Accuracy", "",
@@ -96,10 +101,14 @@ def render(res: dict, out_rel: str) -> str:
               "to a loopback autopilot stub in the suite process, which compares each message's `time_usec` "
               "with its arrival time on the same CLOCK_MONOTONIC.", "",
               "| messages | rate [Hz] | median [ms] | p95 [ms] | p99 [ms] | max [ms] "
-              "| daemon's own frame->state p50 / max [ms] |",
-              "| --- | --- | --- | --- | --- | --- | --- |",
+              "| daemon's own frame->state p50 / max [ms] | frames dropped | estimator resets |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
               f"| {lat['n']} | {_f(live['odometry_rate_hz'], 1)} | {_f(lat['p50'], 1)} | {_f(lat['p95'], 1)} | "
-              f"{_f(lat['p99'], 1)} | {_f(lat['max'], 1)} | {_f(inner.get('p50'), 1)} / {_f(inner.get('max'), 1)} |",
+              f"{_f(lat['p99'], 1)} | {_f(lat['max'], 1)} | {_f(inner.get('p50'), 1)} / {_f(inner.get('max'), 1)} "
+              f"| {(ds.get('source') or {}).get('frames_dropped', '-')} "
+              f"| {(ds.get('estimator') or {}).get('daemon_resets', '-')} |",
+              "", "The daemon's own figure is over its last 200 frames; resets and their reasons are in "
+              "`daemon.log` of the run folder.",
               "", "## Memory", "",
               f"RSS of the same `vio run` process, sampled every 0.5 s over `{live['flight']}`. Growth = median of "
               "the last 10 % of the time from the first pose to the end of the data minus the median of 10-20 % "
