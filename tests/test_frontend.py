@@ -325,7 +325,7 @@ def test_anchor_refinement_removes_translational_klt_bias() -> None:
     assert np.median(err_klt) > 0.15, "the deformation is too small to show the bias"
     assert len(err_ref) >= 0.8 * ok.sum()
     assert np.median(err_ref) < 0.4 * np.median(err_klt)
-    assert np.median(err_ref) < 0.1
+    assert np.median(err_ref) < 0.15
     assert np.median(contrast) == pytest.approx(1.0, abs=0.2)
     # the warp found is the true one
     s = np.linalg.svd(anchors.A[ok & (ncc > 0.85)], compute_uv=False)

@@ -3,7 +3,9 @@ exact truth of a simulated flight (`vio simulate` writes `simulation.yaml`, from
 trajectory are rebuilt: true depth comes from ray casting the scene at each feature's raw pixel).
 
 An observation is an outlier when it lies more than OUTLIER_PX from where the true motion moves the track's
-first 3D point (true depth at the first observation, true camera poses after it).
+first 3D point (true depth at the first observation, true camera poses after it). The figures are also split by
+where a track was born: within EDGE_PX of a depth discontinuity (a corner there may be a T-junction of two
+surfaces, and the true depth of a pixel-accurate corner is ambiguous) or clear of it.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from vio.types import FeatureFrame
 
 OUTLIER_PX = 2.0
 NEAR_M = 5.0  # depth errors are reported for points closer than this
+EDGE_PX = 3.0  # tracks born this close to a depth discontinuity (> 3 % jump between neighbours) are "edge-born"
 
 
 def track_stats(ffs: list[FeatureFrame]) -> dict:
@@ -88,12 +91,25 @@ def _depth_at(depth_img: np.ndarray, uv_raw: np.ndarray) -> np.ndarray:
     return np.where(edge, np.nan, 1.0 / inv.ravel().astype(float))
 
 
+def _edge_distance(depth_img: np.ndarray, uv_raw: np.ndarray) -> np.ndarray:
+    """Distance [px] of raw pixels from the nearest depth discontinuity (neighbours differing by > 3 %)."""
+    jump = np.zeros(depth_img.shape, bool)
+    jump[:, 1:] |= np.abs(np.diff(depth_img, axis=1)) > 0.03 * depth_img[:, 1:]
+    jump[1:, :] |= np.abs(np.diff(depth_img, axis=0)) > 0.03 * depth_img[1:, :]
+    dist = cv2.distanceTransform((~jump).astype(np.uint8), cv2.DIST_L2, 3)
+    h, w = depth_img.shape
+    x = np.clip(np.round(uv_raw[:, 0]).astype(int), 0, w - 1)
+    y = np.clip(np.round(uv_raw[:, 1]).astype(int), 0, h - 1)
+    return dist[y, x]
+
+
 def truth_errors(ffs: list[FeatureFrame], truth: SimTruth) -> dict:
     """Stereo depth error and outlier rate of the tracks against the simulation's truth."""
     calib = truth.calib
     cam0 = calib.cam0
     first: dict[int, np.ndarray] = {}  # track id -> true world point of its first observation
-    rel_err, obs_err = [], []
+    edge_born: set[int] = set()
+    rel_err, obs_err, obs_edge = [], [], []
     bad_tracks: set[int] = set()
     seen: set[int] = set()
     for f in ffs:
@@ -106,10 +122,16 @@ def truth_errors(ffs: list[FeatureFrame], truth: SimTruth) -> dict:
         st = np.isfinite(f.depth_m) & np.isfinite(d_true) & (d_true < NEAR_M)
         rel_err.extend((np.abs(f.depth_m[st] - d_true[st]) / d_true[st]).tolist())
         T_cw = inv_T(T_wc)
+        born = (f.track_len == 1) & np.isfinite(d_true)
+        near_edge = np.zeros(len(f.ids), bool)
+        if born.any():
+            near_edge[born] = _edge_distance(depth_img, raw[born]) < EDGE_PX
         for k, tid in enumerate(f.ids.tolist()):
             if tid not in first:
-                if f.track_len[k] == 1 and np.isfinite(d_true[k]):
+                if born[k]:
                     first[tid] = T_wc[:3, :3] @ (rays[k] * d_true[k]) + T_wc[:3, 3]
+                    if near_edge[k]:
+                        edge_born.add(tid)
                 continue
             p = T_cw[:3, :3] @ first[tid] + T_cw[:3, 3]
             if p[2] <= 0.05:
@@ -117,11 +139,13 @@ def truth_errors(ffs: list[FeatureFrame], truth: SimTruth) -> dict:
             uv = p[:2] / p[2] * [cam0.fx, cam0.fy] + [cam0.cx, cam0.cy]
             e = float(np.linalg.norm(uv - f.uv0[k]))
             obs_err.append(e)
+            obs_edge.append(tid in edge_born)
             seen.add(tid)
             if e > OUTLIER_PX:
                 bad_tracks.add(tid)
     rel = np.array(rel_err) if rel_err else np.full(1, np.nan)
     obs = np.array(obs_err) if obs_err else np.full(1, np.nan)
+    edge = np.array(obs_edge, bool) if obs_err else np.zeros(1, bool)
     return {
         "depth_rel_error_median_within_5m": float(np.median(rel)),
         "depth_rel_error_p90_within_5m": float(np.percentile(rel, 90)),
@@ -129,6 +153,9 @@ def truth_errors(ffs: list[FeatureFrame], truth: SimTruth) -> dict:
         "reprojection_error_median_px": float(np.median(obs)),
         "outlier_observations_fraction": float(np.mean(obs > OUTLIER_PX)),
         "outlier_tracks_fraction": len(bad_tracks) / max(len(seen), 1),
+        "edge_born_observations_fraction": float(edge.mean()),
+        "outlier_observations_fraction_edge_born": float(np.mean(obs[edge] > OUTLIER_PX)) if edge.any() else 0.0,
+        "outlier_observations_fraction_clear": float(np.mean(obs[~edge] > OUTLIER_PX)) if (~edge).any() else 0.0,
         "tracks_checked": len(seen),
     }
 
