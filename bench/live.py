@@ -106,7 +106,11 @@ def memory_growth(t_s: np.ndarray, rss_mb: np.ndarray, t_start_s: float, t_end_s
     if not early.any() or not late.any():
         raise VioError(f"memory: too few RSS samples in {span:.1f} s for the early/late plateaus")
     e, la = float(np.median(rss_mb[early])), float(np.median(rss_mb[late]))
-    return {"early_mb": e, "late_mb": la, "growth_mb": la - e,
+    # a one-time step (a cache or pool filling up) and a steady leak give the same growth; the slope of the
+    # second half tells them apart
+    half = (t_s >= t_start_s + 0.5 * span) & (t_s <= t_end_s)
+    slope = float(np.polyfit(t_s[half], rss_mb[half], 1)[0]) * 600.0 if half.sum() >= 2 else float("nan")
+    return {"early_mb": e, "late_mb": la, "growth_mb": la - e, "second_half_mb_per_10min": slope,
             "early_window_s": [t_start_s + 0.1 * span, t_start_s + 0.2 * span],
             "late_window_s": [t_start_s + 0.9 * span, t_end_s]}
 

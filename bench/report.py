@@ -113,10 +113,15 @@ def render(res: dict, out_rel: str) -> str:
               f"RSS of the same `vio run` process, sampled every 0.5 s over `{live['flight']}`. Growth = median of "
               "the last 10 % of the time from the first pose to the end of the data minus the median of 10-20 % "
               "into it.", "",
-              "| peak RSS [MB] | early plateau [MB] | late plateau [MB] | growth [MB] | plot |",
-              "| --- | --- | --- | --- | --- |",
+              "| peak RSS [MB] | early plateau [MB] | late plateau [MB] | growth [MB] "
+              "| trend of the second half [MB / 10 min] | plot |",
+              "| --- | --- | --- | --- | --- | --- |",
               f"| {_f(mem['peak_rss_mb'], 1)} | {_f(mem['early_mb'], 1)} | {_f(mem['late_mb'], 1)} | "
-              f"{mem['growth_mb']:+.2f} | [png]({out_rel}/memory_rss.png) |"]
+              f"{mem['growth_mb']:+.2f} | {_f(mem.get('second_half_mb_per_10min'))} "
+              f"| [png]({out_rel}/memory_rss.png) |",
+              "", "The trend is the slope of a straight line fitted to the second half of the trace: a one-time step "
+              "(a pool or cache filling up) raises the growth figure but leaves the trend near zero, a leak does "
+              "not."]
     prof = res.get("profile")
     if prof:
         L += ["", "## Profile", "",

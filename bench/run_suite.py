@@ -389,9 +389,9 @@ def _run(plan: Plan, args: argparse.Namespace) -> int:
     stamp = time.strftime("%Y%m%dT%H%M%S")
     run_root = work / "runs" / stamp
     info = machine_info()
-    info["command"] = "python bench/run_suite.py " + " ".join(
+    info["command"] = ("python bench/run_suite.py " + " ".join(
         a for a in (("--quick" if args.quick else ""), (f"--plan {args.plan}" if args.plan else ""),
-                    (f"--compare {args.compare}" if args.compare else "")) if a)
+                    (f"--compare {args.compare}" if args.compare else "")) if a)).strip()
     info["plan"] = plan.name
     if info["load_avg_start"][0] > 1.5:
         log.warning("load average %.2f: other work shares the CPUs, timings will be noisy", info["load_avg_start"][0])

@@ -26,12 +26,16 @@ from vio import VioError  # noqa: E402
 def test_memory_growth_uses_plateau_medians() -> None:
     t = np.arange(0.0, 100.0, 0.5)
     rss = np.full_like(t, 200.0)
-    rss[t > 50] += 3.0  # a real step of 3 MB
+    rss[t > 40] += 3.0  # a real step of 3 MB
     rss[(t > 15) & (t < 16)] += 80.0  # a transient spike inside the early window: the median ignores it
     g = memory_growth(t, rss, 0.0, 100.0)
     assert g["early_mb"] == pytest.approx(200.0)
     assert g["growth_mb"] == pytest.approx(3.0)
-    g = memory_growth(t, rss, 60.0, 100.0)  # both windows after the step
+    assert g["second_half_mb_per_10min"] == pytest.approx(0.0, abs=0.5)  # a step, not a leak
+    leak = memory_growth(t, 200.0 + 0.01 * t, 0.0, 100.0)  # 0.01 MB/s = 6 MB per 10 min
+    assert leak["second_half_mb_per_10min"] == pytest.approx(6.0)
+    assert leak["growth_mb"] == pytest.approx(0.01 * (95 - 15), abs=0.02)
+    g = memory_growth(t, rss, 45.0, 100.0)  # both windows after the step
     assert g["growth_mb"] == pytest.approx(0.0)
 
 
