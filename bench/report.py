@@ -151,6 +151,8 @@ def render(res: dict, out_rel: str) -> str:
           "(V1_01_easy, 95 frames, nearly still) is evaluated against the part of the ground truth it spans.",
           "- One core: the replay process is pinned to CPU 0 (as `taskset -c 0`), OMP/OPENBLAS/MKL/NUMEXPR "
           "threads = 1 and `cv2.setNumThreads(1)`. All cores: no pinning, library defaults.",
+          "- The replay's RTF includes reading the PNG images (`imread`, about a quarter of a replay's time in "
+          "the profile), which a live camera does not need; the per-frame stage times do not include it.",
           "- The long memory flight uses 376x240 images to keep its generation time reasonable; memory growth "
           "comes from state that accumulates per frame or keyframe, which does not depend on the image size.",
           "- Latency includes waiting for the next slot of the MAVLink output schedule (`[mavlink] rate_hz`) and "
