@@ -25,6 +25,11 @@ def _speed_row(label: str, r: dict) -> str:
             f"{_mpm(r.get('output_ms'))} | {_mpm(t.get('total_ms'))} | {_f(r.get('rtf'))} | {_f(r.get('rtf_cpu'))} |")
 
 
+def _imread_share(prof: dict | None) -> str:
+    row = next((r for r in (prof or {}).get("own", []) if r["function"] == "<imread>"), None)
+    return f", {100 * row['tottime_s'] / prof['total_s']:.0f} % of the profiled replay" if row else ""
+
+
 def render(res: dict, out_rel: str) -> str:
     """The report text; `out_rel` is the results folder relative to the report (for image links)."""
     from bench.run_suite import TARGETS
@@ -151,8 +156,8 @@ def render(res: dict, out_rel: str) -> str:
           "(V1_01_easy, 95 frames, nearly still) is evaluated against the part of the ground truth it spans.",
           "- One core: the replay process is pinned to CPU 0 (as `taskset -c 0`), OMP/OPENBLAS/MKL/NUMEXPR "
           "threads = 1 and `cv2.setNumThreads(1)`. All cores: no pinning, library defaults.",
-          "- The replay's RTF includes reading the PNG images (`imread`, about a quarter of a replay's time in "
-          "the profile), which a live camera does not need; the per-frame stage times do not include it.",
+          "- The replay's RTF includes reading the PNG images (`imread`" + _imread_share(prof) + "), which a live "
+          "camera does not need; the per-frame stage times do not include it.",
           "- The long memory flight uses 376x240 images to keep its generation time reasonable; memory growth "
           "comes from state that accumulates per frame or keyframe, which does not depend on the image size.",
           "- Latency includes waiting for the next slot of the MAVLink output schedule (`[mavlink] rate_hz`) and "
