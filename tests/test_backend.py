@@ -138,3 +138,38 @@ def test_spread_order_round_robins_cells_longest_first():
     crowded = [k for k in order if k < 40]
     assert np.all(np.diff(track_len[crowded]) <= 0)  # inside a cell: longest first
     assert len(spread_order(np.zeros((0, 2)), np.zeros(0, int), 752, 480)) == 0
+
+
+def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: int = 1):
+    """OnlineTimeOffset on synthetic tracks whose stamps are `true_offset_ms` early (t_imu = t_cam + offset)."""
+    from vio.backend.time_offset import OnlineTimeOffset
+
+    calib = synthetic_calibration()  # its time_offset_ns is 0: the offset is unknown to the estimator
+    mot = Motion(speed=speed, still_s=1.0, seed=seed)
+    scene = SyntheticScene(calib, seed=seed)
+    rng = np.random.default_rng(seed)
+    imu = imu_samples(mot, 0.0, duration_s, noise=calib.imu, rng=rng)
+    est = OnlineTimeOffset(calib, max_collect_s=duration_s - 3.0)
+    off_ns = int(true_offset_ms * 1e6)
+    changes = []
+    for s in imu:
+        est.add_imu(s)
+        if s.t_ns % 50_000_000 == 0 and s.t_ns > 100_000_000:  # frame exposed now, stamped `offset` earlier
+            new = est.add_frame(scene.observe(s.t_ns - off_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.3, rng=rng))
+            if new is not None:
+                changes.append(new)
+    return est, changes
+
+
+@pytest.mark.parametrize("true_ms", [8.0, -12.0])
+def test_online_time_offset_finds_an_unknown_offset(true_ms):
+    est, changes = _offset_run(true_ms, speed=3.0, duration_s=14.0)
+    assert changes, "no offset was ever accepted"
+    assert abs(est.offset_ns * 1e-6 - true_ms) < 1.5
+    assert est.sigma_s < 2e-3
+
+
+def test_online_time_offset_gives_up_without_rotation():
+    est, changes = _offset_run(8.0, speed=0.05, duration_s=8.0)
+    assert changes == [] and est.offset_ns is None
+    assert est.done  # stopped collecting after max_collect_s: no cost for the rest of a hover

@@ -3,7 +3,9 @@
 `feed_imu` returns the IMU-rate propagated state; `feed_frame` runs the front end and the back end and
 returns the state at the frame (also handed to every `listeners` callback, the replay's output sinks).
 Frame stamps are on the camera clock and are moved onto the IMU clock with the calibration's
-`time_offset_ns` (t_imu = t_cam + offset); a frame waits until the IMU has reached its stamp.
+`time_offset_ns` (t_imu = t_cam + offset); a frame waits until the IMU has reached its stamp. With
+`backend.estimate_time_offset` the offset is re-estimated in flight (vio.backend.time_offset) and replaces
+the calibration's once confident.
 
 Life cycle: uninitialised -> (static or in-motion) initialisation -> tracking. Keyframes go through the
 fixed-lag smoother; other frames get the IMU prediction from the last keyframe. Failures (smoother
@@ -24,6 +26,7 @@ import numpy as np
 
 from vio.backend.preintegration import ImuBuffer, combined_params
 from vio.backend.smoother import SmootherFailure, VioSmoother
+from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import VioConfig
 from vio.frontend.gyro import GyroPrior
@@ -68,6 +71,10 @@ class Estimator:
         self.propagator = Propagator()
         # KLT rotation prior for the front end, on the IMU clock (offset applied here), with our gyro bias
         self.gyro_prior = GyroPrior(calib.cam0.T_body_cam, 0, keep_s=IMU_KEEP_S)
+        self.time_offset_ns = int(calib.time_offset_ns)  # t_imu = t_cam + offset; may be re-estimated
+        b = self.bcfg
+        self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3) \
+            if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self.listeners: list[Callable[[NavState], None]] = []
         self.reset_counter = 0
@@ -108,6 +115,8 @@ class Estimator:
             return None
         self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
         self.gyro_prior.add(s)
+        if self.offset_estimator is not None:
+            self.offset_estimator.add_imu(s)
         self._drain(final=False)
         if self.initialized and self.propagator.add(s):
             return self._propagated_state()
@@ -144,7 +153,7 @@ class Estimator:
         out = None
         last_imu = self.imu.last_t_ns
         while self._pending:
-            t_imu = self._pending[0].t_ns + self.calib.time_offset_ns
+            t_imu = self._pending[0].t_ns + self.time_offset_ns
             if not final and (last_imu is None or last_imu < t_imu):
                 break
             st = self._process(self._pending.popleft())
@@ -153,7 +162,7 @@ class Estimator:
         return out
 
     def _process(self, item: StereoFrame | FeatureFrame) -> NavState | None:
-        t = int(item.t_ns) + self.calib.time_offset_ns
+        t = int(item.t_ns) + self.time_offset_ns
         if not self.imu.t:
             return None
         if self._last_frame_t is not None and t <= self._last_frame_t:
@@ -166,8 +175,16 @@ class Estimator:
             if self.tracker is None:
                 self.tracker = make_tracker(self.calib, self.cfg)
             prior = None if self._last_frame_t is None else self.gyro_prior.rotation(self._last_frame_t, t)
-            ff = self.tracker.process(item, prior)
+            import cv2  # already loaded by the tracker
+
+            try:
+                ff = self.tracker.process(item, prior)
+            except cv2.error as e:  # one frame OpenCV cannot handle must not end the flight
+                msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+                log.warning("front end failed on the frame at %d: %s", item.t_ns, msg)
+                ff = FeatureFrame.empty(item.t_ns, f"front end error: {msg}")
         t_front = time.perf_counter()
+        self._update_time_offset(ff)
         prev_t = self._last_frame_t
         self._last_frame_t = t
         self._flow_px = median_flow_px(self._prev_ff, ff)
@@ -187,6 +204,16 @@ class Estimator:
             for sink in self.listeners:
                 sink(st)
         return st
+
+    def _update_time_offset(self, ff: FeatureFrame) -> None:
+        """Feed the in-flight offset estimator; a confident new offset applies from the next frame on."""
+        if self.offset_estimator is None or self.offset_estimator.done:
+            return
+        new = self.offset_estimator.add_frame(ff)
+        if new is not None and new != self.time_offset_ns:
+            log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
+                     new * 1e-6, self.calib.time_offset_ns * 1e-6)
+            self.time_offset_ns = new
 
     def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
         icfg = self.cfg.init
