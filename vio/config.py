@@ -40,7 +40,8 @@ class FrontendConfig:
     grid_rows: int = opt(6, "detection grid rows", min=1, max=64)
     klt_window_px: int = opt(21, "KLT window size (odd)", min=5, max=99)
     klt_pyramid_levels: int = opt(3, "KLT pyramid levels", min=0, max=8)
-    fb_check_px: float = opt(1.0, "forward-backward KLT error above which a track is dropped", min=0.05, max=20)
+    fb_check_px: float = opt(1.0, "forward-backward KLT error above which a match is dropped (stereo; temporal "
+                             "only with anchor_patch_px = 0)", min=0.05, max=20)
     ransac_threshold_px: float = opt(0.35, "RANSAC inlier threshold on temporal matches", min=0.1, max=20)
     drift_check_frames: int = opt(10, "baseline (frames) of the second RANSAC that catches slowly sliding tracks",
                                   min=2, max=100)
