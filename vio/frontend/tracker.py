@@ -1,9 +1,11 @@
 """Stereo KLT tracker: StereoFrame (+ gyro rotation prior) -> FeatureFrame.
 
 Per frame: check the image, compensate brightness, track the previous left features with KLT started at
-their gyro-predicted position (forward-backward checked), drop matches that disagree with the common rigid
-motion (RANSAC), top the features up with FAST corners spread over a grid, match all of them into the right
-image and triangulate. Tracking runs on raw images; only the output is undistorted (same K).
+their gyro-predicted position, refine each against its first appearance with an affine warp (anchor.py: this
+removes the drift of translational KLT and checks the match), drop matches that disagree with the common rigid
+motion (RANSAC, frame to frame and over a longer baseline), top the features up with FAST corners spread over
+a grid, match all of them into the right image and triangulate. Tracking runs on raw images; only the output
+is undistorted (same K).
 """
 
 from __future__ import annotations
