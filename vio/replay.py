@@ -140,6 +140,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     wall0 = time.perf_counter()
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
+    waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
     for ev in dataset.events(t_end_ns=t_end):
         if realtime:
             t_data = ev.t_ns
@@ -148,23 +149,30 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
             lag = (t_data - t_first) * 1e-9 - (time.perf_counter() - wall0)
             if lag > 0:
                 time.sleep(lag)
-        if isinstance(ev, ImuSample):
-            est.feed_imu(ev)
-            continue
-        if max_frames is not None and frames >= max_frames:
-            break
         t0 = time.perf_counter()
         n_before = est.frames_processed
-        est.feed_frame(ev)
-        if est.frames_processed > n_before:
+        if isinstance(ev, ImuSample):
+            est.feed_imu(ev)
+        else:
+            if max_frames is not None and frames >= max_frames:
+                break
+            if writer is not None:
+                waiting[int(ev.t_ns)] = ev
+            est.feed_frame(ev)
+            frames += 1
+            if bar is not None:
+                bar.update(1)
+        # A frame is processed once the IMU has reached its stamp: in this call or in a later feed_imu
+        # (a positive time offset), so its cost is recorded wherever it happened.
+        if est.frames_processed > n_before and est.last_features is not None:
             tm = est.timings
-            frame_stats.append({"t_ns": int(ev.t_ns), "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
+            t_cam = int(est.last_features.t_ns)
+            frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
                                 "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe)})
-            if writer is not None and est.last_features is not None:
-                writer.write(ev, est.last_features)
-        frames += 1
-        if bar is not None:
-            bar.update(1)
+            if writer is not None and t_cam in waiting:
+                writer.write(waiting.pop(t_cam), est.last_features)
+                for t in [t for t in waiting if t < t_cam]:
+                    del waiting[t]
     est.flush()
     wall = time.perf_counter() - wall0
     if bar is not None:
