@@ -277,10 +277,17 @@ class EurocDataset:
     def _load(self, path: Path | None) -> np.ndarray | None:
         if path is None:
             return None
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        # IMREAD_UNCHANGED skips the colour-conversion path: 2.5 vs 2.7 ms per 752x480 PNG on one core;
+        # a colour or 16-bit file is converted afterwards as IMREAD_GRAYSCALE would
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
             self.stats.unreadable_images += 1
             self._warn(f"{path}: unreadable image; skipped")
+            return None
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
         return img
 
     def frame(self, i: int) -> StereoFrame | None:
@@ -304,19 +311,23 @@ class EurocDataset:
         imu_t = self.imu.t_ns
         lo = 0 if t_start_ns is None else int(np.searchsorted(imu_t, t_start_ns))
         hi = len(imu_t) if t_end_ns is None else int(np.searchsorted(imu_t, t_end_ns, side="right"))
-        i = lo
-        for k in range(len(self)):
-            t = int(self.frame_t[k])
+        # Python ints and one bulk copy: one numpy scalar compare and two array copies per
+        # sample were a visible share of a replay (12 000 samples per minute)
+        ts = imu_t[lo:hi].tolist()
+        gyro = self.imu.gyro[lo:hi].copy()  # rows handed out are views of this private copy
+        accel = self.imu.accel[lo:hi].copy()
+        i, n = 0, hi - lo
+        for k, t in enumerate(self.frame_t.tolist()):
             if (t_start_ns is not None and t < t_start_ns) or (t_end_ns is not None and t > t_end_ns):
                 continue
-            while i < hi and imu_t[i] <= t:
-                yield self.imu.sample(i)
+            while i < n and ts[i] <= t:
+                yield ImuSample(ts[i], gyro[i], accel[i])
                 i += 1
             f = self.frame(k)
             if f is not None:
                 yield f
-        while i < hi:
-            yield self.imu.sample(i)
+        while i < n:
+            yield ImuSample(ts[i], gyro[i], accel[i])
             i += 1
 
 
