@@ -137,6 +137,29 @@ def test_stereo_depth_on_known_plane(scene: PlaneScene, calib: StereoCalibration
     assert np.median(np.linalg.norm(uv1 - ff.uv1[ok], axis=1)) < 0.5
 
 
+def test_frames_without_stereo_keep_tracks_and_search_new_ones_later(scene: PlaneScene,
+                                                                    calib: StereoCalibration) -> None:
+    """stereo=False (frames the estimator cannot use as keyframes) reports no stereo but keeps tracking; tracks
+    born on such a frame are searched on the next stereo frame, old ones resume from their last depth."""
+    trk = StereoTracker(calib, FrontendConfig(max_features=150))
+    T = np.eye(4)
+    ff0 = trk.process(scene.stereo(calib, T, 1_000))
+    assert ff0.n_stereo >= 100
+    trk.cfg = dataclasses.replace(trk.cfg, max_features=200)  # room for new tracks on the mono frame
+    T[0, 3] = 0.02
+    ff1 = trk.process(scene.stereo(calib, T, 2_000), stereo=False)
+    assert ff1.tracking_ok and ff1.n_stereo == 0 and np.all(np.isnan(ff1.uv1))
+    assert len(np.intersect1d(ff0.ids, ff1.ids)) >= 0.9 * len(ff0.ids)
+    born = np.setdiff1d(ff1.ids, ff0.ids)
+    assert len(born) >= 20
+    T[0, 3] = 0.04
+    ff2 = trk.process(scene.stereo(calib, T, 3_000))
+    ok = np.isfinite(ff2.depth_m)
+    assert np.isin(born, ff2.ids[ok]).mean() > 0.8  # new tracks were searched although no longer new
+    rel = np.abs(ff2.depth_m[ok] - scene.depth(ff2.uv0[ok])) / ff2.depth_m[ok]
+    assert ok.sum() >= 150 and np.median(rel) < 0.05
+
+
 def test_imu_prediction_keeps_tracks_in_fast_yaw(scene: PlaneScene, calib: StereoCalibration) -> None:
     """12 deg of yaw between frames (about 100 px): KLT from the gyro-predicted start keeps the tracks."""
     R = so3_exp([0.0, np.radians(12.0), 0.0])  # about cam0's y axis (down): the image pans sideways
