@@ -140,8 +140,10 @@ def test_spread_order_round_robins_cells_longest_first():
     assert len(spread_order(np.zeros((0, 2)), np.zeros(0, int), 752, 480)) == 0
 
 
-def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: int = 1):
-    """OnlineTimeOffset on synthetic tracks whose stamps are `true_offset_ms` early (t_imu = t_cam + offset)."""
+def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: int = 1, solve_ok=None,
+                solved_on: list | None = None):
+    """OnlineTimeOffset on synthetic tracks whose stamps are `true_offset_ms` early (t_imu = t_cam + offset).
+    `solve_ok(frame_index)` says whether a solve may run on that frame; `solved_on` collects (index, ok)."""
     from vio.backend.time_offset import OnlineTimeOffset
 
     calib = synthetic_calibration()  # its time_offset_ns is 0: the offset is unknown to the estimator
@@ -152,10 +154,17 @@ def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: in
     est = OnlineTimeOffset(calib, max_collect_s=duration_s - 3.0)
     off_ns = int(true_offset_ms * 1e6)
     changes = []
+    k = 0
     for s in imu:
         est.add_imu(s)
         if s.t_ns % 50_000_000 == 0 and s.t_ns > 100_000_000:  # frame exposed now, stamped `offset` earlier
-            new = est.add_frame(scene.observe(s.t_ns - off_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.3, rng=rng))
+            ok = True if solve_ok is None else solve_ok(k)
+            n_solves = est.solves
+            new = est.add_frame(scene.observe(s.t_ns - off_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.3, rng=rng),
+                                solve=ok)
+            if solved_on is not None and est.solves > n_solves:
+                solved_on.append((k, ok))
+            k += 1
             if new is not None:
                 changes.append(new)
     return est, changes
@@ -167,6 +176,17 @@ def test_online_time_offset_finds_an_unknown_offset(true_ms):
     assert changes, "no offset was ever accepted"
     assert abs(est.offset_ns * 1e-6 - true_ms) < 1.5
     assert est.sigma_s < 2e-3
+
+
+def test_online_time_offset_solves_wait_for_a_quiet_frame():
+    """The estimator keeps the solves (tens of ms) off keyframe frames; one postponed too long runs anyway."""
+    solved: list = []
+    est, changes = _offset_run(8.0, speed=3.0, duration_s=10.0, solve_ok=lambda k: k % 5 == 1, solved_on=solved)
+    assert solved and all(ok for _, ok in solved)
+    assert changes and abs(est.offset_ns * 1e-6 - 8.0) < 1.5
+    never: list = []
+    _offset_run(8.0, speed=3.0, duration_s=10.0, solve_ok=lambda k: False, solved_on=never)
+    assert never  # bounded postponement: a caller that is never quiet still gets its estimate
 
 
 def test_online_time_offset_gives_up_without_rotation():

@@ -91,6 +91,8 @@ class Estimator:
         self._cov_vel = np.eye(3) * 1e-2
         self._kf_cov_pose = self._cov_pose  # at the last keyframe (marginal, or grown since the last marginal)
         self._kf_cov_vel = self._cov_vel
+        self._marginal_due = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
+        self.marginals = 0  # marginal covariances computed (diagnostics)
         self._anchor: np.ndarray | None = None  # pose to continue from after a reset
         self._latest: NavState | None = None
         self._quality = 0
@@ -178,13 +180,14 @@ class Estimator:
             import cv2  # already loaded by the tracker
 
             try:
-                ff = self.tracker.process(item, prior)
+                ff = self.tracker.process(item, prior) if self._needs_stereo(t) else \
+                    self.tracker.process(item, prior, stereo=False)
             except cv2.error as e:  # one frame OpenCV cannot handle must not end the flight
                 msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
                 log.warning("front end failed on the frame at %d: %s", item.t_ns, msg)
                 ff = FeatureFrame.empty(item.t_ns, f"front end error: {msg}")
         t_front = time.perf_counter()
-        self._update_time_offset(ff)
+        self._update_time_offset(ff, t)
         prev_t = self._last_frame_t
         self._last_frame_t = t
         self._flow_px = median_flow_px(self._prev_ff, ff)
@@ -205,11 +208,24 @@ class Estimator:
                 sink(st)
         return st
 
-    def _update_time_offset(self, ff: FeatureFrame) -> None:
-        """Feed the in-flight offset estimator; a confident new offset applies from the next frame on."""
+    def _can_be_keyframe(self, t: int) -> bool:
+        return self._last_kf_t is None or (t - self._last_kf_t) * 1e-9 >= self.bcfg.keyframe_min_interval_s
+
+    def _needs_stereo(self, t: int) -> bool:
+        """Stereo is used by the initialisers, the time-offset estimator (PnP on stereo points) and keyframes
+        only; a frame closer than keyframe_min_interval_s to the last keyframe is none of these."""
+        return (not self.initialized or self._can_be_keyframe(t)
+                or (self.offset_estimator is not None and not self.offset_estimator.done))
+
+    def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
+        """Feed the in-flight offset estimator; a confident new offset applies from the next frame on.
+
+        Its solves (tens of ms) wait for a frame that is no keyframe and computes no marginal, so that they
+        never add to a keyframe solve."""
         if self.offset_estimator is None or self.offset_estimator.done:
             return
-        new = self.offset_estimator.add_frame(ff)
+        quiet = not self.initialized or not (self._can_be_keyframe(t) or self._marginal_due)
+        new = self.offset_estimator.add_frame(ff, solve=quiet)
         if new is not None and new != self.time_offset_ns:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
                      new * 1e-6, self.calib.time_offset_ns * 1e-6)
@@ -251,14 +267,14 @@ class Estimator:
         self._last_kf_t = t
         self.keyframes += 1
         self._was_keyframe = True
-        first = self._pim is None  # (re)start: always a marginal
-        if not first:  # grown up to this keyframe; replaced below when a marginal is due
+        first = self._pim is None  # (re)start: always a marginal, at once
+        if not first:  # grown up to this keyframe; replaced on the next frame when a marginal is due
             self._kf_cov_pose, self._kf_cov_vel = self._grown_covariance(self._pim)
-        if first or (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
-            try:
-                self._kf_cov_pose, self._kf_cov_vel = self._smoother.marginal_covariances()
-            except SmootherFailure as e:
-                log.debug("no covariance at keyframe: %s", e)
+        self._marginal_due = False
+        if first:
+            self._marginal()
+        elif (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
+            self._marginal_due = True
         self._cov_pose, self._cov_vel = self._kf_cov_pose, self._kf_cov_vel
         self._pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
         if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
@@ -272,6 +288,15 @@ class Estimator:
             self.propagator.add(ImuSample(int(ts[k]), g[k], a[k]))
         self._update_health(t, ff)
         return self._state(t, pose, est.velocity, bias)
+
+    def _marginal(self) -> None:
+        """The newest keyframe's marginal covariances replace the grown ones (a few ms, up to ~10)."""
+        self._marginal_due = False
+        self.marginals += 1
+        try:
+            self._kf_cov_pose, self._kf_cov_vel = self._smoother.marginal_covariances()
+        except SmootherFailure as e:
+            log.debug("no covariance at keyframe: %s", e)
 
     def _update_health(self, t: int, ff: FeatureFrame | None) -> None:
         n = len(ff.ids) if ff is not None and ff.tracking_ok else 0
@@ -301,6 +326,8 @@ class Estimator:
 
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
         self.imu.integrate(self._pim, prev_t, t)
+        if self._marginal_due:  # the last keyframe's, computed here rather than on top of its solve
+            self._marginal()
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):
             last = self._smoother.last

@@ -70,6 +70,7 @@ class OnlineTimeOffset:
         self._pairs: deque[tuple[int, int, np.ndarray, int, np.ndarray]] = deque(
             maxlen=max(int(round(window_s * cam.rate_hz)), MIN_PAIRS))
         self._new_pairs = 0
+        self._postponed = 0  # pairs added while a due solve waited for a quiet frame
         keep = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # samples for the window at up to 1 kHz
         self._imu_t: deque[int] = deque(maxlen=keep)
         self._gyro: deque[np.ndarray] = deque(maxlen=keep)
@@ -79,8 +80,10 @@ class OnlineTimeOffset:
             self._imu_t.append(int(s.t_ns))
             self._gyro.append(np.asarray(s.gyro, float))
 
-    def add_frame(self, ff: FeatureFrame) -> int | None:
-        """Add a front-end result (camera clock); returns a newly accepted offset [ns], else None."""
+    def add_frame(self, ff: FeatureFrame, solve: bool = True) -> int | None:
+        """Add a front-end result (camera clock); returns a newly accepted offset [ns], else None.
+
+        `solve=False` postpones a due solve (the caller's frame is busy) by up to SOLVE_EVERY more pairs."""
         if self.done:
             return None
         self._t_first = ff.t_ns if self._t_first is None else self._t_first
@@ -111,6 +114,9 @@ class OnlineTimeOffset:
         self._pairs.append((int(prev.t_ns) + b, int(ff.t_ns) + b, theta, int(res[1]), res[2]))
         self._new_pairs += 1
         if len(self._pairs) < MIN_PAIRS or self._new_pairs < SOLVE_EVERY:
+            return None
+        if not solve and self._postponed < SOLVE_EVERY:
+            self._postponed += 1
             return None
         return self._solve()
 
@@ -145,6 +151,7 @@ class OnlineTimeOffset:
         from calib.time_offset import VisualRotations, estimate_time_offset
 
         self._new_pairs = 0
+        self._postponed = 0
         self.solves += 1
         t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
         vis = VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info)
