@@ -92,7 +92,7 @@ class ReplayResult:
         def summary(key: str) -> dict:
             x = np.array([f[key] for f in self.frame_stats]) if self.frame_stats else np.zeros(1)
             return {"mean": float(x.mean()), "p50": float(np.percentile(x, 50)), "p95": float(np.percentile(x, 95)),
-                    "max": float(x.max())}
+                    "p99": float(np.percentile(x, 99)), "max": float(x.max())}
 
         return {
             "frames": self.frames,
