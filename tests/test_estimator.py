@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -140,6 +141,22 @@ def test_covariance_grows_between_keyframe_marginals():
     assert deferred >= 1  # marginals after the first keyframe are spread onto non-keyframe frames
     marg_pose, marg_vel = est._smoother.marginal_covariances()
     assert np.all(np.linalg.eigvalsh(marg_pose) > 0)
+
+
+def test_right_image_needed_only_where_a_keyframe_is_possible():
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, estimate_time_offset=False))
+    est = Estimator(synthetic_calibration(), cfg)
+    assert est.needs_right_image(0)  # initialisation uses stereo
+    _run(est, duration_s=3.0, still_s=1.0, seed=4)
+    t_kf = est._last_kf_t - est.time_offset_ns  # camera clock
+    dt_min = int(cfg.backend.keyframe_min_interval_s * 1e9)
+    assert not est.needs_right_image(t_kf + 50_000_000)
+    assert not est.needs_right_image(t_kf + dt_min - 1)
+    assert est.needs_right_image(t_kf + dt_min)
+    on = Estimator(synthetic_calibration())  # while the time offset is being estimated: every frame (PnP)
+    _run(on, duration_s=3.0, still_s=1.0, seed=4)
+    assert not on.offset_estimator.done and on.needs_right_image(on._last_kf_t - on.time_offset_ns + 50_000_000)
 
 
 def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():

@@ -66,6 +66,20 @@ def test_events_in_time_order_imu_first(v101):
     assert n_imu == int(np.count_nonzero(v101.imu.t_ns <= t_end))
 
 
+def test_events_skip_right_images_not_wanted(v101):
+    asked: list[int] = []
+
+    def want_right(t_ns: int) -> bool:
+        asked.append(t_ns)
+        return len(asked) % 3 == 1
+
+    frames = [e for e in v101.events(t_end_ns=int(v101.frame_t[5]), want_right=want_right)
+              if isinstance(e, StereoFrame)]
+    assert asked == [f.t_ns for f in frames] == v101.frame_t[:6].tolist()
+    assert [f.right is not None for f in frames] == [True, False, False, True, False, False]
+    assert all(f.left.shape == (480, 752) for f in frames)
+
+
 def test_events_after_last_frame_are_imu(v101):
     tail = list(v101.events(t_start_ns=int(v101.frame_t[-1]) + 1))
     assert len(tail) == int(np.count_nonzero(v101.imu.t_ns > v101.frame_t[-1]))

@@ -124,6 +124,12 @@ class Estimator:
             return self._propagated_state()
         return None
 
+    def needs_right_image(self, t_cam_ns: int) -> bool:
+        """Whether the frame stamped t_cam_ns (camera clock, newer than all frames fed so far) will use its
+        right image; False lets a reader skip decoding it. Conservative: frames still queued can only move
+        the last keyframe closer. A reset between the question and the frame costs that frame its stereo."""
+        return self._needs_stereo(int(t_cam_ns) + self.time_offset_ns)
+
     def feed_frame(self, frame: StereoFrame) -> NavState | None:
         """Add a stereo frame; returns the state at the newest frame processed by this call."""
         self._pending.append(frame)

@@ -141,7 +141,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
-    for ev in dataset.events(t_end_ns=t_end):
+    # right images that the estimator will not use are not decoded (the debug view shows them all)
+    for ev in dataset.events(t_end_ns=t_end, want_right=None if writer is not None else est.needs_right_image):
         if realtime:
             t_data = ev.t_ns
             if t_first is None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -290,12 +290,13 @@ class EurocDataset:
             img = (img >> 8).astype(np.uint8)
         return img
 
-    def frame(self, i: int) -> StereoFrame | None:
-        """Load frame i; None when its left image is missing or unreadable (counted in stats)."""
+    def frame(self, i: int, right: bool = True) -> StereoFrame | None:
+        """Load frame i; None when its left image is missing or unreadable (counted in stats). `right=False`
+        leaves the right image out (not decoded)."""
         left = self._load(self.cam0_files[i])
         if left is None:
             return None
-        return StereoFrame(int(self.frame_t[i]), left, self._load(self._right_files[i]), seq=i)
+        return StereoFrame(int(self.frame_t[i]), left, self._load(self._right_files[i]) if right else None, seq=i)
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[StereoFrame]:
         for i in range(start, len(self) if stop is None else min(stop, len(self))):
@@ -303,11 +304,15 @@ class EurocDataset:
             if f is not None:
                 yield f
 
-    def events(self, t_start_ns: int | None = None,
-               t_end_ns: int | None = None) -> Iterator[ImuSample | StereoFrame]:
+    def events(self, t_start_ns: int | None = None, t_end_ns: int | None = None,
+               want_right: Callable[[int], bool] | None = None) -> Iterator[ImuSample | StereoFrame]:
         """IMU samples and stereo frames merged in time order (IMU first on equal stamps, so the
         estimator already has the IMU up to the frame time). Frame stamps are on the camera clock; the
-        estimator applies the calibration's time offset."""
+        estimator applies the calibration's time offset.
+
+        `want_right(t_ns)`, asked just before a frame is loaded, False: its right image is not decoded
+        (frame.right is None). PNG decoding is the largest single cost of a replay, and the estimator does
+        not use the right image of most frames (Estimator.needs_right_image)."""
         imu_t = self.imu.t_ns
         lo = 0 if t_start_ns is None else int(np.searchsorted(imu_t, t_start_ns))
         hi = len(imu_t) if t_end_ns is None else int(np.searchsorted(imu_t, t_end_ns, side="right"))
@@ -323,7 +328,7 @@ class EurocDataset:
             while i < n and ts[i] <= t:
                 yield ImuSample(ts[i], gyro[i], accel[i])
                 i += 1
-            f = self.frame(k)
+            f = self.frame(k, want_right is None or want_right(t))
             if f is not None:
                 yield f
         while i < n:
