@@ -154,6 +154,8 @@ def test_right_image_needed_only_where_a_keyframe_is_possible():
     assert not est.needs_right_image(t_kf + 50_000_000)
     assert not est.needs_right_image(t_kf + dt_min - 1)
     assert est.needs_right_image(t_kf + dt_min)
+    est.bcfg = dataclasses.replace(est.bcfg, stereo_every_frame=True)
+    assert est.needs_right_image(t_kf + 50_000_000)
     on = Estimator(synthetic_calibration())  # while the time offset is being estimated: every frame (PnP)
     _run(on, duration_s=3.0, still_s=1.0, seed=4)
     assert not on.offset_estimator.done and on.needs_right_image(on._last_kf_t - on.time_offset_ns + 50_000_000)

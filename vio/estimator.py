@@ -220,7 +220,7 @@ class Estimator:
     def _needs_stereo(self, t: int) -> bool:
         """Stereo is used by the initialisers, the time-offset estimator (PnP on stereo points) and keyframes
         only; a frame closer than keyframe_min_interval_s to the last keyframe is none of these."""
-        return (not self.initialized or self._can_be_keyframe(t)
+        return (self.bcfg.stereo_every_frame or not self.initialized or self._can_be_keyframe(t)
                 or (self.offset_estimator is not None and not self.offset_estimator.done))
 
     def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
