@@ -66,7 +66,7 @@ class StereoTracker:
         self._uv = np.zeros((0, 2))  # undistorted left pixels
         self._len = np.zeros(0, np.int64)
         self._depth = np.zeros(0)  # last stereo depth per track (NaN: none)
-        self._tried_at = np.zeros(0, np.int64)  # frame count of the last stereo search (-1: none yet)
+        self._tried = np.zeros(0, bool)  # stereo search made at least once (frames may skip stereo)
         self._anc = Anchors.empty(self._anchor.p ** 2) if self._anchor else None
         self._kf_ids = np.zeros(0, np.int64)
         self._kf_uv = np.zeros((0, 2))
@@ -209,7 +209,7 @@ class StereoTracker:
     def _keep(self, keep: np.ndarray) -> None:
         """Keep only the tracks `keep` (index or mask) in every per-track array."""
         self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep]
-        self._depth, self._uv, self._tried_at = self._depth[keep], self._uv[keep], self._tried_at[keep]
+        self._depth, self._uv, self._tried = self._depth[keep], self._uv[keep], self._tried[keep]
         if self._anc is not None:
             self._anc = self._anc.take(keep)
 
@@ -319,7 +319,7 @@ class StereoTracker:
             self._uv = np.concatenate([self._uv, undistort_px(self.cam0, new)])
             self._len = np.concatenate([self._len, np.ones(m, np.int64)])
             self._depth = np.concatenate([self._depth, np.full(m, np.nan)])
-            self._tried_at = np.concatenate([self._tried_at, np.full(m, -1, np.int64)])
+            self._tried = np.concatenate([self._tried, np.zeros(m, bool)])
             if self._anc is not None:
                 self._anc = self._anc.concat(self._anchor.build(left, new))
         t = lap("detect", t)
@@ -329,13 +329,12 @@ class StereoTracker:
         if right is not None and n:
             # A track whose last stereo match failed is mostly occluded or outside the right view; searching
             # it again every frame doubled the stereo time on EuRoC. Tracks never searched are always searched,
-            # failed ones again once STEREO_RETRY_EVERY frames have passed since their last search (counted in
-            # frames, not stereo frames: after frames without stereo they are all due at the next keyframe).
-            search = (self._tried_at < 0) | np.isfinite(self._depth)
-            search |= self._frame_count - self._tried_at >= STEREO_RETRY_EVERY
+            # failed ones every STEREO_RETRY_EVERY frames (staggered by id).
+            search = ~self._tried | np.isfinite(self._depth)
+            search |= (self._ids + self._frame_count) % STEREO_RETRY_EVERY == 0
             res = self.stereo.match(left, right, self._raw, self._uv, self._depth, search)
             uv1, depth = res.uv1, res.depth_m
-            self._tried_at[search] = self._frame_count
+            self._tried |= search
         if stereo:
             self._depth = depth.copy()
         t = lap("stereo", t)
