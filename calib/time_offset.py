@@ -216,16 +216,35 @@ def _interp3(tq: np.ndarray, ts: np.ndarray, G: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(tq, ts, G[:, k]) for k in range(3)])
 
 
+def _cost_terms(theta_b: np.ndarray, Gd: np.ndarray, dt: np.ndarray,
+                W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pair pieces of the weighted cost, so that any weighting of pairs (all of them, a bootstrap
+    resample) costs only sums: with e = th - D and the bias b solved in closed form from
+    r = e + b w, the minimum over b is sum(e^T W e) - g^T A^-1 g with g = sum(w W e), A = sum(w^2 W).
+
+    Returns c (n_d, N) = e^T W e, g (n_d, N, 3) = w W e, A (N, 3, 3) = w^2 W."""
+    e = theta_b[None] - Gd  # (n_d, N, 3)
+    We = np.einsum("ijk,dik->dij", W, e)
+    c = np.einsum("dij,dij->di", e, We)
+    return c, We * dt[None, :, None], W * (dt * dt)[:, None, None]
+
+
+def _costs_weighted(terms: tuple[np.ndarray, np.ndarray, np.ndarray],
+                    counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cost per offset and bias for pair multiplicities `counts` (..., N): rows of counts are resamples."""
+    c, g, A = terms
+    C = counts @ c.T  # (..., n_d)
+    G = np.einsum("...i,dij->...dj", counts, g)  # (..., n_d, 3)
+    As = np.einsum("...i,ijk->...jk", counts, A)  # (..., 3, 3)
+    sol = np.linalg.solve(As[..., None, :, :], G[..., None])[..., 0]  # A^-1 g per offset
+    return C - np.einsum("...dj,...dj->...d", G, sol), -sol
+
+
 def _costs(theta_b: np.ndarray, Gd: np.ndarray, dt: np.ndarray, W: np.ndarray,
            idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted cost sum r^T W r per offset over the pairs idx, the bias solved in closed form; also the biases."""
-    th, D, w, Wi = theta_b[idx], Gd[:, idx], dt[idx], W[idx]
-    # r = th - D + b w  =>  (sum w^2 W) b = sum w W (D - th)
-    A = np.einsum("i,ijk->jk", w * w, Wi)
-    rhs = np.einsum("i,ijk,dik->dj", w, Wi, D - th[None])
-    b = np.linalg.solve(A, rhs.T).T
-    r = th[None] - D + b[:, None, :] * w[None, :, None]
-    return np.einsum("dij,ijk,dik->d", r, Wi, r), b
+    counts = np.bincount(idx, minlength=len(dt)).astype(float)
+    return _costs_weighted(_cost_terms(theta_b, Gd, dt, W), counts)
 
 
 def _parabola_min(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -267,8 +286,8 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
         log.info("time offset: %d of %d frame pairs rejected as outliers", int((~good).sum()), len(good))
     theta_b, Gd, dt, t0, t1, W = theta_b[good], Gd[:, good], dt[good], t0[good], t1[good], W[good]
     n = len(t0)
-    all_idx = np.arange(n)
-    cost, biases = _costs(theta_b, Gd, dt, W, all_idx)
+    terms = _cost_terms(theta_b, Gd, dt, W)
+    cost, biases = _costs_weighted(terms, np.ones(n))
     d_hat, curv = _parabola_min(grid, cost)
     i_best = int(np.argmin(cost))
     s2 = cost[i_best] / max(3 * n - 4, 1)
@@ -276,12 +295,14 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
     # block bootstrap: resample runs of `block` consecutive pairs, keeps the residuals' time correlation
     rng = np.random.default_rng(seed)
     n_blocks = max(n // block, 1)
-    boots = []
-    for _ in range(n_boot):
+    counts = np.zeros((n_boot, n))
+    for k in range(n_boot):  # same draws as one resample at a time; all costs then come in one batch
         starts = rng.integers(0, max(n - block, 0) + 1, n_blocks)
         idx = (starts[:, None] + np.arange(min(block, n))[None, :]).ravel()
-        boots.append(_parabola_min(grid, _costs(theta_b, Gd, dt, W, idx)[0])[0])
-    sigma_boot = float(np.std(boots))
+        counts[k] = np.bincount(idx, minlength=n)
+    boot_costs = _costs_weighted(terms, counts)[0] if n_boot else np.zeros((0, len(grid)))
+    boots = [_parabola_min(grid, bc)[0] for bc in boot_costs]
+    sigma_boot = float(np.std(boots)) if boots else 0.0
     vis_rate = np.linalg.norm(theta_b, axis=1) / dt
     bias = biases[i_best]
     gyro_rate = np.linalg.norm(_interp3(t1 + d_hat, ts, G) - _interp3(t0 + d_hat, ts, G) - bias * dt[:, None],
