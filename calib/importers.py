@@ -30,6 +30,17 @@ CHAIN_TOL_M = 1e-3
 CHAIN_TOL_DEG = 0.1
 
 
+def _single_file(files: Sequence[Path], fmt: str, what: str) -> Path:
+    """The one existing file a single-file format needs (importers are also called directly, not only
+    through import_calibration, so they check for themselves)."""
+    if len(files) != 1:
+        raise VioError(f"{fmt}: give exactly one {what}")
+    path = Path(files[0])
+    if not path.is_file():
+        raise VioError(f"{path}: file not found")
+    return path
+
+
 def _matrix(d: dict, key: str, where: str) -> np.ndarray:
     try:
         T = np.asarray(d[key], dtype=float)
@@ -186,11 +197,7 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
     import cv2
 
     notes = ImportNotes()
-    if len(files) != 1:
-        raise VioError("opencv: give exactly one stereo calibration file")
-    path = Path(files[0])
-    if not path.is_file():
-        raise VioError(f"{path}: file not found")
+    path = _single_file(files, "opencv", "stereo calibration file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error as e:
@@ -254,11 +261,7 @@ def write_opencv_stereo(calib: StereoCalibration, path: Path) -> None:
 
 def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
     """depthai calibration JSON (CalibrationHandler.eepromToJsonFile / the device's backup), read by depthai."""
-    if len(files) != 1:
-        raise VioError("depthai: give exactly one calibration JSON file")
-    path = Path(files[0])
-    if not path.is_file():
-        raise VioError(f"{path}: file not found")
+    path = _single_file(files, "depthai", "calibration JSON file")
     try:
         import depthai as dai
     except ImportError as e:
