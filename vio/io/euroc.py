@@ -336,10 +336,6 @@ class EurocDataset:
             i += 1
 
 
-def open_euroc(path: str | Path, calibration: StereoCalibration | None = None) -> EurocDataset:
-    return EurocDataset(path, calibration)
-
-
 # ------------------------------------------------------------------------------------------------ writer
 
 def _camera_yaml(cam: CameraCalibration, name: str) -> str:
