@@ -105,6 +105,7 @@ def replay_case(case: Case, path: Path, config: str | None) -> dict:
     d = res.stats_dict()
     d.pop("per_frame")
     row = {"name": case.name, "note": case.note, "flight": case.flight.key, "true_offset_ms": true_offset_ms,
+           "est_offset_ms": d["time_offset_ms"]["final"],
            "frames": res.frames, "resets": res.resets, "keyframes": d["keyframes"], "data_s": res.data_s,
            "wall_s": res.wall_s, "cpu_s": cpu_s, "rtf_wall": res.realtime_factor,
            "rtf_cpu": res.data_s / cpu_s if cpu_s > 0 else float("inf"), "timing_ms": d["timing_ms"],
@@ -123,12 +124,14 @@ def replay_case(case: Case, path: Path, config: str | None) -> dict:
 
 def table(rows: list[dict]) -> str:
     head = ("| flight | ATE SE(3) [m] | ATE 4-DoF [m] | RPE [%] | resets | coverage | keyframes | RTF wall | "
-            "RTF cpu | pass |")
-    lines = [head, "|" + "|".join([" --- "] * 10) + "|"]
+            "RTF cpu | time offset true / final [ms] | pass |")
+    lines = [head, "|" + "|".join([" --- "] * 11) + "|"]
     for r in rows:
+        est = r.get("est_offset_ms")
+        offset = f"{r['true_offset_ms']:+.1f} / " + ("-" if est is None else f"{est:+.1f}")
         lines.append(f"| {r['name']} | {r['ate_se3_m']:.3f} | {r['ate_4dof_m']:.3f} | {r['rpe_pct']:.2f} | "
                      f"{r['resets']} | {100 * r['coverage']:.1f} % | {r['keyframes']} | {r['rtf_wall']:.2f} | "
-                     f"{r['rtf_cpu']:.2f} | {'yes' if r['pass'] else '**no**'} |")
+                     f"{r['rtf_cpu']:.2f} | {offset} | {'yes' if r['pass'] else '**no**'} |")
     n_pass = sum(r["pass"] for r in rows)
     lines.append("")
     lines.append(f"{n_pass} of {len(rows)} flights pass (ATE SE(3) <= {ATE_MAX_M:g} m and RPE <= {RPE_MAX_PCT:g} %); "

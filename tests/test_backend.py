@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -141,9 +143,11 @@ def test_spread_order_round_robins_cells_longest_first():
 
 
 def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: int = 1, solve_ok=None,
-                solved_on: list | None = None):
+                solved_on: list | None = None, stereo_log: list | None = None):
     """OnlineTimeOffset on synthetic tracks whose stamps are `true_offset_ms` early (t_imu = t_cam + offset).
-    `solve_ok(frame_index)` says whether a solve may run on that frame; `solved_on` collects (index, ok)."""
+    `solve_ok(frame_index)` says whether a solve may run on that frame; `solved_on` collects (index, ok).
+    With `stereo_log`, frames get stereo depth only where the estimator asks for it (`wants_stereo`), as
+    the estimator's front end does, and the answers are collected there."""
     from vio.backend.time_offset import OnlineTimeOffset
 
     calib = synthetic_calibration()  # its time_offset_ns is 0: the offset is unknown to the estimator
@@ -160,8 +164,13 @@ def _offset_run(true_offset_ms: float, speed: float, duration_s: float, seed: in
         if s.t_ns % 50_000_000 == 0 and s.t_ns > 100_000_000:  # frame exposed now, stamped `offset` earlier
             ok = True if solve_ok is None else solve_ok(k)
             n_solves = est.solves
-            new = est.add_frame(scene.observe(s.t_ns - off_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.3, rng=rng),
-                                solve=ok)
+            ff = scene.observe(s.t_ns - off_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.3, rng=rng)
+            if stereo_log is not None:
+                stereo_log.append(est.wants_stereo())
+                if not stereo_log[-1]:
+                    ff = dataclasses.replace(ff, uv1=np.full_like(ff.uv1, np.nan), depth_m=np.full_like(ff.depth_m,
+                                                                                                        np.nan))
+            new = est.add_frame(ff, solve=ok)
             if solved_on is not None and est.solves > n_solves:
                 solved_on.append((k, ok))
             k += 1
@@ -176,6 +185,16 @@ def test_online_time_offset_finds_an_unknown_offset(true_ms):
     assert changes, "no offset was ever accepted"
     assert abs(est.offset_ns * 1e-6 - true_ms) < 1.5
     assert est.sigma_s < 2e-3
+
+
+def test_online_time_offset_needs_stereo_on_few_frames():
+    """PnP needs depth only at the start of a pair: stereo on about one frame in span_frames is enough."""
+    asked: list[bool] = []
+    est, changes = _offset_run(8.0, speed=3.0, duration_s=14.0, stereo_log=asked)
+    assert changes and abs(est.offset_ns * 1e-6 - 8.0) < 1.5 and est.sigma_s < 2e-3
+    collecting = asked[:len(asked) - asked[::-1].index(True)]  # up to the last request
+    assert 0.15 < np.mean(collecting) <= 1.0 / est.span_frames + 0.02
+    assert est.done and not est.wants_stereo()  # finished: no more stereo on its behalf
 
 
 def test_online_time_offset_solves_wait_for_a_quiet_frame():

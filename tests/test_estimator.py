@@ -156,9 +156,13 @@ def test_right_image_needed_only_where_a_keyframe_is_possible():
     assert est.needs_right_image(t_kf + dt_min)
     est.bcfg = dataclasses.replace(est.bcfg, stereo_every_frame=True)
     assert est.needs_right_image(t_kf + 50_000_000)
-    on = Estimator(synthetic_calibration())  # while the time offset is being estimated: every frame (PnP)
+    on = Estimator(synthetic_calibration())  # while the time offset is being estimated: when it asks (PnP)
     _run(on, duration_s=3.0, still_s=1.0, seed=4)
-    assert not on.offset_estimator.done and on.needs_right_image(on._last_kf_t - on.time_offset_ns + 50_000_000)
+    t_next = on._last_kf_t - on.time_offset_ns + 50_000_000
+    assert not on.offset_estimator.done
+    assert on.needs_right_image(t_next) == on.offset_estimator.wants_stereo()
+    on.offset_estimator._recent.clear()  # e.g. after a bad frame: the next pair start needs stereo
+    assert on.needs_right_image(t_next)
 
 
 def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():

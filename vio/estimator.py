@@ -221,7 +221,7 @@ class Estimator:
         """Stereo is used by the initialisers, the time-offset estimator (PnP on stereo points) and keyframes
         only; a frame closer than keyframe_min_interval_s to the last keyframe is none of these."""
         return (self.bcfg.stereo_every_frame or not self.initialized or self._can_be_keyframe(t)
-                or (self.offset_estimator is not None and not self.offset_estimator.done))
+                or (self.offset_estimator is not None and self.offset_estimator.wants_stereo()))
 
     def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
         """Feed the in-flight offset estimator; a confident new offset applies from the next frame on.

@@ -182,7 +182,9 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     data_s = float((ft[-1] - ft[0]) * 1e-9) if len(ft) > 1 else 0.0
     return ReplayResult(states, frame_stats, data_s, wall, frames, est.reset_counter,
                         states[0].t_ns if states else None,
-                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None)
+                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
+                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
+                                                  "final": est.time_offset_ns * 1e-6}})
 
 
 def run(args: argparse.Namespace) -> int:

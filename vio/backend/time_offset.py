@@ -66,7 +66,9 @@ class OnlineTimeOffset:
         self.sigma_s = float("inf")
         self.done = False
         self.solves = 0
-        self._recent: deque[FeatureFrame] = deque(maxlen=span_frames)
+        # frames back to 2 spans: a pair starts at the newest frame with stereo at least span_frames back,
+        # so the front end needs stereo on one frame in span_frames only (see wants_stereo)
+        self._recent: deque[FeatureFrame] = deque(maxlen=2 * span_frames)
         self._pairs: deque[tuple[int, int, np.ndarray, int, np.ndarray]] = deque(
             maxlen=max(int(round(window_s * cam.rate_hz)), MIN_PAIRS))
         self._new_pairs = 0
@@ -93,7 +95,7 @@ class OnlineTimeOffset:
         if not ff.tracking_ok:
             self._recent.clear()
             return None
-        prev = self._recent[0] if len(self._recent) == self.span_frames else None
+        prev = self._pair_start()
         self._recent.append(ff)
         if prev is None:
             return None
@@ -119,6 +121,27 @@ class OnlineTimeOffset:
             self._postponed += 1
             return None
         return self._solve()
+
+    def wants_stereo(self) -> bool:
+        """Whether the next frame needs stereo depth for the pairs to come: true when none of the newest
+        span_frames - 1 frames has it. Stereo on every frame doubled the image work (right image decoding
+        and matching) for the up to `max_collect_s` that collection lasts on a flight that barely turns."""
+        if self.done:
+            return False
+        newest = list(self._recent)[-(self.span_frames - 1):] if self.span_frames > 1 else []
+        return not any(f.n_stereo >= MIN_SHARED_TRACKS for f in newest)
+
+    def _pair_start(self) -> FeatureFrame | None:
+        """The frame a pair ending at the next frame starts at: the newest one at least span_frames back that
+        has stereo (PnP); without any (camera-only operation) the one exactly span_frames back, whose
+        rotation then comes from the essential matrix."""
+        frames = list(self._recent)
+        if len(frames) < self.span_frames:
+            return None
+        for f in reversed(frames[:len(frames) - self.span_frames + 1]):
+            if f.n_stereo >= MIN_SHARED_TRACKS:
+                return f
+        return frames[-self.span_frames]
 
     def _pnp_rotation(self, prev: FeatureFrame, cur: FeatureFrame, i0: np.ndarray,
                       i1: np.ndarray) -> tuple[np.ndarray, int, np.ndarray] | None:
