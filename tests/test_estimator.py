@@ -10,6 +10,7 @@ import numpy as np
 from vio.backend.synthetic import Motion, SyntheticScene, imu_samples, synthetic_calibration
 from vio.config import InitConfig, VioConfig
 from vio.estimator import Estimator
+from vio.types import FeatureFrame
 
 
 def _run(est: Estimator, duration_s: float, still_s: float, seed: int, reset_at_s: float | None = None,
@@ -143,26 +144,34 @@ def test_covariance_grows_between_keyframe_marginals():
     assert np.all(np.linalg.eigvalsh(marg_pose) > 0)
 
 
-def test_right_image_needed_only_where_a_keyframe_is_possible():
+def test_stereo_only_where_the_frame_becomes_a_keyframe():
     cfg = VioConfig()
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, estimate_time_offset=False))
     est = Estimator(synthetic_calibration(), cfg)
-    assert est.needs_right_image(0)  # initialisation uses stereo
+    ff = FeatureFrame.empty(0, "any")
+    assert est._needs_stereo(0, ff)  # initialisation uses stereo
     _run(est, duration_s=3.0, still_s=1.0, seed=4)
-    t_kf = est._last_kf_t - est.time_offset_ns  # camera clock
-    dt_min = int(cfg.backend.keyframe_min_interval_s * 1e9)
-    assert not est.needs_right_image(t_kf + 50_000_000)
-    assert not est.needs_right_image(t_kf + dt_min - 1)
-    assert est.needs_right_image(t_kf + dt_min)
+    ff = est.last_features
+    b = cfg.backend
+    t_kf = est._last_kf_t
+    dt_min, dt_max = int(b.keyframe_min_interval_s * 1e9), int(b.keyframe_max_interval_s * 1e9)
+    moved = dataclasses.replace(ff, parallax_px=b.keyframe_min_parallax_px + 1)
+    still = dataclasses.replace(ff, parallax_px=0.0)
+    assert len(ff.ids) >= b.keyframe_min_tracks
+    assert not est._needs_stereo(t_kf + dt_min - 1, moved)  # too soon after the last keyframe
+    assert est._needs_stereo(t_kf + dt_min, moved)
+    assert not est._needs_stereo(t_kf + dt_min, still)  # no parallax: no keyframe, no stereo
+    assert est._needs_stereo(t_kf + dt_max, still)  # ... until the longest keyframe interval
+    for t in (t_kf + dt_min, t_kf + dt_max):  # the decision is the keyframe choice itself
+        for f in (moved, still):
+            assert est._needs_stereo(t, f) == est._is_keyframe(t, f)
     est.bcfg = dataclasses.replace(est.bcfg, stereo_every_frame=True)
-    assert est.needs_right_image(t_kf + 50_000_000)
+    assert est._needs_stereo(t_kf + 1, still)
     on = Estimator(synthetic_calibration())  # while the time offset is being estimated: when it asks (PnP)
     _run(on, duration_s=3.0, still_s=1.0, seed=4)
-    t_next = on._last_kf_t - on.time_offset_ns + 50_000_000
     assert not on.offset_estimator.done
-    assert on.needs_right_image(t_next) == on.offset_estimator.wants_stereo()
     on.offset_estimator._recent.clear()  # e.g. after a bad frame: the next pair start needs stereo
-    assert on.needs_right_image(t_next)
+    assert on.offset_estimator.wants_stereo() and on._needs_stereo(on._last_kf_t + 1, still)
 
 
 def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():

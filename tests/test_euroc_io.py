@@ -66,18 +66,19 @@ def test_events_in_time_order_imu_first(v101):
     assert n_imu == int(np.count_nonzero(v101.imu.t_ns <= t_end))
 
 
-def test_events_skip_right_images_not_wanted(v101):
-    asked: list[int] = []
-
-    def want_right(t_ns: int) -> bool:
-        asked.append(t_ns)
-        return len(asked) % 3 == 1
-
-    frames = [e for e in v101.events(t_end_ns=int(v101.frame_t[5]), want_right=want_right)
-              if isinstance(e, StereoFrame)]
-    assert asked == [f.t_ns for f in frames] == v101.frame_t[:6].tolist()
-    assert [f.right is not None for f in frames] == [True, False, False, True, False, False]
-    assert all(f.left.shape == (480, 752) for f in frames)
+def test_events_defer_right_images_when_lazy(v101, monkeypatch):
+    t_end = int(v101.frame_t[5])
+    eager = [e for e in v101.events(t_end_ns=t_end) if isinstance(e, StereoFrame)]
+    decoded: list[str] = []
+    load = v101._load
+    monkeypatch.setattr(v101, "_load", lambda path: (decoded.append(str(path)), load(path))[1])
+    lazy = [e for e in v101.events(t_end_ns=t_end, lazy_right=True) if isinstance(e, StereoFrame)]
+    assert [f.t_ns for f in lazy] == [f.t_ns for f in eager] == v101.frame_t[:6].tolist()
+    assert all(f.right is None and f.load_right is not None for f in lazy)
+    assert all("cam1" not in p for p in decoded)  # only left images so far
+    assert np.array_equal(lazy[2].right_image(), eager[2].right)
+    assert sum("cam1" in p for p in decoded) == 1
+    assert all(np.array_equal(a.left, b.left) for a, b in zip(lazy, eager))
 
 
 def test_events_after_last_frame_are_imu(v101):

@@ -41,12 +41,20 @@ def test_short_synthetic_flight_is_accurate(tmp_path):
     data = tmp_path / "flight"
     sim.simulate(data, sim.SimConfig(profile="survey", duration_s=8.0, seed=3, width=376, height=240))
     ds = EurocDataset(data)
+    right_decoded: list[str] = []
+    load = ds._load
+    ds._load = lambda path: (right_decoded.append(str(path)) if "cam1" in str(path) else None, load(path))[1]
     res = replay(ds, progress=False)
     assert res.resets == 0
     ev = evaluate(res.trajectory(), ds.groundtruth.trajectory)
     assert ev.coverage > 0.8
     assert ev.ate_se3.trans_m.rmse < 0.05
     assert np.isfinite(res.realtime_factor)
+    # stereo (and the right image's decoding) only where used: keyframes, initialisation, time-offset pairs
+    kf = [f for f in res.frame_stats if f["keyframe"]]
+    assert len(kf) >= 10 and all(f["stereo"] > 20 for f in kf)
+    assert len(kf) <= len(right_decoded) < 0.6 * res.frames
+    assert sum(f["stereo"] > 0 for f in res.frame_stats) == len(right_decoded)
 
 
 def test_frames_processed_late_are_counted_in_the_stats(tmp_path):

@@ -124,12 +124,6 @@ class Estimator:
             return self._propagated_state()
         return None
 
-    def needs_right_image(self, t_cam_ns: int) -> bool:
-        """Whether the frame stamped t_cam_ns (camera clock, newer than all frames fed so far) will use its
-        right image; False lets a reader skip decoding it. Conservative: frames still queued can only move
-        the last keyframe closer. A reset between the question and the frame costs that frame its stereo."""
-        return self._needs_stereo(int(t_cam_ns) + self.time_offset_ns)
-
     def feed_frame(self, frame: StereoFrame) -> NavState | None:
         """Add a stereo frame; returns the state at the newest frame processed by this call."""
         self._pending.append(frame)
@@ -186,8 +180,7 @@ class Estimator:
             import cv2  # already loaded by the tracker
 
             try:
-                ff = self.tracker.process(item, prior) if self._needs_stereo(t) else \
-                    self.tracker.process(item, prior, stereo=False)
+                ff = self.tracker.process(item, prior, stereo=lambda preview: self._needs_stereo(t, preview))
             except cv2.error as e:  # one frame OpenCV cannot handle must not end the flight
                 msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
                 log.warning("front end failed on the frame at %d: %s", item.t_ns, msg)
@@ -214,13 +207,11 @@ class Estimator:
                 sink(st)
         return st
 
-    def _can_be_keyframe(self, t: int) -> bool:
-        return self._last_kf_t is None or (t - self._last_kf_t) * 1e-9 >= self.bcfg.keyframe_min_interval_s
-
-    def _needs_stereo(self, t: int) -> bool:
+    def _needs_stereo(self, t: int, preview: FeatureFrame) -> bool:
         """Stereo is used by the initialisers, the time-offset estimator (PnP on stereo points) and keyframes
-        only; a frame closer than keyframe_min_interval_s to the last keyframe is none of these."""
-        return (self.bcfg.stereo_every_frame or not self.initialized or self._can_be_keyframe(t)
+        only. `preview` is the frame's front-end result before stereo, which is all the keyframe choice
+        looks at, so the choice is known here: on a survey flight about one frame in five needs stereo."""
+        return (self.bcfg.stereo_every_frame or not self.initialized or self._is_keyframe(t, preview)
                 or (self.offset_estimator is not None and self.offset_estimator.wants_stereo()))
 
     def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
@@ -230,7 +221,7 @@ class Estimator:
         never add to a keyframe solve."""
         if self.offset_estimator is None or self.offset_estimator.done:
             return
-        quiet = not self.initialized or not (self._can_be_keyframe(t) or self._marginal_due)
+        quiet = not self.initialized or not (self._is_keyframe(t, ff) or self._marginal_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
         if new is not None and new != self.time_offset_ns:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,

@@ -141,8 +141,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
-    # right images that the estimator will not use are not decoded (the debug view shows them all)
-    for ev in dataset.events(t_end_ns=t_end, want_right=None if writer is not None else est.needs_right_image):
+    # right images are decoded only where the front end uses them (the debug view shows them all)
+    for ev in dataset.events(t_end_ns=t_end, lazy_right=writer is None):
         if realtime:
             t_data = ev.t_ns
             if t_first is None:
@@ -169,7 +169,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
             tm = est.timings
             t_cam = int(est.last_features.t_ns)
             frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
-                                "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe)})
+                                "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
+                                "stereo": est.last_features.n_stereo})
             if writer is not None and t_cam in waiting:
                 writer.write(waiting.pop(t_cam), est.last_features)
                 for t in [t for t in waiting if t < t_cam]:

@@ -6,6 +6,7 @@ All time stamps are integer nanoseconds on one host clock. Poses are 4x4 homogen
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,12 +24,22 @@ class ImuSample:
 @dataclass(frozen=True)
 class StereoFrame:
     """A hardware-synchronised stereo pair (8-bit grayscale). `right` may be None when the right image
-    was lost; the front end then reports no stereo for this frame instead of failing."""
+    was lost; the front end then reports no stereo for this frame instead of failing.
+
+    A recording may leave `right` None and give `load_right` instead, which decodes it: the front end
+    uses the right image of about one frame in four, and decoding is a replay's largest single cost."""
 
     t_ns: int
     left: np.ndarray
     right: np.ndarray | None
     seq: int = 0
+    load_right: Callable[[], np.ndarray | None] | None = field(default=None, repr=False, compare=False)
+
+    def right_image(self) -> np.ndarray | None:
+        """The right image, decoded now if it was deferred (each call decodes again)."""
+        if self.right is not None or self.load_right is None:
+            return self.right
+        return self.load_right()
 
 
 @dataclass(frozen=True)

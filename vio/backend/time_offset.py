@@ -12,8 +12,10 @@ pairs dropped, bootstrap sigma). Pairs that barely turn are skipped; from MIN_PA
 the newest `window_s` of pairs is solved every SOLVE_EVERY pairs, so the offset is known a few seconds
 after take-off, before a wrong one has done much harm, and refined as the window fills. An estimate is
 used when observable with a small sigma (and not much worse than the last one); collection stops once
-sigma is below `final_sigma_s` on a full window, or after `max_solves` (it costs ~1-2 ms per frame while
-it runs).
+sigma is below `final_sigma_s` on a full window, or after `max_solves`. While it runs it costs a PnP per
+frame (~0.4 ms) and stereo on one frame in `span_frames` at least: a pair starts at the newest frame with
+stereo depth that is `span_frames` or more back (stereo on every frame made a survey flight, which
+collects for the whole `max_collect_s`, replay ~20 % slower).
 
 Why frames apart rather than consecutive: shifting an interval by d changes its gyro integral by
 (w(t1) - w(t0)) d, so the signal grows with the interval while the visual rotation noise does not (at

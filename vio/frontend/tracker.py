@@ -10,9 +10,11 @@ is undistorted (same K).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -245,14 +247,15 @@ class StereoTracker:
 
     # ---------------------------------------------------------------------------------------- main
     def process(self, frame: StereoFrame, R_cam0prev_cam0cur: np.ndarray | None = None,
-                stereo: bool = True) -> FeatureFrame:
+                stereo: bool | Callable[[FeatureFrame], bool] = True) -> FeatureFrame:
         """Track one stereo frame. `R_cam0prev_cam0cur` (from `GyroPrior`) maps current cam0 points into the
         previous frame's cam0; None when no gyro is available (tracking then starts from zero motion).
 
         `stereo=False` skips the right image (no uv1/depth in the result; the tracks keep their last depth
-        as the next search start): the caller's promise that this frame's stereo is not used (the estimator
-        passes it for frames too close to the last keyframe to become one). Stereo was a third of the
-        front-end time."""
+        as the next search start): the caller's promise that this frame's stereo is not used. A callable
+        decides after tracking: it gets this frame's result without stereo (ids, tracks, parallax; uv1 and
+        depth NaN), so the estimator asks for stereo on the frames that become keyframes only. Stereo (with
+        the right image's decoding in a replay) was a third of the front-end time."""
         t_start = time.perf_counter()
         t_ns = int(frame.t_ns)
         if self._last_t is not None and t_ns <= self._last_t:
@@ -272,19 +275,8 @@ class StereoTracker:
         if why:
             self._last_t = t_ns
             return self._bad(t_ns, why)
-        right, note = None, ""
-        if not stereo:
-            pass
-        elif frame.right is None:
-            note = "no right image: mono only"
-        else:
-            right, why_r = self._prepare(frame.right, "right")
-            why_r = why_r or image_problem(right, self.cfg)
-            if why_r:
-                right, note = None, f"right image unusable ({why_r}): mono only"
         t = lap("check", t_start)
-
-        left, right = self._normalise(left, right)
+        left = self._normalise_left(left)
         t = lap("preprocess", t)
 
         had_prev = self._prev_img is not None
@@ -324,8 +316,19 @@ class StereoTracker:
                 self._anc = self._anc.concat(self._anchor.build(left, new))
         t = lap("detect", t)
 
+        if self._want_keyframe:
+            self.mark_keyframe()
+        self._hist.append((self._ids.copy(), self._uv.copy()))
+        parallax = self._parallax()
         n = len(self._ids)
         uv1, depth = np.full((n, 2), np.nan), np.full(n, np.nan)
+        ff = FeatureFrame(t_ns, self._ids.copy(), self._uv.copy(), uv1, depth, self._len.copy(),
+                          parallax_px=parallax, timings_ms=timings)
+        if n < self.cfg.min_features_ok:  # reported bad below: no stereo
+            stereo = False
+        elif callable(stereo):
+            stereo = bool(stereo(ff))
+        right, note = self._right_image(frame) if stereo else (None, "")
         if right is not None and n:
             # A track whose last stereo match failed is mostly occluded or outside the right view; searching
             # it again every frame doubled the stereo time on EuRoC. Tracks never searched are always searched,
@@ -342,13 +345,8 @@ class StereoTracker:
         self._prev_img = left
         self._last_t = t_ns
         self._frame_count += 1
-        if self._want_keyframe:
-            self.mark_keyframe()
-        self._hist.append((self._ids.copy(), self._uv.copy()))
-        parallax = self._parallax()
         timings["total"] = (time.perf_counter() - t_start) * 1e3
-        ff = FeatureFrame(t_ns, self._ids.copy(), self._uv.copy(), uv1, depth, self._len.copy(),
-                          parallax_px=parallax, reason=note, timings_ms=timings)
+        ff = dataclasses.replace(ff, uv1=uv1, depth_m=depth, reason=note)
         log.debug("front end t=%d: %d features (%d tracked, %d RANSAC outliers, %d new), %d stereo, "
                   "parallax %.1f px, %.1f ms", t_ns, n, n_tracked_klt - n_ransac_out, n_ransac_out, len(new),
                   ff.n_stereo, parallax, timings["total"])
@@ -356,12 +354,12 @@ class StereoTracker:
             return self._bad(t_ns, f"only {n} features (< {self.cfg.min_features_ok})")
         return ff
 
-    def _normalise(self, left: np.ndarray, right: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    def _normalise_left(self, left: np.ndarray) -> np.ndarray:
         """CLAHE, or a global gain that keeps brightness steady so KLT's constant-brightness model holds."""
         if self._clahe is not None:
-            return self._clahe.apply(left), None if right is None else self._clahe.apply(right)
+            return self._clahe.apply(left)
         if not self.cfg.gain_compensation:
-            return left, right
+            return left
         m_left = float(cv2.mean(left)[0])
         if self._prev_img is not None:
             gain = self._prev_mean / max(m_left, 1.0)
@@ -369,8 +367,24 @@ class StereoTracker:
                 left = cv2.convertScaleAbs(left, alpha=gain)
                 m_left *= gain
         self._prev_mean = m_left
-        if right is not None:
-            gain_r = m_left / max(float(cv2.mean(right)[0]), 1.0)
-            if abs(gain_r - 1.0) > 0.05:
-                right = cv2.convertScaleAbs(right, alpha=gain_r)
-        return left, right
+        return left
+
+    def _normalise_right(self, right: np.ndarray) -> np.ndarray:
+        """The left image's treatment, with the gain that matches the right's brightness to the left's."""
+        if self._clahe is not None:
+            return self._clahe.apply(right)
+        if not self.cfg.gain_compensation:
+            return right
+        gain_r = self._prev_mean / max(float(cv2.mean(right)[0]), 1.0)
+        return cv2.convertScaleAbs(right, alpha=gain_r) if abs(gain_r - 1.0) > 0.05 else right
+
+    def _right_image(self, frame: StereoFrame) -> tuple[np.ndarray | None, str]:
+        """The checked, normalised right image, or None and the note why this frame is mono only."""
+        raw = frame.right_image()
+        if raw is None:
+            return None, "no right image: mono only"
+        right, why = self._prepare(raw, "right")
+        why = why or image_problem(right, self.cfg)
+        if why:
+            return None, f"right image unusable ({why}): mono only"
+        return self._normalise_right(right), ""

@@ -9,10 +9,11 @@ recorder can drop, is skipped with a warning and counted in `stats`.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -290,13 +291,17 @@ class EurocDataset:
             img = (img >> 8).astype(np.uint8)
         return img
 
-    def frame(self, i: int, right: bool = True) -> StereoFrame | None:
-        """Load frame i; None when its left image is missing or unreadable (counted in stats). `right=False`
-        leaves the right image out (not decoded)."""
+    def frame(self, i: int, lazy_right: bool = False) -> StereoFrame | None:
+        """Load frame i; None when its left image is missing or unreadable (counted in stats). `lazy_right`
+        defers the right image's decoding to `frame.right_image()` (a missing one: no loader)."""
         left = self._load(self.cam0_files[i])
         if left is None:
             return None
-        return StereoFrame(int(self.frame_t[i]), left, self._load(self._right_files[i]) if right else None, seq=i)
+        path = self._right_files[i]
+        if not lazy_right:
+            return StereoFrame(int(self.frame_t[i]), left, self._load(path), seq=i)
+        return StereoFrame(int(self.frame_t[i]), left, None, seq=i,
+                           load_right=None if path is None else functools.partial(self._load, path))
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[StereoFrame]:
         for i in range(start, len(self) if stop is None else min(stop, len(self))):
@@ -305,14 +310,13 @@ class EurocDataset:
                 yield f
 
     def events(self, t_start_ns: int | None = None, t_end_ns: int | None = None,
-               want_right: Callable[[int], bool] | None = None) -> Iterator[ImuSample | StereoFrame]:
+               lazy_right: bool = False) -> Iterator[ImuSample | StereoFrame]:
         """IMU samples and stereo frames merged in time order (IMU first on equal stamps, so the
         estimator already has the IMU up to the frame time). Frame stamps are on the camera clock; the
         estimator applies the calibration's time offset.
 
-        `want_right(t_ns)`, asked just before a frame is loaded, False: its right image is not decoded
-        (frame.right is None). PNG decoding is the largest single cost of a replay, and the estimator does
-        not use the right image of most frames (Estimator.needs_right_image)."""
+        `lazy_right`: right images are decoded only when `frame.right_image()` asks for them. PNG decoding
+        is the largest single cost of a replay, and the front end uses the right image of few frames."""
         imu_t = self.imu.t_ns
         lo = 0 if t_start_ns is None else int(np.searchsorted(imu_t, t_start_ns))
         hi = len(imu_t) if t_end_ns is None else int(np.searchsorted(imu_t, t_end_ns, side="right"))
@@ -328,7 +332,7 @@ class EurocDataset:
             while i < n and ts[i] <= t:
                 yield ImuSample(ts[i], gyro[i], accel[i])
                 i += 1
-            f = self.frame(k, want_right is None or want_right(t))
+            f = self.frame(k, lazy_right)
             if f is not None:
                 yield f
         while i < n:
