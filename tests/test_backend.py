@@ -197,6 +197,35 @@ def test_online_time_offset_needs_stereo_on_few_frames():
     assert est.done and not est.wants_stereo()  # finished: no more stereo on its behalf
 
 
+@pytest.mark.parametrize("calib_ms, estimates, applied", [
+    # creeping estimates (each < 0.5 ms from the last) are applied once they are far enough from the applied one
+    (0.0, [(8.84, 0.35), (9.21, 0.37), (9.49, 0.25), (9.67, 0.15), (10.1, 0.12)], [8.84, None, 9.49, None, 10.1]),
+    # a correct calibration is kept against estimates within 2.5 sigma of it
+    (0.0, [(-0.52, 1.67), (0.01, 0.44), (0.58, 0.39), (0.49, 0.30), (0.9, 0.3)], [None, None, None, None, 0.9]),
+    (5.0, [(5.4, 0.3), (4.6, 0.2), (3.0, 0.2)], [None, None, 3.0]),
+])
+def test_online_time_offset_applies_significant_changes_only(monkeypatch, calib_ms, estimates, applied):
+    import types
+
+    import calib.time_offset as cto
+    from vio.backend.time_offset import OnlineTimeOffset
+
+    calib = dataclasses.replace(synthetic_calibration(), time_offset_ns=int(calib_ms * 1e6))
+    est = OnlineTimeOffset(calib, max_solves=100)
+    est._pairs.extend([(0, 1, np.zeros(3), 20, np.eye(3))] * 5)
+    answers = iter(estimates)
+
+    def fake(*args, **kwargs):
+        off_ms, sigma_ms = next(answers)
+        return types.SimpleNamespace(offset_s=off_ms * 1e-3 - calib_ms * 1e-3, sigma_s=sigma_ms * 1e-3,
+                                     observable=True, n_pairs=5, rate_std_rad_s=1.0)
+
+    monkeypatch.setattr(cto, "estimate_time_offset", fake)
+    got = [est._solve() for _ in estimates]
+    assert [None if g is None else round(g * 1e-6, 2) for g in got] == applied
+    assert est.offset_ns == int(round(estimates[-1][0] * 1e6))  # the newest estimate is always kept
+
+
 def test_online_time_offset_solves_wait_for_a_quiet_frame():
     """The estimator keeps the solves (tens of ms) off keyframe frames; one postponed too long runs anyway."""
     solved: list = []
