@@ -11,6 +11,7 @@ recording against a fresh instance. `realtime=True` releases data as the host cl
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -192,7 +193,7 @@ class EurocSource(SensorSource):
             return m
         if isinstance(m, ImuSample):
             return ImuSample(m.t_ns + self._shift_ns, m.gyro, m.accel)
-        return StereoFrame(m.t_ns + self._shift_ns, m.left, m.right, m.seq)
+        return dataclasses.replace(m, t_ns=m.t_ns + self._shift_ns)
 
     def poll(self) -> list[Message]:
         if self._it is None or self._done:

@@ -36,8 +36,8 @@ def draw_tracks(frame: StereoFrame, ff: FeatureFrame, cam0: CameraCalibration, c
     FeatureFrame holds undistorted pixels; they are re-distorted here to land on the raw images.
     """
     left = cv2.cvtColor(frame.left, cv2.COLOR_GRAY2BGR)
-    right = (cv2.cvtColor(frame.right, cv2.COLOR_GRAY2BGR) if frame.right is not None
-             else np.zeros_like(left))
+    raw_right = frame.right_image()
+    right = cv2.cvtColor(raw_right, cv2.COLOR_GRAY2BGR) if raw_right is not None else np.zeros_like(left)
     uv0 = distort_px(cam0, ff.uv0) if len(ff.ids) else np.zeros((0, 2))
     stereo = np.isfinite(ff.depth_m)
     uv1 = np.full_like(uv0, np.nan)

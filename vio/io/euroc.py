@@ -420,7 +420,7 @@ class EurocWriter:
 
     def write_frame(self, frame: StereoFrame) -> None:
         name = f"{frame.t_ns}.png"
-        for k, img in enumerate((frame.left, frame.right)):
+        for k, img in enumerate((frame.left, frame.right_image())):  # a deferred right image is decoded
             if img is None:
                 continue
             cam = f"cam{k}"
