@@ -180,3 +180,22 @@ def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():
     bg = np.asarray(est._smoother.last.bias.gyroscope())
     assert np.allclose(est.gyro_prior.gyro_bias, bg)
     assert np.linalg.norm(bg - [0.04, -0.02, 0.06]) < 0.01  # the simulated bias, not zero
+
+
+def test_every_landmark_in_the_window_has_its_weak_prior():
+    """A landmark whose observations the Huber loss turns down must not leave the solve indeterminate."""
+    import gtsam
+
+    est = Estimator(synthetic_calibration())
+    _run(est, duration_s=3.0, still_s=1.0, seed=7)
+    graph = est._smoother.smoother.getFactors()
+    priors = {}
+    for i in range(graph.size()):
+        f = graph.at(i)
+        if isinstance(f, gtsam.PriorFactorPoint3):
+            priors[f.keys()[0]] = f
+    values = est._smoother.smoother.calculateEstimate()
+    lm_keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("l")]  # noqa: SIM118 (gtsam.Values)
+    assert lm_keys and set(lm_keys) <= set(priors)
+    sigma = est.bcfg.landmark_prior_sigma_m
+    assert all(np.allclose(p.noiseModel().sigmas(), sigma) for p in priors.values())

@@ -88,6 +88,8 @@ class BackendConfig:
     max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
     max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
+    landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "
+                                        "well posed when its observations are turned down; 0 = none", min=0, max=1e6)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
     lost_timeout_s: float = opt(1.0, "tracking lost this long -> reset", min=0.05, max=60)
     zupt_max_speed_m_s: float = opt(0.05, "estimated speed above which no zero-velocity update is made", min=0, max=5)

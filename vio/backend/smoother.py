@@ -4,7 +4,8 @@ State per keyframe i: pose X(i) = T_world_body, velocity V(i) (world), IMU bias 
 keyframes are tied by a CombinedImuFactor (bias random walk inside). Each stereo track becomes a landmark
 L(j) in the world, created from its stereo depth the first time it is seen at a keyframe and observed by
 Huber-robust pinhole projection factors in cam0 (and cam1 where the front end found a stereo match),
-with body_P_sensor = T_body_cam so the smoother works on body poses directly.
+with body_P_sensor = T_body_cam so the smoother works on body poses directly, and a weak prior at its
+first position (`landmark_prior_sigma_m`) that keeps the linear system well posed.
 
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
@@ -72,6 +73,8 @@ class VioSmoother:
         self.T_body_cam0 = calib.cam0.T_body_cam
         pix = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
         self.pixel_noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k), pix)
+        self.landmark_prior = gtsam.noiseModel.Isotropic.Sigma(3, cfg.landmark_prior_sigma_m) \
+            if cfg.landmark_prior_sigma_m > 0 else None
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.01)
         params.relinearizeSkip = 1
@@ -104,7 +107,7 @@ class VioSmoother:
                         extra += 1
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
-            first_line = str(e).splitlines()[0] if str(e) else ""
+            first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
             raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
         return extra
 
@@ -230,7 +233,13 @@ class VioSmoother:
                 p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
                 key = L(self._next_landmark)
                 self._next_landmark += 1
-                values.insert(key, T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3])
+                p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
+                values.insert(key, p_w)
+                if self.landmark_prior is not None:
+                    # Without it a landmark whose observations the Huber loss has turned down (or a far one)
+                    # can leave the system indeterminate, and the smoother cannot recover from the failed
+                    # update: the estimator had to reset (synthetic aggressive hard flight, seed 2).
+                    graph.add(gtsam.PriorFactorPoint3(key, p_w, self.landmark_prior))
                 lm = _Landmark(key, t_s)
                 self.landmarks[tid] = lm
                 n_new += 1
