@@ -199,3 +199,37 @@ def test_every_landmark_in_the_window_has_its_weak_prior():
     assert lm_keys and set(lm_keys) <= set(priors)
     sigma = est.bcfg.landmark_prior_sigma_m
     assert all(np.allclose(p.noiseModel().sigmas(), sigma) for p in priors.values())
+
+
+def _frame_change(est_T: np.ndarray, true_T: np.ndarray) -> np.ndarray:
+    """T_est_world_true_world that maps the true pose onto the estimate at one instant."""
+    return est_T @ np.linalg.inv(true_T)
+
+
+def test_reset_in_motion_keeps_heading_and_position_through_the_gap():
+    """Re-initialising takes frames; the vehicle keeps turning meanwhile. The IMU carries the last state
+    across the gap, so the trajectory goes on in the same frame instead of jumping by what was flown."""
+    from vio.geometry import roll_pitch_yaw
+
+    def run(bridge: bool):
+        est = Estimator(synthetic_calibration())
+        reset = est.reset
+        est.reset = lambda reason, bridge_=bridge: reset(reason, bridge=bridge_)
+        states, _, truth, mot = _run(est, duration_s=8.0, still_s=1.0, seed=3, reset_at_s=4.0)
+        before = [k for k, s in enumerate(states) if s.reset_counter == 0]
+        after = [k for k, s in enumerate(states) if s.reset_counter == 1]
+        assert before and after and est.reset_counter == 1
+        F0 = _frame_change(states[before[-1]].T_world_body, truth[before[-1]])
+        F1 = _frame_change(states[after[0]].T_world_body, truth[after[0]])
+        gap_s = (states[after[0]].t_ns - states[before[-1]].t_ns) * 1e-9
+        turned = abs(roll_pitch_yaw(truth[after[0]][:3, :3])[2] - roll_pitch_yaw(truth[before[-1]][:3, :3])[2])
+        dyaw = abs(np.degrees(roll_pitch_yaw(F1[:3, :3] @ F0[:3, :3].T)[2]))
+        dpos = float(np.linalg.norm(F1[:3, 3] - F0[:3, 3]))
+        flown = float(np.linalg.norm(truth[after[0]][:3, 3] - truth[before[-1]][:3, 3]))
+        return gap_s, np.degrees(turned), dyaw, dpos, flown
+
+    gap_s, turned, dyaw, dpos, flown = run(bridge=True)
+    assert gap_s > 0.3 and turned > 3.0 and flown > 0.2  # a real gap, in which the vehicle turned and moved
+    assert dyaw < 1.0 and dpos < 0.1 * flown
+    _, _, dyaw_old, dpos_old, _ = run(bridge=False)  # without the bridge: the jumps this test is about
+    assert dyaw_old > 3 * max(dyaw, 0.3) and dpos_old > 3 * dpos

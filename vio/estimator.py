@@ -39,6 +39,23 @@ from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 log = logging.getLogger(__name__)
 
 IMU_KEEP_S = 3.0  # IMU history kept behind the newest sample (init windows, pending frames)
+BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
+BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
+
+
+@dataclass
+class _ResetBridge:
+    """The last trusted state before a reset, carried forward with the IMU until re-initialisation.
+
+    Why: re-initialising takes a while (a still window, or frames of motion), and the vehicle keeps turning
+    and moving meanwhile. Continuing from the last pose put the heading off by everything turned in the gap
+    (up to 2 rad/s on an aggressive flight) and the position by the distance flown."""
+
+    t0_ns: int
+    start: gtsam.NavState
+    bias: gtsam.imuBias.ConstantBias
+    pim: gtsam.PreintegratedCombinedMeasurements
+    t_ns: int  # integrated up to here
 
 
 @dataclass
@@ -94,6 +111,7 @@ class Estimator:
         self._marginal_due = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
         self.marginals = 0  # marginal covariances computed (diagnostics)
         self._anchor: np.ndarray | None = None  # pose to continue from after a reset
+        self._bridge: _ResetBridge | None = None  # that pose carried forward with the IMU
         self._latest: NavState | None = None
         self._quality = 0
         self._tracking = False
@@ -119,6 +137,14 @@ class Estimator:
         self.gyro_prior.add(s)
         if self.offset_estimator is not None:
             self.offset_estimator.add_imu(s)
+        if self._bridge is not None:
+            if s.t_ns - self._bridge.t_ns > BRIDGE_MAX_IMU_GAP_NS:
+                log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was",
+                            (s.t_ns - self._bridge.t_ns) * 1e-9)
+                self._bridge = None
+            else:
+                self.imu.integrate(self._bridge.pim, self._bridge.t_ns, s.t_ns)
+                self._bridge.t_ns = s.t_ns
         self._drain(final=False)
         if self.initialized and self.propagator.add(s):
             return self._propagated_state()
@@ -138,11 +164,23 @@ class Estimator:
         """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value."""
         return self._drain(final=True)
 
-    def reset(self, reason: str) -> None:
-        """Drop the smoother and re-initialise; the last pose becomes the new start (yaw and position)."""
+    def reset(self, reason: str, bridge: bool = True) -> None:
+        """Drop the smoother and re-initialise; the last pose becomes the new start (yaw and position).
+
+        `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
+        IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
+        self._bridge = None
         if self._latest is not None:
             self._anchor = self._latest.T_world_body.copy()
+            if bridge and self.imu.t:
+                st = self._latest
+                bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
+                self._bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
+                                            gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
+                t_imu = max(self.imu.last_t_ns, st.t_ns)
+                self.imu.integrate(self._bridge.pim, st.t_ns, t_imu)
+                self._bridge.t_ns = t_imu
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
         self._smoother = None
         self._pim = None
@@ -196,7 +234,7 @@ class Estimator:
         try:
             st = self._track(t, prev_t, ff) if self.initialized else self._try_init(t, ff)
         except SmootherFailure as e:
-            self.reset(str(e))
+            self.reset(str(e), bridge=e.state_ok)
             st = None
         t_end = time.perf_counter()
         self.timings = FrameTimings((t_front - t_start) * 1e3, (t_end - t_front) * 1e3,
@@ -243,13 +281,25 @@ class Estimator:
         T = init.T_world_body
         v = init.v_world
         if self._anchor is not None:
-            # Continue from where the estimate was: same position and heading, fresh roll/pitch.
-            yaw_old = roll_pitch_yaw(self._anchor[:3, :3])[2]
+            # Continue from where the estimate was (carried forward with the IMU when it could be): same
+            # position and heading, fresh roll/pitch.
+            anchor = self._anchor
+            if self._bridge is not None:
+                pred = self._bridge.pim.predict(self._bridge.start, self._bridge.bias).pose().matrix()
+                gap_s = (init.t_ns - self._bridge.t0_ns) * 1e-9
+                if gap_s > BRIDGE_POSITION_MAX_S:
+                    pred[:3, 3] = anchor[:3, 3]
+                log.info("reset bridged with the IMU over %.2f s: heading %+.1f deg, position %+.2f m", gap_s,
+                         np.degrees(roll_pitch_yaw(pred[:3, :3])[2] - roll_pitch_yaw(anchor[:3, :3])[2]),
+                         float(np.linalg.norm(pred[:3, 3] - anchor[:3, 3])))
+                anchor = pred
+            yaw_old = roll_pitch_yaw(anchor[:3, :3])[2]
             yaw_new = roll_pitch_yaw(T[:3, :3])[2]
             T_fix = make_T(so3_exp(np.array([0.0, 0.0, yaw_old - yaw_new])), np.zeros(3))
             T = T_fix @ T
-            T[:3, 3] = self._anchor[:3, 3]
+            T[:3, 3] = anchor[:3, 3]
             v = T_fix[:3, :3] @ v
+            self._bridge = None
         static = init.method == "static"
         self._smoother = VioSmoother(self.calib, self.bcfg)
         est = self._smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
@@ -376,9 +426,9 @@ class Estimator:
         bg = float(np.max(np.abs(est.bias.gyroscope())))
         ba = float(np.max(np.abs(est.bias.accelerometer())))
         if not np.all(np.isfinite(est.pose.matrix())) or speed > b.max_speed_m_s:
-            raise SmootherFailure(f"implausible speed {speed:.1f} m/s")
+            raise SmootherFailure(f"implausible speed {speed:.1f} m/s", state_ok=False)
         if bg > b.max_gyro_bias_rad_s or ba > b.max_accel_bias_m_s2:
-            raise SmootherFailure(f"implausible bias: gyro {bg:.3f} rad/s, accel {ba:.3f} m/s^2")
+            raise SmootherFailure(f"implausible bias: gyro {bg:.3f} rad/s, accel {ba:.3f} m/s^2", state_ok=False)
 
     # -- outputs ---------------------------------------------------------------------------------------
     def _state(self, t: int, T_world_body: np.ndarray, v_world: np.ndarray,

@@ -394,7 +394,9 @@ class EstimatorWorker(Worker):
         reset = getattr(self.estimator, "reset", None)
         if callable(reset):
             try:
-                reset(why)  # keeps the last pose as the new origin and bumps the estimator's reset_counter
+                # keeps the last pose as the new origin and bumps the estimator's reset_counter; not carried
+                # forward with the IMU: these resets follow lost IMU samples or an estimator in an unknown state
+                reset(why, bridge=False)
                 return
             except Exception as e:
                 log.warning("estimator reset() failed (%s); creating a new estimator", e)

@@ -33,7 +33,14 @@ GTSAM_ERRORS = (RuntimeError, ValueError, IndexError)
 
 
 class SmootherFailure(Exception):
-    """The optimisation failed or produced an implausible state: the estimator must reset."""
+    """The optimisation failed or produced an implausible state: the estimator must reset.
+
+    `state_ok`: the last state before the failure can be trusted (a numerical failure), so the estimator
+    may carry it across the reset with the IMU; False when the estimate itself went wrong."""
+
+    def __init__(self, message: str, state_ok: bool = True) -> None:
+        super().__init__(message)
+        self.state_ok = state_ok
 
 
 @dataclass
