@@ -6,6 +6,7 @@ import dataclasses
 import logging
 
 import numpy as np
+import pytest
 
 from vio.backend.synthetic import Motion, SyntheticScene, imu_samples, synthetic_calibration
 from vio.config import InitConfig, VioConfig
@@ -233,3 +234,22 @@ def test_reset_in_motion_keeps_heading_and_position_through_the_gap():
     assert dyaw < 1.0 and dpos < 0.1 * flown
     _, _, dyaw_old, dpos_old, _ = run(bridge=False)  # without the bridge: the jumps this test is about
     assert dyaw_old > 3 * max(dyaw, 0.3) and dpos_old > 3 * dpos
+
+
+@pytest.mark.parametrize("state_ok", [True, False])
+def test_reset_after_an_implausible_estimate_is_not_bridged(state_ok):
+    """An implausible state (speed, bias) must not be carried across the reset; a numerical failure may."""
+    from vio.backend.smoother import SmootherFailure
+
+    est = Estimator(synthetic_calibration())
+    _run(est, duration_s=3.0, still_s=1.0, seed=2)
+    calls: list[bool] = []
+    reset = est.reset
+    est.reset = lambda reason, bridge=True: (calls.append(bridge), reset(reason, bridge=bridge))[1]
+
+    def fail(*args, **kwargs):
+        raise SmootherFailure("scripted failure", state_ok=state_ok)
+
+    est._smoother.add_keyframe = fail
+    _run(est, duration_s=3.6, still_s=1.0, seed=2, moving_start_s=3.0)
+    assert calls and calls[0] == state_ok and est.reset_counter >= 1
