@@ -157,7 +157,9 @@ def render(res: dict, out_rel: str) -> str:
           "- One core: the replay process is pinned to CPU 0 (as `taskset -c 0`), OMP/OPENBLAS/MKL/NUMEXPR "
           "threads = 1 and `cv2.setNumThreads(1)`. All cores: no pinning, library defaults.",
           "- The replay's RTF includes reading the PNG images (`imread`" + _imread_share(prof) + "), which a live "
-          "camera does not need; the per-frame stage times do not include it.",
+          "camera does not need. The left image is decoded before the frame reaches the estimator (outside the "
+          "stage times); a right image is decoded only when the front end's stereo step asks for it (keyframes, "
+          "about one frame in four), inside the front-end time.",
           "- The long memory flight uses 376x240 images to keep its generation time reasonable; memory growth "
           "comes from state that accumulates per frame or keyframe, which does not depend on the image size.",
           "- Latency includes waiting for the next slot of the MAVLink output schedule (`[mavlink] rate_hz`) and "
