@@ -15,7 +15,9 @@ from vio.types import FeatureFrame
 
 
 def _run(est: Estimator, duration_s: float, still_s: float, seed: int, reset_at_s: float | None = None,
-         moving_start_s: float = 0.0):
+         moving_start_s: float = 0.0, frame_delay_samples: int = 0):
+    """Feed synthetic IMU and features; `frame_delay_samples`: frames arrive that many IMU samples late
+    (camera latency), as on a live system."""
     calib = est.calib
     mot = Motion(speed=1.0, still_s=still_s, seed=seed)
     scene = SyntheticScene(calib, seed=seed)
@@ -24,7 +26,8 @@ def _run(est: Estimator, duration_s: float, still_s: float, seed: int, reset_at_
                       accel_bias=np.array([0.05, -0.04, 0.03]), noise=calib.imu, rng=rng)
     frame_states, imu_states, truth = [], [], []
     est.listeners.append(frame_states.append)
-    for s in imu:
+    late: list[tuple[int, object]] = []
+    for i, s in enumerate(imu):
         st = est.feed_imu(s)
         if st is not None:
             imu_states.append(st)
@@ -32,7 +35,9 @@ def _run(est: Estimator, duration_s: float, still_s: float, seed: int, reset_at_
             t = s.t_ns * 1e-9
             if reset_at_s is not None and abs(t - reset_at_s) < 1e-6:
                 est.reset("forced by the test")
-            est.feed_features(scene.observe(s.t_ns, mot.pose(t), pixel_sigma=0.5, rng=rng))
+            late.append((i + frame_delay_samples, scene.observe(s.t_ns, mot.pose(t), pixel_sigma=0.5, rng=rng)))
+        while late and late[0][0] <= i:
+            est.feed_features(late.pop(0)[1])
     for st in frame_states:
         truth.append(mot.pose(st.t_ns * 1e-9))
     return frame_states, imu_states, np.array(truth), mot
@@ -212,11 +217,12 @@ def test_reset_in_motion_keeps_heading_and_position_through_the_gap():
     across the gap, so the trajectory goes on in the same frame instead of jumping by what was flown."""
     from vio.geometry import roll_pitch_yaw
 
-    def run(bridge: bool):
+    def run(bridge: bool, delay: int = 0):
         est = Estimator(synthetic_calibration())
         reset = est.reset
         est.reset = lambda reason, bridge_=bridge: reset(reason, bridge=bridge_)
-        states, _, truth, mot = _run(est, duration_s=8.0, still_s=1.0, seed=3, reset_at_s=4.0)
+        states, _, truth, mot = _run(est, duration_s=8.0, still_s=1.0, seed=3, reset_at_s=4.0,
+                                     frame_delay_samples=delay)
         before = [k for k, s in enumerate(states) if s.reset_counter == 0]
         after = [k for k, s in enumerate(states) if s.reset_counter == 1]
         assert before and after and est.reset_counter == 1
@@ -232,6 +238,8 @@ def test_reset_in_motion_keeps_heading_and_position_through_the_gap():
     gap_s, turned, dyaw, dpos, flown = run(bridge=True)
     assert gap_s > 0.3 and turned > 3.0 and flown > 0.2  # a real gap, in which the vehicle turned and moved
     assert dyaw < 1.0 and dpos < 0.1 * flown
+    _, _, dyaw_late, dpos_late, _ = run(bridge=True, delay=20)  # frames 100 ms late: bridged to the frame time
+    assert dyaw_late < 1.0 and dpos_late < 0.1 * flown
     _, _, dyaw_old, dpos_old, _ = run(bridge=False)  # without the bridge: the jumps this test is about
     assert dyaw_old > 3 * max(dyaw, 0.3) and dpos_old > 3 * dpos
 

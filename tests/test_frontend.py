@@ -401,3 +401,25 @@ def test_gyro_bias_is_subtracted_and_validated() -> None:
     assert np.allclose(prior.rotation(0, 50_000_000), so3_exp(R_bc.T @ [0.0, 0.0, 0.05]), atol=1e-9)
     with pytest.raises(VioError, match="gyro bias"):
         prior.set_gyro_bias([0.1, np.nan, 0.0])
+
+
+def test_broken_right_image_gives_mono_and_keeps_the_tracker_consistent(scene: PlaneScene,
+                                                                         calib: StereoCalibration) -> None:
+    f0 = scene.stereo(calib, np.eye(4), 1_000)
+    f1 = scene.stereo(calib, make_T(so3_exp([0, 0.01, 0]), [0.02, 0, 0]), 50_001_000)
+    f2 = scene.stereo(calib, make_T(so3_exp([0, 0.02, 0]), [0.04, 0, 0]), 100_001_000)
+    tr = StereoTracker(calib)
+    a = tr.process(f0)
+    two_channel = np.dstack([f1.right, f1.right])  # OpenCV cannot convert it: raises inside the stereo step
+
+    def broken_loader():
+        raise OSError("disk gone")
+
+    for bad in (StereoFrame(f1.t_ns, f1.left, two_channel),
+                StereoFrame(f1.t_ns, f1.left, None, load_right=broken_loader)):
+        tr2 = StereoTracker(calib)
+        tr2.process(f0)
+        b = tr2.process(bad)
+        assert b.tracking_ok and b.n_stereo == 0 and "mono only" in b.reason
+        c = tr2.process(f2)  # tracking goes on from this frame's image and tracks
+        assert c.tracking_ok and len(np.intersect1d(a.ids, c.ids)) >= 0.8 * len(a.ids)

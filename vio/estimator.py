@@ -131,20 +131,16 @@ class Estimator:
 
     def feed_imu(self, s: ImuSample) -> NavState | None:
         """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
+        prev_t = self.imu.last_t_ns
         if not self.imu.add(s):
             return None
+        if self._bridge is not None and prev_t is not None and s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
+            log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was", (s.t_ns - prev_t) * 1e-9)
+            self._bridge = None
         self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
         self.gyro_prior.add(s)
         if self.offset_estimator is not None:
             self.offset_estimator.add_imu(s)
-        if self._bridge is not None:
-            if s.t_ns - self._bridge.t_ns > BRIDGE_MAX_IMU_GAP_NS:
-                log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was",
-                            (s.t_ns - self._bridge.t_ns) * 1e-9)
-                self._bridge = None
-            else:
-                self.imu.integrate(self._bridge.pim, self._bridge.t_ns, s.t_ns)
-                self._bridge.t_ns = s.t_ns
         self._drain(final=False)
         if self.initialized and self.propagator.add(s):
             return self._propagated_state()
@@ -170,23 +166,29 @@ class Estimator:
         `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
         IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
-        self._bridge = None
-        if self._latest is not None:
+        if not bridge:
+            self._bridge = None
+        if self._latest is not None and self._bridge is None:  # (a running bridge survives a failed restart)
             self._anchor = self._latest.T_world_body.copy()
-            if bridge and self.imu.t:
-                st = self._latest
+            st = self._latest
+            if bridge and self.imu.t and self.imu.t[0] <= st.t_ns:  # the IMU since that state is still here
                 bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
                 self._bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
                                             gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
-                t_imu = max(self.imu.last_t_ns, st.t_ns)
-                self.imu.integrate(self._bridge.pim, st.t_ns, t_imu)
-                self._bridge.t_ns = t_imu
+                if self._last_frame_t is not None:
+                    self._advance_bridge(self._last_frame_t)
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
         self._smoother = None
         self._pim = None
         self._last_kf_t = None
         self._lost_since = None
         self.moving_init.clear()
+
+    def _advance_bridge(self, t: int) -> None:
+        """Integrate the reset bridge up to the frame time t (not beyond: the start that uses it is at t)."""
+        if self._bridge is not None and t > self._bridge.t_ns:
+            self.imu.integrate(self._bridge.pim, self._bridge.t_ns, t)
+            self._bridge.t_ns = t
 
     # -- frame pipeline --------------------------------------------------------------------------------
     def _drain(self, final: bool) -> NavState | None:
@@ -231,6 +233,8 @@ class Estimator:
         self.last_features = ff
         self._prev_ff = ff
         self.frames_processed += 1
+        if not self.initialized:
+            self._advance_bridge(t)
         try:
             st = self._track(t, prev_t, ff) if self.initialized else self._try_init(t, ff)
         except SmootherFailure as e:
@@ -299,12 +303,12 @@ class Estimator:
             T = T_fix @ T
             T[:3, 3] = anchor[:3, 3]
             v = T_fix[:3, :3] @ v
-            self._bridge = None
         static = init.method == "static"
         self._smoother = VioSmoother(self.calib, self.bcfg)
         est = self._smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
                                         sigma_v_m_s=0.01 if static else 0.1,
                                         sigma_bg=0.005 if static else 0.02, features=ff)
+        self._bridge = None  # only now: a restart that fails keeps carrying the last trusted state
         self.moving_init.clear()
         log.info("initialised (%s) at t=%d: roll/pitch %.2f/%.2f deg", init.method, init.t_ns,
                  *np.degrees(roll_pitch_yaw(T[:3, :3])[:2]))

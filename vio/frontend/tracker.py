@@ -328,7 +328,10 @@ class StereoTracker:
             stereo = False
         elif callable(stereo):
             stereo = bool(stereo(ff))
-        right, note = self._right_image(frame) if stereo else (None, "")
+        try:
+            right, note = self._right_image(frame) if stereo else (None, "")
+        except (cv2.error, OSError, ValueError) as e:  # the tracks are updated already: keep them consistent
+            right, note = None, f"right image unusable ({type(e).__name__}): mono only"
         if right is not None and n:
             # A track whose last stereo match failed is mostly occluded or outside the right view; searching
             # it again every frame doubled the stereo time on EuRoC. Tracks never searched are always searched,
