@@ -45,6 +45,11 @@ CHANGE_NS = 500_000  # smaller corrections are not applied (no jitter of the fra
 SIGNIFICANT_SIGMAS = 2.5  # an estimate replaces the applied offset only when this many sigmas away from it
 
 
+def _has_depth(ff: FeatureFrame) -> bool:
+    """Enough stereo points for a pair starting at this frame to use PnP."""
+    return ff.n_stereo >= MIN_SHARED_TRACKS
+
+
 class OnlineTimeOffset:
     """Collects (frame pair rotation, gyro) and answers the camera-IMU offset t_imu = t_cam + offset."""
 
@@ -55,6 +60,7 @@ class OnlineTimeOffset:
         self.f_px = cam.fx
         self.c = np.array([cam.cx, cam.cy])
         self.fxy = np.array([cam.fx, cam.fy])
+        self.K = cam.K
         self.R_body_cam = cam.T_body_cam[:3, :3].copy()
         self.base_ns = int(calib.time_offset_ns)  # searched around the calibration's value
         self.max_offset_s = max_offset_s
@@ -132,7 +138,7 @@ class OnlineTimeOffset:
         if self.done:
             return False
         newest = list(self._recent)[-(self.span_frames - 1):] if self.span_frames > 1 else []
-        return not any(f.n_stereo >= MIN_SHARED_TRACKS for f in newest)
+        return not any(map(_has_depth, newest))
 
     def _pair_start(self) -> FeatureFrame | None:
         """The frame a pair ending at the next frame starts at: the newest one at least span_frames back that
@@ -141,10 +147,8 @@ class OnlineTimeOffset:
         frames = list(self._recent)
         if len(frames) < self.span_frames:
             return None
-        for f in reversed(frames[:len(frames) - self.span_frames + 1]):
-            if f.n_stereo >= MIN_SHARED_TRACKS:
-                return f
-        return frames[-self.span_frames]
+        starts = frames[:len(frames) - self.span_frames + 1]
+        return next((f for f in reversed(starts) if _has_depth(f)), frames[-self.span_frames])
 
     def _pnp_rotation(self, prev: FeatureFrame, cur: FeatureFrame, i0: np.ndarray,
                       i1: np.ndarray) -> tuple[np.ndarray, int, np.ndarray] | None:
@@ -159,16 +163,15 @@ class OnlineTimeOffset:
         if ok.sum() < MIN_SHARED_TRACKS:
             return None
         P = np.column_stack([(prev.uv0[i0][ok] - self.c) / self.fxy, np.ones(int(ok.sum()))]) * d[ok, None]
-        K = np.array([[self.fxy[0], 0, self.c[0]], [0, self.fxy[1], self.c[1]], [0, 0, 1.0]])
         uv = cur.uv0[i1][ok].astype(np.float64)
-        found, rvec, tvec, inl = cv2.solvePnPRansac(P, uv, K, None, iterationsCount=50, reprojectionError=2.0,
+        found, rvec, tvec, inl = cv2.solvePnPRansac(P, uv, self.K, None, iterationsCount=50, reprojectionError=2.0,
                                                     flags=cv2.SOLVEPNP_EPNP)
         n = 0 if inl is None else len(inl)
         if not found or n < MIN_SHARED_TRACKS:
             return None
         # EPnP alone is too noisy for a 1 ms offset (0.3 px noise gave offsets at the search bound): refine
         inl = inl.ravel()
-        rvec, _ = cv2.solvePnPRefineLM(P[inl], uv[inl], K, None, rvec, tvec)
+        rvec, _ = cv2.solvePnPRefineLM(P[inl], uv[inl], self.K, None, rvec, tvec)
         R_cur_prev = cv2.Rodrigues(rvec)[0]
         return R_cur_prev.T, n, n * np.eye(3)
 

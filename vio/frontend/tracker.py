@@ -276,7 +276,7 @@ class StereoTracker:
             self._last_t = t_ns
             return self._bad(t_ns, why)
         t = lap("check", t_start)
-        left = self._normalise_left(left)
+        left = self._normalise(left)
         t = lap("preprocess", t)
 
         had_prev = self._prev_img is not None
@@ -357,29 +357,24 @@ class StereoTracker:
             return self._bad(t_ns, f"only {n} features (< {self.cfg.min_features_ok})")
         return ff
 
-    def _normalise_left(self, left: np.ndarray) -> np.ndarray:
-        """CLAHE, or a global gain that keeps brightness steady so KLT's constant-brightness model holds."""
-        if self._clahe is not None:
-            return self._clahe.apply(left)
-        if not self.cfg.gain_compensation:
-            return left
-        m_left = float(cv2.mean(left)[0])
-        if self._prev_img is not None:
-            gain = self._prev_mean / max(m_left, 1.0)
-            if abs(gain - 1.0) > 0.03:
-                left = cv2.convertScaleAbs(left, alpha=gain)
-                m_left *= gain
-        self._prev_mean = m_left
-        return left
+    def _normalise(self, img: np.ndarray, right: bool = False) -> np.ndarray:
+        """CLAHE, or a global gain that keeps brightness steady so KLT's constant-brightness model holds.
 
-    def _normalise_right(self, right: np.ndarray) -> np.ndarray:
-        """The left image's treatment, with the gain that matches the right's brightness to the left's."""
+        The left image is held at the previous left image's mean (and sets it for the next frame); the right
+        image gets the gain that matches it to this frame's left, so call it after the left."""
         if self._clahe is not None:
-            return self._clahe.apply(right)
+            return self._clahe.apply(img)
         if not self.cfg.gain_compensation:
-            return right
-        gain_r = self._prev_mean / max(float(cv2.mean(right)[0]), 1.0)
-        return cv2.convertScaleAbs(right, alpha=gain_r) if abs(gain_r - 1.0) > 0.05 else right
+            return img
+        m = float(cv2.mean(img)[0])
+        if right or self._prev_img is not None:
+            gain = self._prev_mean / max(m, 1.0)
+            if abs(gain - 1.0) > (0.05 if right else 0.03):
+                img = cv2.convertScaleAbs(img, alpha=gain)
+                m *= gain
+        if not right:
+            self._prev_mean = m
+        return img
 
     def _right_image(self, frame: StereoFrame) -> tuple[np.ndarray | None, str]:
         """The checked, normalised right image, or None and the note why this frame is mono only."""
@@ -390,4 +385,4 @@ class StereoTracker:
         why = why or image_problem(right, self.cfg)
         if why:
             return None, f"right image unusable ({why}): mono only"
-        return self._normalise_right(right), ""
+        return self._normalise(right, right=True), ""
