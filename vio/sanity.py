@@ -1,0 +1,115 @@
+"""Sensor sanity: is this IMU sample physically possible, and do these readings have the units we assume?
+
+One implementation for the runtime (estimator: every sample, and at initialisation), the replay (a whole
+IMU file before the flight starts) and `vio calib check`. A unit mistake (g instead of m/s^2, deg/s
+instead of rad/s, mm instead of m) does not crash anything: it makes an estimator that drifts by metres
+and reports itself healthy. So the checks name the likely mistake and the fix, instead of a bare "out of
+range".
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+GRAVITY_M_S2 = 9.80665
+# Full-scale ranges of the IMUs drones carry (BMI270/ICM-42688: +-16 g, +-2000 deg/s); a reading beyond
+# them is a broken sample, not motion.
+MAX_ACCEL_M_S2 = 16 * GRAVITY_M_S2 * 1.1
+MAX_GYRO_RAD_S = math.radians(2000.0) * 1.1
+# Still: |mean accel| within this share of g (a tilted, biased, vibrating IMU still passes).
+GRAVITY_TOLERANCE = 0.15
+DEG = 180.0 / math.pi
+
+
+def imu_sample_problem(gyro: np.ndarray, accel: np.ndarray) -> str | None:
+    """Why one IMU sample cannot be used (None when it can)."""
+    g = np.asarray(gyro, dtype=float)
+    a = np.asarray(accel, dtype=float)
+    if g.shape != (3,) or a.shape != (3,):
+        return "not 3 gyro and 3 accel values"
+    if not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
+        return "non-finite value"
+    if float(np.max(np.abs(a))) > MAX_ACCEL_M_S2:
+        return f"accel {float(np.max(np.abs(a))):.0f} m/s^2 beyond any IMU's range (+-16 g)"
+    if float(np.max(np.abs(g))) > MAX_GYRO_RAD_S:
+        return (f"gyro {float(np.max(np.abs(g))):.0f} rad/s beyond any IMU's range (+-2000 deg/s); "
+                "deg/s instead of rad/s?")
+    return None
+
+
+def accel_units_problem(mean_accel_norm: float) -> str | None:
+    """The accelerometer's |mean| over a still span, against g: None when plausible, else the likely mistake."""
+    n = float(mean_accel_norm)
+    if not math.isfinite(n):
+        return "accelerometer mean is not finite"
+    if n < 0.05:
+        return (f"accelerometer reads zero while still (|mean| {n:.3f} m/s^2): the IMU delivers no data "
+                "(all-zero samples), or it is not connected")
+    if abs(n - 1.0) < GRAVITY_TOLERANCE:
+        return (f"accelerometer reads {n:.3f} while still: the data look like units of g, not m/s^2 "
+                f"(multiply by {GRAVITY_M_S2})")
+    if abs(n / 1000.0 - GRAVITY_M_S2) < GRAVITY_TOLERANCE * GRAVITY_M_S2:
+        return f"accelerometer reads {n:.0f} while still: the data look like mm/s^2 (or mg), not m/s^2"
+    if abs(n / (GRAVITY_M_S2 * 1000.0) - 1.0) < GRAVITY_TOLERANCE:
+        return f"accelerometer reads {n:.0f} while still: the data look like milli-g, not m/s^2"
+    if abs(n - GRAVITY_M_S2) > GRAVITY_TOLERANCE * GRAVITY_M_S2:
+        return (f"accelerometer |mean| {n:.2f} m/s^2 while still, expected about {GRAVITY_M_S2:.2f} "
+                "(wrong units or scale, or the IMU was not still)")
+    return None
+
+
+def gyro_units_problem(gyro: np.ndarray, still: bool, noise_density: float | None = None,
+                       rate_hz: float | None = None, max_bias_rad_s: float = 0.3) -> str | None:
+    """Gyro samples (N, 3) over a span: None when plausible for rad/s, else the likely mistake.
+
+    Still: the mean is the bias, which no MEMS gyro has above `max_bias_rad_s`; and with a noise density the
+    sample spread must be near it (deg/s data spread 57x wider). Moving or not: sustained rates above
+    20 rad/s (1150 deg/s) are not a drone's."""
+    g = np.asarray(gyro, dtype=float).reshape(-1, 3)
+    if len(g) == 0 or not np.all(np.isfinite(g)):
+        return None
+    rates = np.linalg.norm(g, axis=1)
+    if len(g) >= 20 and float(np.percentile(rates, 90)) > 20.0:
+        return (f"gyro reads {float(np.percentile(rates, 90)):.0f} rad/s in 10 % of samples: no drone turns that "
+                "fast; the data look like deg/s, not rad/s")
+    if not still:
+        return None
+    bias = float(np.linalg.norm(g.mean(axis=0)))
+    if bias > max_bias_rad_s:
+        hint = "; the data look like deg/s, not rad/s" if bias / DEG < max_bias_rad_s else ""
+        return f"gyro reads {bias:.3f} rad/s while still (a bias beyond {max_bias_rad_s} rad/s){hint}"
+    if noise_density and rate_hz and len(g) >= 50:
+        expected = noise_density * math.sqrt(rate_hz)
+        spread = float(np.median(g.std(axis=0)))
+        if spread > 20 * expected and spread / DEG < 3 * expected:
+            return (f"gyro spread {spread:.4f} while still is {spread / expected:.0f}x the calibrated noise "
+                    f"({expected:.5f} rad/s): the data look like deg/s, not rad/s")
+    return None
+
+
+def baseline_units_problem(baseline_m: float) -> str | None:
+    """Stereo baseline |t_cam1_cam0|: drone stereo heads have 2 cm..60 cm (OAK-D 7.5 cm, EuRoC 11 cm)."""
+    b = float(baseline_m)
+    if not math.isfinite(b) or b <= 0:
+        return f"stereo baseline {b} m is not a positive length"
+    if 5.0 <= b <= 1000.0:
+        return f"stereo baseline {b:.1f} m: the extrinsics look like millimetres, not metres (divide by 1000)"
+    if b > 2.0:
+        return f"stereo baseline {b:.2f} m is implausible for a drone's stereo camera"
+    if b < 0.005:
+        return f"stereo baseline {b * 1000:.2f} mm is too short for stereo depth (wrong units?)"
+    return None
+
+
+def lever_arm_units_problem(t_body_cam_m: float) -> str | None:
+    """|t_body_cam0|: the camera sits within a metre of the IMU on any drone."""
+    d = float(t_body_cam_m)
+    if not math.isfinite(d):
+        return "camera-IMU translation is not finite"
+    if d >= 5.0:
+        return f"camera-IMU translation {d:.1f} m: the extrinsics look like millimetres, not metres"
+    if d > 1.0:
+        return f"camera-IMU translation {d:.2f} m is implausible (the camera sits within a metre of the IMU)"
+    return None
