@@ -51,8 +51,8 @@ def accel_units_problem(mean_accel_norm: float) -> str | None:
         return (f"accelerometer reads {n:.3f} while still: the data look like units of g, not m/s^2 "
                 f"(multiply by {GRAVITY_M_S2})")
     if abs(n / 1000.0 - GRAVITY_M_S2) < GRAVITY_TOLERANCE * GRAVITY_M_S2:
-        return f"accelerometer reads {n:.0f} while still: the data look like mm/s^2 (or mg), not m/s^2"
-    if abs(n / (GRAVITY_M_S2 * 1000.0) - 1.0) < GRAVITY_TOLERANCE:
+        return f"accelerometer reads {n:.0f} while still: the data look like mm/s^2, not m/s^2"
+    if abs(n / 1000.0 - 1.0) < GRAVITY_TOLERANCE:
         return f"accelerometer reads {n:.0f} while still: the data look like milli-g, not m/s^2"
     if abs(n - GRAVITY_M_S2) > GRAVITY_TOLERANCE * GRAVITY_M_S2:
         return (f"accelerometer |mean| {n:.2f} m/s^2 while still, expected about {GRAVITY_M_S2:.2f} "
