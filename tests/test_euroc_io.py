@@ -120,6 +120,12 @@ def _edit_line(path: Path, lineno: int, new: str | None) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def _restamp(path: Path, f) -> None:
+    """Replace every stamp t of a csv by f(t)."""
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0]] + [f"{f(int(r.split(',')[0]))}{r[r.index(','):]}" for r in lines[1:]]) + "\n")
+
+
 def _break(mav0: Path, case: str) -> str:
     """Apply one defect; return the text the error must contain."""
     imu = mav0 / "imu0" / "data.csv"
@@ -141,7 +147,7 @@ def _break(mav0: Path, case: str) -> str:
         parts = lines[6].split(",")
         parts[2] = "abc"
         _edit_line(imu, 7, ",".join(parts))
-        return f"{imu}:7: column 3 value 'abc' is not a finite number"
+        return f"{imu}:7: column 3 value 'abc' is not a number"
     if case == "bad_stamp":
         _edit_line(imu, 3, "12x4" + lines[2][lines[2].index(","):])
         return f"{imu}:3: time stamp '12x4' is not an integer"
@@ -151,20 +157,47 @@ def _break(mav0: Path, case: str) -> str:
         cam0.write_text("\n".join(c) + "\n")
         return f"{cam0}:5: out-of-order time stamp"
     if case == "duplicate":
-        _edit_line(imu, 11, lines[9])
+        _edit_line(imu, 11, lines[9].rsplit(",", 1)[0] + ",1.5")
         return f"{imu}:11: duplicate time stamp"
-    if case == "gt_nan":
-        gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
-        g = gt.read_text().splitlines()
-        parts = g[1].split(",")
-        parts[4] = "nan"
-        _edit_line(gt, 2, ",".join(parts))
-        return f"{gt}:2: column 5 value 'nan' is not a finite number"
+    if case == "seconds":
+        _edit_line(imu, 4, f"{int(lines[3].split(',')[0]) * 1e-9:.6f}" + lines[3][lines[3].index(","):])
+        return "the stamps look like seconds, not integer nanoseconds"
+    if case == "microseconds":
+        _restamp(imu, lambda t: t // 1000)
+        return "time stamps step by 5000 per sample: they look like microseconds, not nanoseconds"
+    if case == "negative":
+        _edit_line(imu, 2, "-5" + lines[1][lines[1].index(","):])
+        return f"{imu}:2: time stamp -5 is not positive"
+    if case == "cam_clock":
+        _restamp(cam0, lambda t: t - 10**12)
+        return "do not overlap (different clocks"
+    if case == "binary":
+        imu.write_bytes(b"\xff\xfe\x00garbage\x9c")
+        return f"{imu}: not a text file"
+    if case == "header_only":
+        imu.write_text(lines[0] + "\n")
+        return f"{imu}: fewer than 2 IMU samples"
+    if case == "intrinsics":
+        y = mav0 / "cam0" / "sensor.yaml"
+        y.write_text(y.read_text().replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: [458.654]"))
+        return f"{y}: intrinsics: expected 4 values [fx, fy, cx, cy], got 1"
+    if case == "T_BS":
+        y = mav0 / "cam1" / "sensor.yaml"
+        y.write_text(y.read_text().replace("0.999598781151", "0.5"))
+        return f"{y}: T_BS: not a rigid transform"
+    if case == "no_yaml":
+        (mav0 / "cam0" / "sensor.yaml").unlink()
+        return f"{mav0 / 'cam0' / 'sensor.yaml'}: file not found"
+    if case == "yaml_text":
+        y = mav0 / "cam0" / "sensor.yaml"
+        y.write_text(y.read_text().replace("resolution: [752, 480]", "resolution: [wide, 480]"))
+        return f"{y}: resolution: value 'wide' is not a number"
     raise AssertionError(case)
 
 
 @pytest.mark.parametrize("case", ["no_mav0", "no_cam1", "no_imu_csv", "columns", "not_number", "bad_stamp",
-                                  "unsorted", "duplicate", "gt_nan"])
+                                  "unsorted", "duplicate", "seconds", "microseconds", "negative", "cam_clock",
+                                  "binary", "header_only", "intrinsics", "T_BS", "no_yaml", "yaml_text"])
 def test_broken_dataset_errors(v101_path, tmp_path, case):
     root = _copy(v101_path, tmp_path / "ds")
     expected = _break(root / "mav0", case)

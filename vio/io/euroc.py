@@ -22,6 +22,7 @@ import numpy as np
 
 from vio import VioError
 from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, load_yaml
+from vio.geometry import is_se3
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
 
@@ -66,99 +67,271 @@ class DatasetStats:
     missing_images: int = 0
     unreadable_images: int = 0
     unpaired_frames: int = 0
+    imu_rows_skipped: dict[str, int] = field(default_factory=dict)  # reason -> rows
+    notes: list[str] = field(default_factory=list)  # data repaired or skipped when the dataset was opened
     warnings: list[str] = field(default_factory=list)
 
 
-def _read_csv(path: Path, min_cols: int, max_cols: int | None = None,
-              numeric: int = 0) -> tuple[np.ndarray, list[list[str]]]:
-    """Parse a EuRoC csv: '#' header, integer-ns first column. Returns (stamps, other columns as text).
+@dataclass
+class CsvTable:
+    """A parsed EuRoC csv: integer-ns stamps, the other columns as text, and what was repaired."""
 
-    Enforces strictly increasing stamps: duplicates or reordering mean a broken file, not dropped data.
-    The first `numeric` columns after the stamp must be finite numbers (checked here to name the line).
+    path: Path
+    stamps: np.ndarray
+    rows: list[list[str]]
+    lines: list[int]  # line number of each row (for messages)
+    notes: list[str] = field(default_factory=list)
+    last_unterminated: bool = False  # the last row has no newline after it
+
+
+# plausible sample steps: IMU 1 Hz..100 kHz, camera 0.1 Hz..1 kHz
+_STEP_NS = {"imu": (1e4, 1e9), "camera": (1e6, 1e10)}
+_STAMP_UNITS = ((1e3, "microseconds"), (1e6, "milliseconds"), (1e9, "seconds"))
+
+
+def _stamp_text_problem(text: str) -> str:
+    try:
+        v = float(text)
+    except ValueError:
+        return f"time stamp {text!r} is not an integer (ns)"
+    if math.isfinite(v) and 0 < v < 1e11 and ("." in text or "e" in text.lower()):
+        return (f"time stamp {text!r} is not an integer: the stamps look like seconds, not integer nanoseconds "
+                "(EuRoC stamps are ns; multiply by 1e9)")
+    return f"time stamp {text!r} is not an integer (ns)"
+
+
+def _looks_cut(parts: list[str], previous: list[list[str]]) -> bool:
+    """An unterminated last row that parses but has a field shorter than that column ever is in the rows
+    before it (a number cut mid-write)."""
+    if not previous or any(len(r) != len(parts) for r in previous):
+        return False
+    return any(len(x) < min(len(r[k]) for r in previous) for k, x in enumerate(parts))
+
+
+def _read_csv(path: Path, min_cols: int, max_cols: int | None = None, numeric: int = 0,
+              finite: bool = True) -> CsvTable:
+    """Parse a EuRoC csv: '#' header, integer-ns first column.
+
+    Enforces strictly increasing stamps: reordering or a repeated stamp with other values means a broken
+    file, not dropped data (an exact repeat of the previous line is dropped and noted). The first `numeric`
+    columns after the stamp must be numbers (finite unless `finite` is False), checked here to name the line.
+    Tolerated: CRLF, a BOM, blanks around values, trailing commas, NUL bytes at the end. A damaged last line
+    (a recorder killed mid-write) is skipped and noted; damage anywhere else raises VioError with file:line.
     """
     if not path.is_file():
         raise VioError(f"{path}: file not found")
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise VioError(f"{path}: cannot read ({e})") from None
+        text = path.read_bytes().decode("utf-8-sig")
+    except OSError as e:
+        raise VioError(f"{path}: cannot read ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise VioError(f"{path}: not a text file (byte {e.start} is not UTF-8)") from None
+    table = CsvTable(path, np.zeros(0, np.int64), [], [])
+    stripped = text.rstrip("\x00")
+    if len(stripped) < len(text):
+        table.notes.append(f"{path}: {len(text) - len(stripped)} NUL bytes at the end (power cut while "
+                           "recording?) ignored")
+        text = stripped
+    lines = text.splitlines()
+    data = [k for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
+    last = data[-1] if data else -1
+    terminated = text.endswith(("\n", "\r"))
     stamps: list[int] = []
     rest: list[list[str]] = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
+    prev_parts: list[str] | None = None
+    duplicates = 0
+    for k in data:
+        lineno = k + 1
+        parts = [x.strip() for x in lines[k].split(",")]
+        while len(parts) > 1 and parts[-1] == "":
+            parts.pop()
+        problem = _row_problem(parts, min_cols, max_cols, numeric, finite, stamps, prev_parts)
+        if problem is None and k == last and not terminated and _looks_cut(parts[1:], rest[-20:]):
+            problem = ("cut", "a value is shorter than in every row before it")
+        if problem == ("repeat", ""):
+            duplicates += 1
             continue
-        parts = [x.strip() for x in s.split(",")]
-        if len(parts) < min_cols or (max_cols is not None and len(parts) > max_cols):
-            want = f"{min_cols}" if max_cols == min_cols else f"{min_cols}..{max_cols or 'more'}"
-            raise VioError(f"{path}:{lineno}: expected {want} comma-separated values, got {len(parts)}")
-        try:
-            t = int(parts[0])
-        except ValueError:
-            raise VioError(f"{path}:{lineno}: time stamp {parts[0]!r} is not an integer (ns)") from None
-        if stamps and t <= stamps[-1]:
-            what = "duplicate" if t == stamps[-1] else "out-of-order"
-            raise VioError(f"{path}:{lineno}: {what} time stamp {t} (previous {stamps[-1]})")
-        for k in range(1, min(numeric, len(parts) - 1) + 1):
-            try:
-                ok = math.isfinite(float(parts[k]))
-            except ValueError:
-                ok = False
-            if not ok:
-                raise VioError(f"{path}:{lineno}: column {k + 1} value {parts[k]!r} is not a finite number")
-        stamps.append(t)
+        if problem is not None:
+            kind, msg = problem
+            if k == last and (not terminated or kind == "cut"):
+                why = "no newline at the end" if not terminated else "damaged"
+                table.notes.append(f"{path}:{lineno}: last line cut short ({why}: a recorder stopped mid-write?) "
+                                   f"skipped: {msg}")
+                break
+            raise VioError(f"{path}:{lineno}: {msg}")
+        stamps.append(int(parts[0]))
         rest.append(parts[1:])
-    return np.array(stamps, dtype=np.int64), rest
+        table.lines.append(lineno)
+        prev_parts = parts
+    if duplicates:
+        table.notes.append(f"{path}: {duplicates} exact repeats of the line before dropped")
+    table.stamps = np.array(stamps, dtype=np.int64)
+    table.rows = rest
+    table.last_unterminated = not terminated and bool(table.lines) and table.lines[-1] == last + 1
+    return table
 
 
-def _floats(path: Path, stamps: np.ndarray, rows: list[list[str]], ncols: int, text: str) -> np.ndarray:
+def _row_problem(parts: list[str], min_cols: int, max_cols: int | None, numeric: int, finite: bool,
+                 stamps: list[int], prev_parts: list[str] | None) -> tuple[str, str] | None:
+    """Why a row cannot be used, as (kind, message); kind 'cut' is what a write stopped midway leaves,
+    ('repeat', '') an exact repeat of the previous row."""
+    if len(parts) < min_cols or (max_cols is not None and len(parts) > max_cols):
+        want = f"{min_cols}" if max_cols == min_cols else f"{min_cols}..{max_cols or 'more'}"
+        sep = next((f" (the file uses {c!r} as separator?)" for c in (";", "\t") if c in parts[0]), "")
+        return ("cut" if len(parts) < min_cols else "columns",
+                f"expected {want} comma-separated values, got {len(parts)}{sep}")
     try:
-        arr = np.array([[float(x) for x in r[:ncols]] for r in rows], dtype=float).reshape(-1, ncols)
+        t = int(parts[0])
     except ValueError:
-        # find the offending row for the message
-        for i, r in enumerate(rows):
-            try:
-                [float(x) for x in r[:ncols]]
-            except ValueError:
-                raise VioError(f"{path}: row with time stamp {stamps[i]}: {text} not a number: {r}") from None
-        raise
-    bad = ~np.all(np.isfinite(arr), axis=1)
+        return "cut" if parts[0] == "" else "stamp", _stamp_text_problem(parts[0])
+    if t <= 0:
+        return "stamp", f"time stamp {t} is not positive"
+    if stamps and t == stamps[-1]:
+        if parts == prev_parts:
+            return "repeat", ""
+        hint = " (the stamps look like whole seconds, not ns)" if t < 10**11 else ""
+        return "stamp", f"duplicate time stamp {t} with other values than the line before{hint}"
+    if stamps and t < stamps[-1]:
+        return "cut", f"out-of-order time stamp {t} (previous {stamps[-1]})"
+    for k in range(1, min(numeric, len(parts) - 1) + 1):
+        try:
+            ok = math.isfinite(float(parts[k])) or not finite
+        except ValueError:
+            return "cut", f"column {k + 1} value {parts[k]!r} is not a number"
+        if not ok:
+            return "value", f"column {k + 1} value {parts[k]!r} is not a finite number"
+    return None
+
+
+def _floats(table: CsvTable, ncols: int) -> np.ndarray:
+    """The first ncols value columns as floats (already checked to parse)."""
+    return np.array([[float(x) for x in r[:ncols]] for r in table.rows], dtype=float).reshape(-1, ncols)
+
+
+def _step_problem(name: str, stamps: np.ndarray, kind: str) -> str | None:
+    """The median stamp step against the rates a sensor of this kind has: names a unit mistake."""
+    if len(stamps) < 3:
+        return None
+    dt = float(np.median(np.diff(stamps)))
+    lo, hi = _STEP_NS[kind]
+    if lo <= dt <= hi:
+        return None
+    for scale, unit in _STAMP_UNITS:
+        if lo <= dt * scale <= hi:
+            return (f"{name}: time stamps step by {dt:.6g} per sample: they look like {unit}, not nanoseconds "
+                    "(EuRoC stamps are integer ns)")
+    return f"{name}: time stamps step by {dt:.6g} ns per sample ({1e9 / dt:.3g} Hz), implausible for a {kind}"
+
+
+def _gap_note(name: str, table: CsvTable, max_gap_s: float) -> str | None:
+    t = table.stamps
+    if len(t) < 2:
+        return None
+    d = np.diff(t)
+    big = np.flatnonzero(d > max_gap_s * 1e9)
+    if not len(big):
+        return None
+    k = int(big[np.argmax(d[big])])
+    return (f"{name}: {len(big)} gap(s) over {max_gap_s:g} s in the time stamps, the largest {d[k] * 1e-9:.3g} s "
+            f"before line {table.lines[k + 1]}")
+
+
+def read_imu_csv(path: Path, notes: list[str] | None = None, skipped: dict[str, int] | None = None) -> ImuData:
+    """The IMU samples. Rows with a non-finite value are dropped (counted in `skipped`, described in
+    `notes`, else logged) unless they are most of the file."""
+    table = _read_csv(path, 7, 7, numeric=6, finite=False)
+    own = notes is None
+    notes = [] if notes is None else notes
+    notes.extend(table.notes)
+    vals = _floats(table, 6)
+    bad = ~np.all(np.isfinite(vals), axis=1)
     if bad.any():
-        raise VioError(f"{path}: row with time stamp {stamps[np.argmax(bad)]}: non-finite {text}")
-    return arr
-
-
-def read_imu_csv(path: Path) -> ImuData:
-    stamps, rows = _read_csv(path, 7, 7, numeric=6)
-    vals = _floats(path, stamps, rows, 6, "gyro/accel value")
-    if len(stamps) < 2:
+        n_bad, first = int(bad.sum()), table.lines[int(np.argmax(bad))]
+        if n_bad * 2 > len(vals):
+            raise VioError(f"{path}: {n_bad} of {len(vals)} IMU rows have a non-finite value (first at line {first})")
+        notes.append(f"{path}: {n_bad} of {len(vals)} IMU rows with a non-finite value skipped (first at line "
+                     f"{first})")
+        if skipped is not None:
+            skipped["non-finite value"] = skipped.get("non-finite value", 0) + n_bad
+        keep = ~bad
+        vals = vals[keep]
+        table.stamps = table.stamps[keep]
+        table.lines = [ln for ln, ok in zip(table.lines, keep) if ok]
+    if len(table.stamps) < 2:
         raise VioError(f"{path}: fewer than 2 IMU samples")
-    return ImuData(stamps, vals[:, 0:3], vals[:, 3:6])
+    problem = _step_problem(str(path), table.stamps, "imu")
+    if problem:
+        raise VioError(problem)
+    gap = _gap_note(str(path), table, 0.5)
+    if gap:
+        notes.append(gap)
+    if own:
+        for n in notes:
+            log.warning(n)
+    return ImuData(table.stamps, vals[:, 0:3], vals[:, 3:6])
 
 
 def read_groundtruth_csv(path: Path) -> GroundTruth:
-    stamps, rows = _read_csv(path, 8, numeric=16)
-    ncols = min(len(r) for r in rows) if rows else 7
+    table = _read_csv(path, 8, numeric=16)
+    for n in table.notes:
+        log.warning(n)
+    if not table.rows:
+        raise VioError(f"{path}: no ground-truth rows")
+    ncols = min(len(r) for r in table.rows)
     ncols = 16 if ncols >= 16 else 7
-    vals = _floats(path, stamps, rows, ncols, "ground-truth value")
-    traj = Trajectory(stamps, vals[:, 0:3], vals[:, 3:7])
+    vals = _floats(table, ncols)
+    qn = np.linalg.norm(vals[:, 3:7], axis=1)
+    off = np.abs(qn - 1.0) > 0.01
+    if off.any():
+        k = int(np.argmax(off))
+        raise VioError(f"{path}:{table.lines[k]}: quaternion q_RS has norm {qn[k]:.4g}, not 1 (columns 5-8 must be "
+                       "w, x, y, z of a unit quaternion)")
+    traj = Trajectory(table.stamps, vals[:, 0:3], vals[:, 3:7])
     if ncols == 16:
         return GroundTruth(traj, vals[:, 7:10], vals[:, 10:13], vals[:, 13:16])
     return GroundTruth(traj)
 
 
+def _yaml_numbers(d: dict, key: str, n: int | tuple[int, ...], kind=float, what: str = "") -> list:
+    """d[key] as a list of n numbers; VioError naming the key otherwise (KeyError when it is missing)."""
+    v = d[key]
+    if isinstance(v, dict) and key == "T_BS":
+        v = v.get("data")
+    if not isinstance(v, (list, tuple)):
+        raise VioError(f"{key}: expected a list of numbers{what}, got {v!r}")
+    sizes = (n,) if isinstance(n, int) else n
+    if len(v) not in sizes:
+        raise VioError(f"{key}: expected {' or '.join(map(str, sizes))} values{what}, got {len(v)}")
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise VioError(f"{key}: value {x!r} is not a number")
+        if not math.isfinite(x) or (kind is int and x != int(x)):
+            raise VioError(f"{key}: value {x!r} is not a{'n integer' if kind is int else ' finite number'}")
+        out.append(kind(x))
+    return out
+
+
+def _camera_from_yaml(d: dict) -> CameraCalibration:
+    T = np.array(_yaml_numbers(d, "T_BS", 16, what=" (a 4x4 matrix in data)")).reshape(4, 4)
+    fx, fy, cx, cy = _yaml_numbers(d, "intrinsics", 4, what=" [fx, fy, cx, cy]")
+    w, h = _yaml_numbers(d, "resolution", 2, int, " [width, height]")
+    dist = _yaml_numbers(d, "distortion_coefficients", tuple(range(1, 15)), what="") \
+        if "distortion_coefficients" in d else [0.0, 0.0, 0.0, 0.0]
+    rate = _yaml_numbers({"rate_hz": [d.get("rate_hz", 20)]}, "rate_hz", 1)[0]
+    if not is_se3(T, tol=1e-4):
+        raise VioError("T_BS: not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
+    return CameraCalibration(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
+                             distortion_model=str(d.get("distortion_model", "radial-tangential")),
+                             distortion=tuple(dist), T_body_cam=T, rate_hz=rate)
+
+
 def read_camera_yaml(path: Path) -> CameraCalibration:
+    if not path.is_file():
+        raise VioError(f"{path}: file not found (each camera folder needs its sensor.yaml, or give --calibration)")
     d = load_yaml(path)
     try:
-        T = np.asarray(d["T_BS"]["data"], dtype=float).reshape(4, 4)
-        fx, fy, cx, cy = (float(x) for x in d["intrinsics"])
-        w, h = (int(x) for x in d["resolution"])
-        return CameraCalibration(
-            fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
-            distortion_model=d.get("distortion_model", "radial-tangential"),
-            distortion=tuple(float(x) for x in d.get("distortion_coefficients", [0, 0, 0, 0])),
-            T_body_cam=T, rate_hz=float(d.get("rate_hz", 20)),
-        )
+        return _camera_from_yaml(d)
     except KeyError as e:
         raise VioError(f"{path}: missing key {e}") from None
     except (TypeError, ValueError) as e:
@@ -179,6 +352,60 @@ def read_imu_yaml(path: Path) -> ImuNoise:
         raise VioError(f"{path}: malformed IMU noise ({e})") from None
     except VioError as e:
         raise VioError(f"{path}: {e}") from None
+
+
+STILL_WINDOW_S = 1.0
+STILL_SPREAD = 0.1  # accel spread / |mean| below which the quietest window counts as still
+
+
+def quietest_window(imu: ImuData, seconds: float = STILL_WINDOW_S) -> tuple[slice, float]:
+    """The window of `seconds` whose accelerometer varies least relative to its mean (unit-free, so data in
+    g or mm/s^2 pick the same window), and that relative spread. All-zero windows are taken only when the
+    whole recording is zero."""
+    n_all = len(imu)
+    dt = float(np.median(np.diff(imu.t_ns))) if n_all > 1 else 5e6
+    win = max(int(round(seconds / max(dt * 1e-9, 1e-6))), 10)
+    n = n_all // win
+    if n == 0:
+        return slice(0, n_all), float("inf")
+    acc = imu.accel[: n * win].reshape(n, win, 3)
+    norm = np.linalg.norm(acc.mean(axis=1), axis=1)
+    spread = np.linalg.norm(acc.std(axis=1), axis=1) / np.maximum(norm, 1e-12)
+    live = norm >= 0.05
+    if live.any():
+        spread = np.where(live, spread, np.inf)
+    i = int(np.argmin(spread))
+    return slice(i * win, (i + 1) * win), float(spread[i])
+
+
+def imu_units_problem(imu: ImuData, noise: ImuNoise, where: str | Path = "IMU") -> str | None:
+    """The likely unit mistake of a whole IMU recording (vio/sanity.py's diagnosis on its quietest window
+    and on all its gyro samples), or None. A window that is not still is trusted only for readings no flight
+    averages (below g/2 or above 2 g)."""
+    from vio.sanity import GRAVITY_M_S2, accel_units_problem, gyro_units_problem
+
+    if len(imu) < 2:
+        return None
+    sl, spread = quietest_window(imu)
+    still = spread < STILL_SPREAD
+    n = float(np.linalg.norm(imu.accel[sl].mean(axis=0)))
+    problem = accel_units_problem(n)
+    if problem and not still and 0.5 * GRAVITY_M_S2 <= n <= 2 * GRAVITY_M_S2:
+        problem = None
+    problem = problem or gyro_units_problem(imu.gyro, still=False) or gyro_units_problem(
+        imu.gyro[sl], still, noise.gyroscope_noise_density, noise.rate_hz)
+    return f"{where}: {problem}" if problem else None
+
+
+def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> list[tuple[str, float, str | None]]:
+    """(name, metres, problem or None) of the stereo baseline (when `stereo`) and the camera-IMU lever arm."""
+    from vio.sanity import baseline_units_problem, lever_arm_units_problem
+
+    lever = float(np.linalg.norm(calib.cam0.T_body_cam[:3, 3]))
+    out = [("camera-IMU lever arm", lever, lever_arm_units_problem(lever))]
+    if stereo:
+        out.insert(0, ("stereo baseline", calib.baseline_m, baseline_units_problem(calib.baseline_m)))
+    return [(name, v, f"calibration: {p}" if p else None) for name, v, p in out]
 
 
 def find_mav0(path: str | Path) -> Path:
@@ -210,27 +437,44 @@ class EurocDataset:
         for sub in ("cam0", "imu0") + (("cam1",) if require_cam1 else ()):
             if not (self.mav0 / sub).is_dir():
                 raise VioError(f"{self.mav0 / sub}: folder missing (EuRoC needs mav0/cam0, cam1, imu0)")
-        self.imu = read_imu_csv(self.mav0 / "imu0" / "data.csv")
+        notes = self.stats.notes
+        self.imu = read_imu_csv(self.mav0 / "imu0" / "data.csv", notes, self.stats.imu_rows_skipped)
         self.cam0_t, self.cam0_files = self._read_cam("cam0")
-        has_cam1 = (self.mav0 / "cam1").is_dir()
+        self.has_cam1 = has_cam1 = (self.mav0 / "cam1").is_dir()
         self.cam1_t, self.cam1_files = self._read_cam("cam1") if has_cam1 else (np.zeros(0, np.int64), [])
         if calibration is None:
             calibration = self._read_calibration(has_cam1)
         self.calibration = calibration
+        self._check_overlap()
+        # a unit mistake is diagnosed on the data as recorded (mm/s^2 rows are all "out of range")
+        self.units_problem = imu_units_problem(self.imu, calibration.imu, self.mav0 / "imu0" / "data.csv") or next(
+            (p for _, _, p in calibration_unit_checks(calibration, has_cam1) if p), None)
+        if self.units_problem is None:
+            self.imu = self._drop_out_of_range(self.imu)
         gt_path = self.mav0 / "state_groundtruth_estimate0" / "data.csv"
-        self.groundtruth = read_groundtruth_csv(gt_path) if gt_path.is_file() else None
+        self.groundtruth: GroundTruth | None = None
+        self.groundtruth_problem: str | None = None  # why a ground-truth file present was not used
+        if gt_path.exists():
+            try:
+                self.groundtruth = read_groundtruth_csv(gt_path)
+            except VioError as e:
+                self.groundtruth_problem = str(e)
+                notes.append(f"ground truth not used (no evaluation): {e}")
+        for n in notes:
+            log.warning(n)
         self._pair()
 
     # -- loading ---------------------------------------------------------------------------------------
     def _read_cam(self, cam: str) -> tuple[np.ndarray, list[Path | None]]:
         csv = self.mav0 / cam / "data.csv"
-        stamps, rows = _read_csv(csv, 2, 2)
+        table = _read_csv(csv, 2, 2)
+        self.stats.notes.extend(table.notes)
         folder = self.mav0 / cam / "data"
         if not folder.is_dir():
             raise VioError(f"{folder}: image folder missing")
         present = set(os.listdir(folder))
-        files: list[Path | None] = []
-        for t, r in zip(stamps, rows):
+        stamps, files = table.stamps, []
+        for t, r in zip(stamps, table.rows):
             name = r[0]
             if name in present:
                 files.append(folder / name)
@@ -238,16 +482,86 @@ class EurocDataset:
                 files.append(None)
                 self._warn(f"{csv}: image {name} (t={t}) listed but missing; frame skipped")
                 self.stats.missing_images += 1
+        if table.last_unterminated and files and files[-1] is None:  # a file name cut mid-write
+            self.stats.missing_images -= 1
+            self.stats.warnings.pop()
+            self.stats.notes.append(f"{csv}:{table.lines[-1]}: last line cut short (no newline at the end, no such "
+                                    "image): skipped")
+            stamps, files = stamps[:-1], files[:-1]
+        problem = _step_problem(str(csv), stamps, "camera")
+        if problem:
+            raise VioError(problem)
         return stamps, files
 
     def _read_calibration(self, has_cam1: bool) -> StereoCalibration:
         cam0 = read_camera_yaml(self.mav0 / "cam0" / "sensor.yaml")
         cam1 = read_camera_yaml(self.mav0 / "cam1" / "sensor.yaml") if has_cam1 else cam0
         imu_yaml = self.mav0 / "imu0" / "sensor.yaml"
-        imu = read_imu_yaml(imu_yaml) if imu_yaml.is_file() else ImuNoise()
+        if imu_yaml.is_file():
+            imu = read_imu_yaml(imu_yaml)
+        else:
+            imu = ImuNoise()
+            self.stats.notes.append(f"{imu_yaml}: missing; the default IMU noise (EuRoC's ADIS16448) is used")
         extra = self.mav0 / "kestrel.yaml"  # written by our writer: time offset etc.
-        offset = int(load_yaml(extra).get("time_offset_ns", 0)) if extra.is_file() else 0
+        offset = 0
+        if extra.is_file():
+            try:
+                offset = int(load_yaml(extra).get("time_offset_ns", 0))
+            except (TypeError, ValueError) as e:
+                raise VioError(f"{extra}: time_offset_ns is not an integer ({e})") from None
         return StereoCalibration(cam0, cam1, imu, time_offset_ns=offset)
+
+    def _check_overlap(self) -> None:
+        """cam0 and IMU must share a clock: no overlap at all is a clock or unit mistake."""
+        t, imu = self.cam0_t, self.imu.t_ns
+        if not len(t):
+            return
+        t_imu = t + self.calibration.time_offset_ns
+        inside = (t_imu >= imu[0]) & (t_imu <= imu[-1])
+        if not inside.any():
+            raise VioError(f"{self.mav0}: cam0 stamps {t[0] * 1e-9:.3f}..{t[-1] * 1e-9:.3f} s and IMU stamps "
+                           f"{imu[0] * 1e-9:.3f}..{imu[-1] * 1e-9:.3f} s do not overlap (different clocks, or one "
+                           "stream stamped in other units?)")
+        if not inside.all():
+            self.stats.notes.append(f"{self.mav0}: {int((~inside).sum())} of {len(t)} camera frames lie outside the "
+                                    "IMU's time span (no IMU for them)")
+
+    def _drop_out_of_range(self, imu: ImuData) -> ImuData:
+        """Samples beyond any IMU's full scale are broken samples: skipped and counted, unless most are."""
+        from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, imu_sample_problem
+
+        acc = np.max(np.abs(imu.accel), axis=1) > MAX_ACCEL_M_S2
+        gyr = np.max(np.abs(imu.gyro), axis=1) > MAX_GYRO_RAD_S
+        bad = acc | gyr
+        if not bad.any():
+            return imu
+        path, n = self.mav0 / "imu0" / "data.csv", int(bad.sum())
+        k = int(np.argmax(bad))
+        why = imu_sample_problem(imu.gyro[k], imu.accel[k])
+        if 2 * n > len(imu):
+            raise VioError(f"{path}: {n} of {len(imu)} IMU samples are out of range, first at t={imu.t_ns[k]}: {why}")
+        for key, mask in (("accel out of range", acc), ("gyro out of range", gyr & ~acc)):
+            if mask.any():
+                self.stats.imu_rows_skipped[key] = self.stats.imu_rows_skipped.get(key, 0) + int(mask.sum())
+        self.stats.notes.append(f"{path}: {n} of {len(imu)} IMU samples out of range skipped (first at "
+                                f"t={imu.t_ns[k]}: {why})")
+        keep = ~bad
+        return ImuData(imu.t_ns[keep], imu.gyro[keep], imu.accel[keep])
+
+    def first_image_size_problem(self) -> str | None:
+        """The first readable left and right images against the calibrated resolution (one line, or None)."""
+        for cam, files, calib in (("cam0", self.cam0_files, self.calibration.cam0),
+                                  ("cam1", self.cam1_files, self.calibration.cam1)):
+            for path in [f for f in files if f is not None][:5]:
+                img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    continue
+                h, w = img.shape[:2]
+                if (w, h) != (calib.width, calib.height):
+                    return (f"{path}: images are {w}x{h} but the calibration is for {calib.width}x{calib.height} "
+                            f"({cam}: wrong sensor.yaml resolution, or the camera streams another size)")
+                break
+        return None
 
     def _warn(self, msg: str) -> None:
         self.stats.warnings.append(msg)
