@@ -10,6 +10,7 @@ import argparse
 import importlib
 import importlib.util
 import logging
+import os
 import sys
 
 from vio import VioError, __version__
@@ -63,25 +64,50 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(text: str) -> str:
+    """A message as one line (YAML and OpenCV errors span several)."""
+    return " ".join(part.strip() for part in str(text).splitlines() if part.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
-    if getattr(args, "command", None) and not hasattr(args, "_module"):
-        print(f"vio {args.command}: this command is unavailable in this installation", file=sys.stderr)
-        return EXIT_FAILURE
-    if not getattr(args, "command", None):
-        parser.print_help()
-        return EXIT_USAGE
+    """Run one command. Its errors end as one line on stderr and an exit code, never a traceback: a VioError
+    (bad input, said in its message) exits EXIT_FAILURE; an unexpected exception also, with the traceback
+    only under -v; Ctrl-C exits 130."""
+    command = "?"
+    verbose = False
     try:
+        if not {"-v", "--verbose"} & set(sys.argv[1:] if argv is None else argv):
+            # OpenCV logs corrupt images to stderr itself; the reader counts and reports them (-v shows them)
+            os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command, verbose = getattr(args, "command", None) or "?", bool(args.verbose)
+        level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+        logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+        if getattr(args, "command", None) and not hasattr(args, "_module"):
+            print(f"vio {args.command}: this command is unavailable in this installation", file=sys.stderr)
+            return EXIT_FAILURE
+        if not getattr(args, "command", None):
+            parser.print_help()
+            return EXIT_USAGE
         return int(importlib.import_module(args._module).run(args) or 0)
     except VioError as e:
-        print(f"vio {args.command}: error: {e}", file=sys.stderr)
+        print(f"vio {command}: error: {_one_line(e)}", file=sys.stderr)
         return EXIT_FAILURE
     except KeyboardInterrupt:
-        print(f"vio {args.command}: interrupted", file=sys.stderr)
+        print(f"vio {command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `vio ... | head`: the reader left; nothing more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_FAILURE
+    except Exception as e:
+        if verbose:
+            import traceback
+
+            traceback.print_exc()
+        hint = "" if verbose else " (run with -v for the traceback)"
+        print(f"vio {command}: internal error: {type(e).__name__}: {_one_line(e)}{hint}", file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

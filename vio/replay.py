@@ -75,6 +75,31 @@ class ReplayResult:
     init_t_ns: int | None
     first_frame_t_ns: int | None
     extra: dict = field(default_factory=dict)
+    frames_listed: int = 0  # camera rows in the replayed span, loadable or not
+    unusable_reasons: dict[str, int] = field(default_factory=dict)  # frames without vision, by reason
+
+    @property
+    def frames_unusable(self) -> int:
+        return sum(self.unusable_reasons.values())
+
+    def unusable_summary(self) -> str | None:
+        """'3 of 95 frames unusable: 2 image missing, 1 ...' (None when every frame was usable)."""
+        if not self.unusable_reasons:
+            return None
+        top = sorted(self.unusable_reasons.items(), key=lambda kv: -kv[1])
+        more = f", {len(top) - 4} other reasons" if len(top) > 4 else ""
+        return (f"{self.frames_unusable} of {self.frames_listed} frames unusable: "
+                + ", ".join(f"{n} {why}" for why, n in top[:4]) + more)
+
+    def vision_problem(self) -> str | None:
+        """Why this replay is not visual-inertial odometry at all (None when vision worked at least once)."""
+        if self.frames_listed == 0:
+            return "no camera frame in the replayed span"
+        if self.frames_unusable >= self.frames_listed:
+            return f"vision never worked ({self.unusable_summary()}); any trajectory is from the IMU alone"
+        if not self.states:
+            return "the estimator never initialised: no trajectory"
+        return None
 
     @property
     def realtime_factor(self) -> float:
@@ -105,6 +130,9 @@ class ReplayResult:
             else (self.init_t_ns - self.first_frame_t_ns) * 1e-9,
             "keyframes": int(sum(f["keyframe"] for f in self.frame_stats)),
             "timing_ms": {k: summary(k) for k in ("frontend_ms", "backend_ms", "total_ms")},
+            "frames_listed": self.frames_listed,
+            "frames_unusable": self.frames_unusable,
+            "unusable_reasons": dict(self.unusable_reasons),
             **self.extra,
             "per_frame": self.frame_stats,
         }
@@ -118,6 +146,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     from vio.types import ImuSample
 
     cfg = cfg or VioConfig()
+    preflight(dataset)
     est = Estimator(dataset.calibration, cfg)
     states: list[NavState] = []
     est.listeners.append(states.append)
@@ -141,6 +170,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
+    unusable: dict[str, int] = {}
+    unreadable0 = dataset.stats.unreadable_images
     # right images are decoded only where the front end uses them (the debug view shows them all)
     for ev in dataset.events(t_end_ns=t_end, lazy_right=writer is None):
         if realtime:
@@ -167,7 +198,11 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
         # (a positive time offset), so its cost is recorded wherever it happened.
         if est.frames_processed > n_before and est.last_features is not None:
             tm = est.timings
-            t_cam = int(est.last_features.t_ns)
+            ff = est.last_features
+            t_cam = int(ff.t_ns)
+            if not ff.tracking_ok:
+                why = ff.reason or "rejected by the front end"
+                unusable[why] = unusable.get(why, 0) + 1
             frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
                                 "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
                                 "stereo": est.last_features.n_stereo})
@@ -181,11 +216,36 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
         bar.close()
     ft = dataset.frame_t[:frames] if frames else np.zeros(0, np.int64)
     data_s = float((ft[-1] - ft[0]) * 1e-9) if len(ft) > 1 else 0.0
-    return ReplayResult(states, frame_stats, data_s, wall, frames, est.reset_counter,
-                        states[0].t_ns if states else None,
-                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
-                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
-                                                  "final": est.time_offset_ns * 1e-6}})
+    # frames the dataset could not load never reached the estimator
+    listed = n_total if t_end is None else int(np.count_nonzero(dataset.frame_t[:n_total] <= t_end))
+    missing = sum(f is None for f in dataset.cam0_files[:listed])
+    for why, n in (("image missing", missing), ("image unreadable", dataset.stats.unreadable_images - unreadable0)):
+        if n:
+            unusable[why] = unusable.get(why, 0) + n
+    res = ReplayResult(states, frame_stats, data_s, wall, frames, est.reset_counter,
+                       states[0].t_ns if states else None,
+                       int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
+                       extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
+                                                 "final": est.time_offset_ns * 1e-6},
+                              "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
+                              "data_notes": list(dataset.stats.notes)},
+                       frames_listed=listed, unusable_reasons=unusable)
+    summary = res.unusable_summary()
+    if summary:
+        log.warning(summary)
+    return res
+
+
+def preflight(dataset) -> None:
+    """Stop before replaying what cannot work: a unit mistake in the IMU data or the calibration, no camera
+    frame, images of another size than the calibration's (the front end would refuse every frame)."""
+    if dataset.units_problem:
+        raise VioError(dataset.units_problem)
+    if not len(dataset):
+        raise VioError(f"{dataset.mav0 / 'cam0' / 'data.csv'}: no camera frames")
+    problem = dataset.first_image_size_problem()
+    if problem:
+        raise VioError(problem)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -221,6 +281,8 @@ def run(args: argparse.Namespace) -> int:
         print("per frame [ms]: " + ", ".join(f"{k[:-3]} mean {v['mean']:.1f} p95 {v['p95']:.1f}"
                                              for k, v in sd.items()))
     eval_dict = None
+    if dataset.groundtruth_problem:
+        print("replay: no accuracy figures: the ground truth was not usable")
     if dataset.groundtruth is not None and len(res.states) >= 3:
         from vio.evaluation import evaluate
 
@@ -238,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
             Path(args.stats).write_text(json.dumps(d, indent=1))
         except OSError as e:
             raise VioError(f"{args.stats}: cannot write stats ({e.strerror})") from None
-    if not res.states:
-        print("replay: the estimator never initialised")
-        return 1
+    problem = res.vision_problem()
+    if problem:
+        raise VioError(problem)
     return 0
