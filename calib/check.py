@@ -12,6 +12,9 @@ Checks and thresholds (pixels are cam1 pixels; "median" is over all stereo match
 - gravity when still: on the longest still span, |mean accel| must be g (PASS within 0.2 m/s^2, WARN
   0.5); with ground truth, the accel direction must match gravity seen through the GT attitude (PASS < 2
   deg, WARN < 5 deg). The accel spread and gyro mean are reported (vibration, gyro bias).
+- units: the IMU recording (accel in g or mm/s^2, gyro in deg/s, an all-zero IMU), the stereo baseline and
+  the camera-IMU lever arm (millimetres for metres) with vio/sanity.py's diagnosis, the one `vio replay`
+  stops on: FAIL naming the likely mistake, else PASS.
 """
 
 from __future__ import annotations
@@ -206,25 +209,52 @@ def check_reprojection(calib: StereoCalibration, m: StereoMatches) -> CheckResul
                        f"{share * 100:.0f}% of points in front of both cameras, median depth {depth:.2f} m")
 
 
-def check_gravity(dataset) -> list[CheckResult]:
+def check_units(dataset) -> list[CheckResult]:
+    """IMU data and calibration units: the diagnosis `vio replay` stops on (vio/sanity.py via vio.io.euroc)."""
+    from vio.io.euroc import calibration_unit_checks, imu_units_problem
+
+    calib = dataset.calibration
+    problem = imu_units_problem(dataset.imu, calib.imu, dataset.mav0 / "imu0" / "data.csv")
+    out = [CheckResult("IMU units", "FAIL" if problem else "PASS", float("nan"), "",
+                       problem or "accel about g and gyro plausible for rad/s on the quietest second")]
+    for name, metres, why in calibration_unit_checks(calib, dataset.has_cam1):
+        out.append(CheckResult(name, "FAIL" if why else "PASS", metres, "m", why or "plausible length in metres"))
+    return out
+
+
+def _still_span(dataset) -> tuple[int, int, str]:
+    """The longest still span (ground truth or gyro), else the quietest second of the accelerometer."""
     from calib.allan import find_still_span
+    from vio.io.euroc import quietest_window
 
     imu = dataset.imu
     try:
-        a, b, how = find_still_span(imu, dataset.groundtruth)
+        return find_still_span(imu, dataset.groundtruth)
     except VioError as e:
-        return [CheckResult("gravity when still", "SKIP", float("nan"), "", str(e))]
+        sl, spread = quietest_window(imu)
+        return (int(imu.t_ns[sl.start]), int(imu.t_ns[sl.stop - 1]),
+                f"quietest second of the accelerometer, spread {spread:.3f} of |mean| ({e})")
+
+
+def check_gravity(dataset) -> list[CheckResult]:
+    from vio.sanity import accel_units_problem
+
+    imu = dataset.imu
+    a, b, how = _still_span(dataset)
     sel = (imu.t_ns >= a) & (imu.t_ns <= b)
     acc, gyr = imu.accel[sel], imu.gyro[sel]
     mean = acc.mean(axis=0)
-    g_err = abs(float(np.linalg.norm(mean)) - GRAVITY_M_S2)
+    norm = float(np.linalg.norm(mean))
+    g_err = abs(norm - GRAVITY_M_S2)
     span = f"{(b - a) / 1e9:.1f} s still ({how})"
+    units = accel_units_problem(norm)
     out = [CheckResult("gravity magnitude when still", _grade(g_err, G_PASS, G_WARN), g_err, "m/s^2",
-                       f"|mean accel| {np.linalg.norm(mean):.3f} vs g {GRAVITY_M_S2}; {span}; accel spread "
+                       (f"{units}; " if units else "") +
+                       f"|mean accel| {norm:.3f} vs g {GRAVITY_M_S2}; {span}; accel spread "
                        f"{np.linalg.norm(acc.std(axis=0)):.3f} m/s^2, gyro mean {np.linalg.norm(gyr.mean(axis=0)):.4f} "
                        "rad/s (bias)")]
     gt = dataset.groundtruth
-    if gt is not None:
+    if gt is not None and norm > 0.05:
         traj = gt.trajectory
         tsel = (traj.t_ns >= a) & (traj.t_ns <= b)
         if tsel.any():
@@ -248,12 +278,9 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
     ds = EurocDataset(dataset_path, calibration=calib)
     calib = ds.calibration
     results: list[CheckResult] = []
-    first = ds.frame(0)
-    if first is not None:
-        h, w = first.left.shape[:2]
-        if (w, h) != (calib.cam0.width, calib.cam0.height):
-            raise VioError(f"{dataset_path}: images are {w}x{h} but the calibration is for "
-                           f"{calib.cam0.width}x{calib.cam0.height}")
+    problem = ds.first_image_size_problem()
+    if problem:
+        raise VioError(problem)
     if len(ds):
         m, frames = collect_matches(ds, calib, max_frames)
         if len(m.uv0) < 20:
@@ -262,7 +289,7 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
         else:
             results += [check_epipolar(calib, m), check_rectified_rows(calib, ds, frames),
                         check_reprojection(calib, m)]
-    results += check_gravity(ds)
+    results += check_gravity(ds) + check_units(ds)
     return results
 
 

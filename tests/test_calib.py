@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -436,3 +437,27 @@ def test_depthai_conversion_scales_to_streamed_size(tmp_path):
     assert (half.cam0.width, half.cam0.height, half.cam0.rate_hz) == (640, 400, 30.0)
     assert half.cam0.fx == pytest.approx(full.cam0.fx / 2, rel=1e-6)
     np.testing.assert_allclose(half.T_cam1_cam0, T_right_left, atol=1e-6)
+
+
+def test_check_names_unit_mistakes(tmp_path):
+    """`vio calib check` gives the diagnosis `vio replay` stops on: accel in g, a calibration in millimetres."""
+    from calib.check import check_calibration
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "sim"
+    simulate(data, SimConfig(profile="hover", duration_s=3.0, width=188, height=120, seed=4), progress=False)
+    imu = data / "mav0" / "imu0" / "data.csv"
+    lines = imu.read_text().splitlines()
+    rows = [r.split(",") for r in lines[1:]]
+    imu.write_text("\n".join([lines[0]] + [",".join(r[:4] + [repr(float(x) / 9.80665) for x in r[4:]])
+                                           for r in rows]) + "\n")
+    calib, _ = import_calibration("euroc", [data])
+    T0, T1 = calib.cam0.T_body_cam.copy(), calib.cam1.T_body_cam.copy()
+    T0[:3, 3] *= 1000
+    T1[:3, 3] *= 1000
+    mm = replace(calib, cam0=calib.cam0.with_T_body_cam(T0), cam1=calib.cam1.with_T_body_cam(T1))
+    res = {r.name: r for r in check_calibration(data, mm, max_frames=2)}
+    assert res["IMU units"].verdict == "FAIL" and "units of g, not m/s^2" in res["IMU units"].detail
+    assert "units of g" in res["gravity magnitude when still"].detail
+    assert res["stereo baseline"].verdict == "FAIL" and "millimetres" in res["stereo baseline"].detail
+    assert res["camera-IMU lever arm"].verdict == "FAIL"
