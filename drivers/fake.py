@@ -1,75 +1,114 @@
-"""Sources without hardware: a deterministic synthetic sensor head and EuRoC playback.
+"""Sources without hardware: a simulated flight played as a live sensor head, and EuRoC playback.
 
-`FakeSource` renders a fixed random texture seen by a stereo pair that pans slowly (constant disparity,
-so features track and match), plus a smooth IMU signal. Everything is a pure function of the sample
-index and `seed`, so two instances with the same `t0_ns` produce bit-identical streams: tests compare a
-recording against a fresh instance. `realtime=True` releases data as the host clock reaches its stamps
-(like a device); `realtime=False` releases `batch_s` of data per poll() as fast as the caller polls.
+`FakeSource` (`[source] kind = "fake"`) plays a flight of the project's simulator (vio/sim): the motion,
+scene, IMU and calibration come from `vio.sim.generate.build()`, the images from its `CameraRenderer`
+and `Photometric`, so IMU and images agree and the estimator can track them (a bench test that flies).
+The flight is endless unless `duration_s` is given: the simulator's trajectories are sums of sinusoids
+that stay inside the room for any time, so the source never loops (no discontinuity); the IMU is made
+in chunks of `IMU_CHUNK_S` whose biases continue from the previous chunk. A finite flight simply ends
+(`finished`), and the daemon does not reopen a finished source.
+
+Stamps are on the host clock: the flight starts at `t0_ns` (default: `time.monotonic_ns()` at start()).
+`realtime=True` releases data as the host clock reaches its stamps, with images rendered ahead by a
+background thread (a stereo pair costs ~6 ms at 320x200 and ~21 ms at 640x400 on one core, so 20 Hz keeps
+up on a Raspberry-Pi-class machine at the default size; a frame the renderer could not finish within
+`MAX_RENDER_LAG_S` of its stamp is skipped and counted as `frames_late`). `realtime=False` releases `batch_s`
+of data per poll() as fast as the caller polls, rendering in the caller's thread. Startup (scene,
+calibration, the first IMU chunk) takes about one second; builds are cached per flight in the process.
+
+Everything is a pure function of the settings and `seed`: two instances with the same `t0_ns` produce
+bit-identical streams (tests compare a recording against a fresh instance), and `truth(t_ns)` gives the
+simulator's pose at any stamp (tests evaluate the daemon's trajectory with it).
 
 `EurocSource` plays a EuRoC dataset through the same interface (`[source] kind = "euroc"`).
 """
-
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from drivers.source import Message, SensorSource
-from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration
-from vio.geometry import make_T
+from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
 
-# camera looking along body x (forward), optical x right = -body y, optical y down = -body z
-R_BODY_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+IMU_CHUNK_S = 120.0  # IMU synthesised per chunk (an endless flight never holds more than two)
+MAX_RENDER_LAG_S = 0.25  # realtime: a frame not rendered this long after its stamp is skipped
+RENDER_AHEAD = 6  # realtime: frames rendered ahead of the clock
 
 
 def imu_signal(k: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """Gentle deterministic motion: slow sinusoidal rates, gravity plus a small oscillation."""
+    """Gentle deterministic IMU-like signal (slow sinusoidal rates, gravity plus a small oscillation); the
+    reference sender's test pattern (drivers/reference_sender.py). Not a trajectory: FakeSource uses the
+    simulator instead."""
     t = k / rate_hz
     gyro = np.array([0.10 * np.sin(2.0 * t), 0.05 * np.cos(1.3 * t), 0.02 * np.sin(0.7 * t)])
     accel = np.array([0.3 * np.sin(1.1 * t), 0.2 * np.cos(0.9 * t), 9.81 + 0.1 * np.sin(3.0 * t)])
     return gyro, accel
 
 
+@functools.lru_cache(maxsize=4)
+def _flight(profile: str, seed: int, width: int, height: int, fps: float, imu_rate_hz: float) -> tuple:
+    """(Simulation, [(CameraRenderer, T_body_cam, Photometric)] for cam0 and cam1), built once per flight.
+
+    The simulator's 'clean' variant: EuRoC IMU noise and small biases, sharp noise-free images (blur and
+    exposure effects would cost render time a bench test does not need)."""
+    from vio.sim.generate import SimConfig, build
+    from vio.sim.render import CameraRenderer, Photometric
+
+    sim = build(SimConfig(profile=profile, duration_s=IMU_CHUNK_S, seed=seed, variant="clean", rate_hz=fps,
+                          imu_rate_hz=imu_rate_hz, width=width, height=height))
+    cfg = sim.config
+    photo_rng = np.random.default_rng([seed, 3])
+    cams = [(CameraRenderer(c, sim.scene), c.T_body_cam,
+             Photometric(photo_rng, cfg.duration_s, cfg.gain_drift, cfg.gain_jumps_hz, noise_sigma=cfg.image_noise,
+                         offset=off))
+            for c, off in ((sim.calibration.cam0, 0.0), (sim.calibration.cam1, 0.04))]
+    return sim, cams
+
+
 class FakeSource(SensorSource):
-    """Synthetic stereo camera + IMU with a known calibration."""
+    """A simulated flight (vio/sim) as a live stereo camera + IMU with its calibration."""
 
     name = "fake"
 
     def __init__(self, width: int = 640, height: int = 400, fps: float = 20.0, imu_rate_hz: float = 200.0, *,
                  duration_s: float | None = None, t0_ns: int | None = None, realtime: bool = True,
-                 batch_s: float = 0.05, disparity_px: int = 8, seed: int = 0, enable_imu: bool = True) -> None:
-        self.width, self.height = width, height
-        self.fps, self.imu_rate_hz = fps, imu_rate_hz
-        self.duration_ns = None if duration_s is None else int(duration_s * 1e9)
+                 batch_s: float = 0.05, seed: int = 0, profile: str = "survey", enable_imu: bool = True) -> None:
+        self.width, self.height = int(width), int(height)
+        self.fps, self.imu_rate_hz = float(fps), float(imu_rate_hz)
+        self.duration_ns = None if not duration_s else int(duration_s * 1e9)
         self.t0_ns = t0_ns
         self.realtime = realtime
         self.batch_ns = int(batch_s * 1e9)
-        self.disparity_px = disparity_px
         self.enable_imu = enable_imu
-        self.seed = seed
-        self._texture: np.ndarray | None = None
+        self.seed, self.profile = seed, profile
+        self._imu_n = int(round(IMU_CHUNK_S * self.imu_rate_hz))  # samples per IMU chunk
+        self._chunks: dict[int, Any] = {}  # chunk index -> vio.sim.imu.ImuStream (at most two kept)
         self._k_frame = 0
         self._k_imu = 0
         self._virtual_now = 0
         self._started = False
+        self._ahead: deque[StereoFrame] = deque()  # realtime: rendered, not yet due
+        self._cv = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
         self.frames_sent = 0
         self.imu_sent = 0
+        self.frames_late = 0
+        self.render_ms = 0.0  # mean render time of a stereo pair (exponential average)
 
     # -- deterministic content -----------------------------------------------------------------------------
-    def _tex(self) -> np.ndarray:
-        if self._texture is None:
-            rng = np.random.default_rng(self.seed)
-            h, w = self.height + 64, self.width + 512
-            noise = rng.integers(0, 256, size=(h // 4, w // 4), dtype=np.uint8)
-            self._texture = cv2.GaussianBlur(cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC), (3, 3), 0)
-        return self._texture
+    @property
+    def _sim(self) -> tuple:
+        return _flight(self.profile, self.seed, self.width, self.height, self.fps, self.imu_rate_hz)
 
     def frame_t_ns(self, k: int) -> int:
         return int(self._t0() + round(k * 1e9 / self.fps))
@@ -77,30 +116,46 @@ class FakeSource(SensorSource):
     def imu_t_ns(self, k: int) -> int:
         return int(self._t0() + round(k * 1e9 / self.imu_rate_hz))
 
+    def truth(self, t_ns: np.ndarray) -> np.ndarray:
+        """The simulator's T_world_body at host stamps `t_ns` (N,) -> (N, 4, 4)."""
+        return self._sim[0].motion.pose((np.asarray(t_ns, dtype=np.int64) - self._t0()) * 1e-9)
+
     def render(self, k: int) -> StereoFrame:
-        """Frame k: both views are crops of the texture; the right one shifted by the disparity."""
-        tex = self._tex()
-        span = tex.shape[1] - self.width - self.disparity_px
-        x = int(abs((k * 2) % (2 * span) - span))  # pan back and forth, 2 px per frame
-        y = 32 + int(round(16 * np.sin(k / 25.0)))
-        left = np.ascontiguousarray(tex[y:y + self.height, x + self.disparity_px:x + self.disparity_px + self.width])
-        right = np.ascontiguousarray(tex[y:y + self.height, x:x + self.width])
-        return StereoFrame(self.frame_t_ns(k), left, right, seq=k)
+        """Frame k: both cameras rendered at the flight's pose at the frame time."""
+        t0 = time.perf_counter()
+        t_ns = self.frame_t_ns(k)
+        t_s = (t_ns - self._t0()) * 1e-9
+        T_wb = self._sim[0].motion.pose(np.array([t_s]))[0]
+        left, right = (photo.apply(renderer.render(T_wb @ T_bc)[0], t_s) for renderer, T_bc, photo in self._sim[1])
+        self.render_ms += 0.1 * ((time.perf_counter() - t0) * 1e3 - self.render_ms)
+        return StereoFrame(t_ns, left, right, seq=k)
+
+    def _imu_chunk(self, c: int) -> Any:
+        """IMU chunk c (samples c*N .. (c+1)*N-1); chunk 0 is the simulation's, later ones continue its biases."""
+        if c not in self._chunks:
+            if c == 0:
+                self._chunks[0] = self._sim[0].imu
+            else:
+                from vio.sim.imu import ImuModel, synthesize
+
+                prev = self._imu_chunk(c - 1)
+                sim = self._sim[0]
+                model = ImuModel(sim.calibration.imu, tuple(prev.gyro_bias[self._imu_n - 1]),
+                                 tuple(prev.accel_bias[self._imu_n - 1]))
+                i = np.arange(c * self._imu_n, (c + 1) * self._imu_n)
+                t_s = np.round(i * (1e9 / self.imu_rate_hz)) * 1e-9
+                self._chunks[c] = synthesize(sim.motion, t_s, model, np.random.default_rng([self.seed, 2, c]))
+            for old in [k for k in self._chunks if k < c - 1]:
+                del self._chunks[old]
+        return self._chunks[c]
 
     def imu(self, k: int) -> ImuSample:
-        gyro, accel = imu_signal(k, self.imu_rate_hz)
-        return ImuSample(self.imu_t_ns(k), gyro, accel)
+        c, i = divmod(k, self._imu_n)
+        chunk = self._imu_chunk(c)
+        return ImuSample(self.imu_t_ns(k), chunk.gyro[i].copy(), chunk.accel[i].copy())
 
     def calibration(self) -> StereoCalibration:
-        f = 0.7 * self.width
-        baseline = 0.075
-        cams = []
-        for i in range(2):
-            T = make_T(R_BODY_CAM_FORWARD, np.array([0.02, 0.0375 - i * baseline, 0.0]))
-            cams.append(CameraCalibration(fx=f, fy=f, cx=self.width / 2, cy=self.height / 2, width=self.width,
-                                          height=self.height, distortion_model="radtan",
-                                          distortion=(0.0, 0.0, 0.0, 0.0), T_body_cam=T, rate_hz=self.fps))
-        return StereoCalibration(cams[0], cams[1], ImuNoise(rate_hz=self.imu_rate_hz))
+        return self._sim[0].calibration
 
     # -- source interface ----------------------------------------------------------------------------------
     def _t0(self) -> int:
@@ -109,14 +164,60 @@ class FakeSource(SensorSource):
         return self.t0_ns
 
     def start(self) -> None:
+        self._sim  # noqa: B018 - build (about a second) before the clock starts
         self._t0()
         self._started = True
+        if self.realtime and self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._render_ahead, name="fake-render", daemon=True)
+            self._thread.start()
 
     def stop(self) -> None:
         self._started = False
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
 
     def _end_ns(self) -> int | None:
         return None if self.duration_ns is None else self._t0() + self.duration_ns
+
+    def _render_ahead(self) -> None:
+        """Realtime: keep up to RENDER_AHEAD frames rendered before they are due; skip frames it is late for."""
+        k = 0
+        end = self._end_ns()
+        while not self._stop.is_set():
+            with self._cv:
+                while len(self._ahead) >= RENDER_AHEAD and not self._stop.is_set():
+                    self._cv.wait(0.1)
+            due = int((time.monotonic_ns() - self._t0() - MAX_RENDER_LAG_S * 1e9) * self.fps / 1e9)
+            if due > k:  # behind the clock: jump to the frames that can still be on time
+                self.frames_late += due - k
+                k = due
+            if end is not None and self.frame_t_ns(k) > end:
+                return
+            frame = self.render(k)
+            with self._cv:
+                self._ahead.append(frame)
+            k += 1
+
+    def _due_frames(self, now: int) -> list[Message]:
+        if not self.realtime:
+            out: list[Message] = []
+            while self.frame_t_ns(self._k_frame) <= now:
+                out.append(self.render(self._k_frame))
+                self._k_frame += 1
+            return out
+        with self._cv:
+            out = []
+            while self._ahead and self._ahead[0].t_ns <= now:
+                out.append(self._ahead.popleft())
+            if out:
+                self._k_frame = out[-1].seq + 1
+                self._cv.notify_all()
+        return out
 
     def poll(self) -> list[Message]:
         if not self._started:
@@ -133,16 +234,17 @@ class FakeSource(SensorSource):
         while self.enable_imu and self.imu_t_ns(self._k_imu) <= now:
             out.append(self.imu(self._k_imu))
             self._k_imu += 1
-        while self.frame_t_ns(self._k_frame) <= now:
-            out.append(self.render(self._k_frame))
-            self._k_frame += 1
-        self.imu_sent = self._k_imu
-        self.frames_sent = self._k_frame
+        if not self.enable_imu:  # still advance, so that `finished` means "the flight is over"
+            self._k_imu = max(self._k_imu, int((now - self._t0()) * self.imu_rate_hz / 1e9) + 1)
+        out.extend(self._due_frames(now))
+        self.imu_sent = self._k_imu if self.enable_imu else 0
+        self.frames_sent += sum(isinstance(m, StereoFrame) for m in out)
         return out
 
     def messages(self) -> Iterator[Message]:
         """The whole (finite) stream in poll order, without the clock: for tests comparing recordings."""
         assert self.duration_ns is not None, "messages() needs duration_s"
+        self.realtime = False
         self.start()
         while not self.finished:
             yield from self.poll()
@@ -153,8 +255,9 @@ class FakeSource(SensorSource):
         return end is not None and self.imu_t_ns(self._k_imu) > end and self.frame_t_ns(self._k_frame) > end
 
     def health(self) -> dict[str, Any]:
-        return {"name": self.name, "state": "running" if self._started else "stopped",
-                "frames": self.frames_sent, "imu": self.imu_sent}
+        return {"name": self.name, "state": "running" if self._started else "stopped", "profile": self.profile,
+                "t0_ns": self.t0_ns, "frames": self.frames_sent, "imu": self.imu_sent,
+                "frames_late": self.frames_late, "render_ms": round(self.render_ms, 1)}
 
 
 class EurocSource(SensorSource):

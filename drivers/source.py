@@ -194,7 +194,9 @@ def open_source(cfg: SourceConfig, dai_module: Any = None,
         from drivers.fake import FakeSource
 
         cam: SensorSource = FakeSource(width=cfg.width, height=cfg.height, fps=cfg.fps,
-                                       imu_rate_hz=cfg.imu_rate_hz, realtime=cfg.realtime)
+                                       imu_rate_hz=cfg.imu_rate_hz, realtime=cfg.realtime,
+                                       duration_s=cfg.fake_duration_s or None, seed=cfg.fake_seed,
+                                       profile=cfg.fake_profile)
     elif cfg.kind == "euroc":
         from drivers.fake import EurocSource
 

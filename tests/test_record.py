@@ -46,7 +46,7 @@ def test_record_replay_round_trip_is_bit_exact(tmp_path: Path) -> None:
     c0, w0 = ds.calibration.cam0, _fake().calibration().cam0
     np.testing.assert_allclose(c0.K, w0.K)
     np.testing.assert_allclose(c0.T_body_cam, w0.T_body_cam, atol=1e-12)
-    assert abs(ds.calibration.baseline_m - 0.075) < 1e-12
+    assert abs(ds.calibration.baseline_m - _fake().calibration().baseline_m) < 1e-12
     # events() merges the streams back in time order, as `vio replay` consumes them
     ev = list(ds.events())
     assert len(ev) == 222 and all(a.t_ns <= b.t_ns for a, b in zip(ev, ev[1:]))
@@ -55,6 +55,7 @@ def test_record_replay_round_trip_is_bit_exact(tmp_path: Path) -> None:
 def test_record_stops_on_event_and_refuses_to_overwrite(tmp_path: Path) -> None:
     stop = threading.Event()
     src = FakeSource(width=64, height=64, fps=20, realtime=True)
+    src.start()  # builds the simulated flight (about a second) before the clock of the test runs
     threading.Timer(0.4, stop.set).start()
     stats = record(src, tmp_path / "ds", stop=stop)
     assert stats.frames >= 3 and stats.imu >= 40

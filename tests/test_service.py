@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ from vio.config import config_from_dict
 from vio.sdnotify import SdNotifier, watchdog_interval_s
 from vio.service import LatestState, SensorBuffer, Service, write_status_file
 from vio.status import EXIT_HEALTHY, EXIT_NOT_RUNNING, EXIT_UNHEALTHY, evaluate, format_status
-from vio.types import ImuSample, NavState, StereoFrame
+from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -211,26 +211,65 @@ class ScriptedSource:
         return out
 
 
-class ScriptedEstimator:
-    """One tracked NavState per frame; raises once when told to, as a gtsam failure would."""
+@dataclass
+class Health:
+    """Same fields as vio.estimator.EstimatorHealth (the daemon reads nothing else)."""
 
-    def __init__(self, calib: str, explode: list) -> None:
+    initialized: bool = False
+    tracking: bool = False
+    reset_counter: int = 0
+    frames_processed: int = 0
+    frames_unusable: int = 0
+    unusable_reasons: dict = field(default_factory=dict)
+    imu_rejected: int = 0
+    imu_rejected_reasons: dict = field(default_factory=dict)
+    frames_dropped: int = 0
+    vision_age_s: float | None = None
+    last_reset_reason: str = ""
+    sensor_error: str | None = None
+
+
+class ScriptedEstimator:
+    """Shaped like vio.estimator.Estimator (feed_imu, feed_frame, reset, health, last_features): one tracked
+    NavState per frame; raises once when told to, as a gtsam failure would. While `blind` is set its frames
+    are unusable (a lens cap): no state, tracking False, the reason counted."""
+
+    def __init__(self, calib: str, explode: list, blind: threading.Event | None = None) -> None:
         assert calib == "calib"
         self.explode = explode
+        self.blind = blind or threading.Event()
         self.n = 0
-        self.n_tracks = 99
+        self.resets = 0
+        self.unusable = 0
+        self.tracking = False
+        self.last_features: FeatureFrame | None = None
 
     def feed_imu(self, s: ImuSample) -> None:
         return None
 
-    def feed_frame(self, f: StereoFrame) -> NavState:
+    def feed_frame(self, f: StereoFrame) -> NavState | None:
         if self.explode:
             self.explode.pop()
             raise RuntimeError("Indeterminant linear system")
         self.n += 1
+        if self.blind.is_set():
+            self.unusable += 1
+            self.tracking = False
+            return None
+        self.tracking = True
+        self.last_features = FeatureFrame(f.t_ns, np.arange(99), np.zeros((99, 2)), np.zeros((99, 2)),
+                                          np.ones(99), np.ones(99, np.int64))
         T = np.eye(4)
         T[0, 3] = 0.01 * self.n
-        return NavState(f.t_ns, T, np.zeros(3))
+        return NavState(f.t_ns, T, np.zeros(3), reset_counter=self.resets)
+
+    def reset(self, reason: str, bridge: bool = True) -> None:
+        self.resets += 1
+
+    def health(self) -> Health:
+        return Health(initialized=self.n > 0, tracking=self.tracking, reset_counter=self.resets,
+                      frames_processed=self.n, frames_unusable=self.unusable,
+                      unusable_reasons={"image too dark": self.unusable} if self.unusable else {})
 
 
 @dataclass

@@ -146,7 +146,13 @@ class SourceConfig:
     serial_baud: int = opt(921600, "serial IMU baud rate", min=1200, max=12_000_000)
     serial_imu_rate_hz: float = opt(400.0, "serial IMU sample rate (gap detection)", min=10, max=4000)
     oak_device: str = opt("", "OAK device id or name; empty = the first one found")
-    realtime: bool = opt(True, "fake/euroc: release data at the pace of its stamps (false = as fast as read)")
+    realtime: bool = opt(True, "fake/euroc: release data at the pace of its stamps (false = as fast as the "
+                         "estimator takes it: `vio run` then waits for room in its buffers, nothing is dropped)")
+    fake_profile: str = opt("survey", "kind = 'fake': simulated flight profile (vio/sim)",
+                            choices=("hover", "survey", "aggressive"))
+    fake_duration_s: float = opt(0.0, "kind = 'fake': flight length; 0 = endless (the flight never repeats)",
+                                 min=0, max=1e7)
+    fake_seed: int = opt(0, "kind = 'fake': seed of the simulated flight and room", min=0, max=2**31 - 1)
 
 
 @dataclass(frozen=True)
@@ -160,8 +166,12 @@ class RunConfig:
     source_timeout_s: float = opt(2.0, "no sensor data for this long = source lost; it is reopened", min=0.2, max=60)
     reconnect_max_s: float = opt(5.0, "longest wait between attempts to reopen a lost source", min=0.1, max=300)
     max_imu_gap_s: float = opt(0.5, "IMU gap after which the estimator is reset", min=0.02, max=60)
-    stall_timeout_s: float = opt(20.0, "inputs flowing but no pose for this long = stalled: the systemd "
-                                 "watchdog stops being fed (restart)", min=1, max=3600)
+    stall_timeout_s: float = opt(20.0, "sensors delivering but no tracked pose for this long: one warning in the "
+                                 "log naming why (the watchdog is still fed: a restart would not help)",
+                                 min=1, max=3600)
+    ready_timeout_s: float = opt(30.0, "READY=1 to systemd when sensor data flow, or after this long without "
+                                 "(the daemon keeps reopening the sensors; TimeoutStartSec must be longer)",
+                                 min=1, max=3600)
     log_level: str = opt("INFO", "logging level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
 

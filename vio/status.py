@@ -1,10 +1,14 @@
 """`vio status`: the daemon's health for a person on the drone's shell (or a script: see the exit codes).
 
-Reads the JSON status file that `vio run` rewrites every second. Exit codes: 0 healthy; 1 running but
-unhealthy or degraded (no recent pose, tracking lost, stuck thread); 4 not running: the file is missing,
-unreadable, stale (not rewritten for `--stale-s` seconds) or written by a stopped daemon.
-"Healthy" means state `running`: sensors delivering, a fresh tracked pose, every thread alive, no warnings
-(autopilot link down, frames dropped, tracking lost make it `degraded`).
+Reads the JSON status file that `vio run` rewrites every second. Exit codes: 0 healthy; 1 running but not
+giving poses or not well (starting, waiting for vision, degraded, unhealthy); 4 not running: the file is
+missing, unreadable, stale (not rewritten for `--stale-s` seconds) or written by a stopped daemon.
+
+States: `starting` (sensors not delivering yet), `waiting for vision` (sensors deliver, no tracked pose:
+not initialised, dark, lens cap, camera frames stopped; nothing goes to the autopilot), `running`
+(healthy: a fresh tracked pose, every thread alive, no warnings), `degraded` (running with warnings:
+autopilot link down, frames dropped, recording or trajectory file failed, IMU missing), `unhealthy` (a
+thread died or is stuck; the systemd watchdog is no longer fed), `stopped`.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ def evaluate(status: dict[str, Any], now_unix: float, stale_s: float) -> tuple[i
     if status.get("healthy"):
         return EXIT_HEALTHY, "HEALTHY"
     state = str(status.get("state", "unhealthy")).upper()
-    return EXIT_UNHEALTHY, state if state in ("STARTING", "DEGRADED") else "UNHEALTHY"
+    return EXIT_UNHEALTHY, state if state in ("STARTING", "WAITING FOR VISION", "DEGRADED") else "UNHEALTHY"
 
 
 def _fmt(v: Any, unit: str = "", nd: int = 1) -> str:
@@ -74,7 +78,8 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"camera {_fmt(r.get('camera'), ' Hz')}, IMU {_fmt(r.get('imu'), ' Hz', 0)}, "
         f"disconnects {_fmt(src.get('disconnects'))}, frames dropped {_fmt(src.get('frames_dropped'))}, "
         f"IMU lost {_fmt(src.get('imu_overflow'))}",
-        f"  estimator {_fmt(r.get('estimator'), ' Hz')}, tracking {_fmt(e.get('tracking'))}, "
+        f"  estimator {_fmt(r.get('estimator'), ' Hz')}, tracking {_fmt(e.get('tracking'))}"
+        f"{'' if e.get('initialized') in (None, True) else ' (not initialised)'}, "
         f"quality {_fmt(e.get('quality'))}, tracks {_fmt(e.get('tracks'))}, "
         f"resets {_fmt(e.get('reset_counter'))} (daemon-forced {_fmt(e.get('daemon_resets'))}), "
         f"last pose {_fmt(e.get('last_pose_age_s'), ' s ago', 2)}",
@@ -83,10 +88,22 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
         f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}",
     ]
+    unusable = e.get("unusable_reasons") or {}
+    if e.get("frames_unusable") or e.get("imu_rejected"):
+        reasons = ", ".join(f"{k} x{n}" for k, n in sorted(unusable.items(), key=lambda kv: -kv[1])[:3])
+        reasons = f" ({reasons})" if reasons else ""
+        lines.append(f"  inputs    unusable frames {_fmt(e.get('frames_unusable'))}{reasons}, "
+                     f"IMU samples rejected {_fmt(e.get('imu_rejected'))}, frames dropped by the estimator "
+                     f"{_fmt(e.get('frames_dropped'))}")
     rec = s.get("recording")
     if rec:
-        lines.append(f"  recording {rec.get('dir')}: {rec.get('frames')} frames, {rec.get('imu')} IMU, "
-                     f"{rec.get('frames_dropped')} frames dropped")
+        failed = f": {rec.get('error')}" if rec.get("error") else ""
+        lines.append(f"  recording {rec.get('state', 'recording')}{failed}, {rec.get('dir')}: {rec.get('frames')} "
+                     f"frames, {rec.get('imu')} IMU, {rec.get('frames_dropped')} frames dropped")
+    traj = s.get("trajectory_file")
+    if traj:
+        failed = f": {traj.get('error')}" if traj.get("error") else ""
+        lines.append(f"  poses log {traj.get('state')}{failed}, {traj.get('path')}: {traj.get('poses')} poses")
     wd = s.get("watchdog") or {}
     lines.append(f"  watchdog  {'on' if wd.get('enabled') else 'off (not under systemd)'}"
                  f"{', fed' if wd.get('fed') else ', NOT fed' if wd.get('enabled') else ''}")
