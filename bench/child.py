@@ -46,7 +46,8 @@ def time_output_stage(tum_path: Path) -> dict:
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
     clock = [0]
-    out = MavlinkOutput(MavlinkConfig(), f"udpout:127.0.0.1:{sink.getsockname()[1]}", clock_ns=lambda: clock[0])
+    out = MavlinkOutput(MavlinkConfig(mount="rpy"), f"udpout:127.0.0.1:{sink.getsockname()[1]}",
+                        clock_ns=lambda: clock[0])
     times_ms = []
     try:
         for t_ns, T in zip(traj.t_ns, traj.poses()):

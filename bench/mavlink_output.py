@@ -29,7 +29,8 @@ def main() -> None:
     ap_args.add_argument("--rate", type=float, default=30.0)
     args = ap_args.parse_args()
     ap = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=1, dialect="ardupilotmega")
-    out = MavlinkOutput(MavlinkConfig(rate_hz=args.rate), f"udpout:127.0.0.1:{ap.port.getsockname()[1]}").start()
+    out = MavlinkOutput(MavlinkConfig(rate_hz=args.rate, mount="rpy"),
+                        f"udpout:127.0.0.1:{ap.port.getsockname()[1]}").start()
 
     st = NavState(0, np.eye(4), np.zeros(3))
     t0, n = time.perf_counter(), 2000

@@ -35,6 +35,55 @@ def mount_transform(mount_rpy_deg: np.ndarray | list, mount_offset_m: np.ndarray
     return make_T(R, np.asarray(mount_offset_m, dtype=float))
 
 
+# Vehicle FRD axes in cam0's optical frame (x right, y down, z out of the lens), for the `mount` choices.
+R_FRD_CAM0 = {
+    "camera-forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),  # nose = lens axis
+    "camera-down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # nose = image top
+}
+MAX_CAMERA_TILT_DEG = 40.0  # beyond it "the nearest vehicle axis" is ambiguous: the user must say (mount = "rpy")
+
+
+def _axis_rotations() -> list[np.ndarray]:
+    """The 24 proper rotations that map axes onto axes (signed permutation matrices with det +1)."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            M = np.zeros((3, 3))
+            for row, (col, sgn) in enumerate(zip(perm, signs)):
+                M[row, col] = sgn
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return out
+
+
+def mount_rotation(mount: str, mount_rpy_deg, R_body_cam0: np.ndarray | None) -> np.ndarray:
+    """R_frd_body for the configured `mount`.
+
+    'rpy' takes `mount_rpy_deg`. 'camera-forward' / 'camera-down' take which IMU axis points where from the
+    calibration's camera orientation, assuming (as on every OAK and nearly every drone) that the IMU's axes
+    are parallel to the airframe's: the camera may be tilted (say 30 deg down), so the camera-derived
+    rotation is snapped to the nearest axis-aligned one. Raises VioError when that cannot be decided, instead
+    of guessing an attitude the autopilot would fly on."""
+    from vio import VioError
+
+    if mount == "rpy":
+        return mount_transform(mount_rpy_deg, np.zeros(3))[:3, :3]
+    if mount not in R_FRD_CAM0:
+        raise VioError(f"[mavlink] mount = {mount!r}: expected one of {['rpy', *R_FRD_CAM0]}")
+    if R_body_cam0 is None:
+        raise VioError(f"[mavlink] mount = {mount!r} needs the calibration's T_body_cam0")
+    R = R_FRD_CAM0[mount] @ np.asarray(R_body_cam0, dtype=float).T
+    best = max(_axis_rotations(), key=lambda M: float(np.sum(M * R)))
+    tilt = float(np.degrees(np.arccos(np.clip((np.trace(best.T @ R) - 1.0) / 2.0, -1.0, 1.0))))
+    if tilt > MAX_CAMERA_TILT_DEG:
+        raise VioError(f"[mavlink] mount = {mount!r}: the camera is {tilt:.0f} deg away from any IMU axis, so which "
+                       "IMU axis is the vehicle's nose is ambiguous; set mount = 'rpy' and mount_rpy_deg "
+                       "(docs/autopilot.md, Mounting)")
+    return best
+
+
 def mount_rpy_deg_from_matrix(R_frd_body: np.ndarray) -> np.ndarray:
     """Inverse of the rotation part of `mount_transform`: the mount_rpy_deg that gives R_frd_body.
 

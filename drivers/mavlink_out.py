@@ -27,9 +27,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.mavlink_frames import mount_transform, to_vehicle_odometry, upper_triangle
+from drivers.mavlink_frames import (
+    mount_rotation,
+    mount_rpy_deg_from_matrix,
+    mount_transform,
+    to_vehicle_odometry,
+    upper_triangle,
+)
 from vio import VioError
 from vio.config import MavlinkConfig
+from vio.geometry import make_T
 from vio.types import NavState
 
 os.environ["MAVLINK20"] = "1"  # ODOMETRY (id 331) exists only in MAVLink 2; must precede the dialect import
@@ -102,7 +109,7 @@ class MavlinkOutput:
     """
 
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
-                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+                 clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.url = url if url is not None else cfg.url
         if not self.url:
@@ -114,10 +121,22 @@ class MavlinkOutput:
             v = getattr(cfg, key)
             if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
                 raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
+        # Only ODOMETRY has a quality field the autopilots check (VISO_QUAL_MIN, EKF2_EV_QMIN); VISION_* would
+        # carry the lost pose as a good one.
+        self._lost_as_quality0 = cfg.lost_output == "quality0" and cfg.messages == ["ODOMETRY"]
+        if cfg.lost_output == "quality0" and not self._lost_as_quality0:
+            raise VioError("[mavlink] lost_output = 'quality0' needs messages = ['ODOMETRY'] (VISION_* messages "
+                           "have no quality field, so a lost pose would look valid)")
         if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
             log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
                         "estimate twice; send one kind")
-        self.T_frd_body = mount_transform(cfg.mount_rpy_deg, cfg.mount_offset_m)
+        # None until the mount is known (mount = camera-*: from the calibration, see set_camera_mount)
+        self.T_frd_body: np.ndarray | None = None
+        if cfg.mount == "rpy":
+            self.T_frd_body = mount_transform(cfg.mount_rpy_deg, cfg.mount_offset_m)
+        elif T_body_cam0 is not None:
+            self.set_camera_mount(T_body_cam0)
+        self._mount_warned = False
         self._clock = clock_ns
         self._period_ns = int(round(1e9 / cfg.rate_hz))
         self._timeout_ns = int(cfg.link_timeout_s * 1e9)
@@ -151,6 +170,14 @@ class MavlinkOutput:
 
     # ---------------------------------------------------------------- public API
 
+    def set_camera_mount(self, T_body_cam0: np.ndarray) -> None:
+        """Derive the IMU mounting from the calibration (mount = camera-forward / camera-down); no pose is
+        sent before the mount is known. Raises VioError when the calibration does not decide it."""
+        R = mount_rotation(self.cfg.mount, self.cfg.mount_rpy_deg, np.asarray(T_body_cam0, dtype=float)[:3, :3])
+        self.T_frd_body = make_T(R, np.asarray(self.cfg.mount_offset_m, dtype=float))
+        log.info("IMU mount from the calibration (%s): roll/pitch/yaw %s deg in the vehicle FRD frame",
+                 self.cfg.mount, np.round(mount_rpy_deg_from_matrix(R), 1).tolist())
+
     @property
     def link_up(self) -> bool:
         """True while the autopilot's heartbeats arrive (within link_timeout_s)."""
@@ -179,7 +206,13 @@ class MavlinkOutput:
             self.stats.states_in += 1
             changed = self._tracking is not None and state.tracking != self._tracking
             self._tracking = state.tracking
-            if not state.tracking:
+            if self.T_frd_body is None:
+                self._pending = None
+                if not self._mount_warned:
+                    log.warning("no pose sent: the IMU mount is not known yet (mount = %r needs the calibration)",
+                                self.cfg.mount)
+                    self._mount_warned = True
+            elif not state.tracking and not self._lost_as_quality0:
                 self.stats.states_not_tracking += 1
                 self._pending = None
             elif self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns:
@@ -266,6 +299,8 @@ class MavlinkOutput:
 
     def build_messages(self, state: NavState) -> list:
         """The configured pose messages for one state (pymavlink message objects, not yet packed)."""
+        if self.T_frd_body is None:
+            raise VioError("the IMU mount is not known yet: call set_camera_mount() (mount = camera-*)")
         od = to_vehicle_odometry(state.t_ns, state.T_world_body, state.v_world, state.omega_body,
                                  state.cov_pose, state.cov_vel, self.T_frd_body)
         usec = state.t_ns // 1000
@@ -287,7 +322,7 @@ class MavlinkOutput:
                     usec, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, *od.p_ned,
                     [float(x) for x in od.q_ned_frd_wxyz], *od.v_frd, *od.omega_frd, pose_cov,
                     upper_triangle(vel_cov), reset, mavlink.MAV_ESTIMATOR_TYPE_VIO,
-                    int(min(max(state.quality, 1), 100))))
+                    int(min(max(state.quality, 1), 100)) if state.tracking else 0))
         return out
 
     def _send_state_messages(self, state: NavState, now: int) -> None:

@@ -54,7 +54,7 @@ def test_show_of_a_file_reloads_to_that_file(tmp_path, capsys):
     src.write_text(
         "[frontend]\nmax_features = 150\nclahe = true\n"
         "[source]\nkind = \"euroc\"\ndataset = 'C:\\data \"V1\"\\tab\there'\nfps = 30\n"
-        "[mavlink]\nmount_rpy_deg = [180.0, 0.0, 90.0]\norigin_lat_deg = 47.5\n"
+        "[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [180.0, 0.0, 90.0]\norigin_lat_deg = 47.5\n"
         "[run]\ntrajectory_file = \"\"\"two\nlines\"\"\"\n"
     )
     cfg = load_config(src)
@@ -113,3 +113,15 @@ def test_missing_and_binary_files(tmp_path):
     p.write_bytes(b"\xff\xfe\x00junk")
     with pytest.raises(VioError, match=r"bin\.toml: not valid TOML"):
         load_config(p)
+
+
+@pytest.mark.parametrize("text,match", [
+    ("[mavlink]\nmount_rpy_deg = [180.0, 0.0, 0.0]\n", "set mount = 'rpy'"),
+    ("[backend]\nvision_timeout_s = 2.0\nlost_timeout_s = 1.0\n", "must not exceed lost_timeout_s"),
+])
+def test_contradicting_settings_are_refused(tmp_path, text, match):
+    """A mounting given for the wrong mode would be silently ignored, and the IMU flown upside down."""
+    f = tmp_path / "c.toml"
+    f.write_text(text)
+    with pytest.raises(VioError, match=match):
+        load_config(f)

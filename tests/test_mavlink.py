@@ -14,6 +14,7 @@ import pytest
 
 from drivers.mavlink_frames import (
     R_NED_WORLD,
+    mount_rotation,
     mount_rpy_deg_from_matrix,
     mount_transform,
     to_vehicle_odometry,
@@ -201,7 +202,7 @@ def ap():
 
 
 def make_out(ap: FakeAutopilot, clock=None, **cfg) -> MavlinkOutput:
-    c = MavlinkConfig(**cfg)
+    c = MavlinkConfig(**{"mount": "rpy", **cfg})
     return MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", **({"clock_ns": clock} if clock else {}))
 
 
@@ -284,6 +285,69 @@ def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     got = ap.drain()
     assert len(ap.of("ODOMETRY", got)) == 1 and ap.of("STATUSTEXT", got)[0].text == "VIO tracking regained"
     out.close()
+
+
+def test_lost_output_quality0_sends_odometry_marked_invalid(ap):
+    """lost_output = quality0: the autopilot still hears us while lost, with quality 0 (its QUAL_MIN rejects it)."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"], lost_output="quality0")
+    out.send_state(state(1_000_000_000, quality=80))
+    clock.advance(0.05)
+    out.send_state(state(clock.t, tracking=False, quality=0))
+    got = ap.of("ODOMETRY", ap.drain())
+    assert [m.quality for m in got] == [80, 0]
+    out.close()
+    with pytest.raises(VioError, match="quality0"):
+        MavlinkOutput(MavlinkConfig(mount="rpy", lost_output="quality0", messages=["VISION_POSITION_ESTIMATE"]),
+                      "udpout:127.0.0.1:14550")
+
+
+def _axis_rotations() -> list[np.ndarray]:
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            M = np.zeros((3, 3))
+            M[range(3), perm] = signs
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return out
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 30.0, -15.0])
+def test_camera_mount_is_derived_for_every_imu_orientation(tilt_deg):
+    """mount = camera-forward: whichever way the IMU sits, a level vehicle reports roll = pitch = yaw = 0."""
+    R_frd_cam = rot("y", -tilt_deg) @ R_CAM_FWD  # forward camera, tilted down by tilt_deg
+    for R_frd_body in _axis_rotations():
+        R_body_cam = R_frd_body.T @ R_frd_cam
+        np.testing.assert_allclose(mount_rotation("camera-forward", None, R_body_cam), R_frd_body, atol=1e-12)
+    R_frd_body = np.diag([1.0, -1.0, -1.0])
+    np.testing.assert_allclose(mount_rotation("camera-down", None, R_frd_body.T @ R_CAM_DOWN), R_frd_body,
+                               atol=1e-12)
+
+
+def test_default_mount_from_the_calibration_is_not_upside_down(ap):
+    """No config file: the simulator's FLU IMU and forward camera give a level, upright vehicle (roll 0, not 180)."""
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(), f"udpout:127.0.0.1:{ap.port}", clock_ns=clock,
+                        T_body_cam0=calib.cam0.T_body_cam)
+    out.send_state(state(1_000_000_000, T_world_body=np.eye(4)))  # level, nose along world x
+    att = ap.of("ODOMETRY", ap.drain())
+    out.close()
+    lazy = MavlinkOutput(MavlinkConfig(), f"udpout:127.0.0.1:{ap.port}", clock_ns=clock)
+    assert lazy.T_frd_body is None and not lazy.send_state(state(2_000_000_000))  # no mount yet: nothing sent
+    lazy.set_camera_mount(calib.cam0.T_body_cam)
+    np.testing.assert_allclose(lazy.T_frd_body[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-9)
+    lazy.close()
+    assert att, "no pose message"
+    q = att[0].q
+    np.testing.assert_allclose(np.abs(q[0]), 1.0, atol=1e-6)  # identity attitude in NED/FRD
+    with pytest.raises(VioError, match="ambiguous"):
+        mount_rotation("camera-forward", None, rot("y", 45.0) @ R_CAM_FWD)
 
 
 def test_rate_limit_sends_newest_state_once(ap):
@@ -375,7 +439,7 @@ def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
     port = probe.getsockname()[1]
     probe.close()  # nothing listens on `port` now
     caplog.set_level(logging.DEBUG, logger="drivers.mavlink_out")
-    out = MavlinkOutput(MavlinkConfig(), f"tcp:127.0.0.1:{port}", clock_ns=clock)
+    out = MavlinkOutput(MavlinkConfig(mount="rpy"), f"tcp:127.0.0.1:{port}", clock_ns=clock)
     for _ in range(20):
         clock.advance(1.0)
         out.send_state(state(clock.t))
@@ -409,7 +473,7 @@ def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
 def test_real_time_rate_heartbeat_and_link_loss(ap, caplog):
     """Background thread at 30 Hz fed at 100 Hz; the autopilot goes silent for 1.2 s and comes back."""
     caplog.set_level(logging.INFO, logger="drivers.mavlink_out")
-    out = MavlinkOutput(MavlinkConfig(rate_hz=30.0, link_timeout_s=0.5, messages=["ODOMETRY"]),
+    out = MavlinkOutput(MavlinkConfig(rate_hz=30.0, link_timeout_s=0.5, messages=["ODOMETRY"], mount="rpy"),
                         f"udpout:127.0.0.1:{ap.port}").start()
     stop = threading.Event()
 

@@ -91,7 +91,20 @@ class BackendConfig:
     landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "
                                         "well posed when its observations are turned down; 0 = none", min=0, max=1e6)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
-    lost_timeout_s: float = opt(1.0, "tracking lost this long -> reset", min=0.05, max=60)
+    lost_timeout_s: float = opt(1.0, "no usable camera frame (IMU time) for this long -> reset; the IMU-only "
+                                "state is carried forward and re-initialisation waits for vision", min=0.05, max=60)
+    vision_timeout_s: float = opt(0.3, "no usable camera frame (IMU time) for this long -> not tracking: no pose "
+                                  "goes to the autopilot (see [mavlink] lost_output)", min=0.02, max=60)
+    quality_sigma_m: float = opt(0.05, "position sigma at which the reported quality falls below 100 (it halves "
+                                 "at twice this sigma)", min=0.001, max=100)
+    max_pending_frames: int = opt(20, "frames waiting for the IMU to reach their stamp; beyond it the oldest is "
+                                  "dropped (an IMU that stops must not grow memory)", min=1, max=1000)
+    max_frame_lead_s: float = opt(1.0, "a frame stamped this far ahead of the newest IMU sample is dropped",
+                                  min=0.05, max=60)
+    reinit_max_gyro_bias_jump_rad_s: float = opt(0.01, "after a reset, a static re-initialisation whose gyro bias "
+                                                 "differs from the last estimate by more than this (plus the bias "
+                                                 "random walk since) is refused: the vehicle is likely turning",
+                                                 min=1e-4, max=1)
     zupt_max_speed_m_s: float = opt(0.05, "estimated speed above which no zero-velocity update is made", min=0, max=5)
     covariance_every_kf: int = opt(5, "marginal covariances every N keyframes (they cost a few ms); grown with "
                                    "the IMU in between", min=1, max=1000)
@@ -122,7 +135,15 @@ class MavlinkConfig:
                          "VISION_POSITION_ESTIMATE + VISION_SPEED_ESTIMATE (older ArduPilot); not both kinds")
     system_id: int = opt(0, "our system id; 0 = take the autopilot's from its heartbeat", min=0, max=255)
     target_system: int = opt(1, "autopilot system id used until its heartbeat is seen", min=1, max=255)
-    mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "body(IMU)->vehicle FRD mounting roll/pitch/yaw [deg]")
+    mount: str = opt("camera-forward", "how the IMU sits in the vehicle: 'camera-forward' (stereo camera looks "
+                     "along the nose, image right = vehicle right; IMU axes parallel to the vehicle's, which is which "
+                     "taken from the calibration's T_body_cam0), 'camera-down' (camera looks down, image top = "
+                     "nose), or 'rpy' (mount_rpy_deg below)", choices=("camera-forward", "camera-down", "rpy"))
+    mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "with mount = 'rpy': the IMU's orientation in the vehicle FRD frame, "
+                              "roll/pitch/yaw [deg] (an IMU mounted z-up, x forward is [180, 0, 0])")
+    lost_output: str = opt("none", "while not tracking: 'none' sends no pose; 'quality0' keeps sending ODOMETRY "
+                           "with quality 0 (ArduPilot VISO_QUAL_MIN >= 1 and PX4 EKF2_EV_QMIN >= 1 reject it)",
+                           choices=("none", "quality0"))
     mount_offset_m: list = opt([0.0, 0.0, 0.0], "IMU position in the vehicle FRD frame [m]")
     delay_ms: float = opt(0.0, "extra latency to report/document for VISO_DELAY_MS", min=0, max=1000)
     origin_lat_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN latitude; nan = do not send")
@@ -237,7 +258,21 @@ def config_from_dict(data: dict, source: str = "config") -> VioConfig:
             more = f" (did you mean [{hint[0]}]?)" if hint else f"; known sections: {', '.join(types)}"
             raise VioError(f"{source}: unknown section [{name}]{more}")
         sections[name] = _build_section(types[name], value, f"{source}: [{name}]")
-    return VioConfig(**sections)
+    cfg = VioConfig(**sections)
+    _check_cross_fields(cfg, source)
+    return cfg
+
+
+def _check_cross_fields(cfg: VioConfig, source: str) -> None:
+    """Settings that are valid alone but contradict each other."""
+    m = cfg.mavlink
+    if m.mount != "rpy" and [float(x) for x in m.mount_rpy_deg] != [0.0, 0.0, 0.0]:
+        raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
+                       "the calibration; set mount = 'rpy' to use mount_rpy_deg")
+    b = cfg.backend
+    if b.vision_timeout_s > b.lost_timeout_s:
+        raise VioError(f"{source}: [backend] vision_timeout_s ({b.vision_timeout_s}) must not exceed lost_timeout_s "
+                       f"({b.lost_timeout_s}): output would continue after the estimator gave up")
 
 
 def load_config(path: str | Path | None) -> VioConfig:

@@ -16,6 +16,7 @@ from the IMU/vision, keeps the last position and heading as the new origin, and 
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -30,10 +31,11 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+from vio.geometry import make_T, roll_pitch_yaw, skew, so3_exp
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
 from vio.propagator import Propagator
+from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, accel_units_problem, gyro_units_problem, imu_sample_problem
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -66,6 +68,30 @@ class FrameTimings:
     backend_ms: float = 0.0
     keyframe: bool = False
     extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class EstimatorHealth:
+    """What the estimator knows about its own inputs and state, for status, logs and the replay summary."""
+
+    initialized: bool
+    tracking: bool  # a usable camera frame reached the back end within vision_timeout_s
+    reset_counter: int
+    frames_processed: int
+    frames_unusable: int  # front end gave no usable observations (bad image, too few tracks...)
+    unusable_reasons: dict[str, int]
+    imu_rejected: int  # non-finite or out-of-range samples
+    imu_rejected_reasons: dict[str, int]
+    frames_dropped: int  # never processed: queue full, stamp far ahead of the IMU, or not after the previous
+    vision_age_s: float | None  # IMU time since the last usable frame reached the back end
+    last_reset_reason: str
+    sensor_error: str | None  # a diagnosed sensor problem (unit mistake, dead IMU) that blocks initialisation
+
+
+def _reason_key(reason: str) -> str:
+    """A reason without its numbers, so that counts group: "image too dark (mean grey 3.1 < 12)" -> "image too dark"."""
+    key = reason.split(" (")[0].strip() or "unknown"
+    return re.sub(r"[-+]?\d[\d.e+-]*", "N", key)
 
 
 def make_tracker(calib: StereoCalibration, cfg: VioConfig):
@@ -103,7 +129,6 @@ class Estimator:
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._last_frame_t: int | None = None
         self._last_kf_t: int | None = None
-        self._lost_since: int | None = None
         self._cov_pose = np.eye(6) * 1e-2  # reported with the newest frame state
         self._cov_vel = np.eye(3) * 1e-2
         self._kf_cov_pose = self._cov_pose  # at the last keyframe (marginal, or grown since the last marginal)
@@ -113,12 +138,25 @@ class Estimator:
         self._anchor: np.ndarray | None = None  # pose to continue from after a reset
         self._bridge: _ResetBridge | None = None  # that pose carried forward with the IMU
         self._latest: NavState | None = None
-        self._quality = 0
+        self._track_quality = 0.0
         self._tracking = False
         self._was_keyframe = False
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
+        self._last_vision_t: int | None = None  # IMU-clock time of the last usable frame in the back end
+        self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
+        self._gyro_var = np.diag(np.asarray(self.params.getGyroscopeCovariance()))  # continuous, per axis
+        self._accel_var = np.diag(np.asarray(self.params.getAccelerometerCovariance()))
+        self._gravity = np.array([0.0, 0.0, -9.81])
+        self.frames_unusable = 0
+        self.unusable_reasons: dict[str, int] = {}
+        self.imu_rejected = 0
+        self.imu_rejected_reasons: dict[str, int] = {}
+        self.frames_dropped = 0
+        self.last_reset_reason = ""
+        self.sensor_error: str | None = None
+        self._trusted_bias: tuple[int, np.ndarray] | None = None  # (t, gyro bias) of the last trusted state
 
     # -- public API ------------------------------------------------------------------------------------
     @property
@@ -132,6 +170,11 @@ class Estimator:
     def feed_imu(self, s: ImuSample) -> NavState | None:
         """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
         prev_t = self.imu.last_t_ns
+        g, a = s.gyro, s.accel
+        # NaN fails both comparisons; two reductions instead of imu_sample_problem() on the hot path
+        if not (np.abs(g).max() <= MAX_GYRO_RAD_S and np.abs(a).max() <= MAX_ACCEL_M_S2):
+            self._reject_imu(s)
+            return None
         if not self.imu.add(s):
             return None
         if self._bridge is not None and prev_t is not None and s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
@@ -142,19 +185,64 @@ class Estimator:
         if self.offset_estimator is not None:
             self.offset_estimator.add_imu(s)
         self._drain(final=False)
+        if (self.initialized and self._last_vision_t is not None
+                and (s.t_ns - self._last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s):
+            self.reset(f"no usable camera frame for {(s.t_ns - self._last_vision_t) * 1e-9:.2f} s")
+            return None
         if self.initialized and self.propagator.add(s):
             return self._propagated_state()
         return None
 
+    def _reject_imu(self, s: ImuSample) -> None:
+        why = imu_sample_problem(s.gyro, s.accel) or "invalid sample"
+        self.imu_rejected += 1
+        key = _reason_key(why)
+        self.imu_rejected_reasons[key] = self.imu_rejected_reasons.get(key, 0) + 1
+        if self.imu_rejected_reasons[key] == 1 or self.imu_rejected in (10, 100, 1000):
+            log.warning("IMU sample at %d rejected (%s); %d rejected so far", s.t_ns, why, self.imu_rejected)
+
+    def health(self) -> EstimatorHealth:
+        t = self.imu.last_t_ns
+        age = None if t is None or self._last_vision_t is None else max(t - self._last_vision_t, 0) * 1e-9
+        return EstimatorHealth(self.initialized, self._tracking_at(t) if t is not None else False,
+                               self.reset_counter, self.frames_processed, self.frames_unusable,
+                               dict(self.unusable_reasons), self.imu_rejected, dict(self.imu_rejected_reasons),
+                               self.frames_dropped, age, self.last_reset_reason, self.sensor_error)
+
+    def _tracking_at(self, t: int) -> bool:
+        """Tracking means vision: a usable frame reached the back end within vision_timeout_s of t."""
+        return (self.initialized and self._tracking and self._last_vision_t is not None
+                and (t - self._last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s)
+
     def feed_frame(self, frame: StereoFrame) -> NavState | None:
         """Add a stereo frame; returns the state at the newest frame processed by this call."""
-        self._pending.append(frame)
+        self._enqueue(frame)
         return self._drain(final=False)
 
     def feed_features(self, ff: FeatureFrame) -> NavState | None:
         """Add a front-end result directly (tests, or a front end running elsewhere)."""
-        self._pending.append(ff)
+        self._enqueue(ff)
         return self._drain(final=False)
+
+    def _enqueue(self, item: StereoFrame | FeatureFrame) -> None:
+        """Bounded wait for the IMU: a frame stamped far ahead of it, or one that would grow the queue past
+        max_pending_frames (an IMU that stopped), is dropped and counted instead of waiting forever."""
+        b = self.bcfg
+        last_imu = self.imu.last_t_ns
+        t_imu = int(item.t_ns) + self.time_offset_ns
+        if last_imu is not None and (t_imu - last_imu) * 1e-9 > b.max_frame_lead_s:
+            self._drop_frame(f"frame at {item.t_ns} is {(t_imu - last_imu) * 1e-9:.2f} s ahead of the newest IMU "
+                             "sample (IMU stopped, or a stamp jump)")
+            return
+        if len(self._pending) >= b.max_pending_frames:
+            old = self._pending.popleft()
+            self._drop_frame(f"{b.max_pending_frames} frames wait for the IMU; the oldest ({old.t_ns}) is dropped")
+        self._pending.append(item)
+
+    def _drop_frame(self, why: str) -> None:
+        self.frames_dropped += 1
+        if self.frames_dropped == 1 or self.frames_dropped % 100 == 0:
+            log.warning("%s; %d frames dropped so far", why, self.frames_dropped)
 
     def flush(self) -> NavState | None:
         """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value."""
@@ -178,10 +266,17 @@ class Estimator:
                 if self._last_frame_t is not None:
                     self._advance_bridge(self._last_frame_t)
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
+        self.last_reset_reason = reason
+        if bridge and self._latest is not None:
+            self._trusted_bias = (self._latest.t_ns, np.asarray(self._latest.gyro_bias, float).copy())
+        elif not bridge:
+            self._trusted_bias = None
+        self._pending.clear()
+        self._last_vision_t = None
+        self._tracking = False
         self._smoother = None
         self._pim = None
         self._last_kf_t = None
-        self._lost_since = None
         self.moving_init.clear()
 
     def _advance_bridge(self, t: int) -> None:
@@ -208,7 +303,7 @@ class Estimator:
         if not self.imu.t:
             return None
         if self._last_frame_t is not None and t <= self._last_frame_t:
-            log.warning("frame at %d not after the previous one (%d): dropped", t, self._last_frame_t)
+            self._drop_frame(f"frame at {t} not after the previous one ({self._last_frame_t})")
             return None
         t_start = time.perf_counter()
         if isinstance(item, FeatureFrame):
@@ -226,6 +321,10 @@ class Estimator:
                 log.warning("front end failed on the frame at %d: %s", item.t_ns, msg)
                 ff = FeatureFrame.empty(item.t_ns, f"front end error: {msg}")
         t_front = time.perf_counter()
+        if not self._usable(ff):
+            self.frames_unusable += 1
+            key = _reason_key(ff.reason) if not ff.tracking_ok else f"fewer than {self.bcfg.min_tracks_ok} tracks"
+            self.unusable_reasons[key] = self.unusable_reasons.get(key, 0) + 1
         self._update_time_offset(ff, t)
         prev_t = self._last_frame_t
         self._last_frame_t = t
@@ -273,13 +372,60 @@ class Estimator:
     def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
         icfg = self.cfg.init
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
+        plausible = self._sensors_plausible(ts, gyro, accel, ff)
         # a smooth constant-velocity motion looks still to the IMU: the images must agree
-        init = static_initialize(ts, gyro, accel, t, icfg) if self._looks_still_visually(ff) else None
+        init = static_initialize(ts, gyro, accel, t, icfg) if plausible and self._looks_still_visually(ff) else None
+        if init is not None and not self._bias_continuous(init):
+            init = None
         if init is None and icfg.allow_moving_start:
-            init = self.moving_init.add(t, ff, self.imu)
+            init = self.moving_init.add(t, ff, self.imu)  # fed always: it needs a window of consecutive frames
+            if init is not None and not (plausible and self._bias_continuous(init)):
+                init = None
         if init is None:
             return None
         return self._start(init, ff)
+
+    def _sensors_plausible(self, ts: np.ndarray, gyro: np.ndarray, accel: np.ndarray, ff: FeatureFrame) -> bool:
+        """No initialisation on an IMU whose units or values are wrong: name the likely mistake once.
+
+        A unit mistake (g for m/s^2, deg/s for rad/s) or a dead IMU would otherwise initialise and drift by
+        metres while reporting itself healthy."""
+        if len(ts) < 4:
+            return self.sensor_error is None
+        icfg = self.cfg.init
+        still = is_still(ts, gyro, accel, icfg)
+        problem = accel_units_problem(float(np.linalg.norm(accel.mean(axis=0)))) if still else None
+        if problem is None and not still and np.linalg.norm(accel.mean(axis=0)) < 0.3 * 9.81:
+            problem = accel_units_problem(float(np.linalg.norm(accel.mean(axis=0))))  # in g, even in flight
+        if problem is None:
+            images_still = ff.tracking_ok and len(ff.ids) >= self.bcfg.min_tracks_ok and \
+                self._flow_px <= self.bcfg.zupt_max_flow_px
+            noise = self.calib.imu
+            problem = gyro_units_problem(gyro, still or images_still, noise.gyroscope_noise_density, noise.rate_hz,
+                                         self.bcfg.max_gyro_bias_rad_s)
+        if problem != self.sensor_error:
+            if problem:
+                log.error("not initialising: %s", problem)
+            elif self.sensor_error:
+                log.info("IMU plausible again: initialisation resumes")
+            self.sensor_error = problem
+        return problem is None
+
+    def _bias_continuous(self, init: InitialState) -> bool:
+        """After a reset the gyro bias is known: a new one that differs by more than its random walk allows
+        is a rotation taken for a bias (a constant-rate turn looks still to the IMU), so it is refused."""
+        if self._trusted_bias is None:
+            return True
+        t0, bg0 = self._trusted_bias
+        gap_s = max(init.t_ns - t0, 0) * 1e-9
+        rw = self.calib.imu.gyroscope_random_walk
+        allowed = self.bcfg.reinit_max_gyro_bias_jump_rad_s + 3.0 * rw * np.sqrt(gap_s)
+        jump = float(np.linalg.norm(np.asarray(init.gyro_bias) - bg0))
+        if jump <= allowed:
+            return True
+        log.info("%s re-initialisation refused: gyro bias would jump by %.4f rad/s (allowed %.4f after %.1f s): "
+                 "the vehicle is likely turning", init.method, jump, allowed, gap_s)
+        return False
 
     def _start(self, init: InitialState, ff: FeatureFrame) -> NavState:
         T = init.T_world_body
@@ -309,6 +455,8 @@ class Estimator:
                                         sigma_v_m_s=0.01 if static else 0.1,
                                         sigma_bg=0.005 if static else 0.02, features=ff)
         self._bridge = None  # only now: a restart that fails keeps carrying the last trusted state
+        self._trusted_bias = None
+        self._last_vision_t = init.t_ns if self._usable(ff) else None
         self.moving_init.clear()
         log.info("initialised (%s) at t=%d: roll/pitch %.2f/%.2f deg", init.method, init.t_ns,
                  *np.degrees(roll_pitch_yaw(T[:3, :3])[:2]))
@@ -349,19 +497,32 @@ class Estimator:
         except SmootherFailure as e:
             log.debug("no covariance at keyframe: %s", e)
 
+    def _usable(self, ff: FeatureFrame | None) -> bool:
+        return ff is not None and ff.tracking_ok and len(ff.ids) >= self.bcfg.min_tracks_ok
+
     def _update_health(self, t: int, ff: FeatureFrame | None) -> None:
         n = len(ff.ids) if ff is not None and ff.tracking_ok else 0
-        self._quality = int(np.clip(round(100 * n / (4 * self.bcfg.min_tracks_ok)), 0, 100))
-        self._tracking = n >= self.bcfg.min_tracks_ok
-        if self._tracking:
-            self._lost_since = None
-        elif self._lost_since is None:
-            self._lost_since = t
+        self._track_quality = float(np.clip(n / (4 * self.bcfg.min_tracks_ok), 0.0, 1.0))
+        if self._usable(ff):
+            self._last_vision_t = t
+        self._tracking = self._last_vision_t is not None and \
+            (t - self._last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s
+
+    def _quality_of(self, cov_pose: np.ndarray, tracking: bool) -> int:
+        """0..100: the share of good tracks, capped by the position uncertainty (halves per doubling of the
+        sigma beyond quality_sigma_m), so the autopilot's quality gate sees what the covariance says."""
+        if not tracking:
+            return 0
+        sigma = float(np.sqrt(max(np.linalg.eigvalsh(cov_pose[3:, 3:]).max(), 0.0)))
+        q_cov = min(1.0, self.bcfg.quality_sigma_m / max(sigma, 1e-9))
+        return int(np.clip(round(100 * min(self._track_quality, q_cov)), 1, 100))
 
     def _looks_still_visually(self, ff: FeatureFrame) -> bool:
-        """Images agree with stillness, or carry no information (no tracks: trust the IMU)."""
+        """Images agree with stillness. Without tracks they carry no information: at the first start the IMU
+        alone decides (a covered lens on the ground); after a reset it does not, because a constant-rate
+        turn or a constant-velocity flight looks still to the IMU and would become a bias."""
         if not ff.tracking_ok or len(ff.ids) < self.bcfg.min_tracks_ok:
-            return True
+            return self.reset_counter == 0
         return self._flow_px <= self.bcfg.zupt_max_flow_px
 
     def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:
@@ -398,8 +559,9 @@ class Estimator:
             est = self._smoother.add_keyframe(t, self._pim, ff, zero_velocity=still)
             self._check_plausible(est)
             st = self._after_keyframe(t, est, ff)
-        if self._lost_since is not None and (t - self._lost_since) * 1e-9 > self.bcfg.lost_timeout_s:
-            self.reset(f"tracking lost for {(t - self._lost_since) * 1e-9:.2f} s")
+        if self._last_vision_t is None or (t - self._last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s:
+            lost = "never" if self._last_vision_t is None else f"{(t - self._last_vision_t) * 1e-9:.2f} s"
+            self.reset(f"tracking lost: no usable camera frame for {lost}")
         return st
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:
@@ -438,17 +600,46 @@ class Estimator:
     def _state(self, t: int, T_world_body: np.ndarray, v_world: np.ndarray,
                bias: gtsam.imuBias.ConstantBias) -> NavState:
         gyro_bias = np.asarray(bias.gyroscope(), float)
-        return NavState(t_ns=int(t), T_world_body=np.asarray(T_world_body, float), v_world=np.asarray(v_world, float),
+        T = np.asarray(T_world_body, float)
+        self._cov_state = (int(t), T[:3, :3].copy())
+        tracking = self._tracking_at(t)
+        return NavState(t_ns=int(t), T_world_body=T, v_world=np.asarray(v_world, float),
                         gyro_bias=gyro_bias, accel_bias=np.asarray(bias.accelerometer(), float),
                         cov_pose=self._cov_pose, cov_vel=self._cov_vel, reset_counter=self.reset_counter,
-                        quality=self._quality, omega_body=self.imu.at(t)[0] - gyro_bias, tracking=self._tracking)
+                        quality=self._quality_of(self._cov_pose, tracking), omega_body=self.imu.at(t)[0] - gyro_bias,
+                        tracking=tracking)
 
     def _propagated_state(self) -> NavState:
         p = self.propagator
+        cov_pose, cov_vel = self._imu_rate_covariance(int(p.t_ns), p.R)
+        tracking = self._tracking_at(int(p.t_ns))
         return NavState(t_ns=int(p.t_ns), T_world_body=p.pose(), v_world=p.v.copy(), gyro_bias=p.gyro_bias,
-                        accel_bias=p.accel_bias, cov_pose=self._cov_pose, cov_vel=self._cov_vel,
-                        reset_counter=self.reset_counter, quality=self._quality, omega_body=p.omega.copy(),
-                        tracking=self._tracking)
+                        accel_bias=p.accel_bias, cov_pose=cov_pose, cov_vel=cov_vel,
+                        reset_counter=self.reset_counter, quality=self._quality_of(cov_pose, tracking),
+                        omega_body=p.omega.copy(), tracking=tracking)
+
+    def _imu_rate_covariance(self, t: int, R_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The newest frame state's covariance grown by dead reckoning up to t (IMU-rate states).
+
+        Between frames this adds little; when frames stop it is what grows: gyro noise into attitude,
+        velocity uncertainty and accel noise into position, and the attitude error times gravity into
+        velocity and position (first order, cross terms ignored, so it errs large)."""
+        if self._cov_state is None or t <= self._cov_state[0]:
+            return self._cov_pose, self._cov_vel
+        t0, R0 = self._cov_state
+        dt = (t - t0) * 1e-9
+        dR = R0.T @ R_now
+        A = np.zeros((6, 6))
+        A[:3, :3] = A[3:, 3:] = dR.T
+        cov = A @ self._cov_pose @ A.T
+        cov[:3, :3] += np.diag(self._gyro_var * dt)
+        cov_th_w = R_now @ cov[:3, :3] @ R_now.T  # attitude error in world axes
+        G = skew(self._gravity)
+        tilt_v = G @ cov_th_w @ G.T  # velocity error rate from attitude error
+        cov_v = self._cov_vel + np.diag(self._accel_var * dt) + tilt_v * dt * dt
+        cov_p_w = self._cov_vel * dt * dt + np.diag(self._accel_var) * dt ** 3 / 3.0 + tilt_v * dt ** 4 / 4.0
+        cov[3:, 3:] += R_now.T @ cov_p_w @ R_now
+        return 0.5 * (cov + cov.T), 0.5 * (cov_v + cov_v.T)
 
 
 def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:

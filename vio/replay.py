@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     if args.mavlink:
         from drivers.mavlink_out import MavlinkOutput, restamp_to_host_clock
 
-        mav = MavlinkOutput(cfg.mavlink, args.mavlink).start()
+        mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sinks.append(restamp_to_host_clock(mav))
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
