@@ -261,3 +261,72 @@ def test_reset_after_an_implausible_estimate_is_not_bridged(state_ok):
     est._smoother.add_keyframe = fail
     _run(est, duration_s=3.6, still_s=1.0, seed=2, moving_start_s=3.0)
     assert calls and calls[0] == state_ok and est.reset_counter >= 1
+
+
+# ------------------------------------------------------------------ sensor sanity and bounded inputs
+
+def _still_run(est: Estimator, scale_gyro: float = 1.0, scale_accel: float = 1.0, seconds: float = 2.0,
+               zero: bool = False, nan_every: int = 0) -> list:
+    """A still vehicle seen by the synthetic scene; the IMU optionally in wrong units, zero or with NaNs."""
+    calib = est.calib
+    mot = Motion(speed=1.0, still_s=seconds + 1.0, seed=1)
+    scene = SyntheticScene(calib, seed=1)
+    rng = np.random.default_rng(1)
+    states = []
+    est.listeners.append(states.append)
+    for i, s in enumerate(imu_samples(mot, 0.0, seconds, gyro_bias=np.array([0.01, -0.005, 0.008]),
+                                      noise=calib.imu, rng=rng)):
+        g, a = s.gyro * scale_gyro, s.accel * scale_accel
+        if zero:
+            g, a = g * 0, a * 0
+        if nan_every and i % nan_every == 0:
+            a = a.copy()
+            a[1] = np.nan
+        est.feed_imu(dataclasses.replace(s, gyro=g, accel=a))
+        if s.t_ns % 50_000_000 == 0:
+            est.feed_features(scene.observe(s.t_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.2, rng=rng))
+    return states
+
+
+@pytest.mark.parametrize("kw,words", [
+    ({"scale_accel": 1 / 9.80665}, "units of g"),
+    ({"scale_gyro": 180 / np.pi}, "deg/s"),
+    ({"zero": True}, "all-zero"),
+])
+def test_unit_mistakes_and_a_dead_imu_block_initialisation_with_the_cause(kw, words, caplog):
+    est = Estimator(synthetic_calibration())
+    with caplog.at_level(logging.ERROR, logger="vio.estimator"):
+        states = _still_run(est, **kw)
+    assert not states and not est.initialized
+    assert est.health().sensor_error and words in est.health().sensor_error
+    assert sum(words in r.message for r in caplog.records) == 1  # said once, not per frame
+
+
+def test_non_finite_imu_samples_are_rejected_and_counted():
+    est = Estimator(synthetic_calibration())
+    states = _still_run(est, nan_every=25)
+    h = est.health()
+    assert states and h.sensor_error is None
+    assert h.imu_rejected == 401 // 25 + 1 and list(h.imu_rejected_reasons) == ["non-finite value"]
+    assert all(np.all(np.isfinite(s.T_world_body)) for s in states)
+
+
+def test_frame_queue_is_bounded_when_the_imu_stops_or_a_stamp_jumps():
+    est = Estimator(synthetic_calibration())
+    calib = est.calib
+    mot = Motion(speed=1.0, still_s=5.0, seed=2)
+    scene = SyntheticScene(calib, seed=2)
+    for s in imu_samples(mot, 0.0, 1.0, noise=calib.imu, rng=np.random.default_rng(2)):
+        est.feed_imu(s)
+    # the IMU stops at 1 s while the camera runs on for 10 s: nothing grows beyond the bound
+    for k in range(200):
+        t_ns = 1_000_000_000 + (k + 1) * 50_000_000
+        est.feed_features(scene.observe(t_ns, mot.pose(t_ns * 1e-9)))
+        assert len(est._pending) <= est.bcfg.max_pending_frames
+    h = est.health()
+    assert h.frames_dropped >= 200 - est.bcfg.max_pending_frames
+    # one frame stamped an hour ahead is dropped at once and does not block the frames after it
+    est.reset("test", bridge=False)
+    assert not est._pending
+    est.feed_features(scene.observe(3_600_000_000_000, mot.pose(1.0)))
+    assert not est._pending and est.health().frames_dropped == h.frames_dropped + 1

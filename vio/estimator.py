@@ -403,12 +403,12 @@ class Estimator:
             noise = self.calib.imu
             problem = gyro_units_problem(gyro, still or images_still, noise.gyroscope_noise_density, noise.rate_hz,
                                          self.bcfg.max_gyro_bias_rad_s)
-        if problem != self.sensor_error:
+        if (problem and _reason_key(problem)) != (self.sensor_error and _reason_key(self.sensor_error)):
             if problem:
                 log.error("not initialising: %s", problem)
             elif self.sensor_error:
                 log.info("IMU plausible again: initialisation resumes")
-            self.sensor_error = problem
+        self.sensor_error = problem
         return problem is None
 
     def _bias_continuous(self, init: InitialState) -> bool:

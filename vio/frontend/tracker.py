@@ -57,6 +57,7 @@ class StereoTracker:
         self._last_t: int | None = None
         self._frame_count = 0
         self.frames_bad = 0
+        self._bad_run = 0  # consecutive bad frames (one warning per run)
         self._reset()
 
     # ---------------------------------------------------------------------------------------- state
@@ -90,8 +91,13 @@ class StereoTracker:
         self._want_keyframe = False
 
     def _bad(self, t_ns: int, reason: str, reset: bool = True) -> FeatureFrame:
+        """One warning per run of bad frames (a 2 s blackout is 40 frames), the end of the run at INFO."""
         self.frames_bad += 1
-        log.warning("front end: frame t=%d not used: %s", t_ns, reason)
+        if self._bad_run == 0:
+            log.warning("front end: frame t=%d not used: %s", t_ns, reason)
+        else:
+            log.debug("front end: frame t=%d not used: %s", t_ns, reason)
+        self._bad_run += 1
         if reset:
             self._reset()
         return FeatureFrame.empty(t_ns, reason)
@@ -355,6 +361,9 @@ class StereoTracker:
                   ff.n_stereo, parallax, timings["total"])
         if n < self.cfg.min_features_ok:
             return self._bad(t_ns, f"only {n} features (< {self.cfg.min_features_ok})")
+        if self._bad_run:
+            log.info("front end: frames usable again after %d bad ones", self._bad_run)
+            self._bad_run = 0
         return ff
 
     def _normalise(self, img: np.ndarray, right: bool = False) -> np.ndarray:
