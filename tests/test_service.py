@@ -416,6 +416,7 @@ class FakeAutopilot(threading.Thread):
         self.sock.settimeout(0.1)
         self.port = self.sock.getsockname()[1]
         self.counts: dict[str, int] = {}
+        self.odometry_quality: list[int] = []  # quality of every ODOMETRY received
         self.components: set[int] = set()
         self.stop = threading.Event()
 
@@ -432,6 +433,8 @@ class FakeAutopilot(threading.Thread):
                     name = msg.get_type()
                     self.counts[name] = self.counts.get(name, 0) + 1
                     self.components.add(msg.get_srcComponent())
+                    if name == "ODOMETRY":
+                        self.odometry_quality.append(msg.quality)
             except TimeoutError:
                 pass
             if peer is not None and time.monotonic() >= next_hb:
@@ -443,6 +446,10 @@ class FakeAutopilot(threading.Thread):
 
     def poses(self) -> int:
         return self.counts.get("VISION_POSITION_ESTIMATE", 0) + self.counts.get("ODOMETRY", 0)
+
+    def odometry_tracked(self) -> int:
+        """ODOMETRY messages the autopilot would use (quality > 0; lost_output = 'quality0' sends 0)."""
+        return sum(q > 0 for q in self.odometry_quality)
 
 
 def _need_pipeline() -> None:

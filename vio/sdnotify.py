@@ -15,7 +15,8 @@ log = logging.getLogger(__name__)
 
 
 class SdNotifier:
-    """Sends sd_notify datagrams; never raises (a broken notify socket must not stop the daemon)."""
+    """Sends sd_notify datagrams; never raises and never blocks (a broken or full notify socket must not
+    stop the daemon's main loop: a datagram that does not fit is dropped, like a lost one)."""
 
     def __init__(self, address: str | None = None) -> None:
         address = os.environ.get("NOTIFY_SOCKET", "") if address is None else address
@@ -38,6 +39,7 @@ class SdNotifier:
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                self._sock.setblocking(False)  # a full receive queue (10 datagrams) would otherwise block us
             self._sock.sendto(msg, self.address)
             return True
         except OSError as e:

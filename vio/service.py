@@ -40,6 +40,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -69,6 +70,7 @@ FIRST_DATA_TIMEOUT_S = 10.0  # an OAK boots its firmware before the first frame
 # driver states (drivers/source.py health()) in which the driver is reconnecting by itself
 SELF_HEALING_STATES = ("connecting", "no_device", "disconnected")
 JOIN_BUDGET_S = 1.6  # shutdown must finish within 2 s of SIGTERM; keep a margin for the final status write
+STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog stops being fed
 VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
 HEALTH_EVERY_S = 0.2  # the estimator thread snapshots estimator.health() this often (status reads the copy)
 
@@ -745,7 +747,7 @@ class RecorderWorker(Worker):
 
     def _failed(self, e: Exception) -> None:
         self.state = "failed"
-        self.error = _os_error_text(e)
+        self.error = _os_error_text(e) + _storage_diagnosis(self.root)
         self.buf.close()
         if self.writer is not None:
             _close_writer_files(self.writer)
@@ -757,6 +759,18 @@ class RecorderWorker(Worker):
     def status(self) -> dict:
         return {"state": self.state, "dir": str(self.root) if self.root else None, "error": self.error or None,
                 "frames": self.frames, "imu": self.imu, "frames_dropped": self.buf.frames_dropped}
+
+
+def _storage_diagnosis(root: Path | None) -> str:
+    """What an image write error (cv2.imwrite only says it failed) most likely was."""
+    if root is None:
+        return ""
+    if not root.exists():
+        return " (the recording folder was removed)"
+    with contextlib.suppress(OSError):
+        if shutil.disk_usage(root).free == 0:
+            return " (disk full)"
+    return ""
 
 
 def _close_writer_files(writer: Any) -> None:
@@ -927,7 +941,10 @@ class Service:
         calib = self._calibration_now()
         if calib is None:
             return False
-        mav.set_camera_mount(calib.cam0.T_body_cam)
+        try:
+            mav.set_camera_mount(calib.cam0.T_body_cam)
+        except VioError as e:  # the calibration does not decide the mount: the output says so, once
+            log.error("camera mount: %s; set [mavlink] mount = 'rpy' and mount_rpy_deg", e)
         return True
 
     def camera_fresh(self) -> bool:
@@ -1030,7 +1047,7 @@ class Service:
                 problems.append(f"{w.name} thread died ({w.crashed})")
             elif not w.is_alive() and not self.stop.is_set():
                 problems.append(f"{w.name} thread ended")
-            elif w.beat_age_s() > 5.0:
+            elif w.beat_age_s() > STUCK_S:
                 problems.append(f"{w.name} loop stuck for {w.beat_age_s():.0f} s")
         return not problems, problems
 
@@ -1083,7 +1100,7 @@ class Service:
         if h is not None and h.sensor_error:
             warnings.append(f"sensor error: {h.sensor_error}")
         if self.ready and not tracking:
-            warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok)}")
+            warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok, imu_ok)}")
         self._warn_stall(tracking, src.connected and imu_ok)
         link = out.link()
         if link["state"] in ("down", "closed"):
@@ -1189,10 +1206,12 @@ def _health_fields(h: EstimatorHealth) -> dict:
             "sensor_error": h.sensor_error}
 
 
-def _not_tracking_reason(h: EstimatorHealth | None, camera_ok: bool) -> str:
+def _not_tracking_reason(h: EstimatorHealth | None, camera_ok: bool, imu_ok: bool = True) -> str:
     """Why there is no pose, in the words a person at the drone needs."""
     if not camera_ok:
         return "no camera frames"
+    if not imu_ok:
+        return "no IMU samples (camera frames cannot be used without them)"
     if h is None:
         return "estimator starting"
     if h.sensor_error:

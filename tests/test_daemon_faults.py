@@ -1,0 +1,393 @@
+"""Issue 14, the daemon's side: faults of its outputs and inputs, seen from outside.
+
+In process (stand-ins, about a second each): a recording folder and a trajectory folder removed mid-flight,
+a camera that sees nothing usable (READY anyway, `waiting for vision`, watchdog still fed), camera frames
+that stop, a wedged estimator loop (the watchdog stops). As subprocesses (the real `vio run`): a file-size
+limit and a full disk under the recorder and the trajectory file, then an IMU that stops; and the EuRoC
+excerpt whose images end while its IMU runs on (camera loss).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from test_service import (
+    REPO,
+    FakeAutopilot,
+    RecordingMavlink,
+    ScriptedEstimator,
+    ScriptedSource,
+    _need_pipeline,
+    _received,
+    _started,
+    _wait,
+    notify_socket,
+)
+
+import vio.service as service
+from vio.config import config_from_dict
+from vio.io.euroc import EurocDataset
+from vio.sdnotify import SdNotifier
+from vio.service import Service
+from vio.status import EXIT_UNHEALTHY
+from vio.types import NavState
+
+__all__ = ["notify_socket"]  # the fixture, imported for the tests below
+
+
+class CalibratedSource(ScriptedSource):
+    """ScriptedSource with a real calibration (the recorder writes it into sensor.yaml)."""
+
+    def calibration(self):
+        from vio.sim import default_calibration
+
+        return default_calibration(width=8, height=8)
+
+
+def _service(tmp_path: Path, *, run: dict | None = None, blind: threading.Event | None = None,
+             silent: threading.Event | None = None, notifier: SdNotifier | None = None,
+             estimator=None) -> tuple[Service, list[RecordingMavlink]]:
+    cfg = config_from_dict({"run": {"status_file": str(tmp_path / "status.json"), **(run or {})}})
+    mavs: list[RecordingMavlink] = []
+
+    def make_mav() -> RecordingMavlink:
+        mavs.append(RecordingMavlink())
+        return mavs[-1]
+
+    silent = silent or threading.Event()
+    svc = Service(cfg, source_factory=lambda: _started(CalibratedSource([], silent, [])),
+                  estimator_factory=estimator or (lambda c: ScriptedEstimator("calib", [], blind)),
+                  mavlink_factory=make_mav, notifier=notifier or SdNotifier(""))
+    return svc, mavs
+
+
+def _run(svc: Service) -> threading.Thread:
+    t = threading.Thread(target=svc.run)
+    t.start()
+    return t
+
+
+def _stop(svc: Service, runner: threading.Thread) -> None:
+    svc.request_stop()
+    runner.join(5)
+    assert not runner.is_alive()
+
+
+def _tracked(mavs: list[RecordingMavlink]) -> int:
+    return sum(s.tracking for m in mavs for s in m.states)
+
+
+# ------------------------------------------------------------------------------------------ in process
+
+def test_removed_output_folders_stop_those_outputs_only(tmp_path: Path, caplog) -> None:
+    svc, mavs = _service(tmp_path, run={"record_dir": str(tmp_path / "rec"),
+                                        "trajectory_file": str(tmp_path / "poses" / "traj.tum")})
+    runner = _run(svc)
+    try:
+        assert _wait(lambda: svc.recorder.frames >= 5 and svc.output.trajectory.poses >= 5, 5)
+        shutil.rmtree(tmp_path / "rec")
+        shutil.rmtree(tmp_path / "poses")  # writes to the open file still succeed: the daemon must notice
+        assert _wait(lambda: svc.recorder.state == "failed", 3), svc.recorder.state
+        assert _wait(lambda: svc.output.trajectory.state == "failed", 3)
+        n = _tracked(mavs)
+        assert _wait(lambda: _tracked(mavs) > n + 10, 3), "pose output stopped with the recorder"
+        assert svc.healthy() == (True, [])  # nothing for the watchdog to act on
+        snap = svc.snapshot()
+        assert snap["recording"]["state"] == "failed" and "folder was removed" in snap["recording"]["error"]
+        assert snap["trajectory_file"]["state"] == "failed" and "removed" in snap["trajectory_file"]["error"]
+        assert any(w.startswith("recording failed") for w in snap["warnings"])
+        assert snap["state"] == "degraded"
+        time.sleep(0.5)
+    finally:
+        _stop(svc, runner)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert sum(w.startswith("recording stopped") for w in warnings) == 1, warnings
+    assert sum(w.startswith("trajectory file") for w in warnings) == 1, warnings
+    assert not svc.rec_buf._frames and svc.rec_buf.closed  # nothing piles up behind a failed recorder
+
+
+def test_blind_camera_is_ready_waiting_for_vision_and_keeps_the_watchdog(tmp_path: Path, notify_socket,
+                                                                          monkeypatch, caplog) -> None:
+    """Lens cap on at boot: READY once the sensors deliver, state 'waiting for vision', watchdog fed, one
+    warning after stall_timeout_s naming why; the cap comes off -> running."""
+    sock, path = notify_socket
+    monkeypatch.setenv("WATCHDOG_USEC", "200000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    blind = threading.Event()
+    blind.set()
+    svc, mavs = _service(tmp_path, run={"stall_timeout_s": 1.0}, blind=blind, notifier=SdNotifier(path))
+    runner = _run(svc)
+    notes: list[str] = []
+    try:
+        assert _wait(lambda: svc.ready, 3)
+        assert _wait(lambda: (tmp_path / "status.json").exists(), 3)
+        time.sleep(1.5)
+        notes += _received(sock)
+        assert any(n.startswith("READY=1") for n in notes) and notes.count("WATCHDOG=1") >= 3
+        snap = svc.snapshot()
+        assert snap["state"] == "waiting for vision" and snap["estimator"]["tracking"] is False
+        assert "image too dark" in " ".join(snap["warnings"])
+        assert _tracked(mavs) == 0
+        blind.clear()
+        assert _wait(lambda: svc.snapshot()["state"] == "running", 3)
+    finally:
+        _stop(svc, runner)
+    stall = [r.getMessage() for r in caplog.records if "waiting for vision" in r.getMessage()]
+    assert len(stall) == 1 and "image too dark" in stall[0], stall
+
+
+def test_camera_frames_stop_status_and_output_say_not_tracking(tmp_path: Path) -> None:
+    """The estimator stand-in keeps saying 'tracking' from IMU-rate states; the daemon's own check of the
+    camera frames overrides it within about a second: status tracking False, nothing tracked goes out."""
+
+    class ImuOnly(ScriptedSource):
+        def poll(self) -> list:
+            return [m for m in super().poll() if not (cam_off.is_set() and hasattr(m, "left"))]
+
+    class Propagating(ScriptedEstimator):
+        def feed_imu(self, s):  # IMU-rate states claiming tracking, as a pure dead-reckoning estimator would
+            return NavState(s.t_ns, np.eye(4), np.zeros(3)) if self.n else None
+
+    cam_off = threading.Event()
+    cfg = config_from_dict({"run": {"status_file": ""}})
+    mavs: list[RecordingMavlink] = []
+    svc = Service(cfg, source_factory=lambda: _started(ImuOnly([], threading.Event(), [])),
+                  estimator_factory=lambda c: Propagating(c, []),
+                  mavlink_factory=lambda: mavs.append(RecordingMavlink()) or mavs[-1], notifier=SdNotifier(""))
+    runner = _run(svc)
+    try:
+        assert _wait(lambda: svc.snapshot()["estimator"]["tracking"] is True, 3)
+        cam_off.set()
+        t0 = time.monotonic()
+        assert _wait(lambda: svc.snapshot()["estimator"]["tracking"] is False, 3)
+        assert time.monotonic() - t0 < 1.6
+        time.sleep(0.2)
+        n = _tracked(mavs)
+        time.sleep(0.5)
+        assert _tracked(mavs) == n and svc.output.withheld > 0
+        snap = svc.snapshot()
+        assert snap["estimator"]["quality"] == 0 and snap["state"] == "waiting for vision"
+        assert any(w.startswith("camera: no frames") for w in snap["warnings"])
+    finally:
+        _stop(svc, runner)
+
+
+def test_wedged_estimator_loop_stops_the_watchdog(tmp_path: Path, monkeypatch, caplog) -> None:
+    monkeypatch.setattr(service, "STUCK_S", 0.5)
+    monkeypatch.setenv("WATCHDOG_USEC", "200000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    wedge = threading.Event()
+
+    class Wedging(ScriptedEstimator):
+        def feed_frame(self, f):
+            while wedge.is_set():
+                time.sleep(0.05)
+            return super().feed_frame(f)
+
+    svc, _ = _service(tmp_path, estimator=lambda c: Wedging("calib", []))
+    runner = _run(svc)
+    try:
+        assert _wait(lambda: svc.ready and svc._last_watchdog > 0, 3)
+        wedge.set()
+        assert _wait(lambda: svc._last_watchdog < 0, 3)
+        assert svc.snapshot()["state"] == "unhealthy"
+    finally:
+        wedge.clear()
+        _stop(svc, runner)
+    assert any("not feeding the systemd watchdog: estimator loop stuck" in r.getMessage() for r in caplog.records)
+
+
+# ------------------------------------------------------------------------------------------ subprocesses
+
+# `vio run` whose IMU can be switched off from the test: while the file $KESTREL_TEST_IMU_OFF exists the
+# source's IMU samples are dropped (a serial IMU whose cable came loose), camera frames still flow.
+LAUNCHER = """
+import os, sys
+import drivers.source as ds
+from vio.types import ImuSample
+real_open = ds.open_source
+flag = os.environ["KESTREL_TEST_IMU_OFF"]
+
+class ImuSwitch:
+    def __init__(self, inner):
+        self.inner = inner
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+    def poll(self):
+        out = self.inner.poll()
+        return [m for m in out if not isinstance(m, ImuSample)] if os.path.exists(flag) else out
+
+ds.open_source = lambda cfg, **kw: ImuSwitch(real_open(cfg, **kw))
+from vio.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+class Daemon:
+    """`vio run` as a subprocess; its log read through a pipe (a file would be under the size limit too)."""
+
+    def __init__(self, tmp_path: Path, config: str, notify_path: str, fsize_limit: int | None = None) -> None:
+        self.tmp = tmp_path
+        cfg = tmp_path / "config.toml"
+        cfg.write_text(config)
+        env = dict(os.environ, NOTIFY_SOCKET=notify_path, WATCHDOG_USEC="2000000", OMP_NUM_THREADS="1",
+                   PYTHONUNBUFFERED="1", KESTREL_TEST_IMU_OFF=str(tmp_path / "imu_off"))
+        env.pop("WATCHDOG_PID", None)
+
+        def limits() -> None:  # in the child: writes past the limit fail with EFBIG (Python ignores SIGXFSZ)
+            if fsize_limit is not None:
+                resource.setrlimit(resource.RLIMIT_FSIZE, (fsize_limit, fsize_limit))
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+        self.lines: list[str] = []
+        self.proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, "run", "--config", str(cfg)], cwd=REPO,
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     preexec_fn=limits)
+        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
+                                        daemon=True)
+        self._reader.start()
+
+    @property
+    def log(self) -> str:
+        return "".join(self.lines)
+
+    def status(self) -> dict:
+        return json.loads((self.tmp / "status.json").read_text())
+
+    def stop(self) -> tuple[int, float]:
+        t0 = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            rc = self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            rc = self.proc.wait()
+        took = time.monotonic() - t0
+        self._reader.join(5)
+        return rc, took
+
+    def rss_mb(self) -> float:
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+
+def _status_ok(d: Daemon, cond) -> bool:
+    try:
+        return bool(cond(d.status()))
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def test_vio_run_full_disk_and_file_size_limit_then_imu_loss(tmp_path: Path, notify_socket) -> None:
+    """RLIMIT_FSIZE (64 kB: EFBIG after ~2 s of IMU rows) under the recorder, /dev/full (ENOSPC) under the
+    trajectory file: one warning each, status entries, the recording stays a readable dataset, ODOMETRY and
+    the watchdog go on. Then the IMU stops: no poses, a warning, memory does not grow. SIGTERM: exit 0."""
+    _need_pipeline()
+    sock, notify_path = notify_socket
+    (tmp_path / "traj.tum").symlink_to("/dev/full")
+    ap = FakeAutopilot()
+    ap.start()
+    d = Daemon(tmp_path, f"""[source]
+kind = "fake"
+width = 320
+height = 200
+[mavlink]
+url = "udpout:127.0.0.1:{ap.port}"
+[run]
+status_file = "{tmp_path / 'status.json'}"
+trajectory_file = "{tmp_path / 'traj.tum'}"
+record_dir = "{tmp_path / 'rec'}"
+""", notify_path, fsize_limit=64 * 1024)
+    notes: list[str] = []
+    try:
+        assert _wait(lambda: "recording stopped" in d.log, 40), d.log[-3000:]
+        assert _wait(lambda: ap.poses() >= 20, 20), f"autopilot got {ap.counts}; log:\n{d.log[-3000:]}"
+        assert _wait(lambda: _status_ok(d, lambda s: s["recording"]["state"] == "failed"
+                                        and s["trajectory_file"]["state"] == "failed"), 5), d.log[-3000:]
+        s = d.status()
+        assert "File too large" in s["recording"]["error"] and "No space left" in s["trajectory_file"]["error"]
+        n = ap.poses()
+        notes += _received(sock)
+        time.sleep(2.5)
+        notes += _received(sock)
+        assert ap.poses() > n + 20 and d.proc.poll() is None
+        assert "WATCHDOG=1" in notes[-3:], notes[-5:]
+        # the IMU stops while the camera runs
+        (tmp_path / "imu_off").touch()
+        assert _wait(lambda: _status_ok(d, lambda s: s["estimator"]["tracking"] is False), 5), d.log[-3000:]
+        time.sleep(0.5)
+        n, rss0 = ap.odometry_tracked(), d.rss_mb()
+        time.sleep(4.0)
+        assert ap.odometry_tracked() == n, "poses went out without IMU"
+        growth = d.rss_mb() - rss0
+        s = d.status()
+        assert any(w.startswith("IMU: no samples") for w in s["warnings"]), s["warnings"]
+        assert growth < 15, f"RSS grew {growth:.1f} MB in 4 s without IMU"
+        notes += _received(sock)
+        assert "WATCHDOG=1" in notes[-2:]
+    finally:
+        rc, took = d.stop()
+        ap.stop.set()
+    log = d.log
+    assert rc == 0 and took < 2.0, log[-3000:]
+    warned = [line for line in d.lines if "WARNING" in line]
+    assert sum("recording stopped" in w for w in warned) == 1, warned
+    assert sum("vio.service: trajectory file" in w for w in warned) == 1, warned
+    assert "Traceback" not in log and "thread died" not in log
+    (rec,) = (tmp_path / "rec").iterdir()
+    ds = EurocDataset(rec)
+    assert len(ds.imu) > 200 and len(ds) > 5 and len(list(ds.frames())) == len(ds)
+    print(f"\nIMU loss: RSS growth {growth:.1f} MB in 4 s; recording kept {len(ds)} frames, {len(ds.imu)} IMU")
+
+
+def test_vio_run_camera_loss_euroc(tmp_path: Path, notify_socket, v101_path: Path) -> None:
+    """V1_01 excerpt live: 4.7 s of images, then IMU only. After the images end nothing tracked goes to
+    the autopilot, status says waiting for vision (exit 1), the daemon is neither dead nor restarted."""
+    _need_pipeline()
+    from vio.cli import main
+
+    sock, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.start()
+    d = Daemon(tmp_path, f"""[source]
+kind = "euroc"
+dataset = "{v101_path}"
+[mavlink]
+url = "udpout:127.0.0.1:{ap.port}"
+[run]
+status_file = "{tmp_path / 'status.json'}"
+""", notify_path)
+    notes: list[str] = []
+    try:
+        assert _wait(lambda: notes.extend(_received(sock)) or any(n.startswith("READY=1") for n in notes), 60), \
+            d.log[-3000:]
+        assert _wait(lambda: ap.odometry_tracked() >= 10, 20), f"autopilot got {ap.counts}; log:\n{d.log[-3000:]}"
+        assert _wait(lambda: _status_ok(d, lambda s: s["state"] == "waiting for vision" and any(
+            w.startswith("camera: no frames") for w in s["warnings"])), 15), d.log[-3000:]
+        s = d.status()
+        assert s["estimator"]["tracking"] is False and s["estimator"]["quality"] == 0
+        time.sleep(0.5)
+        n = ap.odometry_tracked()
+        time.sleep(2.0)
+        assert ap.odometry_tracked() == n, "tracked ODOMETRY after the camera stopped"
+        assert main(["status", "--file", str(tmp_path / "status.json")]) == EXIT_UNHEALTHY
+        notes += _received(sock)
+        assert "WATCHDOG=1" in notes[-3:] and d.proc.poll() is None
+    finally:
+        rc, took = d.stop()
+        ap.stop.set()
+    assert rc == 0 and took < 2.0, d.log[-3000:]
+    assert "Traceback" not in d.log and "not feeding the systemd watchdog" not in d.log
+
