@@ -16,6 +16,7 @@ from the IMU/vision, keeps the last position and heading as the new origin, and 
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 from collections import deque
@@ -31,7 +32,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, roll_pitch_yaw, skew, so3_exp
+from vio.geometry import make_T, roll_pitch_yaw, so3_exp
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
 from vio.propagator import Propagator
@@ -146,9 +147,11 @@ class Estimator:
         self._flow_px = float("inf")  # median feature motion since the previous frame
         self._last_vision_t: int | None = None  # IMU-clock time of the last usable frame in the back end
         self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
-        self._gyro_var = np.diag(np.asarray(self.params.getGyroscopeCovariance()))  # continuous, per axis
-        self._accel_var = np.diag(np.asarray(self.params.getAccelerometerCovariance()))
-        self._gravity = np.array([0.0, 0.0, -9.81])
+        # continuous noise densities (variance per second), for the IMU-rate covariance growth
+        self._gyro_var_diag = np.diag(np.diag(np.asarray(self.params.getGyroscopeCovariance())))
+        self._gyro_var_mean = float(np.trace(self._gyro_var_diag)) / 3.0
+        self._accel_var_diag = np.diag(np.diag(np.asarray(self.params.getAccelerometerCovariance())))
+        self._g2_horizontal = np.diag([9.81 ** 2, 9.81 ** 2, 0.0])
         self.frames_unusable = 0
         self.unusable_reasons: dict[str, int] = {}
         self.imu_rejected = 0
@@ -513,9 +516,9 @@ class Estimator:
         sigma beyond quality_sigma_m), so the autopilot's quality gate sees what the covariance says."""
         if not tracking:
             return 0
-        sigma = float(np.sqrt(max(np.linalg.eigvalsh(cov_pose[3:, 3:]).max(), 0.0)))
+        sigma = math.sqrt(max(cov_pose[3, 3] + cov_pose[4, 4] + cov_pose[5, 5], 0.0))  # >= the largest axis
         q_cov = min(1.0, self.bcfg.quality_sigma_m / max(sigma, 1e-9))
-        return int(np.clip(round(100 * min(self._track_quality, q_cov)), 1, 100))
+        return max(1, min(100, round(100 * min(self._track_quality, q_cov))))
 
     def _looks_still_visually(self, ff: FeatureFrame) -> bool:
         """Images agree with stillness. Without tracks they carry no information: at the first start the IMU
@@ -623,23 +626,22 @@ class Estimator:
 
         Between frames this adds little; when frames stop it is what grows: gyro noise into attitude,
         velocity uncertainty and accel noise into position, and the attitude error times gravity into
-        velocity and position (first order, cross terms ignored, so it errs large)."""
+        velocity and position (first order, cross terms ignored, so it errs large). The frame covariance
+        is not re-rotated into the newer body axes (it changes little within the second this runs for).
+        Lean on purpose: it runs for every IMU sample (about 10 us)."""
         if self._cov_state is None or t <= self._cov_state[0]:
             return self._cov_pose, self._cov_vel
-        t0, R0 = self._cov_state
-        dt = (t - t0) * 1e-9
-        dR = R0.T @ R_now
-        A = np.zeros((6, 6))
-        A[:3, :3] = A[3:, 3:] = dR.T
-        cov = A @ self._cov_pose @ A.T
-        cov[:3, :3] += np.diag(self._gyro_var * dt)
-        cov_th_w = R_now @ cov[:3, :3] @ R_now.T  # attitude error in world axes
-        G = skew(self._gravity)
-        tilt_v = G @ cov_th_w @ G.T  # velocity error rate from attitude error
-        cov_v = self._cov_vel + np.diag(self._accel_var * dt) + tilt_v * dt * dt
-        cov_p_w = self._cov_vel * dt * dt + np.diag(self._accel_var) * dt ** 3 / 3.0 + tilt_v * dt ** 4 / 4.0
+        dt = (t - self._cov_state[0]) * 1e-9
+        cov = self._cov_pose.copy()
+        var_th = float(np.trace(cov[:3, :3])) / 3.0 + self._gyro_var_mean * dt  # attitude variance per axis
+        cov[:3, :3] += self._gyro_var_diag * dt
+        # tilt: an attitude error dtheta makes a horizontal accel error g*dtheta (vertical: second order)
+        tilt = self._g2_horizontal * var_th
+        acc = self._accel_var_diag + tilt * dt  # accel-like variance rate in world axes
+        cov_v = self._cov_vel + acc * dt
+        cov_p_w = self._cov_vel * (dt * dt) + self._accel_var_diag * (dt ** 3 / 3.0) + tilt * (dt ** 4 / 4.0)
         cov[3:, 3:] += R_now.T @ cov_p_w @ R_now
-        return 0.5 * (cov + cov.T), 0.5 * (cov_v + cov_v.T)
+        return cov, cov_v
 
 
 def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:
