@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import threading
 import time
 from collections import deque
@@ -38,6 +39,8 @@ import numpy as np
 from drivers.source import Message, SensorSource
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
+
+log = logging.getLogger(__name__)
 
 IMU_CHUNK_S = 120.0  # IMU synthesised per chunk (an endless flight never holds more than two)
 MAX_RENDER_LAG_S = 0.25  # realtime: a frame not rendered this long after its stamp is skipped
@@ -164,8 +167,11 @@ class FakeSource(SensorSource):
         return self.t0_ns
 
     def start(self) -> None:
+        if self._started:
+            return
         self._sim  # noqa: B018 - build (about a second) before the clock starts
-        self._t0()
+        log.info("fake source: simulated %s flight (seed %d, %dx%d, %s), t0_ns=%d", self.profile, self.seed,
+                 self.width, self.height, "realtime" if self.realtime else "as fast as read", self._t0())
         self._started = True
         if self.realtime and self._thread is None:
             self._stop.clear()

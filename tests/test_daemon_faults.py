@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 from test_service import (
+    LAUNCHER,
     REPO,
     FakeAutopilot,
     RecordingMavlink,
@@ -208,30 +209,6 @@ def test_wedged_estimator_loop_stops_the_watchdog(tmp_path: Path, monkeypatch, c
 
 
 # ------------------------------------------------------------------------------------------ subprocesses
-
-# `vio run` whose IMU can be switched off from the test: while the file $KESTREL_TEST_IMU_OFF exists the
-# source's IMU samples are dropped (a serial IMU whose cable came loose), camera frames still flow.
-LAUNCHER = """
-import os, sys
-import drivers.source as ds
-from vio.types import ImuSample
-real_open = ds.open_source
-flag = os.environ["KESTREL_TEST_IMU_OFF"]
-
-class ImuSwitch:
-    def __init__(self, inner):
-        self.inner = inner
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-    def poll(self):
-        out = self.inner.poll()
-        return [m for m in out if not isinstance(m, ImuSample)] if os.path.exists(flag) else out
-
-ds.open_source = lambda cfg, **kw: ImuSwitch(real_open(cfg, **kw))
-from vio.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
-
 
 class Daemon:
     """`vio run` as a subprocess; its log read through a pipe (a file would be under the size limit too)."""

@@ -381,12 +381,15 @@ def test_run_config_error_exits_3(tmp_path: Path) -> None:
 
 
 # A `vio run` whose source can be unplugged from the test: while the file named by $KESTREL_TEST_UNPLUG
-# exists, every source the daemon opens delivers nothing (as a pulled USB cable does).
+# exists, every source the daemon opens delivers nothing (as a pulled USB cable does); while the file
+# $KESTREL_TEST_IMU_OFF exists, its IMU samples are dropped (a serial IMU whose cable came loose).
 LAUNCHER = """
 import os, sys
 import drivers.source as ds
+from vio.types import ImuSample
 real_open = ds.open_source
-flag = os.environ["KESTREL_TEST_UNPLUG"]
+flag = os.environ.get("KESTREL_TEST_UNPLUG", "/nonexistent")
+imu_off = os.environ.get("KESTREL_TEST_IMU_OFF", "/nonexistent")
 
 class Unpluggable:
     def __init__(self, inner):
@@ -395,6 +398,8 @@ class Unpluggable:
         return getattr(self.inner, name)
     def poll(self):
         out = self.inner.poll()
+        if os.path.exists(imu_off):
+            out = [m for m in out if not isinstance(m, ImuSample)]
         return [] if os.path.exists(flag) else out
 
 ds.open_source = lambda cfg, **kw: Unpluggable(real_open(cfg, **kw))
