@@ -92,3 +92,31 @@ def test_broken_command_module_does_not_take_the_cli_down(tmp_path, monkeypatch,
     capsys.readouterr()
     assert main(["broken"]) == EXIT_FAILURE
     assert "vio broken: this command is unavailable" in capsys.readouterr().err
+
+
+def test_unexpected_error_is_one_line_with_a_hint(monkeypatch, capsys):
+    import vio.replay
+
+    def boom(args):
+        raise RuntimeError("matrix not\npositive definite")
+
+    monkeypatch.setattr(vio.replay, "run", boom)
+    assert main(["-q", "replay", "somewhere"]) == EXIT_FAILURE
+    err = capsys.readouterr().err
+    assert err == ("vio replay: internal error: RuntimeError: matrix not positive definite "
+                   "(run with -v for the traceback)\n")
+    assert main(["-v", "replay", "somewhere"]) == EXIT_FAILURE
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.strip().endswith("vio replay: internal error: RuntimeError: matrix not "
+                                                      "positive definite")
+
+
+def test_interrupt_is_130(monkeypatch, capsys):
+    import vio.replay
+
+    def stop(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(vio.replay, "run", stop)
+    assert main(["-q", "replay", "somewhere"]) == 130
+    assert capsys.readouterr().err == "vio replay: interrupted\n"

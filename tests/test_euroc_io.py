@@ -279,3 +279,75 @@ def test_writer_refuses_to_overwrite(tmp_path):
     EurocWriter(tmp_path / "rec", _calibration()).close()
     with pytest.raises(VioError, match="already holds a dataset"):
         EurocWriter(tmp_path / "rec", _calibration())
+
+
+@pytest.mark.parametrize("case", ["gt_nan", "gt_columns", "gt_unsorted", "gt_empty"])
+def test_damaged_ground_truth_is_dropped_with_a_note(v101_path, tmp_path, case):
+    from vio.io.euroc import read_groundtruth_csv
+
+    root = _copy(v101_path, tmp_path / "ds")
+    gt = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    lines = gt.read_text().splitlines()
+    if case == "gt_nan":
+        parts = lines[1].split(",")
+        parts[4] = "nan"
+        _edit_line(gt, 2, ",".join(parts))
+        expected = f"{gt}:2: column 5 value 'nan' is not a finite number"
+    elif case == "gt_columns":
+        _edit_line(gt, 5, ",".join(lines[4].split(",")[:5]))
+        expected = f"{gt}:5: expected 8..more comma-separated values, got 5"
+    elif case == "gt_unsorted":
+        _edit_line(gt, 7, lines[2])
+        expected = f"{gt}:7: out-of-order time stamp"
+    else:
+        gt.write_text(lines[0] + "\n")
+        expected = f"{gt}: no ground-truth rows"
+    with pytest.raises(VioError) as e:  # `vio eval`: the ground truth is its input
+        read_groundtruth_csv(gt)
+    assert expected in str(e.value)
+    ds = EurocDataset(root)  # a replay: evaluation dropped, nothing else
+    assert ds.groundtruth is None and expected in ds.groundtruth_problem
+    assert ds.stats.notes == [f"ground truth not used (no evaluation): {ds.groundtruth_problem}"]
+    assert len(ds) == N_FRAMES and len(ds.imu) == N_IMU
+
+
+def test_cut_last_lines_repeats_and_nan_rows_are_repaired_and_noted(v101_path, tmp_path):
+    root = _copy(v101_path, tmp_path / "ds")
+    mav0 = root / "mav0"
+    imu, cam0 = mav0 / "imu0" / "data.csv", mav0 / "cam0" / "data.csv"
+    gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    lines = imu.read_text().splitlines()
+    parts = lines[100].split(",")
+    parts[4] = "inf"
+    lines[100] = ",".join(parts)
+    lines.insert(201, lines[200])  # an exact repeat
+    imu.write_text("\r\n".join(lines)[:-25])  # CRLF, and the last line cut in its second-last value
+    for path, keep in ((cam0, 25), (gt, 40)):
+        text = path.read_text()
+        path.write_text(text[: text.rstrip("\n").rindex("\n") + keep])
+    ds = EurocDataset(root)
+    assert len(ds.imu) == N_IMU - 2 and len(ds) == N_FRAMES - 1 and len(ds.groundtruth.trajectory) == N_GT - 1
+    assert ds.stats.imu_rows_skipped == {"non-finite value": 1}
+    text = "\n".join(ds.stats.notes)
+    assert f"{imu}:{N_IMU + 2}: last line cut short (no newline at the end" in text
+    assert f"{imu}: 1 exact repeats of the line before dropped" in text
+    assert f"{imu}: 1 of {N_IMU - 1} IMU rows with a non-finite value skipped (first at line 101)" in text
+    assert f"{cam0}:{N_FRAMES + 1}: last line cut short" in text
+    assert f"{gt}:{N_GT + 1}: last line cut short" in text
+    assert ds.stats.missing_images == 0 and ds.groundtruth.v_world is not None
+
+
+@pytest.mark.parametrize("old, new, expected", [
+    ("distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]",
+     "distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359]", "radtan distortion needs 4, 5, 8"),
+    ("rate_hz: 20", "rate_hz: fast", "rate_hz: value 'fast' is not a number"),
+    ("T_BS:", "T_XX:", "missing key 'T_BS'"),
+])
+def test_camera_yaml_errors_name_file_and_key(v101_path, tmp_path, old, new, expected):
+    root = _copy(v101_path, tmp_path / "ds")
+    y = root / "mav0" / "cam0" / "sensor.yaml"
+    assert old in y.read_text()
+    y.write_text(y.read_text().replace(old, new))
+    with pytest.raises(VioError) as e:
+        EurocDataset(root)
+    assert str(e.value).startswith(f"{y}: ") and expected in str(e.value)

@@ -73,15 +73,16 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command. Its errors end as one line on stderr and an exit code, never a traceback: a VioError
     (bad input, said in its message) exits EXIT_FAILURE; an unexpected exception also, with the traceback
     only under -v; Ctrl-C exits 130."""
-    command = "?"
+    raw = sys.argv[1:] if argv is None else argv
+    command = next((a for a in raw if not a.startswith("-")), "?")  # global options take no value
     verbose = False
     try:
-        if not {"-v", "--verbose"} & set(sys.argv[1:] if argv is None else argv):
+        if not {"-v", "--verbose"} & set(raw):
             # OpenCV logs corrupt images to stderr itself; the reader counts and reports them (-v shows them)
             os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
         parser = build_parser()
         args = parser.parse_args(argv)
-        command, verbose = getattr(args, "command", None) or "?", bool(args.verbose)
+        command, verbose = getattr(args, "command", None) or command, bool(args.verbose)
         level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
         logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
         if getattr(args, "command", None) and not hasattr(args, "_module"):

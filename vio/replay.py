@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,6 +25,10 @@ from vio.types import NavState
 log = logging.getLogger(__name__)
 
 Sink = Callable[[NavState], None]
+# Estimator.health() fields the stats JSON carries
+_HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unusable", "unusable_reasons",
+                 "imu_rejected", "imu_rejected_reasons", "frames_dropped", "last_reset_reason", "sensor_error")
+_DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -77,6 +82,7 @@ class ReplayResult:
     extra: dict = field(default_factory=dict)
     frames_listed: int = 0  # camera rows in the replayed span, loadable or not
     unusable_reasons: dict[str, int] = field(default_factory=dict)  # frames without vision, by reason
+    sensor_error: str | None = None  # the estimator's diagnosis of a sensor problem that blocked initialisation
 
     @property
     def frames_unusable(self) -> int:
@@ -98,7 +104,8 @@ class ReplayResult:
         if self.frames_unusable >= self.frames_listed:
             return f"vision never worked ({self.unusable_summary()}); any trajectory is from the IMU alone"
         if not self.states:
-            return "the estimator never initialised: no trajectory"
+            return "the estimator never initialised: no trajectory" + (f" ({self.sensor_error})" if self.sensor_error
+                                                                       else "")
         return None
 
     @property
@@ -141,12 +148,12 @@ class ReplayResult:
 def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = False,
            show_tracks: str | None = None, max_frames: int | None = None, progress: bool = True) -> ReplayResult:
     """Stream a EurocDataset through a fresh Estimator; every frame's state goes to `sinks`."""
+    preflight(dataset)  # before the estimator's imports: a data problem is said at once
     from vio.config import VioConfig
     from vio.estimator import Estimator
     from vio.types import ImuSample
 
     cfg = cfg or VioConfig()
-    preflight(dataset)
     est = Estimator(dataset.calibration, cfg)
     states: list[NavState] = []
     est.listeners.append(states.append)
@@ -173,49 +180,52 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     unusable: dict[str, int] = {}
     unreadable0 = dataset.stats.unreadable_images
     # right images are decoded only where the front end uses them (the debug view shows them all)
-    for ev in dataset.events(t_end_ns=t_end, lazy_right=writer is None):
-        if realtime:
-            t_data = ev.t_ns
-            if t_first is None:
-                t_first = t_data
-            lag = (t_data - t_first) * 1e-9 - (time.perf_counter() - wall0)
-            if lag > 0:
-                time.sleep(lag)
-        t0 = time.perf_counter()
-        n_before = est.frames_processed
-        if isinstance(ev, ImuSample):
-            est.feed_imu(ev)
-        else:
-            if max_frames is not None and frames >= max_frames:
-                break
-            if writer is not None:
-                waiting[int(ev.t_ns)] = ev
-            est.feed_frame(ev)
-            frames += 1
-            if bar is not None:
-                bar.update(1)
-        # A frame is processed once the IMU has reached its stamp: in this call or in a later feed_imu
-        # (a positive time offset), so its cost is recorded wherever it happened.
-        if est.frames_processed > n_before and est.last_features is not None:
-            tm = est.timings
-            ff = est.last_features
-            t_cam = int(ff.t_ns)
-            if not ff.tracking_ok:
-                why = ff.reason or "rejected by the front end"
-                unusable[why] = unusable.get(why, 0) + 1
-            frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
-                                "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
-                                "stereo": est.last_features.n_stereo})
-            if writer is not None and t_cam in waiting:
-                writer.write(waiting.pop(t_cam), est.last_features)
-                for t in [t for t in waiting if t < t_cam]:
-                    del waiting[t]
+    try:  # an interrupted replay clears its progress bar (the message after it starts a clean line)
+        for ev in dataset.events(t_end_ns=t_end, lazy_right=writer is None):
+            if realtime:
+                t_data = ev.t_ns
+                if t_first is None:
+                    t_first = t_data
+                lag = (t_data - t_first) * 1e-9 - (time.perf_counter() - wall0)
+                if lag > 0:
+                    time.sleep(lag)
+            t0 = time.perf_counter()
+            n_before = est.frames_processed
+            if isinstance(ev, ImuSample):
+                est.feed_imu(ev)
+            else:
+                if max_frames is not None and frames >= max_frames:
+                    break
+                if writer is not None:
+                    waiting[int(ev.t_ns)] = ev
+                est.feed_frame(ev)
+                frames += 1
+                if bar is not None:
+                    bar.update(1)
+            # A frame is processed once the IMU has reached its stamp: in this call or in a later feed_imu
+            # (a positive time offset), so its cost is recorded wherever it happened.
+            if est.frames_processed > n_before and est.last_features is not None:
+                tm = est.timings
+                ff = est.last_features
+                t_cam = int(ff.t_ns)
+                if not ff.tracking_ok:  # counted without the figures, so that one cause is one count
+                    why = _DETAIL.sub("", ff.reason) or "rejected by the front end"
+                    unusable[why] = unusable.get(why, 0) + 1
+                frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
+                                    "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
+                                    "stereo": est.last_features.n_stereo})
+                if writer is not None and t_cam in waiting:
+                    writer.write(waiting.pop(t_cam), est.last_features)
+                    for t in [t for t in waiting if t < t_cam]:
+                        del waiting[t]
+    finally:
+        if bar is not None:
+            bar.close()
     est.flush()
     wall = time.perf_counter() - wall0
-    if bar is not None:
-        bar.close()
     ft = dataset.frame_t[:frames] if frames else np.zeros(0, np.int64)
     data_s = float((ft[-1] - ft[0]) * 1e-9) if len(ft) > 1 else 0.0
+    h = est.health()
     # frames the dataset could not load never reached the estimator
     listed = n_total if t_end is None else int(np.count_nonzero(dataset.frame_t[:n_total] <= t_end))
     missing = sum(f is None for f in dataset.cam0_files[:listed])
@@ -228,8 +238,9 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
                                                  "final": est.time_offset_ns * 1e-6},
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
-                              "data_notes": list(dataset.stats.notes)},
-                       frames_listed=listed, unusable_reasons=unusable)
+                              "data_notes": list(dataset.stats.notes),
+                              "estimator": {k: getattr(h, k) for k in _HEALTH_STATS}},
+                       frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error)
     summary = res.unusable_summary()
     if summary:
         log.warning(summary)

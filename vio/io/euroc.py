@@ -103,7 +103,11 @@ def _stamp_text_problem(text: str) -> str:
 def _looks_cut(parts: list[str], previous: list[list[str]]) -> bool:
     """An unterminated last row that parses but has a field shorter than that column ever is in the rows
     before it (a number cut mid-write)."""
-    if not previous or any(len(r) != len(parts) for r in previous):
+    if not previous:
+        return False
+    if len(parts) < len(previous[-1]):  # fewer columns than the row before (ground truth allows 7 or 16)
+        return True
+    if any(len(r) != len(parts) for r in previous):
         return False
     return any(len(x) < min(len(r[k]) for r in previous) for k, x in enumerate(parts))
 
@@ -271,10 +275,15 @@ def read_imu_csv(path: Path, notes: list[str] | None = None, skipped: dict[str, 
     return ImuData(table.stamps, vals[:, 0:3], vals[:, 3:6])
 
 
-def read_groundtruth_csv(path: Path) -> GroundTruth:
+def read_groundtruth_csv(path: Path, notes: list[str] | None = None) -> GroundTruth:
+    """Ground truth (pose, and velocity and biases when every row has them); repairs go to `notes`, else
+    they are logged."""
     table = _read_csv(path, 8, numeric=16)
     for n in table.notes:
-        log.warning(n)
+        if notes is None:
+            log.warning(n)
+        else:
+            notes.append(n)
     if not table.rows:
         raise VioError(f"{path}: no ground-truth rows")
     ncols = min(len(r) for r in table.rows)
@@ -456,7 +465,7 @@ class EurocDataset:
         self.groundtruth_problem: str | None = None  # why a ground-truth file present was not used
         if gt_path.exists():
             try:
-                self.groundtruth = read_groundtruth_csv(gt_path)
+                self.groundtruth = read_groundtruth_csv(gt_path, notes)
             except VioError as e:
                 self.groundtruth_problem = str(e)
                 notes.append(f"ground truth not used (no evaluation): {e}")
