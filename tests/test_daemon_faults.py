@@ -297,7 +297,7 @@ record_dir = "{tmp_path / 'rec'}"
         assert "File too large" in s["recording"]["error"] and "No space left" in s["trajectory_file"]["error"]
         n = ap.poses()
         notes += _received(sock)
-        time.sleep(2.5)
+        time.sleep(1.5)
         notes += _received(sock)
         assert ap.poses() > n + 20 and d.proc.poll() is None
         assert "WATCHDOG=1" in notes[-3:], notes[-5:]
@@ -306,12 +306,12 @@ record_dir = "{tmp_path / 'rec'}"
         assert _wait(lambda: _status_ok(d, lambda s: s["estimator"]["tracking"] is False), 5), d.log[-3000:]
         time.sleep(0.5)
         n, rss0 = ap.odometry_tracked(), d.rss_mb()
-        time.sleep(4.0)
+        time.sleep(3.0)
         assert ap.odometry_tracked() == n, "poses went out without IMU"
         growth = d.rss_mb() - rss0
         s = d.status()
         assert any(w.startswith("IMU: no samples") for w in s["warnings"]), s["warnings"]
-        assert growth < 15, f"RSS grew {growth:.1f} MB in 4 s without IMU"
+        assert growth < 5, f"RSS grew {growth:.1f} MB in 3 s without IMU"  # holding frames: ~8 MB (60 pairs)
         notes += _received(sock)
         assert "WATCHDOG=1" in notes[-2:]
     finally:
@@ -326,7 +326,7 @@ record_dir = "{tmp_path / 'rec'}"
     (rec,) = (tmp_path / "rec").iterdir()
     ds = EurocDataset(rec)
     assert len(ds.imu) > 200 and len(ds) > 5 and len(list(ds.frames())) == len(ds)
-    print(f"\nIMU loss: RSS growth {growth:.1f} MB in 4 s; recording kept {len(ds)} frames, {len(ds.imu)} IMU")
+    print(f"\nIMU loss: RSS growth {growth:.1f} MB in 3 s; recording kept {len(ds)} frames, {len(ds.imu)} IMU")
 
 
 def test_vio_run_camera_loss_euroc(tmp_path: Path, notify_socket, v101_path: Path) -> None:
