@@ -146,7 +146,7 @@ def test_covariance_grows_between_keyframe_marginals():
         grew += np.trace(cur.cov_pose[3:, 3:]) > np.trace(prev.cov_pose[3:, 3:])
     assert grew > 10
     assert deferred >= 1  # marginals after the first keyframe are spread onto non-keyframe frames
-    marg_pose, marg_vel = est._smoother.marginal_covariances()
+    marg_pose, marg_vel = est._state.smoother.marginal_covariances()
     assert np.all(np.linalg.eigvalsh(marg_pose) > 0)
 
 
@@ -159,7 +159,7 @@ def test_stereo_only_where_the_frame_becomes_a_keyframe():
     _run(est, duration_s=3.0, still_s=1.0, seed=4)
     ff = est.last_features
     b = cfg.backend
-    t_kf = est._last_kf_t
+    t_kf = est._state.last_kf_t
     dt_min, dt_max = int(b.keyframe_min_interval_s * 1e9), int(b.keyframe_max_interval_s * 1e9)
     moved = dataclasses.replace(ff, parallax_px=b.keyframe_min_parallax_px + 1)
     still = dataclasses.replace(ff, parallax_px=0.0)
@@ -177,13 +177,13 @@ def test_stereo_only_where_the_frame_becomes_a_keyframe():
     _run(on, duration_s=3.0, still_s=1.0, seed=4)
     assert not on.offset_estimator.done
     on.offset_estimator._recent.clear()  # e.g. after a bad frame: the next pair start needs stereo
-    assert on.offset_estimator.wants_stereo() and on._needs_stereo(on._last_kf_t + 1, still)
+    assert on.offset_estimator.wants_stereo() and on._needs_stereo(on._state.last_kf_t + 1, still)
 
 
 def test_front_end_gyro_prior_uses_the_back_end_gyro_bias():
     est = Estimator(synthetic_calibration())
     _run(est, duration_s=3.0, still_s=1.0, seed=6)
-    bg = np.asarray(est._smoother.last.bias.gyroscope())
+    bg = np.asarray(est._state.smoother.last.bias.gyroscope())
     assert np.allclose(est.gyro_prior.gyro_bias, bg)
     assert np.linalg.norm(bg - [0.04, -0.02, 0.06]) < 0.01  # the simulated bias, not zero
 
@@ -194,13 +194,13 @@ def test_every_landmark_in_the_window_has_its_weak_prior():
 
     est = Estimator(synthetic_calibration())
     _run(est, duration_s=3.0, still_s=1.0, seed=7)
-    graph = est._smoother.smoother.getFactors()
+    graph = est._state.smoother.smoother.getFactors()
     priors = {}
     for i in range(graph.size()):
         f = graph.at(i)
         if isinstance(f, gtsam.PriorFactorPoint3):
             priors[f.keys()[0]] = f
-    values = est._smoother.smoother.calculateEstimate()
+    values = est._state.smoother.smoother.calculateEstimate()
     lm_keys = [k for k in values.keys() if gtsam.Symbol(k).chr() == ord("l")]  # noqa: SIM118 (gtsam.Values)
     assert lm_keys and set(lm_keys) <= set(priors)
     sigma = est.bcfg.landmark_prior_sigma_m
@@ -258,7 +258,7 @@ def test_reset_after_an_implausible_estimate_is_not_bridged(state_ok):
     def fail(*args, **kwargs):
         raise SmootherFailure("scripted failure", state_ok=state_ok)
 
-    est._smoother.add_keyframe = fail
+    est._state.smoother.add_keyframe = fail
     _run(est, duration_s=3.6, still_s=1.0, seed=2, moving_start_s=3.0)
     assert calls and calls[0] == state_ok and est.reset_counter >= 1
 
@@ -330,3 +330,28 @@ def test_frame_queue_is_bounded_when_the_imu_stops_or_a_stamp_jumps():
     assert not est._pending
     est.feed_features(scene.observe(3_600_000_000_000, mot.pose(1.0)))
     assert not est._pending and est.health().frames_dropped == h.frames_dropped + 1
+
+
+def test_phases_follow_the_life_cycle():
+    """uninitialised -> initialising -> tracking -> lost (no frames) -> bridging (reset) -> tracking."""
+    from vio.estimator import Phase
+
+    est = Estimator(synthetic_calibration())
+    assert est.phase is Phase.UNINITIALISED
+    calib = est.calib
+    mot = Motion(speed=1.0, still_s=1.0, seed=5)
+    scene = SyntheticScene(calib, seed=5)
+    rng = np.random.default_rng(5)
+    seen = [est.phase]
+    for s in imu_samples(mot, 0.0, 6.0, noise=calib.imu, rng=rng):
+        est.feed_imu(s)
+        t = s.t_ns * 1e-9
+        camera_on = not (3.0 <= t < 4.5)
+        if s.t_ns % 50_000_000 == 0 and camera_on:
+            est.feed_features(scene.observe(s.t_ns, mot.pose(t), pixel_sigma=0.5, rng=rng))
+        if not seen or seen[-1] is not est.phase:
+            seen.append(est.phase)
+    assert seen[:3] == [Phase.UNINITIALISED, Phase.INITIALISING, Phase.TRACKING]
+    i_lost = seen.index(Phase.LOST)
+    assert Phase.BRIDGING in seen[i_lost:] and seen[-1] is Phase.TRACKING
+    assert est.reset_counter == 1 and "camera frame" in est.last_reset_reason

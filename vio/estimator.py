@@ -7,14 +7,19 @@ Frame stamps are on the camera clock and are moved onto the IMU clock with the c
 `backend.estimate_time_offset` the offset is re-estimated in flight (vio.backend.time_offset) and replaces
 the calibration's once confident.
 
-Life cycle: uninitialised -> (static or in-motion) initialisation -> tracking. Keyframes go through the
-fixed-lag smoother; other frames get the IMU prediction from the last keyframe. Failures (smoother
-exception, implausible velocity/bias, tracking lost for too long) reset the estimator: it re-initialises
-from the IMU/vision, keeps the last position and heading as the new origin, and bumps `reset_counter`.
+Life cycle (`Estimator.phase`, one state object per side of it: `_Waiting` before a start, `_Running` while
+the smoother runs): uninitialised -> initialising (static or in-motion) -> tracking <-> lost (no usable
+frame for vision_timeout_s; still propagating, `tracking` false) -> reset -> bridging (the last trusted
+state carried forward with the IMU) -> tracking. Keyframes go through the fixed-lag smoother; other frames
+get the IMU prediction from the last keyframe. Failures (smoother exception, implausible velocity/bias, no
+usable frame for lost_timeout_s) reset the estimator: it re-initialises on evidence, keeps the last position
+and heading as the new origin, and bumps `reset_counter`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import logging
 import math
 import re
@@ -59,6 +64,38 @@ class _ResetBridge:
     bias: gtsam.imuBias.ConstantBias
     pim: gtsam.PreintegratedCombinedMeasurements
     t_ns: int  # integrated up to here
+
+
+class Phase(enum.Enum):
+    """Where the estimator is in its life cycle (`Estimator.phase`)."""
+
+    UNINITIALISED = "uninitialised"  # nothing seen yet
+    INITIALISING = "initialising"  # collecting a still window or frames of motion for a first start
+    TRACKING = "tracking"  # running, a usable frame within vision_timeout_s
+    LOST = "lost"  # running on the IMU alone: no usable frame for vision_timeout_s (reset at lost_timeout_s)
+    BRIDGING = "bridging a reset"  # after a reset: the last trusted state carried forward until re-initialised
+
+
+@dataclass
+class _Waiting:
+    """State while not running: what a reset left behind for the next start."""
+
+    anchor: np.ndarray | None = None  # pose to continue from (position and heading)
+    bridge: _ResetBridge | None = None  # that pose carried forward with the IMU
+    trusted_bias: tuple[int, np.ndarray] | None = None  # (t, gyro bias) a re-initialisation must agree with
+
+
+@dataclass
+class _Running:
+    """State while the smoother runs: everything that a reset throws away."""
+
+    smoother: VioSmoother
+    last_kf_t: int
+    last_vision_t: int | None  # IMU-clock time of the last usable frame in the back end
+    pim: gtsam.PreintegratedCombinedMeasurements | None = None  # since the last keyframe (None: just started)
+    kf_cov_pose: np.ndarray = field(default_factory=lambda: np.eye(6) * 1e-2)  # at the last keyframe
+    kf_cov_vel: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-2)
+    marginal_due: bool = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
 
 
 @dataclass
@@ -126,18 +163,11 @@ class Estimator:
         self.frames_processed = 0
         self.keyframes = 0
         self._pending: deque[StereoFrame | FeatureFrame] = deque()
-        self._smoother: VioSmoother | None = None
-        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._state: _Waiting | _Running = _Waiting()
         self._last_frame_t: int | None = None
-        self._last_kf_t: int | None = None
         self._cov_pose = np.eye(6) * 1e-2  # reported with the newest frame state
         self._cov_vel = np.eye(3) * 1e-2
-        self._kf_cov_pose = self._cov_pose  # at the last keyframe (marginal, or grown since the last marginal)
-        self._kf_cov_vel = self._cov_vel
-        self._marginal_due = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
         self.marginals = 0  # marginal covariances computed (diagnostics)
-        self._anchor: np.ndarray | None = None  # pose to continue from after a reset
-        self._bridge: _ResetBridge | None = None  # that pose carried forward with the IMU
         self._latest: NavState | None = None
         self._track_quality = 0.0
         self._tracking = False
@@ -145,7 +175,6 @@ class Estimator:
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
-        self._last_vision_t: int | None = None  # IMU-clock time of the last usable frame in the back end
         self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
         # continuous noise densities (variance per second), for the IMU-rate covariance growth
         self._gyro_var_diag = np.diag(np.diag(np.asarray(self.params.getGyroscopeCovariance())))
@@ -159,12 +188,21 @@ class Estimator:
         self.frames_dropped = 0
         self.last_reset_reason = ""
         self.sensor_error: str | None = None
-        self._trusted_bias: tuple[int, np.ndarray] | None = None  # (t, gyro bias) of the last trusted state
 
     # -- public API ------------------------------------------------------------------------------------
     @property
     def initialized(self) -> bool:
-        return self._smoother is not None
+        return isinstance(self._state, _Running)
+
+    @property
+    def phase(self) -> Phase:
+        st = self._state
+        if isinstance(st, _Running):
+            t = self.imu.last_t_ns
+            return Phase.TRACKING if t is not None and self._tracking_at(t) else Phase.LOST
+        if st.bridge is not None:
+            return Phase.BRIDGING
+        return Phase.INITIALISING if self.frames_processed or self.reset_counter else Phase.UNINITIALISED
 
     def latest(self) -> NavState | None:
         """Newest frame-rate state (None before initialisation)."""
@@ -180,19 +218,23 @@ class Estimator:
             return None
         if not self.imu.add(s):
             return None
-        if self._bridge is not None and prev_t is not None and s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
+        st = self._state
+        if isinstance(st, _Waiting) and st.bridge is not None and prev_t is not None and \
+                s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
             log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was", (s.t_ns - prev_t) * 1e-9)
-            self._bridge = None
+            st.bridge = None
         self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
         self.gyro_prior.add(s)
         if self.offset_estimator is not None:
             self.offset_estimator.add_imu(s)
         self._drain(final=False)
-        if (self.initialized and self._last_vision_t is not None
-                and (s.t_ns - self._last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s):
-            self.reset(f"no usable camera frame for {(s.t_ns - self._last_vision_t) * 1e-9:.2f} s")
+        run = self._state
+        if not isinstance(run, _Running):
             return None
-        if self.initialized and self.propagator.add(s):
+        if run.last_vision_t is not None and (s.t_ns - run.last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s:
+            self.reset(f"no usable camera frame for {(s.t_ns - run.last_vision_t) * 1e-9:.2f} s")
+            return None
+        if self.propagator.add(s):
             return self._propagated_state()
         return None
 
@@ -206,7 +248,8 @@ class Estimator:
 
     def health(self) -> EstimatorHealth:
         t = self.imu.last_t_ns
-        age = None if t is None or self._last_vision_t is None else max(t - self._last_vision_t, 0) * 1e-9
+        vt = self._state.last_vision_t if isinstance(self._state, _Running) else None
+        age = None if t is None or vt is None else max(t - vt, 0) * 1e-9
         return EstimatorHealth(self.initialized, self._tracking_at(t) if t is not None else False,
                                self.reset_counter, self.frames_processed, self.frames_unusable,
                                dict(self.unusable_reasons), self.imu_rejected, dict(self.imu_rejected_reasons),
@@ -214,8 +257,9 @@ class Estimator:
 
     def _tracking_at(self, t: int) -> bool:
         """Tracking means vision: a usable frame reached the back end within vision_timeout_s of t."""
-        return (self.initialized and self._tracking and self._last_vision_t is not None
-                and (t - self._last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s)
+        run = self._state
+        return (isinstance(run, _Running) and self._tracking and run.last_vision_t is not None
+                and (t - run.last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s)
 
     def feed_frame(self, frame: StereoFrame) -> NavState | None:
         """Add a stereo frame; returns the state at the newest frame processed by this call."""
@@ -257,36 +301,36 @@ class Estimator:
         `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
         IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
+        # a running bridge (and its anchor) survives a failed restart: the last trusted state is older
+        w = self._state if isinstance(self._state, _Waiting) else _Waiting()
         if not bridge:
-            self._bridge = None
-        if self._latest is not None and self._bridge is None:  # (a running bridge survives a failed restart)
-            self._anchor = self._latest.T_world_body.copy()
+            w.bridge = None
+        if self._latest is not None and w.bridge is None:
+            w.anchor = self._latest.T_world_body.copy()
             st = self._latest
             if bridge and self.imu.t and self.imu.t[0] <= st.t_ns:  # the IMU since that state is still here
                 bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
-                self._bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
-                                            gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
-                if self._last_frame_t is not None:
-                    self._advance_bridge(self._last_frame_t)
+                w.bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
+                                        gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
+        if bridge and self._latest is not None:
+            w.trusted_bias = (self._latest.t_ns, np.asarray(self._latest.gyro_bias, float).copy())
+        elif not bridge:
+            w.trusted_bias = None
+        self._state = w
+        if self._last_frame_t is not None:
+            self._advance_bridge(self._last_frame_t)
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
         self.last_reset_reason = reason
-        if bridge and self._latest is not None:
-            self._trusted_bias = (self._latest.t_ns, np.asarray(self._latest.gyro_bias, float).copy())
-        elif not bridge:
-            self._trusted_bias = None
         self._pending.clear()
-        self._last_vision_t = None
         self._tracking = False
-        self._smoother = None
-        self._pim = None
-        self._last_kf_t = None
         self.moving_init.clear()
 
     def _advance_bridge(self, t: int) -> None:
         """Integrate the reset bridge up to the frame time t (not beyond: the start that uses it is at t)."""
-        if self._bridge is not None and t > self._bridge.t_ns:
-            self.imu.integrate(self._bridge.pim, self._bridge.t_ns, t)
-            self._bridge.t_ns = t
+        b = self._state.bridge if isinstance(self._state, _Waiting) else None
+        if b is not None and t > b.t_ns:
+            self.imu.integrate(b.pim, b.t_ns, t)
+            b.t_ns = t
 
     # -- frame pipeline --------------------------------------------------------------------------------
     def _drain(self, final: bool) -> NavState | None:
@@ -365,7 +409,8 @@ class Estimator:
         never add to a keyframe solve."""
         if self.offset_estimator is None or self.offset_estimator.done:
             return
-        quiet = not self.initialized or not (self._is_keyframe(t, ff) or self._marginal_due)
+        run = self._state
+        quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
         if new is not None and new != self.time_offset_ns:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
@@ -382,8 +427,12 @@ class Estimator:
             init = None
         if init is None and icfg.allow_moving_start:
             init = self.moving_init.add(t, ff, self.imu)  # fed always: it needs a window of consecutive frames
-            if init is not None and not (plausible and self._bias_continuous(init)):
+            if init is not None and not plausible:
                 init = None
+            elif init is not None and not self._bias_continuous(init):
+                # the visual alignment's bias is noisy (+-0.03 rad/s over 1 s), but it cannot take a turn for
+                # a bias: keep the start, with the last trusted bias
+                init = dataclasses.replace(init, gyro_bias=self._state.trusted_bias[1].copy())
         if init is None:
             return None
         return self._start(init, ff)
@@ -417,29 +466,36 @@ class Estimator:
     def _bias_continuous(self, init: InitialState) -> bool:
         """After a reset the gyro bias is known: a new one that differs by more than its random walk allows
         is a rotation taken for a bias (a constant-rate turn looks still to the IMU), so it is refused."""
-        if self._trusted_bias is None:
+        trusted = self._state.trusted_bias if isinstance(self._state, _Waiting) else None
+        if trusted is None:
             return True
-        t0, bg0 = self._trusted_bias
+        t0, bg0 = trusted
         gap_s = max(init.t_ns - t0, 0) * 1e-9
         rw = self.calib.imu.gyroscope_random_walk
         allowed = self.bcfg.reinit_max_gyro_bias_jump_rad_s + 3.0 * rw * np.sqrt(gap_s)
         jump = float(np.linalg.norm(np.asarray(init.gyro_bias) - bg0))
         if jump <= allowed:
             return True
-        log.info("%s re-initialisation refused: gyro bias would jump by %.4f rad/s (allowed %.4f after %.1f s): "
-                 "the vehicle is likely turning", init.method, jump, allowed, gap_s)
+        if init.method == "static":
+            log.info("static re-initialisation refused: gyro bias would jump by %.4f rad/s (allowed %.4f after "
+                     "%.1f s): the vehicle is likely turning", jump, allowed, gap_s)
+        else:
+            log.info("in-motion re-initialisation keeps the last gyro bias: its own differs by %.4f rad/s "
+                     "(allowed %.4f after %.1f s)", jump, allowed, gap_s)
         return False
 
     def _start(self, init: InitialState, ff: FeatureFrame) -> NavState:
         T = init.T_world_body
         v = init.v_world
-        if self._anchor is not None:
+        w = self._state
+        assert isinstance(w, _Waiting)
+        if w.anchor is not None:
             # Continue from where the estimate was (carried forward with the IMU when it could be): same
             # position and heading, fresh roll/pitch.
-            anchor = self._anchor
-            if self._bridge is not None:
-                pred = self._bridge.pim.predict(self._bridge.start, self._bridge.bias).pose().matrix()
-                gap_s = (init.t_ns - self._bridge.t0_ns) * 1e-9
+            anchor = w.anchor
+            if w.bridge is not None:
+                pred = w.bridge.pim.predict(w.bridge.start, w.bridge.bias).pose().matrix()
+                gap_s = (init.t_ns - w.bridge.t0_ns) * 1e-9
                 if gap_s > BRIDGE_POSITION_MAX_S:
                     pred[:3, 3] = anchor[:3, 3]
                 log.info("reset bridged with the IMU over %.2f s: heading %+.1f deg, position %+.2f m", gap_s,
@@ -453,32 +509,31 @@ class Estimator:
             T[:3, 3] = anchor[:3, 3]
             v = T_fix[:3, :3] @ v
         static = init.method == "static"
-        self._smoother = VioSmoother(self.calib, self.bcfg)
-        est = self._smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
-                                        sigma_v_m_s=0.01 if static else 0.1,
-                                        sigma_bg=0.005 if static else 0.02, features=ff)
-        self._bridge = None  # only now: a restart that fails keeps carrying the last trusted state
-        self._trusted_bias = None
-        self._last_vision_t = init.t_ns if self._usable(ff) else None
+        smoother = VioSmoother(self.calib, self.bcfg)
+        est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
+                                  sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff)
+        # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
+        self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self.moving_init.clear()
         log.info("initialised (%s) at t=%d: roll/pitch %.2f/%.2f deg", init.method, init.t_ns,
                  *np.degrees(roll_pitch_yaw(T[:3, :3])[:2]))
         return self._after_keyframe(init.t_ns, est, ff)
 
     def _after_keyframe(self, t: int, est, ff: FeatureFrame) -> NavState:
-        self._last_kf_t = t
+        run = self._state
+        run.last_kf_t = t
         self.keyframes += 1
         self._was_keyframe = True
-        first = self._pim is None  # (re)start: always a marginal, at once
+        first = run.pim is None  # (re)start: always a marginal, at once
         if not first:  # grown up to this keyframe; replaced on the next frame when a marginal is due
-            self._kf_cov_pose, self._kf_cov_vel = self._grown_covariance(self._pim)
-        self._marginal_due = False
+            run.kf_cov_pose, run.kf_cov_vel = self._grown_covariance(run.pim)
+        run.marginal_due = False
         if first:
             self._marginal()
         elif (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
-            self._marginal_due = True
-        self._cov_pose, self._cov_vel = self._kf_cov_pose, self._kf_cov_vel
-        self._pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
+            run.marginal_due = True
+        self._cov_pose, self._cov_vel = run.kf_cov_pose, run.kf_cov_vel
+        run.pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
         if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
             self.tracker.mark_keyframe()
         pose = est.pose.matrix()
@@ -489,14 +544,15 @@ class Estimator:
         for k in range(len(ts)):
             self.propagator.add(ImuSample(int(ts[k]), g[k], a[k]))
         self._update_health(t, ff)
-        return self._state(t, pose, est.velocity, bias)
+        return self._frame_state(t, pose, est.velocity, bias)
 
     def _marginal(self) -> None:
         """The newest keyframe's marginal covariances replace the grown ones (a few ms, up to ~10)."""
-        self._marginal_due = False
+        run = self._state
+        run.marginal_due = False
         self.marginals += 1
         try:
-            self._kf_cov_pose, self._kf_cov_vel = self._smoother.marginal_covariances()
+            run.kf_cov_pose, run.kf_cov_vel = run.smoother.marginal_covariances()
         except SmootherFailure as e:
             log.debug("no covariance at keyframe: %s", e)
 
@@ -506,10 +562,11 @@ class Estimator:
     def _update_health(self, t: int, ff: FeatureFrame | None) -> None:
         n = len(ff.ids) if ff is not None and ff.tracking_ok else 0
         self._track_quality = float(np.clip(n / (4 * self.bcfg.min_tracks_ok), 0.0, 1.0))
+        run = self._state
         if self._usable(ff):
-            self._last_vision_t = t
-        self._tracking = self._last_vision_t is not None and \
-            (t - self._last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s
+            run.last_vision_t = t
+        self._tracking = run.last_vision_t is not None and \
+            (t - run.last_vision_t) * 1e-9 <= self.bcfg.vision_timeout_s
 
     def _quality_of(self, cov_pose: np.ndarray, tracking: bool) -> int:
         """0..100: the share of good tracks, capped by the position uncertainty (halves per doubling of the
@@ -530,7 +587,7 @@ class Estimator:
 
     def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:
         b = self.bcfg
-        dt = (t - self._last_kf_t) * 1e-9
+        dt = (t - self._state.last_kf_t) * 1e-9
         if dt >= b.keyframe_max_interval_s:
             return True
         if dt < b.keyframe_min_interval_s:  # the solve is the expensive part: bounded rate
@@ -540,30 +597,32 @@ class Estimator:
         return ff.parallax_px >= b.keyframe_min_parallax_px or len(ff.ids) < b.keyframe_min_tracks
 
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
-        self.imu.integrate(self._pim, prev_t, t)
-        if self._marginal_due:  # the last keyframe's, computed here rather than on top of its solve
+        run = self._state
+        self.imu.integrate(run.pim, prev_t, t)
+        if run.marginal_due:  # the last keyframe's, computed here rather than on top of its solve
             self._marginal()
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):
-            last = self._smoother.last
-            nav = self._pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
-            self._cov_pose, self._cov_vel = self._grown_covariance(self._pim)
+            last = run.smoother.last
+            nav = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
+            self._cov_pose, self._cov_vel = self._grown_covariance(run.pim)
             self._update_health(t, ff)
-            st = self._state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
+            st = self._frame_state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
         else:
             icfg = self.cfg.init
             ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
             # Slow forward flight looks still to both the IMU (constant velocity) and the images (little flow
             # near the focus of expansion), so the estimated speed must agree too.
-            last = self._smoother.last
-            v_pred = self._pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
+            last = run.smoother.last
+            v_pred = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
             still = (is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
                      and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
-            est = self._smoother.add_keyframe(t, self._pim, ff, zero_velocity=still)
+            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still)
             self._check_plausible(est)
             st = self._after_keyframe(t, est, ff)
-        if self._last_vision_t is None or (t - self._last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s:
-            lost = "never" if self._last_vision_t is None else f"{(t - self._last_vision_t) * 1e-9:.2f} s"
+        vt = run.last_vision_t
+        if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:
+            lost = "never" if vt is None else f"{(t - vt) * 1e-9:.2f} s"
             self.reset(f"tracking lost: no usable camera frame for {lost}")
         return st
 
@@ -579,14 +638,15 @@ class Estimator:
         C = np.asarray(pim.preintMeasCov())
         dR = pim.deltaRij().matrix()
         dt = pim.deltaTij()
-        R_wi = self._smoother.last.pose.rotation().matrix()
+        run = self._state
+        R_wi = run.smoother.last.pose.rotation().matrix()
         R_wj = R_wi @ dR
         A = np.zeros((6, 6))
         A[:3, :3] = A[3:, 3:] = dR.T
-        cov = A @ self._kf_cov_pose @ A.T
+        cov = A @ run.kf_cov_pose @ A.T
         cov[:3, :3] += C[:3, :3]
-        cov[3:, 3:] += dR.T @ C[3:6, 3:6] @ dR + dt * dt * (R_wj.T @ self._kf_cov_vel @ R_wj)
-        cov_v = self._kf_cov_vel + R_wi @ C[6:9, 6:9] @ R_wi.T
+        cov[3:, 3:] += dR.T @ C[3:6, 3:6] @ dR + dt * dt * (R_wj.T @ run.kf_cov_vel @ R_wj)
+        cov_v = run.kf_cov_vel + R_wi @ C[6:9, 6:9] @ R_wi.T
         return 0.5 * (cov + cov.T), 0.5 * (cov_v + cov_v.T)
 
     def _check_plausible(self, est) -> None:
@@ -600,7 +660,7 @@ class Estimator:
             raise SmootherFailure(f"implausible bias: gyro {bg:.3f} rad/s, accel {ba:.3f} m/s^2", state_ok=False)
 
     # -- outputs ---------------------------------------------------------------------------------------
-    def _state(self, t: int, T_world_body: np.ndarray, v_world: np.ndarray,
+    def _frame_state(self, t: int, T_world_body: np.ndarray, v_world: np.ndarray,
                bias: gtsam.imuBias.ConstantBias) -> NavState:
         gyro_bias = np.asarray(bias.gyroscope(), float)
         T = np.asarray(T_world_body, float)
