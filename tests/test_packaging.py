@@ -46,7 +46,7 @@ def test_wheel_holds_the_three_packages(unpacked_wheel: Path) -> None:
 
 
 def test_cli_runs_from_a_plain_install(unpacked_wheel: Path) -> None:
-    r = _run_plain(unpacked_wheel, "-c", "import sys, vio.cli; sys.exit(vio.cli.main(sys.argv[1:]))", "--help")
+    r = _run_plain(unpacked_wheel, "-c", "import sys, vio.app.cli; sys.exit(vio.app.cli.main(sys.argv[1:]))", "--help")
     assert r.returncode == 0, r.stderr
     assert "replay" in r.stdout and "simulate" in r.stdout
     import_check = _run_plain(unpacked_wheel, "-c", "import vio, sys; print(vio.__file__)")

@@ -16,7 +16,7 @@ Faults are survived, not fatal: a source that raises or goes quiet for `run.sour
 and reopened with backoff (a finite source that has ended is not reopened); an estimator exception resets
 the estimator; a MAVLink error reopens the link; a recorder or trajectory-file error (disk full, file-size
 limit, read-only or removed folder) stops that output with one warning and leaves the rest running.
-Only an invalid configuration ends the process (exit code 3, `vio.cli.EXIT_CONFIG`).
+Only an invalid configuration ends the process (exit code 3, `vio.app.cli.EXIT_CONFIG`).
 
 Readiness and supervision: READY=1 goes to systemd once the threads run and the sensors deliver data (or
 after `run.ready_timeout_s` without data: the daemon keeps reopening the sensors). Tracking is not needed:
@@ -26,8 +26,8 @@ The watchdog is fed while every loop beats; a wedged loop (no heartbeat for 5 s)
 What reaches the autopilot is never more than the estimator knows: a state goes out as tracking only while
 camera frames arrive (the daemon's own check, `VISION_STALE_S`) and the estimator says it is tracking.
 
-This module is the only place in `vio` that imports `drivers` (inside functions, so `vio` stays usable
-without them).
+The daemon is part of the application layer (`vio.app`), the only code in `vio` that imports `drivers`
+(inside functions, so the other commands stay usable without them).
 """
 
 from __future__ import annotations
@@ -53,9 +53,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from vio import VioError
+from vio.app.sdnotify import SdNotifier, watchdog_interval_s
 from vio.config import VioConfig, load_config
 from vio.geometry import rot_to_quat_wxyz
-from vio.sdnotify import SdNotifier, watchdog_interval_s
 from vio.trajectory import format_tum_line
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
@@ -1272,7 +1272,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio.cli import EXIT_CONFIG
+    from vio.app.cli import EXIT_CONFIG
 
     try:
         cfg = load_config(args.config)
