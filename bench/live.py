@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 RSS_PERIOD_S = 0.5
 SETTLE_S = 1.0  # after the data ends: let the last frames drain before SIGTERM
-SOURCE_ENDED = "source ended"  # vio.app.daemon.service's warning when the EuRoC playback is over
+SOURCE_ENDED = "source ended"  # the daemon's warning (vio.app.daemon) when the EuRoC playback is over
 STARTUP_LIMIT_S = 60.0  # the daemon must have played the data by duration + this
 
 

@@ -321,7 +321,7 @@ record_dir = "{tmp_path / 'rec'}"
     assert rc == 0 and took < 2.0, log[-3000:]
     warned = [line for line in d.lines if "WARNING" in line]
     assert sum("recording stopped" in w for w in warned) == 1, warned
-    assert sum("vio.app.daemon.service: trajectory file" in w for w in warned) == 1, warned
+    assert sum("vio.app.daemon.outputs: trajectory file" in w for w in warned) == 1, warned
     assert "Traceback" not in log and "thread died" not in log
     (rec,) = (tmp_path / "rec").iterdir()
     ds = EurocDataset(rec)

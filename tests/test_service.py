@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vio.app.daemon.service import LatestState, SensorBuffer, Service, write_status_file
+from vio.app.daemon.buffers import LatestState, SensorBuffer
+from vio.app.daemon.service import Service
+from vio.app.daemon.status import write_status_file
 from vio.app.sdnotify import SdNotifier, watchdog_interval_s
 from vio.app.status import EXIT_HEALTHY, EXIT_NOT_RUNNING, EXIT_UNHEALTHY, evaluate, format_status
 from vio.config import config_from_dict
@@ -76,7 +78,7 @@ def test_buffer_imu_overflow_is_counted_not_silent() -> None:
 
 
 def test_latest_state_gives_newest_state_and_every_frame_state() -> None:
-    from vio.app.daemon.service import Output
+    from vio.app.daemon.buffers import Output
 
     box = LatestState()
     for k in range(3):
@@ -583,9 +585,9 @@ def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
 def test_a_driver_that_reconnects_itself_is_not_restarted(tmp_path: Path, monkeypatch) -> None:
     """An OAK driver reports state 'disconnected' and reconnects on its own: the daemon counts the loss,
     waits for the data to return, and does not tear the driver down in the middle of its reconnect."""
-    import vio.app.daemon.service as service
+    import vio.app.daemon.workers as workers
 
-    monkeypatch.setattr(service, "FIRST_DATA_TIMEOUT_S", 0.3)
+    monkeypatch.setattr(workers, "FIRST_DATA_TIMEOUT_S", 0.3)
     cfg = config_from_dict({"run": {"status_file": "", "source_timeout_s": 0.3}})
     events: list = []
     silent = threading.Event()
