@@ -89,10 +89,10 @@ def replay_case(case: Case, path: Path, config: str | None) -> dict:
     import cv2
 
     from vio import VioError
+    from vio.app.replay import replay
     from vio.config import load_config
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
-    from vio.replay import replay
 
     cv2.setNumThreads(1)
     ds = EurocDataset(path)

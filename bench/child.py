@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cv_threads:
         cv2.setNumThreads(args.cv_threads)
     import vio
-    from vio.cli import main as vio_main
+    from vio.app.cli import main as vio_main
 
     cmd = ["-q", "replay", *rargs]
     if args.profile:

@@ -53,7 +53,7 @@ def ensure_flight(spec: FlightSpec, cache: Path = DEFAULT_CACHE) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     log.info("generating flight %s (not cached)", spec.key)
     t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "vio.cli", "-q", *spec.simulate_args(tmp)]
+    cmd = [sys.executable, "-m", "vio.app.cli", "-q", *spec.simulate_args(tmp)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         shutil.rmtree(tmp, ignore_errors=True)

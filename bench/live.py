@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 RSS_PERIOD_S = 0.5
 SETTLE_S = 1.0  # after the data ends: let the last frames drain before SIGTERM
-SOURCE_ENDED = "source ended"  # vio.service's warning when the EuRoC playback is over
+SOURCE_ENDED = "source ended"  # the daemon's warning (vio.app.daemon) when the EuRoC playback is over
 STARTUP_LIMIT_S = 60.0  # the daemon must have played the data by duration + this
 
 
@@ -128,7 +128,7 @@ def run_live(dataset: Path, duration_s: float, workdir: Path, env: dict, cpus: s
     samples: list[tuple[float, int, int]] = []
     status = None
     with open(log_path, "w") as logf:
-        proc = subprocess.Popen([python, "-m", "vio.cli", "run", "--config", str(cfg)], stdout=logf,
+        proc = subprocess.Popen([python, "-m", "vio.app.cli", "run", "--config", str(cfg)], stdout=logf,
                                 stderr=subprocess.STDOUT, env=env, cwd=workdir,
                                 preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None)
         t0 = time.monotonic()

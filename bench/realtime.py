@@ -36,9 +36,9 @@ def main(argv: list[str] | None = None) -> int:
 
     cv2.setNumThreads(1)
     from vio import VioError
+    from vio.app.replay import replay
     from vio.config import load_config
     from vio.io.euroc import EurocDataset
-    from vio.replay import replay
 
     try:
         ds = EurocDataset(args.dataset)

@@ -216,7 +216,7 @@ def test_show_reports_geometry(v101_path):
 
 
 def test_cli_import_and_show(tmp_path, capsys):
-    from vio.cli import main
+    from vio.app.cli import main
 
     out = tmp_path / "c.yaml"
     rc = main(["calib", "import", "kalibr", str(DATA / "kalibr_camchain_imucam.yaml"),
@@ -355,7 +355,7 @@ def test_time_offset_recovers_injected_offset(tmp_path, offset_ms):
 
 
 def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
-    from vio.cli import main
+    from vio.app.cli import main
 
     root = _rotation_only_recording(tmp_path / "rec", 0.008, duration_s=4.0)
     assert main(["calib", "time-offset", str(root), "--plot", str(tmp_path / "to.png")]) == 0

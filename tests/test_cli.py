@@ -8,13 +8,13 @@ import sys
 
 import pytest
 
-from vio import cli
-from vio.cli import EXIT_CONFIG, EXIT_FAILURE, EXIT_OK, EXIT_USAGE, main
+from vio.app import cli
+from vio.app.cli import EXIT_CONFIG, EXIT_FAILURE, EXIT_OK, EXIT_USAGE, main
 
 
 def _vio(*args: str) -> subprocess.CompletedProcess:
     """The real entry point in a fresh interpreter (catches import-time problems main() would hide)."""
-    return subprocess.run([sys.executable, "-m", "vio.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "vio.app.cli", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_help_lists_the_available_commands():
@@ -95,12 +95,12 @@ def test_broken_command_module_does_not_take_the_cli_down(tmp_path, monkeypatch,
 
 
 def test_unexpected_error_is_one_line_with_a_hint(monkeypatch, capsys):
-    import vio.replay
+    import vio.app.replay
 
     def boom(args):
         raise RuntimeError("matrix not\npositive definite")
 
-    monkeypatch.setattr(vio.replay, "run", boom)
+    monkeypatch.setattr(vio.app.replay, "run", boom)
     assert main(["-q", "replay", "somewhere"]) == EXIT_FAILURE
     err = capsys.readouterr().err
     assert err == ("vio replay: internal error: RuntimeError: matrix not positive definite "
@@ -112,11 +112,11 @@ def test_unexpected_error_is_one_line_with_a_hint(monkeypatch, capsys):
 
 
 def test_interrupt_is_130(monkeypatch, capsys):
-    import vio.replay
+    import vio.app.replay
 
     def stop(args):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(vio.replay, "run", stop)
+    monkeypatch.setattr(vio.app.replay, "run", stop)
     assert main(["-q", "replay", "somewhere"]) == 130
     assert capsys.readouterr().err == "vio replay: interrupted\n"

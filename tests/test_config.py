@@ -8,7 +8,7 @@ import math
 import pytest
 
 from vio import VioError
-from vio.cli import main
+from vio.app.cli import main
 from vio.config import VioConfig, config_from_dict, config_to_toml, load_config
 
 

@@ -35,12 +35,12 @@ from test_service import (
     notify_socket,
 )
 
-import vio.service as service
+import vio.app.daemon.service as service
+from vio.app.daemon.service import Service
+from vio.app.sdnotify import SdNotifier
+from vio.app.status import EXIT_UNHEALTHY
 from vio.config import config_from_dict
 from vio.io.euroc import EurocDataset
-from vio.sdnotify import SdNotifier
-from vio.service import Service
-from vio.status import EXIT_UNHEALTHY
 from vio.types import NavState
 
 __all__ = ["notify_socket"]  # the fixture, imported for the tests below
@@ -321,7 +321,7 @@ record_dir = "{tmp_path / 'rec'}"
     assert rc == 0 and took < 2.0, log[-3000:]
     warned = [line for line in d.lines if "WARNING" in line]
     assert sum("recording stopped" in w for w in warned) == 1, warned
-    assert sum("vio.service: trajectory file" in w for w in warned) == 1, warned
+    assert sum("vio.app.daemon.outputs: trajectory file" in w for w in warned) == 1, warned
     assert "Traceback" not in log and "thread died" not in log
     (rec,) = (tmp_path / "rec").iterdir()
     ds = EurocDataset(rec)
@@ -333,7 +333,7 @@ def test_vio_run_camera_loss_euroc(tmp_path: Path, notify_socket, v101_path: Pat
     """V1_01 excerpt live: 4.7 s of images, then IMU only. After the images end nothing tracked goes to
     the autopilot, status says waiting for vision (exit 1), the daemon is neither dead nor restarted."""
     _need_pipeline()
-    from vio.cli import main
+    from vio.app.cli import main
 
     sock, notify_path = notify_socket
     ap = FakeAutopilot()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vio.cli import EXIT_FAILURE
+from vio.app.cli import EXIT_FAILURE
 
 pytest.importorskip("vio.sim.generate")
 
@@ -34,7 +34,7 @@ def flight(tmp_path_factory) -> Path:
 
 def _vio(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
-    return subprocess.run([sys.executable, "-m", "vio.cli", *args], capture_output=True, text=True, timeout=timeout,
+    return subprocess.run([sys.executable, "-m", "vio.app.cli", *args], capture_output=True, text=True, timeout=timeout,
                           env=env)
 
 
@@ -266,7 +266,7 @@ def test_vision_that_never_worked_fails_the_replay(flight, tmp_path):
 
 
 def test_ctrl_c_is_a_short_message_and_130(flight, tmp_path):
-    p = subprocess.Popen([sys.executable, "-m", "vio.cli", "-q", "replay", str(flight), "--output",
+    p = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "-q", "replay", str(flight), "--output",
                           str(tmp_path / "t.tum"), "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         p.stderr.read(1)  # the progress bar starts: the replay is running (3 s at sensor rate)

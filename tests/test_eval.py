@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vio import VioError
-from vio.cli import main
+from vio.app.cli import main
 from vio.evaluation import align_4dof, associate, evaluate, load_trajectory
 from vio.geometry import make_T, so3_exp
 from vio.trajectory import Trajectory, write_tum

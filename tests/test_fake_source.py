@@ -78,7 +78,7 @@ trajectory_file = "{traj}"
 """)
     log_path = tmp_path / "daemon.log"
     with open(log_path, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "vio.cli", "run", "--config", str(cfg)], cwd=REPO,
+        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
                                 stdout=log, stderr=subprocess.STDOUT)
     try:
         assert _wait(lambda: "source finished" in log_path.read_text() or proc.poll() is not None, 90), \

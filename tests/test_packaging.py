@@ -46,8 +46,19 @@ def test_wheel_holds_the_three_packages(unpacked_wheel: Path) -> None:
 
 
 def test_cli_runs_from_a_plain_install(unpacked_wheel: Path) -> None:
-    r = _run_plain(unpacked_wheel, "-c", "import sys, vio.cli; sys.exit(vio.cli.main(sys.argv[1:]))", "--help")
+    r = _run_plain(unpacked_wheel, "-c", "import sys, vio.app.cli; sys.exit(vio.app.cli.main(sys.argv[1:]))", "--help")
     assert r.returncode == 0, r.stderr
     assert "replay" in r.stdout and "simulate" in r.stdout
     import_check = _run_plain(unpacked_wheel, "-c", "import vio, sys; print(vio.__file__)")
     assert str(unpacked_wheel) in import_check.stdout, import_check.stdout + import_check.stderr
+
+
+def test_the_vio_script_names_the_app_layer_entry_point(unpacked_wheel: Path) -> None:
+    """`[project.scripts] vio` points at a module that exists in the wheel and runs."""
+    (entry_points,) = unpacked_wheel.glob("kestrel_vio-*.dist-info/entry_points.txt")
+    line = next(raw for raw in entry_points.read_text().splitlines() if raw.replace(" ", "").startswith("vio="))
+    target = line.split("=", 1)[1].strip()
+    assert target == "vio.app.cli:main", target
+    module, func = target.split(":")
+    r = _run_plain(unpacked_wheel, "-c", f"import sys, {module}; sys.exit({module}.{func}(['--help']))")
+    assert r.returncode == 0 and "replay" in r.stdout, r.stderr

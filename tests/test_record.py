@@ -80,7 +80,7 @@ def test_euroc_source_replays_a_dataset_unchanged(v101_path: Path, tmp_path: Pat
 def _start_recorder(tmp_path: Path, out: Path) -> subprocess.Popen:
     cfg = tmp_path / "rec.toml"
     cfg.write_text('[source]\nkind = "fake"\nwidth = 160\nheight = 100\nfps = 20.0\nimu_rate_hz = 200.0\n')
-    return subprocess.Popen([sys.executable, "-m", "vio.cli", "record", str(out), "--config", str(cfg),
+    return subprocess.Popen([sys.executable, "-m", "vio.app.cli", "record", str(out), "--config", str(cfg),
                              "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from vio.cli import main
+from vio.app.cli import main
 from vio.trajectory import read_tum
 
 
@@ -34,9 +34,9 @@ def test_replay_of_missing_dataset_is_a_clear_error(tmp_path, capsys):
 
 def test_short_synthetic_flight_is_accurate(tmp_path):
     sim = pytest.importorskip("vio.sim.generate")
+    from vio.app.replay import replay
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
-    from vio.replay import replay
 
     data = tmp_path / "flight"
     sim.simulate(data, sim.SimConfig(profile="survey", duration_s=8.0, seed=3, width=376, height=240))
@@ -61,8 +61,8 @@ def test_frames_processed_late_are_counted_in_the_stats(tmp_path):
     """With a positive time offset each frame waits for the next IMU sample and is processed inside
     feed_imu; its cost and keyframe flag must still reach the stats."""
     sim = pytest.importorskip("vio.sim.generate")
+    from vio.app.replay import replay
     from vio.io.euroc import EurocDataset
-    from vio.replay import replay
 
     data = tmp_path / "flight"
     sim.simulate(data, sim.SimConfig(profile="survey", duration_s=4.0, seed=2, width=376, height=240,

@@ -22,10 +22,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vio.app.daemon.buffers import LatestState, SensorBuffer
+from vio.app.daemon.service import Service
+from vio.app.daemon.status import write_status_file
+from vio.app.sdnotify import SdNotifier, watchdog_interval_s
+from vio.app.status import EXIT_HEALTHY, EXIT_NOT_RUNNING, EXIT_UNHEALTHY, evaluate, format_status
 from vio.config import config_from_dict
-from vio.sdnotify import SdNotifier, watchdog_interval_s
-from vio.service import LatestState, SensorBuffer, Service, write_status_file
-from vio.status import EXIT_HEALTHY, EXIT_NOT_RUNNING, EXIT_UNHEALTHY, evaluate, format_status
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,7 +78,7 @@ def test_buffer_imu_overflow_is_counted_not_silent() -> None:
 
 
 def test_latest_state_gives_newest_state_and_every_frame_state() -> None:
-    from vio.service import Output
+    from vio.app.daemon.buffers import Output
 
     box = LatestState()
     for k in range(3):
@@ -157,7 +159,7 @@ def test_status_text_names_what_a_person_needs() -> None:
 
 
 def test_status_cli_exit_codes(tmp_path: Path) -> None:
-    from vio.cli import main
+    from vio.app.cli import main
 
     path = tmp_path / "status.json"
     assert main(["status", "--file", str(path)]) == EXIT_NOT_RUNNING
@@ -371,11 +373,11 @@ def _started(src: ScriptedSource) -> ScriptedSource:
 def test_run_config_error_exits_3(tmp_path: Path) -> None:
     bad = tmp_path / "config.toml"
     bad.write_text('[source]\nkind = "euroc"\ndatset = "/nowhere"\n')
-    r = subprocess.run([sys.executable, "-m", "vio.cli", "run", "--config", str(bad)], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(bad)], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 3
     assert "configuration error" in r.stderr and "datset" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "vio.cli", "run", "--config", str(tmp_path / "absent.toml")],
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(tmp_path / "absent.toml")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 3 and "absent.toml" in r.stderr
 
@@ -403,7 +405,7 @@ class Unpluggable:
         return [] if os.path.exists(flag) else out
 
 ds.open_source = lambda cfg, **kw: Unpluggable(real_open(cfg, **kw))
-from vio.cli import main
+from vio.app.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 
@@ -583,9 +585,9 @@ def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
 def test_a_driver_that_reconnects_itself_is_not_restarted(tmp_path: Path, monkeypatch) -> None:
     """An OAK driver reports state 'disconnected' and reconnects on its own: the daemon counts the loss,
     waits for the data to return, and does not tear the driver down in the middle of its reconnect."""
-    import vio.service as service
+    import vio.app.daemon.workers as workers
 
-    monkeypatch.setattr(service, "FIRST_DATA_TIMEOUT_S", 0.3)
+    monkeypatch.setattr(workers, "FIRST_DATA_TIMEOUT_S", 0.3)
     cfg = config_from_dict({"run": {"status_file": "", "source_timeout_s": 0.3}})
     events: list = []
     silent = threading.Event()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vio import VioError
-from vio.cli import main
+from vio.app.cli import main
 from vio.geometry import GRAVITY_M_S2, so3_exp, so3_log
 from vio.io.euroc import EurocDataset
 from vio.sim import default_calibration

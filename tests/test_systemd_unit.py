@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from vio.cli import EXIT_CONFIG
+from vio.app.cli import EXIT_CONFIG
 from vio.config import load_config
 
 SYSTEMD = Path(__file__).resolve().parents[1] / "systemd"

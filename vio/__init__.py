@@ -1,6 +1,8 @@
 """Kestrel VIO: stereo visual-inertial odometry for drones.
 
-The core (`vio`) never imports drivers, pymavlink or depthai: it runs from replayed data alone.
+The core (everything in `vio` outside `vio.app`) never imports `drivers`, `calib`, pymavlink or depthai: it
+runs from replayed data alone. `vio.app` (the commands, replay, the daemon) is the only code that imports
+`drivers` and `calib`; tests/test_layering.py checks this from the import graph.
 """
 
 import logging

@@ -17,15 +17,15 @@ from vio import VioError, __version__
 
 # name -> (module, one-line help). Modules define add_arguments(parser) and run(args) -> exit code.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "simulate": ("vio.sim.cli", "generate a synthetic stereo+IMU flight (EuRoC format) with known truth"),
-    "replay": ("vio.replay", "run the estimator on a recorded EuRoC dataset; write trajectory and stats"),
-    "demo": ("vio.demo", "simulate a short flight, replay it and print accuracy and speed"),
+    "simulate": ("vio.app.simulate", "generate a synthetic stereo+IMU flight (EuRoC format) with known truth"),
+    "replay": ("vio.app.replay", "run the estimator on a recorded EuRoC dataset; write trajectory and stats"),
+    "demo": ("vio.app.demo", "simulate a short flight, replay it and print accuracy and speed"),
     "eval": ("vio.evaluation", "compare an estimated trajectory with ground truth (ATE, RPE, plot)"),
-    "config": ("vio.config_cli", "check or show the configuration file"),
+    "config": ("vio.app.config_cli", "check or show the configuration file"),
     "calib": ("calib.cli", "import, show and check calibrations; IMU noise; camera-IMU time offset"),
     "record": ("drivers.record", "record live sensors to a EuRoC dataset"),
-    "run": ("vio.service", "onboard daemon: sensors -> estimator -> MAVLink"),
-    "status": ("vio.status", "show the health of a running `vio run`"),
+    "run": ("vio.app.daemon.service", "onboard daemon: sensors -> estimator -> MAVLink"),
+    "status": ("vio.app.status", "show the health of a running `vio run`"),
 }
 
 # Exit codes shared by all commands.

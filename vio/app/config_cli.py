@@ -18,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio.cli import EXIT_CONFIG
+    from vio.app.cli import EXIT_CONFIG
 
     try:
         cfg = load_config(args.file)

@@ -19,9 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from vio import VioError
+    from vio.app.replay import TumSink, replay
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
-    from vio.replay import TumSink, replay
     from vio.sim.generate import SimConfig, simulate
 
     if args.duration < 5:

@@ -1,0 +1,464 @@
+"""`vio run`: the onboard daemon. Sensors -> estimator -> MAVLink, supervised for systemd.
+
+Threads and the bounded buffers between them:
+
+    source thread --(SensorBuffer: frames drop-oldest, IMU large + counted overflow)--> estimator thread
+          \\--(SensorBuffer for the recorder, same policy)--> recorder thread (EurocWriter)
+    estimator thread --(LatestState: newest NavState only)--> output thread (MAVLink, TUM log)
+    main thread: signals, status line + status file once a second, sd_notify READY/WATCHDOG/STATUS
+
+Why drop the oldest frame: an autopilot needs the current pose; a pose for a frame that waited behind
+others is stale on arrival. IMU samples are never dropped silently, because pre-integration needs every one;
+the IMU buffer holds many seconds, and if it still overflows the estimator is far behind: the overflow is
+counted, logged and the estimator is reset (its IMU chain is broken anyway).
+
+Faults are survived, not fatal: a source that raises or goes quiet for `run.source_timeout_s` is closed
+and reopened with backoff (a finite source that has ended is not reopened); an estimator exception resets
+the estimator; a MAVLink error reopens the link; a recorder or trajectory-file error (disk full, file-size
+limit, read-only or removed folder) stops that output with one warning and leaves the rest running.
+Only an invalid configuration ends the process (exit code 3, `vio.app.cli.EXIT_CONFIG`).
+
+Readiness and supervision: READY=1 goes to systemd once the threads run and the sensors deliver data (or
+after `run.ready_timeout_s` without data: the daemon keeps reopening the sensors). Tracking is not needed:
+a drone that cannot initialise (dark hangar, lens cap) reports `waiting for vision` and is not restarted.
+The watchdog is fed while every loop beats; a wedged loop (no heartbeat for 5 s) stops it.
+
+What reaches the autopilot is never more than the estimator knows: a state goes out as tracking only while
+camera frames arrive (the daemon's own check, `VISION_STALE_S`) and the estimator says it is tracking.
+
+The daemon is part of the application layer (`vio.app`), the only code in `vio` that imports `drivers`
+(inside functions, so the other commands stay usable without them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from vio import VioError
+from vio.app.daemon.buffers import LatestState, RateWindow, SensorBuffer
+from vio.app.daemon.outputs import OutputWorker, RecorderWorker
+from vio.app.daemon.status import (
+    STATUS_VERSION,
+    _dash,
+    _health_fields,
+    _not_tracking_reason,
+    _round,
+    _source_health,
+    write_status_file,
+)
+from vio.app.daemon.workers import (
+    EstimatorApi,
+    EstimatorWorker,
+    SourceWorker,
+    Worker,
+)
+from vio.app.sdnotify import SdNotifier, watchdog_interval_s
+from vio.config import VioConfig, load_config
+
+if TYPE_CHECKING:
+    from vio.calibration import StereoCalibration
+
+log = logging.getLogger(__name__)
+
+JOIN_BUDGET_S = 1.6  # shutdown must finish within 2 s of SIGTERM; keep a margin for the final status write
+STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog stops being fed
+VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
+
+
+def open_source(cfg: VioConfig) -> Any:
+    """The configured sensor source, started."""
+    from drivers.source import open_source as driver_open_source
+
+    src = driver_open_source(cfg.source)
+    src.start()
+    return src
+
+
+def load_run_calibration(cfg: VioConfig, source_calibration: Any) -> Any:
+    """The calibration file named in the config wins over what the device or dataset reports."""
+    if cfg.source.calibration:
+        from vio.calibration import load_calibration
+
+        return load_calibration(cfg.source.calibration)
+    return source_calibration
+
+
+# ------------------------------------------------------------------------------------------------ service
+
+class Service:
+    """Builds the pipeline, supervises it and reports its health; `run()` returns on SIGTERM/SIGINT."""
+
+    def __init__(self, cfg: VioConfig, *, source_factory: Callable[[], Any] | None = None,
+                 estimator_factory: Callable[[Any], Any] | None = None,
+                 mavlink_factory: Callable[[], Any] | None = None, notifier: SdNotifier | None = None) -> None:
+        self.cfg = cfg
+        self.stop = threading.Event()
+        self.notifier = notifier or SdNotifier()
+        rc = cfg.run
+        self.est_buf = SensorBuffer(rc.queue_frames, rc.queue_imu)
+        self.rec_buf = SensorBuffer(rc.queue_frames * 4, rc.queue_imu) if rc.record_dir else None
+        self.latest = LatestState()
+        paced = cfg.source.kind in ("fake", "euroc") and not cfg.source.realtime
+        self.source = SourceWorker(self.stop, source_factory or (lambda: open_source(cfg)),
+                                   [b for b in (self.est_buf, self.rec_buf) if b is not None],
+                                   rc.source_timeout_s, rc.reconnect_max_s, paced=paced)
+        self._estimator_factory = estimator_factory or _default_estimator_factory(cfg)
+        self.estimator = EstimatorWorker(self.stop, self._make_estimator, self.est_buf, self.latest,
+                                         rc.max_imu_gap_s)
+        mount = None
+        if mavlink_factory is None and cfg.mavlink.url:
+            mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now)
+            mount = self._set_mount
+        self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
+                                   vision_ok=self.camera_fresh, mount=mount)
+        self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now)
+                         if self.rec_buf is not None else None)
+        self.started = time.time()
+        self.started_mono = time.monotonic()
+        self.ready = False
+        self.rates = RateWindow()
+        self.watchdog_s = watchdog_interval_s()
+        self._last_watchdog = 0.0
+        self._last_status: dict = {}
+        self._logged_overflow = 0
+        self._logged_drops = 0
+        self._stall_warned = False
+
+    # -- wiring ---------------------------------------------------------------------------------------
+    def _calibration_now(self) -> Any:
+        if not self.source.calibration_ready.is_set() and not self.cfg.source.calibration:
+            return None
+        return load_run_calibration(self.cfg, self.source.calibration)
+
+    def _set_mount(self, mav: Any) -> bool:
+        """Give the MAVLink output the camera mount from the calibration once it is known (an OAK reports
+        it only after boot); True when done."""
+        calib = self._calibration_now()
+        if calib is None:
+            return False
+        try:
+            mav.set_camera_mount(calib.cam0.T_body_cam)
+        except VioError as e:  # the calibration does not decide the mount: the output says so, once
+            log.error("camera mount: %s; set [mavlink] mount = 'rpy' and mount_rpy_deg", e)
+        return True
+
+    def camera_fresh(self) -> bool:
+        """The daemon's own fact: camera frames arrived within VISION_STALE_S (host time)."""
+        last = self.source.last_frame
+        return last > 0 and time.monotonic() - last <= VISION_STALE_S
+
+    def _make_estimator(self) -> EstimatorApi | None:
+        # the estimator needs the calibration, which an OAK only reports once it is open
+        while not self.stop.is_set():
+            calib = self._calibration_now()
+            if calib is not None:
+                return self._estimator_factory(calib)
+            self.estimator.beat()
+            self.source.calibration_ready.wait(0.1)
+        return None  # stopping before the sensors ever came up
+
+    @property
+    def workers(self) -> list[Worker]:
+        return [w for w in (self.source, self.estimator, self.output, self.recorder) if w is not None]
+
+    # -- main loop ------------------------------------------------------------------------------------
+    def run(self) -> int:
+        self.notifier.status("starting: opening sensors")
+        for w in self.workers:
+            w.start()
+        next_status = time.monotonic() + 1.0
+        while not self.stop.is_set():
+            self.stop.wait(0.05)
+            self._check_ready()
+            self._feed_watchdog()
+            if time.monotonic() >= next_status:
+                next_status += 1.0
+                self.report()
+        return self.shutdown()
+
+    def request_stop(self, signum: int | None = None, _frame: Any = None) -> None:
+        if signum is not None and not self.stop.is_set():
+            log.info("received %s: stopping", signal.Signals(signum).name)
+        self.stop.set()
+        self.est_buf.wake()
+        if self.rec_buf is not None:
+            self.rec_buf.wake()
+        self.latest.wake()
+
+    def shutdown(self) -> int:
+        t0 = time.monotonic()
+        self.notifier.stopping()
+        self.stop.set()
+        deadline = t0 + JOIN_BUDGET_S
+        stuck = []
+        for w in self.workers:  # source first: no new data; recorder last: it flushes what was queued
+            w.join(max(0.0, deadline - time.monotonic()))
+            if w.is_alive():
+                stuck.append(w.name)
+        status = self.snapshot()
+        status["state"] = "stopped"
+        self._write_status(status)
+        if stuck:
+            log.warning("stopped with %s still busy after %.1f s (abandoned)", ", ".join(stuck), JOIN_BUDGET_S)
+        log.info("stopped in %.2f s: %s", time.monotonic() - t0, self._summary(status))
+        self.notifier.close()
+        return 0
+
+    def _check_ready(self) -> None:
+        """READY=1 once the pipeline is up: threads started and sensor data flowing, or after
+        `run.ready_timeout_s` without data (systemd would otherwise kill and restart a daemon whose camera
+        is unplugged at boot; the daemon keeps reopening it by itself). A first pose is not needed."""
+        if self.ready:
+            return
+        up = time.monotonic() - self.started_mono
+        if self.source.connected:
+            why = "sensors delivering"
+        elif up >= self.cfg.run.ready_timeout_s:
+            why = f"no sensor data after {up:.0f} s ({self.source.last_error or 'starting'}); still trying"
+        else:
+            return
+        self.ready = True
+        log.info("ready after %.1f s: %s", up, why)
+        self.notifier.ready(why)
+
+    def _warn_stall(self, tracking: bool, sensors_ok: bool) -> None:
+        """Sensors deliver but no pose for `run.stall_timeout_s`: one warning naming why (lens cap, darkness,
+        a sensor error). The watchdog is NOT stopped for it: a restart would not bring the pose back."""
+        if tracking:
+            self._stall_warned = False
+            return
+        since = time.monotonic() - (self.estimator.last_state_time or self.started_mono)
+        if self._stall_warned or not sensors_ok or since < self.cfg.run.stall_timeout_s:
+            return
+        self._stall_warned = True
+        log.warning("waiting for vision: sensors deliver but no tracked pose for %.0f s (%s)", since,
+                    _not_tracking_reason(self.estimator.health, self.camera_fresh()))
+
+    def healthy(self) -> tuple[bool, list[str]]:
+        """Alive = every loop beat recently and no thread died. No pose is not a reason: see _warn_stall."""
+        problems = []
+        for w in self.workers:
+            if w.crashed:
+                problems.append(f"{w.name} thread died ({w.crashed})")
+            elif not w.is_alive() and not self.stop.is_set():
+                problems.append(f"{w.name} thread ended")
+            elif w.beat_age_s() > STUCK_S:
+                problems.append(f"{w.name} loop stuck for {w.beat_age_s():.0f} s")
+        return not problems, problems
+
+    def _feed_watchdog(self) -> None:
+        if self.watchdog_s is None or time.monotonic() - self._last_watchdog < self.watchdog_s:
+            return
+        ok, problems = self.healthy()
+        if ok:
+            self.notifier.watchdog()
+            self._last_watchdog = time.monotonic()
+        elif self._last_watchdog >= 0:
+            log.error("not feeding the systemd watchdog: %s", "; ".join(problems))
+            self._last_watchdog = -1.0  # log once; systemd will restart us
+
+    # -- status ---------------------------------------------------------------------------------------
+    def snapshot(self) -> dict:
+        now = time.monotonic()
+        src, est, out = self.source, self.estimator, self.output
+        counters = {
+            "camera": self.est_buf.frames_in, "imu": self.est_buf.imu_in, "estimator": est.frames,
+            "output": out.sent, "poses": est.good_states,
+        }
+        rates = {k: round(v, 1) for k, v in self.rates.rates(counters).items()}
+        ok, problems = self.healthy()
+        warnings = list(problems)
+        frame_age = now - src.last_frame if src.last_frame else None
+        imu_age = now - src.last_imu if src.last_imu else None
+        camera_ok = self.camera_fresh()
+        imu_ok = imu_age is not None and imu_age <= VISION_STALE_S
+        if not src.connected:
+            warnings.append(f"sensors not delivering ({src.last_error or 'starting'})")
+        else:
+            if not camera_ok:
+                warnings.append("camera: no frames" + (f" for {frame_age:.1f} s" if frame_age is not None else ""))
+            if not imu_ok:
+                warnings.append("IMU: no samples" + (f" for {imu_age:.1f} s" if imu_age is not None else "")
+                                + ": no poses")
+        if self.est_buf.frames_dropped > self._logged_drops:
+            warnings.append(f"{self.est_buf.frames_dropped - self._logged_drops} frames dropped (estimator behind)")
+            self._logged_drops = self.est_buf.frames_dropped
+        if self.est_buf.imu_overflow > self._logged_overflow:
+            warnings.append(f"IMU buffer overflow: {self.est_buf.imu_overflow - self._logged_overflow} samples lost")
+            self._logged_overflow = self.est_buf.imu_overflow
+        state, h = est.last_state, est.health
+        pose_age = now - est.last_state_time if est.last_state_time else None
+        # the truth about tracking: the last state said so, it is fresh, camera frames arrive, and the
+        # estimator (which knows whether a usable frame reached its back end) agrees
+        tracking = bool(state is not None and state.tracking and pose_age is not None and pose_age <= VISION_STALE_S
+                        and camera_ok and (h is None or h.tracking))
+        if h is not None and h.sensor_error:
+            warnings.append(f"sensor error: {h.sensor_error}")
+        if self.ready and not tracking:
+            warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok, imu_ok)}")
+        self._warn_stall(tracking, src.connected and imu_ok)
+        link = out.link()
+        if link["state"] in ("down", "closed"):
+            warnings.append(f"autopilot link {link['state']}")
+        recording = self.recorder.status() if self.recorder is not None else None
+        if recording is not None and recording["state"] == "failed":
+            warnings.append(f"recording failed: {recording['error']}")
+        trajectory = out.trajectory.status()
+        if trajectory is not None and trajectory["state"] == "failed":
+            warnings.append(f"trajectory file failed: {trajectory['error']}")
+        lat = sorted(out.latency_ms)
+        if not self.ready:
+            mode = "starting"
+        elif not ok:
+            mode = "unhealthy"
+        elif not tracking and src.connected and imu_ok:
+            mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
+        elif warnings or not tracking:
+            mode = "degraded"
+        else:
+            mode = "running"
+        snap = {
+            "version": STATUS_VERSION,
+            "pid": os.getpid(),
+            "state": mode,
+            "healthy": mode == "running",  # `vio status` exits 0 only then
+            "written_unix": time.time(),
+            "started_unix": self.started,
+            "uptime_s": round(now - self.started_mono, 1),
+            "rates_hz": rates,
+            "source": {"kind": self.cfg.source.kind, "connected": src.connected, "finished": src.finished,
+                       "disconnects": src.disconnects, "last_error": src.last_error,
+                       "last_frame_age_s": _round(frame_age), "last_imu_age_s": _round(imu_age),
+                       "frames_dropped": self.est_buf.frames_dropped, "imu_overflow": self.est_buf.imu_overflow,
+                       "driver": _source_health(src.source)},
+            "estimator": {
+                "tracking": tracking,
+                "quality": (state.quality if tracking else 0) if state is not None else None,
+                "initialized": h.initialized if h is not None else None,
+                "reset_counter": state.reset_counter if state is not None else None,
+                "daemon_resets": est.resets,
+                "errors": est.errors,
+                "tracks": est.tracks,
+                "last_pose_age_s": _round(pose_age),
+                "position_m": [round(float(x), 3) for x in state.T_world_body[:3, 3]] if state is not None else None,
+                **(_health_fields(h) if h is not None else {}),
+            },
+            "latency_ms": {"p50": round(lat[len(lat) // 2], 1), "max": round(lat[-1], 1)} if lat else None,
+            "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld},
+            "recording": recording,
+            "trajectory_file": trajectory,
+            "watchdog": {"enabled": self.watchdog_s is not None, "fed": self._last_watchdog > 0},
+            "warnings": warnings,
+        }
+        return snap
+
+    def report(self) -> None:
+        snap = self.snapshot()
+        self._last_status = snap
+        line = self._summary(snap)
+        log.info("%s", line)
+        self.notifier.status(line)
+        self._write_status(snap)
+
+    @staticmethod
+    def _summary(s: dict) -> str:
+        r, e = s["rates_hz"], s["estimator"]
+        lat = s["latency_ms"]
+        parts = [
+            s["state"],
+            f"cam {r['camera']:.1f} Hz imu {r['imu']:.0f} Hz out {r['output']:.1f} Hz",
+            f"tracks {_dash(e['tracks'])} q {_dash(e['quality'])}",
+            f"resets {e['reset_counter'] or 0}",
+            f"latency {lat['p50']:.0f}/{lat['max']:.0f} ms" if lat else "latency -",
+            f"mav {s['mavlink']['state']}",
+        ]
+        if s["warnings"]:
+            parts.append("WARN " + "; ".join(s["warnings"]))
+        return " | ".join(parts)
+
+    def _write_status(self, snap: dict) -> None:
+        path = self.cfg.run.status_file
+        if not path:
+            return
+        try:
+            write_status_file(Path(path), snap)
+        except OSError as e:
+            if not getattr(self, "_status_warned", False):
+                log.warning("cannot write status file %s: %s", path, e.strerror)
+                self._status_warned = True
+
+
+def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
+    def make(calib: Any) -> Any:
+        from vio.estimator import Estimator as VioEstimator
+
+        return VioEstimator(calib, cfg)
+    return make
+
+
+def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCalibration | None]
+                             ) -> Callable[[], Any]:
+    def make() -> Any:
+        from drivers.mavlink_out import MavlinkOutput
+
+        calib = calibration()  # the camera mount comes from it; unknown yet: Service._set_mount later
+        # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips)
+        return MavlinkOutput(cfg.mavlink, cfg.mavlink.url,
+                             T_body_cam0=calib.cam0.T_body_cam if calib is not None else None).start()
+    return make
+
+
+# ---------------------------------------------------------------------------------------------- CLI glue
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, help="TOML configuration (e.g. /etc/kestrel-vio/config.toml)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vio.app.cli import EXIT_CONFIG
+
+    try:
+        cfg = load_config(args.config)
+        _check_run_config(cfg)
+    except VioError as e:
+        print(f"vio run: configuration error: {e}", file=sys.stderr)
+        return EXIT_CONFIG
+    if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
+        logging.getLogger().setLevel(cfg.run.log_level)
+    service = Service(cfg)
+    signal.signal(signal.SIGTERM, service.request_stop)
+    signal.signal(signal.SIGINT, service.request_stop)
+    log.info("kestrel-vio starting: source %s, MAVLink %s, recording %s, watchdog %s", cfg.source.kind,
+             cfg.mavlink.url or "off", cfg.run.record_dir or "off",
+             f"{service.watchdog_s:.1f} s" if service.watchdog_s else "off")
+    return service.run()
+
+
+def _check_run_config(cfg: VioConfig) -> None:
+    """Problems the daemon cannot recover from by retrying: report them now, with the key to fix."""
+    src = cfg.source
+    if src.kind == "euroc" and not src.dataset:
+        raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
+    if src.kind == "euroc" and not Path(src.dataset).exists():
+        raise VioError(f"[source] dataset = {src.dataset!r}: folder not found")
+    if src.calibration:
+        from vio.calibration import load_calibration
+
+        load_calibration(src.calibration)  # raises VioError naming the file and key
+    for key in ("record_dir", "trajectory_file"):
+        value = getattr(cfg.run, key)
+        if not value:
+            continue
+        parent = Path(value) if key == "record_dir" else Path(value).parent
+        existing = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        if existing is not None and not os.access(existing, os.W_OK):
+            raise VioError(f"[run] {key} = {value!r}: {existing} is not writable")

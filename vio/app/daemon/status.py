@@ -1,0 +1,100 @@
+"""The daemon's status: the fields of the status snapshot and the status file that `vio status` reads."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from vio.estimator import EstimatorHealth
+
+log = logging.getLogger(__name__)
+
+STATUS_VERSION = 1
+
+
+def _source_health(source: Any) -> dict:
+    try:
+        h = source.health() if source is not None else {}
+    except Exception as e:  # health is for display only; never let it break the status loop
+        h = {"error": str(e)}
+    return json.loads(json.dumps(h, default=_json_default))
+
+
+def _mavlink_sent(mav: Any) -> int:
+    stats = getattr(mav, "stats", None)
+    return int(getattr(stats, "states_sent", 0))
+
+
+def _mavlink_health(mav: Any) -> dict:
+    """Link state and the scalar counters of drivers.mavlink_out.MavlinkOutput (health(), else stats)."""
+    stats = getattr(mav, "stats", None)
+    try:
+        h = mav.health() if hasattr(mav, "health") else dataclasses.asdict(stats) if dataclasses.is_dataclass(
+            stats) else {}
+    except Exception as e:  # display only
+        h = {"health_error": str(e)}
+    out = {k: v for k, v in h.items()
+           if isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
+    link_up = getattr(mav, "link_up", None)
+    out["state"] = "up" if link_up else "down" if link_up is not None else "open"
+    return out
+
+
+def _round(v: float | None, nd: int = 2) -> float | None:
+    return None if v is None else round(v, nd)
+
+
+def _health_fields(h: EstimatorHealth) -> dict:
+    """The estimator's own account (vio.estimator.EstimatorHealth) for the status file."""
+    return {"vision_age_s": _round(h.vision_age_s), "frames_processed": h.frames_processed,
+            "frames_unusable": h.frames_unusable, "unusable_reasons": dict(h.unusable_reasons),
+            "frames_dropped": h.frames_dropped, "imu_rejected": h.imu_rejected,
+            "imu_rejected_reasons": dict(h.imu_rejected_reasons), "last_reset_reason": h.last_reset_reason,
+            "sensor_error": h.sensor_error}
+
+
+def _not_tracking_reason(h: EstimatorHealth | None, camera_ok: bool, imu_ok: bool = True) -> str:
+    """Why there is no pose, in the words a person at the drone needs."""
+    if not camera_ok:
+        return "no camera frames"
+    if not imu_ok:
+        return "no IMU samples (camera frames cannot be used without them)"
+    if h is None:
+        return "estimator starting"
+    if h.sensor_error:
+        return h.sensor_error
+    top = sorted(h.unusable_reasons.items(), key=lambda kv: -kv[1])[:2]
+    unusable = f"; unusable frames: {', '.join(f'{k} x{n}' for k, n in top)}" if top else ""
+    if not h.initialized:
+        return f"not initialised yet (keep the camera still, facing a textured, lit scene){unusable}"
+    if h.vision_age_s is None:
+        return f"no usable camera frame yet{unusable}"
+    return f"last usable camera frame {h.vision_age_s:.1f} s ago (IMU time){unusable}"
+
+
+def _dash(v: Any) -> str:
+    return "-" if v is None else str(v)
+
+
+def write_status_file(path: Path, snap: dict) -> None:
+    """Atomic replace: a reader never sees half a file (temp file in the same folder, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(snap, indent=1, default=_json_default) + "\n")
+    os.replace(tmp, path)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

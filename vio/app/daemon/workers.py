@@ -1,0 +1,334 @@
+"""The daemon's source and estimator threads, and the adapters that read a driver's optional attributes."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from vio import VioError
+from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
+from vio.app.daemon.status import _source_health
+from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
+
+if TYPE_CHECKING:
+    from vio.estimator import EstimatorHealth
+
+log = logging.getLogger(__name__)
+
+FIRST_DATA_TIMEOUT_S = 10.0  # an OAK boots its firmware before the first frame
+# driver states (drivers/source.py health()) in which the driver is reconnecting by itself
+SELF_HEALING_STATES = ("connecting", "no_device", "disconnected")
+HEALTH_EVERY_S = 0.2  # the estimator thread snapshots estimator.health() this often (status reads the copy)
+
+
+class EstimatorApi(Protocol):
+    """What the daemon uses of vio.estimator.Estimator (tests pass stand-ins with the same shape)."""
+
+    last_features: FeatureFrame | None
+
+    def feed_imu(self, s: ImuSample) -> NavState | None: ...
+
+    def feed_frame(self, frame: StereoFrame) -> NavState | None: ...
+
+    def reset(self, reason: str, bridge: bool = True) -> None: ...
+
+    def health(self) -> EstimatorHealth: ...
+
+
+class Worker(threading.Thread):
+    """A supervised loop: `beat()` every iteration so the watchdog can tell a live loop from a wedged one."""
+
+    def __init__(self, name: str, stop: threading.Event) -> None:
+        super().__init__(name=name, daemon=True)
+        self.stop_event = stop
+        self._beat = time.monotonic()
+        self.crashed: str | None = None
+
+    def beat(self) -> None:
+        self._beat = time.monotonic()
+
+    def beat_age_s(self) -> float:
+        return time.monotonic() - self._beat
+
+    def run(self) -> None:
+        try:
+            self.loop()
+        except Exception as e:  # a bug in a loop must show in status and stop the watchdog, not vanish
+            self.crashed = f"{type(e).__name__}: {e}"
+            log.exception("%s thread died: %s", self.name, e)
+
+    def loop(self) -> None:
+        raise NotImplementedError
+
+
+class SourceWorker(Worker):
+    """Owns the sensor source: reads it into the buffers, reopens it with backoff when it fails or goes quiet."""
+
+    def __init__(self, stop: threading.Event, open_source: Callable[[], Any], sinks: list[SensorBuffer],
+                 timeout_s: float, reconnect_max_s: float, paced: bool = False) -> None:
+        super().__init__("source", stop)
+        self._open = open_source
+        self.sinks = sinks
+        self.timeout_s = timeout_s
+        self.reconnect_max_s = reconnect_max_s
+        self.paced = paced  # a replay not tied to the clock: wait for room in the buffers instead of dropping
+        self.finished = False  # a finite source (dataset, fake flight with a duration) delivered everything
+        self.connected = False
+        self.disconnects = 0
+        self.last_data = time.monotonic()
+        self.last_frame = 0.0
+        self.last_imu = 0.0
+        self.last_error = ""
+        self._lost_at = 0.0
+        self.calibration: Any = None
+        self.calibration_ready = threading.Event()
+        self.source: Any = None
+
+    def loop(self) -> None:
+        backoff = 0.2
+        while not self.stop_event.is_set():
+            self.beat()
+            try:
+                self.source = self._open()
+                self._pump()
+                backoff = 0.2
+            except SourceFinished:
+                self._close()
+                self._idle_finished()
+                return
+            except VioError as e:
+                self._lost(f"{e}; reopening")
+            except Exception as e:  # driver bugs and device errors alike: log, back off, reopen
+                self._lost(f"{type(e).__name__}: {e}; reopening")
+            finally:
+                self._close()
+            if self.stop_event.is_set():
+                break
+            self.stop_event.wait(backoff)
+            backoff = min(backoff * 2, self.reconnect_max_s)
+
+    def _idle_finished(self) -> None:
+        """The data are over and reopening would replay them from the start (a jump back in position, or in
+        time): stay down and keep beating, so status says so and the watchdog is still fed."""
+        self.finished = True
+        self.connected = False
+        self.last_error = "source finished (end of the recording or flight): not reopened"
+        log.warning("source finished: no more sensor data; a finite source is not reopened")
+        while not self.stop_event.is_set():
+            self.beat()
+            self.stop_event.wait(0.2)
+
+    def _lost(self, why: str) -> None:
+        if self.connected or why != self.last_error:  # one line per event, not per retry
+            log.warning("source lost: %s", why)
+        if self.connected:
+            self.disconnects += 1
+            self._lost_at = time.monotonic()
+        self.connected = False
+        self.last_error = why
+
+    def _close(self) -> None:
+        src, self.source = self.source, None
+        if src is not None:
+            with contextlib.suppress(Exception):
+                src.stop()
+
+    def _pump(self) -> None:
+        opened = time.monotonic()
+        got_data = False
+        for msg in _iter_messages(self.source, self.stop_event):
+            now = time.monotonic()
+            self.beat()
+            if msg is None:
+                quiet = now - (self.last_data if got_data else opened)
+                # an OAK needs seconds to boot its firmware: allow more before the first data
+                if quiet > (self.timeout_s if got_data else max(self.timeout_s, FIRST_DATA_TIMEOUT_S)):
+                    h = _source_health(self.source)
+                    if h.get("state") in SELF_HEALING_STATES:  # the driver reconnects itself: let it
+                        self._lost(f"driver {h['state']}: {h.get('last_error') or 'no data'}; waiting for it")
+                        continue
+                    raise VioError(f"no sensor data for {quiet:.1f} s")
+                continue
+            got_data = True
+            if self.paced:
+                self._wait_room()
+            if not self.connected:
+                log.info("source connected: data flowing%s",
+                         f" again after {now - self._lost_at:.1f} s" if self.disconnects else "")
+                self.connected = True
+                self.last_error = ""
+            self.last_data = now
+            if self.calibration is None:  # an OAK knows its calibration only once the device is read
+                self.calibration = _source_calibration(self.source)
+                if self.calibration is not None:
+                    self.calibration_ready.set()
+            if isinstance(msg, ImuSample):
+                self.last_imu = now
+                for sink in self.sinks:
+                    sink.put_imu(msg)
+            elif isinstance(msg, StereoFrame):
+                self.last_frame = now
+                arrival = _now_ns()
+                for sink in self.sinks:
+                    sink.put_frame(msg, arrival)
+        if not self.stop_event.is_set():
+            if _source_finished(self.source):
+                raise SourceFinished()
+            raise VioError("source ended")
+
+    def _wait_room(self) -> None:
+        """Paced replay: hold the next message until every consumer has room (nothing is dropped)."""
+        for sink in self.sinks:
+            while not sink.wait_room(0.1) and not self.stop_event.is_set():
+                self.beat()
+
+
+class SourceFinished(Exception):
+    """A finite source has delivered all its data."""
+
+
+class EstimatorWorker(Worker):
+    """Feeds the estimator in time order; an exception or an IMU gap resets it instead of ending the process."""
+
+    def __init__(self, stop: threading.Event, make_estimator: Callable[[], EstimatorApi | None], buf: SensorBuffer,
+                 out: LatestState, max_imu_gap_s: float) -> None:
+        super().__init__("estimator", stop)
+        self._make = make_estimator
+        self.buf = buf
+        self.out = out
+        self.max_gap_ns = int(max_imu_gap_s * 1e9)
+        self.estimator: EstimatorApi | None = None
+        self.health: EstimatorHealth | None = None  # snapshot taken in this thread (status reads it)
+        self.tracks: int | None = None  # features in the newest frame
+        self._health_at = 0.0
+        self.resets = 0  # resets made here (exceptions, gaps); the estimator counts its own internally
+        self.errors = 0
+        self.states = 0
+        self.good_states = 0
+        self.frames = 0
+        self.last_state: NavState | None = None
+        self.last_state_time = 0.0
+        self.last_input = 0.0
+        self._reset_base = 0
+        self._last_imu_t: int | None = None
+        self._seen_overflow = 0
+        self._arrivals: deque[int] = deque(maxlen=64)  # frames fed, not yet processed (they wait for IMU)
+        self._processed = 0
+
+    def loop(self) -> None:
+        self.estimator = self._make()
+        if self.estimator is None:
+            return
+        while not self.stop_event.is_set():
+            self.beat()
+            self._snapshot_health()
+            imu, item = self.buf.take(0.1)
+            if self.buf.imu_overflow != self._seen_overflow:
+                lost = self.buf.imu_overflow - self._seen_overflow
+                self._seen_overflow = self.buf.imu_overflow
+                self._reset(f"IMU buffer overflow: {lost} samples lost (estimator too slow)")
+            if imu or item:
+                self.last_input = time.monotonic()
+            try:
+                for s in imu:
+                    if self._last_imu_t is not None and s.t_ns - self._last_imu_t > self.max_gap_ns:
+                        self._reset(f"IMU gap of {(s.t_ns - self._last_imu_t) / 1e9:.2f} s")
+                    self._last_imu_t = s.t_ns
+                    self._emit(self.estimator.feed_imu(s))
+                if item is not None:
+                    self.frames += 1
+                    self._arrivals.append(item[0])
+                    self._emit(self.estimator.feed_frame(item[1]))
+            except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
+                self.errors += 1
+                self._reset(f"estimator failed: {type(e).__name__}: {e}")
+
+    def _snapshot_health(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.estimator is None or (not force and now - self._health_at < HEALTH_EVERY_S):
+            return
+        self._health_at = now
+        try:
+            self.health = self.estimator.health()
+            ff = self.estimator.last_features
+            self.tracks = None if ff is None else len(ff.ids)
+        except Exception as e:  # display only: a failing health() must not stop the estimator
+            log.debug("estimator health() failed: %s", e)
+
+    def _frame_arrival(self) -> int:
+        """Arrival time of the frame a state came from, or -1 for an IMU-rate state.
+
+        A frame waits inside the estimator until the IMU reaches its stamp, so its state may come out of a
+        later feed_imu(); the estimator's `frames_processed` counter tells which call finished a frame."""
+        done = self.estimator.health().frames_processed
+        arrival = -1
+        while self._processed < done and self._arrivals:
+            arrival = self._arrivals.popleft()
+            self._processed += 1
+        self._processed = done
+        return arrival
+
+    def _emit(self, result: Any) -> None:
+        arrival_ns = self._frame_arrival()
+        for state in _as_states(result):
+            if self._reset_base:
+                state = dataclasses.replace(state, reset_counter=state.reset_counter + self._reset_base)
+            self.states += 1
+            self.last_state = state
+            if state.tracking:
+                self.good_states += 1
+                self.last_state_time = time.monotonic()
+            self.out.publish(Output(state, arrival_ns, _now_ns()))
+
+    def _reset(self, why: str) -> None:
+        self.resets += 1
+        log.warning("daemon-forced estimator reset #%d: %s", self.resets, why)
+        last = self.last_state.reset_counter if self.last_state is not None else -1
+        try:
+            # keeps the last pose as the new origin and bumps the estimator's reset_counter; not carried
+            # forward with the IMU: these resets follow lost IMU samples or an estimator in an unknown state
+            self.estimator.reset(why, bridge=False)
+            return
+        except Exception as e:
+            log.warning("estimator reset() failed (%s); creating a new estimator", e)
+        self.estimator = self._make()
+        self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
+        self._last_imu_t = None
+        self._arrivals.clear()
+        self._processed = 0
+
+
+def _iter_messages(source: Any, stop: threading.Event) -> Iterable[ImuSample | StereoFrame | None]:
+    """Messages from a source; None when nothing arrived for a short while (lets the caller check timeouts)."""
+    while not stop.is_set():
+        batch = source.poll()
+        if batch:
+            yield from batch
+            continue
+        if _source_finished(source):
+            return
+        yield None
+        stop.wait(0.005)  # poll() never blocks: a short sleep keeps an idle source from spinning a core
+
+
+def _source_finished(source: Any) -> bool:
+    return bool(getattr(source, "finished", False))
+
+
+def _source_calibration(source: Any) -> Any:
+    calib = getattr(source, "calibration", None)
+    return calib() if callable(calib) else calib
+
+
+def _as_states(result: Any) -> list[NavState]:
+    if result is None:
+        return []
+    if isinstance(result, NavState):
+        return [result]
+    return [s for s in result if isinstance(s, NavState)]
