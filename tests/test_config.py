@@ -118,6 +118,7 @@ def test_missing_and_binary_files(tmp_path):
 @pytest.mark.parametrize("text,match", [
     ("[mavlink]\nmount_rpy_deg = [180.0, 0.0, 0.0]\n", "set mount = 'rpy'"),
     ("[backend]\nvision_timeout_s = 2.0\nlost_timeout_s = 1.0\n", "must not exceed lost_timeout_s"),
+    ("[frontend]\nmax_depth_m = 10.0\n", "must lie inside the front end"),
 ])
 def test_contradicting_settings_are_refused(tmp_path, text, match):
     """A mounting given for the wrong mode would be silently ignored, and the IMU flown upside down."""
@@ -125,3 +126,12 @@ def test_contradicting_settings_are_refused(tmp_path, text, match):
     f.write_text(text)
     with pytest.raises(VioError, match=match):
         load_config(f)
+
+
+def test_the_estimator_gets_only_its_sections():
+    from vio.config import EstimatorConfig, VioConfig
+    from vio.estimator import Estimator
+    from vio.sim import default_calibration
+
+    est = Estimator(default_calibration(), VioConfig())
+    assert isinstance(est.cfg, EstimatorConfig) and not hasattr(est.cfg, "mavlink")

@@ -197,6 +197,16 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class EstimatorConfig:
+    """The sections the estimator reads (front end, back end, initialisation): each stage gets only its own,
+    so the MAVLink, source and daemon settings cannot leak into the estimate."""
+
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+
+
+@dataclass(frozen=True)
 class VioConfig:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
@@ -204,6 +214,10 @@ class VioConfig:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     source: SourceConfig = field(default_factory=SourceConfig)
     run: RunConfig = field(default_factory=RunConfig)
+
+    @property
+    def estimator(self) -> EstimatorConfig:
+        return EstimatorConfig(self.frontend, self.backend, self.init)
 
 
 
@@ -269,7 +283,10 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if m.mount != "rpy" and [float(x) for x in m.mount_rpy_deg] != [0.0, 0.0, 0.0]:
         raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
                        "the calibration; set mount = 'rpy' to use mount_rpy_deg")
-    b = cfg.backend
+    b, f = cfg.backend, cfg.frontend
+    if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
+        raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "
+                       f"front end's {f.min_depth_m}..{f.max_depth_m} m (points outside it are never matched)")
     if b.vision_timeout_s > b.lost_timeout_s:
         raise VioError(f"{source}: [backend] vision_timeout_s ({b.vision_timeout_s}) must not exceed lost_timeout_s "
                        f"({b.lost_timeout_s}): output would continue after the estimator gave up")

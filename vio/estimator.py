@@ -35,7 +35,7 @@ from vio.backend.preintegration import ImuBuffer, combined_params
 from vio.backend.smoother import SmootherFailure, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
-from vio.config import VioConfig
+from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
 from vio.geometry import make_T, roll_pitch_yaw, so3_exp
 from vio.init.moving_init import MovingInitializer
@@ -132,7 +132,7 @@ def _reason_key(reason: str) -> str:
     return re.sub(r"[-+]?\d[\d.e+-]*", "N", key)
 
 
-def make_tracker(calib: StereoCalibration, cfg: VioConfig):
+def make_tracker(calib: StereoCalibration, cfg: EstimatorConfig):
     """The project's stereo front end; imported lazily so the back end runs (and is tested) without it."""
     from vio.frontend.tracker import StereoTracker
 
@@ -142,9 +142,11 @@ def make_tracker(calib: StereoCalibration, cfg: VioConfig):
 class Estimator:
     """Stereo-inertial odometry: feed IMU samples and frames in time order."""
 
-    def __init__(self, calib: StereoCalibration, cfg: VioConfig | None = None, tracker=None) -> None:
+    def __init__(self, calib: StereoCalibration, cfg: EstimatorConfig | None = None, tracker=None) -> None:
         self.calib = calib
-        self.cfg = cfg or VioConfig()
+        if isinstance(cfg, VioConfig):  # keep only the sections the estimator reads
+            cfg = cfg.estimator
+        self.cfg = cfg or EstimatorConfig()
         self.bcfg = self.cfg.backend
         self.tracker = tracker
         self.params = combined_params(calib.imu, self.bcfg.imu_noise_scale)

@@ -154,7 +154,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     from vio.types import ImuSample
 
     cfg = cfg or VioConfig()
-    est = Estimator(dataset.calibration, cfg)
+    est = Estimator(dataset.calibration, cfg.estimator)
     states: list[NavState] = []
     est.listeners.append(states.append)
     for s in sinks or []:

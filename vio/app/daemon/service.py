@@ -401,7 +401,7 @@ def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
     def make(calib: Any) -> Any:
         from vio.estimator import Estimator as VioEstimator
 
-        return VioEstimator(calib, cfg)
+        return VioEstimator(calib, cfg.estimator)
     return make
 
 
