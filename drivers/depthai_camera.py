@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.source import DropOldestQueue, Message, ThreadedSource
+from drivers.base import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import StreamMonitor
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame

@@ -14,8 +14,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from drivers.base import DropOldestQueue, Message, ThreadedSource
 from drivers.serial_protocol import FrameParser
-from drivers.source import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import ClockSync, StreamMonitor
 from vio.types import ImuSample
 
