@@ -132,10 +132,9 @@ def estimate_time_offset_dataset(path: str | Path, calibration_path: str | Path 
 
 
 def plot_time_offset(est: OffsetEstimate, path: str | Path) -> None:
-    import matplotlib
+    from vio.extras import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("the time-offset plot")
 
     fig, (a, b) = plt.subplots(2, 1, figsize=(10, 7))
     a.plot(est.t_mid_s, est.vis_rate, ".-", ms=3, lw=0.7, label="camera |rotation| / dt")

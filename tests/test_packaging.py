@@ -51,3 +51,15 @@ def test_cli_runs_from_a_plain_install(unpacked_wheel: Path) -> None:
     assert "replay" in r.stdout and "simulate" in r.stdout
     import_check = _run_plain(unpacked_wheel, "-c", "import vio, sys; print(vio.__file__)")
     assert str(unpacked_wheel) in import_check.stdout, import_check.stdout + import_check.stderr
+
+
+def test_wheel_version_is_the_one_in_vio(unpacked_wheel: Path) -> None:
+    """One version string: the wheel's metadata is read from vio.__version__."""
+    from vio import __version__
+
+    (info,) = unpacked_wheel.glob("kestrel_vio-*.dist-info")
+    assert info.name == f"kestrel_vio-{__version__}.dist-info"
+    meta = (info / "METADATA").read_text()
+    assert f"\nVersion: {__version__}\n" in meta
+    for extra in ("oak", "serial", "tools", "dev"):
+        assert f"Provides-Extra: {extra}" in meta
