@@ -264,10 +264,9 @@ def machine_info() -> dict:
 # ------------------------------------------------------------------------------------------------ plots
 
 def plot_rss(live: dict, path: Path) -> None:
-    import matplotlib
+    from vio.extras import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("the benchmark plots")
 
     tr, mem = live["rss_trace"], live["memory"]
     fig, ax = plt.subplots(figsize=(7, 3))

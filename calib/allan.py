@@ -62,7 +62,9 @@ def allan_deviation(x: np.ndarray, rate_hz: float, taus: np.ndarray) -> tuple[np
 
     Returns (taus actually used, adev); taus are rounded to whole samples by allantools.
     """
-    import allantools
+    from vio.extras import require
+
+    allantools = require("allantools", "tools", "the Allan deviation (vio calib imu-noise)")
 
     t, adev, _, _ = allantools.oadev(np.asarray(x, dtype=float), rate=rate_hz, data_type="freq", taus=taus)
     return np.asarray(t), np.asarray(adev)
@@ -244,10 +246,9 @@ def write_imu_yaml(noise: ImuNoise, path: str | Path) -> None:
 
 
 def plot_allan(result: AllanResult, path: str | Path) -> None:
-    import matplotlib
+    from vio.extras import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("the Allan deviation plot")
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for ax, adev, fits, name, unit in ((axes[0], result.gyro_adev, result.gyro_fits, "gyroscope", "rad/s"),

@@ -22,6 +22,13 @@ from vio.geometry import inv_T
 log = logging.getLogger(__name__)
 
 
+def require_depthai():
+    """The depthai module, or a VioError naming the [oak] extra."""
+    from vio.extras import require
+
+    return require("depthai", "oak", "reading an OAK (depthai) calibration")
+
+
 
 @dataclass
 class ImportNotes:
@@ -54,7 +61,7 @@ def opencv_to_radtan(coeffs, where: str, tol: float = 1e-12) -> tuple[float, ...
 
 def _camera(handler, socket, T_body_cam: np.ndarray, where: str, notes: ImportNotes, rate_hz: float,
             size: tuple[int, int] | None) -> CameraCalibration:
-    import depthai as dai
+    dai = require_depthai()
 
     K, w, h = handler.getDefaultIntrinsics(socket)
     if size is not None and tuple(size) != (w, h):  # depthai scales/crops K for the resolution streamed
@@ -115,7 +122,7 @@ def stereo_from_depthai(handler, left=None, right=None, *, size: tuple[int, int]
     rescales the intrinsics to the streamed resolution (default: the calibrated one). Without IMU
     extrinsics the body frame is put at cam0 (a warning says so), which is only right for vision-only use.
     """
-    import depthai as dai
+    dai = require_depthai()
 
     notes = notes if notes is not None else ImportNotes()
     try:

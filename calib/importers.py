@@ -262,10 +262,9 @@ def write_opencv_stereo(calib: StereoCalibration, path: Path) -> None:
 def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
     """depthai calibration JSON (CalibrationHandler.eepromToJsonFile / the device's backup), read by depthai."""
     path = _single_file(files, "depthai", "calibration JSON file")
-    try:
-        import depthai as dai
-    except ImportError as e:
-        raise VioError(f"depthai is not installed ({e})") from None
+    from calib.depthai_import import require_depthai
+
+    dai = require_depthai()
     try:
         handler = dai.CalibrationHandler(str(path))
     except RuntimeError as e:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.source import DropOldestQueue, Message, ThreadedSource
+from drivers.base import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import StreamMonitor
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
@@ -82,9 +82,9 @@ class OakSource(ThreadedSource):
     # -- interface -----------------------------------------------------------------------------------------
     def _before_start(self) -> None:
         if self._dai is None:
-            import depthai  # imported here: `vio --help` and non-OAK setups must not need it
+            from vio.extras import require  # imported here: `vio --help` and non-OAK setups must not need it
 
-            self._dai = depthai
+            self._dai = require("depthai", "oak", '[source] kind = "oak"')
 
     def poll(self) -> list[Message]:
         return self._imu.drain() + self._frames.drain()

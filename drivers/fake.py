@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.source import Message, SensorSource
+from drivers.base import Message, SensorSource
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
 

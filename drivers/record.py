@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivers.source import SensorSource
+from drivers.base import SensorSource
 from vio import VioError
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame

@@ -126,8 +126,9 @@ def main(argv: list[str] | None = None) -> int:
         print(os.ttyname(slave), flush=True)
         fd = master
     else:
-        import serial
+        from vio.extras import require
 
+        serial = require("serial", "serial", "the reference sender on a serial port")
         ser = serial.Serial(args.port, args.baud)
         fd = ser.fileno()
     with contextlib.suppress(KeyboardInterrupt):

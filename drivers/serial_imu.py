@@ -14,8 +14,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from drivers.base import DropOldestQueue, Message, ThreadedSource
 from drivers.serial_protocol import FrameParser
-from drivers.source import DropOldestQueue, Message, ThreadedSource
 from drivers.timesync import ClockSync, StreamMonitor
 from vio.types import ImuSample
 
@@ -23,7 +23,9 @@ log = logging.getLogger(__name__)
 
 
 def _default_serial_factory(port: str, baud: int, timeout: float) -> Any:
-    import serial  # pyserial; imported here so the module loads without it
+    from vio.extras import require  # pyserial, imported here so that the module loads without it
+
+    serial = require("serial", "serial", '[source] imu = "serial"')
 
     return serial.Serial(port, baud, timeout=timeout)
 

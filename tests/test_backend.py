@@ -207,7 +207,7 @@ def test_online_time_offset_needs_stereo_on_few_frames():
 def test_online_time_offset_applies_significant_changes_only(monkeypatch, calib_ms, estimates, applied):
     import types
 
-    import calib.time_offset as cto
+    import vio.backend.time_offset as bto
     from vio.backend.time_offset import OnlineTimeOffset
 
     calib = dataclasses.replace(synthetic_calibration(), time_offset_ns=int(calib_ms * 1e6))
@@ -220,7 +220,7 @@ def test_online_time_offset_applies_significant_changes_only(monkeypatch, calib_
         return types.SimpleNamespace(offset_s=off_ms * 1e-3 - calib_ms * 1e-3, sigma_s=sigma_ms * 1e-3,
                                      observable=True, n_pairs=5, rate_std_rad_s=1.0)
 
-    monkeypatch.setattr(cto, "estimate_time_offset", fake)
+    monkeypatch.setattr(bto, "estimate_time_offset", fake)
     got = [est._solve() for _ in estimates]
     assert [None if g is None else round(g * 1e-6, 2) for g in got] == applied
     assert est.offset_ns == int(round(estimates[-1][0] * 1e6))  # the newest estimate is always kept

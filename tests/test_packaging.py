@@ -62,3 +62,15 @@ def test_the_vio_script_names_the_app_layer_entry_point(unpacked_wheel: Path) ->
     module, func = target.split(":")
     r = _run_plain(unpacked_wheel, "-c", f"import sys, {module}; sys.exit({module}.{func}(['--help']))")
     assert r.returncode == 0 and "replay" in r.stdout, r.stderr
+
+
+def test_wheel_version_is_the_one_in_vio(unpacked_wheel: Path) -> None:
+    """One version string: the wheel's metadata is read from vio.__version__."""
+    from vio import __version__
+
+    (info,) = unpacked_wheel.glob("kestrel_vio-*.dist-info")
+    assert info.name == f"kestrel_vio-{__version__}.dist-info"
+    meta = (info / "METADATA").read_text()
+    assert f"\nVersion: {__version__}\n" in meta
+    for extra in ("oak", "serial", "tools", "dev"):
+        assert f"Provides-Extra: {extra}" in meta

@@ -324,10 +324,9 @@ def evaluate(est: Trajectory, gt: Trajectory, *, max_dt_ms: float = DEFAULT_MAX_
 
 def plot(result: EvalResult, path: str | Path, title: str = "") -> None:
     """Top view of GT and the 4-DoF-aligned estimate, and position error over time for both alignments."""
-    import matplotlib
+    from vio.extras import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("plots (--plot)")
 
     T = result.ate_4dof.T_gtworld_estworld
     p_al = result.p_est @ T[:3, :3].T + T[:3, 3]

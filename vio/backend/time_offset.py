@@ -7,7 +7,7 @@ of the optimiser; here it is a robust pre-alignment instead, which costs nothing
 camera rotation between frames `span_frames` apart is measured from the tracks they share (PnP on the
 earlier frame's stereo points; essential matrix without stereo) and compared with the gyro integral
 over the same interval shifted by candidate offsets (the method of `vio calib time-offset`,
-`calib.time_offset.estimate_time_offset`: grid + parabola, bias solved, outlier
+`vio.backend.offset_solver.estimate_time_offset`: grid + parabola, bias solved, outlier
 pairs dropped, bootstrap sigma). Pairs that barely turn are skipped; from MIN_PAIRS informative pairs on,
 the newest `window_s` of pairs is solved every SOLVE_EVERY pairs, so the offset is known a few seconds
 after take-off, before a wrong one has done much harm, and refined as the window fills. An estimate is
@@ -30,8 +30,10 @@ from collections import deque
 import numpy as np
 
 from vio import VioError
+from vio.backend.offset_solver import VisualRotations, estimate_time_offset
 from vio.calibration import StereoCalibration
 from vio.geometry import so3_log
+from vio.relative_pose import points_from_depth, relative_rotation, solve_pnp
 from vio.types import FeatureFrame, ImuSample
 
 log = logging.getLogger(__name__)
@@ -113,9 +115,8 @@ class OnlineTimeOffset:
             return None
         res = self._pnp_rotation(prev, ff, i0, i1)
         if res is None:
-            from calib.time_offset import relative_rotation
-
-            res = relative_rotation((prev.uv0[i0] - self.c) / self.fxy, (ff.uv0[i1] - self.c) / self.fxy, self.f_px)
+            res = relative_rotation((prev.uv0[i0] - self.c) / self.fxy, (ff.uv0[i1] - self.c) / self.fxy, self.f_px,
+                                    MIN_SHARED_TRACKS)
         if res is None:
             return None
         theta = so3_log(res[0])
@@ -156,29 +157,20 @@ class OnlineTimeOffset:
 
         Preferred over the essential matrix, which picks wrong rotations on the (nearly) planar walls a
         drone often sees; the stereo depth makes the problem well posed."""
-        import cv2
-
         d = prev.depth_m[i0]
         ok = np.isfinite(d) & (d > 0.1) & (d < PNP_MAX_DEPTH_M)
         if ok.sum() < MIN_SHARED_TRACKS:
             return None
-        P = np.column_stack([(prev.uv0[i0][ok] - self.c) / self.fxy, np.ones(int(ok.sum()))]) * d[ok, None]
-        uv = cur.uv0[i1][ok].astype(np.float64)
-        found, rvec, tvec, inl = cv2.solvePnPRansac(P, uv, self.K, None, iterationsCount=50, reprojectionError=2.0,
-                                                    flags=cv2.SOLVEPNP_EPNP)
-        n = 0 if inl is None else len(inl)
-        if not found or n < MIN_SHARED_TRACKS:
+        # EPnP alone is too noisy for a 1 ms offset (0.3 px noise gave offsets at the search bound): refined
+        pose = solve_pnp(points_from_depth(prev.uv0[i0][ok], d[ok], self.K), cur.uv0[i1][ok], self.K,
+                         min_inliers=MIN_SHARED_TRACKS, iterations=50, reprojection_error=2.0)
+        if pose is None:
             return None
-        # EPnP alone is too noisy for a 1 ms offset (0.3 px noise gave offsets at the search bound): refine
-        inl = inl.ravel()
-        rvec, _ = cv2.solvePnPRefineLM(P[inl], uv[inl], self.K, None, rvec, tvec)
-        R_cur_prev = cv2.Rodrigues(rvec)[0]
-        return R_cur_prev.T, n, n * np.eye(3)
+        n = pose.n_inliers
+        return pose.R_prev_cur, n, n * np.eye(3)
 
     def _solve(self) -> int | None:
         """Solve on the newest window of pairs; report the offset when confident and changed."""
-        from calib.time_offset import VisualRotations, estimate_time_offset
-
         self._new_pairs = 0
         self._postponed = 0
         self.solves += 1

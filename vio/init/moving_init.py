@@ -25,6 +25,7 @@ from vio.calibration import StereoCalibration
 from vio.config import InitConfig
 from vio.geometry import GRAVITY_M_S2, gravity_aligned_rotation, inv_T, make_T, so3_log
 from vio.init.static_init import InitialState
+from vio.relative_pose import points_from_depth, solve_pnp
 from vio.types import FeatureFrame
 
 log = logging.getLogger(__name__)
@@ -45,18 +46,11 @@ def relative_pose_pnp(prev: FeatureFrame, cur: FeatureFrame, K: np.ndarray,
     ip, ic = ip[keep], ic[keep]
     if len(ip) < min_points:
         return None
-    uv = prev.uv0[ip]
-    d = prev.depth_m[ip]
-    rays = np.column_stack([(uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]), np.ones(len(uv))])
-    obj = rays * d[:, None]
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, cur.uv0[ic].astype(np.float64), K, None,
-                                                 reprojectionError=2.0, iterationsCount=100,
-                                                 flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok or inliers is None or len(inliers) < min_points:
+    pose = solve_pnp(points_from_depth(prev.uv0[ip], prev.depth_m[ip], K), cur.uv0[ic], K, min_inliers=min_points,
+                     iterations=100, reprojection_error=2.0, flags=cv2.SOLVEPNP_ITERATIVE, refine=False)
+    if pose is None:
         return None
-    R, _ = cv2.Rodrigues(rvec)
-    T_cur_prev = make_T(R, tvec.reshape(3))
-    return inv_T(T_cur_prev)
+    return inv_T(make_T(pose.R_cur_prev, pose.tvec.reshape(3)))
 
 
 class MovingInitializer:

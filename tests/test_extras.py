@@ -1,0 +1,132 @@
+"""The extras: a core install runs `vio demo` without them, and a missing one is named in one line.
+
+A missing module is simulated by `sys.modules[name] = None`, which makes `import name` raise ImportError
+as on a machine without it; the CLI cases run in a subprocess so the block cannot leak into other tests."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vio.extras import MissingExtra
+
+ROOT = Path(__file__).resolve().parents[1]
+EXTRA_MODULES = ("depthai", "serial", "allantools", "matplotlib")
+
+
+def _vio_without(blocked: tuple[str, ...], *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    code = ("import sys\n"
+            f"for m in {blocked!r}: sys.modules[m] = None\n"
+            "from vio.cli import main\n"
+            "rc = main(sys.argv[1:])\n"
+            f"leaked = sorted(m for m in {blocked!r} if sys.modules.get(m) is not None)\n"
+            "assert not leaked, leaked\n"
+            "sys.exit(rc)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
+                          timeout=timeout)
+
+
+def _one_line_naming(stderr: str, extra: str) -> None:
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, stderr
+    assert f"needs the [{extra}] extra: pip install 'kestrel-vio[{extra}]'" in lines[0], lines[0]
+
+
+def test_imu_noise_without_allantools_names_the_tools_extra(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 200 * 30
+    t = 10**18 + np.arange(n) * 5_000_000
+    data = np.column_stack([t, 1e-3 * rng.standard_normal((n, 3)), [0, 0, 9.81] + 1e-2 * rng.standard_normal((n, 3))])
+    csv = tmp_path / "imu.csv"
+    np.savetxt(csv, data, delimiter=",", fmt=["%d"] + ["%.9f"] * 6,
+               header="timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z")
+    r = _vio_without(("allantools",), "-q", "calib", "imu-noise", str(csv), "--output", str(tmp_path / "n.yaml"))
+    assert r.returncode == 1, r.stdout + r.stderr
+    _one_line_naming(r.stderr, "tools")
+    assert "vio calib" in r.stderr
+
+
+def test_demo_needs_no_extra():
+    """The README's first command, `pip install -e . && vio demo`, on a core install."""
+    r = _vio_without(EXTRA_MODULES, "-q", "demo", "--duration", "5", timeout=300)
+    assert r.returncode == 0, r.stderr
+
+
+def test_help_lists_the_commands_without_extras():
+    r = _vio_without(EXTRA_MODULES, "--help")
+    assert r.returncode == 0, r.stderr
+    assert "replay" in r.stdout and "simulate" in r.stdout and "calib" in r.stdout
+
+
+@pytest.fixture
+def blocked(monkeypatch):
+    def block(*names: str) -> None:
+        for name in names:
+            monkeypatch.setitem(sys.modules, name, None)
+    return block
+
+
+def test_oak_source_without_depthai_names_the_oak_extra(blocked):
+    from drivers.source import open_source
+    from vio.config import SourceConfig
+
+    blocked("depthai")
+    src = open_source(SourceConfig(kind="oak", imu="oak"))
+    with pytest.raises(MissingExtra, match=r"\[source\] kind = \"oak\" needs the \[oak\] extra: "
+                                           r"pip install 'kestrel-vio\[oak\]'"):
+        src.start()
+    src.stop()
+
+
+def test_depthai_calibration_without_depthai_names_the_oak_extra(blocked):
+    from calib.importers import import_calibration
+
+    blocked("depthai")
+    with pytest.raises(MissingExtra, match=r"needs the \[oak\] extra"):
+        import_calibration("depthai", [ROOT / "tests" / "data" / "depthai_calib.json"])
+
+
+def test_serial_imu_without_pyserial_names_the_serial_extra(blocked):
+    from drivers.serial_imu import _default_serial_factory
+
+    blocked("serial")
+    with pytest.raises(MissingExtra, match=r"\[source\] imu = \"serial\" needs the \[serial\] extra: "
+                                           r"pip install 'kestrel-vio\[serial\]'"):
+        _default_serial_factory("/dev/null", 921600, 0.1)
+
+
+@pytest.mark.parametrize("module", ["matplotlib", "matplotlib.pyplot"])
+def test_plots_without_matplotlib_name_the_tools_extra(blocked, tmp_path, module):
+    from calib.time_offset import plot_time_offset
+
+    blocked(module)
+    with pytest.raises(MissingExtra, match=r"needs the \[tools\] extra: pip install 'kestrel-vio\[tools\]'"):
+        plot_time_offset(None, tmp_path / "x.png")  # fails at the import, before the estimate is read
+
+
+def test_pyproject_extras_and_one_version():
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    project = meta["project"]
+    assert "version" not in project and "version" in project["dynamic"]
+    assert meta["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "vio.__version__"}
+    core = " ".join(project["dependencies"])
+    extras = project["optional-dependencies"]
+    from vio.extras import EXTRAS
+
+    for module, extra in EXTRAS.items():
+        dist = {"serial": "pyserial"}.get(module, module)
+        assert dist not in core.lower(), f"{dist} must be in the [{extra}] extra only"
+        assert any(d.lower().startswith(dist) for d in extras[extra]), (dist, extra)
+    assert any(d.startswith("kestrel-vio[") and all(e in d for e in ("oak", "serial", "tools"))
+               for d in extras["dev"])
+    assert "gtsam>=4.3" in core
