@@ -22,7 +22,7 @@ EXTRA_MODULES = ("depthai", "serial", "allantools", "matplotlib")
 def _vio_without(blocked: tuple[str, ...], *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     code = ("import sys\n"
             f"for m in {blocked!r}: sys.modules[m] = None\n"
-            "from vio.cli import main\n"
+            "from vio.app.cli import main\n"
             "rc = main(sys.argv[1:])\n"
             f"leaked = sorted(m for m in {blocked!r} if sys.modules.get(m) is not None)\n"
             "assert not leaked, leaked\n"
