@@ -179,6 +179,11 @@ class MavlinkOutput:
                  self.cfg.mount, np.round(mount_rpy_deg_from_matrix(R), 1).tolist())
 
     @property
+    def states_sent(self) -> int:
+        """Pose states that went out on the link."""
+        return self.stats.states_sent
+
+    @property
     def link_up(self) -> bool:
         """True while the autopilot's heartbeats arrive (within link_timeout_s)."""
         return self._link_up

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -192,6 +192,8 @@ class ScriptedSource:
     def stop(self) -> None:
         self.log.append("stop")
 
+    finished = False
+
     def calibration(self) -> str:
         return "calib"
 
@@ -289,6 +291,13 @@ class RecordingMavlink:
         self.states: list[NavState] = []
         self.closed = False
         self.stats = MavStats()
+
+    @property
+    def states_sent(self) -> int:
+        return self.stats.states_sent
+
+    def health(self) -> dict:
+        return asdict(self.stats)
 
     def send_state(self, s: NavState) -> None:
         self.states.append(s)

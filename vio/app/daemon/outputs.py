@@ -16,13 +16,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
-from vio.app.daemon.status import _mavlink_health, _mavlink_sent
+from vio.app.daemon.status import _mavlink_health
 from vio.app.daemon.workers import Worker
 from vio.geometry import rot_to_quat_wxyz
 from vio.trajectory import format_tum_line
 from vio.types import ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
+    from vio.app.daemon.protocols import PoseOutput
     pass
 
 log = logging.getLogger(__name__)
@@ -96,7 +97,7 @@ class OutputWorker(Worker):
     tracking (quality 0), whatever the estimator said, so a stale IMU-only pose never reaches the autopilot
     as a good one."""
 
-    def __init__(self, stop: threading.Event, latest: LatestState, open_mavlink: Callable[[], Any] | None,
+    def __init__(self, stop: threading.Event, latest: LatestState, open_mavlink: Callable[[], PoseOutput] | None,
                  trajectory_file: str, reconnect_max_s: float, vision_ok: Callable[[], bool] = lambda: True,
                  mount: Callable[[Any], bool] | None = None) -> None:
         super().__init__("output", stop)
@@ -107,7 +108,7 @@ class OutputWorker(Worker):
         self.trajectory = TrajectoryLog(trajectory_file)
         self.reconnect_max_s = reconnect_max_s
         self.vision_ok = vision_ok
-        self.mav: Any = None
+        self.mav: PoseOutput | None = None
         self.offered = 0  # states handed to the MAVLink output (it sends the newest at its own rate)
         self.withheld = 0  # tracking states turned into not-tracking ones because no camera frames arrive
         self._sent_base = 0  # states sent by MAVLink outputs closed since start
@@ -186,7 +187,7 @@ class OutputWorker(Worker):
     def _close_mav(self) -> None:
         mav, self.mav = self.mav, None
         if mav is not None:
-            self._sent_base += _mavlink_sent(mav)
+            self._sent_base += mav.states_sent
             with contextlib.suppress(Exception):
                 mav.close()
 
@@ -194,7 +195,7 @@ class OutputWorker(Worker):
     def sent(self) -> int:
         """Pose states that went out on the link (cumulative over reconnects)."""
         mav = self.mav
-        return self._sent_base + (_mavlink_sent(mav) if mav is not None else 0)
+        return self._sent_base + (mav.states_sent if mav is not None else 0)
 
     def link(self) -> dict:
         if self._open is None:

@@ -46,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, RateWindow, SensorBuffer
 from vio.app.daemon.outputs import OutputWorker, RecorderWorker
+from vio.app.daemon.protocols import EstimatorApi, PoseOutput, Source
 from vio.app.daemon.status import (
     STATUS_VERSION,
     _dash,
@@ -55,12 +56,7 @@ from vio.app.daemon.status import (
     _source_health,
     write_status_file,
 )
-from vio.app.daemon.workers import (
-    EstimatorApi,
-    EstimatorWorker,
-    SourceWorker,
-    Worker,
-)
+from vio.app.daemon.workers import EstimatorWorker, SourceWorker, Worker
 from vio.app.sdnotify import SdNotifier, watchdog_interval_s
 from vio.config import VioConfig, load_config
 
@@ -74,7 +70,7 @@ STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog st
 VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
 
 
-def open_source(cfg: VioConfig) -> Any:
+def open_source(cfg: VioConfig) -> Source:
     """The configured sensor source, started."""
     from drivers.source import open_source as driver_open_source
 
@@ -97,9 +93,9 @@ def load_run_calibration(cfg: VioConfig, source_calibration: Any) -> Any:
 class Service:
     """Builds the pipeline, supervises it and reports its health; `run()` returns on SIGTERM/SIGINT."""
 
-    def __init__(self, cfg: VioConfig, *, source_factory: Callable[[], Any] | None = None,
-                 estimator_factory: Callable[[Any], Any] | None = None,
-                 mavlink_factory: Callable[[], Any] | None = None, notifier: SdNotifier | None = None) -> None:
+    def __init__(self, cfg: VioConfig, *, source_factory: Callable[[], Source] | None = None,
+                 estimator_factory: Callable[[StereoCalibration], EstimatorApi] | None = None,
+                 mavlink_factory: Callable[[], PoseOutput] | None = None, notifier: SdNotifier | None = None) -> None:
         self.cfg = cfg
         self.stop = threading.Event()
         self.notifier = notifier or SdNotifier()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -13,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
+    from vio.app.daemon.protocols import PoseOutput, Source
     from vio.estimator import EstimatorHealth
 
 log = logging.getLogger(__name__)
@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 STATUS_VERSION = 1
 
 
-def _source_health(source: Any) -> dict:
+def _source_health(source: Source | None) -> dict:
     try:
         h = source.health() if source is not None else {}
     except Exception as e:  # health is for display only; never let it break the status loop
@@ -28,23 +28,15 @@ def _source_health(source: Any) -> dict:
     return json.loads(json.dumps(h, default=_json_default))
 
 
-def _mavlink_sent(mav: Any) -> int:
-    stats = getattr(mav, "stats", None)
-    return int(getattr(stats, "states_sent", 0))
-
-
-def _mavlink_health(mav: Any) -> dict:
-    """Link state and the scalar counters of drivers.mavlink_out.MavlinkOutput (health(), else stats)."""
-    stats = getattr(mav, "stats", None)
+def _mavlink_health(mav: PoseOutput) -> dict:
+    """Link state and the scalar counters of the MAVLink output (its health())."""
     try:
-        h = mav.health() if hasattr(mav, "health") else dataclasses.asdict(stats) if dataclasses.is_dataclass(
-            stats) else {}
+        h = mav.health()
     except Exception as e:  # display only
         h = {"health_error": str(e)}
     out = {k: v for k, v in h.items()
            if isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
-    link_up = getattr(mav, "link_up", None)
-    out["state"] = "up" if link_up else "down" if link_up is not None else "open"
+    out["state"] = "up" if mav.link_up else "down"
     return out
 
 

@@ -9,12 +9,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
+from vio.app.daemon.protocols import EstimatorApi, Source
 from vio.app.daemon.status import _source_health
-from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
+from vio.types import ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
     from vio.estimator import EstimatorHealth
@@ -25,20 +26,6 @@ FIRST_DATA_TIMEOUT_S = 10.0  # an OAK boots its firmware before the first frame
 # driver states (drivers/source.py health()) in which the driver is reconnecting by itself
 SELF_HEALING_STATES = ("connecting", "no_device", "disconnected")
 HEALTH_EVERY_S = 0.2  # the estimator thread snapshots estimator.health() this often (status reads the copy)
-
-
-class EstimatorApi(Protocol):
-    """What the daemon uses of vio.estimator.Estimator (tests pass stand-ins with the same shape)."""
-
-    last_features: FeatureFrame | None
-
-    def feed_imu(self, s: ImuSample) -> NavState | None: ...
-
-    def feed_frame(self, frame: StereoFrame) -> NavState | None: ...
-
-    def reset(self, reason: str, bridge: bool = True) -> None: ...
-
-    def health(self) -> EstimatorHealth: ...
 
 
 class Worker(threading.Thread):
@@ -70,7 +57,7 @@ class Worker(threading.Thread):
 class SourceWorker(Worker):
     """Owns the sensor source: reads it into the buffers, reopens it with backoff when it fails or goes quiet."""
 
-    def __init__(self, stop: threading.Event, open_source: Callable[[], Any], sinks: list[SensorBuffer],
+    def __init__(self, stop: threading.Event, open_source: Callable[[], Source], sinks: list[SensorBuffer],
                  timeout_s: float, reconnect_max_s: float, paced: bool = False) -> None:
         super().__init__("source", stop)
         self._open = open_source
@@ -88,7 +75,7 @@ class SourceWorker(Worker):
         self._lost_at = 0.0
         self.calibration: Any = None
         self.calibration_ready = threading.Event()
-        self.source: Any = None
+        self.source: Source | None = None
 
     def loop(self) -> None:
         backoff = 0.2
@@ -165,7 +152,7 @@ class SourceWorker(Worker):
                 self.last_error = ""
             self.last_data = now
             if self.calibration is None:  # an OAK knows its calibration only once the device is read
-                self.calibration = _source_calibration(self.source)
+                self.calibration = self.source.calibration()
                 if self.calibration is not None:
                     self.calibration_ready.set()
             if isinstance(msg, ImuSample):
@@ -178,7 +165,7 @@ class SourceWorker(Worker):
                 for sink in self.sinks:
                     sink.put_frame(msg, arrival)
         if not self.stop_event.is_set():
-            if _source_finished(self.source):
+            if self.source.finished:
                 raise SourceFinished()
             raise VioError("source ended")
 
@@ -304,26 +291,17 @@ class EstimatorWorker(Worker):
         self._processed = 0
 
 
-def _iter_messages(source: Any, stop: threading.Event) -> Iterable[ImuSample | StereoFrame | None]:
+def _iter_messages(source: Source, stop: threading.Event) -> Iterable[ImuSample | StereoFrame | None]:
     """Messages from a source; None when nothing arrived for a short while (lets the caller check timeouts)."""
     while not stop.is_set():
         batch = source.poll()
         if batch:
             yield from batch
             continue
-        if _source_finished(source):
+        if source.finished:
             return
         yield None
         stop.wait(0.005)  # poll() never blocks: a short sleep keeps an idle source from spinning a core
-
-
-def _source_finished(source: Any) -> bool:
-    return bool(getattr(source, "finished", False))
-
-
-def _source_calibration(source: Any) -> Any:
-    calib = getattr(source, "calibration", None)
-    return calib() if callable(calib) else calib
 
 
 def _as_states(result: Any) -> list[NavState]:

@@ -1,0 +1,65 @@
+"""What the daemon needs of its collaborators, as typed Protocols instead of attribute probing.
+
+The real ones are `drivers.base.SensorSource`, `vio.estimator.Estimator` and
+`drivers.mavlink_out.MavlinkOutput`; tests pass stand-ins of the same shape. A collaborator that lacks a
+member fails at once with an AttributeError naming it, not with a silently different behaviour.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Protocol
+
+from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
+
+if TYPE_CHECKING:
+    from vio.calibration import StereoCalibration
+    from vio.estimator import EstimatorHealth
+
+
+class Source(Protocol):
+    """A sensor source (drivers.base.SensorSource)."""
+
+    @property
+    def finished(self) -> bool: ...  # a finite source (dataset, fake with a duration) is done
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def poll(self) -> list[ImuSample | StereoFrame]: ...
+
+    def calibration(self) -> StereoCalibration | None: ...
+
+    def health(self) -> dict[str, Any]: ...
+
+
+class EstimatorApi(Protocol):
+    """The estimator (vio.estimator.Estimator)."""
+
+    last_features: FeatureFrame | None
+
+    def feed_imu(self, s: ImuSample) -> NavState | None: ...
+
+    def feed_frame(self, frame: StereoFrame) -> NavState | None: ...
+
+    def reset(self, reason: str, bridge: bool = True) -> None: ...
+
+    def health(self) -> EstimatorHealth: ...
+
+
+class PoseOutput(Protocol):
+    """The MAVLink output (drivers.mavlink_out.MavlinkOutput)."""
+
+    @property
+    def link_up(self) -> bool: ...
+
+    @property
+    def states_sent(self) -> int: ...
+
+    def send_state(self, state: NavState) -> object: ...
+
+    def poll(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def health(self) -> dict[str, Any]: ...
