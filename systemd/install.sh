@@ -57,14 +57,15 @@ fi
 # Membership also lets `sudo -u kestrel vio ...` reach the devices when debugging from a shell.
 run usermod --append --groups dialout,plugdev "$SERVICE_USER"
 
-# 2. Python environment under $PREFIX (system Python 3.10+; the package pulls numpy, gtsam, depthai...).
+# 2. Python environment under $PREFIX (system Python 3.10+; the package pulls numpy, gtsam...; the [oak] and
+#    [serial] extras add depthai and pyserial, which the onboard service needs).
 if [[ $VENV -eq 1 ]]; then
     if [[ ! -x "$PREFIX/venv/bin/python" ]]; then
         run mkdir -p "$PREFIX"
         run python3 -m venv "$PREFIX/venv"
     fi
     run "$PREFIX/venv/bin/pip" install --upgrade --quiet pip
-    run "$PREFIX/venv/bin/pip" install --upgrade --quiet "$SRC"
+    run "$PREFIX/venv/bin/pip" install --upgrade --quiet "$SRC[oak,serial]"
 fi
 run install -d -m 0755 "$PREFIX/docs"
 run install -m 0644 "$SRC"/docs/*.md "$PREFIX/docs/"  # the unit's Documentation= points here
