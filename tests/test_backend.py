@@ -7,11 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vio.backend.preintegration import ImuBuffer, combined_params
+from vio.backend.preintegration import combined_params
 from vio.backend.synthetic import Motion, SyntheticScene, imu_samples, synthetic_calibration
 from vio.calibration import ImuNoise
 from vio.config import InitConfig
 from vio.geometry import rotation_angle_deg
+from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import is_still, static_initialize
 from vio.io.euroc import EurocDataset

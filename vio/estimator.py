@@ -31,13 +31,14 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from vio.backend.preintegration import ImuBuffer, combined_params
+from vio.backend.preintegration import combined_params
 from vio.backend.smoother import SmootherFailure, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
 from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
 from vio.propagator import Propagator
@@ -47,6 +48,7 @@ from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 log = logging.getLogger(__name__)
 
 IMU_KEEP_S = 3.0  # IMU history kept behind the newest sample (init windows, pending frames)
+IMU_KEEP_NS = int(IMU_KEEP_S * 1e9)
 BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
 BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
 
@@ -153,11 +155,11 @@ class Estimator:
         self.imu = ImuBuffer()
         self.propagator = Propagator()
         # KLT rotation prior for the front end, on the IMU clock (offset applied here), with our gyro bias
-        self.gyro_prior = GyroPrior(calib.cam0.T_body_cam, 0, keep_s=IMU_KEEP_S)
+        self.gyro_prior = GyroPrior(calib.cam0.T_body_cam, 0, imu=self.imu)
         self.time_offset_ns = int(calib.time_offset_ns)  # t_imu = t_cam + offset; may be re-estimated
         b = self.bcfg
-        self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3) \
-            if b.estimate_time_offset else None
+        self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
+                                                 imu=self.imu) if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self.listeners: list[Callable[[NavState], None]] = []
         self.reset_counter = 0
@@ -225,10 +227,9 @@ class Estimator:
                 s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
             log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was", (s.t_ns - prev_t) * 1e-9)
             st.bridge = None
-        self.imu.trim_before(s.t_ns - int(IMU_KEEP_S * 1e9))
-        self.gyro_prior.add(s)
-        if self.offset_estimator is not None:
-            self.offset_estimator.add_imu(s)
+        # one buffer for all readers: pre-integration, initialisers, gyro prior, and the offset solver's window
+        off = self.offset_estimator
+        self.imu.trim_before(s.t_ns - IMU_KEEP_NS, off.keep_samples if off is not None and not off.done else 0)
         self._drain(final=False)
         run = self._state
         if not isinstance(run, _Running):
@@ -310,7 +311,9 @@ class Estimator:
         if self._latest is not None and w.bridge is None:
             w.anchor = self._latest.T_world_body.copy()
             st = self._latest
-            if bridge and self.imu.t and self.imu.t[0] <= st.t_ns:  # the IMU since that state is still here
+            # the IMU since that state is still here (and not older than IMU_KEEP_S: the offset solver may
+            # hold a longer history, but a bridge over more than that is not trusted)
+            if bridge and self.imu.t and self.imu.t[0] <= st.t_ns and self.imu.t[-1] - st.t_ns <= IMU_KEEP_NS:
                 bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
                 w.bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
                                         gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)

@@ -33,6 +33,7 @@ from vio import VioError
 from vio.backend.offset_solver import VisualRotations, estimate_time_offset
 from vio.calibration import StereoCalibration
 from vio.geometry import so3_log
+from vio.imu_buffer import ImuBuffer
 from vio.relative_pose import points_from_depth, relative_rotation, solve_pnp
 from vio.types import FeatureFrame, ImuSample
 
@@ -57,7 +58,9 @@ class OnlineTimeOffset:
 
     def __init__(self, calib: StereoCalibration, window_s: float = 8.0, max_offset_s: float = 0.05,
                  accept_sigma_s: float = 0.002, final_sigma_s: float = 0.0005, max_solves: int = 30,
-                 span_frames: int = 4, max_collect_s: float = 120.0) -> None:
+                 span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None) -> None:
+        """`imu`: a buffer someone else fills (the estimator's one buffer), which must then keep at least
+        `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`)."""
         cam = calib.cam0
         self.f_px = cam.fx
         self.c = np.array([cam.cx, cam.cy])
@@ -84,14 +87,16 @@ class OnlineTimeOffset:
             maxlen=max(int(round(window_s * cam.rate_hz)), MIN_PAIRS))
         self._new_pairs = 0
         self._postponed = 0  # pairs added while a due solve waited for a quiet frame
-        keep = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # samples for the window at up to 1 kHz
-        self._imu_t: deque[int] = deque(maxlen=keep)
-        self._gyro: deque[np.ndarray] = deque(maxlen=keep)
+        self.keep_samples = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # the window at up to 1 kHz
+        self._owned = imu is None
+        self.imu = ImuBuffer() if imu is None else imu
 
     def add_imu(self, s: ImuSample) -> None:
-        if not self.done:
-            self._imu_t.append(int(s.t_ns))
-            self._gyro.append(np.asarray(s.gyro, float))
+        """Feed a sample to the solver's own buffer (not needed, and not allowed, with a shared one)."""
+        if not self._owned:
+            raise VioError("OnlineTimeOffset reads a shared IMU buffer: feed that buffer, not the solver")
+        if not self.done and self.imu.add(s) and len(self.imu) > self.keep_samples:
+            del self.imu.t[0], self.imu.gyro[0], self.imu.accel[0]
 
     def add_frame(self, ff: FeatureFrame, solve: bool = True) -> int | None:
         """Add a front-end result (camera clock); returns a newly accepted offset [ns], else None.
@@ -177,8 +182,8 @@ class OnlineTimeOffset:
         t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
         vis = VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info)
         try:
-            est = estimate_time_offset(vis, np.fromiter(self._imu_t, np.int64), np.array(self._gyro),
-                                       self.R_body_cam, max_offset_s=self.max_offset_s, n_boot=30)
+            imu_t, gyro = self.imu.tail(self.keep_samples)
+            est = estimate_time_offset(vis, imu_t, gyro, self.R_body_cam, max_offset_s=self.max_offset_s, n_boot=30)
         except (VioError, np.linalg.LinAlgError) as e:
             log.debug("time offset solve %d: no estimate (%s)", self.solves, e)
             est = None
@@ -208,6 +213,6 @@ class OnlineTimeOffset:
         self.done = True
         log.info("time offset: estimation finished after %d solves (offset %s)", self.solves,
                  "unchanged" if self.offset_ns is None else f"{self.offset_ns * 1e-6:+.1f} ms")
-        self._imu_t.clear()
-        self._gyro.clear()
+        if self._owned:
+            self.imu = ImuBuffer()
         self._pairs.clear()

@@ -6,12 +6,13 @@ Between frames at 20 Hz a drone yawing at 3 rad/s turns 8.6 deg, about 70 px at 
 
 from __future__ import annotations
 
-from collections import deque
+import bisect
 
 import numpy as np
 
 from vio import VioError
 from vio.geometry import so3_exp
+from vio.imu_buffer import ImuBuffer
 from vio.types import ImuSample
 
 
@@ -45,18 +46,20 @@ def body_to_camera_rotation(R_body0_body1: np.ndarray, T_body_cam: np.ndarray) -
 
 
 class GyroPrior:
-    """Keeps recent gyro samples and answers R_cam0prev_cam0cur between two camera time stamps.
+    """Answers R_cam0prev_cam0cur between two camera time stamps from recent gyro samples.
 
-    Feed every ImuSample with `add`; `rotation(t_prev_cam, t_cur_cam)` converts camera stamps to the IMU clock
-    (t_imu = t_cam + time_offset_ns) and drops samples no longer needed.
+    `rotation(t_prev_cam, t_cur_cam)` converts camera stamps to the IMU clock (t_imu = t_cam +
+    time_offset_ns). The samples come from `imu`, a buffer someone else fills and trims (the estimator's
+    one buffer); without one the prior keeps its own, fed with `add` and trimmed to `keep_s`.
     """
 
-    def __init__(self, T_body_cam: np.ndarray, time_offset_ns: int = 0, keep_s: float = 2.0) -> None:
+    def __init__(self, T_body_cam: np.ndarray, time_offset_ns: int = 0, keep_s: float = 2.0,
+                 imu: ImuBuffer | None = None) -> None:
         self.T_body_cam = np.asarray(T_body_cam, dtype=float)
         self.time_offset_ns = int(time_offset_ns)
         self.keep_ns = int(keep_s * 1e9)
-        self._t: deque[int] = deque()
-        self._w: deque[np.ndarray] = deque()
+        self._owned = imu is None
+        self.imu = ImuBuffer() if imu is None else imu
         self.gyro_bias = np.zeros(3)  # set_gyro_bias() keeps it at the back end's estimate
 
     def set_gyro_bias(self, gyro_bias: np.ndarray) -> None:
@@ -70,19 +73,27 @@ class GyroPrior:
         self.gyro_bias = b.copy()
 
     def add(self, s: ImuSample) -> None:
-        if self._t and s.t_ns <= self._t[-1]:
-            return  # duplicate or out-of-order sample: keep the stream monotonic
-        self._t.append(int(s.t_ns))
-        self._w.append(np.asarray(s.gyro, dtype=float))
-        while self._t and self._t[0] < s.t_ns - self.keep_ns:
-            self._t.popleft()
-            self._w.popleft()
+        """Feed a sample to the prior's own buffer (not needed, and not allowed, with a shared one)."""
+        if not self._owned:
+            raise VioError("GyroPrior reads a shared IMU buffer: feed that buffer, not the prior")
+        if self.imu.add(s):  # duplicates and out-of-order samples are dropped: the stream stays monotonic
+            self._trim(s.t_ns)
+
+    def _trim(self, t_ns: int) -> None:
+        t = self.imu.t
+        i = bisect.bisect_left(t, t_ns - self.keep_ns)  # drop samples older than keep_s
+        if i > 0:
+            del t[:i], self.imu.gyro[:i], self.imu.accel[:i]
 
     def rotation(self, t_prev_cam_ns: int, t_cur_cam_ns: int) -> np.ndarray | None:
         """R_cam_prev_cam_cur, or None when the buffer does not cover the interval (no prior then)."""
         t0 = t_prev_cam_ns + self.time_offset_ns
         t1 = t_cur_cam_ns + self.time_offset_ns
-        if len(self._t) < 2 or self._t[0] > t0 or self._t[-1] < t1 - 10_000_000:
+        t = self.imu.t
+        if len(t) < 2 or t[0] > t0 or t[-1] < t1 - 10_000_000:
             return None
-        R_b = integrate_gyro(np.fromiter(self._t, np.int64), np.array(self._w), t0, t1, self.gyro_bias)
+        # the samples from the one before t0 to the one after t1: integrate_gyro interpolates between them
+        i = max(bisect.bisect_right(t, t0) - 1, 0)
+        j = bisect.bisect_left(t, t1) + 1
+        R_b = integrate_gyro(np.array(t[i:j], np.int64), np.array(self.imu.gyro[i:j]), t0, t1, self.gyro_bias)
         return body_to_camera_rotation(R_b, self.T_body_cam)

@@ -20,10 +20,10 @@ import cv2
 import gtsam
 import numpy as np
 
-from vio.backend.preintegration import ImuBuffer
 from vio.calibration import StereoCalibration
 from vio.config import InitConfig
 from vio.geometry import GRAVITY_M_S2, gravity_aligned_rotation, inv_T, make_T, so3_log
+from vio.imu_buffer import ImuBuffer
 from vio.init.static_init import InitialState
 from vio.relative_pose import points_from_depth, solve_pnp
 from vio.types import FeatureFrame

@@ -1,0 +1,88 @@
+"""The estimator's one IMU buffer: pre-integration, the front end's gyro prior, the initialisers and the
+in-flight time-offset solver all read the same samples (each sample stored once, trimmed by its owner to
+the longest history a reader needs)."""
+
+from __future__ import annotations
+
+import bisect
+import logging
+
+import gtsam
+import numpy as np
+
+from vio.types import ImuSample
+
+log = logging.getLogger(__name__)
+
+
+class ImuBuffer:
+    """Time-ordered IMU samples with interpolation; old samples are trimmed explicitly by the owner."""
+
+    def __init__(self) -> None:
+        self.t: list[int] = []
+        self.gyro: list[np.ndarray] = []
+        self.accel: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def add(self, s: ImuSample) -> bool:
+        """Append a sample; out-of-order or duplicate stamps are dropped (returns False)."""
+        if self.t and s.t_ns <= self.t[-1]:
+            log.debug("IMU sample at %d not after %d: dropped", s.t_ns, self.t[-1])
+            return False
+        self.t.append(int(s.t_ns))
+        self.gyro.append(np.asarray(s.gyro, dtype=float))
+        self.accel.append(np.asarray(s.accel, dtype=float))
+        return True
+
+    @property
+    def last_t_ns(self) -> int | None:
+        return self.t[-1] if self.t else None
+
+    def trim_before(self, t_ns: int, min_keep: int = 0) -> None:
+        """Drop samples strictly older than the last sample at or before t_ns (keep one for interpolation),
+        but keep at least the newest `min_keep` samples (a reader that needs a longer history)."""
+        i = min(bisect.bisect_right(self.t, t_ns) - 1, len(self.t) - min_keep)
+        if i > 0:
+            del self.t[:i], self.gyro[:i], self.accel[:i]
+
+    def tail(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The newest n samples as arrays (t_ns, gyro)."""
+        return np.array(self.t[-n:], dtype=np.int64), np.array(self.gyro[-n:])
+
+    def at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Linearly interpolated (gyro, accel) at t_ns; clamped to the ends of the buffer."""
+        i = bisect.bisect_left(self.t, t_ns)
+        if i <= 0:
+            return self.gyro[0], self.accel[0]
+        if i >= len(self.t):
+            return self.gyro[-1], self.accel[-1]
+        t0, t1 = self.t[i - 1], self.t[i]
+        a = (t_ns - t0) / (t1 - t0)
+        return ((1 - a) * self.gyro[i - 1] + a * self.gyro[i]), ((1 - a) * self.accel[i - 1] + a * self.accel[i])
+
+    def window(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples with t0 <= t <= t1 as arrays (t_ns, gyro, accel)."""
+        i = bisect.bisect_left(self.t, t0_ns)
+        j = bisect.bisect_right(self.t, t1_ns)
+        if j <= i:
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        return np.array(self.t[i:j]), np.array(self.gyro[i:j]), np.array(self.accel[i:j])
+
+    def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_ns: int, t1_ns: int) -> int:
+        """Integrate the IMU over [t0, t1] into `pim`; returns the number of pieces integrated."""
+        if t1_ns <= t0_ns or not self.t:
+            return 0
+        knots = [t0_ns] + [t for t in self.t[bisect.bisect_right(self.t, t0_ns):bisect.bisect_left(self.t, t1_ns)]]
+        knots.append(t1_ns)
+        g_prev, a_prev = self.at(knots[0])
+        n = 0
+        for ta, tb in zip(knots[:-1], knots[1:]):
+            g_next, a_next = self.at(tb)
+            dt = (tb - ta) * 1e-9
+            if dt > 0:
+                pim.integrateMeasurement(0.5 * (a_prev + a_next), 0.5 * (g_prev + g_next), dt)
+                n += 1
+            g_prev, a_prev = g_next, a_next
+        return n
