@@ -16,6 +16,11 @@ usable frame for lost_timeout_s) reset the estimator: it re-initialises on evide
 and heading as the new origin, and bumps `reset_counter`.
 """
 
+# Why one file of ~700 lines: the facade owns the life cycle (Phase, _Waiting/_Running), and every
+# transition (start, keyframe, loss, reset, bridge) reads and writes the same few fields; split across
+# files, a transition would be read in pieces. The math lives elsewhere (backend/, init/, propagator,
+# sanity); what is here is the sequencing.
+
 from __future__ import annotations
 
 import dataclasses

@@ -5,6 +5,10 @@ optional `state_groundtruth_estimate0/data.csv`. The reader streams frames lazil
 memory) merged in time order with IMU samples. Structural problems (missing folders, bad csv rows, unsorted
 or duplicate stamps) raise VioError naming the file and line; a missing or unreadable image, which a real
 recorder can drop, is skipped with a warning and counted in `stats`.
+
+Why one file of ~800 lines: reader, repair rules and writer share the layout constants and the csv
+dialect, and a change to one (a column, a header, what counts as a cut line) must be made beside the
+others; the writer is the last section and has no state shared with the reader.
 """
 
 from __future__ import annotations
