@@ -46,8 +46,11 @@ def time_output_stage(tum_path: Path) -> dict:
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
     clock = [0]
-    out = MavlinkOutput(MavlinkConfig(mount="rpy"), f"udpout:127.0.0.1:{sink.getsockname()[1]}",
-                        clock_ns=lambda: clock[0])
+    try:
+        cfg = MavlinkConfig(mount="rpy")
+    except TypeError:  # a --compare revision from before [mavlink] mount (identity mount then)
+        cfg = MavlinkConfig()
+    out = MavlinkOutput(cfg, f"udpout:127.0.0.1:{sink.getsockname()[1]}", clock_ns=lambda: clock[0])
     times_ms = []
     try:
         for t_ns, T in zip(traj.t_ns, traj.poses()):
@@ -74,8 +77,14 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.cv_threads:
         cv2.setNumThreads(args.cv_threads)
+    import importlib
+
     import vio
-    from vio.app.cli import main as vio_main
+
+    # the CLI of the imported tree: vio/app/cli.py since the app layer, vio/cli.py before (a --compare
+    # revision); chosen by file, because an editable install would otherwise serve this tree's vio.app
+    cli = "vio.app.cli" if (Path(vio.__file__).parent / "app" / "cli.py").is_file() else "vio.cli"
+    vio_main = importlib.import_module(cli).main
 
     cmd = ["-q", "replay", *rargs]
     if args.profile:
