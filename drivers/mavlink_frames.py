@@ -40,7 +40,7 @@ R_FRD_CAM0 = {
     "camera-forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),  # nose = lens axis
     "camera-down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # nose = image top
 }
-MAX_CAMERA_TILT_DEG = 40.0  # beyond it "the nearest vehicle axis" is ambiguous: the user must say (mount = "rpy")
+SNAP_DEG = 3.0  # a derived mount this close to an axis-aligned one is taken as square (calibration noise)
 
 
 def _axis_rotations() -> list[np.ndarray]:
@@ -58,30 +58,48 @@ def _axis_rotations() -> list[np.ndarray]:
     return out
 
 
-def mount_rotation(mount: str, mount_rpy_deg, R_body_cam0: np.ndarray | None) -> np.ndarray:
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class Mount:
+    """R_frd_body and how it was found (for the start-up log line)."""
+
+    R_frd_body: np.ndarray
+    note: str
+    off_axis_deg: float  # angle between the IMU's axes and the nearest vehicle axes
+
+
+def mount_rotation(mount: str, mount_rpy_deg, R_body_cam0: np.ndarray | None, camera_tilt_deg: float = 0.0) -> Mount:
     """R_frd_body for the configured `mount`.
 
-    'rpy' takes `mount_rpy_deg`. 'camera-forward' / 'camera-down' take which IMU axis points where from the
-    calibration's camera orientation, assuming (as on every OAK and nearly every drone) that the IMU's axes
-    are parallel to the airframe's: the camera may be tilted (say 30 deg down), so the camera-derived
-    rotation is snapped to the nearest axis-aligned one. Raises VioError when that cannot be decided, instead
-    of guessing an attitude the autopilot would fly on."""
+    'rpy' takes `mount_rpy_deg`. 'camera-forward' / 'camera-down' place the camera in the airframe (looking
+    along the nose, pitched down by `camera_tilt_deg`; or looking down, image top to the nose) and carry
+    the IMU along with the calibration's exact `R_body_cam0`: right whether the IMU sits in the camera (an
+    OAK, tilted with it) or square on the frame, as long as the tilt is stated. A result within SNAP_DEG of
+    an axis-aligned mount is snapped to it (calibration noise); one further off is kept and reported, since
+    an unstated camera tilt on an IMU that is square to the frame would show as exactly that angle."""
     from vio import VioError
 
     if mount == "rpy":
-        return mount_transform(mount_rpy_deg, np.zeros(3))[:3, :3]
+        R = mount_transform(mount_rpy_deg, np.zeros(3))[:3, :3]
+        return Mount(R, "mount_rpy_deg", 0.0)
     if mount not in R_FRD_CAM0:
         raise VioError(f"[mavlink] mount = {mount!r}: expected one of {['rpy', *R_FRD_CAM0]}")
     if R_body_cam0 is None:
         raise VioError(f"[mavlink] mount = {mount!r} needs the calibration's T_body_cam0")
-    R = R_FRD_CAM0[mount] @ np.asarray(R_body_cam0, dtype=float).T
-    best = max(_axis_rotations(), key=lambda M: float(np.sum(M * R)))
-    tilt = float(np.degrees(np.arccos(np.clip((np.trace(best.T @ R) - 1.0) / 2.0, -1.0, 1.0))))
-    if tilt > MAX_CAMERA_TILT_DEG:
-        raise VioError(f"[mavlink] mount = {mount!r}: the camera is {tilt:.0f} deg away from any IMU axis, so which "
-                       "IMU axis is the vehicle's nose is ambiguous; set mount = 'rpy' and mount_rpy_deg "
-                       "(docs/autopilot.md, Mounting)")
-    return best
+    tilt = np.radians(camera_tilt_deg)
+    # pitching the nose-mounted camera down by `tilt` about the vehicle's right axis (FRD y)
+    R_tilt = np.array([[np.cos(tilt), 0.0, -np.sin(tilt)], [0.0, 1.0, 0.0], [np.sin(tilt), 0.0, np.cos(tilt)]])
+    R_frd_cam = (R_tilt if mount == "camera-forward" else np.eye(3)) @ R_FRD_CAM0[mount]
+    R = R_frd_cam @ np.asarray(R_body_cam0, dtype=float).T
+    best = min(_axis_rotations(), key=lambda M: _angle_deg(M.T @ R))
+    off = _angle_deg(best.T @ R)
+    if off <= SNAP_DEG:
+        return Mount(best, f"{mount}, camera tilt {camera_tilt_deg:g} deg, IMU square to the airframe", off)
+    return Mount(R, f"{mount}, camera tilt {camera_tilt_deg:g} deg, IMU {off:.1f} deg from the airframe axes "
+                 "(tilted with the camera, as in an OAK)", off)
 
 
 def mount_rpy_deg_from_matrix(R_frd_body: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.mavlink_frames import (
+    SNAP_DEG,
     mount_rotation,
     mount_rpy_deg_from_matrix,
     mount_transform,
@@ -173,10 +174,15 @@ class MavlinkOutput:
     def set_camera_mount(self, T_body_cam0: np.ndarray) -> None:
         """Derive the IMU mounting from the calibration (mount = camera-forward / camera-down); no pose is
         sent before the mount is known. Raises VioError when the calibration does not decide it."""
-        R = mount_rotation(self.cfg.mount, self.cfg.mount_rpy_deg, np.asarray(T_body_cam0, dtype=float)[:3, :3])
-        self.T_frd_body = make_T(R, np.asarray(self.cfg.mount_offset_m, dtype=float))
-        log.info("IMU mount from the calibration (%s): roll/pitch/yaw %s deg in the vehicle FRD frame",
-                 self.cfg.mount, np.round(mount_rpy_deg_from_matrix(R), 1).tolist())
+        m = mount_rotation(self.cfg.mount, self.cfg.mount_rpy_deg, np.asarray(T_body_cam0, dtype=float)[:3, :3],
+                           self.cfg.camera_tilt_deg)
+        self.T_frd_body = make_T(m.R_frd_body, np.asarray(self.cfg.mount_offset_m, dtype=float))
+        rpy = np.round(mount_rpy_deg_from_matrix(m.R_frd_body), 1).tolist()
+        log.info("IMU mount from the calibration (%s): roll/pitch/yaw %s deg in the vehicle FRD frame", m.note, rpy)
+        if m.off_axis_deg > SNAP_DEG:
+            log.warning("the IMU is %.1f deg from the airframe's axes: right for an IMU inside a tilted camera (OAK); "
+                        "if your IMU is square to the frame, the camera is tilted by that much: set [mavlink] "
+                        "camera_tilt_deg. Check the attitude on the bench (docs/first-flight.md)", m.off_axis_deg)
 
     @property
     def states_sent(self) -> int:

@@ -317,14 +317,31 @@ def _axis_rotations() -> list[np.ndarray]:
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 30.0, -15.0])
 def test_camera_mount_is_derived_for_every_imu_orientation(tilt_deg):
-    """mount = camera-forward: whichever way the IMU sits, a level vehicle reports roll = pitch = yaw = 0."""
+    """mount = camera-forward with the stated tilt: whichever way the IMU sits (square to the frame, or tilted
+    inside the camera), a level vehicle reports roll = pitch = yaw = 0."""
     R_frd_cam = rot("y", -tilt_deg) @ R_CAM_FWD  # forward camera, tilted down by tilt_deg
-    for R_frd_body in _axis_rotations():
+    for R_frd_body in _axis_rotations():  # IMU square to the airframe
         R_body_cam = R_frd_body.T @ R_frd_cam
-        np.testing.assert_allclose(mount_rotation("camera-forward", None, R_body_cam), R_frd_body, atol=1e-12)
+        m = mount_rotation("camera-forward", None, R_body_cam, camera_tilt_deg=tilt_deg)
+        np.testing.assert_allclose(m.R_frd_body, R_frd_body, atol=1e-12)
+        assert m.off_axis_deg < 1e-6
+        # the same IMU inside the camera (tilted with it): the exact rotation, reported as off-axis
+        R_frd_imu = rot("y", -tilt_deg) @ R_frd_body
+        m = mount_rotation("camera-forward", None, R_frd_imu.T @ R_frd_cam, camera_tilt_deg=tilt_deg)
+        np.testing.assert_allclose(m.R_frd_body, R_frd_imu, atol=1e-12)
     R_frd_body = np.diag([1.0, -1.0, -1.0])
-    np.testing.assert_allclose(mount_rotation("camera-down", None, R_frd_body.T @ R_CAM_DOWN), R_frd_body,
-                               atol=1e-12)
+    np.testing.assert_allclose(mount_rotation("camera-down", None, R_frd_body.T @ R_CAM_DOWN).R_frd_body,
+                               R_frd_body, atol=1e-12)
+
+
+def test_unstated_camera_tilt_is_warned_about(caplog):
+    """A square IMU with a camera tilted 25 deg that nobody stated: the mount is kept exact and a warning
+    says how to fix it, instead of a silently snapped attitude."""
+    R_body_cam = rot("y", -25.0) @ R_CAM_FWD  # FRD IMU, camera pitched 25 deg down
+    caplog.set_level(logging.WARNING, logger="drivers.mavlink_out")
+    out = MavlinkOutput(MavlinkConfig(), "udpout:127.0.0.1:14550", T_body_cam0=make_T(R_body_cam, np.zeros(3)))
+    out.close()
+    assert any("camera_tilt_deg" in r.message and "25.0 deg" in r.message for r in caplog.records)
 
 
 def test_default_mount_from_the_calibration_is_not_upside_down(ap):
@@ -346,8 +363,6 @@ def test_default_mount_from_the_calibration_is_not_upside_down(ap):
     assert att, "no pose message"
     q = att[0].q
     np.testing.assert_allclose(np.abs(q[0]), 1.0, atol=1e-6)  # identity attitude in NED/FRD
-    with pytest.raises(VioError, match="ambiguous"):
-        mount_rotation("camera-forward", None, rot("y", 45.0) @ R_CAM_FWD)
 
 
 def test_rate_limit_sends_newest_state_once(ap):

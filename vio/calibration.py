@@ -265,6 +265,8 @@ def load_yaml(path: Path) -> dict:
         text = path.read_text()
     except OSError as e:
         raise VioError(f"{path}: cannot read ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise VioError(f"{path}: not a text file (byte {e.start} is not UTF-8)") from None
     lines = text.splitlines()
     if lines and lines[0].startswith("%YAML:"):
         lines = lines[1:]

@@ -136,9 +136,12 @@ class MavlinkConfig:
     system_id: int = opt(0, "our system id; 0 = take the autopilot's from its heartbeat", min=0, max=255)
     target_system: int = opt(1, "autopilot system id used until its heartbeat is seen", min=1, max=255)
     mount: str = opt("camera-forward", "how the IMU sits in the vehicle: 'camera-forward' (stereo camera looks "
-                     "along the nose, image right = vehicle right; IMU axes parallel to the vehicle's, which is which "
-                     "taken from the calibration's T_body_cam0), 'camera-down' (camera looks down, image top = "
+                     "along the nose, pitched down by camera_tilt_deg, image right = vehicle right; the IMU "
+                     "follows from the calibration's T_body_cam0), 'camera-down' (camera looks down, image top = "
                      "nose), or 'rpy' (mount_rpy_deg below)", choices=("camera-forward", "camera-down", "rpy"))
+    camera_tilt_deg: float = opt(0.0, "with mount = 'camera-forward': how far the camera looks down from the "
+                                 "vehicle's nose direction [deg] (an OAK on a 20 deg down-tilted mount: 20)",
+                                 min=-90, max=90)
     mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "with mount = 'rpy': the IMU's orientation in the vehicle FRD frame, "
                               "roll/pitch/yaw [deg] (an IMU mounted z-up, x forward is [180, 0, 0])")
     lost_output: str = opt("none", "while not tracking: 'none' sends no pose; 'quality0' keeps sending ODOMETRY "

@@ -632,8 +632,8 @@ class Estimator:
             st = self._after_keyframe(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:
-            lost = "never" if vt is None else f"{(t - vt) * 1e-9:.2f} s"
-            self.reset(f"tracking lost: no usable camera frame for {lost}")
+            lost = "since the start" if vt is None else f"for {(t - vt) * 1e-9:.2f} s"
+            self.reset(f"tracking lost: no usable camera frame {lost}")
         return st
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:

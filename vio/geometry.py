@@ -6,6 +6,8 @@ Conversions go through scipy's Rotation so we do not hand-roll quaternion algebr
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -85,8 +87,13 @@ def is_se3(T: np.ndarray, tol: float = 1e-6) -> bool:
 
 
 def roll_pitch_yaw(R_world_body: np.ndarray) -> np.ndarray:
-    """Z-Y-X Euler angles (roll, pitch, yaw) in rad of a world(z-up)<-body rotation."""
-    return Rotation.from_matrix(R_world_body).as_euler("ZYX")[::-1].copy()
+    """Z-Y-X Euler angles (roll, pitch, yaw) in rad of a world(z-up)<-body rotation.
+
+    At pitch +-90 deg roll and yaw are not separable; scipy then sets one of them to zero and warns, which
+    is fine for our uses (a mount looking straight up or down), so the warning is silenced."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock detected")
+        return Rotation.from_matrix(R_world_body).as_euler("ZYX")[::-1].copy()
 
 
 def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
