@@ -295,7 +295,7 @@ def test_damaged_ground_truth_is_dropped_with_a_note(v101_path, tmp_path, case):
         expected = f"{gt}:2: column 5 value 'nan' is not a finite number"
     elif case == "gt_columns":
         _edit_line(gt, 5, ",".join(lines[4].split(",")[:5]))
-        expected = f"{gt}:5: expected 8..more comma-separated values, got 5"
+        expected = f"{gt}:5: expected 8+ comma-separated values, got 5"
     elif case == "gt_unsorted":
         _edit_line(gt, 7, lines[2])
         expected = f"{gt}:7: out-of-order time stamp"

@@ -93,15 +93,21 @@ _STEP_NS = {"imu": (1e4, 1e9), "camera": (1e6, 1e10)}
 _STAMP_UNITS = ((1e3, "microseconds"), (1e6, "milliseconds"), (1e9, "seconds"))
 
 
+def _short(value: object, limit: int = 40) -> str:
+    """repr() of a value for a message, cut to `limit` characters (a line of NUL bytes must not flood it)."""
+    r = repr(value)
+    return r if len(r) <= limit else r[:limit - 3] + "..."
+
+
 def _stamp_text_problem(text: str) -> str:
     try:
         v = float(text)
     except ValueError:
-        return f"time stamp {text!r} is not an integer (ns)"
+        return f"time stamp {_short(text)} is not an integer (ns)"
     if math.isfinite(v) and 0 < v < 1e11 and ("." in text or "e" in text.lower()):
-        return (f"time stamp {text!r} is not an integer: the stamps look like seconds, not integer nanoseconds "
+        return (f"time stamp {_short(text)} is not an integer: the stamps look like seconds, not integer nanoseconds "
                 "(EuRoC stamps are ns; multiply by 1e9)")
-    return f"time stamp {text!r} is not an integer (ns)"
+    return f"time stamp {_short(text)} is not an integer (ns)"
 
 
 def _looks_cut(parts: list[str], previous: list[list[str]]) -> bool:
@@ -184,7 +190,7 @@ def _row_problem(parts: list[str], min_cols: int, max_cols: int | None, numeric:
     """Why a row cannot be used, as (kind, message); kind 'cut' is what a write stopped midway leaves,
     ('repeat', '') an exact repeat of the previous row."""
     if len(parts) < min_cols or (max_cols is not None and len(parts) > max_cols):
-        want = f"{min_cols}" if max_cols == min_cols else f"{min_cols}..{max_cols or 'more'}"
+        want = f"{min_cols}" if max_cols == min_cols else f"{min_cols}..{max_cols}" if max_cols else f"{min_cols}+"
         sep = next((f" (the file uses {c!r} as separator?)" for c in (";", "\t") if c in parts[0]), "")
         return ("cut" if len(parts) < min_cols else "columns",
                 f"expected {want} comma-separated values, got {len(parts)}{sep}")
@@ -205,9 +211,9 @@ def _row_problem(parts: list[str], min_cols: int, max_cols: int | None, numeric:
         try:
             ok = math.isfinite(float(parts[k])) or not finite
         except ValueError:
-            return "cut", f"column {k + 1} value {parts[k]!r} is not a number"
+            return "cut", f"column {k + 1} value {_short(parts[k])} is not a number"
         if not ok:
-            return "value", f"column {k + 1} value {parts[k]!r} is not a finite number"
+            return "value", f"column {k + 1} value {_short(parts[k])} is not a finite number"
     return None
 
 
@@ -311,16 +317,16 @@ def _yaml_numbers(d: dict, key: str, n: int | tuple[int, ...], kind=float, what:
     if isinstance(v, dict) and key == "T_BS":
         v = v.get("data")
     if not isinstance(v, (list, tuple)):
-        raise VioError(f"{key}: expected a list of numbers{what}, got {v!r}")
+        raise VioError(f"{key}: expected a list of numbers{what}, got {_short(v)}")
     sizes = (n,) if isinstance(n, int) else n
     if len(v) not in sizes:
         raise VioError(f"{key}: expected {' or '.join(map(str, sizes))} values{what}, got {len(v)}")
     out = []
     for x in v:
         if isinstance(x, bool) or not isinstance(x, (int, float)):
-            raise VioError(f"{key}: value {x!r} is not a number")
+            raise VioError(f"{key}: value {_short(x)} is not a number")
         if not math.isfinite(x) or (kind is int and x != int(x)):
-            raise VioError(f"{key}: value {x!r} is not a{'n integer' if kind is int else ' finite number'}")
+            raise VioError(f"{key}: value {_short(x)} is not a{'n integer' if kind is int else ' finite number'}")
         out.append(kind(x))
     return out
 
