@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("drivers.record", "record live sensors to a EuRoC dataset"),
     "run": ("vio.app.daemon.service", "onboard daemon: sensors -> estimator -> MAVLink"),
     "status": ("vio.app.status", "show the health of a running `vio run`"),
+    "loop": ("vio.app.loop_cli", "loop closure tools: train the place-recognition vocabulary"),
 }
 
 # Exit codes shared by all commands.
