@@ -124,7 +124,8 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
     from vio.app.cli import main
 
     out = {}
-    for name, extra in (("off", []), ("on", ["--loop", "--loop-output", str(tmp_path / "loop.tum")])):
+    for name, extra in (("off", []), ("on", ["--loop-output", str(tmp_path / "loop.tum"),
+                                             "--save-map", str(tmp_path / "map.npz")])):
         stats = tmp_path / f"{name}.json"
         assert main(["replay", str(loop_flight), "-o", str(tmp_path / f"{name}.tum"), "--stats", str(stats),
                      "--no-progress", *extra]) == 0
@@ -138,3 +139,30 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
     odom = out["on"]["evaluation"]["ate_4dof"]["trans_m"]["rmse"]
     assert loop["evaluation"]["ate_4dof"]["trans_m"]["rmse"] < 3 * odom
     assert (tmp_path / "loop.tum").read_text().count("\n") == (tmp_path / "on.tum").read_text().count("\n")
+    # the map: a versioned npz that `vio map info` reads, and a flight relocalises in (here the same one:
+    # the mechanics; docs/loop-closure.md has the figures for a second flight with another start)
+    from vio.loop.mapfile import load_map
+
+    m = load_map(tmp_path / "map.npz")
+    assert m.header["format"] == "kestrel-vio-map" and m.header["version"] == 1
+    assert m.header["keyframes"] == loop["keyframes"] == len(m.features) == len(m.t_ns)
+    assert main(["map", "info", str(tmp_path / "map.npz")]) == 0
+    stats = tmp_path / "reloc.json"
+    assert main(["replay", str(loop_flight), "--load-map", str(tmp_path / "map.npz"), "--max-frames", "300",
+                 "--loop-output", str(tmp_path / "reloc.tum"), "--stats", str(stats), "--no-progress"]) == 0
+    import json
+
+    r = json.loads(stats.read_text())["loop"]["relocalisation"]
+    assert r["relocalised"] and r["delay_s"] < 5.0
+
+
+def test_map_file_refuses_other_formats(tmp_path):
+    from vio import VioError
+    from vio.loop.mapfile import load_map
+
+    np.savez(tmp_path / "x.npz", header=np.array('{"format": "other", "version": 1}'))
+    with pytest.raises(VioError, match="not a Kestrel VIO map"):
+        load_map(tmp_path / "x.npz")
+    np.savez(tmp_path / "y.npz", header=np.array('{"format": "kestrel-vio-map", "version": 99}'))
+    with pytest.raises(VioError, match="newer"):
+        load_map(tmp_path / "y.npz")

@@ -212,7 +212,7 @@ class LoopConfig:
     vocabulary: str = opt("", "vocabulary file (npz); empty: the one shipped with the package")
     orb_features: int = opt(300, "ORB corners detected per keyframe (plus the front end's stereo points)",
                             min=50, max=3000)
-    candidates: int = opt(3, "best retrieval candidates verified per keyframe", min=1, max=20)
+    candidates: int = opt(2, "best retrieval candidates verified per keyframe", min=1, max=20)
     min_score: float = opt(0.05, "bag-of-words L1 score below which a candidate is not verified", min=0, max=1)
     exclude_recent_s: float = opt(10.0, "keyframes of the same flight newer than this are no candidates",
                                   min=0, max=3600)
@@ -240,10 +240,18 @@ class LoopConfig:
                                  min=1e-3, max=1e6)
     segment_prior_deg: float = opt(180.0, "its rotation prior sigma (roll/pitch are held by gravity)",
                                    min=1e-3, max=1e4)
+    reloc_min_consistent: int = opt(3, "as min_consistent, for an edge to another session (a loaded map, the "
+                                    "flight before a reset): no drift gate can check it", min=1, max=20)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",
                       choices=("off", "jump", "blend"))
     blend_rate_m_s: float = opt(0.2, "blend: correction applied at most this fast [m/s]", min=1e-3, max=100)
     blend_rate_deg_s: float = opt(5.0, "blend: and this fast in yaw [deg/s]", min=1e-3, max=1000)
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    load: str = opt("", "map file to relocalise in at start (docs/loop-closure.md#map-files); empty: none")
+    save: str = opt("", "write the map here at the end of the run; empty: not saved")
 
 
 @dataclass(frozen=True)
@@ -255,6 +263,7 @@ class VioConfig:
     source: SourceConfig = field(default_factory=SourceConfig)
     run: RunConfig = field(default_factory=RunConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    map: MapConfig = field(default_factory=MapConfig)
 
     @property
     def estimator(self) -> EstimatorConfig:

@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", action="store_true", help="run loop closure (as [loop] enabled = true)")
     p.add_argument("--loop-output", metavar="TUM", help="write the loop-corrected trajectory here (final pose "
                    "graph; the odometry goes to --output)")
+    p.add_argument("--save-map", metavar="FILE", help="write the loop-closure map here (implies --loop)")
+    p.add_argument("--load-map", metavar="FILE", help="relocalise in this map (implies --loop; poses in "
+                   "--loop-output come out in the map's frame)")
 
 
 class TumSink:
@@ -275,6 +278,12 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
 
     closer = loop.closer
     d = closer.stats.to_dict()
+    if closer.map_keyframes:
+        own = closer.keyframes[closer.map_keyframes:]
+        d["relocalisation"] = {"map_keyframes": closer.map_keyframes, "relocalised": closer.relocalised,
+                               "delay_s": None if closer.relocalised_t_ns is None or not own
+                               else (closer.relocalised_t_ns - own[0].t_ns) * 1e-9}
+        print(f"relocalisation: {d['relocalisation']}")
     d.update(dropped=loop.dropped, error=loop.error, memory_per_keyframe_bytes=closer.memory_per_keyframe_bytes(),
              loop_edges=[[int(e.i), int(e.j), float(e.weight)] for e in closer.graph.edges if e.kind == "loop"])
     if res.states:
@@ -334,11 +343,18 @@ def run(args: argparse.Namespace) -> int:
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sinks.append(restamp_to_host_clock(mav))
     loop = None
-    if args.loop or cfg.loop.enabled or args.loop_output:
+    save_map = args.save_map or cfg.map.save
+    load_map = args.load_map or cfg.map.load
+    if args.loop or cfg.loop.enabled or args.loop_output or save_map or load_map:
         from vio.app.loop_worker import LoopWorker
         from vio.loop.closer import LoopCloser
 
-        loop = LoopWorker(LoopCloser(dataset.calibration, cfg.loop), max_queue=100000)  # replay: keep all
+        closer = LoopCloser(dataset.calibration, cfg.loop)
+        if load_map:
+            from vio.loop.mapfile import load_map as read_map
+
+            closer.load_map(read_map(load_map))
+        loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
@@ -369,6 +385,9 @@ def run(args: argparse.Namespace) -> int:
     loop_dict = None
     if loop is not None:
         loop_dict = _loop_outputs(loop, res, dataset, args.loop_output)
+        if save_map:
+            h = loop.closer.save_map(save_map)
+            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}")
     if args.stats:
         d = res.stats_dict()
         if loop_dict is not None:

@@ -93,6 +93,8 @@ class LoopCloser:
         self._component: dict[int, int] = {}  # session -> component id (sessions joined by a loop edge)
         self._last_reset: int | None = None
         self._pending: list[_Candidate] = []
+        self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
+        self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
 
     # --- the stage --------------------------------------------------------------------------------
     def add_keyframe(self, t_ns: int, T_world_body: np.ndarray, image: np.ndarray, ff: FeatureFrame | None,
@@ -188,7 +190,8 @@ class LoopCloser:
             return bool(np.linalg.norm(p.correction[:3, 3] - newest.correction[:3, 3]) <= c.consistency_m
                         and abs(np.degrees(d_yaw)) <= c.consistency_deg)
         agree = [p for p in self._pending if agrees(p)]
-        if len({p.i for p in agree}) < c.min_consistent:
+        same = self._comp(self.keyframes[newest.j].session) == self._comp(self.keyframes[newest.i].session)
+        if len({p.i for p in agree}) < (c.min_consistent if same else c.reloc_min_consistent):
             self.stats.refused["inconsistent"] += 1
             return False
         for p in agree:
@@ -196,6 +199,8 @@ class LoopCloser:
             self._join(self.keyframes[p.j].session, self.keyframes[p.i].session)
             self.stats.accepted += 1
         self._pending = [p for p in self._pending if p not in agree]
+        if self.relocalised_t_ns is None and self.relocalised:
+            self.relocalised_t_ns = self.keyframes[i].t_ns
         return True
 
     def _comp(self, session: int) -> int:
@@ -208,6 +213,33 @@ class LoopCloser:
         if ra != rb:
             self._component[max(ra, rb)] = min(ra, rb)
 
+    # --- maps -------------------------------------------------------------------------------------
+    def load_map(self, m) -> None:
+        """Put a saved map's keyframes in, fixed at their saved poses (session 0); this flight becomes a new
+        session with a loose prior, so its poses move into the map's frame once it relocalises."""
+        if self.keyframes:
+            raise ValueError("load the map before the first keyframe")
+        for t, T, f in zip(m.t_ns, m.T_world_body, m.features):
+            self.graph.add_node(T, None, (1e-4, 1e-4))
+            self.keyframes.append(Keyframe(int(t), 0, f, 0.0))
+            self.index.add(self.vocab.bow(f.desc))
+        self._component[0] = 0
+        self.map_keyframes = len(m.features)
+        self.session = 1
+        self._last_reset = None
+
+    @property
+    def relocalised(self) -> bool:
+        """A loaded map and this flight's newest keyframe in one component (joined by a loop edge)."""
+        return bool(self.map_keyframes) and bool(self.keyframes) and \
+            self._comp(self.keyframes[-1].session) == self._comp(0)
+
+    def save_map(self, path) -> dict:
+        from vio.loop.mapfile import save_map
+
+        return save_map(path, [k.t_ns for k in self.keyframes], self.graph.estimate,
+                        [k.feats for k in self.keyframes], self.vocab, self.cam)
+
     # --- outputs ----------------------------------------------------------------------------------
     def correction(self) -> np.ndarray:
         """T_world_odom of the newest keyframe: loop-corrected pose = correction @ odometry pose."""
@@ -217,10 +249,11 @@ class LoopCloser:
 
     def corrected_trajectory(self, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
         """Odometry poses (N, 4, 4) at t_ns mapped with the final correction of the keyframe before each."""
-        if not self.keyframes:
+        m = self.map_keyframes  # a loaded map's keyframes are not this flight's
+        if len(self.keyframes) <= m:
             return np.array(T_odom)
-        kt = np.array([k.t_ns for k in self.keyframes])
-        corr = np.array([e @ inv_T(o) for e, o in zip(self.graph.estimate, self.graph.odom)])
+        kt = np.array([k.t_ns for k in self.keyframes[m:]])
+        corr = np.array([e @ inv_T(o) for e, o in zip(self.graph.estimate[m:], self.graph.odom[m:])])
         idx = np.clip(np.searchsorted(kt, t_ns, side="right") - 1, 0, len(kt) - 1)
         return np.einsum("nij,njk->nik", corr[idx], T_odom)
 

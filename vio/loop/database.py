@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections import defaultdict
+import numpy as np
 
 
 def l1_score(a: dict[int, float], b: dict[int, float]) -> float:
@@ -11,9 +11,12 @@ def l1_score(a: dict[int, float], b: dict[int, float]) -> float:
 
 
 class BowIndex:
+    """Inverted file: per word, the images that hold it and their weights (growing numpy arrays)."""
+
     def __init__(self) -> None:
         self.vectors: list[dict[int, float]] = []
-        self.inverted: dict[int, list[int]] = defaultdict(list)
+        self._ids: dict[int, list[int]] = {}
+        self._w: dict[int, list[float]] = {}
 
     def __len__(self) -> int:
         return len(self.vectors)
@@ -21,17 +24,28 @@ class BowIndex:
     def add(self, v: dict[int, float]) -> int:
         i = len(self.vectors)
         self.vectors.append(v)
-        for w in v:
-            self.inverted[w].append(i)
+        for w, x in v.items():
+            self._ids.setdefault(w, []).append(i)
+            self._w.setdefault(w, []).append(x)
         return i
 
     def query(self, v: dict[int, float], allowed, top: int) -> list[tuple[int, float]]:
         """Best `top` entries (index, score) among those with allowed(index) true."""
-        acc: dict[int, float] = defaultdict(float)
+        if not self.vectors or not v:
+            return []
+        acc = np.zeros(len(self.vectors))
         for w, x in v.items():
-            for i in self.inverted.get(w, ()):
-                y = self.vectors[i][w]
-                acc[i] += abs(x - y) - x - y
-        scored = [(i, -0.5 * s) for i, s in acc.items() if allowed(i)]
-        scored.sort(key=lambda t: -t[1])
-        return scored[:top]
+            ids = self._ids.get(w)
+            if ids:
+                y = np.asarray(self._w[w])
+                np.add.at(acc, np.asarray(ids), np.abs(x - y) - x - y)
+        order = np.argsort(acc)  # most negative sum = best score
+        out = []
+        for i in order:
+            if acc[i] >= 0:
+                break
+            if allowed(int(i)):
+                out.append((int(i), float(-0.5 * acc[i])))
+                if len(out) == top:
+                    break
+        return out

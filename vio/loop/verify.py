@@ -47,8 +47,8 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
         return None
     obj = old.p_cam[pairs[:, 0]].astype(np.float64)
     img = new.uv[pairs[:, 1]].astype(np.float64)
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=100, reprojectionError=reproj_px,
-                                             confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=60, reprojectionError=reproj_px,
+                                             confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     if not ok or inl is None or len(inl) < min_inliers:
         return None
     inl = inl[:, 0]
