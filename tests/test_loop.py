@@ -166,3 +166,21 @@ def test_map_file_refuses_other_formats(tmp_path):
     np.savez(tmp_path / "y.npz", header=np.array('{"format": "kestrel-vio-map", "version": 99}'))
     with pytest.raises(VioError, match="newer"):
         load_map(tmp_path / "y.npz")
+
+
+def test_autopilot_output_modes():
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    C = make_T(so3_exp(np.array([0, 0, 0.1])), [1.0, 0, 0])
+    st = [NavState(int(k * 1e8), np.eye(4), np.array([1.0, 0, 0])) for k in range(40)]  # 10 Hz, 4 s
+    assert CorrectedOutput("off").apply(st[0], C, 1) is st[0]
+    jump = CorrectedOutput("jump")
+    a, b = jump.apply(st[0], np.eye(4), 0), jump.apply(st[1], C, 1)
+    assert a.reset_counter == 0 and b.reset_counter == 1 and np.allclose(b.T_world_body, C)
+    assert jump.apply(st[2], C, 1).reset_counter == 1  # one jump per new correction
+    blend = CorrectedOutput("blend", blend_rate_m_s=0.5, blend_rate_deg_s=5.0)
+    out = [blend.apply(s, C, 1) for s in st]
+    x = np.array([o.T_world_body[0, 3] for o in out])
+    assert np.all(np.diff(x) <= 0.5 * 0.1 + 1e-9) and x[-1] == pytest.approx(1.0)  # bounded rate, then there
+    assert all(o.reset_counter == 0 for o in out)

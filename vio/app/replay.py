@@ -271,6 +271,14 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     return res
 
 
+def corrected_sink(sink: Sink, loop, lcfg) -> Sink:
+    """`sink` fed with states mapped by the loop worker's newest correction, as [loop] output says."""
+    from vio.loop.output import CorrectedOutput
+
+    out = CorrectedOutput(lcfg.output, lcfg.blend_rate_m_s, lcfg.blend_rate_deg_s)
+    return lambda st: sink(out.apply(st, *loop.correction()))
+
+
 def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
     """Loop-closure summary, the corrected trajectory (TUM) and its accuracy."""
     from vio.geometry import rot_to_quat_wxyz
@@ -355,6 +363,8 @@ def run(args: argparse.Namespace) -> int:
 
             closer.load_map(read_map(load_map))
         loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
+        if mav is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
+            sinks[-1] = corrected_sink(sinks[-1], loop, cfg.loop)
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
