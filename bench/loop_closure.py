@@ -2,7 +2,8 @@
 
     python bench/loop_closure.py [--flights survey:120:4:realistic,...] [--cache DIR] [--json out.json]
 
-For each flight (profile:duration_s:seed:variant at 376x240; simulated once into --cache): replays with the
+For each flight (profile:duration_s:seed:variant[:aliasing period m] at 376x240; simulated once into
+--cache; an aliasing period repeats the room's textures, vio simulate --aliasing): replays with the
 loop-closure worker beside the odometry and reports ATE (4-DoF) of both trajectories, end-of-flight position
 drift (both trajectories aligned on their first pose, as an integrator sees it), loop edges accepted /
 switched off / refused, false edges (error against ground truth > 0.2 m or 3 deg) left active in the final
@@ -72,11 +73,12 @@ def run_flight(spec: str, cache: Path) -> dict:
     from vio.sim.generate import SimConfig, simulate
     from vio.trajectory import Trajectory
 
-    profile, dur, seed, variant = spec.split(":")
-    data = cache / f"{profile}-{variant}-seed{seed}-{dur}s-376x240"
+    profile, dur, seed, variant, *alias = spec.split(":")
+    period = float(alias[0]) if alias else None
+    data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-376x240" + (f"-aliasing{alias[0]}m" if alias else ""))
     if not (data / "mav0").is_dir():
         simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
-                                 width=376, height=240), overwrite=True, progress=False)
+                                 width=376, height=240, aliasing_period_m=period), overwrite=True, progress=False)
     ds = EurocDataset(data)
     gt = ds.groundtruth.trajectory
     cfg = VioConfig()
@@ -123,12 +125,42 @@ def run_flight(spec: str, cache: Path) -> dict:
             "memory_per_keyframe_bytes": closer.memory_per_keyframe_bytes(), "dropped": worker.dropped}
 
 
+def graph_scaling(n: int) -> float:
+    """Seconds for one GNC solve of a synthetic n-keyframe loop graph (2 m circle, 40 keyframes a lap, a
+    true closure each lap, 20 random false ones)."""
+    from vio.geometry import make_T, so3_exp
+    from vio.loop.posegraph import PoseGraph
+
+    rng = np.random.default_rng(0)
+    truth = [make_T(so3_exp(np.array([0, 0, 2 * np.pi * k / 40])),
+                    2 * np.array([np.cos(2 * np.pi * k / 40), np.sin(2 * np.pi * k / 40), 1.0])) for k in range(n)]
+    g, prev, T = PoseGraph(), None, truth[0].copy()
+    for k in range(n):
+        if k:
+            T = T @ np.linalg.inv(truth[k - 1]) @ truth[k] @ make_T(so3_exp(np.r_[0, 0, 8e-4]), np.r_[3e-3, 0, 0])
+        prev = g.add_node(T, prev)
+    for k in range(40, n, 40):
+        g.add_loop(0, k, np.linalg.inv(truth[0]) @ truth[k])
+    for _ in range(20):
+        a, b = (int(x) for x in rng.integers(0, n, 2))
+        g.add_loop(a, b, make_T(so3_exp(rng.normal(size=3) * 0.3), rng.normal(size=3)))
+    t0 = time.perf_counter()
+    g.optimize()
+    return time.perf_counter() - t0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--graph", type=int, nargs="*", metavar="N",
+                    help="only time the GNC solve of synthetic N-keyframe graphs (e.g. 300 1200 2400)")
     ap.add_argument("--flights", default=DEFAULT_FLIGHTS)
     ap.add_argument("--cache", default="/tmp/kestrel-loop-bench")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)
+    if args.graph:
+        for n in args.graph:
+            print(f"pose graph {n} keyframes: GNC solve {graph_scaling(n) * 1e3:.0f} ms", flush=True)
+        return 0
     rows = []
     for spec in args.flights.split(","):
         r = run_flight(spec, Path(args.cache))

@@ -184,3 +184,17 @@ def test_autopilot_output_modes():
     x = np.array([o.T_world_body[0, 3] for o in out])
     assert np.all(np.diff(x) <= 0.5 * 0.1 + 1e-9) and x[-1] == pytest.approx(1.0)  # bounded rate, then there
     assert all(o.reset_counter == 0 for o in out)
+
+
+def test_aliasing_room_repeats_its_wall_texture():
+    from vio.sim.scene import default_scene
+
+    sc = default_scene(seed=1, ppm=50.0, aliasing_period_m=1.0)
+    f = next(i for i, face in enumerate(sc.faces) if face.box == 0 and not face.hidden)
+    face = sc.faces[f]
+    u = np.linspace(face.u_range[0] + 0.1, face.u_range[1] - 1.2, 50)
+    v = np.full_like(u, 0.5 * (face.v_range[0] + face.v_range[1]))
+    x = (u * sc.ppm + sc.face_cx[f]).astype(int)
+    y = (v * sc.ppm + sc.face_cy[f]).astype(int)
+    a, b = sc.atlas[y, x], sc.atlas[y, x + int(sc.ppm)]  # one period apart
+    assert np.allclose(a, b) and np.std(a) > 1.0
