@@ -269,7 +269,7 @@ class EstimatorWorker(Worker):
     def _to_loop(self) -> None:
         """Hand the keyframe just processed (if one was) to the loop-closure thread."""
         est = self.estimator
-        ff, st = getattr(est, "last_features", None), est.latest()
+        ff, st = est.last_features, est.latest()
         if ff is None or st is None or not est.timings.keyframe:
             return
         for t, left in self._left:
