@@ -210,6 +210,54 @@ class EstimatorConfig:
 
 
 @dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = opt(False, "run loop closure beside the odometry (docs/loop-closure.md)")
+    vocabulary: str = opt("", "vocabulary file (npz); empty: the one shipped with the package")
+    orb_features: int = opt(300, "ORB corners detected per keyframe (plus the front end's stereo points)",
+                            min=50, max=3000)
+    candidates: int = opt(2, "best retrieval candidates verified per keyframe", min=1, max=20)
+    min_score: float = opt(0.05, "bag-of-words L1 score below which a candidate is not verified", min=0, max=1)
+    exclude_recent_s: float = opt(10.0, "keyframes of the same flight newer than this are no candidates",
+                                  min=0, max=3600)
+    max_hamming: int = opt(60, "largest descriptor distance of a match (of 256 bits)", min=1, max=256)
+    match_ratio: float = opt(0.8, "ratio test between the best and second-best match", min=0.1, max=1)
+    min_inliers: int = opt(20, "PnP RANSAC inliers a candidate needs", min=6, max=1000)
+    reproj_threshold_px: float = opt(2.0, "PnP inlier reprojection threshold", min=0.1, max=20)
+    two_way_m: float = opt(0.03, "PnP both ways (old landmarks in the new image and new in the old) must agree "
+                           "within this distance", min=0.001, max=10)
+    two_way_deg: float = opt(0.5, "and this angle", min=0.01, max=90)
+    gravity_max_deg: float = opt(2.0, "largest roll/pitch disagreement between the loop edge and the IMU",
+                                 min=0.01, max=90)
+    drift_gate_m: float = opt(0.3, "correction always allowed within one flight [m]", min=0, max=1000)
+    drift_gate_per_m: float = opt(0.05, "plus this share of the path flown since the candidate", min=0, max=10)
+    drift_gate_deg: float = opt(10.0, "largest yaw correction within one flight", min=0, max=180)
+    min_consistent: int = opt(2, "verified candidates with agreeing corrections before edges are used",
+                              min=1, max=20)
+    consistency_window: int = opt(5, "keyframes over which those candidates are gathered", min=1, max=100)
+    consistency_m: float = opt(0.1, "corrections agree within this distance", min=0.001, max=100)
+    consistency_deg: float = opt(2.0, "and this yaw", min=0.01, max=180)
+    odom_sigma_per_m: float = opt(0.005, "odometry edge sigma per metre flown (pose graph)", min=1e-5, max=1)
+    loop_sigma_m: float = opt(0.06, "loop edge position sigma", min=1e-4, max=10)
+    loop_sigma_deg: float = opt(0.7, "loop edge rotation sigma", min=1e-3, max=90)
+    segment_prior_m: float = opt(100.0, "prior sigma of a new segment (after a reset, or on a loaded map)",
+                                 min=1e-3, max=1e6)
+    segment_prior_deg: float = opt(180.0, "its rotation prior sigma (roll/pitch are held by gravity)",
+                                   min=1e-3, max=1e4)
+    reloc_min_consistent: int = opt(3, "as min_consistent, for an edge to another session (a loaded map, the "
+                                    "flight before a reset): no drift gate can check it", min=1, max=20)
+    output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",
+                      choices=("off", "jump", "blend"))
+    blend_rate_m_s: float = opt(0.2, "blend: correction applied at most this fast [m/s]", min=1e-3, max=100)
+    blend_rate_deg_s: float = opt(5.0, "blend: and this fast in yaw [deg/s]", min=1e-3, max=1000)
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    load: str = opt("", "map file to relocalise in at start (docs/loop-closure.md#map-files); empty: none")
+    save: str = opt("", "write the map here at the end of the run; empty: not saved")
+
+
+@dataclass(frozen=True)
 class VioConfig:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
@@ -217,6 +265,8 @@ class VioConfig:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     source: SourceConfig = field(default_factory=SourceConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    map: MapConfig = field(default_factory=MapConfig)
 
     @property
     def estimator(self) -> EstimatorConfig:

@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("drivers.record", "record live sensors to a EuRoC dataset"),
     "run": ("vio.app.daemon.service", "onboard daemon: sensors -> estimator -> MAVLink"),
     "status": ("vio.app.status", "show the health of a running `vio run`"),
+    "loop": ("vio.app.loop_cli", "loop closure tools: train the place-recognition vocabulary"),
+    "map": ("vio.app.map_cli", "inspect a saved loop-closure map (vio replay --save-map)"),
 }
 
 # Exit codes shared by all commands.

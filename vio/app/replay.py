@@ -43,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N camera frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--loop", action="store_true", help="run loop closure (as [loop] enabled = true)")
+    p.add_argument("--loop-output", metavar="TUM", help="write the loop-corrected trajectory here (final pose "
+                   "graph; the odometry goes to --output)")
+    p.add_argument("--save-map", metavar="FILE", help="write the loop-closure map here (implies --loop)")
+    p.add_argument("--load-map", metavar="FILE", help="relocalise in this map (implies --loop; poses in "
+                   "--loop-output come out in the map's frame)")
 
 
 class TumSink:
@@ -146,8 +152,12 @@ class ReplayResult:
 
 
 def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = False,
-           show_tracks: str | None = None, max_frames: int | None = None, progress: bool = True) -> ReplayResult:
-    """Stream a EurocDataset through a fresh Estimator; every frame's state goes to `sinks`."""
+           show_tracks: str | None = None, max_frames: int | None = None, progress: bool = True,
+           loop=None) -> ReplayResult:
+    """Stream a EurocDataset through a fresh Estimator; every frame's state goes to `sinks`.
+
+    `loop`: a vio.app.loop_worker.LoopWorker that gets every keyframe (its image, features and odometry
+    pose); the odometry does not depend on it."""
     preflight(dataset)  # before the estimator's imports: a data problem is said at once
     from vio.config import VioConfig
     from vio.estimator import Estimator
@@ -179,6 +189,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
     unusable: dict[str, int] = {}
     unreadable0 = dataset.stats.unreadable_images
+    loop_images: dict[int, np.ndarray] = {}  # frames fed but not processed yet, for the loop worker
+    loop_submit_ms: list[float] = []
     # right images are decoded only where the front end uses them (the debug view shows them all)
     try:  # an interrupted replay clears its progress bar (the message after it starts a clean line)
         for ev in dataset.events(t_end_ns=t_end, lazy_right=writer is None):
@@ -198,6 +210,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     break
                 if writer is not None:
                     waiting[int(ev.t_ns)] = ev
+                if loop is not None:
+                    loop_images[int(ev.t_ns)] = ev.left
                 est.feed_frame(ev)
                 frames += 1
                 if bar is not None:
@@ -214,6 +228,14 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                 frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
                                     "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
                                     "stereo": est.last_features.n_stereo})
+                if loop is not None:
+                    if tm.keyframe and est.latest() is not None and t_cam in loop_images:
+                        t_l = time.perf_counter()
+                        loop.submit(est.latest().t_ns, est.latest().T_world_body, loop_images[t_cam], ff,
+                                    est.reset_counter)
+                        loop_submit_ms.append((time.perf_counter() - t_l) * 1e3)
+                    for t in [t for t in loop_images if t <= t_cam]:
+                        del loop_images[t]
                 if writer is not None and t_cam in waiting:
                     writer.write(waiting.pop(t_cam), est.last_features)
                     for t in [t for t in waiting if t < t_cam]:
@@ -232,6 +254,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     for why, n in (("image missing", missing), ("image unreadable", dataset.stats.unreadable_images - unreadable0)):
         if n:
             unusable[why] = unusable.get(why, 0) + n
+    if loop is not None:
+        loop.close()
     res = ReplayResult(states, frame_stats, data_s, wall, frames, est.reset_counter,
                        states[0].t_ns if states else None,
                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
@@ -245,6 +269,55 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     if summary:
         log.warning(summary)
     return res
+
+
+def corrected_sink(sink: Sink, loop, lcfg) -> Sink:
+    """`sink` fed with states mapped by the loop worker's newest correction, as [loop] output says."""
+    from vio.loop.output import CorrectedOutput
+
+    out = CorrectedOutput(lcfg.output, lcfg.blend_rate_m_s, lcfg.blend_rate_deg_s)
+    return lambda st: sink(out.apply(st, *loop.correction()))
+
+
+def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
+    """Loop-closure summary, the corrected trajectory (TUM) and its accuracy."""
+    from vio.geometry import rot_to_quat_wxyz
+    from vio.trajectory import Trajectory, format_tum_line
+
+    closer = loop.closer
+    d = closer.stats.to_dict()
+    if closer.map_keyframes:
+        own = closer.keyframes[closer.map_keyframes:]
+        d["relocalisation"] = {"map_keyframes": closer.map_keyframes, "relocalised": closer.relocalised,
+                               "delay_s": None if closer.relocalised_t_ns is None or not own
+                               else (closer.relocalised_t_ns - own[0].t_ns) * 1e-9}
+        print(f"relocalisation: {d['relocalisation']}")
+    d.update(dropped=loop.dropped, error=loop.error, memory_per_keyframe_bytes=closer.memory_per_keyframe_bytes(),
+             loop_edges=[[int(e.i), int(e.j), float(e.weight)] for e in closer.graph.edges if e.kind == "loop"])
+    if res.states:
+        t = np.array([s.t_ns for s in res.states])
+        T = closer.corrected_trajectory(t, np.array([s.T_world_body for s in res.states]))
+        if path:
+            try:
+                with open(path, "w") as f:
+                    f.write("# timestamp[s] x y z qx qy qz qw  (T_world_body, loop-corrected)\n")
+                    for ti, Ti in zip(t, T):
+                        f.write(format_tum_line(int(ti), Ti[:3, 3], rot_to_quat_wxyz(Ti[:3, :3])))
+            except OSError as e:
+                raise VioError(f"{path}: cannot write the trajectory ({e.strerror})") from None
+        if dataset.groundtruth is not None and len(t) >= 3:
+            from vio.evaluation import evaluate
+
+            try:
+                ev = evaluate(Trajectory.from_poses(t, T), dataset.groundtruth.trajectory)
+                d["evaluation"] = ev.to_dict()
+                print("loop-corrected: " + ev.summary().splitlines()[3])
+            except VioError as e:
+                print(f"replay: no accuracy figures for the loop-corrected trajectory: {e}")
+    print(f"loop closure: {d['keyframes']} keyframes, {d['accepted']} loop edges accepted "
+          f"({d['switched_off']} switched off by GNC), refused {d['refused']}; detection {d['detect_ms_mean']:.1f} ms "
+          f"per keyframe (p95 {d['detect_ms_p95']:.1f}), optimisation max {d['optimize_ms_max']:.0f} ms")
+    return d
 
 
 def preflight(dataset) -> None:
@@ -277,9 +350,25 @@ def run(args: argparse.Namespace) -> int:
 
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sinks.append(restamp_to_host_clock(mav))
+    loop = None
+    save_map = args.save_map or cfg.map.save
+    load_map = args.load_map or cfg.map.load
+    if args.loop or cfg.loop.enabled or args.loop_output or save_map or load_map:
+        from vio.app.loop_worker import LoopWorker
+        from vio.loop.closer import LoopCloser
+
+        closer = LoopCloser(dataset.calibration, cfg.loop)
+        if load_map:
+            from vio.loop.mapfile import load_map as read_map
+
+            closer.load_map(read_map(load_map))
+        loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
+        if mav is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
+            sinks[-1] = corrected_sink(sinks[-1], loop, cfg.loop)
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
-                     show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress)
+                     show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
+                     loop=loop)
     finally:
         if tum is not None:
             tum.close()
@@ -303,8 +392,16 @@ def run(args: argparse.Namespace) -> int:
             eval_dict = ev.to_dict()
         except VioError as e:
             print(f"replay: no accuracy figures: {e}")
+    loop_dict = None
+    if loop is not None:
+        loop_dict = _loop_outputs(loop, res, dataset, args.loop_output)
+        if save_map:
+            h = loop.closer.save_map(save_map)
+            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}")
     if args.stats:
         d = res.stats_dict()
+        if loop_dict is not None:
+            d["loop"] = loop_dict
         if eval_dict is not None:
             d["evaluation"] = eval_dict
         try:

@@ -35,6 +35,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--blur-ms", type=float, default=None, help="exposure time for motion blur [ms]; 0 = sharp")
     p.add_argument("--image-noise", type=float, default=None, help="pixel noise sigma [grey levels]")
     p.add_argument("--plain", type=float, default=None, help="share of wall area painted plain (0..1)")
+    p.add_argument("--scene-seed", type=int, default=None,
+                   help="seed of the room (textures, boxes); default: --seed. Same value: the same room")
+    p.add_argument("--aliasing", type=float, default=None, metavar="M",
+                   help="aliasing room: walls, floor and ceiling repeat their texture every M metres "
+                        "(places that look the same but are not; loop-closure tests)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in OUT")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -58,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
                     time_offset_ms=args.time_offset_ms, camera_model=args.camera_model, width=w, height=h,
                     imu_noise=not args.no_imu_noise, gyro_bias=args.gyro_bias, accel_bias=args.accel_bias,
                     vibration=args.vibration, plain_fraction=args.plain, exposure_ms=args.blur_ms,
-                    image_noise=args.image_noise, drop_frames=args.drop_frames)
+                    image_noise=args.image_noise, drop_frames=args.drop_frames, scene_seed=args.scene_seed,
+                    aliasing_period_m=args.aliasing)
     summary = simulate(args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.line())
     return 0

@@ -70,6 +70,8 @@ class SimConfig:
     gain_drift: float | None = None  # amplitude of slow log-gain drift
     gain_jumps_hz: float | None = None  # rate of sudden exposure jumps
     drop_frames: float | None = None  # probability that a frame loses left, right or both images
+    aliasing_period_m: float | None = None  # the room's walls, floor, ceiling repeat every this many metres
+    scene_seed: int | None = None  # room texture and boxes; None: `seed` (a second flight in the same room: set it)
 
     def resolved(self) -> SimConfig:
         """Copy with the variant's values filled in and every value checked (VioError naming the field)."""
@@ -138,7 +140,8 @@ def build(cfg: SimConfig) -> Simulation:
     calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
                                 int(round(cfg.time_offset_ms * 1e6)))
     motion = make_profile(cfg.profile, cfg.duration_s, cfg.seed, still_s=cfg.still_start_s)
-    scene = default_scene(cfg.seed, cfg.texels_per_m, cfg.plain_fraction)
+    scene = default_scene(cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
+                          cfg.plain_fraction, cfg.aliasing_period_m)
     model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
                      tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
     imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))

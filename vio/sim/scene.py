@@ -106,7 +106,8 @@ def face_texture(rng: np.random.Generator, w: int, h: int, ppm: float, plain_fra
 class Scene:
     """Boxes + texture atlas. Build with `default_scene`; ray cast with `cast`; sample with `sample_points`."""
 
-    def __init__(self, boxes: list[Box], ppm: float = 200.0, seed: int = 0, plain_fraction: float = 0.0):
+    def __init__(self, boxes: list[Box], ppm: float = 200.0, seed: int = 0, plain_fraction: float = 0.0,
+                 aliasing_period_m: float | None = None):
         if not boxes or not boxes[0].interior:
             raise VioError("scene: the first box must be the room (interior=True)")
         self.boxes = boxes
@@ -114,6 +115,8 @@ class Scene:
         self.faces = _faces(boxes)
         self.lo = np.array([b.lo for b in boxes], dtype=float)
         self.hi = np.array([b.hi for b in boxes], dtype=float)
+        # repeated walls: the room's faces repeat their texture every aliasing_period_m (identical shelves)
+        self.aliasing_period_m = aliasing_period_m
         self._build_atlas(np.random.default_rng([seed, 5150]), plain_fraction)
 
     # -- textures --------------------------------------------------------------------------------------
@@ -148,7 +151,15 @@ class Scene:
             ox, oy = offsets[i]
             if not f.hidden:
                 # a per-face brightness stands in for lighting; plain patches mostly on the room itself
-                patch = face_texture(rng, w, h, self.ppm, plain_fraction if f.box == 0 else plain_fraction / 3)
+                plain = plain_fraction if f.box == 0 else plain_fraction / 3
+                period = self.aliasing_period_m
+                if f.box == 0 and period:
+                    n = max(8, int(round(period * self.ppm)))
+                    tw, th = min(w, n), min(h, n)
+                    tile = face_texture(rng, tw, th, self.ppm, plain)
+                    patch = np.tile(tile, (int(np.ceil(h / th)), int(np.ceil(w / tw))))[:h, :w]
+                else:
+                    patch = face_texture(rng, w, h, self.ppm, plain)
                 atlas[oy:oy + h, ox:ox + w] = patch * rng.uniform(0.7, 1.15)
             self.face_axis[i] = f.axis
             self.face_cx[i] = ox + _PAD - f.u_range[0] * self.ppm
@@ -250,7 +261,8 @@ class Scene:
         return out[:n]
 
 
-def default_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0) -> Scene:
+def default_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0,
+                  aliasing_period_m: float | None = None) -> Scene:
     """A 10 m x 8 m x 4 m room (x in [-5, 5], y in [-4, 4], z in [0, 4]) with crates and pillars along the
     walls (outside motion.FLIGHT_BOX by >= 1 m) and two low crates on the floor below the flight area."""
     boxes = [
@@ -264,4 +276,4 @@ def default_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0
         Box((0.6, -0.9, 0.0), (1.4, -0.2, 0.25)),  # low crates under the flight area
         Box((-1.6, 0.4, 0.0), (-0.9, 1.2, 0.1)),
     ]
-    return Scene(boxes, ppm=ppm, seed=seed, plain_fraction=plain_fraction)
+    return Scene(boxes, ppm=ppm, seed=seed, plain_fraction=plain_fraction, aliasing_period_m=aliasing_period_m)

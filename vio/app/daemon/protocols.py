@@ -13,7 +13,7 @@ from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
     from vio.calibration import StereoCalibration
-    from vio.estimator import EstimatorHealth
+    from vio.estimator import EstimatorHealth, FrameTimings
 
 
 class Source(Protocol):
@@ -37,6 +37,9 @@ class EstimatorApi(Protocol):
     """The estimator (vio.estimator.Estimator)."""
 
     last_features: FeatureFrame | None
+    timings: FrameTimings  # of the last processed frame (`keyframe`: loop closure gets it)
+
+    def latest(self) -> NavState | None: ...  # the newest frame-rate state
 
     def feed_imu(self, s: ImuSample) -> NavState | None: ...
 

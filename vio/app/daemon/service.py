@@ -108,6 +108,13 @@ class Service:
                                    [b for b in (self.est_buf, self.rec_buf) if b is not None],
                                    rc.source_timeout_s, rc.reconnect_max_s, paced=paced)
         self._estimator_factory = estimator_factory or _default_estimator_factory(cfg)
+        self.loop = None  # loop closure beside the odometry ([loop] enabled), built once the calibration is known
+        self._loop_output = None
+        if cfg.loop.enabled or cfg.map.load or cfg.map.save:
+            from vio.loop.output import CorrectedOutput
+
+            self._loop_output = CorrectedOutput(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s) \
+                if cfg.loop.output != "off" else None
         self.estimator = EstimatorWorker(self.stop, self._make_estimator, self.est_buf, self.latest,
                                          rc.max_imu_gap_s)
         mount = None
@@ -157,10 +164,25 @@ class Service:
         while not self.stop.is_set():
             calib = self._calibration_now()
             if calib is not None:
+                if (self.cfg.loop.enabled or self.cfg.map.load or self.cfg.map.save) and self.loop is None:
+                    self._start_loop(calib)
                 return self._estimator_factory(calib)
             self.estimator.beat()
             self.source.calibration_ready.wait(0.1)
         return None  # stopping before the sensors ever came up
+
+    def _start_loop(self, calib: Any) -> None:
+        from vio.app.loop_worker import LoopWorker
+        from vio.loop.closer import LoopCloser
+
+        closer = LoopCloser(calib, self.cfg.loop)
+        if self.cfg.map.load:
+            from vio.loop.mapfile import load_map
+
+            closer.load_map(load_map(self.cfg.map.load))
+        self.loop = LoopWorker(closer, max_queue=16)  # full: the keyframe is dropped, the odometry never waits
+        self.estimator.loop_worker = self.loop
+        self.estimator.loop_output = self._loop_output
 
     @property
     def workers(self) -> list[Worker]:
@@ -200,6 +222,14 @@ class Service:
             w.join(max(0.0, deadline - time.monotonic()))
             if w.is_alive():
                 stuck.append(w.name)
+        if self.loop is not None:
+            self.loop.close(wait=False)
+            if self.cfg.map.save:
+                try:
+                    self.loop.closer.save_map(self.cfg.map.save)
+                    log.info("map saved to %s", self.cfg.map.save)
+                except Exception as e:  # noqa: BLE001 - a failed save must not hide the shutdown
+                    log.error("map not saved: %s", e)
         status = self.snapshot()
         status["state"] = "stopped"
         self._write_status(status)

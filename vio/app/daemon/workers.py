@@ -184,8 +184,11 @@ class EstimatorWorker(Worker):
     """Feeds the estimator in time order; an exception or an IMU gap resets it instead of ending the process."""
 
     def __init__(self, stop: threading.Event, make_estimator: Callable[[], EstimatorApi | None], buf: SensorBuffer,
-                 out: LatestState, max_imu_gap_s: float) -> None:
+                 out: LatestState, max_imu_gap_s: float, loop: Any = None, loop_output: Any = None) -> None:
         super().__init__("estimator", stop)
+        self.loop_worker = loop  # vio.app.loop_worker.LoopWorker: gets every keyframe, never waited for
+        self.loop_output = loop_output  # vio.loop.output.CorrectedOutput: what the autopilot gets
+        self._left: deque[tuple[int, Any]] = deque(maxlen=16)  # left images of frames not processed yet
         self._make = make_estimator
         self.buf = buf
         self.out = out
@@ -231,6 +234,8 @@ class EstimatorWorker(Worker):
                 if item is not None:
                     self.frames += 1
                     self._arrivals.append(item[0])
+                    if self.loop_worker is not None:
+                        self._left.append((int(item[1].t_ns), item[1].left))
                     self._emit(self.estimator.feed_frame(item[1]))
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
@@ -261,9 +266,26 @@ class EstimatorWorker(Worker):
         self._processed = done
         return arrival
 
+    def _to_loop(self) -> None:
+        """Hand the keyframe just processed (if one was) to the loop-closure thread."""
+        est = self.estimator
+        ff, st = est.last_features, est.latest()
+        if ff is None or st is None or not est.timings.keyframe:
+            return
+        for t, left in self._left:
+            if t == int(ff.t_ns):
+                self.loop_worker.submit(st.t_ns, st.T_world_body, left, ff, st.reset_counter)
+        while self._left and self._left[0][0] <= int(ff.t_ns):
+            self._left.popleft()
+
     def _emit(self, result: Any) -> None:
+        n_before = self._processed
         arrival_ns = self._frame_arrival()
+        if self.loop_worker is not None and self._processed > n_before:
+            self._to_loop()
         for state in _as_states(result):
+            if self.loop_output is not None:
+                state = self.loop_output.apply(state, *self.loop_worker.correction())
             if self._reset_base:
                 state = dataclasses.replace(state, reset_counter=state.reset_counter + self._reset_base)
             self.states += 1

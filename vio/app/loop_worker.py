@@ -1,0 +1,67 @@
+"""Runs the loop-closure stage (vio.loop.LoopCloser) in its own thread beside the odometry.
+
+The frame loop only hands a keyframe over (`submit`: a non-blocking put into a bounded queue; a full queue
+drops the keyframe and counts it) and reads the newest correction (`correction`, under a lock). It never
+waits for retrieval, verification or the pose-graph solve."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+class LoopWorker:
+    def __init__(self, closer, max_queue: int = 64) -> None:
+        self.closer = closer
+        self._q: queue.Queue = queue.Queue(maxsize=max_queue)
+        self._lock = threading.Lock()
+        self._correction = np.eye(4)
+        self.closures = 0  # accepted closures so far (a new correction each time)
+        self.dropped = 0
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="loop-closure", daemon=True)
+        self._thread.start()
+
+    def submit(self, t_ns: int, T_world_body: np.ndarray, image: np.ndarray, ff, reset_counter: int) -> bool:
+        try:
+            self._q.put_nowait((t_ns, np.array(T_world_body), image, ff, reset_counter))
+            return True
+        except queue.Full:
+            self.dropped += 1
+            return False
+
+    def correction(self) -> tuple[np.ndarray, int]:
+        """(T_world_odom, number of closures) as of the last keyframe processed."""
+        with self._lock:
+            return self._correction.copy(), self.closures
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            try:
+                if item is None:
+                    return
+                if self.error is None:
+                    closed = self.closer.add_keyframe(*item)
+                    with self._lock:
+                        self._correction = self.closer.correction()
+                        self.closures += int(closed)
+            except Exception as e:  # the odometry goes on without loop closure
+                self.error = f"{type(e).__name__}: {e}"
+                log.error("loop closure stopped: %s", self.error)
+            finally:
+                self._q.task_done()
+
+    def close(self, wait: bool = True) -> None:
+        """Process what is queued (wait) and stop the thread."""
+        if wait:
+            self._q.join()
+        with contextlib.suppress(queue.Full):
+            self._q.put_nowait(None)
+        self._thread.join(timeout=5.0 if wait else 0.1)

@@ -1,0 +1,39 @@
+"""`vio map info FILE`: what a saved loop-closure map holds (format: docs/loop-closure.md#map-files)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
+    i = sub.add_parser("info", help="print a map file's header and extent")
+    i.add_argument("file", metavar="FILE")
+    i.add_argument("--json", action="store_true", help="the header and figures as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from vio.loop.mapfile import load_map
+
+    m = load_map(args.file)
+    p = m.T_world_body[:, :3, 3] if len(m.T_world_body) else np.zeros((0, 3))
+    n3 = sum(f.n_3d for f in m.features)
+    info = {**m.header, "landmarks_3d": int(n3),
+            "extent_m": {"min": p.min(0).round(3).tolist(), "max": p.max(0).round(3).tolist()} if len(p) else None,
+            "span_s": float((m.t_ns[-1] - m.t_ns[0]) * 1e-9) if len(m.t_ns) > 1 else 0.0}
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    print(f"{args.file}: {info['format']} version {info['version']}, created {info['created_utc']}")
+    print(f"  {info['keyframes']} keyframes over {info['span_s']:.1f} s, {info['descriptors']} descriptors, "
+          f"{n3} with stereo 3D points")
+    if info["extent_m"]:
+        print(f"  extent [m]: {info['extent_m']['min']} .. {info['extent_m']['max']}")
+    v = info["vocabulary"]
+    print(f"  vocabulary k={v['k']} depth {v['depth']} sha256 {v['sha256'][:16]}...")
+    c = info["camera"]
+    print(f"  camera {c['width']}x{c['height']} fx {c['fx']:.1f} fy {c['fy']:.1f}")
+    return 0

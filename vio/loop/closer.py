@@ -1,0 +1,264 @@
+"""The loop-closure stage: keyframe in -> (maybe) a verified loop edge, a re-optimised pose graph, and the
+correction T_world_odom that maps odometry poses into the loop-corrected frame. No threads, no I/O.
+
+Pipeline per keyframe: upright ORB -> bag of words -> best candidates older than exclude_recent_s ->
+PnP RANSAC on the candidate's stereo landmarks -> gravity check -> drift gate (the correction may not exceed
+what the odometry can have drifted since the candidate) -> temporal consistency (min_consistent verified
+candidates in a window of keyframes whose corrections agree) -> loop edges into the graph -> GNC solve."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vio.calibration import StereoCalibration
+from vio.config import LoopConfig
+from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
+from vio.loop.database import BowIndex
+from vio.loop.features import FeatureExtractor, KeyframeFeatures
+from vio.loop.posegraph import GraphNoise, PoseGraph
+from vio.loop.verify import gravity_disagreement_deg, pnp
+from vio.loop.vocabulary import Vocabulary
+from vio.types import FeatureFrame
+
+log = logging.getLogger(__name__)
+
+
+def _agree(T_identity: np.ndarray, max_m: float, max_deg: float) -> bool:
+    """Is T_identity (the composition of two estimates of one relative pose, one inverted) near identity?"""
+    return bool(np.linalg.norm(T_identity[:3, 3]) <= max_m and
+                np.degrees(np.linalg.norm(so3_log(T_identity[:3, :3]))) <= max_deg)
+
+
+def _mean_pose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Midpoint of two nearby poses."""
+    return make_T(A[:3, :3] @ so3_exp(0.5 * so3_log(A[:3, :3].T @ B[:3, :3])), 0.5 * (A[:3, 3] + B[:3, 3]))
+
+
+@dataclass
+class Keyframe:
+    t_ns: int
+    session: int
+    feats: KeyframeFeatures
+    path_m: float  # odometry path length from the session start
+
+
+@dataclass
+class _Candidate:
+    i: int  # new node
+    j: int  # old node
+    T_j_i: np.ndarray
+    correction: np.ndarray  # T_est_j @ T_j_i @ inv(T_est_i): where the edge puts node i
+    inliers: int
+
+
+@dataclass
+class LoopStats:
+    keyframes: int = 0
+    queried: int = 0
+    refused: dict = field(default_factory=lambda: dict.fromkeys(
+        ("no candidate", "pnp", "two-way", "gravity", "drift gate", "inconsistent"), 0))
+    accepted: int = 0
+    switched_off: int = 0
+    detect_ms: list = field(default_factory=list)  # extraction + retrieval + verification per keyframe
+    optimize_ms: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        def mean(x):
+            return float(np.mean(x)) if x else 0.0
+        return {"keyframes": self.keyframes, "queried": self.queried, "refused": dict(self.refused),
+                "accepted": self.accepted, "switched_off": self.switched_off,
+                "detect_ms_mean": mean(self.detect_ms),
+                "detect_ms_p95": float(np.percentile(self.detect_ms, 95)) if self.detect_ms else 0.0,
+                "optimize_ms_mean": mean(self.optimize_ms),
+                "optimize_ms_max": float(max(self.optimize_ms)) if self.optimize_ms else 0.0}
+
+
+class LoopCloser:
+    def __init__(self, calib: StereoCalibration, cfg: LoopConfig, vocabulary: Vocabulary | None = None) -> None:
+        self.cfg = cfg
+        self.cam = calib.cam0
+        self.vocab = vocabulary or Vocabulary.load(cfg.vocabulary or None)
+        self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features)
+        self.graph = PoseGraph(GraphNoise(odom_trans_per_m=cfg.odom_sigma_per_m, loop_trans_m=cfg.loop_sigma_m,
+                                          loop_rot_rad=np.radians(cfg.loop_sigma_deg)))
+        self.index = BowIndex()
+        self.keyframes: list[Keyframe] = []
+        self.stats = LoopStats()
+        self.session = 0
+        self._component: dict[int, int] = {}  # session -> component id (sessions joined by a loop edge)
+        self._last_reset: int | None = None
+        self._pending: list[_Candidate] = []
+        self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
+        self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
+
+    # --- the stage --------------------------------------------------------------------------------
+    def add_keyframe(self, t_ns: int, T_world_body: np.ndarray, image: np.ndarray, ff: FeatureFrame | None,
+                     reset_counter: int = 0) -> bool:
+        """Add one keyframe (odometry pose); returns True when a closure was accepted (graph re-solved)."""
+        t0 = time.perf_counter()
+        c = self.cfg
+        feats = self.extractor.extract(image, ff)
+        bow = self.vocab.bow(feats.desc)
+        reset = self._last_reset is not None and reset_counter != self._last_reset
+        if reset:
+            self.session += 1  # an estimator reset: the odometry chain breaks
+        self._last_reset = reset_counter
+        first_ever = not self.keyframes
+        if first_ever or self.keyframes[-1].session != self.session:
+            self._component.setdefault(self.session, self.session)
+            prior = (1e-3, 1e-3) if first_ever else (np.radians(c.segment_prior_deg), c.segment_prior_m)
+            i = self.graph.add_node(T_world_body, None, prior)
+            path = 0.0
+        else:
+            prev = len(self.keyframes) - 1
+            i = self.graph.add_node(T_world_body, prev)
+            path = self.keyframes[prev].path_m + float(np.linalg.norm(
+                T_world_body[:3, 3] - self.graph.odom[prev][:3, 3]))
+        kf = Keyframe(int(t_ns), self.session, feats, path)
+        self.keyframes.append(kf)
+        self.index.add(bow)
+        self.stats.keyframes += 1
+        accepted = self._detect(i, bow)
+        self.stats.detect_ms.append((time.perf_counter() - t0) * 1e3)
+        if accepted:
+            t1 = time.perf_counter()
+            self.graph.optimize()
+            self.stats.optimize_ms.append((time.perf_counter() - t1) * 1e3)
+            self.stats.switched_off = sum(1 for e in self.graph.edges if e.kind == "loop" and e.weight < 0.5)
+        return accepted
+
+    def _allowed(self, i: int):
+        kf = self.keyframes[i]
+        recent_ns = int(self.cfg.exclude_recent_s * 1e9)
+
+        def ok(j: int) -> bool:
+            o = self.keyframes[j]
+            return j != i and (o.session != kf.session or kf.t_ns - o.t_ns > recent_ns)
+        return ok
+
+    def _detect(self, i: int, bow: dict[int, float]) -> bool:
+        c = self.cfg
+        self._pending = [p for p in self._pending if i - p.i <= c.consistency_window]
+        cands = [(j, s) for j, s in self.index.query(bow, self._allowed(i), c.candidates) if s >= c.min_score]
+        self.stats.queried += 1
+        if not cands:
+            self.stats.refused["no candidate"] += 1
+            return False
+        kf = self.keyframes[i]
+        g = self.graph
+        reason = "pnp"
+        for j, _score in cands:
+            old = self.keyframes[j]
+            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
+                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
+            if res is None:
+                continue
+            back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
+                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
+            if back is None or not _agree(res.T_old_new @ back.T_old_new, c.two_way_m, c.two_way_deg):
+                reason = "two-way"
+                continue
+            res = dataclasses.replace(res, T_old_new=_mean_pose(res.T_old_new, inv_T(back.T_old_new)),
+                                      inliers=min(res.inliers, back.inliers))
+            tilt = gravity_disagreement_deg(g.estimate[j][:3, :3], g.odom[i][:3, :3], res.T_old_new[:3, :3])
+            if tilt > c.gravity_max_deg:
+                reason = "gravity"
+                continue
+            corr = g.estimate[j] @ res.T_old_new @ inv_T(g.estimate[i])
+            if self._comp(old.session) == self._comp(kf.session):
+                since = abs(kf.path_m - old.path_m) if old.session == kf.session else float("inf")
+                allowed_m = c.drift_gate_m + c.drift_gate_per_m * since
+                if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(roll_pitch_yaw(corr[:3, :3])[2])) > \
+                        c.drift_gate_deg:
+                    reason = "drift gate"
+                    continue
+            self._pending.append(_Candidate(i, j, res.T_old_new, corr, res.inliers))
+            return self._consistent(i)
+        self.stats.refused[reason] += 1
+        return False
+
+    def _consistent(self, i: int) -> bool:
+        c = self.cfg
+        newest = self._pending[-1]
+        def agrees(p: _Candidate) -> bool:
+            d_yaw = roll_pitch_yaw(p.correction[:3, :3] @ newest.correction[:3, :3].T)[2]
+            return bool(np.linalg.norm(p.correction[:3, 3] - newest.correction[:3, 3]) <= c.consistency_m
+                        and abs(np.degrees(d_yaw)) <= c.consistency_deg)
+        agree = [p for p in self._pending if agrees(p)]
+        same = self._comp(self.keyframes[newest.j].session) == self._comp(self.keyframes[newest.i].session)
+        if len({p.i for p in agree}) < (c.min_consistent if same else c.reloc_min_consistent):
+            self.stats.refused["inconsistent"] += 1
+            return False
+        for p in agree:
+            self.graph.add_loop(p.j, p.i, p.T_j_i, p.inliers)
+            self._join(self.keyframes[p.j].session, self.keyframes[p.i].session)
+            self.stats.accepted += 1
+        self._pending = [p for p in self._pending if p not in agree]
+        if self.relocalised_t_ns is None and self.relocalised:
+            self.relocalised_t_ns = self.keyframes[i].t_ns
+        return True
+
+    def _comp(self, session: int) -> int:
+        while self._component.get(session, session) != session:
+            session = self._component[session]
+        return session
+
+    def _join(self, a: int, b: int) -> None:
+        ra, rb = self._comp(a), self._comp(b)
+        if ra != rb:
+            self._component[max(ra, rb)] = min(ra, rb)
+
+    # --- maps -------------------------------------------------------------------------------------
+    def load_map(self, m) -> None:
+        """Put a saved map's keyframes in, fixed at their saved poses (session 0); this flight becomes a new
+        session with a loose prior, so its poses move into the map's frame once it relocalises."""
+        if self.keyframes:
+            raise ValueError("load the map before the first keyframe")
+        for t, T, f in zip(m.t_ns, m.T_world_body, m.features):
+            self.graph.add_node(T, None, (1e-4, 1e-4))
+            self.keyframes.append(Keyframe(int(t), 0, f, 0.0))
+            self.index.add(self.vocab.bow(f.desc))
+        self._component[0] = 0
+        self.map_keyframes = len(m.features)
+        self.session = 1
+        self._last_reset = None
+
+    @property
+    def relocalised(self) -> bool:
+        """A loaded map and this flight's newest keyframe in one component (joined by a loop edge)."""
+        return bool(self.map_keyframes) and bool(self.keyframes) and \
+            self._comp(self.keyframes[-1].session) == self._comp(0)
+
+    def save_map(self, path) -> dict:
+        from vio.loop.mapfile import save_map
+
+        return save_map(path, [k.t_ns for k in self.keyframes], self.graph.estimate,
+                        [k.feats for k in self.keyframes], self.vocab, self.cam)
+
+    # --- outputs ----------------------------------------------------------------------------------
+    def correction(self) -> np.ndarray:
+        """T_world_odom of the newest keyframe: loop-corrected pose = correction @ odometry pose."""
+        if not len(self.graph):
+            return np.eye(4)
+        return self.graph.estimate[-1] @ inv_T(self.graph.odom[-1])
+
+    def corrected_trajectory(self, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
+        """Odometry poses (N, 4, 4) at t_ns mapped with the final correction of the keyframe before each."""
+        m = self.map_keyframes  # a loaded map's keyframes are not this flight's
+        if len(self.keyframes) <= m:
+            return np.array(T_odom)
+        kt = np.array([k.t_ns for k in self.keyframes[m:]])
+        corr = np.array([e @ inv_T(o) for e, o in zip(self.graph.estimate[m:], self.graph.odom[m:])])
+        idx = np.clip(np.searchsorted(kt, t_ns, side="right") - 1, 0, len(kt) - 1)
+        return np.einsum("nij,njk->nik", corr[idx], T_odom)
+
+    def memory_per_keyframe_bytes(self) -> float:
+        if not self.keyframes:
+            return 0.0
+        b = sum(k.feats.nbytes for k in self.keyframes) + sum(len(v) * 12 for v in self.index.vectors)
+        return b / len(self.keyframes)

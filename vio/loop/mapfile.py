@@ -1,0 +1,84 @@
+"""Map file: the keyframe database and its optimised poses, for a later flight to relocalise in.
+
+One `.npz` (numpy arrays, read with allow_pickle=False) holding a JSON header and flat arrays:
+
+    header          JSON text: {"format": "kestrel-vio-map", "version": 1, "keyframes": N, "descriptors": M,
+                    "created_utc": ..., "vocabulary": {"k", "depth", "sha256"}, "camera": {fx, fy, cx, cy,
+                    width, height}, "note": ...}
+    kf_t_ns         (N,) int64    keyframe stamps (IMU clock of the mapping flight)
+    kf_T_world_body (N, 4, 4) f64 loop-corrected keyframe poses in the map's world frame (ENU/FLU, z up)
+    kf_offsets      (N+1,) int64  keyframe k owns descriptor rows kf_offsets[k]:kf_offsets[k+1]
+    desc            (M, 32) uint8 upright ORB descriptors
+    uv              (M, 2) f32    undistorted pixels in cam0
+    p_cam           (M, 3) f32    stereo points in cam0 [m], NaN without depth
+
+A reader refuses another format name or a newer version. Bag-of-words vectors are not stored: they are
+recomputed with the loading side's vocabulary, so a map survives a vocabulary update."""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vio import VioError
+from vio.loop.features import KeyframeFeatures
+
+FORMAT = "kestrel-vio-map"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class MapData:
+    header: dict
+    t_ns: np.ndarray
+    T_world_body: np.ndarray
+    features: list[KeyframeFeatures]
+
+
+def vocabulary_digest(voc) -> str:
+    return hashlib.sha256(voc.centres.tobytes() + voc.idf.tobytes()).hexdigest()
+
+
+def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatures], vocabulary, cam,
+             note: str = "") -> dict:
+    offsets = np.concatenate([[0], np.cumsum([len(f.desc) for f in features])]).astype(np.int64)
+    header = {"format": FORMAT, "version": VERSION, "keyframes": len(features), "descriptors": int(offsets[-1]),
+              "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+              "vocabulary": {"k": vocabulary.k, "depth": vocabulary.depth, "sha256": vocabulary_digest(vocabulary)},
+              "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
+                         "height": cam.height}, "note": note}
+
+    def cat(attr, shape, dtype):
+        arrs = [getattr(f, attr) for f in features]
+        return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
+    try:
+        with open(path, "wb") as f:
+            np.savez_compressed(f, header=np.array(json.dumps(header)), kf_t_ns=np.asarray(t_ns, np.int64),
+                                kf_T_world_body=np.asarray(T_world_body, np.float64).reshape(-1, 4, 4),
+                                kf_offsets=offsets, desc=cat("desc", (0, 32), np.uint8),
+                                uv=cat("uv", (0, 2), np.float32), p_cam=cat("p_cam", (0, 3), np.float32))
+    except OSError as e:
+        raise VioError(f"{path}: cannot write the map ({e.strerror})") from None
+    return header
+
+
+def load_map(path: str | Path) -> MapData:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            header = json.loads(str(z["header"]))
+            if header.get("format") != FORMAT:
+                raise VioError(f"{path}: not a Kestrel VIO map (format {header.get('format')!r})")
+            if int(header.get("version", 0)) > VERSION:
+                raise VioError(f"{path}: map format version {header['version']} is newer than this program's "
+                               f"({VERSION})")
+            off = z["kf_offsets"]
+            desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
+            feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
+            return MapData(header, z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64), feats)
+    except (OSError, KeyError, ValueError) as e:
+        raise VioError(f"{path}: cannot read the map ({e})") from None
