@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 SUPPORTED_MESSAGES = ("VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY")
 OUR_COMPONENT = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
 HEARTBEAT_PERIOD_NS = 1_000_000_000
+FLAP_CHANGES, FLAP_WINDOW_NS = 4, 3_000_000_000  # tracking changes within the window that count as flapping
 ORIGIN_REPEATS = 3  # SET_GPS_GLOBAL_ORIGIN / SET_HOME_POSITION sends after each link-up, 1 s apart
 RECONNECT_MIN_S, RECONNECT_MAX_S = 0.5, 5.0
 # Heartbeats from these vehicle types are not an autopilot (GCS, other companions, cameras...).
@@ -160,6 +161,8 @@ class MavlinkOutput:
         self._reset_offset = 0  # resets forced here, added to the estimator's reset_counter
         self._last_reset_counter: int | None = None
         self._tracking: bool | None = None
+        self._changes: list[int] = []  # clock times of recent tracking changes (flap detection)
+        self._flapping = False
         self._lock = threading.RLock()  # guards the connection and the schedule
         self._pending_lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -290,6 +293,7 @@ class MavlinkOutput:
                 return
             self._read_incoming(now)
             self._update_link(now)
+            self._check_flapping(now)
             if now >= self._next_heartbeat_ns:
                 self._next_heartbeat_ns = _next_slot(self._next_heartbeat_ns, HEARTBEAT_PERIOD_NS, now)
                 self._send(mavlink.MAVLink_heartbeat_message(
@@ -361,14 +365,39 @@ class MavlinkOutput:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")
 
     def _on_tracking_change(self, tracking: bool) -> None:
+        """One log line and STATUSTEXT per change, unless tracking flaps (FLAP_CHANGES changes within
+        FLAP_WINDOW_S, e.g. frames arriving in bursts on an overloaded board): then one "unstable" message,
+        and the next one only once the state has held for FLAP_WINDOW_S (sent from poll())."""
+        now = self._clock()
+        self._changes = [t for t in self._changes if now - t < FLAP_WINDOW_NS] + [now]
+        if len(self._changes) >= FLAP_CHANGES:
+            if not self._flapping:
+                self._flapping = True
+                log.warning("tracking unstable: %d losses/regains in %.0f s; pose output follows each",
+                            len(self._changes), FLAP_WINDOW_NS / 1e9)
+                self._tracking_text("VIO tracking unstable", mavlink.MAV_SEVERITY_WARNING)
+            return
+        self._announce_tracking(tracking)
+
+    def _announce_tracking(self, tracking: bool) -> None:
         if tracking:
             log.info("tracking regained: pose output resumes")
         else:
             log.warning("tracking lost: pose output paused")
+        self._tracking_text("VIO tracking regained" if tracking else "VIO tracking lost",
+                            mavlink.MAV_SEVERITY_INFO if tracking else mavlink.MAV_SEVERITY_WARNING)
+
+    def _tracking_text(self, text: str, severity: int) -> None:
         with self._lock:
             if self._conn is not None:
-                self._statustext(mavlink.MAV_SEVERITY_INFO if tracking else mavlink.MAV_SEVERITY_WARNING,
-                                 "VIO tracking regained" if tracking else "VIO tracking lost")
+                self._statustext(severity, text)
+
+    def _check_flapping(self, now: int) -> None:
+        """End the unstable period once the tracking state held for FLAP_WINDOW_S; say where it ended."""
+        if self._flapping and self._changes and now - self._changes[-1] >= FLAP_WINDOW_NS:
+            self._flapping = False
+            self._changes = []
+            self._announce_tracking(bool(self._tracking))
 
     # ---------------------------------------------------------------- link
 

@@ -287,6 +287,25 @@ def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     out.close()
 
 
+def test_flapping_tracking_gives_one_unstable_message_then_the_final_state(ap):
+    """Frames in bursts (an overloaded board) flip tracking every 0.2 s: the ground station gets "lost",
+    "regained", "lost", then one "unstable", and the state it settled in once it held for 3 s."""
+    clock = FakeClock()
+    out = make_out(ap, clock)
+    out.send_state(state(clock.t))
+    for k in range(20):
+        clock.advance(0.2)
+        out.send_state(state(clock.t, tracking=k % 2 == 1))
+    texts = [m.text for m in ap.of("STATUSTEXT", ap.drain())]
+    assert texts == ["VIO tracking lost", "VIO tracking regained", "VIO tracking lost", "VIO tracking unstable"]
+    for _ in range(40):  # tracking holds (the last state was tracking) for 4 s
+        clock.advance(0.1)
+        out.send_state(state(clock.t))
+    texts = [m.text for m in ap.of("STATUSTEXT", ap.drain())]
+    assert texts == ["VIO tracking regained"]
+    out.close()
+
+
 def test_lost_output_quality0_sends_odometry_marked_invalid(ap):
     """lost_output = quality0: the autopilot still hears us while lost, with quality 0 (its QUAL_MIN rejects it)."""
     clock = FakeClock()
