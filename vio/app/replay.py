@@ -32,7 +32,7 @@ _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="EuRoC ASL dataset folder (with mav0/)")
+    p.add_argument("dataset", help="EuRoC ASL dataset folder (with mav0/), ROS 1 .bag, ROS 2 bag folder or .mcap file")
     p.add_argument("--output", "-o", metavar="TUM", help="write the trajectory here (TUM: t x y z qx qy qz qw)")
     p.add_argument("--stats", metavar="JSON", help="write per-frame timings and the real-time factor here")
     p.add_argument("--realtime", action="store_true", help="pace the replay at sensor rate")
@@ -40,6 +40,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "/dev/ttyAMA0:921600, ...); implies --realtime")
     p.add_argument("--config", metavar="FILE", help="TOML configuration (defaults otherwise)")
     p.add_argument("--calibration", metavar="YAML", help="calibration file instead of the dataset's sensor.yaml")
+    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for a bag (a bag has none): our YAML, "
+                   "or the files `vio calib import` reads, with --calib-format")
+    p.add_argument("--calib-format", default="project", help="format of --calib: project (default), kalibr, euroc, "
+                   "opencv, depthai")
+    p.add_argument("--left-topic", default="/cam0/image_raw", help="bag topic of the left images")
+    p.add_argument("--right-topic", default="/cam1/image_raw", help="bag topic of the right images")
+    p.add_argument("--imu-topic", default="/imu0", help="bag topic of the IMU")
+    p.add_argument("--view", nargs="?", const="serve", metavar="FILE.rrd|serve",
+                   help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
     p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N camera frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -326,20 +335,46 @@ def preflight(dataset) -> None:
     if dataset.units_problem:
         raise VioError(dataset.units_problem)
     if not len(dataset):
-        raise VioError(f"{dataset.mav0 / 'cam0' / 'data.csv'}: no camera frames")
+        raise VioError(f"{dataset.where('cam0')}: no camera frames")
     problem = dataset.first_image_size_problem()
     if problem:
         raise VioError(problem)
 
 
+def load_calib_args(files: list[str] | None, fmt: str = "project"):
+    """--calib FILE... in our YAML or any format `vio calib import` reads (None without files)."""
+    if not files:
+        return None
+    if fmt == "project":
+        from vio.calibration import load_calibration
+
+        if len(files) != 1:
+            raise VioError("--calib: our calibration is one YAML file; give --calib-format for other formats")
+        return load_calibration(files[0])
+    from calib.importers import import_calibration
+
+    return import_calibration(fmt, files)[0]
+
+
+def open_dataset(path: str, calibration=None, topics: tuple[str, str, str] | None = None):
+    """A EuRoC folder, or a bag / MCAP file (vio.io.bag) with the given (left, right, imu) topics."""
+    from vio.io.bag import BagDataset, BagTopics, is_bag
+
+    if is_bag(path):
+        return BagDataset(path, calibration, BagTopics(*topics) if topics else None)
+    from vio.io.euroc import EurocDataset
+
+    return EurocDataset(path, calibration)
+
+
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
-    from vio.io.euroc import EurocDataset
 
     cfg = load_config(args.config)
-    calib = load_calibration(args.calibration) if args.calibration else None
-    dataset = EurocDataset(args.dataset, calib)
+    calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
+                                                                                          args.calib_format)
+    dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic))
     sinks: list[Sink] = []
     tum = TumSink(args.output) if args.output else None
     if tum is not None:

@@ -427,6 +427,14 @@ def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> li
     return [(name, v, f"calibration: {p}" if p else None) for name, v, p in out]
 
 
+def image_size_problem(where, img: np.ndarray, calib: CameraCalibration, hint: str) -> str | None:
+    """An image of another size than its calibration's, as one line (None when they agree)."""
+    h, w = img.shape[:2]
+    if (w, h) == (calib.width, calib.height):
+        return None
+    return f"{where}: images are {w}x{h} but the calibration is for {calib.width}x{calib.height} ({hint})"
+
+
 def find_mav0(path: str | Path) -> Path:
     """Accept the dataset folder or its mav0 folder."""
     p = Path(path)
@@ -554,7 +562,7 @@ class EurocDataset:
         bad = acc | gyr
         if not bad.any():
             return imu
-        path, n = self.mav0 / "imu0" / "data.csv", int(bad.sum())
+        path, n = self.where("imu"), int(bad.sum())
         k = int(np.argmax(bad))
         why = imu_sample_problem(imu.gyro[k], imu.accel[k])
         if 2 * n > len(imu):
@@ -575,12 +583,16 @@ class EurocDataset:
                 img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
                 if img is None:
                     continue
-                h, w = img.shape[:2]
-                if (w, h) != (calib.width, calib.height):
-                    return (f"{path}: images are {w}x{h} but the calibration is for {calib.width}x{calib.height} "
-                            f"({cam}: wrong sensor.yaml resolution, or the camera streams another size)")
+                problem = image_size_problem(path, img, calib, f"{cam}: wrong sensor.yaml resolution, or the "
+                                             "camera streams another size")
+                if problem:
+                    return problem
                 break
         return None
+
+    def where(self, stream: str) -> str:
+        """Where a stream ('imu', 'cam0', 'cam1') comes from, for messages."""
+        return str(self.mav0 / ("imu0" if stream == "imu" else stream) / "data.csv")
 
     def _warn(self, msg: str) -> None:
         self.stats.warnings.append(msg)

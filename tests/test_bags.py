@@ -1,0 +1,127 @@
+"""Bag and MCAP replay (issue 18): a short simulated flight written as a ROS 1 bag, ROS 2 bags (sqlite3 and
+MCAP storage, with rosbags) and a bare MCAP file (with the mcap library) replays to the same TUM bytes as the
+EuRoC folder it came from; wrong topics, out-of-order stamps and unsynchronised cameras are said or handled
+as the EuRoC reader does."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+pytest.importorskip("mcap")
+
+from vio import VioError  # noqa: E402
+from vio.calibration import save_calibration  # noqa: E402
+from vio.io.bag import BagDataset, BagTopics, export_bag  # noqa: E402
+from vio.io.euroc import EurocDataset  # noqa: E402
+from vio.types import ImuSample, StereoFrame  # noqa: E402
+
+
+def _vio(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vio.app.cli", "-q", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Path:
+    from vio.sim.generate import SimConfig, simulate
+
+    root = tmp_path_factory.mktemp("bags")
+    simulate(root / "sim", SimConfig(duration_s=3.0, width=320, height=200, variant="clean", still_start_s=1.0))
+    save_calibration(EurocDataset(root / "sim").calibration, root / "calib.yaml")
+    r = _vio("replay", "sim", "-o", "euroc.tum", "--no-progress", cwd=root)
+    assert r.returncode == 0, r.stderr
+    return root
+
+
+@pytest.mark.parametrize("kind,name,compression", [("ros1", "f.bag", "raw"), ("ros2-sqlite3", "f_sqlite", "raw"),
+                                                   ("ros2-mcap", "f_mcap", "png"), ("mcap", "f.mcap", "png")])
+def test_bag_replays_to_the_euroc_trajectory(flight, kind, name, compression):
+    export_bag(EurocDataset(flight / "sim"), flight / name, kind, compression)
+    r = _vio("replay", name, "--calib", "calib.yaml", "-o", f"{name}.tum", "--no-progress", cwd=flight)
+    assert r.returncode == 0, r.stderr
+    assert (flight / f"{name}.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
+
+
+def test_wrong_topic_lists_the_topics_the_bag_has(flight):
+    export_bag(EurocDataset(flight / "sim"), flight / "t.mcap", "mcap")
+    r = _vio("replay", "t.mcap", "--calib", "calib.yaml", "--imu-topic", "/imu", "--no-progress", cwd=flight)
+    assert r.returncode == 1
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1
+    assert "/imu" in err and "/imu0 (sensor_msgs/msg/Imu" in err and "/cam0/image_raw" in err
+
+
+def test_bag_without_calibration_is_refused(flight):
+    export_bag(EurocDataset(flight / "sim"), flight / "c.mcap", "mcap")
+    r = _vio("replay", "c.mcap", "--no-progress", cwd=flight)
+    assert r.returncode == 1 and "--calib" in r.stderr
+
+
+class _Events:
+    """A dataset stand-in for export_bag: events altered by a test."""
+
+    def __init__(self, events):
+        self._events = events
+
+    def events(self):
+        return iter(self._events)
+
+
+def test_out_of_order_imu_stamp_is_an_error_naming_topic_and_message(flight):
+    d = EurocDataset(flight / "sim")
+    ev = list(d.events())
+    imu_idx = [k for k, e in enumerate(ev) if isinstance(e, ImuSample)]
+    a, b = imu_idx[50], imu_idx[51]
+    ev[a], ev[b] = ev[b], ev[a]
+    export_bag(_Events(ev), flight / "o.mcap", "mcap")
+    with pytest.raises(VioError, match=r"topic /imu0: message 52: out-of-order time stamp"):
+        BagDataset(flight / "o.mcap", d.calibration)
+
+
+def test_exact_repeat_dropped_and_unsynchronised_right_camera_unpaired(flight):
+    d = EurocDataset(flight / "sim")
+    ev = []
+    n_shift = 0
+    for e in d.events():
+        if isinstance(e, StereoFrame) and e.seq % 10 == 5:  # every 10th right image 3 ms late: not a pair
+            ev.append(StereoFrame(e.t_ns, e.left, None, seq=e.seq))
+            ev.append(_RightOnly(e.t_ns + 3_000_000, e.right_image()))
+            n_shift += 1
+        else:
+            ev.append(e)
+    k = next(i for i, x in enumerate(ev) if i >= 40 and isinstance(x, ImuSample))
+    ev.insert(k, ev[k])  # the same sample twice
+
+    from vio.io.bag import McapWriter, image_message
+
+    with McapWriter(flight / "u.mcap", "png") as w:
+        for x in ev:
+            if isinstance(x, _RightOnly):
+                w.write("/cam1/image_raw", x.t_ns, *image_message(w.ts, x.t_ns, x.img, "cam1", "png"))
+            elif isinstance(x, ImuSample):
+                w.write_imu(x)
+            else:
+                w.write_frame(x)
+    b = BagDataset(flight / "u.mcap", d.calibration)
+    assert b.stats.unpaired_frames == n_shift
+    assert any("exact repeats" in n for n in b.stats.notes)
+    assert len(b) == len(d)
+    frames = [e for e in b.events() if isinstance(e, StereoFrame)]
+    assert sum(f.right is None for f in frames) == n_shift
+    ref = {f.seq: f for f in d.frames()}
+    assert all(np.array_equal(f.left, ref[f.seq].left) for f in frames)
+
+
+class _RightOnly:
+    def __init__(self, t_ns: int, img: np.ndarray) -> None:
+        self.t_ns, self.img = t_ns, img
+
+
+def test_topics_default_to_euroc_names():
+    assert BagTopics() == BagTopics("/cam0/image_raw", "/cam1/image_raw", "/imu0")

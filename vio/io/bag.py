@@ -1,0 +1,549 @@
+"""ROS bags and MCAP files as replay datasets, and an MCAP writer on ROS 2 schemas.
+
+Read: a ROS 1 `.bag`, a ROS 2 bag folder (sqlite3 or MCAP storage) through `rosbags` (no ROS install), or a
+bare `.mcap` file (ours, or any with ROS 2 `cdr` channels) through `mcap`; sensor_msgs/Image (mono8/16,
+bgr8/rgb8/bgra8/rgba8) and sensor_msgs/CompressedImage for the cameras, sensor_msgs/Imu for the IMU. Header
+stamps are used, never the bag's receive stamps. The stamps are checked as the EuRoC reader checks its csv
+files: per topic they must increase strictly (an out-of-order or a repeated stamp with other data is a
+VioError naming the topic and message; an exact repeat is dropped and noted), and left and right images
+are paired by equal stamp (1 us) with left-only frames kept (`EurocDataset._pair`).
+
+`BagDataset` is an `EurocDataset` for the replay loop: the IMU and all stamps are read when it is opened,
+images are decoded while streaming (a second pass over the camera topics; the right image lazily).
+
+`rosbags` and `mcap` are optional (`pip install kestrel-vio[bags]`) and imported inside the functions
+that need them. A bag carries no camera-IMU calibration: the caller passes one.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vio import VioError
+from vio.calibration import StereoCalibration
+from vio.io.euroc import (
+    DatasetStats,
+    EurocDataset,
+    ImuData,
+    _step_problem,
+    calibration_unit_checks,
+    image_size_problem,
+    imu_units_problem,
+)
+from vio.types import ImuSample, StereoFrame
+
+log = logging.getLogger(__name__)
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+IMU = "sensor_msgs/msg/Imu"
+ODOMETRY = "nav_msgs/msg/Odometry"
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    left: str = "/cam0/image_raw"
+    right: str = "/cam1/image_raw"
+    imu: str = "/imu0"
+
+
+def _need(module: str, extra: str = "bags"):
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise VioError(f"{module.split('.')[0]} is not installed: pip install 'kestrel-vio[{extra}]'") from None
+
+
+def is_bag(path: str | Path) -> bool:
+    p = Path(path)
+    if p.is_file():
+        return p.suffix in (".bag", ".mcap", ".db3")
+    return p.is_dir() and (p / "metadata.yaml").is_file()
+
+
+def _typestore():
+    ts = _need("rosbags.typesys")
+    return ts.get_typestore(ts.Stores.ROS2_HUMBLE)
+
+
+class _BagFile:
+    """Messages of some topics in file order as (topic, msgtype, raw, kind); kind 'cdr' or 'ros1'."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.bare_mcap = path.is_file() and path.suffix == ".mcap"
+        self.typestore = _typestore()
+        self.topics: dict[str, tuple[str, int]] = {}  # topic -> (msgtype, message count)
+        if self.bare_mcap:
+            reader = _need("mcap.reader")
+            with open(path, "rb") as f:
+                r = reader.make_reader(f)
+                summary = r.get_summary()
+                counts = summary.statistics.channel_message_counts if summary and summary.statistics else {}
+                for cid, ch in (summary.channels if summary else {}).items():
+                    schema = summary.schemas.get(ch.schema_id)
+                    self.topics[ch.topic] = (schema.name if schema else "?", int(counts.get(cid, 0)))
+        else:
+            hl = _need("rosbags.highlevel")
+            try:
+                with hl.AnyReader([path], default_typestore=self.typestore) as r:
+                    for c in r.connections:
+                        old = self.topics.get(c.topic, (c.msgtype, 0))
+                        self.topics[c.topic] = (c.msgtype, old[1] + c.msgcount)
+            except Exception as e:  # rosbags raises its own error types for damaged or foreign files
+                raise VioError(f"{path}: cannot read the bag ({type(e).__name__}: {e})") from None
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, str, bytes, object]]:
+        if self.bare_mcap:
+            reader = _need("mcap.reader")
+            with open(self.path, "rb") as f:
+                for schema, ch, msg in reader.make_reader(f).iter_messages(topics=topics, log_time_order=False):
+                    yield ch.topic, schema.name, msg.data, None
+            return
+        hl = _need("rosbags.highlevel")
+        with hl.AnyReader([self.path], default_typestore=self.typestore) as r:
+            conns = [c for c in r.connections if c.topic in topics]
+            for c, _t, raw in r.messages(connections=conns):
+                yield c.topic, c.msgtype, raw, r
+
+    def deserialize(self, raw: bytes, msgtype: str, reader) -> object:
+        if reader is None:
+            return self.typestore.deserialize_cdr(raw, msgtype)
+        return reader.deserialize(raw, msgtype)
+
+
+def _stamp(msg) -> int:
+    s = msg.header.stamp
+    return int(s.sec) * 1_000_000_000 + int(s.nanosec)
+
+
+def decode_image(msg, msgtype: str) -> np.ndarray | None:
+    """An Image or CompressedImage message as 8-bit grey (as the EuRoC reader loads a PNG); None if broken."""
+    if msgtype.endswith("CompressedImage"):
+        img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            return None
+    else:
+        enc = msg.encoding.lower()
+        h, w, step = int(msg.height), int(msg.width), int(msg.step)
+        data = np.asarray(msg.data, np.uint8)
+        if data.size < h * step:
+            return None
+        rows = data[: h * step].reshape(h, step)
+        if enc in ("mono8", "8uc1"):
+            img = rows[:, :w]
+        elif enc in ("mono16", "16uc1"):
+            img = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2").astype(np.uint16)
+        elif enc in ("bgr8", "rgb8", "bgra8", "rgba8"):
+            ch = 4 if enc.endswith("a8") else 3
+            img = rows[:, : ch * w].reshape(h, w, ch)
+            code = {"bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY, "bgra8": cv2.COLOR_BGRA2GRAY,
+                    "rgba8": cv2.COLOR_RGBA2GRAY}[enc]
+            return cv2.cvtColor(np.ascontiguousarray(img), code)
+        else:
+            raise VioError(f"image encoding {msg.encoding!r} is not supported (mono8, mono16, bgr8, rgb8, ...)")
+        img = np.ascontiguousarray(img)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    return img
+
+
+class BagDataset(EurocDataset):
+    """A bag or MCAP file opened for replay, with the EurocDataset interface `vio.app.replay` uses."""
+
+    def __init__(self, path: str | Path, calibration: StereoCalibration | None,
+                 topics: BagTopics | None = None) -> None:
+        p = Path(path)
+        if not p.exists():
+            raise VioError(f"{p}: not found")
+        if calibration is None:
+            raise VioError(f"{p}: a bag carries no camera-IMU calibration: give one with --calib")
+        self.path = self.root = self.mav0 = p
+        self.topics = topics or BagTopics()
+        self.stats = DatasetStats()
+        self._bag = _BagFile(p)
+        self._check_topics()
+        self.calibration = calibration
+        self.imu = self._read_imu()
+        (self.cam0_t, self._cam0_drop), (self.cam1_t, self._cam1_drop) = self._read_cam_stamps()
+        self.cam0_files = list(range(len(self.cam0_t)))  # message ordinal after drops: never None
+        self.cam1_files = list(range(len(self.cam1_t)))
+        self.has_cam1 = True
+        self._check_overlap()
+        self.units_problem = imu_units_problem(self.imu, calibration.imu, self.where("imu")) or next(
+            (p for _, _, p in calibration_unit_checks(calibration, True) if p), None)
+        if self.units_problem is None:
+            self.imu = self._drop_out_of_range(self.imu)
+        self.groundtruth = None
+        self.groundtruth_problem = None
+        for n in self.stats.notes:
+            log.warning(n)
+        self._pair()
+
+    def where(self, stream: str) -> str:
+        topic = {"imu": self.topics.imu, "cam0": self.topics.left, "cam1": self.topics.right}[stream]
+        return f"{self.path} topic {topic}"
+
+    # -- opening -------------------------------------------------------------------------------------------
+    def _check_topics(self) -> None:
+        have = self._bag.topics
+        wanted = (("left", self.topics.left, (IMAGE, COMPRESSED)), ("right", self.topics.right, (IMAGE, COMPRESSED)),
+                  ("imu", self.topics.imu, (IMU,)))
+        missing = [f"{what} {t}" for what, t, _ in wanted if t not in have]
+        if missing:
+            listing = ", ".join(f"{t} ({ty}, {n} msgs)" for t, (ty, n) in sorted(have.items())) or "none"
+            raise VioError(f"{self.path}: no {' / '.join(missing)} topic; the bag has: {listing} "
+                           "(choose with --left-topic, --right-topic, --imu-topic)")
+        for what, t, types in wanted:
+            if have[t][0] not in types:
+                raise VioError(f"{self.path}: topic {t} ({what}) is {have[t][0]}, expected {' or '.join(types)}")
+
+    def _read_imu(self) -> ImuData:
+        rows: list[tuple[int, float, float, float, float, float, float]] = []
+        prev = None
+        repeats = 0
+        name = self.where("imu")
+        for k, (_, ty, raw, r) in enumerate(self._bag.messages([self.topics.imu])):
+            m = self._bag.deserialize(raw, ty, r)
+            w, a = m.angular_velocity, m.linear_acceleration
+            row = (_stamp(m), float(w.x), float(w.y), float(w.z), float(a.x), float(a.y), float(a.z))
+            if prev is not None and row[0] <= prev[0]:
+                if row == prev:
+                    repeats += 1
+                    continue
+                what = "duplicate time stamp with other values than the message before" if row[0] == prev[0] \
+                    else "out-of-order time stamp"
+                raise VioError(f"{name}: message {k + 1}: {what} {row[0]} (previous {prev[0]})")
+            if row[0] <= 0:
+                raise VioError(f"{name}: message {k + 1}: time stamp {row[0]} is not positive")
+            rows.append(row)
+            prev = row
+        if repeats:
+            self.stats.notes.append(f"{name}: {repeats} exact repeats of the message before dropped")
+        vals = np.array(rows, dtype=float).reshape(-1, 7)
+        t = np.array([r[0] for r in rows], dtype=np.int64)
+        bad = ~np.all(np.isfinite(vals[:, 1:]), axis=1)
+        if bad.any():
+            n_bad = int(bad.sum())
+            if 2 * n_bad > len(vals):
+                raise VioError(f"{name}: {n_bad} of {len(vals)} IMU messages have a non-finite value")
+            self.stats.notes.append(f"{name}: {n_bad} of {len(vals)} IMU messages with a non-finite value skipped")
+            self.stats.imu_rows_skipped["non-finite value"] = n_bad
+            vals, t = vals[~bad], t[~bad]
+        if len(t) < 2:
+            raise VioError(f"{name}: fewer than 2 IMU messages")
+        problem = _step_problem(name, t, "imu")
+        if problem:
+            raise VioError(problem)
+        return ImuData(t, vals[:, 1:4].copy(), vals[:, 4:7].copy())
+
+    def _read_cam_stamps(self):
+        out = {}
+        last: dict[str, tuple[int, bytes]] = {}
+        for topic in (self.topics.left, self.topics.right):
+            out[topic] = ([], set())
+        ordinal = {self.topics.left: 0, self.topics.right: 0}
+        for topic, ty, raw, r in self._bag.messages([self.topics.left, self.topics.right]):
+            k = ordinal[topic]
+            ordinal[topic] += 1
+            t = _stamp(self._bag.deserialize(raw, ty, r))
+            stamps, dropped = out[topic]
+            if topic in last and t <= last[topic][0]:
+                name = f"{self.path} topic {topic}"
+                if t == last[topic][0] and bytes(raw) == last[topic][1]:
+                    dropped.add(k)
+                    continue
+                what = "duplicate time stamp with another image than the message before" if t == last[topic][0] \
+                    else "out-of-order time stamp"
+                raise VioError(f"{name}: message {k + 1}: {what} {t} (previous {last[topic][0]})")
+            last[topic] = (t, bytes(raw))
+            stamps.append(t)
+        res = []
+        for topic in (self.topics.left, self.topics.right):
+            stamps, dropped = out[topic]
+            if dropped:
+                self.stats.notes.append(f"{self.path} topic {topic}: {len(dropped)} exact repeats of the message "
+                                        "before dropped")
+            t = np.array(stamps, dtype=np.int64)
+            problem = _step_problem(f"{self.path} topic {topic}", t, "camera")
+            if problem:
+                raise VioError(problem)
+            res.append((t, dropped))
+        return res
+
+    # -- streaming -----------------------------------------------------------------------------------------
+    def _decode(self, item) -> np.ndarray | None:
+        raw, ty, r = item
+        img = decode_image(self._bag.deserialize(raw, ty, r), ty)
+        if img is None:
+            self.stats.unreadable_images += 1
+            self._warn(f"{self.path}: unreadable image; skipped")
+        return img
+
+    def _raw_frames(self) -> Iterator[tuple[int, tuple, tuple | None]]:
+        """(frame index, left message, right message or None) in frame order, from one pass over the bag."""
+        right_of = self._right_files  # frame index -> right ordinal (after drops) or None
+        left_t, right_t = self.topics.left, self.topics.right
+        pending_l: dict[int, tuple] = {}
+        pending_r: dict[int, tuple] = {}
+        counters = {left_t: [0, 0], right_t: [0, 0]}  # topic -> [ordinal in the bag, index after drops]
+        drops = {left_t: self._cam0_drop, right_t: self._cam1_drop}
+        nxt = 0
+        n = len(self.frame_t)
+        for topic, ty, raw, r in self._bag.messages([left_t, right_t]):
+            c = counters[topic]
+            k = c[0]
+            c[0] += 1
+            if k in drops[topic]:
+                continue
+            idx = c[1]
+            c[1] += 1
+            (pending_l if topic == left_t else pending_r)[idx] = (raw, ty, r)
+            while nxt < n and nxt in pending_l and (right_of[nxt] is None or right_of[nxt] in pending_r):
+                j = right_of[nxt]
+                yield nxt, pending_l.pop(nxt), None if j is None else pending_r[j]
+                nxt += 1
+                need = next((right_of[i] for i in range(nxt, n) if right_of[i] is not None), None)
+                for jj in [jj for jj in pending_r if need is None or jj < need]:
+                    del pending_r[jj]
+        while nxt < n:  # lefts whose right never came (cannot happen for a bag read twice the same way)
+            if nxt in pending_l:
+                yield nxt, pending_l.pop(nxt), None
+            nxt += 1
+
+    def frame(self, i: int, lazy_right: bool = False) -> StereoFrame | None:
+        raise VioError("a bag is streamed: use events()")
+
+    def first_image_size_problem(self) -> str | None:
+        for _k, left, right in self._raw_frames():
+            for cam, item, calib in (("cam0", left, self.calibration.cam0), ("cam1", right, self.calibration.cam1)):
+                img = None if item is None else self._decode(item)
+                if img is None:
+                    continue
+                problem = image_size_problem(self.where(cam), img, calib, "wrong calibration file, or another topic?")
+                if problem:
+                    return problem
+            return None
+        return None
+
+    def events(self, t_start_ns: int | None = None, t_end_ns: int | None = None,
+               lazy_right: bool = False) -> Iterator[ImuSample | StereoFrame]:
+        """As EurocDataset.events: IMU first on equal stamps, frames in stamp order."""
+        imu_t = self.imu.t_ns
+        lo = 0 if t_start_ns is None else int(np.searchsorted(imu_t, t_start_ns))
+        hi = len(imu_t) if t_end_ns is None else int(np.searchsorted(imu_t, t_end_ns, side="right"))
+        ts = imu_t[lo:hi].tolist()
+        gyro = self.imu.gyro[lo:hi].copy()
+        accel = self.imu.accel[lo:hi].copy()
+        i, n = 0, hi - lo
+        frame_t = self.frame_t.tolist()
+        for k, left, right in self._raw_frames():
+            t = frame_t[k]
+            if t_start_ns is not None and t < t_start_ns:
+                continue
+            if t_end_ns is not None and t > t_end_ns:
+                break
+            while i < n and ts[i] <= t:
+                yield ImuSample(ts[i], gyro[i], accel[i])
+                i += 1
+            img = self._decode(left)
+            if img is None:
+                continue
+            if right is None:
+                yield StereoFrame(t, img, None, seq=k)
+            elif lazy_right:
+                yield StereoFrame(t, img, None, seq=k, load_right=functools.partial(self._decode, right))
+            else:
+                yield StereoFrame(t, img, self._decode(right), seq=k)
+        while i < n:
+            yield ImuSample(ts[i], gyro[i], accel[i])
+            i += 1
+
+
+# ------------------------------------------------------------------------------------------------- writing
+
+def _header(ts, t_ns: int, frame_id: str):
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    return Header(stamp=Time(sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000)), frame_id=frame_id)
+
+
+def image_message(ts, t_ns: int, img: np.ndarray, frame_id: str, compression: str = "raw"):
+    """sensor_msgs Image (raw mono8) or CompressedImage ('png' lossless, 'jpeg')."""
+    if compression == "raw":
+        img = np.ascontiguousarray(img, np.uint8)
+        return IMAGE, ts.types[IMAGE](header=_header(ts, t_ns, frame_id), height=img.shape[0], width=img.shape[1],
+                                      encoding="mono8", is_bigendian=0, step=img.shape[1],
+                                      data=img.reshape(-1))
+    ext, params = {"png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
+                   "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 90])}[compression]
+    ok, buf = cv2.imencode(ext, img, params)
+    if not ok:
+        raise VioError(f"cannot encode an image as {compression}")
+    return COMPRESSED, ts.types[COMPRESSED](header=_header(ts, t_ns, frame_id), format=compression,
+                                            data=buf.reshape(-1))
+
+
+def imu_message(ts, s: ImuSample, frame_id: str = "imu0"):
+    V3 = ts.types["geometry_msgs/msg/Vector3"]
+    Q = ts.types["geometry_msgs/msg/Quaternion"]
+    cov = np.zeros(9)
+    ocov = np.zeros(9)
+    ocov[0] = -1.0  # no orientation (REP 145)
+    g, a = s.gyro, s.accel
+    return IMU, ts.types[IMU](header=_header(ts, s.t_ns, frame_id), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+                              orientation_covariance=ocov, angular_velocity=V3(x=float(g[0]), y=float(g[1]),
+                                                                               z=float(g[2])),
+                              angular_velocity_covariance=cov, linear_acceleration=V3(
+                                  x=float(a[0]), y=float(a[1]), z=float(a[2])),
+                              linear_acceleration_covariance=cov.copy())
+
+
+def odometry_message(ts, st) -> tuple[str, object]:
+    """A NavState as nav_msgs/Odometry (pose in world, twist: world-frame velocity in the linear part)."""
+    from vio.geometry import rot_to_quat_wxyz
+
+    g = ts.types
+    T = st.T_world_body
+    q = rot_to_quat_wxyz(T[:3, :3])
+    p = T[:3, 3]
+    cov6 = np.zeros((6, 6))
+    if getattr(st, "cov_pose", None) is not None:  # GTSAM order (rot, pos) -> ROS order (pos, rot)
+        c = np.asarray(st.cov_pose)
+        cov6 = c[np.ix_([3, 4, 5, 0, 1, 2], [3, 4, 5, 0, 1, 2])]
+    v = np.asarray(st.v_world) if getattr(st, "v_world", None) is not None else np.zeros(3)
+    twist_cov = np.zeros((6, 6))
+    if getattr(st, "cov_vel", None) is not None:
+        twist_cov[:3, :3] = np.asarray(st.cov_vel)
+    pose = g["geometry_msgs/msg/Pose"](position=g["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]),
+                                                                             z=float(p[2])),
+                                       orientation=g["geometry_msgs/msg/Quaternion"](
+                                           x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
+    V3 = g["geometry_msgs/msg/Vector3"]
+    twist = g["geometry_msgs/msg/Twist"](linear=V3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+                                         angular=V3(x=0.0, y=0.0, z=0.0))
+    return ODOMETRY, g[ODOMETRY](
+        header=_header(ts, st.t_ns, "world"), child_frame_id="body",
+        pose=g["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov6.reshape(-1).astype(float)),
+        twist=g["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=twist_cov.reshape(-1)))
+
+
+class McapWriter:
+    """A bare MCAP file on ROS 2 schemas (`ros2msg` + `cdr`, which Foxglove and `vio replay` read as they
+    are) plus JSON channels (health). Messages are logged at their sensor stamp."""
+
+    def __init__(self, path: str | Path, compression: str = "png", chunk_size: int = 1 << 20) -> None:
+        writer = _need("mcap.writer")
+        self.ts = _typestore()
+        self.path = Path(path)
+        self.compression = compression
+        self._f = open(self.path, "wb")
+        self._w = writer.Writer(self._f, chunk_size=chunk_size)
+        self._w.start(profile="ros2", library="kestrel-vio")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.bytes_images = 0
+
+    def _channel(self, topic: str, msgtype: str) -> int:
+        if topic not in self._channels:
+            if msgtype not in self._schemas:
+                text = self.ts.generate_msgdef(msgtype, ros_version=2)[0]
+                self._schemas[msgtype] = self._w.register_schema(msgtype, "ros2msg", text.encode())
+            self._channels[topic] = self._w.register_channel(topic, "cdr", self._schemas[msgtype])
+        return self._channels[topic]
+
+    def write(self, topic: str, t_ns: int, msgtype: str, msg) -> None:
+        data = self.ts.serialize_cdr(msg, msgtype)
+        self._w.add_message(self._channel(topic, msgtype), log_time=int(t_ns), data=bytes(data),
+                            publish_time=int(t_ns))
+
+    def write_frame(self, frame: StereoFrame, topics: BagTopics = BagTopics()) -> None:
+        for topic, img, fid in ((topics.left, frame.left, "cam0"), (topics.right, frame.right_image(), "cam1")):
+            if img is not None:
+                ty, msg = image_message(self.ts, frame.t_ns, img, fid, self.compression)
+                self.write(topic, frame.t_ns, ty, msg)
+
+    def write_imu(self, s: ImuSample, topic: str = "/imu0") -> None:
+        ty, msg = imu_message(self.ts, s)
+        self.write(topic, s.t_ns, ty, msg)
+
+    def write_state(self, st, topic: str = "/vio/odometry") -> None:
+        ty, msg = odometry_message(self.ts, st)
+        self.write(topic, st.t_ns, ty, msg)
+
+    def write_json(self, topic: str, t_ns: int, obj: dict) -> None:
+        if topic not in self._channels:
+            sid = self._w.register_schema(topic.strip("/").replace("/", "_"), "jsonschema",
+                                          json.dumps({"type": "object"}).encode())
+            self._channels[topic] = self._w.register_channel(topic, "json", sid)
+        self._w.add_message(self._channels[topic], log_time=int(t_ns), publish_time=int(t_ns),
+                            data=json.dumps(obj, default=str).encode())
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self) -> None:
+        if self._f.closed:
+            return
+        self._w.finish()
+        self._f.close()
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def export_bag(dataset: EurocDataset, out: str | Path, kind: str = "mcap", compression: str = "raw",
+               topics: BagTopics = BagTopics()) -> Path:
+    """Write a EuRoC dataset as a bag: kind 'ros1' (.bag), 'ros2-sqlite3' or 'ros2-mcap' (bag folders, with
+    rosbags) or 'mcap' (a bare file, with the mcap library). Messages go in stamp order."""
+    out = Path(out)
+    events = dataset.events()
+    if kind == "mcap":
+        with McapWriter(out, compression) as w:
+            for ev in events:
+                (w.write_imu(ev, topics.imu) if isinstance(ev, ImuSample) else w.write_frame(ev, topics))
+        return out
+    ts = _typestore()
+    if kind == "ros1":
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(out)
+        ser = ts.serialize_ros1
+    elif kind in ("ros2-sqlite3", "ros2-mcap"):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        plugin = StoragePlugin.SQLITE3 if kind == "ros2-sqlite3" else StoragePlugin.MCAP
+        writer = Writer(out, version=8, storage_plugin=plugin)
+        ser = ts.serialize_cdr
+    else:
+        raise VioError(f"unknown bag kind {kind!r} (ros1, ros2-sqlite3, ros2-mcap, mcap)")
+    conns: dict[str, object] = {}
+    with writer:
+        def put(topic: str, t_ns: int, ty: str, msg) -> None:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, ty, typestore=ts)
+            writer.write(conns[topic], int(t_ns), bytes(ser(msg, ty)))
+
+        for ev in events:
+            if isinstance(ev, ImuSample):
+                put(topics.imu, ev.t_ns, *imu_message(ts, ev))
+            else:
+                for topic, img, fid in ((topics.left, ev.left, "cam0"), (topics.right, ev.right_image(), "cam1")):
+                    if img is not None:
+                        put(topic, ev.t_ns, *image_message(ts, ev.t_ns, img, fid, compression))
+    return out
