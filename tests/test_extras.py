@@ -130,3 +130,15 @@ def test_pyproject_extras_and_one_version():
     assert any(d.startswith("kestrel-vio[") and all(e in d for e in ("oak", "serial", "tools"))
                for d in extras["dev"])
     assert "gtsam>=4.3" in core
+
+
+@pytest.mark.parametrize("module", ["rosbags.typesys", "mcap.reader"])
+def test_bag_replay_without_rosbags_or_mcap_names_the_bags_extra(blocked, tmp_path, module):
+    from vio.calibration import StereoCalibration
+    from vio.io.bag import BagDataset
+
+    bag = tmp_path / "flight.mcap"
+    bag.write_bytes(b"")
+    blocked(module)
+    with pytest.raises(MissingExtra, match=r"needs the \[bags\] extra: pip install 'kestrel-vio\[bags\]'"):
+        BagDataset(bag, StereoCalibration.__new__(StereoCalibration))

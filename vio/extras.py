@@ -6,6 +6,9 @@
     [serial]  pyserial      serial IMUs (`[source] imu = "serial"`, the reference sender)
     [tools]   allantools    `vio calib imu-noise` (Allan deviation)
               matplotlib    every plot (evaluation, Allan deviation, time offset, benchmark)
+    [bags]    rosbags, mcap ROS bags and MCAP files: `vio replay FILE.bag|.mcap`, `vio record --format mcap`
+    [view]    rerun-sdk     the live view (`vio replay --view`, `[view]` in the daemon's config)
+    [fleet]   ray           `vio batch --ray ADDRESS` (local worker processes need nothing)
 
 `require("allantools", "tools", "vio calib imu-noise")` returns the module, or raises a VioError saying
 "vio calib imu-noise needs the [tools] extra: pip install 'kestrel-vio[tools]'".
@@ -18,7 +21,8 @@ from types import ModuleType
 
 from vio import VioError
 
-EXTRAS = {"depthai": "oak", "serial": "serial", "allantools": "tools", "matplotlib": "tools"}
+EXTRAS = {"depthai": "oak", "serial": "serial", "allantools": "tools", "matplotlib": "tools", "rosbags": "bags",
+          "mcap": "bags", "rerun": "view", "ray": "fleet"}
 
 
 class MissingExtra(VioError):

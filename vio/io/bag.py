@@ -11,8 +11,8 @@ are paired by equal stamp (1 us) with left-only frames kept (`EurocDataset._pair
 `BagDataset` is an `EurocDataset` for the replay loop: the IMU and all stamps are read when it is opened,
 images are decoded while streaming (a second pass over the camera topics; the right image lazily).
 
-`rosbags` and `mcap` are optional (`pip install kestrel-vio[bags]`) and imported inside the functions
-that need them. A bag carries no camera-IMU calibration: the caller passes one.
+`rosbags` and `mcap` are the [bags] extra, imported inside the functions that need them (`vio.extras`).
+A bag carries no camera-IMU calibration: the caller passes one.
 """
 
 from __future__ import annotations
@@ -55,13 +55,10 @@ class BagTopics:
     imu: str = "/imu0"
 
 
-def _need(module: str, extra: str = "bags"):
-    import importlib
+def _need(module: str):
+    from vio.extras import require
 
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        raise VioError(f"{module.split('.')[0]} is not installed: pip install 'kestrel-vio[{extra}]'") from None
+    return require(module, "bags", "reading and writing bags / MCAP")
 
 
 def is_bag(path: str | Path) -> bool:
@@ -520,15 +517,12 @@ def export_bag(dataset: EurocDataset, out: str | Path, kind: str = "mcap", compr
         return out
     ts = _typestore()
     if kind == "ros1":
-        from rosbags.rosbag1 import Writer
-
-        writer = Writer(out)
+        writer = _need("rosbags.rosbag1").Writer(out)
         ser = ts.serialize_ros1
     elif kind in ("ros2-sqlite3", "ros2-mcap"):
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
-        plugin = StoragePlugin.SQLITE3 if kind == "ros2-sqlite3" else StoragePlugin.MCAP
-        writer = Writer(out, version=8, storage_plugin=plugin)
+        rb2 = _need("rosbags.rosbag2")
+        plugin = rb2.StoragePlugin.SQLITE3 if kind == "ros2-sqlite3" else rb2.StoragePlugin.MCAP
+        writer = rb2.Writer(out, version=8, storage_plugin=plugin)
         ser = ts.serialize_cdr
     else:
         raise VioError(f"unknown bag kind {kind!r} (ros1, ros2-sqlite3, ros2-mcap, mcap)")
