@@ -19,6 +19,7 @@ from vio import VioError, __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("vio.app.simulate", "generate a synthetic stereo+IMU flight (EuRoC format) with known truth"),
     "replay": ("vio.app.replay", "run the estimator on a recorded EuRoC dataset; write trajectory and stats"),
+    "batch": ("vio.app.batch", "replay many flights in parallel (local workers or Ray) into one report"),
     "demo": ("vio.app.demo", "simulate a short flight, replay it and print accuracy and speed"),
     "eval": ("vio.evaluation", "compare an estimated trajectory with ground truth (ATE, RPE, plot)"),
     "config": ("vio.app.config_cli", "check or show the configuration file"),

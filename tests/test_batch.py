@@ -1,0 +1,83 @@
+"""`vio batch` (issue 18): local worker processes and a local Ray instance give the same report; a failed flight
+is a row with its error; --compare says what changed."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from vio.app.batch import TIMING_FIELDS, compare, run_batch
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory) -> list[Path]:
+    from vio.sim.generate import SimConfig, simulate
+
+    root = tmp_path_factory.mktemp("batch")
+    out = []
+    for seed in (0, 1):
+        simulate(root / f"f{seed}", SimConfig(duration_s=3.0, width=320, height=200, variant="clean", seed=seed,
+                                              still_start_s=1.0))
+        out.append(root / f"f{seed}")
+    (root / "broken").mkdir()
+    return [*out, root / "broken"]
+
+
+def _deterministic(report: dict) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in report["flights"]]
+
+
+def test_local_workers_and_ray_give_the_same_report(flights, tmp_path):
+    ray = pytest.importorskip("ray")
+    local = run_batch([str(f) for f in flights], tmp_path / "local", workers=2, progress=False)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        on_ray = run_batch([str(f) for f in flights], tmp_path / "ray", workers=2, ray_address="local",
+                           progress=False)
+    finally:
+        ray.shutdown()
+    assert _deterministic(local) == _deterministic(on_ray)
+    rows = local["flights"]
+    assert [r["ok"] for r in rows] == [True, True, False]
+    assert "no mav0/ folder" in rows[2]["error"]
+    assert all(r["ate_m"] is not None and r["realtime_factor"] > 0 for r in rows[:2])
+    assert local["summary"]["failed"] == 1 and local["summary"]["ok"] == 2
+    for name in ("f0.tum", "f1.tum"):
+        assert (tmp_path / "local" / "traj" / name).read_bytes() == (tmp_path / "ray" / "traj" / name).read_bytes()
+    for d in ("local", "ray"):
+        for f in ("report.md", "report.json", "report.png"):
+            assert (tmp_path / d / f).stat().st_size > 0
+    md = (tmp_path / "local" / "report.md").read_text()
+    assert "| f0 |" in md and "| broken |" in md and "Summary:" in md
+    assert on_ray["engine"] == "ray:local"
+
+
+def test_compare_names_better_and_worse():
+    def rep(ate0, ate1, ok1=True):
+        row = {"flight": "a", "ok": True, "error": None, "ate_m": ate0, "rpe_pct": None, "resets": 0,
+               "realtime_factor": 3.0}
+        row1 = {**row, "flight": "b", "ate_m": ate1, "ok": ok1, "error": None if ok1 else "VioError: x"}
+        return {"flights": [row, row1]}
+
+    text = compare(rep(0.10, 0.10, ok1=False), rep(0.20, 0.10))  # a better, b fails now
+    assert "1 better" in text and "1 worse" in text
+    lines = {ln.split("|")[1].strip(): ln for ln in text.splitlines() if ln.startswith("| a") or ln.startswith("| b")}
+    assert lines["a"].rstrip().endswith("better |") and "worse" in lines["b"]
+
+
+def test_cli_batch_local_with_compare(flights, tmp_path):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "report.json").write_text(json.dumps({"flights": [{"flight": "f0", "ok": False, "error": "x",
+                                                              "ate_m": None, "rpe_pct": None, "resets": None,
+                                                              "realtime_factor": None}]}))
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "-q", "batch", str(flights[0]), "--output",
+                        str(tmp_path / "new"), "--workers", "1", "--compare", str(old), "--no-progress"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "1 better" in r.stdout
+    assert (tmp_path / "new" / "compare.md").is_file()

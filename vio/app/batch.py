@@ -1,0 +1,326 @@
+"""`vio batch FLIGHT... --output DIR [--workers N | --ray ADDRESS] [--compare OTHER_REPORT]`
+
+Replays many recordings (EuRoC folders, bags, MCAP files) in parallel and writes one report to DIR:
+`report.md` (a table: ATE, RPE, resets, real-time factor per flight, and a summary), `report.json` (the same
+and more, the input of `--compare`), `report.png` (ATE and real-time factor per flight) and each flight's
+trajectory in `traj/`. Local worker processes (concurrent.futures) by default; `--ray ADDRESS` hands the
+flights to a Ray cluster as remote tasks (`--ray local` starts a local Ray instance with --workers CPUs,
+`--ray auto` joins the cluster this machine belongs to). A flight that fails is a row with its error.
+
+Every replay runs single-threaded (one BLAS/OpenCV thread per worker), so one flight's result is the same
+whichever engine ran it and however many ran beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+from vio import VioError
+
+log = logging.getLogger(__name__)
+
+# fields of a row that depend on the machine and the load, not on the estimator
+TIMING_FIELDS = ("wall_s", "realtime_factor", "worker")
+_ROW_FIELDS = ("flight", "path", "ok", "error", "frames", "poses", "resets", "data_s", "ate_m", "ate_rot_deg",
+               "rpe_pct", "rpe_length_m", "coverage") + TIMING_FIELDS
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("flights", nargs="+", metavar="FLIGHT", help="EuRoC folders, ROS bags or MCAP files")
+    p.add_argument("--output", "-o", required=True, metavar="DIR", help="report folder (created)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local worker processes (default: the number of CPUs)")
+    p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster: ray://HOST:10001, auto, or local")
+    p.add_argument("--config", metavar="FILE", help="TOML configuration for every replay")
+    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for bags (see vio replay --calib)")
+    p.add_argument("--calib-format", default="project", help="format of --calib (default: project)")
+    p.add_argument("--left-topic", default="/cam0/image_raw")
+    p.add_argument("--right-topic", default="/cam1/image_raw")
+    p.add_argument("--imu-topic", default="/imu0")
+    p.add_argument("--compare", metavar="REPORT", help="another batch's report.json (or its folder): what got "
+                   "better or worse")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _single_thread() -> None:
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def replay_flight(path: str, out_tum: str, options: dict) -> dict:
+    """Replay one flight; a row of the report. Never raises: a failure is the row's `error`."""
+    _single_thread()
+    row: dict = {k: None for k in _ROW_FIELDS}
+    row.update(flight=Path(path).name, path=str(path), ok=False, worker=f"{os.uname().nodename}:{os.getpid()}")
+    t0 = time.perf_counter()
+    try:
+        from vio.app.replay import TumSink, load_calib_args, open_dataset, replay
+        from vio.config import load_config
+
+        cfg = load_config(options.get("config"))
+        calib = load_calib_args(options.get("calib"), options.get("calib_format", "project"))
+        dataset = open_dataset(path, calib, options.get("topics"))
+        tum = TumSink(out_tum)
+        try:
+            res = replay(dataset, cfg, [tum], progress=False)
+        finally:
+            tum.close()
+        row.update(frames=res.frames, poses=len(res.states), resets=res.resets, data_s=round(res.data_s, 3),
+                   wall_s=round(res.wall_s, 3), realtime_factor=round(res.realtime_factor, 3))
+        problem = res.vision_problem()
+        if problem:
+            raise VioError(problem)
+        if dataset.groundtruth is not None and len(res.states) >= 3:
+            from vio.evaluation import evaluate
+
+            ev = evaluate(res.trajectory(), dataset.groundtruth.trajectory)
+            row.update(ate_m=float(ev.ate_4dof.trans_m.rmse), ate_rot_deg=float(ev.ate_4dof.rot_deg.rmse),
+                       coverage=float(ev.coverage))
+            if ev.rpe:
+                row.update(rpe_pct=float(ev.rpe[0].trans_pct), rpe_length_m=float(ev.rpe[0].length_m))
+        row["ok"] = True
+    except Exception as e:  # a failed flight is a row, never a lost batch
+        row["error"] = f"{type(e).__name__}: {' '.join(str(e).split())}" if not isinstance(e, VioError) else \
+            " ".join(str(e).split())
+    if row["wall_s"] is None:
+        row["wall_s"] = round(time.perf_counter() - t0, 3)
+    return row
+
+
+def _run_local(jobs: list[tuple[str, str, dict]], workers: int, progress) -> list[dict]:
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    rows: list[dict | None] = [None] * len(jobs)
+    # spawn: a fresh interpreter per worker, as a Ray worker is (no state forked from the parent)
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futs = {pool.submit(replay_flight, *job): k for k, job in enumerate(jobs)}
+        for f in cf.as_completed(futs):
+            k = futs[f]
+            try:
+                rows[k] = f.result()
+            except Exception as e:  # the worker itself died (killed, out of memory)
+                rows[k] = _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}")
+            progress(rows[k])
+    return rows  # type: ignore[return-value]
+
+
+def _failed_row(path: str, error: str) -> dict:
+    row: dict = {k: None for k in _ROW_FIELDS}
+    row.update(flight=Path(path).name, path=str(path), ok=False, error=error)
+    return row
+
+
+def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, progress) -> list[dict]:
+    from vio.extras import require
+
+    ray = require("ray", "fleet", "vio batch --ray")
+    started = False
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(replay_flight)
+        refs = {task.remote(*job): k for k, job in enumerate(jobs)}
+        rows: list[dict | None] = [None] * len(jobs)
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                k = refs[ref]
+                try:
+                    rows[k] = ray.get(ref)
+                except Exception as e:  # the task's worker died
+                    rows[k] = _failed_row(jobs[k][0], f"ray task failed: {type(e).__name__}: {e}")
+                progress(rows[k])
+    finally:
+        if started:
+            ray.shutdown()
+    return rows  # type: ignore[return-value]
+
+
+def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = None, ray_address: str | None = None,
+              options: dict | None = None, progress: bool = True) -> dict:
+    """Replay `flights`, write the report files into `out_dir`, return the report."""
+    out = Path(out_dir)
+    (out / "traj").mkdir(parents=True, exist_ok=True)
+    workers = max(1, workers or os.cpu_count() or 1)
+    names: dict[str, int] = {}
+    jobs = []
+    for f in flights:
+        stem = Path(f).name or "flight"
+        names[stem] = names.get(stem, 0) + 1
+        tag = stem if names[stem] == 1 else f"{stem}-{names[stem]}"
+        jobs.append((str(f), str(out / "traj" / f"{tag}.tum"), dict(options or {})))
+    bar = None
+    if progress and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), unit="flight", desc="batch", leave=False)
+    last = [time.monotonic()]
+    done = [0]
+
+    def tick(row: dict) -> None:
+        done[0] += 1
+        if bar is not None:
+            bar.update(1)
+        elif time.monotonic() - last[0] >= 5 or done[0] == len(jobs):
+            log.info("batch: %d of %d flights done (last: %s, %s)", done[0], len(jobs), row["flight"],
+                     "ok" if row["ok"] else row["error"])
+            last[0] = time.monotonic()
+
+    wall0 = time.perf_counter()
+    try:
+        rows = _run_ray(jobs, ray_address, workers, tick) if ray_address else _run_local(jobs, workers, tick)
+    finally:
+        if bar is not None:
+            bar.close()
+    report = {"engine": f"ray:{ray_address}" if ray_address else f"local:{workers}", "workers": workers,
+              "wall_s": round(time.perf_counter() - wall0, 3), "flights": rows, "summary": summarise(rows)}
+    write_report(report, out)
+    return report
+
+
+def summarise(rows: list[dict]) -> dict:
+    import numpy as np
+
+    ok = [r for r in rows if r["ok"]]
+
+    def stat(key: str) -> dict | None:
+        x = np.array([r[key] for r in ok if r[key] is not None], dtype=float)
+        if not len(x):
+            return None
+        return {"mean": float(x.mean()), "median": float(np.median(x)), "max": float(x.max()), "n": int(len(x))}
+
+    return {"flights": len(rows), "ok": len(ok), "failed": len(rows) - len(ok), "ate_m": stat("ate_m"),
+            "rpe_pct": stat("rpe_pct"), "resets": int(sum(r["resets"] or 0 for r in ok)),
+            "realtime_factor": stat("realtime_factor")}
+
+
+def _fmt(v, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def markdown(report: dict) -> str:
+    lines = [f"# vio batch: {report['summary']['ok']} of {report['summary']['flights']} flights ok "
+             f"({report['engine']}, {report['wall_s']:.1f} s)", "",
+             "| flight | ATE 4-DoF rmse [m] | RPE [%] | resets | real-time factor | frames | error |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for r in report["flights"]:
+        lines.append(f"| {r['flight']} | {_fmt(r['ate_m'], 4)} | {_fmt(r['rpe_pct'], 2)} | {_fmt(r['resets'])} | "
+                     f"{_fmt(r['realtime_factor'], 2)} | {_fmt(r['frames'])} | {r['error'] or ''} |")
+    s = report["summary"]
+
+    def m(key: str, digits: int) -> str:
+        return "-" if s[key] is None else f"mean {s[key]['mean']:.{digits}f}, median {s[key]['median']:.{digits}f}, " \
+                                          f"max {s[key]['max']:.{digits}f}"
+
+    lines += ["", f"Summary: ATE [m] {m('ate_m', 4)}; RPE [%] {m('rpe_pct', 2)}; resets {s['resets']}; "
+              f"real-time factor {m('realtime_factor', 2)}; failed {s['failed']}.", ""]
+    return "\n".join(lines)
+
+
+def write_report(report: dict, out: Path) -> None:
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    (out / "report.md").write_text(markdown(report))
+    try:
+        plot(report, out / "report.png")
+    except VioError as e:  # no matplotlib: the table and JSON are the report
+        log.warning("no plot: %s", e)
+
+
+def plot(report: dict, path: Path) -> None:
+    from vio.extras import pyplot
+
+    plt = pyplot("the batch report's plot")
+    rows = report["flights"]
+    names = [r["flight"] for r in rows]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(max(6, 0.6 * len(rows) + 4), 3.5))
+    a1.bar(names, [r["ate_m"] or 0.0 for r in rows], color=["C0" if r["ok"] else "C3" for r in rows])
+    a1.set_ylabel("ATE 4-DoF rmse [m]")
+    a2.bar(names, [r["realtime_factor"] or 0.0 for r in rows], color="C1")
+    a2.set_ylabel("real-time factor")
+    for a in (a1, a2):
+        a.tick_params(axis="x", rotation=60)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def load_report(path: str | Path) -> dict:
+    p = Path(path)
+    if p.is_dir():
+        p = p / "report.json"
+    try:
+        return json.loads(p.read_text())
+    except OSError as e:
+        raise VioError(f"{p}: cannot read the report ({e.strerror})") from None
+    except json.JSONDecodeError as e:
+        raise VioError(f"{p}: not a batch report ({e})") from None
+
+
+def compare(new: dict, old: dict, tol: float = 0.05) -> str:
+    """Markdown: per flight (by name) ATE, RPE, resets and real-time factor before -> after, and a verdict.
+    A change of more than `tol` (relative) in ATE or RPE, or any change in resets or success, counts."""
+    before = {r["flight"]: r for r in old["flights"]}
+    lines = ["| flight | ATE [m] before -> after | RPE [%] | resets | real-time factor | verdict |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    tally = {"better": 0, "worse": 0, "same": 0, "new": 0}
+    for r in new["flights"]:
+        o = before.get(r["flight"])
+        if o is None:
+            verdict = "new"
+        else:
+            score = 0
+            for key in ("ate_m", "rpe_pct"):
+                a, b = o[key], r[key]
+                if a is not None and b is not None and abs(b - a) > tol * max(abs(a), 1e-9):
+                    score += 1 if b < a else -1
+            if (o["resets"] or 0) != (r["resets"] or 0):
+                score += 1 if (r["resets"] or 0) < (o["resets"] or 0) else -1
+            if o["ok"] != r["ok"]:
+                score += 2 if r["ok"] else -2
+            verdict = "better" if score > 0 else "worse" if score < 0 else "same"
+        tally[verdict] += 1
+        o = o or {}
+
+        def pair(key: str, d: int, o=o, r=r) -> str:
+            return f"{_fmt(o.get(key), d)} -> {_fmt(r[key], d)}"
+
+        lines.append(f"| {r['flight']} | {pair('ate_m', 4)} | {pair('rpe_pct', 2)} | {pair('resets', 0)} | "
+                     f"{pair('realtime_factor', 2)} | {verdict}{' (' + r['error'] + ')' if r['error'] else ''} |")
+    gone = sorted(set(before) - {r["flight"] for r in new["flights"]})
+    head = (f"Compared with the earlier report: {tally['better']} better, {tally['worse']} worse, {tally['same']} "
+            f"the same, {tally['new']} new" + (f", {len(gone)} no longer run ({', '.join(gone)})" if gone else ""))
+    return "\n".join([head, "", *lines, ""])
+
+
+def run(args: argparse.Namespace) -> int:
+    options = {"config": args.config, "calib": args.calib, "calib_format": args.calib_format,
+               "topics": (args.left_topic, args.right_topic, args.imu_topic)}
+    old = load_report(args.compare) if args.compare else None  # a bad --compare fails before hours of replay
+    report = run_batch(args.flights, args.output, workers=args.workers, ray_address=args.ray, options=options,
+                       progress=not args.no_progress)
+    print(markdown(report))
+    if old is not None:
+        text = compare(report, old)
+        (Path(args.output) / "compare.md").write_text(text)
+        print(text)
+    print(f"wrote {Path(args.output) / 'report.md'}, report.json, report.png")
+    return 0 if report["summary"]["failed"] == 0 else 1
