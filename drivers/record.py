@@ -1,4 +1,5 @@
-"""`vio record OUT`: record live sensors to a EuRoC ASL dataset that `vio replay` reads back.
+"""`vio record OUT [--format mcap]`: record live sensors to a EuRoC ASL dataset (or one MCAP file) that
+`vio replay` reads back.
 
 Images are lossless PNG, IMU rows are written with 17 significant digits (float64 round-trips exactly),
 and the calibration the source reports (device EEPROM, or the config's calibration file) goes into the
@@ -60,13 +61,12 @@ def _wait_calibration(source: SensorSource, timeout_s: float, stop: threading.Ev
 
 def record(source: SensorSource, out: str | Path, *, duration_s: float | None = None,
            stop: threading.Event | None = None, calibration: StereoCalibration | None = None,
-           overwrite: bool = False, calib_timeout_s: float = 30.0) -> RecordStats:
+           overwrite: bool = False, calib_timeout_s: float = 30.0, fmt: str = "euroc",
+           images: str = "png") -> RecordStats:
     """Record `source` into the EuRoC folder `out` until `duration_s` of data, `stop`, or the source ends.
 
     The duration counts data time (sensor stamps), so a finite fake source records the same span however
     fast it is read; a wall-clock guard ends the recording if the source stops delivering."""
-    from vio.io.euroc import EurocWriter
-
     stop = stop or threading.Event()
     stats = RecordStats()
     source.start()
@@ -75,7 +75,7 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
         end_ns: int | None = None
         last = {"imu": -1, "frame": -1}
         wall_start = time.monotonic()
-        with EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite) as writer:
+        with _open_writer(out, calib, fmt, images, overwrite) as writer:
             next_flush = time.monotonic() + FLUSH_INTERVAL_S
             done = False
             while not stop.is_set() and not done:
@@ -118,6 +118,20 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
     return stats
 
 
+def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: str, overwrite: bool):
+    """EurocWriter (a folder) or McapWriter (one file; sensors on ROS 2 schemas, `images` png/jpeg/raw)."""
+    if fmt == "mcap":
+        from vio.io.bag import McapWriter
+
+        path = Path(out)
+        if path.exists() and not overwrite:
+            raise VioError(f"{path}: already exists; refusing to overwrite recorded data")
+        return McapWriter(path, images)
+    from vio.io.euroc import EurocWriter
+
+    return EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", help="output folder (EuRoC ASL layout: OUT/mav0/...)")
     parser.add_argument("--source", choices=("oak", "fake", "euroc"), help="overrides [source] kind of the config")
@@ -125,6 +139,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "Ctrl-C / SIGTERM)")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration ([source] section)")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in OUT")
+    parser.add_argument("--format", choices=("euroc", "mcap"), default=None,
+                        help="euroc: a folder of PNGs (default); mcap: one file OUT on ROS 2 schemas (Foxglove, "
+                        "`vio replay OUT --calib ...`); default from [run] record_format")
+    parser.add_argument("--images", choices=("png", "jpeg", "raw"), default=None,
+                        help="mcap images: png lossless, jpeg, raw; default from [run] record_images")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
         log.info("recording %s source to %s%s", src_cfg.kind, args.out,
                  f" for {args.duration:g} s" if args.duration else " until SIGINT/SIGTERM")
         stats = record(source, args.out, duration_s=args.duration, stop=stop, calibration=calibration,
-                       overwrite=args.overwrite)
+                       overwrite=args.overwrite, fmt=args.format or cfg.run.record_format,
+                       images=args.images or cfg.run.record_images)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -566,13 +566,11 @@ def test_vio_run_replays_euroc_as_live(tmp_path: Path, notify_socket, v101_path:
     assert all(np.diff(t_s) > 0.04)  # 20 Hz frames, not 200 Hz IMU states
 
 
-def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
-    if importlib.util.find_spec("drivers.fake") is None:
-        pytest.skip("drivers/fake.py not in this tree yet")
+def _record_fake(tmp_path: Path, until, **run) -> Service:
+    """Run the daemon on a fake source with recording into tmp_path/rec until `until(svc)`, then stop it."""
     from drivers.fake import FakeSource
-    from vio.io.euroc import EurocDataset
 
-    cfg = config_from_dict({"run": {"status_file": "", "record_dir": str(tmp_path / "rec")}})
+    cfg = config_from_dict({"run": {"status_file": "", "record_dir": str(tmp_path / "rec"), **run}})
 
     class AnyCalibEstimator(ScriptedEstimator):
         def __init__(self, calib) -> None:
@@ -582,13 +580,41 @@ def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
                   estimator_factory=AnyCalibEstimator, notifier=SdNotifier(""))
     runner = threading.Thread(target=svc.run)
     runner.start()
-    assert _wait(lambda: svc.recorder.frames >= 10, 10)
+    assert _wait(lambda: until(svc), 10)
     svc.request_stop()
     runner.join(5)
+    return svc
+
+
+def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
+    if importlib.util.find_spec("drivers.fake") is None:
+        pytest.skip("drivers/fake.py not in this tree yet")
+    from vio.io.euroc import EurocDataset
+
+    svc = _record_fake(tmp_path, lambda svc: svc.recorder.frames >= 10)
     (dataset_dir,) = (tmp_path / "rec").iterdir()
     ds = EurocDataset(dataset_dir)
     assert len(ds) == svc.recorder.frames and len(ds.imu) == svc.recorder.imu
     assert len(ds.imu) >= 9 * len(ds)  # 200 Hz IMU vs 20 Hz frames
+
+
+def test_mcap_recording_holds_sensors_and_health_and_replays(tmp_path: Path) -> None:
+    pytest.importorskip("mcap")
+    pytest.importorskip("rosbags")
+    from drivers.fake import FakeSource
+    from vio.io.bag import BagDataset
+
+    svc = _record_fake(tmp_path, lambda svc: svc.recorder.frames >= 25 and bool(svc._last_status),
+                       record_format="mcap", record_images="png")
+    (path,) = (tmp_path / "rec").iterdir()
+    assert path.suffix == ".mcap"
+    ds = BagDataset(path, FakeSource(width=96, height=64).calibration())
+    assert len(ds) == svc.recorder.frames and len(ds.imu) == svc.recorder.imu
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert {"/cam0/image_raw", "/cam1/image_raw", "/imu0", "/vio/health"} <= topics
 
 
 def test_a_driver_that_reconnects_itself_is_not_restarted(tmp_path: Path, monkeypatch) -> None:

@@ -182,6 +182,11 @@ class SourceConfig:
 @dataclass(frozen=True)
 class RunConfig:
     record_dir: str = opt("", "record sensors to this EuRoC folder while running; empty = off")
+    record_format: str = opt("euroc", "recording format: euroc (a folder of PNGs and csv) or mcap (one .mcap file "
+                             "on ROS 2 schemas with the estimator states and health, Foxglove opens it)",
+                             choices=("euroc", "mcap"))
+    record_images: str = opt("png", "mcap images: png (lossless CompressedImage), jpeg (lossy, smaller) or raw "
+                             "(sensor_msgs/Image)", choices=("png", "jpeg", "raw"))
     trajectory_file: str = opt("", "append the estimated trajectory (TUM) here; empty = off")
     status_file: str = opt("/run/kestrel-vio/status.json", "health file read by `vio status`")
     queue_frames: int = opt(4, "camera frames buffered before the oldest is dropped", min=1, max=100)

@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("vio.evaluation", "compare an estimated trajectory with ground truth (ATE, RPE, plot)"),
     "config": ("vio.app.config_cli", "check or show the configuration file"),
     "calib": ("calib.cli", "import, show and check calibrations; IMU noise; camera-IMU time offset"),
-    "record": ("drivers.record", "record live sensors to a EuRoC dataset"),
+    "record": ("drivers.record", "record live sensors to a EuRoC dataset or an MCAP file"),
     "run": ("vio.app.daemon.service", "onboard daemon: sensors -> estimator -> MAVLink"),
     "status": ("vio.app.status", "show the health of a running `vio run`"),
     "loop": ("vio.app.loop_cli", "loop closure tools: train the place-recognition vocabulary"),

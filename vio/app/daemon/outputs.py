@@ -1,4 +1,4 @@
-"""The daemon's output threads: MAVLink and the TUM pose log, and the recorder (EurocWriter)."""
+"""The daemon's output threads: MAVLink and the TUM pose log, and the recorder (EurocWriter or McapWriter)."""
 
 from __future__ import annotations
 
@@ -218,10 +218,17 @@ class RecorderWorker(Worker):
     idles until shutdown. Recording does not resume until the service restarts (one dataset per start)."""
 
     def __init__(self, stop: threading.Event, buf: SensorBuffer, record_dir: str,
-                 calibration: Callable[[], Any]) -> None:
+                 calibration: Callable[[], Any], fmt: str = "euroc", images: str = "png",
+                 latest: Any = None, health: Callable[[], dict] | None = None) -> None:
         super().__init__("recorder", stop)
         self.buf = buf
         self.record_dir = record_dir
+        self.fmt = fmt  # euroc | mcap (then also the newest estimator state and, every second, the health)
+        self.images = images
+        self._latest = latest
+        self._health = health
+        self._state_seq = -1
+        self._health_t = 0.0
         self._calibration = calibration
         self.writer: Any = None
         self.root: Path | None = None
@@ -231,8 +238,6 @@ class RecorderWorker(Worker):
         self.imu = 0
 
     def loop(self) -> None:
-        from vio.io.euroc import EurocWriter
-
         calib = self._calibration()
         while calib is None and not self.stop_event.is_set():
             self.beat()
@@ -242,7 +247,16 @@ class RecorderWorker(Worker):
             return
         try:
             self.root = _fresh_record_dir(self.record_dir)
-            self.writer = EurocWriter(self.root, calib)
+            if self.fmt == "mcap":
+                from vio.io.bag import McapWriter
+
+                self.root.parent.mkdir(parents=True, exist_ok=True)
+                self.root = self.root.with_suffix(".mcap")
+                self.writer = McapWriter(self.root, self.images)
+            else:
+                from vio.io.euroc import EurocWriter
+
+                self.writer = EurocWriter(self.root, calib)
             self.state = "recording"
             log.info("recording to %s", self.root)
             while not self.stop_event.is_set():
@@ -251,6 +265,8 @@ class RecorderWorker(Worker):
             deadline = time.monotonic() + 0.5  # flush what is queued, but within the shutdown budget
             while len(self.buf) and time.monotonic() < deadline:
                 self._write(*self.buf.take(0.0))
+            if self.fmt == "mcap":
+                self._write_health(last=True)
             self.writer.close()
             self.state = "stopped"
         except Exception as e:  # OSError (ENOSPC, EFBIG, EROFS, ENOENT), VioError from cv2.imwrite, cv2.error
@@ -266,14 +282,36 @@ class RecorderWorker(Worker):
         if item is not None:
             self.writer.write_frame(item[1])
             self.frames += 1
+        if self.fmt != "mcap":
+            return
+        if self._latest is not None:
+            seq, out = self._latest.peek()
+            if out is not None and seq != self._state_seq:
+                self._state_seq = seq
+                self.writer.write_state(out.state)
+        self._write_health()
+
+    def _write_health(self, last: bool = False) -> None:
+        """The daemon's status snapshot on /vio/health (JSON) every second, and once more at the end."""
+        now = time.monotonic()
+        if self._health is not None and (last or now - self._health_t >= 1.0):
+            self._health_t = now
+            h = self._health()
+            if h:
+                self.writer.write_json("/vio/health", time.time_ns(), h)
 
     def _failed(self, e: Exception) -> None:
         self.state = "failed"
         self.error = _os_error_text(e) + _storage_diagnosis(self.root)
         self.buf.close()
-        if self.writer is not None:
-            _close_writer_files(self.writer)
-        kept = _trim_partial_rows(self.root / "mav0") if self.root is not None else 0
+        if self.fmt == "mcap":  # an MCAP file without its summary is still readable up to its last chunk
+            with contextlib.suppress(Exception):
+                self.writer.close()
+            kept = int(self.frames > 0)
+        else:
+            if self.writer is not None:
+                _close_writer_files(self.writer)
+            kept = _trim_partial_rows(self.root / "mav0") if self.root is not None else 0
         log.warning("recording stopped: %s; %s kept in %s (pose output goes on)", self.error,
                     f"{self.frames} frames and {self.imu} IMU samples before the error" if kept else "nothing",
                     self.root)

@@ -1,0 +1,60 @@
+"""Speed-up of `vio batch` on this machine's cores: the same flights with 1 worker, N local workers and Ray.
+
+    python bench/batch.py [--flights 4] [--duration 15] [--size 752x480] [--workers 2] [--ray] [--json out.json]
+
+Simulates the flights once (seeds 0..F-1, survey profile, realistic variant) into a temporary folder, then
+runs `run_batch` with 1 worker, with --workers local processes and (with --ray) on a local Ray instance of
+--workers CPUs, and prints the wall time of each and the speed-up over one worker. Each replay is
+single-threaded (vio.app.batch), so the speed-up measures the engine, not BLAS threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--flights", type=int, default=4)
+    ap.add_argument("--duration", type=float, default=15.0)
+    ap.add_argument("--size", default="752x480")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--ray", action="store_true", help="also time a local Ray instance")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args(argv)
+    from vio.app.batch import run_batch
+    from vio.sim.generate import SimConfig, simulate
+
+    w, h = (int(x) for x in args.size.split("x"))
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        flights = []
+        for seed in range(args.flights):
+            simulate(root / f"f{seed}", SimConfig(duration_s=args.duration, width=w, height=h, seed=seed))
+            flights.append(str(root / f"f{seed}"))
+        out: dict = {"flights": args.flights, "duration_s": args.duration, "size": args.size}
+        runs = [("1 worker", 1, None), (f"{args.workers} local workers", args.workers, None)]
+        if args.ray:
+            runs.append((f"ray local, {args.workers} CPUs", args.workers, "local"))
+        base = None
+        for name, n, ray in runs:
+            t0 = time.perf_counter()
+            rep = run_batch(flights, root / name.replace(" ", "_"), workers=n, ray_address=ray, progress=False)
+            wall = time.perf_counter() - t0
+            base = base or wall
+            rtf = rep["summary"]["realtime_factor"]
+            print(f"{name:>24}: {wall:6.1f} s for {args.flights} x {args.duration:g} s flights, speed-up "
+                  f"{base / wall:.2f}, per-flight real-time factor mean {rtf['mean']:.2f}" if rtf else f"{name}: failed")
+            out[name] = {"wall_s": wall, "speedup": base / wall, "rtf_mean": rtf and rtf["mean"]}
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
