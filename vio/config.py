@@ -205,6 +205,15 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class ViewConfig:
+    enabled: bool = opt(False, "stream a live view to Rerun (the [view] extra): left image with tracks, trajectory, "
+                        "keyframes, landmarks, covariance, health counters; the estimator never waits for it")
+    target: str = opt("serve", "'serve' (gRPC server + web viewer on this computer) or a path ending in .rrd")
+    web_port: int = opt(9090, "web viewer port (target = 'serve')", min=1, max=65535)
+    queue_frames: int = opt(4, "frames waiting for the viewer before new ones are dropped", min=1, max=100)
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """The sections the estimator reads (front end, back end, initialisation): each stage gets only its own,
     so the MAVLink, source and daemon settings cannot leak into the estimate."""
@@ -272,6 +281,7 @@ class VioConfig:
     run: RunConfig = field(default_factory=RunConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    view: ViewConfig = field(default_factory=ViewConfig)
 
     @property
     def estimator(self) -> EstimatorConfig:

@@ -162,11 +162,12 @@ class ReplayResult:
 
 def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = False,
            show_tracks: str | None = None, max_frames: int | None = None, progress: bool = True,
-           loop=None) -> ReplayResult:
+           loop=None, view=None) -> ReplayResult:
     """Stream a EurocDataset through a fresh Estimator; every frame's state goes to `sinks`.
 
     `loop`: a vio.app.loop_worker.LoopWorker that gets every keyframe (its image, features and odometry
-    pose); the odometry does not depend on it."""
+    pose); the odometry does not depend on it. `view` (a vio.app.view.LiveView) gets each processed frame
+    without the loop waiting for it."""
     preflight(dataset)  # before the estimator's imports: a data problem is said at once
     from vio.config import VioConfig
     from vio.estimator import Estimator
@@ -217,7 +218,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
             else:
                 if max_frames is not None and frames >= max_frames:
                     break
-                if writer is not None:
+                if writer is not None or view is not None:
                     waiting[int(ev.t_ns)] = ev
                 if loop is not None:
                     loop_images[int(ev.t_ns)] = ev.left
@@ -245,8 +246,13 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                         loop_submit_ms.append((time.perf_counter() - t_l) * 1e3)
                     for t in [t for t in loop_images if t <= t_cam]:
                         del loop_images[t]
-                if writer is not None and t_cam in waiting:
-                    writer.write(waiting.pop(t_cam), est.last_features)
+                if t_cam in waiting:
+                    fr = waiting.pop(t_cam)
+                    if writer is not None:
+                        writer.write(fr, ff)
+                    if view is not None:
+                        view.submit(t_cam, fr.left, ff, states[-1] if states else None, bool(tm.keyframe),
+                                    {"resets": est.reset_counter, "keyframes": est.keyframes})
                     for t in [t for t in waiting if t < t_cam]:
                         del waiting[t]
     finally:
@@ -385,6 +391,11 @@ def run(args: argparse.Namespace) -> int:
 
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sinks.append(restamp_to_host_clock(mav))
+    view = None
+    if args.view:
+        from vio.app.view import LiveView
+
+        view = LiveView(args.view, dataset.calibration)
     loop = None
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
@@ -403,14 +414,22 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
-                     loop=loop)
+                     loop=loop, view=view)
     finally:
+        if view is not None:
+            view.close()
         if tum is not None:
             tum.close()
         if mav is not None:
             mav.close()
     print(f"replay: {res.frames} frames, {len(res.states)} poses, {res.data_s:.1f} s of data in {res.wall_s:.1f} s "
           f"(real-time factor {res.realtime_factor:.2f}), {res.resets} resets")
+    if view is not None:
+        vs = view.stats()
+        res.extra["view"] = vs
+        print(f"view: {vs['logged']} frames logged, {vs['dropped']} dropped (viewer behind), cost in the frame loop "
+              f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
+              + (f"; {args.view}" if args.view != "serve" else ""))
     if res.frame_stats:
         sd = res.stats_dict()["timing_ms"]
         print("per frame [ms]: " + ", ".join(f"{k[:-3]} mean {v['mean']:.1f} p95 {v['p95']:.1f}"

@@ -115,8 +115,13 @@ class Service:
 
             self._loop_output = CorrectedOutput(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s) \
                 if cfg.loop.output != "off" else None
+        self.view = None
+        if cfg.view.enabled:
+            from vio.app.view import LiveView
+
+            self.view = LiveView(cfg.view.target, self._calibration_now, cfg.view.queue_frames, cfg.view.web_port)
         self.estimator = EstimatorWorker(self.stop, self._make_estimator, self.est_buf, self.latest,
-                                         rc.max_imu_gap_s)
+                                         rc.max_imu_gap_s, view=self.view)
         mount = None
         if mavlink_factory is None and cfg.mavlink.url:
             mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now)
@@ -231,6 +236,8 @@ class Service:
                     log.info("map saved to %s", self.cfg.map.save)
                 except Exception as e:  # noqa: BLE001 - a failed save must not hide the shutdown
                     log.error("map not saved: %s", e)
+        if self.view is not None:
+            self.view.close(timeout_s=max(0.2, deadline - time.monotonic()))
         status = self.snapshot()
         status["state"] = "stopped"
         self._write_status(status)

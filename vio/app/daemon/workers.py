@@ -184,11 +184,15 @@ class EstimatorWorker(Worker):
     """Feeds the estimator in time order; an exception or an IMU gap resets it instead of ending the process."""
 
     def __init__(self, stop: threading.Event, make_estimator: Callable[[], EstimatorApi | None], buf: SensorBuffer,
-                 out: LatestState, max_imu_gap_s: float, loop: Any = None, loop_output: Any = None) -> None:
+                 out: LatestState, max_imu_gap_s: float, loop: Any = None, loop_output: Any = None,
+                 view: Any = None) -> None:
         super().__init__("estimator", stop)
         self.loop_worker = loop  # vio.app.loop_worker.LoopWorker: gets every keyframe, never waited for
         self.loop_output = loop_output  # vio.loop.output.CorrectedOutput: what the autopilot gets
         self._left: deque[tuple[int, Any]] = deque(maxlen=16)  # left images of frames not processed yet
+        self.view = view  # a vio.app.view.LiveView: submit() never blocks
+        self._view_frames: dict[int, Any] = {}  # frame stamp -> left image, until the estimator has processed it
+        self._view_t: int | None = None
         self._make = make_estimator
         self.buf = buf
         self.out = out
@@ -236,10 +240,29 @@ class EstimatorWorker(Worker):
                     self._arrivals.append(item[0])
                     if self.loop_worker is not None:
                         self._left.append((int(item[1].t_ns), item[1].left))
+                    if self.view is not None:
+                        self._view_frames[int(item[1].t_ns)] = item[1].left
                     self._emit(self.estimator.feed_frame(item[1]))
+                if self.view is not None:
+                    self._to_view()
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
+
+    def _to_view(self) -> None:
+        """Hand the newest processed frame (image, features, state) to the live view."""
+        ff = self.estimator.last_features
+        if ff is None or ff.t_ns == self._view_t:
+            return
+        self._view_t = t = int(ff.t_ns)
+        left = self._view_frames.pop(t, None)
+        for old in [k for k in self._view_frames if k < t]:
+            del self._view_frames[old]
+        h = self.health
+        self.view.submit(t, left, ff, self.last_state, bool(getattr(getattr(self.estimator, "timings", None),
+                                                                    "keyframe", False)),
+                         {"resets": self.resets + (h.reset_counter if h else 0), "frames": self.frames,
+                          "errors": self.errors})
 
     def _snapshot_health(self, force: bool = False) -> None:
         now = time.monotonic()
