@@ -48,8 +48,9 @@ def main(argv: list[str] | None = None) -> int:
             wall = time.perf_counter() - t0
             base = base or wall
             rtf = rep["summary"]["realtime_factor"]
+            rtf_text = f"{rtf['mean']:.2f}" if rtf else "- (all failed)"
             print(f"{name:>24}: {wall:6.1f} s for {args.flights} x {args.duration:g} s flights, speed-up "
-                  f"{base / wall:.2f}, per-flight real-time factor mean {rtf['mean']:.2f}" if rtf else f"{name}: failed")
+                  f"{base / wall:.2f}, per-flight real-time factor mean {rtf_text}")
             out[name] = {"wall_s": wall, "speedup": base / wall, "rtf_mean": rtf and rtf["mean"]}
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))

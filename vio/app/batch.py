@@ -48,9 +48,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+# one thread per replay: set in the workers' environment before they start, since OpenBLAS reads it when numpy
+# is first imported (2 workers with 2 busy-waiting BLAS threads each ran slower than 1 worker on 2 cores)
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def _single_thread() -> None:
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
     import cv2
 
     cv2.setNumThreads(1)
@@ -101,6 +104,19 @@ def _run_local(jobs: list[tuple[str, str, dict]], workers: int, progress) -> lis
     import multiprocessing as mp
 
     rows: list[dict | None] = [None] * len(jobs)
+    saved = {k: os.environ.get(k) for k in THREAD_ENV}
+    os.environ.update(THREAD_ENV)  # inherited by the spawned workers
+    try:
+        return _run_pool(cf, mp, jobs, workers, progress, rows)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _run_pool(cf, mp, jobs, workers: int, progress, rows: list) -> list[dict]:
     # spawn: a fresh interpreter per worker, as a Ray worker is (no state forked from the parent)
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         futs = {pool.submit(replay_flight, *job): k for k, job in enumerate(jobs)}
@@ -132,7 +148,7 @@ def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, prog
             ray.init(address=address, log_to_driver=False)
         started = True
     try:
-        task = ray.remote(num_cpus=1, max_retries=0)(replay_flight)
+        task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": THREAD_ENV})(replay_flight)
         refs = {task.remote(*job): k for k, job in enumerate(jobs)}
         rows: list[dict | None] = [None] * len(jobs)
         pending = list(refs)

@@ -384,7 +384,7 @@ def image_message(ts, t_ns: int, img: np.ndarray, frame_id: str, compression: st
         return IMAGE, ts.types[IMAGE](header=_header(ts, t_ns, frame_id), height=img.shape[0], width=img.shape[1],
                                       encoding="mono8", is_bigendian=0, step=img.shape[1],
                                       data=img.reshape(-1))
-    ext, params = {"png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
+    ext, params = {"png": (".png", []),  # OpenCV's defaults, as the EuRoC writer's imwrite: fastest here
                    "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 90])}[compression]
     ok, buf = cv2.imencode(ext, img, params)
     if not ok:
@@ -447,7 +447,9 @@ class McapWriter:
         self.path = Path(path)
         self.compression = compression
         self._f = open(self.path, "wb")
-        self._w = writer.Writer(self._f, chunk_size=chunk_size)
+        # PNG/JPEG are compressed already: zstd over them costs CPU for ~nothing; raw images and IMU do compress
+        chunk_compression = writer.CompressionType.ZSTD if compression == "raw" else writer.CompressionType.NONE
+        self._w = writer.Writer(self._f, chunk_size=chunk_size, compression=chunk_compression)
         self._w.start(profile="ros2", library="kestrel-vio")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
