@@ -170,3 +170,15 @@ def test_mcap_writer_states_and_health_channels(tmp_path):
         msgs = [(c.topic, s.name, c.message_encoding) for s, c, _m in make_reader(f).iter_messages()]
     assert ("/vio/odometry", "nav_msgs/msg/Odometry", "cdr") in msgs
     assert ("/vio/health", "vio_health", "json") in msgs
+
+
+def test_mcap_cut_short_is_read_up_to_the_damage(flight):
+    d = EurocDataset(flight / "sim")
+    export_bag(d, flight / "whole.mcap", "mcap", "png")
+    data = (flight / "whole.mcap").read_bytes()
+    (flight / "cut.mcap").write_bytes(data[: len(data) * 2 // 3])
+    b = BagDataset(flight / "cut.mcap", d.calibration)
+    assert any("no MCAP summary" in n for n in b.stats.notes)
+    assert 0 < len(b) < len(d)
+    frames = [e for e in b.events() if isinstance(e, StereoFrame)]
+    assert len(frames) == len(b)

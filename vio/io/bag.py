@@ -81,13 +81,22 @@ class _BagFile:
         self.bare_mcap = path.is_file() and path.suffix == ".mcap"
         self.typestore = _typestore()
         self.topics: dict[str, tuple[str, int]] = {}  # topic -> (msgtype, message count)
+        self.truncated = False  # a bare MCAP file without its summary (recorder killed): read up to the damage
         if self.bare_mcap:
             reader = _need("mcap.reader")
-            with open(path, "rb") as f:
-                r = reader.make_reader(f)
-                summary = r.get_summary()
-                counts = summary.statistics.channel_message_counts if summary and summary.statistics else {}
-                for cid, ch in (summary.channels if summary else {}).items():
+            try:
+                with open(path, "rb") as f:
+                    summary = reader.make_reader(f).get_summary()
+            except Exception:  # mcap raises EndOfFile, RecordLengthLimitExceeded... on a file cut short
+                summary = None
+            if summary is None:
+                self.truncated = True
+                for topic, ty, _raw, _r in self.messages(None):
+                    old = self.topics.get(topic, (ty, 0))
+                    self.topics[topic] = (ty, old[1] + 1)
+            else:
+                counts = summary.statistics.channel_message_counts if summary.statistics else {}
+                for cid, ch in summary.channels.items():
                     schema = summary.schemas.get(ch.schema_id)
                     self.topics[ch.topic] = (schema.name if schema else "?", int(counts.get(cid, 0)))
         else:
@@ -100,12 +109,23 @@ class _BagFile:
             except Exception as e:  # rosbags raises its own error types for damaged or foreign files
                 raise VioError(f"{path}: cannot read the bag ({type(e).__name__}: {e})") from None
 
-    def messages(self, topics: list[str]) -> Iterator[tuple[str, str, bytes, object]]:
+    def messages(self, topics: list[str] | None) -> Iterator[tuple[str, str, bytes, object]]:
         if self.bare_mcap:
             reader = _need("mcap.reader")
             with open(self.path, "rb") as f:
-                for schema, ch, msg in reader.make_reader(f).iter_messages(topics=topics, log_time_order=False):
-                    yield ch.topic, schema.name, msg.data, None
+                r = reader.NonSeekingReader(f) if self.truncated else reader.make_reader(f)
+                it = r.iter_messages(topics=topics, log_time_order=False)
+                while True:
+                    try:
+                        schema, ch, msg = next(it)
+                    except StopIteration:
+                        return
+                    except Exception:  # the damaged end of a file cut short: what came before is kept
+                        if not self.truncated:
+                            raise
+                        return
+                    if schema is not None:
+                        yield ch.topic, schema.name, msg.data, None
             return
         hl = _need("rosbags.highlevel")
         with hl.AnyReader([self.path], default_typestore=self.typestore) as r:
@@ -171,6 +191,9 @@ class BagDataset(EurocDataset):
         self.topics = topics or BagTopics()
         self.stats = DatasetStats()
         self._bag = _BagFile(p)
+        if self._bag.truncated:
+            self.stats.notes.append(f"{p}: no MCAP summary (the recorder stopped mid-write?): read up to the "
+                                    "damaged end")
         self._check_topics()
         self.calibration = calibration
         self.imu = self._read_imu()

@@ -304,7 +304,7 @@ class RecorderWorker(Worker):
         self.state = "failed"
         self.error = _os_error_text(e) + _storage_diagnosis(self.root)
         self.buf.close()
-        if self.fmt == "mcap":  # an MCAP file without its summary is still readable up to its last chunk
+        if self.fmt == "mcap":  # an MCAP file without its summary is read up to its last complete chunk
             with contextlib.suppress(Exception):
                 self.writer.close()
             kept = int(self.frames > 0)
