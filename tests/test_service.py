@@ -28,6 +28,7 @@ from vio.app.daemon.status import write_status_file
 from vio.app.sdnotify import SdNotifier, watchdog_interval_s
 from vio.app.status import EXIT_HEALTHY, EXIT_NOT_RUNNING, EXIT_UNHEALTHY, evaluate, format_status
 from vio.config import config_from_dict
+from vio.estimator import FrameTimings, ProcessedFrame
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 REPO = Path(__file__).resolve().parents[1]
@@ -247,9 +248,14 @@ class ScriptedEstimator:
         self.unusable = 0
         self.tracking = False
         self.last_features: FeatureFrame | None = None
+        self._done: list[ProcessedFrame] = []
 
     def feed_imu(self, s: ImuSample) -> None:
         return None
+
+    def take_processed(self) -> list[ProcessedFrame]:
+        done, self._done = self._done, []
+        return done
 
     def feed_frame(self, f: StereoFrame) -> NavState | None:
         if self.explode:
@@ -259,13 +265,17 @@ class ScriptedEstimator:
         if self.blind.is_set():
             self.unusable += 1
             self.tracking = False
+            self._done.append(ProcessedFrame(f.t_ns, FeatureFrame.empty(f.t_ns, "image too dark"), FrameTimings(),
+                                             None))
             return None
         self.tracking = True
         self.last_features = FeatureFrame(f.t_ns, np.arange(99), np.zeros((99, 2)), np.zeros((99, 2)),
                                           np.ones(99), np.ones(99, np.int64))
         T = np.eye(4)
         T[0, 3] = 0.01 * self.n
-        return NavState(f.t_ns, T, np.zeros(3), reset_counter=self.resets)
+        st = NavState(f.t_ns, T, np.zeros(3), reset_counter=self.resets)
+        self._done.append(ProcessedFrame(f.t_ns, self.last_features, FrameTimings(), st))
+        return st
 
     def reset(self, reason: str, bridge: bool = True) -> None:
         self.resets += 1

@@ -133,6 +133,19 @@ class EstimatorHealth:
     sensor_error: str | None  # a diagnosed sensor problem (unit mistake, dead IMU) that blocks initialisation
 
 
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """One frame the estimator has finished, for whoever consumes frames (replay stats, debug views, the
+    loop-closure and live-view threads, the daemon's latency): a frame may finish inside a later
+    feed_imu() (it waits for the IMU to reach its stamp), so callers collect these with take_processed()
+    after each feed instead of reading the estimator's latest fields."""
+
+    t_ns: int  # camera stamp of the frame
+    features: FeatureFrame
+    timings: FrameTimings
+    state: NavState | None  # the frame-rate state (None before initialisation or after a reset)
+
+
 def _reason_key(reason: str) -> str:
     """A reason without its numbers, so that counts group: "image too dark (mean grey 3.1 < 12)" -> "image too dark"."""
     key = reason.split(" (")[0].strip() or "unknown"
@@ -167,6 +180,7 @@ class Estimator:
                                                  imu=self.imu) if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self.listeners: list[Callable[[NavState], None]] = []
+        self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
         self.reset_counter = 0
         self.timings = FrameTimings()
         self.frames_processed = 0
@@ -216,6 +230,12 @@ class Estimator:
     def latest(self) -> NavState | None:
         """Newest frame-rate state (None before initialisation)."""
         return self._latest
+
+    def take_processed(self) -> list[ProcessedFrame]:
+        """The frames finished since the last call, oldest first (at most the last 64)."""
+        out = list(self._processed)
+        self._processed.clear()
+        return out
 
     def feed_imu(self, s: ImuSample) -> NavState | None:
         """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
@@ -403,6 +423,7 @@ class Estimator:
             self._latest = st
             for sink in self.listeners:
                 sink(st)
+        self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st))
         return st
 
     def _needs_stereo(self, t: int, preview: FeatureFrame) -> bool:

@@ -212,7 +212,6 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                 if lag > 0:
                     time.sleep(lag)
             t0 = time.perf_counter()
-            n_before = est.frames_processed
             if isinstance(ev, ImuSample):
                 est.feed_imu(ev)
             else:
@@ -228,21 +227,19 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     bar.update(1)
             # A frame is processed once the IMU has reached its stamp: in this call or in a later feed_imu
             # (a positive time offset), so its cost is recorded wherever it happened.
-            if est.frames_processed > n_before and est.last_features is not None:
-                tm = est.timings
-                ff = est.last_features
-                t_cam = int(ff.t_ns)
+            for pf in est.take_processed():
+                tm, ff, t_cam = pf.timings, pf.features, pf.t_ns
                 if not ff.tracking_ok:  # counted without the figures, so that one cause is one count
                     why = _DETAIL.sub("", ff.reason) or "rejected by the front end"
                     unusable[why] = unusable.get(why, 0) + 1
                 frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
                                     "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
-                                    "stereo": est.last_features.n_stereo})
+                                    "stereo": ff.n_stereo})
                 if loop is not None:
-                    if tm.keyframe and est.latest() is not None and t_cam in loop_images:
+                    if tm.keyframe and pf.state is not None and t_cam in loop_images:
                         t_l = time.perf_counter()
-                        loop.submit(est.latest().t_ns, est.latest().T_world_body, loop_images[t_cam], ff,
-                                    est.reset_counter)
+                        loop.submit(pf.state.t_ns, pf.state.T_world_body, loop_images[t_cam], ff,
+                                    pf.state.reset_counter)
                         loop_submit_ms.append((time.perf_counter() - t_l) * 1e3)
                     for t in [t for t in loop_images if t <= t_cam]:
                         del loop_images[t]
@@ -251,7 +248,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     if writer is not None:
                         writer.write(fr, ff)
                     if view is not None:
-                        view.submit(t_cam, fr.left, ff, states[-1] if states else None, bool(tm.keyframe),
+                        view.submit(t_cam, fr.left, ff, pf.state or (states[-1] if states else None), bool(tm.keyframe),
                                     {"resets": est.reset_counter, "keyframes": est.keyframes})
                     for t in [t for t in waiting if t < t_cam]:
                         del waiting[t]

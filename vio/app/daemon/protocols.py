@@ -13,7 +13,7 @@ from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
     from vio.calibration import StereoCalibration
-    from vio.estimator import EstimatorHealth, FrameTimings
+    from vio.estimator import EstimatorHealth, ProcessedFrame
 
 
 class Source(Protocol):
@@ -36,10 +36,7 @@ class Source(Protocol):
 class EstimatorApi(Protocol):
     """The estimator (vio.estimator.Estimator)."""
 
-    last_features: FeatureFrame | None
-    timings: FrameTimings  # of the last processed frame (`keyframe`: loop closure gets it)
-
-    def latest(self) -> NavState | None: ...  # the newest frame-rate state
+    last_features: FeatureFrame | None  # of the newest processed frame (status: track count)
 
     def feed_imu(self, s: ImuSample) -> NavState | None: ...
 
@@ -48,6 +45,8 @@ class EstimatorApi(Protocol):
     def reset(self, reason: str, bridge: bool = True) -> None: ...
 
     def health(self) -> EstimatorHealth: ...
+
+    def take_processed(self) -> list[ProcessedFrame]: ...  # frames finished since the last call
 
 
 class PoseOutput(Protocol):

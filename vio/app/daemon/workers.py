@@ -18,7 +18,7 @@ from vio.app.daemon.status import _source_health
 from vio.types import ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
-    from vio.estimator import EstimatorHealth
+    from vio.estimator import EstimatorHealth, ProcessedFrame
 
 log = logging.getLogger(__name__)
 
@@ -192,7 +192,6 @@ class EstimatorWorker(Worker):
         self._left: deque[tuple[int, Any]] = deque(maxlen=16)  # left images of frames not processed yet
         self.view = view  # a vio.app.view.LiveView: submit() never blocks
         self._view_frames: dict[int, Any] = {}  # frame stamp -> left image, until the estimator has processed it
-        self._view_t: int | None = None
         self._make = make_estimator
         self.buf = buf
         self.out = out
@@ -213,7 +212,6 @@ class EstimatorWorker(Worker):
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
         self._arrivals: deque[int] = deque(maxlen=64)  # frames fed, not yet processed (they wait for IMU)
-        self._processed = 0
 
     def loop(self) -> None:
         self.estimator = self._make()
@@ -243,24 +241,18 @@ class EstimatorWorker(Worker):
                     if self.view is not None:
                         self._view_frames[int(item[1].t_ns)] = item[1].left
                     self._emit(self.estimator.feed_frame(item[1]))
-                if self.view is not None:
-                    self._to_view()
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
 
-    def _to_view(self) -> None:
-        """Hand the newest processed frame (image, features, state) to the live view."""
-        ff = self.estimator.last_features
-        if ff is None or ff.t_ns == self._view_t:
-            return
-        self._view_t = t = int(ff.t_ns)
+    def _to_view(self, pf: ProcessedFrame) -> None:
+        """Hand a processed frame (image, features, state) to the live view."""
+        t = pf.t_ns
         left = self._view_frames.pop(t, None)
         for old in [k for k in self._view_frames if k < t]:
             del self._view_frames[old]
         h = self.health
-        self.view.submit(t, left, ff, self.last_state, bool(getattr(getattr(self.estimator, "timings", None),
-                                                                    "keyframe", False)),
+        self.view.submit(t, left, pf.features, pf.state or self.last_state, bool(pf.timings.keyframe),
                          {"resets": self.resets + (h.reset_counter if h else 0), "frames": self.frames,
                           "errors": self.errors})
 
@@ -276,36 +268,35 @@ class EstimatorWorker(Worker):
         except Exception as e:  # display only: a failing health() must not stop the estimator
             log.debug("estimator health() failed: %s", e)
 
-    def _frame_arrival(self) -> int:
-        """Arrival time of the frame a state came from, or -1 for an IMU-rate state.
+    def _frame_arrival(self, done: list[ProcessedFrame]) -> int:
+        """Arrival time of the newest frame finished by this call, or -1 (an IMU-rate state only).
 
         A frame waits inside the estimator until the IMU reaches its stamp, so its state may come out of a
-        later feed_imu(); the estimator's `frames_processed` counter tells which call finished a frame."""
-        done = self.estimator.health().frames_processed
+        later feed_imu(); take_processed() says which call finished which frames."""
         arrival = -1
-        while self._processed < done and self._arrivals:
-            arrival = self._arrivals.popleft()
-            self._processed += 1
-        self._processed = done
+        for _ in done:
+            if self._arrivals:
+                arrival = self._arrivals.popleft()
         return arrival
 
-    def _to_loop(self) -> None:
-        """Hand the keyframe just processed (if one was) to the loop-closure thread."""
-        est = self.estimator
-        ff, st = est.last_features, est.latest()
-        if ff is None or st is None or not est.timings.keyframe:
-            return
-        for t, left in self._left:
-            if t == int(ff.t_ns):
-                self.loop_worker.submit(st.t_ns, st.T_world_body, left, ff, st.reset_counter)
-        while self._left and self._left[0][0] <= int(ff.t_ns):
+    def _to_loop(self, pf: ProcessedFrame) -> None:
+        """Hand a processed keyframe to the loop-closure thread."""
+        st = pf.state
+        if st is not None and pf.timings.keyframe:
+            for t, left in self._left:
+                if t == pf.t_ns:
+                    self.loop_worker.submit(st.t_ns, st.T_world_body, left, pf.features, st.reset_counter)
+        while self._left and self._left[0][0] <= pf.t_ns:
             self._left.popleft()
 
     def _emit(self, result: Any) -> None:
-        n_before = self._processed
-        arrival_ns = self._frame_arrival()
-        if self.loop_worker is not None and self._processed > n_before:
-            self._to_loop()
+        done = self.estimator.take_processed()
+        arrival_ns = self._frame_arrival(done)
+        for pf in done:
+            if self.loop_worker is not None:
+                self._to_loop(pf)
+            if self.view is not None:
+                self._to_view(pf)
         for state in _as_states(result):
             if self.loop_output is not None:
                 state = self.loop_output.apply(state, *self.loop_worker.correction())
@@ -333,7 +324,6 @@ class EstimatorWorker(Worker):
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
         self._last_imu_t = None
         self._arrivals.clear()
-        self._processed = 0
 
 
 def _iter_messages(source: Source, stop: threading.Event) -> Iterable[ImuSample | StereoFrame | None]:
