@@ -188,6 +188,13 @@ def _break(mav0: Path, case: str) -> str:
     if case == "no_yaml":
         (mav0 / "cam0" / "sensor.yaml").unlink()
         return f"{mav0 / 'cam0' / 'sensor.yaml'}: file not found"
+    if case == "csv_is_folder":
+        imu.unlink()
+        imu.mkdir()
+        return f"{imu}: is a folder, expected a csv file"
+    if case == "old_last_line":  # a complete line from the past at the end: out of order, not a cut write
+        imu.write_text("\n".join(lines + [lines[-5]]) + "\n")
+        return f"{imu}:{len(lines) + 1}: out-of-order time stamp"
     if case == "yaml_text":
         y = mav0 / "cam0" / "sensor.yaml"
         y.write_text(y.read_text().replace("resolution: [752, 480]", "resolution: [wide, 480]"))
@@ -197,7 +204,8 @@ def _break(mav0: Path, case: str) -> str:
 
 @pytest.mark.parametrize("case", ["no_mav0", "no_cam1", "no_imu_csv", "columns", "not_number", "bad_stamp",
                                   "unsorted", "duplicate", "seconds", "microseconds", "negative", "cam_clock",
-                                  "binary", "header_only", "intrinsics", "T_BS", "no_yaml", "yaml_text"])
+                                  "binary", "header_only", "intrinsics", "T_BS", "no_yaml", "yaml_text",
+                                  "csv_is_folder", "old_last_line"])
 def test_broken_dataset_errors(v101_path, tmp_path, case):
     root = _copy(v101_path, tmp_path / "ds")
     expected = _break(root / "mav0", case)

@@ -132,6 +132,8 @@ def _read_csv(path: Path, min_cols: int, max_cols: int | None = None, numeric: i
     Tolerated: CRLF, a BOM, blanks around values, trailing commas, NUL bytes at the end. A damaged last line
     (a recorder killed mid-write) is skipped and noted; damage anywhere else raises VioError with file:line.
     """
+    if path.is_dir():
+        raise VioError(f"{path}: is a folder, expected a csv file")
     if not path.is_file():
         raise VioError(f"{path}: file not found")
     try:
@@ -206,7 +208,9 @@ def _row_problem(parts: list[str], min_cols: int, max_cols: int | None, numeric:
         hint = " (the stamps look like whole seconds, not ns)" if t < 10**11 else ""
         return "stamp", f"duplicate time stamp {t} with other values than the line before{hint}"
     if stamps and t < stamps[-1]:
-        return "cut", f"out-of-order time stamp {t} (previous {stamps[-1]})"
+        # a stamp cut mid-write has fewer digits; a whole one that goes back is out of order, not cut
+        kind = "cut" if len(parts[0]) < len(str(stamps[-1])) else "order"
+        return kind, f"out-of-order time stamp {t} (previous {stamps[-1]})"
     for k in range(1, min(numeric, len(parts) - 1) + 1):
         try:
             ok = math.isfinite(float(parts[k])) or not finite
