@@ -27,25 +27,13 @@ from vio.sim.faults import blackout, copy_dataset  # noqa: E402
 
 
 def run_flight(path: Path, cfg=None) -> dict:
-    from vio.consistency import POSE_DOF, pose_nees
-    from vio.estimator import Estimator
-    from vio.io.euroc import EurocDataset
+    from vio.consistency import POSE_DOF, pose_nees, replay_states
 
-    ds = EurocDataset(path)
-    est = Estimator(ds.calibration, cfg)
-    frame_states, imu_states = [], []
-    est.listeners.append(frame_states.append)
-    for ev in ds.events(t_end_ns=int(ds.frame_t[-1]), lazy_right=True):
-        if hasattr(ev, "gyro"):
-            st = est.feed_imu(ev)
-            if st is not None:
-                imu_states.append(st)
-        else:
-            est.feed_frame(ev)
-    gt = ds.groundtruth.trajectory
+    r = replay_states(path, cfg)
+    gt = r.dataset.groundtruth.trajectory
     T_gt = gt.poses()
-    out = {"dof": POSE_DOF, "resets": est.reset_counter}
-    for name, states in (("frame", frame_states), ("imu", imu_states[::10])):
+    out = {"dof": POSE_DOF, "resets": r.estimator.reset_counter}
+    for name, states in (("frame", r.frame_states), ("imu", r.imu_states[::10])):
         r = pose_nees(states, gt.t_ns, T_gt, skip_s=1.0)
         out[name] = r.summary()
         out[name]["seconds"] = float((r.t_ns[-1] - r.t_ns[0]) * 1e-9) if len(r.t_ns) > 1 else 0.0

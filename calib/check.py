@@ -214,7 +214,7 @@ def check_units(dataset) -> list[CheckResult]:
     from vio.io.euroc import calibration_unit_checks, imu_units_problem
 
     calib = dataset.calibration
-    problem = imu_units_problem(dataset.imu, calib.imu, dataset.mav0 / "imu0" / "data.csv")
+    problem = imu_units_problem(dataset.imu, dataset.mav0 / "imu0" / "data.csv")
     out = [CheckResult("IMU units", "FAIL" if problem else "PASS", float("nan"), "",
                        problem or "accel about g and gyro plausible for rad/s on the quietest second")]
     for name, metres, why in calibration_unit_checks(calib, dataset.has_cam1):

@@ -9,12 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vio.consistency import POSE_DOF, chi2_interval, pose_nees
-from vio.estimator import Estimator
-from vio.io.euroc import EurocDataset
+from vio.consistency import POSE_DOF, chi2_interval, pose_nees, replay_states
 from vio.sim.faults import blackout, cameras_stop, copy_dataset
 from vio.sim.generate import SimConfig, simulate
-from vio.types import ImuSample
 
 # A consistent covariance gives a mean NEES of POSE_DOF. The bounds allow a conservative covariance (the
 # IMU noise is inflated 2x in the back end) and some optimism on hard flights; a frozen one is far outside.
@@ -31,18 +28,8 @@ def flight(tmp_path_factory):
 
 def replay_all(path):
     """Frame-rate states, IMU-rate states, the estimator and the dataset (IMU to the end of the file)."""
-    ds = EurocDataset(path)
-    est = Estimator(ds.calibration)
-    frames, imu = [], []
-    est.listeners.append(frames.append)
-    for ev in ds.events(lazy_right=True):
-        if isinstance(ev, ImuSample):
-            st = est.feed_imu(ev)
-            if st is not None:
-                imu.append(st)
-        else:
-            est.feed_frame(ev)
-    return frames, imu, est, ds
+    r = replay_states(path, imu_to_end=True)
+    return r.frame_states, r.imu_states, r.estimator, r.dataset
 
 
 def truth(ds):

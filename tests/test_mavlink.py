@@ -14,6 +14,7 @@ import pytest
 
 from drivers.mavlink_frames import (
     R_NED_WORLD,
+    _axis_rotations,
     mount_rotation,
     mount_rpy_deg_from_matrix,
     mount_transform,
@@ -319,19 +320,6 @@ def test_lost_output_quality0_sends_odometry_marked_invalid(ap):
     with pytest.raises(VioError, match="quality0"):
         MavlinkOutput(MavlinkConfig(mount="rpy", lost_output="quality0", messages=["VISION_POSITION_ESTIMATE"]),
                       "udpout:127.0.0.1:14550")
-
-
-def _axis_rotations() -> list[np.ndarray]:
-    import itertools
-
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            M = np.zeros((3, 3))
-            M[range(3), perm] = signs
-            if np.linalg.det(M) > 0:
-                out.append(M)
-    return out
 
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 30.0, -15.0])

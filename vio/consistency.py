@@ -108,3 +108,38 @@ def pose_nees(states: list[NavState], truth_t_ns: np.ndarray, truth_T: np.ndarra
         out["e"].append(float(np.linalg.norm(e[3:])))
     return NeesResult(np.array(out["t"], np.int64), np.array(out["n"]), np.array(out["np"]), np.array(out["nr"]),
                       np.array(out["s"]), np.array(out["e"]))
+
+
+@dataclass
+class ReplayedStates:
+    """Everything a covariance check needs from one replay: the states at both rates and their sources."""
+
+    frame_states: list[NavState]
+    imu_states: list[NavState]
+    estimator: object  # vio.estimator.Estimator
+    dataset: object  # vio.io.euroc.EurocDataset
+
+
+def replay_states(path, cfg=None, imu_to_end: bool = False) -> ReplayedStates:
+    """Replay a dataset through a fresh estimator, keeping every frame-rate and IMU-rate state.
+
+    `imu_to_end`: feed the IMU after the last frame too (cameras that stop while the IMU runs on); by
+    default the replay ends at the last frame, as `vio replay` does."""
+    from vio.estimator import Estimator
+    from vio.io.euroc import EurocDataset
+    from vio.types import ImuSample
+
+    ds = EurocDataset(path)
+    est = Estimator(ds.calibration, cfg)
+    frames: list[NavState] = []
+    imu: list[NavState] = []
+    est.listeners.append(frames.append)
+    for ev in ds.events(t_end_ns=None if imu_to_end else int(ds.frame_t[-1]), lazy_right=True):
+        if isinstance(ev, ImuSample):
+            st = est.feed_imu(ev)
+            if st is not None:
+                imu.append(st)
+        else:
+            est.feed_frame(ev)
+    return ReplayedStates(frames, imu, est, ds)
+

@@ -477,15 +477,12 @@ class Estimator:
             return self.sensor_error is None
         icfg = self.cfg.init
         still = is_still(ts, gyro, accel, icfg)
-        problem = accel_units_problem(float(np.linalg.norm(accel.mean(axis=0)))) if still else None
-        if problem is None and not still and np.linalg.norm(accel.mean(axis=0)) < 0.3 * 9.81:
-            problem = accel_units_problem(float(np.linalg.norm(accel.mean(axis=0))))  # in g, even in flight
+        a_norm = float(np.linalg.norm(accel.mean(axis=0)))
+        # still: the norm must be g; in flight only a reading far below g (units of g) is sure to be wrong
+        problem = accel_units_problem(a_norm) if still or a_norm < 0.3 * 9.81 else None
         if problem is None:
-            images_still = ff.tracking_ok and len(ff.ids) >= self.bcfg.min_tracks_ok and \
-                self._flow_px <= self.bcfg.zupt_max_flow_px
-            noise = self.calib.imu
-            problem = gyro_units_problem(gyro, still or images_still, noise.gyroscope_noise_density, noise.rate_hz,
-                                         self.bcfg.max_gyro_bias_rad_s)
+            images_still = self._usable(ff) and self._flow_px <= self.bcfg.zupt_max_flow_px
+            problem = gyro_units_problem(gyro, still or images_still, self.bcfg.max_gyro_bias_rad_s)
         if (problem and _reason_key(problem)) != (self.sensor_error and _reason_key(self.sensor_error)):
             if problem:
                 log.error("not initialising: %s", problem)
@@ -612,7 +609,7 @@ class Estimator:
         """Images agree with stillness. Without tracks they carry no information: at the first start the IMU
         alone decides (a covered lens on the ground); after a reset it does not, because a constant-rate
         turn or a constant-velocity flight looks still to the IMU and would become a bias."""
-        if not ff.tracking_ok or len(ff.ids) < self.bcfg.min_tracks_ok:
+        if not self._usable(ff):
             return self.reset_counter == 0
         return self._flow_px <= self.bcfg.zupt_max_flow_px
 

@@ -60,13 +60,13 @@ def accel_units_problem(mean_accel_norm: float) -> str | None:
     return None
 
 
-def gyro_units_problem(gyro: np.ndarray, still: bool, noise_density: float | None = None,
-                       rate_hz: float | None = None, max_bias_rad_s: float = 0.3) -> str | None:
+def gyro_units_problem(gyro: np.ndarray, still: bool, max_bias_rad_s: float = 0.3) -> str | None:
     """Gyro samples (N, 3) over a span: None when plausible for rad/s, else the likely mistake.
 
     Still: the mean is the bias, which no MEMS gyro has above `max_bias_rad_s`. Moving or not: sustained
-    rates above 20 rad/s (1150 deg/s) are not a drone's. `noise_density` and `rate_hz` are accepted for
-    callers that have them but not used (see below)."""
+    rates above 20 rad/s (1150 deg/s) are not a drone's. The spread is not compared with the noise
+    density: motors running on the ground make a gyro spread 20-100x its datasheet noise, which would read
+    as deg/s and block the start."""
     g = np.asarray(gyro, dtype=float).reshape(-1, 3)
     if len(g) == 0 or not np.all(np.isfinite(g)):
         return None
@@ -80,8 +80,6 @@ def gyro_units_problem(gyro: np.ndarray, still: bool, noise_density: float | Non
     if bias > max_bias_rad_s:
         hint = "; the data look like deg/s, not rad/s" if bias / DEG < max_bias_rad_s else ""
         return f"gyro reads {bias:.3f} rad/s while still (a bias beyond {max_bias_rad_s} rad/s){hint}"
-    # No test of the spread against the noise density: motors running on the ground make a gyro spread
-    # 20-100x its datasheet noise, which would read as deg/s and block the start.
     return None
 
 

@@ -202,7 +202,7 @@ class BagDataset(EurocDataset):
         self.cam1_files = list(range(len(self.cam1_t)))
         self.has_cam1 = True
         self._check_overlap()
-        self.units_problem = imu_units_problem(self.imu, calibration.imu, self.where("imu")) or next(
+        self.units_problem = imu_units_problem(self.imu, self.where("imu")) or next(
             (p for _, _, p in calibration_unit_checks(calibration, True) if p), None)
         if self.units_problem is None:
             self.imu = self._drop_out_of_range(self.imu)

@@ -401,7 +401,7 @@ def quietest_window(imu: ImuData, seconds: float = STILL_WINDOW_S) -> tuple[slic
     return slice(i * win, (i + 1) * win), float(spread[i])
 
 
-def imu_units_problem(imu: ImuData, noise: ImuNoise, where: str | Path = "IMU") -> str | None:
+def imu_units_problem(imu: ImuData, where: str | Path = "IMU") -> str | None:
     """The likely unit mistake of a whole IMU recording (vio/sanity.py's diagnosis on its quietest window
     and on all its gyro samples), or None. A window that is not still is trusted only for readings no flight
     averages (below g/2 or above 2 g)."""
@@ -415,8 +415,7 @@ def imu_units_problem(imu: ImuData, noise: ImuNoise, where: str | Path = "IMU") 
     problem = accel_units_problem(n)
     if problem and not still and 0.5 * GRAVITY_M_S2 <= n <= 2 * GRAVITY_M_S2:
         problem = None
-    problem = problem or gyro_units_problem(imu.gyro, still=False) or gyro_units_problem(
-        imu.gyro[sl], still, noise.gyroscope_noise_density, noise.rate_hz)
+    problem = problem or gyro_units_problem(imu.gyro, still=False) or gyro_units_problem(imu.gyro[sl], still)
     return f"{where}: {problem}" if problem else None
 
 
@@ -478,7 +477,7 @@ class EurocDataset:
         self.calibration = calibration
         self._check_overlap()
         # a unit mistake is diagnosed on the data as recorded (mm/s^2 rows are all "out of range")
-        self.units_problem = imu_units_problem(self.imu, calibration.imu, self.mav0 / "imu0" / "data.csv") or next(
+        self.units_problem = imu_units_problem(self.imu, self.mav0 / "imu0" / "data.csv") or next(
             (p for _, _, p in calibration_unit_checks(calibration, has_cam1) if p), None)
         if self.units_problem is None:
             self.imu = self._drop_out_of_range(self.imu)

@@ -102,11 +102,6 @@ class SensorBuffer:
                 self._cv.wait(timeout_s)
             return self.has_room()
 
-    def peek(self) -> tuple[int, Output | None]:
-        """(sequence number, newest state) without taking the frame states (the recorder's view)."""
-        with self._cv:
-            return self._seq, self._item
-
     def wake(self) -> None:
         with self._cv:
             self._cv.notify_all()
