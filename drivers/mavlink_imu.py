@@ -212,11 +212,13 @@ class MavlinkImuSource(ThreadedSource):
     def on_message(self, msg: Any, t_arrival_ns: int) -> None:
         """Handle one message from the link (public so that tests can drive the source without a link)."""
         kind = msg.get_type()
-        if kind == self.message and getattr(msg, "id", 0) == self.imu_id:
+        # SCALED_IMU has no `id` field (pymavlink's message class has an `id` attribute: the message id)
+        imu_id = msg.id if kind in IMU_MESSAGES and "id" in msg.get_fieldnames() else 0
+        if kind == self.message and imu_id == self.imu_id:
             with self._lock:
                 self._on_imu(msg, t_arrival_ns)
         elif kind in IMU_MESSAGES:
-            self.other_imu[kind if not hasattr(msg, "id") else f"{kind} id {msg.id}"] += 1
+            self.other_imu[kind if kind == "SCALED_IMU" else f"{kind} id {imu_id}"] += 1
         elif kind == "TIMESYNC":
             self._on_timesync(msg, t_arrival_ns)
         elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg):
