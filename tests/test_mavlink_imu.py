@@ -388,7 +388,7 @@ status_file = "{tmp_path / 'status.json'}"
         assert tracked >= 20, f"{tracked} tracked poses; FC got {fc.counts}; log:\n{text[-3000:]}"
         assert len(fc.peers) == 1 and fc.requests  # one connection; the rate was requested
         time.sleep(1.2)  # the status file is written once a second
-        imu = json.loads((tmp_path / "status.json").read_text())["source"]["imu"]
+        imu = json.loads((tmp_path / "status.json").read_text())["source"]["driver"]["imu"]
         assert imu["clock_source"] == "timesync" and 180 < imu["rate_hz"] < 220, imu
     finally:
         proc.terminate()
