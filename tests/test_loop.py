@@ -198,3 +198,27 @@ def test_aliasing_room_repeats_its_wall_texture():
     y = (v * sc.ppm + sc.face_cy[f]).astype(int)
     a, b = sc.atlas[y, x], sc.atlas[y, x + int(sc.ppm)]  # one period apart
     assert np.allclose(a, b) and np.std(a) > 1.0
+
+
+def test_wrong_closure_accepted_first_is_switched_off_when_true_ones_arrive():
+    """Incremental graph: a false edge to another segment fits (nothing contradicts it yet) and goes into
+    iSAM2 on the fast path; true edges that arrive later contradict it, the GNC decision switches it off."""
+    g, _ = _circle(80, np.random.default_rng(1))  # segment 0: keyframes 0-79
+    truth = _circle(121, np.random.default_rng(2))[1]
+    prev = None
+    for k in range(80, 121):  # segment 1 (a relocalising flight): same circle, loose prior, 0.5 m off
+        T = truth[k] @ make_T(np.eye(3), [0.5, 0.3, 0.0]) if prev is None else \
+            g.odom[prev] @ np.linalg.inv(truth[k - 1]) @ truth[k]
+        prev = g.add_node(T, prev, prior=(np.pi, 100.0) if prev is None else None)
+    false = make_T(so3_exp(np.r_[0, 0, 0.4]), [0.8, -0.5, 0.1]) @ (np.linalg.inv(truth[5]) @ truth[85])
+    g.add_loop(5, 85, false)
+    r = g.optimize()
+    assert not r["decided"] and r["loop_weights"] == [1.0]  # it fits: accepted on the fast path
+    for a, b in ((50, 90), (51, 91), (52, 92), (60, 100), (61, 101)):
+        g.add_loop(a, b, np.linalg.inv(truth[a]) @ truth[b])
+    r = g.optimize()
+    assert r["decided"] and r["loop_weights"][0] < 0.5 and min(r["loop_weights"][1:]) >= 0.5
+    # the second segment sits where the true edges put it, not where the false one did
+    rel = np.linalg.inv(g.estimate[52]) @ g.estimate[92]
+    assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[52]) @ truth[92])[:3, 3]) < 0.02
+    assert np.linalg.norm(g.estimate[85][:3, 3] - (g.estimate[5] @ false)[:3, 3]) > 0.5
