@@ -222,3 +222,33 @@ def test_wrong_closure_accepted_first_is_switched_off_when_true_ones_arrive():
     rel = np.linalg.inv(g.estimate[52]) @ g.estimate[92]
     assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[52]) @ truth[92])[:3, 3]) < 0.02
     assert np.linalg.norm(g.estimate[85][:3, 3] - (g.estimate[5] @ false)[:3, 3]) > 0.5
+
+
+def test_loop_worker_drains_its_queue_before_it_stops():
+    """What is queued at close belongs in the map: close(wait) processes it, and says when the thread has
+    stopped; out of time, the rest is dropped and counted, and the keyframe in hand is finished."""
+    import time
+
+    from vio.app.loop_worker import LoopWorker
+
+    class Slow:
+        def __init__(self, s):
+            self.s, self.done = s, 0
+
+        def add_keyframe(self, *item):
+            time.sleep(self.s)
+            self.done += 1
+            return False
+
+        def correction(self):
+            return np.eye(4)
+
+    w = LoopWorker(Slow(0.02), max_queue=100)
+    for k in range(10):
+        w.submit(k, np.eye(4), None, None, 0)
+    assert w.close(wait=True, timeout_s=5.0) and w.closer.done == 10 and w.dropped == 0
+    w = LoopWorker(Slow(0.2), max_queue=100)
+    for k in range(10):
+        w.submit(k, np.eye(4), None, None, 0)
+    assert w.close(wait=True, timeout_s=0.3, grace_s=1.0)
+    assert w.closer.done + w.dropped == 10 and w.dropped >= 5
