@@ -49,24 +49,13 @@ def _gt_pose(gt, t_ns: int) -> np.ndarray:
     return make_T(quat_wxyz_to_rot(gt.q_wxyz[k]), gt.p[k])
 
 
-def _end_drift(t: np.ndarray, T: np.ndarray, gt) -> float:
-    """Position error at the end, the estimate aligned on its first pose (position and yaw)."""
-    from vio.geometry import make_T, roll_pitch_yaw, so3_exp
-
-    G0, E0 = _gt_pose(gt, int(t[0])), T[0]
-    dyaw = roll_pitch_yaw(G0[:3, :3])[2] - roll_pitch_yaw(E0[:3, :3])[2]
-    A = make_T(so3_exp(np.array([0, 0, dyaw])), np.zeros(3))
-    A[:3, 3] = G0[:3, 3] - A[:3, :3] @ E0[:3, 3]
-    return float(np.linalg.norm((A @ T[-1])[:3, 3] - _gt_pose(gt, int(t[-1]))[:3, 3]))
-
-
 def run_flight(spec: str, cache: Path) -> dict:
     import cv2
 
     from vio.app.loop_worker import LoopWorker
     from vio.app.replay import replay
     from vio.config import VioConfig
-    from vio.evaluation import evaluate
+    from vio.evaluation import end_drift_m, evaluate
     from vio.geometry import inv_T, so3_log
     from vio.io.euroc import EurocDataset
     from vio.loop.closer import LoopCloser
@@ -115,7 +104,7 @@ def run_flight(spec: str, cache: Path) -> dict:
     return {"flight": data.name, "path_m": ev_o.path_length_m,
             "ate_odometry_m": ev_o.ate_4dof.trans_m.rmse, "ate_loop_m": ev_l.ate_4dof.trans_m.rmse,
             "ate_ratio": ev_l.ate_4dof.trans_m.rmse / ev_o.ate_4dof.trans_m.rmse,
-            "end_drift_odometry_m": _end_drift(t, T_odom, gt), "end_drift_loop_m": _end_drift(t, T_loop, gt),
+            "end_drift_odometry_m": end_drift_m(t, T_odom, gt), "end_drift_loop_m": end_drift_m(t, T_loop, gt),
             "keyframes": st["keyframes"], "accepted": closer.stats.accepted,
             "switched_off": closer.stats.switched_off, "refused": closer.stats.refused,
             "false_edges": int(false_total), "false_edges_active": int(false_active),

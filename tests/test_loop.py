@@ -125,7 +125,8 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
 
     out = {}
     for name, extra in (("off", []), ("on", ["--loop-output", str(tmp_path / "loop.tum"),
-                                             "--save-map", str(tmp_path / "map.npz")])):
+                                             "--save-map", str(tmp_path / "map.npz"),
+                                             "--loop-plot", str(tmp_path / "loop.png")])):
         stats = tmp_path / f"{name}.json"
         assert main(["replay", str(loop_flight), "-o", str(tmp_path / f"{name}.tum"), "--stats", str(stats),
                      "--no-progress", *extra]) == 0
@@ -138,6 +139,8 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
     # a 36 s flight drifts about 1 cm, the size of a loop edge's own error: no accuracy claim here (bench/)
     odom = out["on"]["evaluation"]["ate_4dof"]["trans_m"]["rmse"]
     assert loop["evaluation"]["ate_4dof"]["trans_m"]["rmse"] < 3 * odom
+    assert set(loop["end_drift_m"]) == {"odometry", "loop"} and 0 <= loop["end_drift_m"]["loop"] < 0.5
+    assert (tmp_path / "loop.png").stat().st_size > 10_000  # the plot with its loop edges
     assert (tmp_path / "loop.tum").read_text().count("\n") == (tmp_path / "on.tum").read_text().count("\n")
     # the map: a versioned npz that `vio map info` reads, and a flight relocalises in (here the same one:
     # the mechanics; docs/loop-closure.md has the figures for a second flight with another start)
