@@ -366,6 +366,11 @@ def plot(result: EvalResult, path: str | Path, title: str = "") -> None:
     ax1.set_ylabel("position error [m]")
     ax1.legend(loc="best")
     ax1.grid(True, alpha=0.3)
+    save_figure(plt, fig, path)
+
+
+def save_figure(plt, fig, path: str | Path) -> None:
+    """Lay out, write (an unwritable path is a one-line VioError) and close a matplotlib figure."""
     fig.tight_layout()
     try:
         fig.savefig(path, dpi=110)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vio import VioError
+from vio.evaluation import save_figure
 
 
 def plot_loop(path: str | Path, T_odom: np.ndarray, T_loop: np.ndarray, kf_T: list[np.ndarray],
@@ -33,10 +33,4 @@ def plot_loop(path: str | Path, T_odom: np.ndarray, T_loop: np.ndarray, kf_T: li
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best")
     ax.set_title(title)
-    fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=110)
-    except OSError as e:
-        raise VioError(f"{path}: cannot write plot ({e.strerror})") from None
-    finally:
-        plt.close(fig)
+    save_figure(plt, fig, path)
