@@ -231,8 +231,11 @@ class Service:
             if w.is_alive():
                 stuck.append(w.name)
         if self.loop is not None:
-            self.loop.close(wait=False)
-            if self.cfg.map.save:
+            # the keyframes queued for loop closure belong in the saved map: drain them within the budget
+            stopped = self.loop.close(wait=True, timeout_s=max(0.2, deadline - time.monotonic()), grace_s=0.2)
+            if self.cfg.map.save and not stopped:
+                log.error("map not saved: loop closure still busy after the shutdown budget")
+            elif self.cfg.map.save:
                 try:
                     self.loop.closer.save_map(self.cfg.map.save)
                     log.info("map saved to %s", self.cfg.map.save)
