@@ -213,7 +213,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     time.sleep(lag)
             t0 = time.perf_counter()
             if isinstance(ev, ImuSample):
-                est.feed_imu(ev)
+                est.feed_imu(ev, want_state=False)  # the replay keeps frame states only
             else:
                 if max_frames is not None and frames >= max_frames:
                     break
