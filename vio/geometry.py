@@ -33,7 +33,7 @@ def rot_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis * angle, rad)."""
+    """Rotation matrix (..., 3, 3) of rotation vector(s) (..., 3) (axis * angle, rad)."""
     return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
 
 
