@@ -273,9 +273,9 @@ class Estimator:
     def _propagate_to(self, t_ns: int) -> bool:
         """Advance the propagator through the buffered samples up to t_ns; True when it reached t_ns.
 
-        Lazy, so that samples nobody asks a state for cost nothing: the samples since the propagator's
-        time are in the buffer (kept IMU_KEEP_S, longer than the reset at lost_timeout_s allows between
-        keyframes, which restart it)."""
+        Lazy, so that samples nobody asks a state for cost nothing. The samples since the propagator's time
+        are in the buffer while that time is within IMU_KEEP_S (keyframes restart it; without any, a caller
+        that skipped states for longer gets one step across the trimmed part, held at its last sample)."""
         p = self.propagator
         if not p.ready or p.t_ns >= t_ns:
             return False
