@@ -34,10 +34,6 @@ BORDER_PX = 8  # new features keep this far from the border so the KLT window st
 REFINE_MAX_SHIFT_PX = 2.0  # a refinement that moves the KLT result further found another patch
 MAX_CONTRAST_CHANGE = 3.0  # patch std vs its anchor's (after gain compensation): beyond, blur or glare
 STEREO_RETRY_EVERY = 4  # frames between stereo searches for a track whose last stereo match failed
-# Pyramid levels for temporal KLT started at the gyro-predicted position (the tracks that fail retry with all
-# `klt_pyramid_levels`, as VINS-Fusion does): the coarse levels are for starts far off, which the prediction
-# mostly avoids, and they made temporal KLT a quarter more expensive
-PREDICTED_KLT_LEVELS = 1
 
 
 class StereoTracker:
@@ -52,7 +48,6 @@ class StereoTracker:
         w = self.cfg.klt_window_px | 1
         self._klt = dict(winSize=(w, w), maxLevel=self.cfg.klt_pyramid_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
-        self._klt_predicted = dict(self._klt, maxLevel=min(PREDICTED_KLT_LEVELS, self.cfg.klt_pyramid_levels))
         self._fast = cv2.FastFeatureDetector_create(self.cfg.fast_threshold, True)
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.cfg.clahe else None
         c = self.cfg
@@ -137,15 +132,8 @@ class StereoTracker:
             return np.zeros(n, bool)
         # with anchor refinement, the NCC against the first appearance checks each match more strictly than the
         # forward-backward pass would, at a fraction of its cost
-        backward = self._anchor is None
-        start = self._predict(R_prev_cur)
-        predicted = R_prev_cur is not None and self.cfg.use_imu_prediction
-        p1, ok = klt_fb(self._prev_img, img, self._raw, start, self._klt_predicted if predicted else self._klt,
-                        self.cfg.fb_check_px, backward=backward)
-        retry = np.flatnonzero(~ok) if predicted and self._klt_predicted != self._klt else []
-        if len(retry):
-            p1[retry], ok[retry] = klt_fb(self._prev_img, img, self._raw[retry], start[retry], self._klt,
-                                          self.cfg.fb_check_px, backward=backward)
+        p1, ok = klt_fb(self._prev_img, img, self._raw, self._predict(R_prev_cur), self._klt, self.cfg.fb_check_px,
+                        backward=self._anchor is None)
         self._raw = np.where(ok[:, None], p1, self._raw).astype(np.float32)
         return ok
 
