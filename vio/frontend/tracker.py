@@ -215,7 +215,7 @@ class StereoTracker:
         if len(self._hist) == self._hist.maxlen:
             old_ids, old_uv = self._hist[0]
             _, i_old, i_cur = np.intersect1d(old_ids, self._ids, assume_unique=True, return_indices=True)
-            inl = temporal_inliers(old_uv[i_old], self._uv[i_cur], self.K0, self.cfg.ransac_threshold_px)
+            inl = temporal_inliers(old_uv[i_old], self._uv[i_cur], self.cfg.ransac_threshold_px)
             bad[i_cur[~inl]] = True
         return bad
 
@@ -298,7 +298,7 @@ class StereoTracker:
         self._refine(left, ok)
         t = lap("refine", t)
         uv_cur = undistort_px(self.cam0, self._raw[ok])
-        inl = temporal_inliers(prev_uv[ok], uv_cur, self.K0, self.cfg.ransac_threshold_px)
+        inl = temporal_inliers(prev_uv[ok], uv_cur, self.cfg.ransac_threshold_px)
         keep = np.flatnonzero(ok)[inl]
         n_tracked_klt, n_ransac_out = int(ok.sum()), int((~inl).sum())
         self._keep(keep)
