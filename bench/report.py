@@ -168,10 +168,20 @@ def render(res: dict, out_rel: str) -> str:
     return "\n".join(L)
 
 
+KEPT_MARKER = "<!-- written by hand: bench/report.py keeps everything from this line on -->"
+
+
 def write_report(res: dict, path: Path, out_dir: Path) -> None:
+    """Write the report; an existing report's hand-written part (from KEPT_MARKER on: analyses such as where
+    the time goes, with the commands that measured them) is kept at its end."""
     rel = os.path.relpath(Path(out_dir).resolve(), Path(path).resolve().parent)
     try:
+        old = path.read_text() if path.is_file() else ""
+    except OSError:
+        old = ""
+    kept = old[old.index(KEPT_MARKER):] if KEPT_MARKER in old else ""
+    try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(render(res, rel))
+        path.write_text(render(res, rel) + ("\n" + kept if kept else ""))
     except OSError as e:
         raise VioError(f"{path}: cannot write the report ({e.strerror})") from None

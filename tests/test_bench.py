@@ -90,6 +90,20 @@ def test_flight_cache_generates_once(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert ensure_flight(spec, tmp_path) == path
 
 
+def test_report_keeps_its_hand_written_part(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench import report
+
+    path = tmp_path / "benchmarks.md"
+    monkeypatch.setattr(report, "render", lambda res, rel: f"# generated {res['n']}\n")
+    report.write_report({"n": 1}, path, tmp_path)
+    assert path.read_text() == "# generated 1\n"  # nothing to keep yet
+    path.write_text(path.read_text() + "\n" + report.KEPT_MARKER + "\n## Where the time goes\nby hand\n")
+    report.write_report({"n": 2}, path, tmp_path)
+    text = path.read_text()
+    assert text.startswith("# generated 2\n") and "# generated 1" not in text
+    assert text.endswith(report.KEPT_MARKER + "\n## Where the time goes\nby hand\n")
+
+
 def test_suite_smoke_run_writes_report_and_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out, report = tmp_path / "results", tmp_path / "benchmarks.md"
     # ask for the real EuRoC excerpt where there is none: the report must say it was skipped

@@ -69,6 +69,34 @@ def test_static_start_tracks_synthetic_flight_accurately():
     assert np.all(np.diff(t_imu) > 0)
 
 
+def test_imu_rate_state_does_not_depend_on_the_samples_not_asked_for():
+    """feed_imu(want_state=False) skips the propagation; a later state catches up with the buffered samples."""
+    calib = synthetic_calibration()
+    mot = Motion(speed=1.0, still_s=1.0, seed=3)
+    scene = SyntheticScene(calib, seed=3)
+    rng = np.random.default_rng(3)
+    imu = imu_samples(mot, 0.0, 4.0, gyro_bias=np.array([0.02, -0.01, 0.03]), noise=calib.imu, rng=rng)
+    frames = {s.t_ns: scene.observe(s.t_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.5, rng=rng)
+              for s in imu if s.t_ns % 50_000_000 == 0}
+    every, sparse = Estimator(calib), Estimator(calib)
+    compared = 0
+    for i, s in enumerate(imu):
+        a = every.feed_imu(s)
+        b = sparse.feed_imu(s, want_state=i % 7 == 0)
+        if i % 7:
+            assert b is None
+        elif a is not None:
+            assert b is not None and b.t_ns == a.t_ns
+            np.testing.assert_allclose(b.T_world_body, a.T_world_body, atol=1e-12)
+            np.testing.assert_allclose(b.v_world, a.v_world, atol=1e-12)
+            np.testing.assert_allclose(b.cov_pose, a.cov_pose, atol=1e-15)
+            compared += 1
+        if s.t_ns in frames:
+            every.feed_features(frames[s.t_ns])
+            sparse.feed_features(frames[s.t_ns])
+    assert every.keyframes > 5 and compared > 60
+
+
 def test_moving_start_initialises_by_alignment(caplog):
     caplog.set_level(logging.INFO, logger="vio")
     cfg = VioConfig(init=InitConfig(static_gyro_std_rad_s=0.002, static_accel_std_m_s2=0.01))

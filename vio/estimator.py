@@ -237,8 +237,12 @@ class Estimator:
         self._processed.clear()
         return out
 
-    def feed_imu(self, s: ImuSample) -> NavState | None:
-        """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
+    def feed_imu(self, s: ImuSample, want_state: bool = True) -> NavState | None:
+        """Add one IMU sample; returns the IMU-rate propagated state once initialised.
+
+        `want_state=False` (a replay that keeps only frame states) skips the propagation and the state's
+        covariance, about a third of the per-sample cost; the propagator catches up with the buffered
+        samples when a later call wants a state again."""
         prev_t = self.imu.last_t_ns
         g, a = s.gyro, s.accel
         # NaN fails both comparisons; two reductions instead of imu_sample_problem() on the hot path
@@ -262,9 +266,26 @@ class Estimator:
         if run.last_vision_t is not None and (s.t_ns - run.last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s:
             self.reset(f"no usable camera frame for {(s.t_ns - run.last_vision_t) * 1e-9:.2f} s")
             return None
-        if self.propagator.add(s):
+        if want_state and self._propagate_to(s.t_ns):
             return self._propagated_state()
         return None
+
+    def _propagate_to(self, t_ns: int) -> bool:
+        """Advance the propagator through the buffered samples up to t_ns; True when it reached t_ns.
+
+        Lazy, so that samples nobody asks a state for cost nothing. The samples since the propagator's time
+        are in the buffer while that time is within IMU_KEEP_S (keyframes restart it; without any, a caller
+        that skipped states for longer gets one step across the trimmed part, held at its last sample)."""
+        p = self.propagator
+        if not p.ready or p.t_ns >= t_ns:
+            return False
+        if self.imu.t[-2:-1] == [p.t_ns]:  # the usual case: one new sample, the one just added
+            p.add(ImuSample(self.imu.t[-1], self.imu.gyro[-1], self.imu.accel[-1]))
+        else:
+            ts, g, a = self.imu.window(p.t_ns + 1, t_ns)
+            for k in range(len(ts)):
+                p.add(ImuSample(int(ts[k]), g[k], a[k]))
+        return p.t_ns == t_ns
 
     def _reject_imu(self, s: ImuSample) -> None:
         why = imu_sample_problem(s.gyro, s.accel) or "invalid sample"
@@ -567,10 +588,8 @@ class Estimator:
         pose = est.pose.matrix()
         bias = est.bias
         self.gyro_prior.set_gyro_bias(bias.gyroscope())  # no gyro-bias rotation as fake parallax
+        # the newer samples are applied when an IMU-rate state is asked for (_propagate_to)
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
-        ts, g, a = self.imu.window(t + 1, self.imu.last_t_ns or t)
-        for k in range(len(ts)):
-            self.propagator.add(ImuSample(int(ts[k]), g[k], a[k]))
         self._update_health(t, ff)
         return self._frame_state(t, pose, est.velocity, bias)
 
