@@ -8,6 +8,8 @@ See docs/simulator.md.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from vio import VioError
@@ -55,4 +57,31 @@ def default_calibration(model: str = "radtan", width: int = 752, height: int = 4
     return StereoCalibration(cams[0], cams[1], imu or ImuNoise(), time_offset_ns=int(time_offset_ns))
 
 
-__all__ = ["default_calibration"]
+# A typical Kalibr error (issue 17): 0.05-0.1 deg and 1-2.5 mm in the camera-IMU extrinsics, up to 0.5 px
+# in the intrinsics. `perturbed_calibration` applies these magnitudes times a scale.
+CALIB_ERROR_ROT_DEG = 0.1
+CALIB_ERROR_TRANS_M = 0.002
+CALIB_ERROR_PX = 0.5
+
+
+def perturbed_calibration(calib: StereoCalibration, scale: float, rng: np.random.Generator) -> StereoCalibration:
+    """The calibration a slightly wrong calibration file states: per camera, T_body_cam turned by exactly
+    scale * 0.1 deg about a random axis and moved by scale * 2 mm in a random direction, and fx, fy, cx, cy
+    each off by scale * 0.5 px (random sign). Exact magnitudes make flights of different seeds equally
+    wrong; the random directions keep them from all being wrong the same way."""
+    from vio.geometry import so3_exp
+
+    def unit(v: np.ndarray) -> np.ndarray:
+        return v / np.linalg.norm(v)
+
+    cams = []
+    for cam in (calib.cam0, calib.cam1):
+        dR = so3_exp(unit(rng.standard_normal(3)) * np.deg2rad(CALIB_ERROR_ROT_DEG * scale))
+        dT = make_T(dR, unit(rng.standard_normal(3)) * CALIB_ERROR_TRANS_M * scale)
+        dk = rng.choice([-1.0, 1.0], 4) * CALIB_ERROR_PX * scale
+        cams.append(replace(cam, fx=cam.fx + dk[0], fy=cam.fy + dk[1], cx=cam.cx + dk[2], cy=cam.cy + dk[3],
+                            T_body_cam=cam.T_body_cam @ dT))
+    return replace(calib, cam0=cams[0], cam1=cams[1])
+
+
+__all__ = ["default_calibration", "perturbed_calibration"]
