@@ -113,6 +113,9 @@ class BackendConfig:
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")
     time_offset_max_ms: float = opt(50.0, "largest offset error searched for", min=1, max=500)
     time_offset_window_s: float = opt(8.0, "frames per in-flight offset estimate", min=1, max=120)
+    time_offset_continuous: bool = opt(False, "keep tracking the time offset after it converged (a drifting camera "
+                                        "or IMU clock) instead of freezing it; costs a PnP per frame all flight")
+    time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

@@ -177,7 +177,9 @@ class Estimator:
         self.time_offset_ns = int(calib.time_offset_ns)  # t_imu = t_cam + offset; may be re-estimated
         b = self.bcfg
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
-                                                 imu=self.imu) if b.estimate_time_offset else None
+                                                 imu=self.imu, continuous=b.time_offset_continuous,
+                                                 track_window_s=b.time_offset_track_window_s) \
+            if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
@@ -443,7 +445,10 @@ class Estimator:
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
-        if new is not None and new != self.time_offset_ns:
+        if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
+            log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
+            self.time_offset_ns = new
+        elif new is not None and new != self.time_offset_ns:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
                      new * 1e-6, self.calib.time_offset_ns * 1e-6)
             self.time_offset_ns = new
