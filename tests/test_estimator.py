@@ -355,3 +355,29 @@ def test_phases_follow_the_life_cycle():
     i_lost = seen.index(Phase.LOST)
     assert Phase.BRIDGING in seen[i_lost:] and seen[-1] is Phase.TRACKING
     assert est.reset_counter == 1 and "camera frame" in est.last_reset_reason
+
+
+def test_mono_landmarks_keep_feeding_the_smoother_without_stereo():
+    """Five seconds without any stereo depth (right camera out): tracks are triangulated over keyframes
+    instead, so the smoother keeps getting new landmarks and the flight stays accurate."""
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, mono_landmarks=True))
+    est = Estimator(synthetic_calibration(), cfg)
+    feed = est.feed_features
+    born: list[tuple[float, int]] = []
+
+    def without_stereo(ff: FeatureFrame):
+        if 4.0 <= ff.t_ns * 1e-9 < 9.0:
+            ff = dataclasses.replace(ff, uv1=np.full_like(ff.uv1, np.nan), depth_m=np.full_like(ff.depth_m, np.nan))
+        out = feed(ff)
+        smoother = getattr(est._state, "smoother", None)
+        born.append((ff.t_ns * 1e-9, 0 if smoother is None else smoother.n_mono_landmarks))
+        return out
+
+    est.feed_features = without_stereo
+    states, _, truth, _ = _run(est, duration_s=12.0, still_s=1.0, seed=4)
+    assert est.reset_counter == 0
+    n_during = max(n for t, n in born if t < 9.0) - max(n for t, n in born if t < 4.0)
+    assert n_during > 30
+    err = _aligned_errors(states, truth)
+    assert np.sqrt(np.mean(err ** 2)) < 0.02 and err.max() < 0.04

@@ -87,7 +87,12 @@ class BackendConfig:
                              min=10, max=2000)
     max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
-    max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
+    max_depth_m: float = opt(40.0, "depth beyond which a track does not become a landmark (the front end's stereo "
+                             "limit by default)", min=0.5, max=1000)
+    mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
+                               "keyframes (far points, right camera out)")
+    mono_min_parallax_deg: float = opt(1.0, "ray angle between a mono track's first and newest keyframe before it "
+                                       "is triangulated", min=0.05, max=45)
     landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "
                                         "well posed when its observations are turned down; 0 = none", min=0, max=1e6)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)

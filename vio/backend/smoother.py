@@ -7,6 +7,13 @@ Huber-robust pinhole projection factors in cam0 (and cam1 where the front end fo
 with body_P_sensor = T_body_cam so the smoother works on body poses directly, and a weak prior at its
 first position (`landmark_prior_sigma_m`) that keeps the linear system well posed.
 
+Mono landmarks (`mono_landmarks`): a track without usable stereo depth (no right image, beyond
+`max_depth_m`, no stereo match) has its cam0 pixels remembered at each keyframe; once it has been seen at
+MONO_MIN_VIEWS keyframes inside the lag whose rays differ by `mono_min_parallax_deg`, it is triangulated
+from those keyframes' current estimates (gtsam.triangulatePoint3, refined) and becomes an ordinary landmark
+with the same Huber-robust projection factors, one per remembered keyframe. So far points, which constrain
+rotation best, and everything seen while the right camera is out keep feeding the smoother.
+
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
 the last keyframe that saw it; a track seen again after its landmark left gets a fresh landmark.
@@ -63,6 +70,10 @@ class _Landmark:
     last_t_s: float
 
 
+MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono track before it is triangulated
+MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
+
+
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
     return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(values, dtype=float))
 
@@ -88,6 +99,9 @@ class VioSmoother:
         params.findUnusedFactorSlots = True
         self.smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
         self.landmarks: dict[int, _Landmark] = {}
+        self._mono: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> (keyframe, cam0 pixel) without landmark
+        self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
+        self.n_mono_landmarks = 0
         self._next_landmark = 0
         self.index = -1
         self.t0_ns = 0
@@ -192,6 +206,9 @@ class VioSmoother:
         horizon = t_s - self.cfg.lag_s
         if len(self.landmarks) > 4 * self.cfg.max_landmarks:
             self.landmarks = {tid: lm for tid, lm in self.landmarks.items() if lm.last_t_s >= horizon}
+        self._kf_t = {j: t for j, t in self._kf_t.items() if t >= horizon}
+        if len(self._mono) > 4 * self.cfg.max_landmarks:
+            self._mono = {tid: obs for tid, obs in self._mono.items() if obs[-1][0] in self._kf_t}
 
     def _active(self, track_id: int, t_s: float) -> _Landmark | None:
         """The track's landmark if it is still inside the smoother window (margin for round-off)."""
@@ -216,6 +233,7 @@ class VioSmoother:
         gate2 = cfg.outlier_gate_px ** 2
         n_vis, n_lm, n_new = 0, 0, 0
         stereo = np.isfinite(ff.depth_m)
+        self._kf_t[j] = t_s
         for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
             uv0 = ff.uv0[k]
@@ -232,16 +250,34 @@ class VioSmoother:
                     continue
                 key = lm.key
             else:
-                if n_new >= cfg.max_new_landmarks or not stereo[k]:
+                if n_new >= cfg.max_new_landmarks:
                     continue
-                d = float(ff.depth_m[k])
-                if not (cfg.min_depth_m <= d <= cfg.max_depth_m):
+                d = float(ff.depth_m[k]) if stereo[k] else float("nan")
+                mono_obs: list[tuple[int, np.ndarray]] = []
+                if cfg.min_depth_m <= d <= cfg.max_depth_m:
+                    p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
+                    p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
+                    self._mono.pop(tid, None)
+                elif cfg.mono_landmarks:
+                    horizon = t_s - cfg.lag_s + 0.05  # keyframes about to be marginalised take no new factors
+                    mono_obs = [(i, uv) for i, uv in self._mono.get(tid, [])
+                                if i != j and self._kf_t.get(i, -1e9) >= horizon and self._estimate.exists(X(i))]
+                    p_w = self._triangulate(mono_obs, uv0, T_world_cam0) \
+                        if len(mono_obs) + 1 >= MONO_MIN_VIEWS else None
+                    if p_w is None:
+                        self._mono[tid] = mono_obs + [(j, uv0.copy())]
+                        continue
+                    del self._mono[tid]
+                    self.n_mono_landmarks += 1
+                else:
                     continue
-                p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
                 key = L(self._next_landmark)
                 self._next_landmark += 1
-                p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
                 values.insert(key, p_w)
+                for i, uv in mono_obs:  # the earlier keyframes that saw it, still inside the window
+                    graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, X(i), key, self.K0, False,
+                                                                   False, self.P_body_cam0))
+                    n_vis += 1
                 if self.landmark_prior is not None:
                     # Without it a landmark whose observations the Huber loss has turned down (or a far one)
                     # can leave the system indeterminate, and the smoother cannot recover from the failed
@@ -263,6 +299,33 @@ class VioSmoother:
             if n_lm >= cfg.max_landmarks:
                 break
         return n_vis, n_lm
+
+    def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
+                     T_world_cam0: np.ndarray) -> np.ndarray | None:
+        """World point of a mono track from its keyframe pixels and the current one, or None when the rays are
+        too parallel, the point lies outside the depth limits in a view, or does not reproject within
+        MONO_MAX_REPROJ_PX (a track that slid along an edge)."""
+        cfg = self.cfg
+        poses = [self._estimate.atPose3(X(i)).compose(self.P_body_cam0) for i, _ in obs]
+        poses.append(gtsam.Pose3(T_world_cam0))
+        pixels = [uv for _, uv in obs] + [uv0]
+        Kinv = np.linalg.inv(self.K0.K())
+        rays = [p.rotation().matrix() @ (Kinv @ np.array([u[0], u[1], 1.0])) for p, u in zip(poses, pixels)]
+        cos = float(rays[0] @ rays[-1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[-1])))
+        if np.degrees(np.arccos(min(cos, 1.0))) < cfg.mono_min_parallax_deg:
+            return None
+        try:
+            p_w = np.asarray(gtsam.triangulatePoint3(poses, self.K0, pixels, 1e-9, True), float).reshape(3)
+        except GTSAM_ERRORS:  # cheirality or a degenerate system: not a usable point (yet)
+            return None
+        for pose, uv in zip(poses, pixels):
+            p_c = pose.transformTo(p_w)
+            if not (cfg.min_depth_m <= p_c[2] <= cfg.max_depth_m):
+                return None
+            if np.sum((self.K0.K()[:2, :2] @ (p_c[:2] / p_c[2]) + self.K0.K()[:2, 2] - uv) ** 2) > \
+                    MONO_MAX_REPROJ_PX ** 2:
+                return None
+        return p_w
 
     def marginal_covariances(self) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariance of the newest pose (6x6, rot then trans, body tangent) and velocity."""
