@@ -91,6 +91,16 @@ class BackendConfig:
                              "limit by default)", min=0.5, max=1000)
     mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
                                "keyframes (far points, right camera out)")
+    refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
+                                  "makes them observable (see docs/estimator.md)")
+    refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
+    extrinsic_sigma_rad: float = opt(0.0035, "stated 1-sigma rotation uncertainty of T_body_cam (0.2 deg)",
+                                     min=1e-6, max=1)
+    extrinsic_sigma_m: float = opt(0.005, "stated 1-sigma translation uncertainty of T_body_cam", min=1e-6, max=1)
+    stereo_sigma_rad: float = opt(0.0017, "1-sigma rotation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    stereo_sigma_m: float = opt(0.002, "1-sigma translation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    extrinsic_min_rotation_deg: float = opt(2.0, "rotation about the second most excited axis, among the keyframes "
+                                            "in the lag, that lets a keyframe refine the extrinsics", min=0, max=180)
     mono_min_parallax_deg: float = opt(1.0, "ray angle between a mono track's first and newest keyframe before it "
                                        "is triangulated", min=0.05, max=45)
     landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "

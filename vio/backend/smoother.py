@@ -14,6 +14,18 @@ from those keyframes' current estimates (gtsam.triangulatePoint3, refined) and b
 with the same Huber-robust projection factors, one per remembered keyframe. So far points, which constrain
 rotation best, and everything seen while the right camera is out keep feeding the smoother.
 
+Online extrinsic refinement (`refine_extrinsics`): T_body_cam0 and T_body_cam1 become variables E(0),
+E(1) with priors from the calibration's uncertainty (`extrinsic_sigma_rad`, `extrinsic_sigma_m`), tied by
+a between factor on T_cam0_cam1 that holds the stereo extrinsic (tight) or lets it move by
+`stereo_sigma_*` (`refine_stereo_extrinsic`). Projection factors then read the camera pose as X(j) * E
+(gtsam_unstable's ProjectionFactorPPP). The extrinsic is observable only when the body turns about two
+axes and moves; the gate: the keyframes inside the lag must span `extrinsic_min_rotation_deg` of rotation
+about the second most excited axis (smallest but one singular value of their rotation vectors about the
+newest one). Keyframes that fail the gate (hover, straight flight) use fixed projection factors at the
+current extrinsic estimate, so E only keeps its prior and what earlier motion taught it (marginalised
+into it as keyframes leave the lag): hovering neither refines nor corrupts it. E's stamp moves with
+every keyframe, so it never leaves the window.
+
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
 the last keyframe that saw it; a track seen again after its landmark left gets a fresh landmark.
@@ -26,7 +38,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, L, V, X
+from gtsam.symbol_shorthand import B, E, L, V, X
 
 from vio.calibration import StereoCalibration
 from vio.config import BackendConfig
@@ -62,6 +74,8 @@ class KeyframeEstimate:
     n_visual: int  # projection factors added at this keyframe
     n_landmarks: int  # landmarks observed at this keyframe
     extra_passes: int = 0  # relinearisation passes after the first update
+    T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
+    T_body_cam1: np.ndarray | None = None
 
 
 @dataclass
@@ -102,6 +116,8 @@ class VioSmoother:
         self._mono: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> (keyframe, cam0 pixel) without landmark
         self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
         self.n_mono_landmarks = 0
+        self.refine = bool(cfg.refine_extrinsics)
+        self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
         self.index = -1
         self.t0_ns = 0
@@ -155,6 +171,8 @@ class VioSmoother:
         values.insert(V(0), np.asarray(v_world, float))
         values.insert(B(0), bias)
         stamps = {X(0): 0.0, V(0): 0.0, B(0): 0.0}
+        if self.refine:
+            self._add_extrinsic_variables(graph, values, stamps)
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, pose, 0, 0.0)
@@ -177,6 +195,8 @@ class VioSmoother:
         values.insert(V(j), pred.velocity())
         values.insert(B(j), prev.bias)
         stamps = {X(j): t_s, V(j): t_s, B(j): t_s}
+        if self.refine:
+            stamps[E(0)] = stamps[E(1)] = t_s  # the extrinsics stay in the window for the whole flight
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -189,6 +209,30 @@ class VioSmoother:
         extra = self._update(graph, values, stamps, j, pred.pose())
         return self._finish(t_ns, n_vis, n_lm, extra)
 
+    def _add_extrinsic_variables(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                                 stamps: dict[int, float]) -> None:
+        cfg = self.cfg
+        prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 + [cfg.extrinsic_sigma_m] * 3)
+        graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
+        stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [cfg.stereo_sigma_m] * 3) if cfg.refine_stereo_extrinsic \
+            else _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
+        graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self.P_body_cam0.between(self.P_body_cam1), stereo))
+        values.insert(E(0), self.P_body_cam0)
+        values.insert(E(1), self.P_body_cam1)
+        stamps[E(0)] = stamps[E(1)] = 0.0
+
+    def _motion_excites_extrinsics(self, pose_pred: gtsam.Pose3, t_s: float) -> bool:
+        """The gate of the module doc: rotation about two axes among the keyframes inside the lag."""
+        horizon = t_s - self.cfg.lag_s + 0.05
+        R_new = pose_pred.rotation()
+        thetas = [gtsam.Rot3.Logmap(R_new.between(self._estimate.atPose3(X(i)).rotation()))
+                  for i, t in self._kf_t.items() if t >= horizon and self._estimate.exists(X(i))]
+        if len(thetas) < 3:
+            return False
+        sv = np.linalg.svd(np.asarray(thetas) - np.mean(thetas, axis=0), compute_uv=False)
+        spread = 2.0 * sv[1] / np.sqrt(len(thetas))  # ~ the peak-to-peak rotation about the second axis
+        return bool(np.degrees(spread) >= self.cfg.extrinsic_min_rotation_deg)
+
     def _finish(self, t_ns: int, n_vis: int, n_lm: int, extra: int) -> KeyframeEstimate:
         est = self._estimate
         j = self.index
@@ -196,9 +240,14 @@ class VioSmoother:
             pose = est.atPose3(X(j))
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
+            if self.refine:
+                self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
+                self.T_body_cam0 = self.P_body_cam0.matrix()
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
-        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra)
+        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
+                                     self.T_body_cam0.copy() if self.refine else None,
+                                     self.P_body_cam1.matrix() if self.refine else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -234,6 +283,9 @@ class VioSmoother:
         n_vis, n_lm, n_new = 0, 0, 0
         stereo = np.isfinite(ff.depth_m)
         self._kf_t[j] = t_s
+        refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
+        self.extrinsic_keyframes += int(refine_now)
+        factor = self._factor_maker(refine_now)
         for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
             uv0 = ff.uv0[k]
@@ -275,8 +327,7 @@ class VioSmoother:
                 self._next_landmark += 1
                 values.insert(key, p_w)
                 for i, uv in mono_obs:  # the earlier keyframes that saw it, still inside the window
-                    graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, X(i), key, self.K0, False,
-                                                                   False, self.P_body_cam0))
+                    graph.add(factor(uv, i, key, 0))
                     n_vis += 1
                 if self.landmark_prior is not None:
                     # Without it a landmark whose observations the Huber loss has turned down (or a far one)
@@ -286,12 +337,10 @@ class VioSmoother:
                 lm = _Landmark(key, t_s)
                 self.landmarks[tid] = lm
                 n_new += 1
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv0, self.pixel_noise, X(j), key, self.K0, False, False,
-                                                           self.P_body_cam0))
+            graph.add(factor(uv0, j, key, 0))
             n_vis += 1
             if stereo[k]:
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(ff.uv1[k], self.pixel_noise, X(j), key, self.K1,
-                                                               False, False, self.P_body_cam1))
+                graph.add(factor(ff.uv1[k], j, key, 1))
                 n_vis += 1
             lm.last_t_s = t_s
             stamps[key] = t_s
@@ -299,6 +348,19 @@ class VioSmoother:
             if n_lm >= cfg.max_landmarks:
                 break
         return n_vis, n_lm
+
+    def _factor_maker(self, refine: bool):
+        """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
+        as a variable (E(cam), when refining) or fixed at its current estimate."""
+        K = (self.K0, self.K1)
+        if refine:
+            from gtsam_unstable import ProjectionFactorPPPCal3_S2
+
+            return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, X(i), E(cam), key,
+                                                                      K[cam], False, False)
+        P = (self.P_body_cam0, self.P_body_cam1)
+        return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, X(i), key, K[cam],
+                                                                           False, False, P[cam])
 
     def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
                      T_world_cam0: np.ndarray) -> np.ndarray | None:

@@ -65,22 +65,25 @@ CALIB_ERROR_PX = 0.5
 
 
 def perturbed_calibration(calib: StereoCalibration, scale: float, rng: np.random.Generator) -> StereoCalibration:
-    """The calibration a slightly wrong calibration file states: per camera, T_body_cam turned by exactly
-    scale * 0.1 deg about a random axis and moved by scale * 2 mm in a random direction, and fx, fy, cx, cy
-    each off by scale * 0.5 px (random sign). Exact magnitudes make flights of different seeds equally
-    wrong; the random directions keep them from all being wrong the same way."""
+    """The calibration a slightly wrong calibration file states: the stereo rig's pose on the body turned
+    by exactly scale * 0.1 deg about a random axis and moved by scale * 2 mm in a random direction, and
+    fx, fy, cx, cy off by scale * 0.5 px (random signs).
+
+    The error is the rig's (the same for both cameras, T_cam1_cam0 kept), as a Kalibr calibration's is: its
+    stereo extrinsic and intrinsics come from one joint fit on the same images, so their errors agree.
+    Independent errors of this size would be a broken stereo calibration instead: 0.14 deg between the
+    cameras is ~1 px of disparity, 11 % of the depth at 5 m (a 40 s survey flight: ATE 0.23 m, not 0.005).
+    Exact magnitudes make flights of different seeds equally wrong, the random directions differently."""
     from vio.geometry import so3_exp
 
     def unit(v: np.ndarray) -> np.ndarray:
         return v / np.linalg.norm(v)
 
-    cams = []
-    for cam in (calib.cam0, calib.cam1):
-        dR = so3_exp(unit(rng.standard_normal(3)) * np.deg2rad(CALIB_ERROR_ROT_DEG * scale))
-        dT = make_T(dR, unit(rng.standard_normal(3)) * CALIB_ERROR_TRANS_M * scale)
-        dk = rng.choice([-1.0, 1.0], 4) * CALIB_ERROR_PX * scale
-        cams.append(replace(cam, fx=cam.fx + dk[0], fy=cam.fy + dk[1], cx=cam.cx + dk[2], cy=cam.cy + dk[3],
-                            T_body_cam=cam.T_body_cam @ dT))
+    dR = so3_exp(unit(rng.standard_normal(3)) * np.deg2rad(CALIB_ERROR_ROT_DEG * scale))
+    D = make_T(dR, unit(rng.standard_normal(3)) * CALIB_ERROR_TRANS_M * scale)  # body <- wrongly placed body
+    dk = rng.choice([-1.0, 1.0], 4) * CALIB_ERROR_PX * scale
+    cams = [replace(cam, fx=cam.fx + dk[0], fy=cam.fy + dk[1], cx=cam.cx + dk[2], cy=cam.cy + dk[3],
+                    T_body_cam=D @ cam.T_body_cam) for cam in (calib.cam0, calib.cam1)]
     return replace(calib, cam0=cams[0], cam1=cams[1])
 
 
