@@ -93,6 +93,8 @@ class BackendConfig:
                                "keyframes (far points, right camera out)")
     refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
                                   "makes them observable (see docs/estimator.md)")
+    refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
+                                             "it wandered by 2x its error in tests); else only the rotation")
     refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
     extrinsic_sigma_rad: float = opt(0.0035, "stated 1-sigma rotation uncertainty of T_body_cam (0.2 deg)",
                                      min=1e-6, max=1)
