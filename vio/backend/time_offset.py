@@ -18,8 +18,8 @@ stereo depth that is `span_frames` or more back (stereo on every frame made a su
 collects for the whole `max_collect_s`, replay ~20 % slower).
 
 Continuous tracking (`continuous=True`, `[backend] time_offset_continuous`): USB cameras and serial IMUs
-drift by milliseconds over a minute, so instead of stopping, collection goes on once the first estimate has
-converged, on a shorter window (`track_window_s`: each estimate is the window's mean offset, so it lags by
+drift by milliseconds over a minute, so instead of stopping, collection goes on from the first accepted
+estimate on, on a shorter window (`track_window_s`: each estimate is the window's mean offset, so it lags by
 half the window). The estimates of the last TRACK_HISTORY_WINDOWS windows are fitted with a line (weights
 1/sigma^2, each estimate placed at its pairs' mean time); the newest estimate carried forward to the
 newest frame along the line's slope is applied, so a drift is followed without the half-window lag (the
@@ -226,8 +226,8 @@ class OnlineTimeOffset:
                       self.base_ns * 1e-6 + est.offset_s * 1e3, est.sigma_s * 1e3, est.rate_std_rad_s)
         if self.solves >= self.max_solves:
             self.done = True
-        if self.done and self.continuous and self.offset_ns is not None:
-            self.done = False
+        if self.continuous and self.offset_ns is not None:  # tracking from the first estimate on: waiting
+            self.done = False                                 # for convergence (12 s) lagged a drift by 2 ms
             self._start_tracking()
         elif self.done:
             self._finish()
@@ -236,7 +236,7 @@ class OnlineTimeOffset:
     def _start_tracking(self) -> None:
         self.tracking = True
         self._pairs = deque(list(self._pairs)[-self._track_pairs:], maxlen=self._track_pairs)
-        log.info("time offset: converged at %+.1f ms; tracking it on %d-pair windows", self.offset_ns * 1e-6,
+        log.info("time offset: %+.1f ms; tracking it from now on, on %d-pair windows", self.offset_ns * 1e-6,
                  self._track_pairs)
 
     def _track(self, est, t0: np.ndarray, t1: np.ndarray) -> int | None:
@@ -259,8 +259,8 @@ class OnlineTimeOffset:
         self.offset_ns, self.sigma_s = int(round(pred)), est.sigma_s
         if abs(self.offset_ns - self.applied_ns) < TRACK_CHANGE_NS:
             return None
-        log.debug("time offset tracking: %+.2f ms (window estimate %+.2f +- %.2f ms)", pred * 1e-6,
-                  off[-1] * 1e-6, est.sigma_s * 1e3)
+        log.debug("time offset tracking: %+.2f ms at %.1f s (window estimate %+.2f +- %.2f ms)", pred * 1e-6,
+                  (t_now - self.base_ns - self._t_first) * 1e-9, off[-1] * 1e-6, est.sigma_s * 1e3)
         self.applied_ns = self.offset_ns
         return self.applied_ns
 
