@@ -137,31 +137,30 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
 
+    import numpy as np
+
     from vio import VioError
-    from vio.app.replay import open_dataset, replay
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
+    from vio.consistency import replay_states
 
     cfg = load_config(args.config)
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=True,
                                                                refine_stereo_extrinsic=args.stereo))
-    ds = open_dataset(str(args.dataset), load_calibration(args.calibration) if args.calibration else None)
-    res = replay(ds, cfg, progress=False)
-    refined = res.extra.get("calibration_refined")
+    run = replay_states(args.dataset, cfg.estimator,
+                        calibration=load_calibration(args.calibration) if args.calibration else None)
+    est, calib = run.estimator, run.dataset.calibration
+    refined = est.refinement_stats()
     if not refined or refined["refining_keyframes"] == 0:
         raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
                        "straight flight); record with turns about at least two axes")
-    import numpy as np
-
-    calib = ds.calibration
-    offset_ns = int(round(res.extra["time_offset_ms"]["final"] * 1e6))
     out = dataclasses.replace(calib, cam0=calib.cam0.with_T_body_cam(np.asarray(refined["T_body_cam0"])),
                               cam1=calib.cam1.with_T_body_cam(np.asarray(refined["T_body_cam1"])),
-                              time_offset_ns=offset_ns)
+                              time_offset_ns=int(est.time_offset_ns))
     save_calibration(out, args.output)
     print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
-          f"{refined['refining_keyframes']} refining keyframes ({res.resets} resets); time offset "
-          f"{calib.time_offset_ns * 1e-6:+.2f} -> {offset_ns * 1e-6:+.2f} ms")
+          f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
+          f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
     print(f"wrote {args.output}")
     return 0
 
