@@ -87,7 +87,24 @@ class BackendConfig:
                              min=10, max=2000)
     max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
-    max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
+    max_depth_m: float = opt(40.0, "depth beyond which a track does not become a landmark (the front end's stereo "
+                             "limit by default)", min=0.5, max=1000)
+    mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
+                               "keyframes (far points, right camera out)")
+    refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
+                                  "makes them observable (see docs/estimator.md)")
+    refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
+                                             "it wandered by 2x its error in tests); else only the rotation")
+    refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
+    extrinsic_sigma_rad: float = opt(0.0035, "stated 1-sigma rotation uncertainty of T_body_cam (0.2 deg)",
+                                     min=1e-6, max=1)
+    extrinsic_sigma_m: float = opt(0.005, "stated 1-sigma translation uncertainty of T_body_cam", min=1e-6, max=1)
+    stereo_sigma_rad: float = opt(0.0017, "1-sigma rotation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    stereo_sigma_m: float = opt(0.002, "1-sigma translation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    extrinsic_min_rotation_deg: float = opt(2.0, "rotation about the second most excited axis, among the keyframes "
+                                            "in the lag, that lets a keyframe refine the extrinsics", min=0, max=180)
+    mono_min_parallax_deg: float = opt(1.0, "ray angle between a mono track's first and newest keyframe before it "
+                                       "is triangulated", min=0.05, max=45)
     landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "
                                         "well posed when its observations are turned down; 0 = none", min=0, max=1e6)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
@@ -113,6 +130,9 @@ class BackendConfig:
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")
     time_offset_max_ms: float = opt(50.0, "largest offset error searched for", min=1, max=500)
     time_offset_window_s: float = opt(8.0, "frames per in-flight offset estimate", min=1, max=120)
+    time_offset_continuous: bool = opt(False, "keep tracking the time offset after it converged (a drifting camera "
+                                        "or IMU clock) instead of freezing it; costs a PnP per frame all flight")
+    time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

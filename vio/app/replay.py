@@ -278,7 +278,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                                                  "final": est.time_offset_ns * 1e-6},
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
-                              "estimator": {k: getattr(h, k) for k in _HEALTH_STATS}},
+                              "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
+                              "calibration_refined": est.refinement_stats()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error)
     summary = res.unusable_summary()
     if summary:
