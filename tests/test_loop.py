@@ -255,3 +255,36 @@ def test_loop_worker_drains_its_queue_before_it_stops():
         w.submit(k, np.eye(4), None, None, 0)
     assert w.close(wait=True, timeout_s=0.3, grace_s=1.0)
     assert w.closer.done + w.dropped == 10 and w.dropped >= 5
+
+
+def test_vio_run_with_loop_closure_saves_a_map_on_sigterm(tmp_path):
+    """The daemon with `[loop] enabled` and `[map] save`: on SIGTERM the loop thread drains its queue, the map
+    is written, and `vio map info` reads it back with keyframes in it."""
+    import json
+    import subprocess
+    import sys
+
+    from test_service import REPO, _need_pipeline, fly_fake
+
+    _need_pipeline()
+    map_path = tmp_path / "room.map.npz"
+    rc, text = fly_fake(tmp_path, f"""[source]
+kind = "fake"
+realtime = false
+fake_duration_s = 6.0
+width = 320
+height = 200
+[run]
+status_file = "{tmp_path / 'status.json'}"
+[loop]
+enabled = true
+[map]
+save = "{map_path}"
+""", 30)
+    assert rc == 0 and "Traceback" not in text, text[-3000:]
+    assert "map saved to" in text and map_path.is_file(), text[-3000:]
+    info = subprocess.run([sys.executable, "-m", "vio.app.cli", "map", "info", str(map_path), "--json"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert info.returncode == 0, info.stderr[-2000:]
+    header = json.loads(info.stdout)
+    assert header["format"] == "kestrel-vio-map" and header["keyframes"] > 0 and header["landmarks_3d"] > 0
