@@ -279,6 +279,8 @@ class LoopConfig:
                                     "flight before a reset): no drift gate can check it", min=1, max=20)
     reloc_candidates: int = opt(4, "best retrieval candidates from other sessions verified per keyframe while "
                                 "this one is not joined to them (relocalising)", min=0, max=20)
+    reloc_min_inliers: int = opt(12, "as min_inliers, for an edge to another session: a second flight sees the "
+                                 "map's places from further off (fewer matches)", min=6, max=1000)
     reloc_two_way_m: float = opt(0.06, "as two_way_m, for an edge to another session (its guard is "
                                  "reloc_min_consistent agreeing edges, its accuracy need metres, not mm)",
                                  min=0.001, max=10)

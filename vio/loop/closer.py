@@ -168,13 +168,14 @@ class LoopCloser:
         reason = "pnp"
         for j, _score in cands:
             old = self.keyframes[j]
+            other = self._comp(old.session) != self._comp(kf.session)
+            min_inl = c.reloc_min_inliers if other else c.min_inliers
             res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
+                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
             if res is None:
                 continue
             back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
-            other = self._comp(old.session) != self._comp(kf.session)
+                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
             if back is None or not _agree(res.T_old_new @ back.T_old_new, *(
                     (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg))):
                 reason = "two-way"
