@@ -282,7 +282,7 @@ class LoopConfig:
     reloc_min_inliers: int = opt(12, "as min_inliers, for an edge to another session: a second flight sees the "
                                  "map's places from further off (fewer matches)", min=6, max=1000)
     reloc_two_way_m: float = opt(0.06, "as two_way_m, for an edge to another session (its guard is "
-                                 "reloc_min_consistent agreeing edges, its accuracy need metres, not mm)",
+                                 "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
                                  min=0.001, max=10)
     reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",

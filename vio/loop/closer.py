@@ -5,7 +5,9 @@ Pipeline per keyframe: upright ORB -> bag of words -> best candidates older than
 PnP RANSAC on the candidate's stereo landmarks -> gravity check -> drift gate (the correction may not exceed
 what the odometry can have drifted since the candidate) -> temporal consistency (min_consistent verified
 candidates in a window of keyframes whose corrections agree) -> loop edges into the graph -> incremental
-re-solve (iSAM2; GNC re-decides the loop edges when the new ones do not fit)."""
+re-solve (iSAM2; GNC re-decides the loop edges when the new ones do not fit). Relocalising (a loaded map, or
+the flight before an estimator reset, not joined to this session yet): their best candidates are verified as
+well, with the reloc_* gates (docs/loop-closure.md)."""
 
 from __future__ import annotations
 
