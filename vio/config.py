@@ -297,6 +297,14 @@ class LoopConfig:
                                    min=1e-3, max=1e4)
     reloc_min_consistent: int = opt(3, "as min_consistent, for an edge to another session (a loaded map, the "
                                     "flight before a reset): no drift gate can check it", min=1, max=20)
+    reloc_candidates: int = opt(4, "best retrieval candidates from other sessions verified per keyframe while "
+                                "this one is not joined to them (relocalising)", min=0, max=20)
+    reloc_min_inliers: int = opt(12, "as min_inliers, for an edge to another session: a second flight sees the "
+                                 "map's places from further off (fewer matches)", min=6, max=1000)
+    reloc_two_way_m: float = opt(0.06, "as two_way_m, for an edge to another session (its guard is "
+                                 "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
+                                 min=0.001, max=10)
+    reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",
                       choices=("off", "jump", "blend"))
     blend_rate_m_s: float = opt(0.2, "blend: correction applied at most this fast [m/s]", min=1e-3, max=100)
