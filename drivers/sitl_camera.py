@@ -163,7 +163,7 @@ class SitlCameraSource(ThreadedSource):
     def _open(self) -> Any:
         if self._connect is not None:
             return self._connect(self.url)
-        from drivers.mavlink_out import open_connection
+        from drivers.mavlink_link import open_connection
 
         return open_connection(self.url, source_system=255)
 

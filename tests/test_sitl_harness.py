@@ -121,7 +121,8 @@ def test_bad_home_is_a_clear_error():
 def test_config_sitl_needs_the_autopilot_imu():
     with pytest.raises(VioError, match="imu = 'mavlink'"):
         config_from_dict({"source": {"kind": "sitl", "imu": "oak"}})
-    cfg = config_from_dict({"source": {"kind": "sitl", "imu": "mavlink", "sitl_url": "tcp:127.0.0.1:5763"}})
+    cfg = config_from_dict({"source": {"kind": "sitl", "imu": "mavlink", "sitl_url": "tcp:127.0.0.1:5763"},
+                           "mavlink": {"url": "tcp:127.0.0.1:5762"}})
     assert cfg.source.kind == "sitl"
 
 
