@@ -52,6 +52,7 @@ R_WORLD_NED = np.diag([1.0, -1.0, -1.0])  # half turn about x (docs/autopilot.md
 R_FRD_FLU = np.diag([1.0, -1.0, -1.0])
 SIM_STATE_ID = 108
 READ_TIMEOUT_S = 0.2
+REQUEST_EVERY_S = 5.0  # SIM_STATE stream re-requested this often
 
 
 def ned_from_geodetic(home: tuple[float, float, float], lat_e7: int, lon_e7: int, alt_m: float) -> np.ndarray:
@@ -185,16 +186,20 @@ class SitlCameraSource(ThreadedSource):
             log.info("sitl camera: reading SIM_STATE from %s, rendering %dx%d at %.0f Hz", self.url, self.width,
                      self.height, self.fps)
             self.state = "running"
-            requested_ns = 0
+            requested_ns, heard = 0, False
             try:
                 while not self._stop.is_set():
                     now = self._clock_ns()
-                    if self.states == 0 and (requested_ns == 0 or now - requested_ns > 2_000_000_000):
-                        self._request_stream(conn)  # until the stream flows (the SITL may still be booting)
+                    # ask again every REQUEST_EVERY_S (a rebooted autopilot forgets message intervals) and
+                    # right after the first message (a udpin link can only answer once the peer is known)
+                    if requested_ns == 0 or now - requested_ns > REQUEST_EVERY_S * 1e9:
+                        self._request_stream(conn)
                         requested_ns = now
                     msg = conn.recv_match(type="SIM_STATE", blocking=True, timeout=READ_TIMEOUT_S)
                     if msg is None:
                         continue
+                    if not heard:
+                        heard, requested_ns = True, 0
                     frame = self.on_sim_state(msg, self._clock_ns())
                     if frame is not None:
                         self._frames.put(frame)

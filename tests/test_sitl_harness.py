@@ -207,3 +207,57 @@ def test_sitl_boots_and_streams_truth(tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_source_reads_a_sim_state_stream_over_mavlink():
+    """The threaded path: the source asks for SIM_STATE (MAV_CMD_SET_MESSAGE_INTERVAL 108) and turns a 40 Hz
+    stream from a stand-in autopilot (pymavlink over UDP loopback) into frames at its 10 Hz camera rate."""
+    from pymavlink import mavutil
+
+    port = _free_udp_port()
+    src = SitlCameraSource(f"udpin:127.0.0.1:{port}", HOME, width=64, height=48, fps=10.0)
+    src.start()
+    fc = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        requested, frames = [], []
+        deadline = time.monotonic() + 20
+        t_first = None
+        while time.monotonic() < deadline and (t_first is None or time.monotonic() - t_first < 1.5):
+            q = rot_to_quat_wxyz(_rz(0.2))
+            fc.mav.send(_sim_state(q, [1.0, 0.5, -1.0]))
+            while (m := fc.recv_match(type="COMMAND_LONG", blocking=False)) is not None:
+                requested.append((m.command, m.param1, m.param2))
+            frames += src.poll()
+            if frames and t_first is None:
+                t_first = time.monotonic()
+            time.sleep(0.025)
+        frames += src.poll()
+    finally:
+        src.stop()
+        fc.close()
+    assert (511, 108.0, pytest.approx(50_000.0)) in [(c, p1, p2) for c, p1, p2 in requested]
+    assert 8 <= len(frames) <= 20  # ~1.5 s at 10 Hz (SIM_STATE at 40 Hz, thinned)
+    assert src.health()["sim_states"] > len(frames)
+    np.testing.assert_allclose(src.last_T_world_body[:3, 3], world_from_ned([1.0, 0.5, -1.0]), atol=0.02)
+
+
+def test_open_source_combines_the_sitl_camera_with_the_autopilot_imu():
+    from drivers.base import CombinedSource
+    from drivers.mavlink_imu import MavlinkImuSource
+    from drivers.mavlink_link import MavlinkLink
+    from drivers.source import open_source
+
+    cfg = config_from_dict({"source": {"kind": "sitl", "imu": "mavlink", "width": 96, "height": 64},
+                            "mavlink": {"url": "tcp:127.0.0.1:5762"}})
+    src = open_source(cfg.source, mavlink_link=MavlinkLink("tcp:127.0.0.1:5762"))  # nothing is opened yet
+    assert isinstance(src, CombinedSource)
+    assert isinstance(src.camera, SitlCameraSource) and isinstance(src.imu, MavlinkImuSource)
+    assert src.calibration().cam0.width == 96
