@@ -117,11 +117,21 @@ status_file = "{out / 'status.json'}"
     return path
 
 
+def copter_defaults(binary: str) -> Path | None:
+    """ArduPilot's own SITL quad parameters (frame class, RC ranges...), next to the binary's source tree:
+    build/sitl/bin/arducopter -> Tools/autotest/default_params/copter.parm."""
+    p = Path(binary).resolve().parents[3] / "Tools" / "autotest" / "default_params" / "copter.parm"
+    return p if p.is_file() else None
+
+
 def start_sitl(binary: str, out: Path) -> subprocess.Popen:
+    """ArduCopter SITL in `out` (its eeprom.bin and logs land there): ArduPilot's quad defaults, then PARAMS."""
     parm = out / "sitl.parm"
     parm.write_text("".join(f"{k} {v}\n" for k, v in PARAMS.items()))
+    base = copter_defaults(binary)
+    defaults = f"{base},{parm}" if base else str(parm)
     home = ",".join(str(x) for x in HOME) + ",0"
-    return subprocess.Popen([binary, "--model", "quad", "--speedup", "1", "--home", home, "--defaults", str(parm),
+    return subprocess.Popen([binary, "--model", "quad", "--speedup", "1", "--home", home, "--defaults", defaults,
                              "-I0"], cwd=out, stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
 
 
