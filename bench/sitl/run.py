@@ -39,7 +39,7 @@ DEFAULT_BIN = os.environ.get("KESTREL_SITL_BIN", "/work/sitl/ardupilot/build/sit
 PARAMS = {  # docs/autopilot.md "ArduPilot (EKF3)", plus what a GPS-less SITL needs
     "AHRS_EKF_TYPE": 3, "EK3_ENABLE": 1, "EK2_ENABLE": 0,
     "GPS_TYPE": 0, "GPS1_TYPE": 0, "SIM_GPS_DISABLE": 1, "SIM_GPS1_ENABLE": 0,  # names differ across versions
-    "VISO_TYPE": 1, "VISO_DELAY_MS": 20, "VISO_POS_M_NSE": 0.1, "VISO_VEL_M_NSE": 0.1, "VISO_YAW_M_NSE": 0.2,
+    "VISO_TYPE": 1, "VISO_DELAY_MS": 50, "VISO_POS_M_NSE": 0.1, "VISO_VEL_M_NSE": 0.1, "VISO_YAW_M_NSE": 0.2,
     "EK3_SRC1_POSXY": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 6, "EK3_SRC1_YAW": 6,
     "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0,
     "SERIAL1_PROTOCOL": 2, "SERIAL2_PROTOCOL": 2,
