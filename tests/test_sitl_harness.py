@@ -283,7 +283,7 @@ def test_summary_of_a_perfect_synthetic_flight(tmp_path):
     rec = SimpleNamespace(
         truth=[(t, *p, a.yaw + 0.1, *qq) for t, p, qq in zip(t_ns, truth_p, q)],
         local=[(t, *p) for t, p in zip(t_ns, local_p)], att=[(t, y) for t, y in zip(t_ns, yaw_local)],
-        ekf=[(t, 0, 0.2, 0.3) for t in t_ns], text=[(t0, "EKF3 IMU0 is using external nav data")])
+        ekf=[(t, 0, 0.2, 0.3) for t in t_ns], text=[(t0, "EKF3 IMU0 is using external nav data")], modes=[(t0, 4)])
     ev = {"t_ground": (5_000_000_000, 9_000_000_000), "t0": t0,
           "blackouts": [[t0 + 2_000_000_000, t0 + 4_000_000_000, 2.0]]}
     T_est = np.array([make_T(_rz(0.7) @ T[:3, :3], _rz(0.7) @ T[:3, 3] + [1, 2, 0])

@@ -148,16 +148,20 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path) -> 
     msn.arm_and_takeoff(conn, -path.waypoints[0, 2])
     time.sleep(8.0)
     t0 = time.monotonic_ns()
-    fault_at = [path.duration_s * (k + 1) / (len(faults) + 1) for k in range(len(faults))]
-    windows = []
+    # blackouts evenly spaced over the mission: [(start [s into the path], duration [s])]
+    pending = [(path.duration_s * (k + 1) / (len(faults) + 1), d) for k, d in enumerate(faults)]
+    windows: list = []  # [host ns when the cameras went black, host ns when they came back, duration]
+    end_s = None
     while (t := (time.monotonic_ns() - t0) * 1e-9) < path.duration_s:
-        for at, dur in zip(fault_at, faults):
-            if at <= t < at + dur and not blackout.exists():
-                blackout.touch()
-                windows.append([time.monotonic_ns(), None, dur])
-            elif t >= at + dur and blackout.exists() and windows and windows[-1][2] == dur:
-                blackout.unlink()
-                windows[-1][1] = time.monotonic_ns()
+        if end_s is None and pending and t >= pending[0][0]:
+            start_s, dur = pending.pop(0)
+            blackout.touch()
+            windows.append([time.monotonic_ns(), None, dur])
+            end_s = start_s + dur
+        elif end_s is not None and t >= end_s:
+            blackout.unlink()
+            windows[-1][1] = time.monotonic_ns()
+            end_s = None
         p, v = path.target(t)
         msn.send_target(conn, p, v, rec.boot_ms)
         time.sleep(0.1)
@@ -196,6 +200,7 @@ def summarise(rec: Recorder, path: msn.Path, ev: dict, out: Path) -> dict:
         "EKF yaw/compass test ratio": rep.ratio_stats(ekf_fly[:, 3]) if len(ekf_fly) else {"n": 0},
         "EKF position test ratio": rep.ratio_stats(ekf_fly[:, 2]) if len(ekf_fly) else {"n": 0},
         "failsafe STATUSTEXT": [s for _, s in rep.failsafe_events(rec.text)],
+        "flight modes (custom_mode) in order": [m for _, m in rec.modes],
     }
     for _start, end, dur in ev["blackouts"]:
         if end is not None:
