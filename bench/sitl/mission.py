@@ -91,37 +91,38 @@ def chain(*paths: Path) -> Path:
 
 # ------------------------------------------------------------------------------------------- flying it
 
-# These only send and sleep: the harness's Recorder thread is the link's one reader, and mavutil keeps the
-# newest HEARTBEAT (conn.messages) and the armed state up to date from its reads.
+# These only send and sleep: the harness's Recorder thread is the link's one reader and keeps the
+# autopilot's own mode and armed state (`state.mode`, `state.armed`, from component 1's HEARTBEAT only:
+# ArduPilot routes Kestrel's HEARTBEAT onto every link, so mavutil's "newest heartbeat" may be ours).
+COPTER_MODES = {"GUIDED": 4, "LAND": 9}  # ArduCopter custom_mode numbers
 
-def set_mode(conn, mode: str, timeout_s: float = 10.0) -> None:
+
+def set_mode(conn, state, mode: str, timeout_s: float = 10.0) -> None:
     """Switch the autopilot's flight mode and wait until its HEARTBEAT shows it."""
-    mode_id = conn.mode_mapping()[mode]
+    mode_id = COPTER_MODES[mode]
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        conn.set_mode(mode_id)
+        conn.mav.set_mode_send(conn.target_system, 1, mode_id)  # MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         time.sleep(1.0)
-        hb = conn.messages.get("HEARTBEAT")
-        if hb is not None and hb.custom_mode == mode_id:
+        if state.mode == mode_id:
             return
     raise TimeoutError(f"autopilot did not enter {mode} within {timeout_s} s")
 
 
-def arm_and_takeoff(conn, alt_m: float, timeout_s: float = 60.0) -> None:
+def arm_and_takeoff(conn, state, alt_m: float, timeout_s: float = 60.0) -> None:
     """GUIDED, arm (retrying while the pre-arm checks still wait for the EKF), MAV_CMD_NAV_TAKEOFF."""
-    mav = conn.mav
-    set_mode(conn, "GUIDED")
+    set_mode(conn, state, "GUIDED")
     deadline = time.monotonic() + timeout_s
-    while not conn.motors_armed():
+    while not state.armed:
         if time.monotonic() > deadline:
             raise TimeoutError("autopilot refused to arm (see its STATUSTEXT in the report)")
-        conn.arducopter_arm()
+        conn.mav.command_long_send(conn.target_system, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # COMPONENT_ARM_DISARM
         time.sleep(2.0)
-    mav.command_long_send(conn.target_system, conn.target_component, 22, 0, 0, 0, 0, float("nan"), 0, 0, alt_m)
+    conn.mav.command_long_send(conn.target_system, 1, 22, 0, 0, 0, 0, float("nan"), 0, 0, alt_m)  # NAV_TAKEOFF
     log.info("armed, taking off to %.1f m", alt_m)
 
 
 def send_target(conn, pos_ned: np.ndarray, vel_ned: np.ndarray, boot_ms: int) -> None:
-    conn.mav.set_position_target_local_ned_send(boot_ms, conn.target_system, conn.target_component, 1,
+    conn.mav.set_position_target_local_ned_send(boot_ms, conn.target_system, 1, 1,
                                                 TYPE_MASK_POS_VEL, *map(float, pos_ned), *map(float, vel_ned),
                                                 0, 0, 0, 0, 0)

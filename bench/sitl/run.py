@@ -63,6 +63,8 @@ class Recorder(threading.Thread):
         self.text: list = []  # (t_ns, text)
         self.modes: list = []  # (t_ns, custom_mode)
         self.boot_ms = 0
+        self.mode = -1  # the autopilot's custom_mode and armed flag (component 1's HEARTBEAT only)
+        self.armed = False
 
     def run(self) -> None:
         from drivers.sitl_camera import ned_from_geodetic
@@ -85,9 +87,10 @@ class Recorder(threading.Thread):
             elif kind == "STATUSTEXT":
                 self.text.append((t, m.text))
                 print(f"[sitl] {m.text}", flush=True)
-            elif kind == "HEARTBEAT" and m.get_srcComponent() == 1 and (
-                    not self.modes or self.modes[-1][1] != m.custom_mode):
-                self.modes.append((t, m.custom_mode))
+            elif kind == "HEARTBEAT" and m.get_srcComponent() == 1:
+                self.mode, self.armed = m.custom_mode, bool(m.base_mode & 128)  # MAV_MODE_FLAG_SAFETY_ARMED
+                if not self.modes or self.modes[-1][1] != m.custom_mode:
+                    self.modes.append((t, m.custom_mode))
 
 
 def kestrel_config(out: Path, fps: float, width: int, height: int) -> Path:
@@ -145,7 +148,7 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path) -> 
         time.sleep(0.5)
     time.sleep(3.0)  # ground samples for the start alignment
     t_ground = (time.monotonic_ns() - 3_000_000_000, time.monotonic_ns())
-    msn.arm_and_takeoff(conn, -path.waypoints[0, 2])
+    msn.arm_and_takeoff(conn, rec, -path.waypoints[0, 2])
     time.sleep(8.0)
     t0 = time.monotonic_ns()
     # blackouts evenly spaced over the mission: [(start [s into the path], duration [s])]
@@ -166,9 +169,9 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path) -> 
         msn.send_target(conn, p, v, rec.boot_ms)
         time.sleep(0.1)
     blackout.unlink(missing_ok=True)
-    msn.set_mode(conn, "LAND")
+    msn.set_mode(conn, rec, "LAND")
     deadline = time.monotonic() + 60
-    while conn.motors_armed() and time.monotonic() < deadline:
+    while rec.armed and time.monotonic() < deadline:
         time.sleep(1.0)
     return {"t_ground": t_ground, "t0": t0, "blackouts": windows}
 
@@ -264,11 +267,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = kestrel_config(out, args.fps, args.width, args.height)
         daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
                                   stdout=open(out / "kestrel.log", "w"), stderr=subprocess.STDOUT)
-        ev = fly(conn, rec, path, faults, out)
-        rec.stop.set()
-        rec.join(2.0)
+        try:
+            ev = fly(conn, rec, path, faults, out)
+        finally:
+            rec.stop.set()
+            rec.join(2.0)
         summary = summarise(rec, path, ev, out)
-    except (TimeoutError, ConnectionError, OSError) as e:
+    except (TimeoutError, ConnectionError, OSError, ValueError, IndexError) as e:
         print(f"closed-loop run stopped: {e}", file=sys.stderr)
         return 1
     finally:
