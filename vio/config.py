@@ -178,7 +178,8 @@ class MavlinkConfig:
 
 @dataclass(frozen=True)
 class SourceConfig:
-    kind: str = opt("oak", "sensor source", choices=("oak", "euroc", "fake"))
+    kind: str = opt("oak", "sensor source ('sitl': cameras rendered at an autopilot SITL's truth pose, for "
+                    "bench/sitl/)", choices=("oak", "euroc", "fake", "sitl"))
     dataset: str = opt("", "EuRoC dataset path when kind = 'euroc'")
     calibration: str = opt("", "calibration file; empty = from the device / dataset")
     fps: float = opt(20.0, "camera frame rate", min=1, max=120)
@@ -215,6 +216,11 @@ class SourceConfig:
     fake_duration_s: float = opt(0.0, "kind = 'fake': flight length; 0 = endless (the flight never repeats)",
                                  min=0, max=1e7)
     fake_seed: int = opt(0, "kind = 'fake': seed of the simulated flight and room", min=0, max=2**31 - 1)
+    sitl_url: str = opt("tcp:127.0.0.1:5763", "kind = 'sitl': MAVLink link on which the SITL sends its truth "
+                        "(SIM_STATE); not the autopilot link of [mavlink]")
+    sitl_home: list = opt([-35.363261, 149.165230, 584.0], "kind = 'sitl': the SITL's --home [lat_deg, lon_deg, "
+                          "alt_m]; it is placed in the middle of the simulated room")
+    sitl_blackout_file: str = opt("", "kind = 'sitl': while this file exists the cameras are black (fault tests)")
 
 
 @dataclass(frozen=True)
@@ -406,6 +412,11 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
         raise VioError(f"{source}: [source] mavlink_imu_message = 'RAW_IMU' is in the sensor's own units: set "
                        "mavlink_imu_accel_scale [m/s^2 per unit] and mavlink_imu_gyro_scale [rad/s per unit] "
                        "(ArduPilot's RAW_IMU: 9.80665e-3 and 1e-3)")
+    if src.kind == "sitl" and src.imu != "mavlink":
+        raise VioError(f"{source}: [source] kind = 'sitl' renders cameras only; set imu = 'mavlink' (the SITL's IMU, "
+                       "so that images and IMU are of the same flight)")
+    if src.kind == "sitl" and len(src.sitl_home) != 3:
+        raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m]")
     b, f = cfg.backend, cfg.frontend
     if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
         raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "
