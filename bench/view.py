@@ -1,11 +1,16 @@
 """What the live view costs the frame loop: a replay without a view, with a view saved to .rrd, with a
 viewer that is slow (50 ms per frame) and with `serve` and no viewer connected.
 
-    python bench/view.py [DATASET] [--json out.json]
+    taskset -c 1 python bench/view.py [DATASET] [--repeat 3] [--json out.json]
 
-Prints the replay's mean per-frame time and real-time factor for each, and the time `LiveView.submit()`
-took in the frame loop (mean, p99, max), with how many view frames were dropped. Default dataset: a simulated
-752x480 survey flight of 15 s (realistic variant). OpenCV/BLAS limited to one thread.
+For each case, --repeat replays (the cases interleaved, so that a change in the machine's load hits all of
+them alike), and per case the median of: the replay's mean wall time per frame, and the process CPU time
+per frame (all threads, Rerun's own included). On one core (taskset) the view's extra CPU per frame is
+what the frame loop loses to it, and unlike wall time it does not depend on what other users of the
+machine run (a warm-up replay goes first, not counted). Also the time `LiveView.submit()` took in the frame
+loop (mean, p99, max) and how many view frames were logged, thinned (to [view] rate_hz / image_hz) and
+dropped. Default dataset: a simulated 752x480 survey flight of 15 s (realistic variant).
+OpenCV/BLAS limited to one thread.
 """
 
 from __future__ import annotations
@@ -27,17 +32,20 @@ from pathlib import Path  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset", nargs="?")
+    ap.add_argument("--repeat", type=int, default=3, help="replays per case (interleaved)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     import cv2
+    import numpy as np
 
     cv2.setNumThreads(1)
     from vio.app.replay import replay
     from vio.app.view import LiveView
+    from vio.config import ViewConfig
     from vio.io.euroc import EurocDataset
 
     tmp = Path(tempfile.mkdtemp())
-    out: dict = {}
+    runs: dict[str, list[dict]] = {}
     try:
         src = args.dataset
         if src is None:
@@ -54,22 +62,42 @@ def main(argv: list[str] | None = None) -> int:
 
         cases = {"no view": lambda: None, "rrd": lambda: LiveView(str(tmp / "a.rrd"), None),
                  "slow viewer (50 ms/frame)": lambda: slow(str(tmp / "b.rrd")),
-                 "serve, no viewer": lambda: LiveView("serve", None, web_port=9091)}
-        for name, make in cases.items():
-            ds = EurocDataset(src)
-            view = make()
-            res = replay(ds, None, progress=False, view=view)
-            if view is not None:
-                view.close()
-            st = res.stats_dict()["timing_ms"]["total_ms"]
-            line = f"{name:>26}: per frame mean {st['mean']:.2f} ms, real-time factor {res.realtime_factor:.2f}"
-            out[name] = {"frame_ms_mean": st["mean"], "rtf": res.realtime_factor}
-            if view is not None:
-                vs = view.stats()
-                line += (f"; submit() mean {vs['submit_ms']['mean']:.3f} ms, p99 {vs['submit_ms']['p99']:.3f}, "
-                         f"max {vs['submit_ms']['max']:.3f}; {vs['logged']} logged, {vs['dropped']} dropped")
-                out[name]["view"] = vs
+                 "serve, no viewer": lambda: LiveView("serve", None, ViewConfig(web_port=9091))}
+        print(f"cores: {sorted(os.sched_getaffinity(0))}, load average {os.getloadavg()[0]:.2f}", flush=True)
+        replay(EurocDataset(src), None, progress=False)  # warm-up (imports, first-call costs), not counted
+        for rep in range(args.repeat):
+            for name, make in cases.items():
+                ds = EurocDataset(src)
+                view = make()
+                cpu0 = time.process_time()
+                res = replay(ds, None, progress=False, view=view)
+                if view is not None:
+                    view.close()
+                cpu_ms = (time.process_time() - cpu0) * 1e3 / max(1, res.frames)
+                st = res.stats_dict()["timing_ms"]["total_ms"]
+                run = {"frame_ms_mean": st["mean"], "cpu_ms_per_frame": cpu_ms, "rtf": res.realtime_factor}
+                if view is not None:
+                    run["view"] = view.stats()
+                runs.setdefault(name, []).append(run)
+                print(f"  run {rep + 1} {name}: frame {st['mean']:.2f} ms, CPU {cpu_ms:.2f} ms/frame", flush=True)
+        out: dict = {"load_average_end": os.getloadavg()[0], "cores": sorted(os.sched_getaffinity(0))}
+        base = None
+        for name, rs in runs.items():
+            frame = float(np.median([r["frame_ms_mean"] for r in rs]))
+            cpu = float(np.median([r["cpu_ms_per_frame"] for r in rs]))
+            base = base or {"frame": frame, "cpu": cpu}
+            line = (f"{name:>26}: per frame mean {frame:.2f} ms (+{frame - base['frame']:.2f}), CPU {cpu:.2f} ms "
+                    f"(+{cpu - base['cpu']:.2f}), real-time factor {np.median([r['rtf'] for r in rs]):.2f}")
+            out[name] = {"frame_ms_mean": frame, "cpu_ms_per_frame": cpu, "extra_frame_ms": frame - base["frame"],
+                         "extra_cpu_ms": cpu - base["cpu"], "runs": rs}
+            if "view" in rs[0]:
+                vs = rs[-1]["view"]
+                sub = max(r["view"]["submit_ms"]["max"] for r in rs)
+                line += (f"; submit() mean {vs['submit_ms']['mean']:.3f} ms, p99 {vs['submit_ms']['p99']:.3f}, max "
+                         f"(all runs) {sub:.3f}; last run {vs['logged']} logged ({vs['images']} images), "
+                         f"{vs['thinned']} thinned, {vs['dropped']} dropped")
             print(line)
+        print(f"load average at the end {out['load_average_end']:.2f}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if args.json:
