@@ -182,3 +182,48 @@ def test_mcap_cut_short_is_read_up_to_the_damage(flight):
     assert 0 < len(b) < len(d)
     frames = [e for e in b.events() if isinstance(e, StereoFrame)]
     assert len(frames) == len(b)
+
+
+def test_bag_section_chooses_topics_and_flags_win(flight):
+    """[bag] topics are used when no flag is given; a flag wins over the config; the section is validated
+    and shown by `vio config show`."""
+    names = BagTopics("/left", "/right", "/imu")
+    export_bag(EurocDataset(flight / "sim"), flight / "named.mcap", "mcap", "png", names)
+    (flight / "bag.toml").write_text('[bag]\nleft_topic = "/left"\nright_topic = "/right"\nimu_topic = "/imu"\n')
+    r = _vio("replay", "named.mcap", "--config", "bag.toml", "--calib", "calib.yaml", "-o", "named.tum",
+             "--no-progress", cwd=flight)
+    assert r.returncode == 0, r.stderr
+    assert (flight / "named.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
+    r = _vio("replay", "named.mcap", "--config", "bag.toml", "--calib", "calib.yaml", "--imu-topic", "/imu0",
+             "--no-progress", cwd=flight)
+    assert r.returncode == 1 and "imu /imu0" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    (flight / "bad.toml").write_text('[bag]\nimages = "jpeg"\n')
+    r = _vio("replay", "named.mcap", "--config", "bad.toml", "--calib", "calib.yaml", cwd=flight)
+    assert r.returncode != 0 and "[bag]: 'images' = 'jpeg' is not one of" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    show = _vio("config", "show", "bag.toml", cwd=flight)
+    assert show.returncode == 0, show.stderr
+    assert '[bag]' in show.stdout and 'left_topic = "/left"' in show.stdout and "images = \"auto\"" in show.stdout
+
+
+def test_bag_images_raw_or_compressed_with_image_transport_names(flight):
+    """image_transport publishes CompressedImage on TOPIC/compressed: [bag] images = 'compressed' (and 'auto',
+    when TOPIC is absent) reads those; 'raw' refuses a compressed topic and names the type."""
+    names = BagTopics("/cam0/image_raw/compressed", "/cam1/image_raw/compressed", "/imu0")
+    export_bag(EurocDataset(flight / "sim"), flight / "it.mcap", "mcap", "png", names)
+    calib = EurocDataset(flight / "sim").calibration
+    from vio.config import BagConfig
+
+    for images in ("compressed", "auto"):
+        b = BagDataset(flight / "it.mcap", calib, BagTopics.from_config(BagConfig(images=images)))
+        assert b.topics.left == "/cam0/image_raw/compressed" and b.topics.right == "/cam1/image_raw/compressed"
+        assert len(b) == len(EurocDataset(flight / "sim"))
+    with pytest.raises(VioError, match=r"no left /cam0/image_raw / right /cam1/image_raw topic"):
+        BagDataset(flight / "it.mcap", calib, BagTopics.from_config(BagConfig(images="raw")))
+    with pytest.raises(VioError, match=r"is sensor_msgs/msg/CompressedImage, expected sensor_msgs/msg/Image "
+                                       r"\(\[bag\] images = 'raw'\)"):
+        BagDataset(flight / "it.mcap", calib, BagTopics(names.left, names.right, "/imu0", "raw"))
+    raw = BagTopics(images="compressed")
+    export_bag(EurocDataset(flight / "sim"), flight / "raw.mcap", "mcap", "raw")
+    with pytest.raises(VioError, match=r"is sensor_msgs/msg/Image, expected sensor_msgs/msg/CompressedImage"):
+        BagDataset(flight / "raw.mcap", calib, raw)

@@ -40,9 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="TOML configuration for every replay")
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for bags (see vio replay --calib)")
     p.add_argument("--calib-format", default="project", help="format of --calib (default: project)")
-    p.add_argument("--left-topic", default="/cam0/image_raw")
-    p.add_argument("--right-topic", default="/cam1/image_raw")
-    p.add_argument("--imu-topic", default="/imu0")
+    p.add_argument("--left-topic", help="bag topics, as vio replay's (default: [bag] in --config)")
+    p.add_argument("--right-topic")
+    p.add_argument("--imu-topic")
     p.add_argument("--compare", metavar="REPORT", help="another batch's report.json (or its folder): what got "
                    "better or worse")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -71,7 +71,7 @@ def replay_flight(path: str, out_tum: str, options: dict) -> dict:
 
         cfg = load_config(options.get("config"))
         calib = load_calib_args(options.get("calib"), options.get("calib_format", "project"))
-        dataset = open_dataset(path, calib, options.get("topics"))
+        dataset = open_dataset(path, calib, options.get("topics"), cfg.bag)
         tum = TumSink(out_tum)
         try:
             res = replay(dataset, cfg, [tum], progress=False)
