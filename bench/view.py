@@ -60,9 +60,10 @@ def main(argv: list[str] | None = None) -> int:
             v._log = lambda *a: (time.sleep(0.05), fast(*a))
             return v
 
+        ports = iter(range(9091, 9191))  # a web viewer's port stays bound until the process ends
         cases = {"no view": lambda: None, "rrd": lambda: LiveView(str(tmp / "a.rrd"), None),
                  "slow viewer (50 ms/frame)": lambda: slow(str(tmp / "b.rrd")),
-                 "serve, no viewer": lambda: LiveView("serve", None, ViewConfig(web_port=9091))}
+                 "serve, no viewer": lambda: LiveView("serve", None, ViewConfig(web_port=next(ports)))}
         print(f"cores: {sorted(os.sched_getaffinity(0))}, load average {os.getloadavg()[0]:.2f}", flush=True)
         replay(EurocDataset(src), None, progress=False)  # warm-up (imports, first-call costs), not counted
         for rep in range(args.repeat):

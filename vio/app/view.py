@@ -7,9 +7,12 @@ so the frame loop is never switched out there (on a busy core a wake-up can cost
 `queue_frames` items wait (a stuck viewer) the oldest is dropped and counted. Everything else happens in
 the view thread, which is kept cheap because on the companion computer it shares the cores (and in Python
 the GIL) with the estimator: it wakes every 20 ms, takes what waits, keeps the path and keyframes of every
-frame, and logs only the newest frame at a bounded wall-clock rate (`[view] rate_hz`, default 10 Hz) and
-the image, downscaled and JPEG-encoded by OpenCV (which releases the GIL), at `image_hz` (default 5 Hz).
-Frames it passes over are counted as thinned, not dropped.
+frame, and logs only the newest frame at bounded wall-clock rates: the body pose and landmarks at
+`[view] rate_hz` (default 10 Hz), the image, downscaled and JPEG-encoded by OpenCV (which releases the
+GIL), with its tracks at `image_hz` (default 5 Hz), and what changes slowly or grows with the flight (the
+path, keyframes, covariance, counters, loop closure) every 0.5 s. Frames it passes over are counted as
+thinned, not dropped. Each Rerun log call costs some 0.1 ms of Python, so the rates, not the frame rate,
+set the view's CPU.
 
 Entities (timeline `sensor_time`, the frame's stamp):
 
@@ -49,6 +52,7 @@ log = logging.getLogger(__name__)
 
 _STEREO, _MONO = (60, 220, 60), (255, 150, 0)
 _POLL_S = 0.02  # the view thread's wake-up period
+_SLOW_S = 0.5  # path, keyframes, covariance, counters and loop closure: at most this often
 
 
 class LiveView:
@@ -79,12 +83,14 @@ class LiveView:
         self.logged = 0  # frames logged (state and counters; images at image_hz)
         self.images = 0
         self.errors = 0
+        self.thread_cpu_s = 0.0  # the view thread's own CPU time, when it has stopped (not Rerun's threads)
         self._submit_sum_ms = 0.0
         self._submit_max_ms = 0.0
         self._submit_recent: collections.deque = collections.deque(maxlen=10_000)  # p99 (a daemon runs for days)
         self._path: list[np.ndarray] = []
         self._kf: list[np.ndarray] = []
         self._kf_logged = 0
+        self._next_slow = 0.0
         self._loop_version = -1
         self._thread = threading.Thread(target=self._loop, name="live-view", daemon=True)
         self._thread.start()
@@ -113,6 +119,7 @@ class LiveView:
         recent = np.array(self._submit_recent or [0.0])
         return {"submitted": self.submitted, "logged": self.logged, "images": self.images, "thinned": self.thinned,
                 "dropped": self.dropped, "errors": self.errors,
+                "thread_cpu_s": self.thread_cpu_s,
                 "submit_ms": {"mean": self._submit_sum_ms / max(1, self.submitted),
                               "p99": float(np.percentile(recent, 99)), "max": self._submit_max_ms}}
 
@@ -151,6 +158,7 @@ class LiveView:
             if stop:
                 if self.loop is not None:  # the loop worker has finished: its final corrected keyframes
                     self._final_loop()
+                self.thread_cpu_s = time.thread_time()
                 return
 
     def _log_safely(self, item, with_state: bool, with_image: bool) -> None:
@@ -184,8 +192,24 @@ class LiveView:
         n_stereo = 0 if stereo is None else int(stereo.sum())
         if st is not None:
             T = np.asarray(st.T_world_body)
-            p = T[:3, 3]
-            rec.log("world/body", rr.Transform3D(translation=p, mat3x3=T[:3, :3]))
+            rec.log("world/body", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+            calib = self.calibration() if callable(self.calibration) else self.calibration
+            if n_stereo and calib is not None:
+                cam = calib.cam0
+                uv, z = ff.uv0[stereo], ff.depth_m[stereo]
+                xyz_c = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z])
+                T_wc = T @ cam.T_body_cam
+                rec.log("world/landmarks", rr.Points3D(xyz_c @ T_wc[:3, :3].T + T_wc[:3, 3], radii=0.01))
+        now = time.monotonic()
+        if now >= self._next_slow or self._stop.is_set():
+            self._next_slow = now + _SLOW_S
+            self._log_slow(st, ff, n_stereo, counters)
+
+    def _log_slow(self, st, ff, n_stereo: int, counters: dict) -> None:
+        """What changes slowly or costs more the longer the flight (the whole path): every _SLOW_S."""
+        rr, rec = self.rr, self.rec
+        if st is not None:
+            T = np.asarray(st.T_world_body)
             if self._path:
                 rec.log("world/trajectory/odometry", rr.LineStrips3D([np.array(self._path)]))
             if len(self._kf) != self._kf_logged:
@@ -196,15 +220,9 @@ class LiveView:
                 P = T[:3, :3] @ np.asarray(cov)[3:, 3:] @ T[:3, :3].T
                 w, V = np.linalg.eigh(0.5 * (P + P.T))
                 q = _quat_xyzw(V if np.linalg.det(V) > 0 else -V)
-                rec.log("world/covariance", rr.Ellipsoids3D(centers=[p], half_sizes=[3 * np.sqrt(np.maximum(w, 0))],
+                rec.log("world/covariance", rr.Ellipsoids3D(centers=[T[:3, 3]],
+                                                            half_sizes=[3 * np.sqrt(np.maximum(w, 0))],
                                                             quaternions=[q]))
-            calib = self.calibration() if callable(self.calibration) else self.calibration
-            if n_stereo and calib is not None:
-                cam = calib.cam0
-                uv, z = ff.uv0[stereo], ff.depth_m[stereo]
-                xyz_c = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z])
-                T_wc = T @ cam.T_body_cam
-                rec.log("world/landmarks", rr.Points3D(xyz_c @ T_wc[:3, :3].T + T_wc[:3, 3], radii=0.01))
         counters = {**counters, "tracks": 0 if ff is None else len(ff.ids), "stereo": n_stereo,
                     "view_dropped": self.dropped}
         if self.loop is not None:
