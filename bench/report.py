@@ -168,10 +168,39 @@ def render(res: dict, out_rel: str) -> str:
     return "\n".join(L)
 
 
+def view_section(view: dict) -> list[str]:
+    """The live view's cost (bench/view.py --json bench/results/view.json), measured apart from the suite."""
+    L = ["## Live view cost (`bench/view.py`, run apart from the suite)", "",
+         f"`{view.get('command', 'taskset -c 1 python bench/view.py')}`; load average "
+         f"{_f(view.get('load_average_start'))} at the start, {_f(view.get('load_average_end'))} at the end. "
+         "Extra CPU per frame against the replay without a view (medians of the runs; on one core this is "
+         "what the frame loop loses to the view):", "",
+         "| case | frame loop, mean per frame [ms] | CPU per frame [ms] | extra CPU per frame [ms] "
+         "| submit() mean / max [ms] |",
+         "| --- | --- | --- | --- | --- |"]
+    for name, r in view.items():
+        if not isinstance(r, dict) or "cpu_ms_per_frame" not in r:
+            continue
+        sub = "-"
+        if r["runs"] and "view" in r["runs"][0]:
+            sub = (f"{_f(max(x['view']['submit_ms']['mean'] for x in r['runs']), 3)} / "
+                   f"{_f(max(x['view']['submit_ms']['max'] for x in r['runs']), 3)}")
+        L.append(f"| {name} | {_f(r['frame_ms_mean'])} | {_f(r['cpu_ms_per_frame'])} | {_f(r['extra_cpu_ms'])} "
+                 f"| {sub} |")
+    return L + [""]
+
+
 def write_report(res: dict, path: Path, out_dir: Path) -> None:
     rel = os.path.relpath(Path(out_dir).resolve(), Path(path).resolve().parent)
+    text = render(res, rel)
+    view_json = Path(out_dir) / "view.json"
+    if view_json.is_file():  # a figure measured by its own script, kept in the report across suite runs
+        import json
+
+        text = text.replace("\n## How it is measured", "\n" + "\n".join(view_section(json.loads(view_json.read_text())))
+                            + "\n## How it is measured", 1)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(render(res, rel))
+        path.write_text(text)
     except OSError as e:
         raise VioError(f"{path}: cannot write the report ({e.strerror})") from None

@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     from vio.config import ViewConfig
     from vio.io.euroc import EurocDataset
 
+    load0 = os.getloadavg()[0]
     tmp = Path(tempfile.mkdtemp())
     runs: dict[str, list[dict]] = {}
     try:
@@ -81,7 +82,10 @@ def main(argv: list[str] | None = None) -> int:
                     run["view"] = view.stats()
                 runs.setdefault(name, []).append(run)
                 print(f"  run {rep + 1} {name}: frame {st['mean']:.2f} ms, CPU {cpu_ms:.2f} ms/frame", flush=True)
-        out: dict = {"load_average_end": os.getloadavg()[0], "cores": sorted(os.sched_getaffinity(0))}
+        cores = sorted(os.sched_getaffinity(0))
+        out: dict = {"command": f"taskset -c {','.join(map(str, cores))} python bench/view.py "
+                                + " ".join(argv if argv is not None else sys.argv[1:]),
+                     "load_average_start": load0, "load_average_end": os.getloadavg()[0], "cores": cores}
         base = None
         for name, rs in runs.items():
             frame = float(np.median([r["frame_ms_mean"] for r in rs]))
