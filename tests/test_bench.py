@@ -124,7 +124,8 @@ def test_report_keeps_the_live_view_figure_from_its_own_script() -> None:
     view = {"command": "taskset -c 1 python bench/view.py", "load_average_start": 0.5, "load_average_end": 0.7,
             "no view": {"frame_ms_mean": 13.0, "cpu_ms_per_frame": 12.0, "other_threads_cpu_ms": 0.01,
                         "runs": [{"frame_ms_mean": 13.0, "cpu_ms_per_frame": 12.0, "rtf": 3.1}]},
-            "rrd": {"frame_ms_mean": 14.0, "cpu_ms_per_frame": 12.5, "other_threads_cpu_ms": 0.5, "runs": [run]}}
+            "rrd": {"frame_ms_mean": 14.0, "cpu_ms_per_frame": 12.5, "other_threads_cpu_ms": 0.5,
+                    "other_threads_cpu_ms_per_s": 12.0, "runs": [run]}}
     text = "\n".join(view_section(view))
-    assert "| rrd | 14.00 | 12.50 | 0.500 | 0.004 / 0.050 |" in text
-    assert "| no view | 13.00 | 12.00 | 0.010 | - |" in text and "load average 0.50" in text
+    assert "| rrd | 14.00 | 12.50 | 0.500 | 12.0 (0.60) | 0.004 / 0.050 |" in text
+    assert "| no view | 13.00 | 12.00 | 0.010 | - (-) | - |" in text and "load average 0.50" in text

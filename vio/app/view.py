@@ -1,18 +1,18 @@
 """Live view to Rerun (rerun-sdk, the [view] extra): `vio replay --view [FILE.rrd|serve]`, `[view]` for `vio run`.
 
-The frame loop never waits for the viewer and does almost nothing for it: `LiveView.submit()` appends a
-tuple of references (the image, the front end's output, the state, the counters; no copies, no conversion)
-to a bounded deque and returns. No lock, no condition variable: nothing in submit() wakes the view thread,
-so the frame loop is never switched out there (on a busy core a wake-up can cost it its time slice). When
-`queue_frames` items wait (a stuck viewer) the oldest is dropped and counted. Everything else happens in
-the view thread, which is kept cheap because on the companion computer it shares the cores (and in Python
-the GIL) with the estimator: it wakes every 20 ms, takes what waits, keeps the path and keyframes of every
-frame, and logs only the newest frame at bounded wall-clock rates: the body pose and landmarks at
-`[view] rate_hz` (default 10 Hz), the image, downscaled and JPEG-encoded by OpenCV (which releases the
-GIL), with its tracks at `image_hz` (default 5 Hz), and what changes slowly or grows with the flight (the
-path, keyframes, covariance, counters, loop closure) every 0.5 s. Frames it passes over are counted as
-thinned, not dropped. Each Rerun log call costs some 0.1 ms of Python, so the rates, not the frame rate,
-set the view's CPU.
+The frame loop never waits for the viewer and does almost nothing for it: `LiveView.submit()` appends a tuple
+of references (the image, the front end's output, the state, the counters; no copies, no conversion) to a
+bounded deque and returns. No lock, no condition variable: nothing in submit() wakes the view thread, so the
+frame loop is never switched out there (on a busy core a wake-up can cost it its time slice). When
+`queue_frames` items wait (a stuck viewer) the oldest is dropped and counted. Everything else happens in the
+view thread, which is kept cheap because on the companion computer it shares the cores (and in Python the GIL)
+with the estimator: it wakes at twice its highest rate (every 50 ms by default), takes what waits, keeps the
+path and keyframes of every frame, and logs only the newest frame at bounded wall-clock rates: the body pose
+and landmarks at `[view] rate_hz` (default 10 Hz), the image, downscaled and JPEG-encoded by OpenCV (which
+releases the GIL), with its tracks at `image_hz` (default 5 Hz), and what changes slowly or grows with the
+flight (the path, keyframes, covariance, counters, loop closure) every 0.5 s. Frames it passes over are
+counted as thinned, not dropped. Each Rerun log call costs some 0.1 ms of Python, so the rates, not the frame
+rate, set the view's CPU.
 
 Entities (timeline `sensor_time`, the frame's stamp):
 
@@ -51,7 +51,6 @@ from vio.extras import require
 log = logging.getLogger(__name__)
 
 _STEREO, _MONO = (60, 220, 60), (255, 150, 0)
-_POLL_S = 0.02  # the view thread's wake-up period
 _SLOW_S = 0.5  # path, keyframes, covariance, counters and loop closure: at most this often
 
 
@@ -126,10 +125,11 @@ class LiveView:
     # -- view thread --------------------------------------------------------------------------------------
     def _loop(self) -> None:
         s = self.settings
+        poll_s = min(0.05, max(0.01, 0.5 / max(s.rate_hz, s.image_hz)))  # wake-ups cost CPU too: twice the rate
         next_state = next_image = 0.0
         pending = None  # the newest item not logged yet (logged at the end)
         while True:
-            stop = self._stop.wait(_POLL_S)
+            stop = self._stop.wait(poll_s)
             items = []
             while self._q:
                 items.append(self._q.popleft())
