@@ -22,8 +22,10 @@ import os
 import select
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -35,55 +37,27 @@ from drivers.mavlink_frames import (
     to_vehicle_odometry,
     upper_triangle,
 )
+from drivers.mavlink_link import (  # noqa: F401 (mavutil, open_connection re-exported)
+    OUR_COMPONENT,
+    RECONNECT_MAX_S,
+    RECONNECT_MIN_S,
+    MavlinkLink,
+    is_autopilot_heartbeat,
+    mavlink,
+    mavutil,
+    open_connection,
+)
 from vio import VioError
 from vio.config import MavlinkConfig
 from vio.geometry import make_T
 from vio.types import NavState
 
-os.environ["MAVLINK20"] = "1"  # ODOMETRY (id 331) exists only in MAVLink 2; must precede the dialect import
-from pymavlink import mavutil  # noqa: E402
-
-mavutil.set_dialect("ardupilotmega")  # re-import as the v2.0 dialect even if mavutil was imported before
-mavlink = mavutil.mavlink
-
 log = logging.getLogger(__name__)
 
 SUPPORTED_MESSAGES = ("VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY")
-OUR_COMPONENT = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
 HEARTBEAT_PERIOD_NS = 1_000_000_000
 FLAP_CHANGES, FLAP_WINDOW_NS = 4, 3_000_000_000  # tracking changes within the window that count as flapping
 ORIGIN_REPEATS = 3  # SET_GPS_GLOBAL_ORIGIN / SET_HOME_POSITION sends after each link-up, 1 s apart
-RECONNECT_MIN_S, RECONNECT_MAX_S = 0.5, 5.0
-# Heartbeats from these vehicle types are not an autopilot (GCS, other companions, cameras...).
-_NOT_AUTOPILOT_TYPES = {mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL,
-                        mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_ADSB}
-
-
-def open_connection(url: str, source_system: int) -> mavutil.mavfile:
-    """Open a mavutil connection from `udpout:H:P`, `udpin:H:P`, `tcp:H:P` or a serial `DEVICE[:BAUD]`.
-
-    mavutil would read `/dev/ttyAMA0:921600` as a UDP address, so serial devices are split here.
-    """
-    kw = {"source_system": source_system, "source_component": OUR_COMPONENT, "dialect": "ardupilotmega"}
-    if url.startswith("tcp:"):  # one attempt: mavutil's own retries sleep (and print) inside our loop
-        conn = mavutil.mavlink_connection(url, retries=0, **kw)
-        # mavutil only prints on a closed peer and returns no data forever; make it an error we handle.
-        conn.handle_eof = conn.handle_disconnect = _peer_closed
-        return conn
-    if url.startswith(("udpout:", "udpin:", "udp:", "tcpin:", "udpbcast:")):
-        return mavutil.mavlink_connection(url, **kw)
-    device, _, baud = url.partition(":")
-    if url.startswith("/dev/") or url.upper().startswith("COM"):
-        if baud and not baud.isdigit():
-            raise VioError(f"[mavlink] url {url!r}: baud rate {baud!r} is not a number")
-        return mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
-    raise VioError(f"[mavlink] url {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
-                   "or a serial device such as /dev/ttyAMA0:921600")
-
-
-def _peer_closed() -> None:
-    raise ConnectionResetError("peer closed the connection")
-
 
 @dataclass
 class MavlinkStats:
@@ -107,13 +81,17 @@ class MavlinkOutput:
 
     Use `send_state()` (or call the object: it is a NavState sink), optionally `start()` a background
     thread for exact-rate sending and prompt TIMESYNC answers, and `close()` at the end.
-    `clock_ns` is injectable so that scheduling is testable without real time.
+    `clock_ns` is injectable so that scheduling is testable without real time. With `link` (a
+    drivers.mavlink_link.MavlinkLink, e.g. the one the MAVLink IMU source reads) the output opens no
+    connection of its own: it sends through the link and gets HEARTBEAT/TIMESYNC from its reader thread.
     """
 
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
-                 clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None) -> None:
+                 clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None,
+                 link: MavlinkLink | None = None) -> None:
         self.cfg = cfg
-        self.url = url if url is not None else cfg.url
+        self._link = link
+        self.url = link.url if link is not None else url if url is not None else cfg.url
         if not self.url:
             raise VioError("[mavlink] url is empty: give a connection string such as udpout:127.0.0.1:14550")
         bad = [m for m in cfg.messages if m not in SUPPORTED_MESSAGES]
@@ -146,7 +124,7 @@ class MavlinkOutput:
         self.target_system = cfg.target_system
         self.system_id = cfg.system_id or cfg.target_system
 
-        self._conn: mavutil.mavfile | None = None
+        self._conn: Any = None
         self._reopen_at_ns = 0
         self._backoff_s = RECONNECT_MIN_S
         self._conn_failed_logged = False
@@ -167,10 +145,15 @@ class MavlinkOutput:
         self._pending_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._open()  # raises VioError for a malformed url; a missing device is retried later
+        self._inbox: deque = deque(maxlen=1000)  # link mode: HEARTBEAT/TIMESYNC handed over by the link's reader
+        if link is None:
+            self._open()  # raises VioError for a malformed url; a missing device is retried later
         self._wake_r, self._wake_w = os.pipe()  # lets send_state()/close() interrupt the thread's select()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
+        if link is not None:
+            link.subscribe({"HEARTBEAT", "TIMESYNC"}, self._on_link_message)
+            link.acquire()
 
     # ---------------------------------------------------------------- public API
 
@@ -199,7 +182,7 @@ class MavlinkOutput:
 
     @property
     def connected(self) -> bool:
-        return self._conn is not None
+        return self._link.connected if self._link is not None else self._conn is not None
 
     def health(self) -> dict:
         """Flat snapshot for the status file: link, ids and counters."""
@@ -268,6 +251,10 @@ class MavlinkOutput:
             self._thread.join(timeout=2.0)
             self._thread = None
         with self._lock:
+            if self._link is not None:
+                self._link.unsubscribe(self._on_link_message)
+                self._link.release()
+                self._link = None
             self._close_conn()
         for fd in (self._wake_r, self._wake_w):
             with contextlib.suppress(OSError):
@@ -289,7 +276,10 @@ class MavlinkOutput:
         heartbeat, origin messages, and the pose messages of the newest state."""
         with self._lock:
             now = self._clock()
-            if self._conn is None and (now < self._reopen_at_ns or not self._open()):
+            if self._link is not None:
+                if not self._link.connected:
+                    return
+            elif self._conn is None and (now < self._reopen_at_ns or not self._open()):
                 return
             self._read_incoming(now)
             self._update_link(now)
@@ -389,7 +379,7 @@ class MavlinkOutput:
 
     def _tracking_text(self, text: str, severity: int) -> None:
         with self._lock:
-            if self._conn is not None:
+            if self.connected:
                 self._statustext(severity, text)
 
     def _check_flapping(self, now: int) -> None:
@@ -401,10 +391,18 @@ class MavlinkOutput:
 
     # ---------------------------------------------------------------- link
 
+    def _on_link_message(self, msg: Any, t_arrival_ns: int) -> None:
+        """Link mode (its reader thread): queue the message and wake our thread, which answers promptly."""
+        self._inbox.append(msg)
+        self._wake()
+
     def _read_incoming(self, now: int) -> None:
         for _ in range(100):  # bounded: a flood of input must not starve our output
             try:
-                msg = self._conn.recv_match(blocking=False)
+                if self._link is not None:
+                    msg = self._inbox.popleft() if self._inbox else None
+                else:
+                    msg = self._conn.recv_match(blocking=False)
             except Exception as e:  # serial unplugged, socket reset: pyserial/socket raise various types
                 self._io_failed(e)
                 return
@@ -412,7 +410,7 @@ class MavlinkOutput:
                 return
             kind = msg.get_type()
             if kind == "HEARTBEAT":
-                if msg.type in _NOT_AUTOPILOT_TYPES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+                if not is_autopilot_heartbeat(msg):
                     continue
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
@@ -423,7 +421,10 @@ class MavlinkOutput:
                     self.target_system = sysid
                     if self.cfg.system_id == 0:
                         self.system_id = sysid
-                        self._conn.mav.srcSystem = sysid
+                        if self._link is not None:
+                            self._link.set_source_system(sysid)
+                        else:
+                            self._conn.mav.srcSystem = sysid
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 # A request: answer with our clock (the one NavState.t_ns uses) and echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
@@ -441,6 +442,11 @@ class MavlinkOutput:
         self._link_up = up
 
     def _send(self, msg: object, name: str) -> bool:
+        if self._link is not None:
+            if not self._link.send(msg):  # the link counts and logs its own errors and reconnects
+                return False
+            self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+            return True
         if self._conn is None:
             return False
         try:
@@ -505,7 +511,7 @@ class MavlinkOutput:
             timeout_s = max(wake - now, 100_000) / 1e9
             fd = getattr(self._conn, "fd", None)
             fds = [self._wake_r] if fd is None else [self._wake_r, fd]
-            if fd is None:
+            if fd is None and self._link is None:  # a link's reader wakes us through the pipe
                 timeout_s = min(timeout_s, 0.005)  # no pollable fd: check the input every 5 ms
             # Wake on incoming bytes too: PX4 drops TIMESYNC round trips slower than ~10 ms.
             with contextlib.suppress(OSError, ValueError):

@@ -1,8 +1,8 @@
 """The factory that opens the source the config asks for; the interface itself is drivers/base.py.
 
-The sources (drivers/fake.py, depthai_camera.py, serial_imu.py) import only drivers/base.py, and this module
-imports them when a config asks for them, so there is no import cycle and no hardware library is loaded for
-a source that is not used. The base names are re-exported here for existing callers.
+The sources (drivers/fake.py, depthai_camera.py, serial_imu.py, mavlink_imu.py) import only drivers/base.py,
+and this module imports them when a config asks for them, so there is no import cycle and no hardware library
+is loaded for a source that is not used. The base names are re-exported here for existing callers.
 """
 
 from __future__ import annotations
@@ -23,9 +23,11 @@ if TYPE_CHECKING:
 
 
 def open_source(cfg: SourceConfig, dai_module: Any = None,
-                serial_factory: Callable[..., Any] | None = None) -> SensorSource:
+                serial_factory: Callable[..., Any] | None = None, mavlink_link: Any = None) -> SensorSource:
     """Build (not start) the source the config asks for. `dai_module`/`serial_factory` let tests inject
-    fakes of depthai and pyserial."""
+    fakes of depthai and pyserial. `mavlink_link` (drivers.mavlink_link.MavlinkLink) is the connection
+    an `imu = "mavlink"` source shares with the pose output; without it the source opens its own on
+    `mavlink_imu_url`."""
     from vio import VioError
 
     if cfg.kind == "fake":
@@ -55,7 +57,26 @@ def open_source(cfg: SourceConfig, dai_module: Any = None,
                                                    nominal_rate_hz=cfg.serial_imu_rate_hz,
                                                    serial_factory=serial_factory))
     if cfg.imu == "mavlink":
-        raise VioError("[source] imu = 'mavlink' is not implemented yet; use 'oak' or 'serial'")
+        return CombinedSource(cam, mavlink_imu_source(cfg, mavlink_link))
     if cfg.imu == "none" and hasattr(cam, "enable_imu"):
         cam.enable_imu = False
     return cam
+
+
+def mavlink_imu_source(cfg: SourceConfig, link: Any = None) -> SensorSource:
+    """The `imu = "mavlink"` source: on `link` when given (shared with the output), else on its own link
+    to `mavlink_imu_url`."""
+    from drivers.mavlink_imu import MavlinkImuSource
+    from drivers.mavlink_link import MavlinkLink
+    from vio import VioError
+
+    owns = link is None
+    if owns:
+        if not cfg.mavlink_imu_url:
+            raise VioError("[source] imu = 'mavlink' needs [source] mavlink_imu_url here (the daemon shares "
+                           "its [mavlink] url when mavlink_imu_url is empty)")
+        link = MavlinkLink(cfg.mavlink_imu_url, key="[source] mavlink_imu_url")
+    return MavlinkImuSource(link, message=cfg.mavlink_imu_message, rate_hz=cfg.mavlink_imu_rate_hz,
+                            request_rate=cfg.mavlink_imu_request_rate, accel_scale=cfg.mavlink_imu_accel_scale,
+                            gyro_scale=cfg.mavlink_imu_gyro_scale, axes=cfg.mavlink_imu_axes,
+                            imu_id=cfg.mavlink_imu_id, owns_link=owns)

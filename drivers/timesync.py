@@ -10,6 +10,12 @@ constant, and the calibration's camera-IMU time offset absorbs it). The slope is
 Why not a plain average: mean(arrival - t_device) includes the mean latency, which varies with load,
 so averaging moves every stamp by tens of ms whenever the host is busy.
 
+Round trips (`roundtrip=True`, the MAVLink IMU's TIMESYNC exchange): a request leaves at host time ts1, the
+device stamps its answer tc1, the answer arrives at t_recv; the device stamp then lies within rtt/2 of the
+midpoint (ts1 + t_recv)/2, whatever the link's one-way delays. Each pair is that midpoint with rtt/2 as
+its uncertainty, each block keeps its tightest round trip, and the line is a plain least-squares fit
+through those (no envelope shift: the error is symmetric, not one-sided).
+
 `StreamMonitor` checks any stamped stream for gaps, non-monotonic stamps and time jumps and counts them,
 so data problems are reported, never silently smoothed over.
 """
@@ -37,13 +43,15 @@ class ClockSync:
     """Running lower-envelope fit of host arrival time against device time."""
 
     def __init__(self, block_s: float = 1.0, window_s: float = 20.0, max_jump_s: float = 0.5,
-                 max_drift_ppm: float = 1000.0) -> None:
+                 max_drift_ppm: float = 1000.0, roundtrip: bool = False) -> None:
+        self.roundtrip = roundtrip
         self.block_ns = int(block_s * 1e9)
         self.window_blocks = max(2, int(round(window_s / block_s)))
         self.max_jump_ns = int(max_jump_s * 1e9)
         self.max_drift = max_drift_ppm * 1e-6
-        self._blocks: deque[tuple[int, int]] = deque()  # (t_dev at block min, min(host - dev)) per block
-        self._cur: tuple[int, int] | None = None  # current block's best (t_dev, host - dev)
+        # per block its best pair: (t_dev, host - dev, uncertainty); best = least uncertain (envelope: least delayed)
+        self._blocks: deque[tuple[int, int, int]] = deque()
+        self._cur: tuple[int, int, int] | None = None
         self._cur_start: int | None = None
         self._est: ClockEstimate | None = None
         self._last_dev: int | None = None
@@ -58,12 +66,17 @@ class ClockSync:
         self._last_dev = None
         self.resets += 1
 
-    def add(self, t_dev_ns: int, t_host_ns: int) -> None:
-        """Add one (device stamp, host arrival stamp) pair."""
+    def add(self, t_dev_ns: int, t_host_ns: int, uncertainty_ns: int = 0) -> None:
+        """Add one (device stamp, host stamp) pair: the host arrival time, or with `roundtrip` the round
+        trip's midpoint and half its duration as `uncertainty_ns`."""
         d = t_host_ns - t_dev_ns
         # arrivals far EARLIER than predicted mean the device clock jumped ahead; far later ones are only a
-        # stalled reader (delay is unbounded above) and must not restart the sync
-        if self._est is not None and self._predict_offset(t_dev_ns) - d > self.max_jump_ns:
+        # stalled reader (delay is unbounded above) and must not restart the sync. A round trip's midpoint is
+        # off by at most its uncertainty either way.
+        miss = 0.0 if self._est is None else self._predict_offset(t_dev_ns) - d
+        if self.roundtrip:
+            miss = abs(miss) - uncertainty_ns
+        if self._est is not None and miss > self.max_jump_ns:
             log.warning("device clock jumped by %.3f s against the host: clock sync restarted",
                         (self._predict_offset(t_dev_ns) - d) / 1e9)
             self.reset()
@@ -82,8 +95,9 @@ class ClockSync:
                 self._refit()
             self._cur = None
             self._cur_start = t_dev_ns
-        if self._cur is None or d < self._cur[1]:
-            self._cur = (t_dev_ns, d)
+        key = uncertainty_ns if self.roundtrip else d
+        if self._cur is None or key < (self._cur[2] if self.roundtrip else self._cur[1]):
+            self._cur = (t_dev_ns, d, uncertainty_ns)
 
     def _refit(self) -> None:
         t = np.array([b[0] for b in self._blocks], dtype=np.float64)
@@ -92,10 +106,12 @@ class ClockSync:
         if len(t) >= 3:
             slope, icpt = np.polyfit(t - t_ref, d, 1)
             slope = float(np.clip(slope, -self.max_drift, self.max_drift))
-            # lower envelope: shift the line down to touch the lowest residual (no point lies below it)
-            icpt = float(np.min(d - slope * (t - t_ref)))
+            resid = d - slope * (t - t_ref)
+            # lower envelope: shift the line down to touch the lowest residual (no point lies below it); round
+            # trips scatter both ways around the truth, so their line is the plain fit
+            icpt = float(np.mean(resid) if self.roundtrip else np.min(resid))
         else:
-            slope, icpt = 0.0, float(np.min(d))
+            slope, icpt = 0.0, float(self._blocks[-1][1] if self.roundtrip else np.min(d))
         self._est = ClockEstimate(icpt, slope * 1e6, t_ref, len(t))
 
     def _predict_offset(self, t_dev_ns: int) -> float:
@@ -118,7 +134,8 @@ class ClockSync:
 
     def as_dict(self) -> dict:
         e = self._est
-        return {"offset_ns": None if e is None else round(e.offset_ns),
+        return {"mode": "roundtrip" if self.roundtrip else "arrival",
+                "offset_ns": None if e is None else round(e.offset_ns),
                 "drift_ppm": None if e is None else round(e.drift_ppm, 3),
                 "blocks": 0 if e is None else e.n_blocks, "resets": self.resets}
 

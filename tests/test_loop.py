@@ -125,7 +125,8 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
 
     out = {}
     for name, extra in (("off", []), ("on", ["--loop-output", str(tmp_path / "loop.tum"),
-                                             "--save-map", str(tmp_path / "map.npz")])):
+                                             "--save-map", str(tmp_path / "map.npz"),
+                                             "--loop-plot", str(tmp_path / "loop.png")])):
         stats = tmp_path / f"{name}.json"
         assert main(["replay", str(loop_flight), "-o", str(tmp_path / f"{name}.tum"), "--stats", str(stats),
                      "--no-progress", *extra]) == 0
@@ -138,6 +139,8 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
     # a 36 s flight drifts about 1 cm, the size of a loop edge's own error: no accuracy claim here (bench/)
     odom = out["on"]["evaluation"]["ate_4dof"]["trans_m"]["rmse"]
     assert loop["evaluation"]["ate_4dof"]["trans_m"]["rmse"] < 3 * odom
+    assert set(loop["end_drift_m"]) == {"odometry", "loop"} and 0 <= loop["end_drift_m"]["loop"] < 0.5
+    assert (tmp_path / "loop.png").stat().st_size > 10_000  # the plot with its loop edges
     assert (tmp_path / "loop.tum").read_text().count("\n") == (tmp_path / "on.tum").read_text().count("\n")
     # the map: a versioned npz that `vio map info` reads, and a flight relocalises in (here the same one:
     # the mechanics; docs/loop-closure.md has the figures for a second flight with another start)
@@ -198,3 +201,57 @@ def test_aliasing_room_repeats_its_wall_texture():
     y = (v * sc.ppm + sc.face_cy[f]).astype(int)
     a, b = sc.atlas[y, x], sc.atlas[y, x + int(sc.ppm)]  # one period apart
     assert np.allclose(a, b) and np.std(a) > 1.0
+
+
+def test_wrong_closure_accepted_first_is_switched_off_when_true_ones_arrive():
+    """Incremental graph: a false edge to another segment fits (nothing contradicts it yet) and goes into
+    iSAM2 on the fast path; true edges that arrive later contradict it, the GNC decision switches it off."""
+    g, _ = _circle(80, np.random.default_rng(1))  # segment 0: keyframes 0-79
+    truth = _circle(121, np.random.default_rng(2))[1]
+    prev = None
+    for k in range(80, 121):  # segment 1 (a relocalising flight): same circle, loose prior, 0.5 m off
+        T = truth[k] @ make_T(np.eye(3), [0.5, 0.3, 0.0]) if prev is None else \
+            g.odom[prev] @ np.linalg.inv(truth[k - 1]) @ truth[k]
+        prev = g.add_node(T, prev, prior=(np.pi, 100.0) if prev is None else None)
+    false = make_T(so3_exp(np.r_[0, 0, 0.4]), [0.8, -0.5, 0.1]) @ (np.linalg.inv(truth[5]) @ truth[85])
+    g.add_loop(5, 85, false)
+    r = g.optimize()
+    assert not r["decided"] and r["loop_weights"] == [1.0]  # it fits: accepted on the fast path
+    for a, b in ((50, 90), (51, 91), (52, 92), (60, 100), (61, 101)):
+        g.add_loop(a, b, np.linalg.inv(truth[a]) @ truth[b])
+    r = g.optimize()
+    assert r["decided"] and r["loop_weights"][0] < 0.5 and min(r["loop_weights"][1:]) >= 0.5
+    # the second segment sits where the true edges put it, not where the false one did
+    rel = np.linalg.inv(g.estimate[52]) @ g.estimate[92]
+    assert np.linalg.norm(rel[:3, 3] - (np.linalg.inv(truth[52]) @ truth[92])[:3, 3]) < 0.02
+    assert np.linalg.norm(g.estimate[85][:3, 3] - (g.estimate[5] @ false)[:3, 3]) > 0.5
+
+
+def test_loop_worker_drains_its_queue_before_it_stops():
+    """What is queued at close belongs in the map: close(wait) processes it, and says when the thread has
+    stopped; out of time, the rest is dropped and counted, and the keyframe in hand is finished."""
+    import time
+
+    from vio.app.loop_worker import LoopWorker
+
+    class Slow:
+        def __init__(self, s):
+            self.s, self.done = s, 0
+
+        def add_keyframe(self, *item):
+            time.sleep(self.s)
+            self.done += 1
+            return False
+
+        def correction(self):
+            return np.eye(4)
+
+    w = LoopWorker(Slow(0.02), max_queue=100)
+    for k in range(10):
+        w.submit(k, np.eye(4), None, None, 0)
+    assert w.close(wait=True, timeout_s=5.0) and w.closer.done == 10 and w.dropped == 0
+    w = LoopWorker(Slow(0.2), max_queue=100)
+    for k in range(10):
+        w.submit(k, np.eye(4), None, None, 0)
+    assert w.close(wait=True, timeout_s=0.3, grace_s=1.0)
+    assert w.closer.done + w.dropped == 10 and w.dropped >= 5

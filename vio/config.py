@@ -169,6 +169,24 @@ class SourceConfig:
     serial_port: str = opt("/dev/ttyUSB0", "serial IMU port")
     serial_baud: int = opt(921600, "serial IMU baud rate", min=1200, max=12_000_000)
     serial_imu_rate_hz: float = opt(400.0, "serial IMU sample rate (gap detection)", min=10, max=4000)
+    mavlink_imu_url: str = opt("", "imu = 'mavlink': connection to the flight controller; empty = the [mavlink] url "
+                               "(one connection for the IMU and the pose output: a serial port opens once only)")
+    mavlink_imu_message: str = opt("HIGHRES_IMU", "imu = 'mavlink': the message read (SI units), or SCALED_IMU "
+                                   "(mG, mrad/s) or RAW_IMU (needs both scales)",
+                                   choices=("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU"))
+    mavlink_imu_rate_hz: float = opt(200.0, "imu = 'mavlink': rate requested with MAV_CMD_SET_MESSAGE_INTERVAL "
+                                     "(and the nominal rate for gap detection)", min=10, max=2000)
+    mavlink_imu_request_rate: bool = opt(True, "imu = 'mavlink': request the rate (false: the autopilot's "
+                                         "stream parameters set it)")
+    mavlink_imu_accel_scale: float = opt(0.0, "imu = 'mavlink': m/s^2 per message unit; 0 = the message's own "
+                                         "(HIGHRES_IMU 1, SCALED_IMU 9.80665e-3 for mG)", min=0, max=1e3)
+    mavlink_imu_gyro_scale: float = opt(0.0, "imu = 'mavlink': rad/s per message unit; 0 = the message's own "
+                                        "(HIGHRES_IMU 1, SCALED_IMU 1e-3 for mrad/s)", min=0, max=1e3)
+    mavlink_imu_axes: str = opt("frd", "imu = 'mavlink': axes of the estimator's body frame, which is the flight "
+                                "controller's (its IMU data are FRD): 'frd' or 'flu' (x forward, y left, z up); "
+                                "the calibration's T_body_cam0 must be given in these axes", choices=("frd", "flu"))
+    mavlink_imu_id: int = opt(0, "imu = 'mavlink': HIGHRES_IMU/RAW_IMU `id` to read (0 = the first IMU)",
+                              min=0, max=255)
     oak_device: str = opt("", "OAK device id or name; empty = the first one found")
     realtime: bool = opt(True, "fake/euroc: release data at the pace of its stamps (false = as fast as the "
                          "estimator takes it: `vio run` then waits for room in its buffers, nothing is dropped)")
@@ -371,6 +389,15 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if m.mount != "rpy" and [float(x) for x in m.mount_rpy_deg] != [0.0, 0.0, 0.0]:
         raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
                        "the calibration; set mount = 'rpy' to use mount_rpy_deg")
+    src = cfg.source
+    if src.imu == "mavlink" and not (src.mavlink_imu_url or m.url):
+        raise VioError(f"{source}: [source] imu = 'mavlink' needs a connection: [mavlink] url (shared with the pose "
+                       "output) or [source] mavlink_imu_url")
+    if src.imu == "mavlink" and src.mavlink_imu_message == "RAW_IMU" and not (
+            src.mavlink_imu_accel_scale and src.mavlink_imu_gyro_scale):
+        raise VioError(f"{source}: [source] mavlink_imu_message = 'RAW_IMU' is in the sensor's own units: set "
+                       "mavlink_imu_accel_scale [m/s^2 per unit] and mavlink_imu_gyro_scale [rad/s per unit] "
+                       "(ArduPilot's RAW_IMU: 9.80665e-3 and 1e-3)")
     b, f = cfg.backend, cfg.frontend
     if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
         raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "

@@ -322,6 +322,24 @@ def evaluate(est: Trajectory, gt: Trajectory, *, max_dt_ms: float = DEFAULT_MAX_
 
 # ------------------------------------------------------------------------------------------------ outputs
 
+def end_drift_m(t_ns: np.ndarray, T_est: np.ndarray, gt: Trajectory) -> float:
+    """Position error at the last pose, the estimate aligned on its first pose only (position and yaw): the
+    drift an integrator sees at the end of a lap, which a whole-trajectory ATE alignment would spread out.
+    Ground truth is taken at the nearest stamp."""
+    from vio.geometry import roll_pitch_yaw, so3_exp
+
+    G = gt.poses()
+
+    def at(t: int) -> np.ndarray:
+        return G[int(np.argmin(np.abs(gt.t_ns - t)))]
+
+    G0, E0 = at(int(t_ns[0])), T_est[0]
+    dyaw = roll_pitch_yaw(G0[:3, :3])[2] - roll_pitch_yaw(E0[:3, :3])[2]
+    A = make_T(so3_exp(np.array([0.0, 0.0, dyaw])), np.zeros(3))
+    A[:3, 3] = G0[:3, 3] - A[:3, :3] @ E0[:3, 3]
+    return float(np.linalg.norm((A @ T_est[-1])[:3, 3] - at(int(t_ns[-1]))[:3, 3]))
+
+
 def plot(result: EvalResult, path: str | Path, title: str = "") -> None:
     """Top view of GT and the 4-DoF-aligned estimate, and position error over time for both alignments."""
     from vio.extras import pyplot
@@ -348,6 +366,11 @@ def plot(result: EvalResult, path: str | Path, title: str = "") -> None:
     ax1.set_ylabel("position error [m]")
     ax1.legend(loc="best")
     ax1.grid(True, alpha=0.3)
+    save_figure(plt, fig, path)
+
+
+def save_figure(plt, fig, path: str | Path) -> None:
+    """Lay out, write (an unwritable path is a one-line VioError) and close a matplotlib figure."""
     fig.tight_layout()
     try:
         fig.savefig(path, dpi=110)

@@ -44,6 +44,7 @@ class LoopWorker:
         self.keep_snapshot = keep_snapshot
         self._snapshot: LoopSnapshot | None = None
         self._processed = 0
+        self._abandon = threading.Event()  # close() ran out of time: skip what is still queued
         self._thread = threading.Thread(target=self._run, name="loop-closure", daemon=True)
         self._thread.start()
 
@@ -77,7 +78,9 @@ class LoopWorker:
             try:
                 if item is None:
                     return
-                if self.error is None:
+                if self._abandon.is_set():
+                    self.dropped += 1
+                elif self.error is None:
                     closed = self.closer.add_keyframe(*item)
                     with self._lock:
                         self._correction = self.closer.correction()
@@ -93,10 +96,22 @@ class LoopWorker:
             finally:
                 self._q.task_done()
 
-    def close(self, wait: bool = True) -> None:
-        """Process what is queued (wait) and stop the thread."""
-        if wait:
-            self._q.join()
+    def close(self, wait: bool = True, timeout_s: float | None = None, grace_s: float = 5.0) -> bool:
+        """Stop the thread. `wait`: after it has processed what is queued (a map saved afterwards holds every
+        keyframe), within `timeout_s` if given; else what is queued is dropped (counted). Returns True when
+        the thread has stopped (the keyframe in hand gets `grace_s` more), so that its state (the map) can be
+        read without it changing underneath."""
+        if not wait:
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    if self._q.get_nowait() is not None:
+                        self.dropped += 1
+                    self._q.task_done()
         with contextlib.suppress(queue.Full):
-            self._q.put_nowait(None)
-        self._thread.join(timeout=5.0 if wait else 0.1)
+            self._q.put(None, timeout=timeout_s)  # behind what is queued: the thread drains, then stops
+        self._thread.join(timeout=timeout_s if wait else grace_s)
+        if self._thread.is_alive():
+            self._abandon.set()  # the rest is dropped; the keyframe in hand is finished
+            log.warning("loop closure: %d keyframes still queued at close, dropped", self._q.qsize())
+            self._thread.join(timeout=grace_s)
+        return not self._thread.is_alive()

@@ -58,6 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-map", metavar="FILE", help="write the loop-closure map here (implies --loop)")
     p.add_argument("--load-map", metavar="FILE", help="relocalise in this map (implies --loop; poses in "
                    "--loop-output come out in the map's frame)")
+    p.add_argument("--loop-plot", metavar="PNG", help="top view of odometry, loop-corrected trajectory, ground "
+                   "truth and the loop edges (implies --loop)")
 
 
 class TumSink:
@@ -291,9 +293,10 @@ def corrected_sink(sink: Sink, loop, lcfg) -> Sink:
     return lambda st: sink(out.apply(st, *loop.correction()))
 
 
-def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
-    """Loop-closure summary, the corrected trajectory (TUM) and its accuracy."""
-    from vio.geometry import rot_to_quat_wxyz
+def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None, plot_path: str | None = None) -> dict:
+    """Loop-closure summary, the corrected trajectory (TUM), its accuracy and end-of-flight drift beside the
+    odometry's, and the loop-edge plot."""
+    from vio.geometry import inv_T, rot_to_quat_wxyz
     from vio.trajectory import Trajectory, format_tum_line
 
     closer = loop.closer
@@ -306,9 +309,11 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
         print(f"relocalisation: {d['relocalisation']}")
     d.update(dropped=loop.dropped, error=loop.error, memory_per_keyframe_bytes=closer.memory_per_keyframe_bytes(),
              loop_edges=[[int(e.i), int(e.j), float(e.weight)] for e in closer.graph.edges if e.kind == "loop"])
+    T_gt = None
     if res.states:
         t = np.array([s.t_ns for s in res.states])
-        T = closer.corrected_trajectory(t, np.array([s.T_world_body for s in res.states]))
+        T_odom = np.array([s.T_world_body for s in res.states])
+        T = closer.corrected_trajectory(t, T_odom)
         if path:
             try:
                 with open(path, "w") as f:
@@ -318,14 +323,29 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None) -> dict:
             except OSError as e:
                 raise VioError(f"{path}: cannot write the trajectory ({e.strerror})") from None
         if dataset.groundtruth is not None and len(t) >= 3:
-            from vio.evaluation import evaluate
+            from vio.evaluation import end_drift_m, evaluate
 
+            gt = dataset.groundtruth.trajectory
             try:
-                ev = evaluate(Trajectory.from_poses(t, T), dataset.groundtruth.trajectory)
+                ev = evaluate(Trajectory.from_poses(t, T), gt)
                 d["evaluation"] = ev.to_dict()
                 print("loop-corrected: " + ev.summary().splitlines()[3])
+                d["end_drift_m"] = {"odometry": end_drift_m(t, T_odom, gt), "loop": end_drift_m(t, T, gt)}
+                dr = d["end_drift_m"]
+                print(f"end-of-flight drift (aligned on the first pose): odometry {dr['odometry']:.4f} m, "
+                      f"loop-corrected {dr['loop']:.4f} m")
+                A = ev.ate_4dof.T_gtworld_estworld  # ground truth into the estimate's frame, for the plot
+                G = gt.poses()
+                T_gt = inv_T(A) @ G[np.clip(np.searchsorted(gt.t_ns, t), 0, len(G) - 1)]
             except VioError as e:
                 print(f"replay: no accuracy figures for the loop-corrected trajectory: {e}")
+        if plot_path:
+            from vio.loop.plot import plot_loop
+
+            plot_loop(plot_path, T_odom, T, closer.graph.estimate,
+                      [(e.i, e.j, e.weight) for e in closer.graph.edges if e.kind == "loop"], T_gt,
+                      f"{d['accepted']} loop edges accepted, {d['switched_off']} switched off")
+            print(f"loop-closure plot -> {plot_path}")
     print(f"loop closure: {d['keyframes']} keyframes, {d['accepted']} loop edges accepted "
           f"({d['switched_off']} switched off by GNC), refused {d['refused']}; detection {d['detect_ms_mean']:.1f} ms "
           f"per keyframe (p95 {d['detect_ms_p95']:.1f}), optimisation max {d['optimize_ms_max']:.0f} ms")
@@ -395,7 +415,7 @@ def run(args: argparse.Namespace) -> int:
     loop = None
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
-    if args.loop or cfg.loop.enabled or args.loop_output or save_map or load_map:
+    if args.loop or cfg.loop.enabled or args.loop_output or args.loop_plot or save_map or load_map:
         from vio.app.loop_worker import LoopWorker
         from vio.loop.closer import LoopCloser
 
@@ -450,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"replay: no accuracy figures: {e}")
     loop_dict = None
     if loop is not None:
-        loop_dict = _loop_outputs(loop, res, dataset, args.loop_output)
+        loop_dict = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
             h = loop.closer.save_map(save_map)
             print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}")

@@ -8,7 +8,8 @@ here: the application layer runs `LoopCloser` in its own thread (vio/app/loop_wo
 - vocabulary.py: k-majority vocabulary tree on binary descriptors (trained by `vio loop train-vocab`);
 - database.py: TF-IDF bag-of-words index with an inverted file;
 - verify.py: 3D-2D PnP RANSAC, gravity (roll/pitch) check;
-- posegraph.py: GTSAM pose graph, odometry edges + attitude factors + loop edges under GNC (TLS);
+- posegraph.py: GTSAM pose graph in iSAM2 (odometry edges, attitude factors, inlier loop edges), loop edges
+  decided by GNC (TLS) on a condensed graph of the loop-touched keyframes;
 - closer.py: the stage (retrieval -> verification -> temporal consistency -> graph) and its correction;
 - mapfile.py: versioned map file (npz arrays + JSON header) for save/load/relocalisation.
 """

@@ -11,12 +11,12 @@ def l1_score(a: dict[int, float], b: dict[int, float]) -> float:
 
 
 class BowIndex:
-    """Inverted file: per word, the images that hold it and their weights (growing numpy arrays)."""
+    """Inverted file: per word, the images that hold it and their weights (numpy arrays grown by doubling,
+    so that a query is a few array slices and one bincount, not a Python loop over postings)."""
 
     def __init__(self) -> None:
         self.vectors: list[dict[int, float]] = []
-        self._ids: dict[int, list[int]] = {}
-        self._w: dict[int, list[float]] = {}
+        self._post: dict[int, list] = {}  # word -> [ids array, weights array, used length]
 
     def __len__(self) -> int:
         return len(self.vectors)
@@ -25,20 +25,29 @@ class BowIndex:
         i = len(self.vectors)
         self.vectors.append(v)
         for w, x in v.items():
-            self._ids.setdefault(w, []).append(i)
-            self._w.setdefault(w, []).append(x)
+            p = self._post.get(w)
+            if p is None:
+                p = self._post[w] = [np.empty(4, np.int64), np.empty(4), 0]
+            elif p[2] == len(p[0]):
+                p[0], p[1] = np.resize(p[0], 2 * p[2]), np.resize(p[1], 2 * p[2])
+            p[0][p[2]], p[1][p[2]] = i, x
+            p[2] += 1
         return i
 
     def query(self, v: dict[int, float], allowed, top: int) -> list[tuple[int, float]]:
         """Best `top` entries (index, score) among those with allowed(index) true."""
         if not self.vectors or not v:
             return []
-        acc = np.zeros(len(self.vectors))
+        ids, terms = [], []
         for w, x in v.items():
-            ids = self._ids.get(w)
-            if ids:
-                y = np.asarray(self._w[w])
-                np.add.at(acc, np.asarray(ids), np.abs(x - y) - x - y)
+            p = self._post.get(w)
+            if p is not None:
+                y = p[1][:p[2]]
+                ids.append(p[0][:p[2]])
+                terms.append(np.abs(x - y) - x - y)
+        if not ids:
+            return []
+        acc = np.bincount(np.concatenate(ids), np.concatenate(terms), minlength=len(self.vectors))
         order = np.argsort(acc)  # most negative sum = best score
         out = []
         for i in order:

@@ -70,11 +70,11 @@ STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog st
 VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
 
 
-def open_source(cfg: VioConfig) -> Source:
-    """The configured sensor source, started."""
+def open_source(cfg: VioConfig, mavlink_link: Any = None) -> Source:
+    """The configured sensor source, started (`mavlink_link`: the connection shared with the output)."""
     from drivers.source import open_source as driver_open_source
 
-    src = driver_open_source(cfg.source)
+    src = driver_open_source(cfg.source, mavlink_link=mavlink_link)
     src.start()
     return src
 
@@ -104,7 +104,9 @@ class Service:
         self.rec_buf = SensorBuffer(rc.queue_frames * 4, rc.queue_imu) if rc.record_dir else None
         self.latest = LatestState()
         paced = cfg.source.kind in ("fake", "euroc") and not cfg.source.realtime
-        self.source = SourceWorker(self.stop, source_factory or (lambda: open_source(cfg)),
+        # IMU from the autopilot on the output's connection: one link, one reader (a serial port opens once)
+        self.mavlink_link = shared_mavlink_link(cfg) if source_factory is None else None
+        self.source = SourceWorker(self.stop, source_factory or (lambda: open_source(cfg, self.mavlink_link)),
                                    [b for b in (self.est_buf, self.rec_buf) if b is not None],
                                    rc.source_timeout_s, rc.reconnect_max_s, paced=paced)
         self._estimator_factory = estimator_factory or _default_estimator_factory(cfg)
@@ -124,7 +126,7 @@ class Service:
                                          rc.max_imu_gap_s, view=self.view)
         mount = None
         if mavlink_factory is None and cfg.mavlink.url:
-            mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now)
+            mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now, self.mavlink_link)
             mount = self._set_mount
         self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
                                    vision_ok=self.camera_fresh, mount=mount)
@@ -232,8 +234,11 @@ class Service:
             if w.is_alive():
                 stuck.append(w.name)
         if self.loop is not None:
-            self.loop.close(wait=False)
-            if self.cfg.map.save:
+            # the keyframes queued for loop closure belong in the saved map: drain them within the budget
+            stopped = self.loop.close(wait=True, timeout_s=max(0.2, deadline - time.monotonic()), grace_s=0.2)
+            if self.cfg.map.save and not stopped:
+                log.error("map not saved: loop closure still busy after the shutdown budget")
+            elif self.cfg.map.save:
                 try:
                     self.loop.closer.save_map(self.cfg.map.save)
                     log.info("map saved to %s", self.cfg.map.save)
@@ -442,14 +447,25 @@ def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
     return make
 
 
-def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCalibration | None]
-                             ) -> Callable[[], Any]:
+def shared_mavlink_link(cfg: VioConfig) -> Any:
+    """The MavlinkLink that `imu = "mavlink"` shares with the pose output (mavlink_imu_url empty or equal
+    to the [mavlink] url), else None."""
+    src = cfg.source
+    if src.imu != "mavlink" or not cfg.mavlink.url or src.mavlink_imu_url not in ("", cfg.mavlink.url):
+        return None
+    from drivers.mavlink_link import MavlinkLink
+
+    return MavlinkLink(cfg.mavlink.url, source_system=cfg.mavlink.system_id or cfg.mavlink.target_system)
+
+
+def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCalibration | None],
+                             link: Any = None) -> Callable[[], Any]:
     def make() -> Any:
         from drivers.mavlink_out import MavlinkOutput
 
         calib = calibration()  # the camera mount comes from it; unknown yet: Service._set_mount later
         # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips)
-        return MavlinkOutput(cfg.mavlink, cfg.mavlink.url,
+        return MavlinkOutput(cfg.mavlink, cfg.mavlink.url, link=link,
                              T_body_cam0=calib.cam0.T_body_cam if calib is not None else None).start()
     return make
 
@@ -491,6 +507,13 @@ def _check_run_config(cfg: VioConfig) -> None:
         from vio.calibration import load_calibration
 
         load_calibration(src.calibration)  # raises VioError naming the file and key
+    if src.imu == "mavlink":
+        from drivers.mavlink_link import check_url
+
+        if src.mavlink_imu_url:
+            check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
+        if cfg.mavlink.url:
+            check_url(cfg.mavlink.url)
     for key in ("record_dir", "trajectory_file"):
         value = getattr(cfg.run, key)
         if not value:

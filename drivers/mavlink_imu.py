@@ -1,0 +1,341 @@
+"""The flight controller's own IMU over MAVLink (`[source] imu = "mavlink"`): HIGHRES_IMU, SCALED_IMU or RAW_IMU.
+
+Many vehicles have no separate IMU for the companion: the flight controller's is good, already mounted
+on dampers and calibrated. This source reads it from the autopilot's MAVLink stream and delivers
+ImuSamples on the host clock like any other source (drivers/base.py).
+
+* Connection: a drivers.mavlink_link.MavlinkLink, by default the SAME one the pose output uses (a serial
+  port opens once only); the link's reader thread calls us for each IMU, TIMESYNC, HEARTBEAT and
+  COMMAND_ACK message, and our own thread only sends (TIMESYNC requests, the rate request).
+* Rate: MAV_CMD_SET_MESSAGE_INTERVAL for the configured message once the autopilot's heartbeat is seen,
+  repeated until acknowledged, and again when the stream stops (an autopilot reboot forgets it). A
+  refusal is logged once with the parameter that sets the rate instead (docs/autopilot.md).
+* Units and axes: HIGHRES_IMU is SI; SCALED_IMU is mG and mrad/s; RAW_IMU needs the scales from the config.
+  The autopilot reports body FRD axes (its board orientation already applied); `axes` = "flu" turns them
+  into x forward, y left, z up. The estimator's body frame is then the flight controller's, so the camera
+  extrinsics (T_body_cam0) must be given relative to it.
+* Time: the message's time_usec (time_boot_ms for SCALED_IMU) is the autopilot's clock. TIMESYNC round
+  trips at 10 Hz feed a drift-tracking fit (timesync.ClockSync in round-trip mode) that maps it onto
+  CLOCK_MONOTONIC; until the first answer (or if the autopilot never answers) the arrival-time lower
+  envelope of the IMU messages themselves is used. A stamp that goes back by more than REBOOT_BACK_S is an
+  autopilot reboot: both fits restart and answers to requests sent before it are ignored.
+* Honesty: a duplicate stamp or one older than the previous (UDP reordering) is dropped and counted; gaps,
+  the measured rate, stamp jitter and transport latency are in health(). No IMU message after
+  NO_DATA_WARN_S with another IMU message on the link, or an acceleration far from 1 g at the start,
+  gives one log line naming the key to fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from drivers.base import DropOldestQueue, Message, ThreadedSource
+from drivers.mavlink_link import MavlinkLink, is_autopilot_heartbeat, mavlink
+from drivers.timesync import ClockSync, StreamMonitor
+from vio.types import ImuSample
+
+log = logging.getLogger(__name__)
+
+IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU")
+# message -> (MAVLink id, default accel scale [m/s^2 per unit], default gyro scale [rad/s per unit]);
+# RAW_IMU has none: its units are the sensor's own unless the autopilot says otherwise
+_UNITS = {"HIGHRES_IMU": (105, 1.0, 1.0), "SCALED_IMU": (26, 9.80665e-3, 1e-3), "RAW_IMU": (27, 0.0, 0.0)}
+R_BODY_FRD = {"frd": np.eye(3), "flu": np.diag([1.0, -1.0, -1.0])}
+REBOOT_BACK_S = 0.5  # a stamp this far behind the previous one: the autopilot restarted (or its clock did)
+TIMESYNC_PERIOD_S = 0.1
+REQUEST_PERIOD_S = 1.0  # rate request repeated until acknowledged, at most REQUEST_TRIES times in a row
+REQUEST_TRIES = 5
+NO_DATA_WARN_S = 3.0  # heartbeat seen, no configured IMU message for this long: say why, once
+STATS_WINDOW = 400  # samples behind the rate / jitter / latency figures
+CLOCK_DISAGREE_S = 1.0  # TIMESYNC-mapped stamp this far from the arrival: the IMU stamps use another clock
+
+
+class MavlinkImuSource(ThreadedSource):
+    """ImuSamples from the autopilot's IMU messages, stamped on the host monotonic clock."""
+
+    name = "mavlink_imu"
+
+    def __init__(self, link: MavlinkLink, *, message: str = "HIGHRES_IMU", rate_hz: float = 200.0,
+                 request_rate: bool = True, accel_scale: float = 0.0, gyro_scale: float = 0.0,
+                 axes: str = "frd", imu_id: int = 0, owns_link: bool = False, queue_size: int = 4000,
+                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        from vio import VioError
+
+        super().__init__()
+        if message not in _UNITS:
+            raise VioError(f"[source] mavlink_imu_message = {message!r}: expected one of {list(IMU_MESSAGES)}")
+        if axes not in R_BODY_FRD:
+            raise VioError(f"[source] mavlink_imu_axes = {axes!r}: expected 'frd' or 'flu'")
+        msg_id, acc_unit, gyr_unit = _UNITS[message]
+        self.accel_scale = accel_scale or acc_unit
+        self.gyro_scale = gyro_scale or gyr_unit
+        if not (self.accel_scale and self.gyro_scale):
+            raise VioError(f"[source] mavlink_imu_message = {message!r} needs mavlink_imu_accel_scale and "
+                           "mavlink_imu_gyro_scale (its units are the sensor's own)")
+        self.link = link
+        self.message, self.msg_id, self.rate_hz = message, msg_id, float(rate_hz)
+        self.request_rate = request_rate
+        self.axes = axes
+        self._R = R_BODY_FRD[axes]
+        self.imu_id = imu_id
+        self._owns_link = owns_link
+        self._clock = clock_ns
+        self._queue = DropOldestQueue(queue_size)
+        self.join_timeout_s = 2.0
+        self.timesync = ClockSync(roundtrip=True)
+        self.arrival = ClockSync()
+        self.monitor = StreamMonitor(f"MAVLink {message}", rate_hz)
+        self._lock = threading.Lock()  # the link thread writes, health() reads
+        self._init_state()
+        self.last_error = ""
+
+    def _init_state(self) -> None:
+        self.received = 0
+        self.duplicates = 0
+        self.out_of_order = 0
+        self.reboots = 0
+        self.other_imu = Counter()  # IMU messages of another type or id: the config may name the wrong one
+        self.target: tuple[int, int] | None = None  # (system, component) of the autopilot
+        self.request_sent = 0
+        self.request_result = ""
+        self._request_tries = 0
+        self._next_request_ns = 0
+        self._heartbeat_since_ns: int | None = None
+        self._last_sample_arrival_ns: int | None = None
+        self._last_dev_ns: int | None = None
+        self._timesync_after_ns = 0  # answers to requests sent before this host time are ignored (reboot)
+        self._pending_ts: deque[int] = deque(maxlen=64)
+        self.timesync_sent = 0
+        self.timesync_used = 0
+        self._rtt_ns: deque[int] = deque(maxlen=100)
+        self._dev_stamps: deque[int] = deque(maxlen=STATS_WINDOW)
+        self._latency_ns: deque[int] = deque(maxlen=STATS_WINDOW)
+        self._scale_checked: list[float] = []
+        self._warned: set[str] = set()
+        self.clock_source = "none"
+        self.clock_disagreements = 0
+        self._disagree_run = 0
+
+    # ---------------------------------------------------------------- source interface
+    def _before_start(self) -> None:
+        self.link.subscribe({*IMU_MESSAGES, "TIMESYNC", "HEARTBEAT", "COMMAND_ACK"}, self.on_message)
+        self.link.acquire()
+
+    def stop(self) -> None:
+        was_running = self._thread is not None
+        super().stop()
+        if was_running:
+            self.link.unsubscribe(self.on_message)
+            self.link.release()
+
+    def poll(self) -> list[Message]:
+        return self._queue.drain()
+
+    # ---------------------------------------------------------------- our thread: requests only
+    def _run(self) -> None:
+        next_ts = 0
+        while not self._stop.is_set():
+            now = self._clock()
+            if not self.link.connected:
+                self.state = "connecting"
+            if now >= next_ts:
+                next_ts = now + int(TIMESYNC_PERIOD_S * 1e9)
+                self._send_timesync(now)
+            self._maybe_request_rate(now)
+            self._check_stream(now)
+            self._stop.wait(0.02)
+
+    def _send_timesync(self, now: int) -> None:
+        self._pending_ts.append(now)
+        if self.link.send(mavlink.MAVLink_timesync_message(0, now)):
+            self.timesync_sent += 1
+
+    def _maybe_request_rate(self, now: int) -> None:
+        if not self.request_rate or self.target is None or now < self._next_request_ns:
+            return
+        stale = (self._last_sample_arrival_ns is None
+                 or now - self._last_sample_arrival_ns > int(NO_DATA_WARN_S * 1e9))
+        if self.request_result == "MAV_RESULT_ACCEPTED" and not stale:
+            return
+        if self._request_tries >= REQUEST_TRIES:
+            if stale:  # given up for now; try again later (the autopilot may be rebooting)
+                self._request_tries = 0
+                self._next_request_ns = now + int(10 * REQUEST_PERIOD_S * 1e9)
+            return
+        self._request_tries += 1
+        self._next_request_ns = now + int(REQUEST_PERIOD_S * 1e9)
+        cmd = mavlink.MAVLink_command_long_message(
+            self.target[0], self.target[1], mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+            float(self.msg_id), float(round(1e6 / self.rate_hz)), 0, 0, 0, 0, 0)
+        if self.link.send(cmd):
+            self.request_sent += 1
+            if self.request_sent == 1:
+                log.info("requesting %s at %.0f Hz from the autopilot (MAV_CMD_SET_MESSAGE_INTERVAL)",
+                         self.message, self.rate_hz)
+
+    def _check_stream(self, now: int) -> None:
+        """Set `state` and, once, say why no sample arrives."""
+        if self._last_sample_arrival_ns is not None and now - self._last_sample_arrival_ns < int(1e9):
+            self.state = "running"
+            return
+        if self._heartbeat_since_ns is None or not self.link.connected:
+            if self.link.connected:
+                self.state = "waiting for the autopilot"
+            return
+        self.state = "no imu"
+        if now - self._heartbeat_since_ns < int(NO_DATA_WARN_S * 1e9) or self._last_sample_arrival_ns is not None:
+            return
+        others = ", ".join(f"{k} ({n})" for k, n in self.other_imu.most_common())
+        if others:
+            self._error_once("type", f"no {self.message} (id {self.imu_id}) from the autopilot in "
+                             f"{NO_DATA_WARN_S:.0f} s, but it sends {others}: set [source] mavlink_imu_message "
+                             "(and its scales) or mavlink_imu_id to match")
+        else:
+            self._error_once("none", f"no IMU message from the autopilot in {NO_DATA_WARN_S:.0f} s "
+                             f"(rate request: {self.request_result or 'no answer'}): enable {self.message} "
+                             "with its stream parameters (docs/autopilot.md)")
+
+    def _error_once(self, key: str, text: str) -> None:
+        self.last_error = text
+        if key not in self._warned:
+            self._warned.add(key)
+            log.error("%s", text)
+
+    # ---------------------------------------------------------------- link thread: every message
+    def on_message(self, msg: Any, t_arrival_ns: int) -> None:
+        """Handle one message from the link (public so that tests can drive the source without a link)."""
+        kind = msg.get_type()
+        # SCALED_IMU has no `id` field (pymavlink's message class has an `id` attribute: the message id)
+        imu_id = msg.id if kind in IMU_MESSAGES and "id" in msg.get_fieldnames() else 0
+        if kind == self.message and imu_id == self.imu_id:
+            with self._lock:
+                self._on_imu(msg, t_arrival_ns)
+        elif kind in IMU_MESSAGES:
+            self.other_imu[kind if kind == "SCALED_IMU" else f"{kind} id {imu_id}"] += 1
+        elif kind == "TIMESYNC":
+            self._on_timesync(msg, t_arrival_ns)
+        elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg):
+            if self.target is None:
+                self.target = (msg.get_srcSystem(), msg.get_srcComponent())
+                self._heartbeat_since_ns = t_arrival_ns
+                if self._owns_link:
+                    self.link.set_source_system(msg.get_srcSystem())
+        elif kind == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self._on_ack(msg)
+
+    def _on_ack(self, msg: Any) -> None:
+        result = mavlink.enums["MAV_RESULT"][msg.result].name if msg.result in mavlink.enums["MAV_RESULT"] \
+            else str(msg.result)
+        if result != self.request_result:
+            if result == "MAV_RESULT_ACCEPTED":
+                log.info("autopilot streams %s at %.0f Hz as requested", self.message, self.rate_hz)
+            else:
+                log.warning("autopilot answered %s to the %s rate request: set the rate with its stream "
+                            "parameters (docs/autopilot.md)", result, self.message)
+        self.request_result = result
+        self._request_tries = 0 if result == "MAV_RESULT_ACCEPTED" else self._request_tries
+
+    def _on_timesync(self, msg: Any, t_arrival_ns: int) -> None:
+        if msg.tc1 == 0 or msg.ts1 not in self._pending_ts:  # a request to us (the output answers) or not ours
+            return
+        if msg.ts1 < self._timesync_after_ns:
+            return  # asked before the autopilot restarted: its answer is on the old clock
+        rtt = t_arrival_ns - msg.ts1
+        with self._lock:
+            self._rtt_ns.append(rtt)
+            self.timesync.add(int(msg.tc1), (msg.ts1 + t_arrival_ns) // 2, rtt // 2)
+            self.timesync_used += 1
+
+    def _on_imu(self, msg: Any, t_arrival_ns: int) -> None:
+        self.received += 1
+        t_dev = int(msg.time_boot_ms) * 1_000_000 if self.message == "SCALED_IMU" else int(msg.time_usec) * 1000
+        if self._last_dev_ns is not None and t_dev <= self._last_dev_ns:
+            if t_dev == self._last_dev_ns:
+                self.duplicates += 1
+                return
+            if self._last_dev_ns - t_dev <= int(REBOOT_BACK_S * 1e9):
+                self.out_of_order += 1
+                if StreamMonitor._should_log(self.out_of_order):
+                    log.warning("%s stamp %.6f s is %.1f ms older than the previous one: sample dropped",
+                                self.message, t_dev / 1e9, (self._last_dev_ns - t_dev) / 1e6)
+                return
+            self.reboots += 1
+            log.warning("%s stamps went back by %.3f s: the autopilot restarted; clock sync restarted",
+                        self.message, (self._last_dev_ns - t_dev) / 1e9)
+            self.timesync.reset()
+            self.arrival.reset()
+            self._timesync_after_ns = t_arrival_ns
+            self._dev_stamps.clear()
+            self.request_result = ""  # a rebooted autopilot has forgotten the requested rate
+            self._request_tries = 0
+        self._last_dev_ns = t_dev
+        self._last_sample_arrival_ns = t_arrival_ns
+        self.arrival.add(t_dev, t_arrival_ns)
+        t_host = self._to_host(t_dev, t_arrival_ns)
+        if t_host is None or not self.monitor.check(t_host):
+            return
+        self._dev_stamps.append(t_dev)
+        self._latency_ns.append(t_arrival_ns - t_host)
+        raw_g = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=np.float64)
+        raw_a = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=np.float64)
+        gyro = self._R @ (raw_g * self.gyro_scale)
+        accel = self._R @ (raw_a * self.accel_scale)
+        self._check_scale(accel, gyro)
+        self._queue.put(ImuSample(t_host, gyro, accel))
+
+    def _to_host(self, t_dev: int, t_arrival_ns: int) -> int | None:
+        """TIMESYNC mapping when it has answers and agrees with the arrivals, else the arrival envelope."""
+        t = self.timesync.to_host(t_dev) if self.timesync_used else None
+        if t is not None and abs(t_arrival_ns - t) <= CLOCK_DISAGREE_S * 1e9:
+            self.clock_source = "timesync"
+            self._disagree_run = 0
+            return t
+        if t is not None:  # a few around a restart are normal; a run of them means another clock
+            self.clock_disagreements += 1
+            self._disagree_run += 1
+            if self._disagree_run == STATS_WINDOW:
+                self._error_once("clock", f"{self.message} stamps are {(t_arrival_ns - t) / 1e9:.1f} s off the "
+                                 "autopilot's TIMESYNC clock: they use another clock; mapped by arrival time")
+        self.clock_source = "arrival"
+        return self.arrival.to_host(t_dev)
+
+    def _check_scale(self, accel: np.ndarray, gyro: np.ndarray) -> None:
+        """At the start the vehicle is (nearly) still: |accel| near 1 g. Far off means a wrong scale."""
+        if len(self._scale_checked) >= 50:
+            return
+        self._scale_checked.append(float(np.linalg.norm(accel)))
+        if len(self._scale_checked) == 50:
+            g = float(np.median(self._scale_checked))
+            if not 4.0 < g < 25.0:
+                self._error_once("scale", f"{self.message} acceleration is {g:.4g} m/s^2 at the start (expected "
+                                 f"~9.8) with mavlink_imu_accel_scale {self.accel_scale:g}: the scale is wrong for "
+                                 "this message's units (mG: 9.80665e-3)")
+
+    # ---------------------------------------------------------------- health
+    def health(self) -> dict[str, Any]:
+        with self._lock:
+            stamps = np.array(self._dev_stamps, dtype=np.int64)
+            lat = np.array(self._latency_ns, dtype=np.float64)
+            rtt = np.array(self._rtt_ns, dtype=np.float64)
+        dt = np.diff(stamps) if len(stamps) > 2 else np.array([])
+        return {"name": self.name, "state": self.state, "message": self.message, "url": self.link.url,
+                "link": self.link.health(), "received": self.received,
+                "rate_hz": round(1e9 / float(np.mean(dt)), 1) if len(dt) else None,
+                "stamp_jitter_us": round(float(np.std(dt)) / 1e3, 1) if len(dt) else None,
+                "latency_ms_median": round(float(np.median(lat)) / 1e6, 3) if len(lat) else None,
+                "latency_ms_p99": round(float(np.percentile(lat, 99)) / 1e6, 3) if len(lat) else None,
+                "duplicates": self.duplicates, "out_of_order": self.out_of_order, "reboots": self.reboots,
+                "queue_dropped": self._queue.dropped, "stream": self.monitor.as_dict(),
+                "rate_request": self.request_result or ("sent" if self.request_sent else "not sent"),
+                "other_imu_messages": dict(self.other_imu), "clock_source": self.clock_source,
+                "clock_disagreements": self.clock_disagreements,
+                "timesync_rtt_ms_median": round(float(np.median(rtt)) / 1e6, 3) if len(rtt) else None,
+                "clock": self.timesync.as_dict() if self.clock_source == "timesync" else self.arrival.as_dict(),
+                "last_error": self.last_error}

@@ -1,0 +1,398 @@
+"""The MAVLink IMU source (drivers/mavlink_imu.py) against a flight controller played over UDP loopback.
+
+The fake flight controller packs HIGHRES_IMU / SCALED_IMU with pymavlink's own encoder, answers TIMESYNC
+on its own clock (50 ppm fast and seconds ahead in the drift test) and acknowledges
+MAV_CMD_SET_MESSAGE_INTERVAL, so the source is tested through the real link and parser. The gyro x of
+sample k carries k, which lets a test compare each host stamp with the instant the sample was made.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import drivers.mavlink_imu as mimu
+from drivers.mavlink_imu import MavlinkImuSource
+from drivers.mavlink_link import MavlinkLink, mavlink
+from drivers.mavlink_out import MavlinkOutput
+from drivers.timesync import ClockSync
+from vio import VioError
+from vio.config import MavlinkConfig, config_from_dict
+from vio.types import ImuSample, NavState
+
+REPO = Path(__file__).resolve().parents[1]
+PERIOD_NS = 5_000_000  # 200 Hz
+
+
+class FakeFC(threading.Thread):
+    """A flight controller on a UDP socket: heartbeats, TIMESYNC answers on `fc_clock`, rate-request ACKs,
+    and the IMU messages `due(now_ns, start_ns)` returns (start_ns: when our first packet arrived)."""
+
+    def __init__(self, due: Callable[[int, int], list] | None = None,
+                 fc_clock: Callable[[int], int] = lambda host_ns: host_ns, ack: int = 0) -> None:
+        super().__init__(daemon=True)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.0005)
+        self.port = self.sock.getsockname()[1]
+        self.due, self.fc_clock, self.ack = due, fc_clock, ack
+        self.counts: dict[str, int] = {}
+        self.peers: set = set()
+        self.requests: list = []  # COMMAND_LONG SET_MESSAGE_INTERVAL received
+        self.timesync_replies: list = []  # TIMESYNC answers to OUR requests (the output's)
+        self.start_ns: int | None = None
+        self.stop = threading.Event()
+        self.encoder = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def send(self, msg) -> None:
+        for peer in list(self.peers):
+            self.sock.sendto(msg.pack(self.encoder), peer)
+
+    def run(self) -> None:
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        next_hb = 0
+        while not self.stop.is_set():
+            try:
+                data, peer = self.sock.recvfrom(65536)
+                self.peers.add(peer)
+                for msg in parser.parse_buffer(data) or []:
+                    self._handle(msg)
+            except (TimeoutError, BlockingIOError):
+                pass
+            now = time.monotonic_ns()
+            if not self.peers:
+                continue
+            if self.start_ns is None:
+                self.start_ns = now
+            if now >= next_hb:
+                self.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR,
+                                                            mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3))
+                next_hb = now + 500_000_000
+            for msg in (self.due(now, self.start_ns) if self.due else []):
+                self.send(msg)
+
+    def _handle(self, msg) -> None:
+        name = msg.get_type()
+        self.counts[name] = self.counts.get(name, 0) + 1
+        if name == "TIMESYNC" and msg.tc1 == 0:
+            self.send(mavlink.MAVLink_timesync_message(self.fc_clock(time.monotonic_ns()), msg.ts1))
+        elif name == "TIMESYNC":
+            self.timesync_replies.append(msg)
+        elif name == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.requests.append(msg)
+            self.send(mavlink.MAVLink_command_ack_message(msg.command, self.ack))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.join(2)
+        self.sock.close()
+
+
+def highres(t_fc_ns: int, gyro=(0.0, 0.0, 0.0), accel=(0.0, 0.0, -9.81), imu_id: int = 0):
+    return mavlink.MAVLink_highres_imu_message(t_fc_ns // 1000, *accel, *gyro, 0, 0, 0, 1013.0, 0, 0, 25.0,
+                                               0x3F, imu_id)
+
+
+def stream(fc_clock: Callable[[int], int], n: int, make=highres, skip=()) -> Callable[[int, int], list]:
+    """`due` for FakeFC: sample k made at start + k*5 ms, gyro x = k * 1e-3 (which sample it is)."""
+    state = {"k": 0}
+
+    def due(now: int, start: int) -> list:
+        out = []
+        while state["k"] < n and start + state["k"] * PERIOD_NS <= now:
+            k = state["k"]
+            state["k"] += 1
+            if k not in skip:
+                out.append(make(fc_clock(start + k * PERIOD_NS), gyro=(k * 1e-3, 0.0, 0.0)))
+        return out
+    return due
+
+
+def collect(src: MavlinkImuSource, seconds: float) -> list[ImuSample]:
+    out: list[ImuSample] = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        out += [m for m in src.poll() if isinstance(m, ImuSample)]
+        time.sleep(0.01)
+    return out + [m for m in src.poll() if isinstance(m, ImuSample)]
+
+
+def run_source(fc: FakeFC, seconds: float, **kw) -> tuple[MavlinkImuSource, list[ImuSample]]:
+    fc.start()
+    src = MavlinkImuSource(MavlinkLink(f"udpout:127.0.0.1:{fc.port}"), owns_link=True, **kw)
+    src.start()
+    try:
+        samples = collect(src, seconds)
+    finally:
+        src.stop()
+        fc.close()
+    return src, samples
+
+
+# ------------------------------------------------------------------------------------------- clock maths
+
+@pytest.mark.parametrize("seed", range(4))
+def test_roundtrip_clocksync_tracks_drift_and_offset_with_asymmetric_delays(seed: int) -> None:
+    """60 s of TIMESYNC at 10 Hz, device 50 ppm fast and 7 s ahead, one-way delays of 0.2 ms plus an
+    exponential tail (mean 1 ms) drawn independently each way: after 5 s every mapped stamp is within
+    0.5 ms, and the drift is found within 10 ppm."""
+    rng = np.random.default_rng(seed)
+    cs = ClockSync(roundtrip=True)
+    dev = lambda host: int(round(7e9 + host * (1 + 50e-6)))  # noqa: E731
+    h0 = 1_000_000_000
+    errs = []
+    for i in range(600):
+        ts1 = h0 + i * 100_000_000
+        out, back = (int(x) for x in 2e5 + rng.exponential(1e6, 2))
+        t_recv = ts1 + out + back
+        cs.add(dev(ts1 + out), (ts1 + t_recv) // 2, (t_recv - ts1) // 2)
+        if i >= 50:
+            errs.append(cs.to_host(dev(ts1 + 50_000_000)) - (ts1 + 50_000_000))
+    assert np.max(np.abs(errs)) < 500_000
+    assert abs(cs.estimate.drift_ppm - (1 / (1 + 50e-6) - 1) * 1e6) < 10
+
+
+# ------------------------------------------------------------------------------------------- over UDP
+
+def test_stream_rate_request_and_drifting_fc_clock_mapped_onto_the_host() -> None:
+    """200 Hz HIGHRES_IMU for 3 s from an FC whose clock runs 50 ppm fast and 5 s ahead: the rate is
+    requested (id 105, 5000 us), every sample arrives once in order, each host stamp is within 5 ms of
+    the instant the sample was made (median within 0.5 ms), and health reports rate and jitter."""
+    fc_clock = lambda h: int(5e9 + h * (1 + 50e-6))  # noqa: E731
+    fc = FakeFC(stream(fc_clock, 600), fc_clock)
+    src, samples = run_source(fc, 3.6)
+    assert fc.requests and fc.requests[0].param1 == 105 and fc.requests[0].param2 == 5000
+    ks = [int(round(s.gyro[0] * 1e3)) for s in samples]
+    assert ks == list(range(len(ks))) and len(ks) >= 580
+    err = np.array([s.t_ns - (fc.start_ns + k * PERIOD_NS) for s, k in zip(samples, ks)]) / 1e6
+    late = err[200:]  # after the first second: TIMESYNC mapping settled
+    assert np.median(np.abs(late)) < 0.5 and np.max(np.abs(late)) < 5.0, (np.median(late), np.max(np.abs(late)))
+    h = src.health()
+    assert h["clock_source"] == "timesync" and h["rate_request"] == "MAV_RESULT_ACCEPTED"
+    assert 190 < h["rate_hz"] < 210 and h["stamp_jitter_us"] < 50
+    assert h["duplicates"] == h["out_of_order"] == h["reboots"] == h["stream"]["gaps"] == 0
+    assert h["latency_ms_median"] is not None and h["timesync_rtt_ms_median"] is not None
+
+
+def test_gaps_duplicates_and_out_of_order_samples_are_counted_and_dropped() -> None:
+    """Samples 100-109 missing (a 55 ms gap), sample 200 sent twice, 300 after 301: one gap with 10
+    missing, one duplicate, one out-of-order, and what comes out is strictly increasing."""
+    base = stream(lambda h: h, 400, skip=range(100, 110))
+
+    def due(now: int, start: int) -> list:
+        out = []
+        for m in base(now, start):
+            k = int(round(m.xgyro * 1e3))
+            if k == 200:
+                out += [m, m]
+            elif k == 300:
+                held.append(m)
+            elif k == 301:
+                out += [m, held.pop()]
+            else:
+                out.append(m)
+        return out
+    held: list = []
+    src, samples = run_source(FakeFC(due), 2.4)
+    h = src.health()
+    assert h["duplicates"] == 1 and h["out_of_order"] == 1
+    assert h["stream"]["gaps"] == 1 and h["stream"]["missing_estimate"] == 10
+    ks = [int(round(s.gyro[0] * 1e3)) for s in samples]
+    assert 300 not in ks and ks.count(200) == 1 and len(ks) == 400 - 10 - 1
+    assert all(b.t_ns > a.t_ns for a, b in zip(samples, samples[1:]))
+
+
+def test_fc_reboot_restarts_the_clock_sync_and_keeps_host_stamps_right() -> None:
+    """The FC clock is at 100 s, then the FC reboots 0.5 s later and its clock restarts at 0.2 s: one
+    reboot counted, samples keep coming, strictly increasing, each within 6 ms of its making."""
+    boot = {"at": None}
+
+    def fc_clock(h: int) -> int:  # before the reboot: 100 s ahead; after: restarted at 0.2 s
+        return h - boot["at"] + 200_000_000 if boot["at"] is not None and h >= boot["at"] else h + 100 * 10**9
+
+    base = stream(fc_clock, 500, skip=range(200, 300))
+
+    def due(now: int, start: int) -> list:
+        if boot["at"] is None:
+            boot["at"] = start + 250 * PERIOD_NS
+        return base(now, start)
+    fc = FakeFC(due, fc_clock)
+    src, samples = run_source(fc, 2.9)
+    h = src.health()
+    assert h["reboots"] == 1 and h["out_of_order"] == 0
+    ks = [int(round(s.gyro[0] * 1e3)) for s in samples]
+    assert ks == list(range(200)) + list(range(300, 500))
+    err = np.array([s.t_ns - (fc.start_ns + k * PERIOD_NS) for s, k in zip(samples, ks)]) / 1e6
+    assert np.max(np.abs(err[50:])) < 6.0, np.max(np.abs(err[50:]))  # thread scheduling on a loaded box
+    assert all(b.t_ns > a.t_ns for a, b in zip(samples, samples[1:]))
+
+
+def test_axis_conversion_frd_to_flu() -> None:
+    """The FC yaws right (FRD z rate +0.5) and rolls right (x +0.2) at rest (specific force -g along
+    FRD z): in FLU body axes the gyro is (0.2, 0, -0.5) and the accel (0, 0, +9.81); in FRD unchanged."""
+    msgs = lambda: [highres(time.monotonic_ns() + i * PERIOD_NS, gyro=(0.2, 0.0, 0.5),  # noqa: E731
+                            accel=(0.0, 0.0, -9.81)) for i in range(20)]
+    for axes, gyro, accel in (("flu", (0.2, 0.0, -0.5), (0.0, 0.0, 9.81)), ("frd", (0.2, 0.0, 0.5), (0, 0, -9.81))):
+        sent = {"done": False}
+
+        def due(now: int, start: int, sent: dict = sent) -> list:
+            if sent["done"] or now < start + 200_000_000:
+                return []
+            sent["done"] = True
+            return msgs()
+        _, samples = run_source(FakeFC(due), 0.8, axes=axes)
+        assert len(samples) == 20
+        np.testing.assert_allclose(samples[-1].gyro, gyro, atol=1e-6)
+        np.testing.assert_allclose(samples[-1].accel, accel, atol=1e-5)
+
+
+def test_wrong_message_type_is_named_in_one_line(monkeypatch, caplog) -> None:
+    """Configured HIGHRES_IMU, the FC streams SCALED_IMU only: one error line naming both and the key."""
+    monkeypatch.setattr(mimu, "NO_DATA_WARN_S", 0.5)
+    scaled = lambda t, gyro, accel=(0, 0, -1000): mavlink.MAVLink_scaled_imu_message(  # noqa: E731
+        t // 1_000_000, *accel, *(int(g * 1e3) for g in gyro), 0, 0, 0)
+    with caplog.at_level(logging.ERROR):
+        src, samples = run_source(FakeFC(stream(lambda h: h, 300, make=scaled), ack=4), 1.5)
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "no HIGHRES_IMU" in errors[0] and "SCALED_IMU" in errors[0]
+    assert "mavlink_imu_message" in errors[0] and "\n" not in errors[0]
+    assert not samples and src.health()["rate_request"] == "MAV_RESULT_FAILED"
+
+
+def test_scaled_imu_units_and_a_wrong_scale_named(caplog) -> None:
+    """SCALED_IMU in mG / mrad/s comes out in SI with the default scales; a scale of 1 (taking mG for
+    m/s^2) gives one error line naming mavlink_imu_accel_scale."""
+    scaled = lambda t, gyro, accel=(0, 0, -1000): mavlink.MAVLink_scaled_imu_message(  # noqa: E731
+        t // 1_000_000, *accel, *(int(round(g * 1e3)) for g in gyro), 0, 0, 0)
+    _, samples = run_source(FakeFC(stream(lambda h: h, 100, make=scaled)), 0.9, message="SCALED_IMU")
+    assert len(samples) >= 90
+    np.testing.assert_allclose(samples[-1].accel, [0, 0, -9.80665], atol=1e-9)
+    assert abs(samples[-1].gyro[0] - len(samples) * 1e-3 + 1e-3) < 1e-9
+    with caplog.at_level(logging.ERROR):
+        run_source(FakeFC(stream(lambda h: h, 100, make=scaled)), 0.9, message="SCALED_IMU", accel_scale=1.0)
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "mavlink_imu_accel_scale" in errors[0] and "1000" in errors[0]
+
+
+def test_config_errors_are_one_line() -> None:
+    with pytest.raises(VioError, match="mavlink_imu_accel_scale .* mavlink_imu_gyro_scale"):
+        config_from_dict({"source": {"imu": "mavlink", "mavlink_imu_message": "RAW_IMU"},
+                          "mavlink": {"url": "udpout:127.0.0.1:14550"}})
+    with pytest.raises(VioError, match=r"needs a connection: \[mavlink\] url"):
+        config_from_dict({"source": {"imu": "mavlink"}})
+    with pytest.raises(VioError, match=r"\[source\] mavlink_imu_url 'ttyS1': expected"):
+        MavlinkLink("ttyS1", key="[source] mavlink_imu_url")
+
+
+def test_output_and_imu_source_share_one_connection() -> None:
+    """One MavlinkLink: the FC sees ONE peer sending HEARTBEAT, ODOMETRY and TIMESYNC requests, gets its
+    own TIMESYNC request answered by the output, and the IMU source reads its samples."""
+    fc = FakeFC(stream(lambda h: h, 200))
+    fc.start()
+    link = MavlinkLink(f"udpout:127.0.0.1:{fc.port}")
+    out = MavlinkOutput(MavlinkConfig(mount="rpy"), link=link).start()
+    src = MavlinkImuSource(link)
+    src.start()
+    try:
+        t_end = time.monotonic() + 1.2
+        while time.monotonic() < t_end:
+            out.send_state(NavState(t_ns=time.monotonic_ns(), T_world_body=np.eye(4), v_world=np.zeros(3),
+                                    omega_body=np.zeros(3), cov_pose=np.eye(6) * 1e-4, cov_vel=np.eye(3) * 1e-4,
+                                    quality=80))
+            fc.send(mavlink.MAVLink_timesync_message(0, 12345))
+            time.sleep(0.05)
+        samples = collect(src, 0.1)
+    finally:
+        src.stop()
+        out.close()
+        fc.close()
+    assert len(fc.peers) == 1
+    assert fc.counts.get("ODOMETRY", 0) >= 10 and fc.counts.get("HEARTBEAT", 0) >= 1
+    assert fc.counts.get("TIMESYNC", 0) >= 10  # the source's requests (and the output's answers)
+    assert any(r.ts1 == 12345 for r in fc.timesync_replies) and out.link_up
+    assert len(samples) >= 150 and not link.connected  # both released: closed
+
+
+# ------------------------------------------------------------------------------------------- the daemon
+
+def test_vio_run_with_fake_camera_and_mavlink_imu(tmp_path: Path) -> None:
+    """`vio run` with the fake camera and the IMU from a flight controller over UDP (the same simulated
+    flight, sent as HIGHRES_IMU on an FC clock 3 s ahead; one shared connection): tracked poses come back."""
+    from drivers.fake import FakeSource
+
+    cfg = tmp_path / "config.toml"
+    log_path = tmp_path / "daemon.log"
+    sim: dict = {}
+    fc_clock = lambda h: h + 3 * 10**9  # noqa: E731
+
+    def due(now: int, start: int) -> list:
+        if "src" not in sim:
+            if now < sim.get("next_look", 0):
+                return []
+            sim["next_look"] = now + 50_000_000
+            m = re.search(r"t0_ns=(\d+)", log_path.read_text()) if log_path.exists() else None
+            if m is None:
+                return []
+            sim["src"] = FakeSource(width=320, height=200, t0_ns=int(m.group(1)), realtime=False)
+            sim["k"] = 0
+        src, out = sim["src"], []
+        while src.imu_t_ns(sim["k"]) <= now and len(out) < 50:
+            s = src.imu(sim["k"])
+            out.append(highres(fc_clock(s.t_ns), gyro=tuple(s.gyro), accel=tuple(s.accel)))
+            sim["k"] += 1
+        return out
+
+    fc = FakeFC(due, fc_clock)
+    fc.odometry_quality = []
+    orig = fc._handle
+
+    def handle(msg) -> None:
+        orig(msg)
+        if msg.get_type() == "ODOMETRY":
+            fc.odometry_quality.append(msg.quality)
+    fc._handle = handle
+    fc.start()
+    cfg.write_text(f"""[source]
+kind = "fake"
+width = 320
+height = 200
+imu = "mavlink"
+[mavlink]
+url = "udpout:127.0.0.1:{fc.port}"
+[run]
+status_file = "{tmp_path / 'status.json'}"
+""")
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
+                                env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        end = time.monotonic() + 90
+        while time.monotonic() < end and sum(q > 0 for q in fc.odometry_quality) < 20 and proc.poll() is None:
+            time.sleep(0.2)
+        tracked = sum(q > 0 for q in fc.odometry_quality)
+        text = log_path.read_text()
+        assert tracked >= 20, f"{tracked} tracked poses; FC got {fc.counts}; log:\n{text[-3000:]}"
+        assert len(fc.peers) == 1 and fc.requests  # one connection; the rate was requested
+        time.sleep(1.2)  # the status file is written once a second
+        imu = json.loads((tmp_path / "status.json").read_text())["source"]["driver"]["imu"]
+        # the rate is checked by test_stream_rate_request_...; a loaded box starves the fake FC's thread
+        assert imu["clock_source"] == "timesync" and 0 < imu["rate_hz"] < 220, imu
+    finally:
+        proc.terminate()
+        rc = proc.wait(10)
+        fc.close()
+    assert rc == 0 and "Traceback" not in log_path.read_text()
