@@ -228,11 +228,12 @@ class ViewConfig:
                         "keyframes, landmarks, covariance, health counters; the estimator never waits for it")
     target: str = opt("serve", "'serve' (gRPC server + web viewer on this computer) or a path ending in .rrd")
     web_port: int = opt(9090, "web viewer port (target = 'serve')", min=1, max=65535)
-    queue_frames: int = opt(16, "frames waiting for the view thread (it takes them every 50 ms) before the oldest "
-                            "is dropped", min=1, max=100)
-    rate_hz: float = opt(10.0, "state, trajectory, landmarks and counters logged at most this often (wall clock): "
-                         "the view thread shares the cores and the GIL with the estimator", min=0.1, max=200)
-    image_hz: float = opt(5.0, "left image (with its tracks) logged at most this often", min=0.1, max=200)
+    queue_frames: int = opt(16, "frames waiting for the view thread (it takes them at twice its highest rate) "
+                            "before the oldest is dropped", min=1, max=100)
+    rate_hz: float = opt(5.0, "body pose and landmarks logged at most this often (wall clock; each entity costs some "
+                         "0.2 ms of CPU per log): the view thread shares the cores and the GIL with the estimator",
+                         min=0.1, max=200)
+    image_hz: float = opt(2.0, "left image (with its tracks) logged at most this often", min=0.1, max=200)
     image_scale: float = opt(0.5, "left image scaled by this before JPEG encoding", min=0.1, max=1)
     jpeg_quality: int = opt(75, "JPEG quality of the logged image", min=10, max=100)
 

@@ -6,13 +6,13 @@ bounded deque and returns. No lock, no condition variable: nothing in submit() w
 frame loop is never switched out there (on a busy core a wake-up can cost it its time slice). When
 `queue_frames` items wait (a stuck viewer) the oldest is dropped and counted. Everything else happens in the
 view thread, which is kept cheap because on the companion computer it shares the cores (and in Python the GIL)
-with the estimator: it wakes at twice its highest rate (every 50 ms by default), takes what waits, keeps the
+with the estimator: it wakes at twice its highest rate (every 100 ms by default), takes what waits, keeps the
 path and keyframes of every frame, and logs only the newest frame at bounded wall-clock rates: the body pose
-and landmarks at `[view] rate_hz` (default 10 Hz), the image, downscaled and JPEG-encoded by OpenCV (which
-releases the GIL), with its tracks at `image_hz` (default 5 Hz), and what changes slowly or grows with the
-flight (the path, keyframes, covariance, counters, loop closure) every 0.5 s. Frames it passes over are
-counted as thinned, not dropped. Each Rerun log call costs some 0.1 ms of Python, so the rates, not the frame
-rate, set the view's CPU.
+and landmarks at `[view] rate_hz` (default 5 Hz), the image, downscaled and JPEG-encoded by OpenCV (which
+releases the GIL), with its tracks at `image_hz` (default 2 Hz), and what changes slowly or grows with the
+flight (the path, keyframes, covariance, counters, loop closure) every second. Frames it passes over are
+counted as thinned, not dropped. Each Rerun entity costs some 0.2 ms of Python per log (archetype, Arrow
+arrays), so the rates, not the frame rate, set the view's CPU.
 
 Entities (timeline `sensor_time`, the frame's stamp):
 
@@ -51,7 +51,7 @@ from vio.extras import require
 log = logging.getLogger(__name__)
 
 _STEREO, _MONO = (60, 220, 60), (255, 150, 0)
-_SLOW_S = 0.5  # path, keyframes, covariance, counters and loop closure: at most this often
+_SLOW_S = 1.0  # path, keyframes, covariance, counters and loop closure: at most this often
 
 
 class LiveView:
@@ -66,6 +66,7 @@ class LiveView:
         self.loop = loop
         if loop is not None:
             loop.keep_snapshot = True
+        _warm_up(rr)
         self.rec = rr.RecordingStream("kestrel-vio")
         self.url = None
         if target == "serve":
@@ -125,7 +126,7 @@ class LiveView:
     # -- view thread --------------------------------------------------------------------------------------
     def _loop(self) -> None:
         s = self.settings
-        poll_s = min(0.05, max(0.01, 0.5 / max(s.rate_hz, s.image_hz)))  # wake-ups cost CPU too: twice the rate
+        poll_s = min(0.1, max(0.01, 0.5 / max(s.rate_hz, s.image_hz)))  # wake-ups cost CPU too: twice the rate
         next_state = next_image = 0.0
         pending = None  # the newest item not logged yet (logged at the end)
         while True:
@@ -254,6 +255,19 @@ class LiveView:
                     [P[[i, j]] for i, j, _ in snap.loop_edges],
                     colors=[_STEREO if w >= 0.5 else (230, 40, 40) for _, _, w in snap.loop_edges]))
         return snap.closures
+
+
+def _warm_up(rr) -> None:
+    """Build each archetype once: the first construction imports rerun's component modules (about 0.25 s of
+    CPU), which belongs to start-up, not to the view thread's first frames beside a flying estimator."""
+    z3 = np.zeros((1, 3))
+    rr.Transform3D(translation=z3[0], mat3x3=np.eye(3))
+    rr.Points2D(np.zeros((1, 2)), colors=np.zeros((1, 3), np.uint8), radii=1.0)
+    rr.Points3D(z3, radii=0.01)
+    rr.LineStrips3D([np.zeros((2, 3))], colors=[(0, 0, 0)])
+    rr.Ellipsoids3D(centers=z3, half_sizes=[[1.0, 1.0, 1.0]], quaternions=[[0.0, 0.0, 0.0, 1.0]])
+    rr.EncodedImage(contents=b"", media_type="image/jpeg")
+    rr.Scalars(0.0)
 
 
 def _quat_xyzw(R: np.ndarray) -> np.ndarray:
