@@ -147,8 +147,8 @@ def _store(row: dict, out_tum: str) -> dict:
     if tum:
         try:
             Path(out_tum).write_text(tum)
-        except OSError as e:
-            raise VioError(f"{out_tum}: cannot write the trajectory ({e.strerror})") from None
+        except OSError as e:  # the row says so; the batch goes on
+            row.update(ok=False, error=f"{out_tum}: cannot write the trajectory ({e.strerror})")
     return row
 
 
