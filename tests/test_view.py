@@ -142,6 +142,8 @@ def test_daemon_view_section_is_off_by_default():
     assert cfg.view.target == "flight.rrd" and cfg.view.rate_hz == 4.0
     with pytest.raises(VioError, match="image_scale"):
         config_from_dict({"view": {"image_scale": 2.0}})
+    with pytest.raises(VioError, match="serve_memory_mb"):
+        config_from_dict({"view": {"serve_memory_mb": 1}})
 
 
 def test_daemon_streams_the_view_to_an_rrd(tmp_path):

@@ -236,6 +236,9 @@ class ViewConfig:
     image_hz: float = opt(2.0, "left image (with its tracks) logged at most this often", min=0.1, max=200)
     image_scale: float = opt(0.5, "left image scaled by this before JPEG encoding", min=0.1, max=1)
     jpeg_quality: int = opt(75, "JPEG quality of the logged image", min=10, max=100)
+    serve_memory_mb: int = opt(256, "target = 'serve': what Rerun's gRPC server buffers for viewers that connect "
+                               "late, in MB (the oldest data goes first; Rerun's own default is 1 GiB)",
+                               min=16, max=65536)
 
 
 @dataclass(frozen=True)

@@ -70,7 +70,7 @@ class LiveView:
         self.rec = rr.RecordingStream("kestrel-vio")
         self.url = None
         if target == "serve":
-            self.url = self.rec.serve_grpc()
+            self.url = self.rec.serve_grpc(server_memory_limit=f"{s.serve_memory_mb}MB")
             rr.serve_web_viewer(web_port=s.web_port, open_browser=False, connect_to=self.url)
             log.info("live view: open the web viewer (port %s), connected to %s", s.web_port, self.url)
         else:
