@@ -36,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     from vio.sim.generate import SimConfig, simulate
 
     w, h = (int(x) for x in args.size.split("x"))
-    print(f"load average before: {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
+    load0 = os.getloadavg()
+    print(f"load average before: {load0[0]:.2f} / {load0[1]:.2f} / {load0[2]:.2f}", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         flights = []
@@ -48,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
                 simulate(f, SimConfig(duration_s=args.duration, width=w, height=h, seed=seed), overwrite=True)
                 (f / "complete").write_text("")
             flights.append(str(f))
-        out: dict = {"flights": args.flights, "duration_s": args.duration, "size": args.size}
+        out: dict = {"flights": args.flights, "duration_s": args.duration, "size": args.size,
+                     "load_average_start": list(load0)}
         runs = [("1 worker", 1, None), (f"{args.workers} local workers", args.workers, None)]
         if args.ray:
             runs.append((f"ray local, {args.workers} CPUs", args.workers, "local"))
@@ -63,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:>24}: {wall:6.1f} s for {args.flights} x {args.duration:g} s flights, speed-up "
                   f"{base / wall:.2f}, per-flight real-time factor mean {rtf_text}")
             out[name] = {"wall_s": wall, "speedup": base / wall, "rtf_mean": rtf and rtf["mean"]}
+    out["load_average_end"] = list(os.getloadavg())
+    print(f"load average after: {out['load_average_end'][0]:.2f}", file=sys.stderr)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
