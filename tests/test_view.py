@@ -172,3 +172,21 @@ def test_daemon_streams_the_view_to_an_rrd(tmp_path):
     assert svc.view.logged >= 20
     ents = set(rrd_entities(tmp_path / "d.rrd"))
     assert {"/camera/left", "/camera/left/tracks", "/health/tracks", "/health/resets"} <= ents, sorted(ents)
+
+
+def test_the_path_kept_for_the_view_is_bounded_and_ends_at_the_newest_pose(tmp_path, monkeypatch):
+    import vio.app.view as view_module
+    from vio.types import NavState
+
+    monkeypatch.setattr(view_module, "_MAX_POINTS", 10)
+    view = LiveView(str(tmp_path / "p.rrd"), None)
+    for k in range(200):
+        T = np.eye(4)
+        T[0, 3] = k
+        view.submit(k, None, None, NavState(t_ns=k, T_world_body=T, v_world=np.zeros(3)), True, {})
+        if k % 8 == 0:
+            time.sleep(0.01)
+    view.close()
+    assert view.errors == 0
+    assert len(view._path) <= 10 + 16 and len(view._kf) <= 10 + 16  # the limit, plus one batch of the queue
+    assert view._path[-1][0] == 199.0 and view._kf[-1][0] == 199.0

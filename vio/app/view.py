@@ -52,6 +52,7 @@ log = logging.getLogger(__name__)
 
 _STEREO, _MONO = (60, 220, 60), (255, 150, 0)
 _SLOW_S = 1.0  # path, keyframes, covariance, counters and loop closure: at most this often
+_MAX_POINTS = 20_000  # path / keyframe points kept before every second one goes (bounded memory and log cost)
 
 
 class LiveView:
@@ -141,6 +142,10 @@ class LiveView:
                     self._path.append(p)
                     if it[4]:
                         self._kf.append(p)
+            for pts in (self._path, self._kf):  # a daemon flies for hours: older history at half the density
+                if len(pts) > _MAX_POINTS:
+                    pts[:] = pts[::-2][::-1]  # every second one, the newest kept
+                    self._kf_logged = -1
             if items:
                 if pending is not None:
                     self.thinned += 1
