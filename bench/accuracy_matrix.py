@@ -109,7 +109,7 @@ def replay_case(case: Case, path: Path, config: str | None) -> dict:
            "frames": res.frames, "resets": res.resets, "keyframes": d["keyframes"], "data_s": res.data_s,
            "wall_s": res.wall_s, "cpu_s": cpu_s, "rtf_wall": res.realtime_factor,
            "rtf_cpu": res.data_s / cpu_s if cpu_s > 0 else float("inf"), "timing_ms": d["timing_ms"],
-           "load_avg": os.getloadavg()[0]}
+           "load_avg": os.getloadavg()[0], "calibration_refined": d.get("calibration_refined")}
     try:
         ev = evaluate(res.trajectory(), ds.groundtruth.trajectory)
         row.update(ate_se3_m=ev.ate_se3.trans_m.rmse, ate_4dof_m=ev.ate_4dof.trans_m.rmse,

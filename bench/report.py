@@ -168,40 +168,20 @@ def render(res: dict, out_rel: str) -> str:
     return "\n".join(L)
 
 
-def view_section(view: dict) -> list[str]:
-    """The live view's cost (bench/view.py --json bench/results/view.json), measured apart from the suite."""
-    L = ["## Live view cost (`bench/view.py`, run apart from the suite)", "",
-         f"`{view.get('command', 'taskset -c 1 python bench/view.py')}`; load average "
-         f"{_f(view.get('load_average_start'))} at the start, {_f(view.get('load_average_end'))} at the end. "
-         "Medians of the runs; the CPU of the threads beside the frame loop (the view thread and Rerun's) is "
-         "what the frame loop loses to the view on one core:", "",
-         "| case | frame loop, mean per frame [ms] | process CPU per frame [ms] | threads beside the frame loop, "
-         "CPU per frame [ms] | the same per second [ms] (per 20 Hz frame) | submit() mean / max [ms] |",
-         "| --- | --- | --- | --- | --- | --- |"]
-    for name, r in view.items():
-        if not isinstance(r, dict) or "cpu_ms_per_frame" not in r:
-            continue
-        sub = "-"
-        if r["runs"] and "view" in r["runs"][0]:
-            sub = (f"{_f(max(x['view']['submit_ms']['mean'] for x in r['runs']), 3)} / "
-                   f"{_f(max(x['view']['submit_ms']['max'] for x in r['runs']), 3)}")
-        per_s = r.get("other_threads_cpu_ms_per_s")
-        L.append(f"| {name} | {_f(r['frame_ms_mean'])} | {_f(r['cpu_ms_per_frame'])} | "
-                 f"{_f(r.get('other_threads_cpu_ms'), 3)} | {_f(per_s, 1)} ({_f(per_s and per_s / 20)}) | {sub} |")
-    return L + [""]
+KEPT_MARKER = "<!-- written by hand: bench/report.py keeps everything from this line on -->"
 
 
 def write_report(res: dict, path: Path, out_dir: Path) -> None:
+    """Write the report; an existing report's hand-written part (from KEPT_MARKER on: analyses such as where
+    the time goes, with the commands that measured them) is kept at its end."""
     rel = os.path.relpath(Path(out_dir).resolve(), Path(path).resolve().parent)
-    text = render(res, rel)
-    view_json = Path(out_dir) / "view.json"
-    if view_json.is_file():  # a figure measured by its own script, kept in the report across suite runs
-        import json
-
-        text = text.replace("\n## How it is measured", "\n" + "\n".join(view_section(json.loads(view_json.read_text())))
-                            + "\n## How it is measured", 1)
+    try:
+        old = path.read_text() if path.is_file() else ""
+    except OSError:
+        old = ""
+    kept = old[old.index(KEPT_MARKER):] if KEPT_MARKER in old else ""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
+        path.write_text(render(res, rel) + ("\n" + kept if kept else ""))
     except OSError as e:
         raise VioError(f"{path}: cannot write the report ({e.strerror})") from None

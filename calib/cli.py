@@ -1,4 +1,4 @@
-"""`vio calib import|show|check|imu-noise|time-offset`.
+"""`vio calib import|show|check|imu-noise|time-offset|refine`.
 
 Heavy modules (cv2-based checks, allantools, matplotlib, depthai) are imported inside the actions so that
 `vio --help` stays fast.
@@ -49,6 +49,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--calibration", type=Path, help="project calibration YAML (default: the dataset's)")
     s.add_argument("--max-offset-ms", type=float, default=100.0, help="search range +-")
     s.add_argument("--plot", type=Path, help="write the rate curves and correlation (PNG)")
+
+    s = sub.add_parser("refine", help="refine the camera-IMU extrinsics (and time offset) by replaying a recording",
+                       description="replays DATASET with the smoother refining T_body_cam0/T_body_cam1 "
+                       "([backend] refine_extrinsics; only keyframes with enough rotation refine them) and "
+                       "writes the calibration with the refined extrinsics and the in-flight time offset")
+    s.add_argument("dataset", type=Path)
+    s.add_argument("-o", "--output", type=Path, required=True, help="refined project calibration YAML to write")
+    s.add_argument("--calibration", type=Path, help="project calibration YAML to start from (default: the dataset's)")
+    s.add_argument("--config", type=Path, help="TOML configuration for the estimator")
+    s.add_argument("--stereo", action="store_true", help="refine T_cam0_cam1 too (default: held)")
 
 
 def _run_import(args: argparse.Namespace) -> int:
@@ -124,8 +134,39 @@ def _run_time_offset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_refine(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from vio import VioError
+    from vio.calibration import load_calibration, save_calibration
+    from vio.config import load_config
+    from vio.consistency import replay_states
+
+    cfg = load_config(args.config)
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=True,
+                                                               refine_stereo_extrinsic=args.stereo))
+    run = replay_states(args.dataset, cfg.estimator,
+                        calibration=load_calibration(args.calibration) if args.calibration else None)
+    est, calib = run.estimator, run.dataset.calibration
+    refined = est.refinement_stats()
+    if not refined or refined["refining_keyframes"] == 0:
+        raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
+                       "straight flight); record with turns about at least two axes")
+    out = dataclasses.replace(calib, cam0=calib.cam0.with_T_body_cam(np.asarray(refined["T_body_cam0"])),
+                              cam1=calib.cam1.with_T_body_cam(np.asarray(refined["T_body_cam1"])),
+                              time_offset_ns=int(est.time_offset_ns))
+    save_calibration(out, args.output)
+    print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
+          f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
+          f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
+    print(f"wrote {args.output}")
+    return 0
+
+
 _ACTIONS = {"import": _run_import, "show": _run_show, "check": _run_check, "imu-noise": _run_imu_noise,
-            "time-offset": _run_time_offset}
+            "time-offset": _run_time_offset, "refine": _run_refine}
 
 
 def run(args: argparse.Namespace) -> int:

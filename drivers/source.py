@@ -43,6 +43,11 @@ def open_source(cfg: SourceConfig, dai_module: Any = None,
         if not cfg.dataset:
             raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
         cam = EurocSource(cfg.dataset, realtime=cfg.realtime)
+    elif cfg.kind == "sitl":
+        from drivers.sitl_camera import SitlCameraSource
+
+        cam = SitlCameraSource(cfg.sitl_url, tuple(cfg.sitl_home), width=cfg.width, height=cfg.height, fps=cfg.fps,
+                               blackout_file=cfg.sitl_blackout_file, seed=cfg.fake_seed)
     elif cfg.kind == "oak":
         from drivers.depthai_camera import OakSource
 

@@ -90,6 +90,20 @@ def test_flight_cache_generates_once(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert ensure_flight(spec, tmp_path) == path
 
 
+def test_report_keeps_its_hand_written_part(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench import report
+
+    path = tmp_path / "benchmarks.md"
+    monkeypatch.setattr(report, "render", lambda res, rel: f"# generated {res['n']}\n")
+    report.write_report({"n": 1}, path, tmp_path)
+    assert path.read_text() == "# generated 1\n"  # nothing to keep yet
+    path.write_text(path.read_text() + "\n" + report.KEPT_MARKER + "\n## Where the time goes\nby hand\n")
+    report.write_report({"n": 2}, path, tmp_path)
+    text = path.read_text()
+    assert text.startswith("# generated 2\n") and "# generated 1" not in text
+    assert text.endswith(report.KEPT_MARKER + "\n## Where the time goes\nby hand\n")
+
+
 def test_suite_smoke_run_writes_report_and_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out, report = tmp_path / "results", tmp_path / "benchmarks.md"
     # ask for the real EuRoC excerpt where there is none: the report must say it was skipped
@@ -113,19 +127,3 @@ def test_suite_smoke_run_writes_report_and_json(tmp_path: Path, monkeypatch: pyt
     for png in [*res["plots"].values(), "memory_rss.png"]:
         assert (out / png).stat().st_size > 1000
         assert f"{out.name}/{png}" in text
-
-
-def test_report_keeps_the_live_view_figure_from_its_own_script() -> None:
-    """bench/view.py's JSON becomes a section of docs/benchmarks.md (so a suite run does not drop it)."""
-    from bench.report import view_section
-
-    run = {"frame_ms_mean": 14.0, "cpu_ms_per_frame": 12.5, "rtf": 3.0,
-           "view": {"submit_ms": {"mean": 0.004, "p99": 0.01, "max": 0.05}}}
-    view = {"command": "taskset -c 1 python bench/view.py", "load_average_start": 0.5, "load_average_end": 0.7,
-            "no view": {"frame_ms_mean": 13.0, "cpu_ms_per_frame": 12.0, "other_threads_cpu_ms": 0.01,
-                        "runs": [{"frame_ms_mean": 13.0, "cpu_ms_per_frame": 12.0, "rtf": 3.1}]},
-            "rrd": {"frame_ms_mean": 14.0, "cpu_ms_per_frame": 12.5, "other_threads_cpu_ms": 0.5,
-                    "other_threads_cpu_ms_per_s": 12.0, "runs": [run]}}
-    text = "\n".join(view_section(view))
-    assert "| rrd | 14.00 | 12.50 | 0.500 | 12.0 (0.60) | 0.004 / 0.050 |" in text
-    assert "| no view | 13.00 | 12.00 | 0.010 | - (-) | - |" in text and "load average 0.50" in text

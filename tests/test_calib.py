@@ -461,3 +461,16 @@ def test_check_names_unit_mistakes(tmp_path):
     assert "units of g" in res["gravity magnitude when still"].detail
     assert res["stereo baseline"].verdict == "FAIL" and "millimetres" in res["stereo baseline"].detail
     assert res["camera-IMU lever arm"].verdict == "FAIL"
+
+
+def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
+    """A hover never passes the extrinsic refinement's motion gate: no calibration is written, and the
+    message says what recording would do."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    simulate(tmp_path / "hover", SimConfig(profile="hover", duration_s=3.0, variant="clean", width=376, height=240,
+                                           texels_per_m=60.0, still_start_s=1.0))
+    out = tmp_path / "refined.yaml"
+    assert main(["calib", "refine", str(tmp_path / "hover"), "--output", str(out)]) == 1
+    assert "enough rotation" in capsys.readouterr().err and not out.exists()

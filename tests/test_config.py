@@ -84,7 +84,7 @@ def _write(tmp_path, text: str):
     ("[frontend]\nmax_features = 5\n", "[frontend]: 'max_features' = 5 is below the minimum 10"),
     ("[frontend]\nmax_features = 100000\n", "[frontend]: 'max_features' = 100000 is above the maximum 2000"),
     ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is below the minimum"),
-    ("[source]\nkind = \"webcam\"\n", "[source]: 'kind' = 'webcam' is not one of ['oak', 'euroc', 'fake']"),
+    ("[source]\nkind = \"webcam\"\n", "[source]: 'kind' = 'webcam' is not one of ['oak', 'euroc', 'fake', 'sitl']"),
     ("[frontnd]\nmax_features = 100\n", "unknown section [frontnd] (did you mean [frontend]?)"),
     ("[zebra]\n", "unknown section [zebra]; known sections: frontend"),
     ("frontend = 3\n", "[frontend]: expected a table of settings, got int"),

@@ -15,10 +15,11 @@ from vio.types import FeatureFrame
 
 
 def _run(est: Estimator, duration_s: float, still_s: float, seed: int, reset_at_s: float | None = None,
-         moving_start_s: float = 0.0, frame_delay_samples: int = 0):
+         moving_start_s: float = 0.0, frame_delay_samples: int = 0, scene_calib=None):
     """Feed synthetic IMU and features; `frame_delay_samples`: frames arrive that many IMU samples late
-    (camera latency), as on a live system."""
-    calib = est.calib
+    (camera latency), as on a live system. `scene_calib`: the true calibration the features are made
+    with, when the estimator's is wrong."""
+    calib = scene_calib or est.calib
     mot = Motion(speed=1.0, still_s=still_s, seed=seed)
     scene = SyntheticScene(calib, seed=seed)
     rng = np.random.default_rng(seed)
@@ -67,6 +68,34 @@ def test_static_start_tracks_synthetic_flight_accurately():
     assert len(imu_states) > 8 * len(states)
     t_imu = np.array([s.t_ns for s in imu_states])
     assert np.all(np.diff(t_imu) > 0)
+
+
+def test_imu_rate_state_does_not_depend_on_the_samples_not_asked_for():
+    """feed_imu(want_state=False) skips the propagation; a later state catches up with the buffered samples."""
+    calib = synthetic_calibration()
+    mot = Motion(speed=1.0, still_s=1.0, seed=3)
+    scene = SyntheticScene(calib, seed=3)
+    rng = np.random.default_rng(3)
+    imu = imu_samples(mot, 0.0, 4.0, gyro_bias=np.array([0.02, -0.01, 0.03]), noise=calib.imu, rng=rng)
+    frames = {s.t_ns: scene.observe(s.t_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.5, rng=rng)
+              for s in imu if s.t_ns % 50_000_000 == 0}
+    every, sparse = Estimator(calib), Estimator(calib)
+    compared = 0
+    for i, s in enumerate(imu):
+        a = every.feed_imu(s)
+        b = sparse.feed_imu(s, want_state=i % 7 == 0)
+        if i % 7:
+            assert b is None
+        elif a is not None:
+            assert b is not None and b.t_ns == a.t_ns
+            np.testing.assert_allclose(b.T_world_body, a.T_world_body, atol=1e-12)
+            np.testing.assert_allclose(b.v_world, a.v_world, atol=1e-12)
+            np.testing.assert_allclose(b.cov_pose, a.cov_pose, atol=1e-15)
+            compared += 1
+        if s.t_ns in frames:
+            every.feed_features(frames[s.t_ns])
+            sparse.feed_features(frames[s.t_ns])
+    assert every.keyframes > 5 and compared > 60
 
 
 def test_moving_start_initialises_by_alignment(caplog):
@@ -355,3 +384,76 @@ def test_phases_follow_the_life_cycle():
     i_lost = seen.index(Phase.LOST)
     assert Phase.BRIDGING in seen[i_lost:] and seen[-1] is Phase.TRACKING
     assert est.reset_counter == 1 and "camera frame" in est.last_reset_reason
+
+
+def test_mono_landmarks_keep_feeding_the_smoother_without_stereo():
+    """Five seconds without any stereo depth (right camera out): tracks are triangulated over keyframes
+    instead, so the smoother keeps getting new landmarks and the flight stays accurate."""
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, mono_landmarks=True))
+    est = Estimator(synthetic_calibration(), cfg)
+    feed = est.feed_features
+    born: list[tuple[float, int]] = []
+
+    def without_stereo(ff: FeatureFrame):
+        if 4.0 <= ff.t_ns * 1e-9 < 9.0:
+            ff = dataclasses.replace(ff, uv1=np.full_like(ff.uv1, np.nan), depth_m=np.full_like(ff.depth_m, np.nan))
+        out = feed(ff)
+        smoother = getattr(est._state, "smoother", None)
+        born.append((ff.t_ns * 1e-9, 0 if smoother is None else smoother.n_mono_landmarks))
+        return out
+
+    est.feed_features = without_stereo
+    states, _, truth, _ = _run(est, duration_s=12.0, still_s=1.0, seed=4)
+    assert est.reset_counter == 0
+    n_during = max(n for t, n in born if t < 9.0) - max(n for t, n in born if t < 4.0)
+    assert n_during > 30
+    err = _aligned_errors(states, truth)
+    assert np.sqrt(np.mean(err ** 2)) < 0.02 and err.max() < 0.04
+
+
+def _tilting_flight(calib, refine: bool, duration_s: float = 16.0, wrong=None):
+    """The simulator's aggressive profile (yaw, roll and pitch) over the synthetic scene's perfect tracks,
+    replayed with calibration `wrong`; returns the estimator."""
+    from vio.sim.imu import ImuModel, synthesize
+    from vio.sim.motion import make_profile
+    from vio.types import ImuSample
+
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=refine,
+                                                               estimate_time_offset=False))
+    m = make_profile("aggressive", duration_s, seed=1, still_s=1.0)
+    t = np.arange(int(duration_s * 200) + 1) / 200.0
+    imu = synthesize(m, t, ImuModel(noise=calib.imu), np.random.default_rng(0))
+    scene, rng = SyntheticScene(calib, seed=1), np.random.default_rng(1)
+    est = Estimator(wrong or calib, cfg)
+    for i, tt in enumerate(t):
+        t_ns = int(round(tt * 1e9))
+        est.feed_imu(ImuSample(t_ns, imu.gyro[i], imu.accel[i]))
+        if i % 10 == 0 and i > 0:
+            est.feed_features(scene.observe(t_ns, m.pose(np.array([tt]))[0], pixel_sigma=0.3, rng=rng))
+    return est
+
+
+def test_extrinsic_refinement_turns_a_wrong_camera_mounting_back():
+    """A stereo rig mounted 0.3 deg off what the calibration says: refinement (rotation turned about two
+    axes passes the gate) brings T_body_cam0's rotation closer to the truth; without refinement nothing
+    is reported; a yaw-only flight never passes the gate."""
+    from vio.geometry import make_T, so3_exp, so3_log
+
+    truth = synthetic_calibration()
+    D = make_T(so3_exp(np.deg2rad(0.3) * np.array([0.6, -0.8, 0.0])), np.zeros(3))
+    wrong = dataclasses.replace(truth, cam0=truth.cam0.with_T_body_cam(D @ truth.cam0.T_body_cam),
+                                cam1=truth.cam1.with_T_body_cam(D @ truth.cam1.T_body_cam))
+    est = _tilting_flight(truth, True, wrong=wrong)
+    st = est.refinement_stats()
+    assert est.reset_counter == 0 and st["refining_keyframes"] > 10
+    d = np.linalg.inv(truth.cam0.T_body_cam) @ np.asarray(st["T_body_cam0"])
+    assert np.degrees(np.linalg.norm(so3_log(d[:3, :3]))) < 0.25
+    T01 = np.linalg.inv(np.asarray(st["T_body_cam0"])) @ np.asarray(st["T_body_cam1"])
+    np.testing.assert_allclose(T01, np.linalg.inv(truth.T_cam1_cam0), atol=1e-4)  # the stereo extrinsic is held
+    assert _tilting_flight(truth, False, duration_s=4.0).refinement_stats() is None
+    yaw_only = dataclasses.replace(VioConfig().backend, refine_extrinsics=True)
+    est = Estimator(wrong, dataclasses.replace(VioConfig(), backend=yaw_only))
+    _run(est, duration_s=8.0, still_s=1.0, seed=4, scene_calib=truth)
+    assert est.refinement_stats() is None or est.refinement_stats()["refining_keyframes"] == 0

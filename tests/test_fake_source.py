@@ -8,14 +8,11 @@ it; its trajectory file is within 0.1 m of the simulator's truth and no implausi
 from __future__ import annotations
 
 import re
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from test_service import REPO, _need_pipeline, _wait
+from test_service import _need_pipeline, fly_fake
 
 from drivers.fake import MAX_RENDER_LAG_S, FakeSource
 from vio.evaluation import evaluate
@@ -65,8 +62,7 @@ def test_realtime_fake_source_keeps_up_at_20_hz() -> None:
 def test_vio_run_fake_flight_tracks_the_simulator_truth(tmp_path: Path) -> None:
     _need_pipeline()
     traj = tmp_path / "traj.tum"
-    cfg = tmp_path / "config.toml"
-    cfg.write_text(f"""[source]
+    rc, text = fly_fake(tmp_path, f"""[source]
 kind = "fake"
 realtime = false
 fake_duration_s = 15.0
@@ -75,19 +71,7 @@ height = 200
 [run]
 status_file = "{tmp_path / 'status.json'}"
 trajectory_file = "{traj}"
-""")
-    log_path = tmp_path / "daemon.log"
-    with open(log_path, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
-                                stdout=log, stderr=subprocess.STDOUT)
-    try:
-        assert _wait(lambda: "source finished" in log_path.read_text() or proc.poll() is not None, 90), \
-            log_path.read_text()[-3000:]
-        time.sleep(0.5)  # the last frames through the estimator and the output
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        rc = proc.wait(10)
-    text = log_path.read_text()
+""", 90, settle_s=0.5)  # the last frames through the output
     assert rc == 0 and "Traceback" not in text, text[-3000:]
     assert "implausible" not in text, text[-3000:]
     est = read_tum(traj)

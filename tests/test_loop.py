@@ -255,3 +255,63 @@ def test_loop_worker_drains_its_queue_before_it_stops():
         w.submit(k, np.eye(4), None, None, 0)
     assert w.close(wait=True, timeout_s=0.3, grace_s=1.0)
     assert w.closer.done + w.dropped == 10 and w.dropped >= 5
+
+
+def test_vio_run_with_loop_closure_saves_a_map_on_sigterm(tmp_path):
+    """The daemon with `[loop] enabled` and `[map] save`: on SIGTERM the loop thread drains its queue, the map
+    is written, and `vio map info` reads it back with keyframes in it."""
+    import json
+    import subprocess
+    import sys
+
+    from test_service import REPO, _need_pipeline, fly_fake
+
+    _need_pipeline()
+    map_path = tmp_path / "room.map.npz"
+    rc, text = fly_fake(tmp_path, f"""[source]
+kind = "fake"
+realtime = false
+fake_duration_s = 6.0
+width = 320
+height = 200
+[run]
+status_file = "{tmp_path / 'status.json'}"
+[loop]
+enabled = true
+[map]
+save = "{map_path}"
+""", 30)
+    assert rc == 0 and "Traceback" not in text, text[-3000:]
+    assert "map saved to" in text and map_path.is_file(), text[-3000:]
+    info = subprocess.run([sys.executable, "-m", "vio.app.cli", "map", "info", str(map_path), "--json"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert info.returncode == 0, info.stderr[-2000:]
+    header = json.loads(info.stdout)
+    assert header["format"] == "kestrel-vio-map" and header["keyframes"] > 0 and header["landmarks_3d"] > 0
+
+
+def test_reset_mid_flight_relocalises_into_the_frame_before_it(loop_flight, tmp_path):
+    """Both cameras black for 5 s mid-flight: the estimator resets, and over a gap this long it keeps only the
+    heading, so its new segment starts metres off (a new origin). The loop stage treats the segment as a new
+    session and, once it sees the places of the first part again, joins it to them: the loop-corrected
+    trajectory over the whole flight is in the frame from before the reset."""
+    import json
+
+    from vio.app.cli import main
+    from vio.sim.faults import blackout, copy_dataset
+
+    data = copy_dataset(loop_flight, tmp_path / "blackout")
+    assert blackout(data, 18.0, 5.0) > 0
+    stats = tmp_path / "s.json"
+    assert main(["replay", str(data), "--loop-output", str(tmp_path / "loop.tum"), "--stats", str(stats),
+                 "--no-progress"]) == 0
+    s = json.loads(stats.read_text())
+    assert s["resets"] >= 1
+    loop = s["loop"]
+    odom_ate = s["evaluation"]["ate_4dof"]["trans_m"]["rmse"]
+    loop_ate = loop["evaluation"]["ate_4dof"]["trans_m"]["rmse"]
+    print(f"reset flight: ATE odometry {odom_ate:.3f} m, loop-corrected {loop_ate:.3f} m; end drift "
+          f"{loop['end_drift_m']}")
+    assert odom_ate > 0.3  # the reset did start a new origin
+    assert loop["accepted"] >= 1 and loop["switched_off"] == 0 and loop["error"] is None
+    assert loop_ate < 0.05 and loop["end_drift_m"]["loop"] < 0.1

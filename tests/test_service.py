@@ -329,6 +329,25 @@ def _wait(cond, timeout_s: float) -> bool:
     return False
 
 
+def fly_fake(tmp_path: Path, config_toml: str, wait_s: float, settle_s: float = 0.0) -> tuple[int, str]:
+    """`vio run --config` (written from `config_toml`) as a subprocess until its fake source has finished (or
+    `wait_s` passed), `settle_s` more, then SIGTERM: (exit status, log text)."""
+    cfg = tmp_path / "config.toml"
+    cfg.write_text(config_toml)
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
+                                stdout=log, stderr=subprocess.STDOUT)
+    try:
+        assert _wait(lambda: "source finished" in log_path.read_text() or proc.poll() is not None, wait_s), \
+            log_path.read_text()[-3000:]
+        time.sleep(settle_s)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(15)
+    return rc, log_path.read_text()
+
+
 def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, notify_socket) -> None:
     sock, path = notify_socket
     cfg = config_from_dict({"run": {"status_file": str(tmp_path / "status.json"), "source_timeout_s": 0.3,

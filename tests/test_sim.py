@@ -249,3 +249,89 @@ def test_cli_writes_dataset_and_reports(tmp_path, capsys):
     assert "overwrite" in capsys.readouterr().err
     assert main(["simulate", str(tmp_path / "x"), "--size", "big"]) == 1
     assert "--size" in capsys.readouterr().err
+
+
+def test_calib_error_perturbs_only_the_written_calibration(tmp_path):
+    """The dataset states a calibration off by the typical Kalibr error; the images are those of the truth,
+    which is kept beside the dataset."""
+    from vio.calibration import load_calibration
+
+    cfg = SimConfig(duration_s=0.2, variant="clean", seed=2, **TINY)
+    simulate(tmp_path / "exact", cfg)
+    simulate(tmp_path / "wrong", dataclasses.replace(cfg, calib_error=1.0))
+    stated, truth = EurocDataset(tmp_path / "wrong").calibration, load_calibration(tmp_path / "wrong" /
+                                                                                    "calibration_truth.yaml")
+    exact = EurocDataset(tmp_path / "exact").calibration
+    assert not (tmp_path / "exact" / "calibration_truth.yaml").exists()
+    for s, t, e in ((stated.cam0, truth.cam0, exact.cam0), (stated.cam1, truth.cam1, exact.cam1)):
+        np.testing.assert_allclose(t.T_body_cam, e.T_body_cam, atol=1e-12)
+        D = s.T_body_cam @ np.linalg.inv(t.T_body_cam)  # the rig's error, in the body frame
+        assert np.rad2deg(np.linalg.norm(so3_log(D[:3, :3]))) == pytest.approx(0.1, abs=1e-6)
+        assert np.linalg.norm(D[:3, 3]) == pytest.approx(0.002, abs=1e-9)
+        # 0.5 px at full size; TINY images are a quarter size but the error is stated in their pixels
+        np.testing.assert_allclose(np.abs(np.subtract([s.fx, s.fy, s.cx, s.cy], [t.fx, t.fy, t.cx, t.cy])), 0.5,
+                                   atol=1e-6)
+    np.testing.assert_allclose(stated.T_cam1_cam0, truth.T_cam1_cam0, atol=1e-12)  # a rig error: stereo kept
+    for cam in ("cam0", "cam1"):
+        a = sorted((tmp_path / "exact" / "mav0" / cam / "data").iterdir())
+        b = sorted((tmp_path / "wrong" / "mav0" / cam / "data").iterdir())
+        assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+
+
+def test_hall_is_large_dim_and_far(calib):
+    """The hall keeps every profile's cameras clear of walls and pillars; what the cameras see is mostly
+    beyond 5 m, and darker than the room."""
+    from vio.sim.scene import hall_scene
+
+    hall, room = hall_scene(seed=1, ppm=30.0), default_scene(seed=1, ppm=30.0)
+    assert np.allclose(hall.hi[0] - hall.lo[0], (25.0, 20.0, 8.0))
+    depths, means = [], {"hall": [], "room": []}
+    for profile in PROFILES:
+        m = make_profile(profile, 60.0, seed=2)
+        T = m.pose(np.linspace(0, 60, 301))
+        for cam in (calib.cam0, calib.cam1):
+            assert hall.contains((T @ cam.T_body_cam)[:, :3, 3], margin=1.0).all()
+        for name, scene in (("hall", hall), ("room", room)):
+            img, depth, _ = CameraRenderer(calib.cam0, scene).render(T[150] @ calib.cam0.T_body_cam)
+            means[name].append(img.mean())
+            if name == "hall":
+                depths.append(np.median(depth))
+    assert min(depths) > 5.0
+    assert np.mean(means["hall"]) < 0.6 * np.mean(means["room"])
+
+
+def test_right_camera_dropouts_remove_right_images_only(tmp_path):
+    cfg = SimConfig(duration_s=2.0, variant="clean", still_start_s=0.5, right_dropouts=((0.5, 0.5), (1.5, 0.2)),
+                    **TINY)
+    s = simulate(tmp_path / "d", cfg)
+    ds = EurocDataset(tmp_path / "d")
+    assert s.dropped_right == 14 and s.dropped_left == 0  # [0.5, 1.0) and [1.5, 1.7) at 20 Hz
+    t = (ds.cam1_t - T0_NS) * 1e-9
+    assert len(ds.cam0_t) == 41 and len(ds.cam1_t) == 41 - 14
+    assert not ((t >= 0.5 - 1e-9) & (t < 1.0 - 1e-9)).any() and not ((t >= 1.5 - 1e-9) & (t < 1.7 - 1e-9)).any()
+    with pytest.raises(VioError, match="right dropout"):
+        SimConfig(right_dropouts=((1.0, 0.0),)).resolved()
+
+
+def test_drifting_time_offset_is_stamped_and_recorded(tmp_path):
+    cfg = SimConfig(duration_s=2.0, variant="clean", still_start_s=0.5, time_offset_ms=1.0,
+                    time_offset_drift_ms=5.0, time_offset_period_s=2.0, **TINY)
+    simulate(tmp_path / "d", cfg)
+    ds = EurocDataset(tmp_path / "d")
+    assert ds.calibration.time_offset_ns == 1_000_000  # the calibration states the mean
+    truth = np.loadtxt(tmp_path / "d" / "time_offset_truth.csv", delimiter=",", dtype=np.int64)
+    np.testing.assert_array_equal(truth[:, 0], ds.cam0_t)
+    true_t = np.arange(41) * 0.05
+    np.testing.assert_allclose(truth[:, 1], 1e6 + 5e6 * np.sin(2 * np.pi * true_t / 2.0), atol=1)
+    assert np.isin(ds.cam0_t + truth[:, 1], ds.imu.t_ns).all()  # t_cam + true offset: the exposure instant
+    assert truth[:, 1].max() - truth[:, 1].min() > 9e6
+
+
+def test_cli_variant_options(tmp_path, capsys):
+    out = tmp_path / "v"
+    assert main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--variant", "clean", "--no-progress",
+                 "--scene", "hall", "--calib-error", "--right-dropout", "0.1:0.2", "--time-offset-drift-ms", "2"]) == 0
+    assert "dropped left/right images 0/4" in capsys.readouterr().out
+    assert (out / "calibration_truth.yaml").exists() and (out / "time_offset_truth.csv").exists()
+    assert main(["simulate", str(tmp_path / "x"), "--right-dropout", "soon"]) == 1
+    assert "--right-dropout" in capsys.readouterr().err

@@ -6,9 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from vio import VioError
-from vio.geometry import make_T, rotation_angle_deg, so3_exp
+from vio.geometry import make_T, rot_to_quat_wxyz, rotation_angle_deg, so3_exp, so3_log
 from vio.trajectory import Trajectory, read_tum, write_tum
 
 
@@ -112,3 +113,17 @@ def test_invalid_construction():
         Trajectory([1, 2], np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (2, 1)))
     with pytest.raises(VioError, match="invalid"):
         Trajectory([1], np.zeros((1, 3)), [[0.0, 0, 0, 0]])
+
+
+def test_single_rotation_conversions_match_the_stacked_ones():
+    """One matrix goes through gtsam (fast), a stack through scipy: the same numbers, near pi too."""
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(50, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    Rs = np.concatenate([Rotation.random(200, random_state=2).as_matrix(),
+                         Rotation.from_rotvec(axes * (np.pi - 1e-4)).as_matrix(),
+                         Rotation.from_rotvec(axes * 1e-9).as_matrix()])
+    np.testing.assert_allclose([rot_to_quat_wxyz(R) for R in Rs], rot_to_quat_wxyz(Rs), atol=1e-12)
+    np.testing.assert_allclose([so3_log(R) for R in Rs], so3_log(Rs), atol=1e-9)
+    bent = Rs[0] * 1.001  # not a rotation: the nearest one, as scipy finds it
+    np.testing.assert_allclose(so3_log(bent), Rotation.from_matrix(bent).as_rotvec())

@@ -87,7 +87,24 @@ class BackendConfig:
                              min=10, max=2000)
     max_new_landmarks: int = opt(60, "new landmarks created per keyframe", min=1, max=2000)
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
-    max_depth_m: float = opt(20.0, "stereo depth beyond which a track does not become a landmark", min=0.5, max=1000)
+    max_depth_m: float = opt(40.0, "depth beyond which a track does not become a landmark (the front end's stereo "
+                             "limit by default)", min=0.5, max=1000)
+    mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
+                               "keyframes (far points, right camera out)")
+    refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
+                                  "makes them observable (see docs/estimator.md)")
+    refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
+                                             "it wandered by 2x its error in tests); else only the rotation")
+    refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
+    extrinsic_sigma_rad: float = opt(0.0035, "stated 1-sigma rotation uncertainty of T_body_cam (0.2 deg)",
+                                     min=1e-6, max=1)
+    extrinsic_sigma_m: float = opt(0.005, "stated 1-sigma translation uncertainty of T_body_cam", min=1e-6, max=1)
+    stereo_sigma_rad: float = opt(0.0017, "1-sigma rotation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    stereo_sigma_m: float = opt(0.002, "1-sigma translation uncertainty of T_cam0_cam1 when refined", min=1e-6, max=1)
+    extrinsic_min_rotation_deg: float = opt(2.0, "rotation about the second most excited axis, among the keyframes "
+                                            "in the lag, that lets a keyframe refine the extrinsics", min=0, max=180)
+    mono_min_parallax_deg: float = opt(1.0, "ray angle between a mono track's first and newest keyframe before it "
+                                       "is triangulated", min=0.05, max=45)
     landmark_prior_sigma_m: float = opt(10.0, "weak prior on each landmark's first position, which keeps the solve "
                                         "well posed when its observations are turned down; 0 = none", min=0, max=1e6)
     outlier_gate_px: float = opt(15.0, "skip observations this far from the predicted projection", min=1, max=1000)
@@ -113,6 +130,9 @@ class BackendConfig:
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")
     time_offset_max_ms: float = opt(50.0, "largest offset error searched for", min=1, max=500)
     time_offset_window_s: float = opt(8.0, "frames per in-flight offset estimate", min=1, max=120)
+    time_offset_continuous: bool = opt(False, "keep tracking the time offset after it converged (a drifting camera "
+                                        "or IMU clock) instead of freezing it; costs a PnP per frame all flight")
+    time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 
@@ -158,7 +178,8 @@ class MavlinkConfig:
 
 @dataclass(frozen=True)
 class SourceConfig:
-    kind: str = opt("oak", "sensor source", choices=("oak", "euroc", "fake"))
+    kind: str = opt("oak", "sensor source ('sitl': cameras rendered at an autopilot SITL's truth pose, for "
+                    "bench/sitl/)", choices=("oak", "euroc", "fake", "sitl"))
     dataset: str = opt("", "EuRoC dataset path when kind = 'euroc'")
     calibration: str = opt("", "calibration file; empty = from the device / dataset")
     fps: float = opt(20.0, "camera frame rate", min=1, max=120)
@@ -195,6 +216,11 @@ class SourceConfig:
     fake_duration_s: float = opt(0.0, "kind = 'fake': flight length; 0 = endless (the flight never repeats)",
                                  min=0, max=1e7)
     fake_seed: int = opt(0, "kind = 'fake': seed of the simulated flight and room", min=0, max=2**31 - 1)
+    sitl_url: str = opt("tcp:127.0.0.1:5763", "kind = 'sitl': MAVLink link on which the SITL sends its truth "
+                        "(SIM_STATE); not the autopilot link of [mavlink]")
+    sitl_home: list = opt([-35.363261, 149.165230, 584.0], "kind = 'sitl': the SITL's --home [lat_deg, lon_deg, "
+                          "alt_m]; it is placed in the middle of the simulated room")
+    sitl_blackout_file: str = opt("", "kind = 'sitl': while this file exists the cameras are black (fault tests)")
 
 
 @dataclass(frozen=True)
@@ -300,6 +326,14 @@ class LoopConfig:
                                    min=1e-3, max=1e4)
     reloc_min_consistent: int = opt(3, "as min_consistent, for an edge to another session (a loaded map, the "
                                     "flight before a reset): no drift gate can check it", min=1, max=20)
+    reloc_candidates: int = opt(4, "best retrieval candidates from other sessions verified per keyframe while "
+                                "this one is not joined to them (relocalising)", min=0, max=20)
+    reloc_min_inliers: int = opt(12, "as min_inliers, for an edge to another session: a second flight sees the "
+                                 "map's places from further off (fewer matches)", min=6, max=1000)
+    reloc_two_way_m: float = opt(0.06, "as two_way_m, for an edge to another session (its guard is "
+                                 "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
+                                 min=0.001, max=10)
+    reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",
                       choices=("off", "jump", "blend"))
     blend_rate_m_s: float = opt(0.2, "blend: correction applied at most this fast [m/s]", min=1e-3, max=100)
@@ -402,6 +436,11 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
         raise VioError(f"{source}: [source] mavlink_imu_message = 'RAW_IMU' is in the sensor's own units: set "
                        "mavlink_imu_accel_scale [m/s^2 per unit] and mavlink_imu_gyro_scale [rad/s per unit] "
                        "(ArduPilot's RAW_IMU: 9.80665e-3 and 1e-3)")
+    if src.kind == "sitl" and src.imu != "mavlink":
+        raise VioError(f"{source}: [source] kind = 'sitl' renders cameras only; set imu = 'mavlink' (the SITL's IMU, "
+                       "so that images and IMU are of the same flight)")
+    if src.kind == "sitl" and len(src.sitl_home) != 3:
+        raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m]")
     b, f = cfg.backend, cfg.frontend
     if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
         raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "

@@ -120,16 +120,20 @@ class ReplayedStates:
     dataset: object  # vio.io.euroc.EurocDataset
 
 
-def replay_states(path, cfg=None, imu_to_end: bool = False) -> ReplayedStates:
+def replay_states(path, cfg=None, imu_to_end: bool = False, calibration=None) -> ReplayedStates:
     """Replay a dataset through a fresh estimator, keeping every frame-rate and IMU-rate state.
 
     `imu_to_end`: feed the IMU after the last frame too (cameras that stop while the IMU runs on); by
-    default the replay ends at the last frame, as `vio replay` does."""
+    default the replay ends at the last frame, as `vio replay` does. `calibration`: instead of the
+    dataset's. A dataset whose IMU looks like the wrong units is refused (VioError), as `vio replay` does."""
+    from vio import VioError
     from vio.estimator import Estimator
     from vio.io.euroc import EurocDataset
     from vio.types import ImuSample
 
-    ds = EurocDataset(path)
+    ds = EurocDataset(path, calibration)
+    if ds.units_problem:
+        raise VioError(ds.units_problem)
     est = Estimator(ds.calibration, cfg)
     frames: list[NavState] = []
     imu: list[NavState] = []

@@ -42,7 +42,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+from vio.geometry import make_T, roll_pitch_yaw, so3_exp, so3_log
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
@@ -177,8 +177,11 @@ class Estimator:
         self.time_offset_ns = int(calib.time_offset_ns)  # t_imu = t_cam + offset; may be re-estimated
         b = self.bcfg
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
-                                                 imu=self.imu) if b.estimate_time_offset else None
+                                                 imu=self.imu, continuous=b.time_offset_continuous,
+                                                 track_window_s=b.time_offset_track_window_s) \
+            if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
+        self._refined: tuple[np.ndarray, np.ndarray, int] | None = None  # smoother's T_body_cam0/1, keyframes
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
         self.reset_counter = 0
@@ -237,8 +240,12 @@ class Estimator:
         self._processed.clear()
         return out
 
-    def feed_imu(self, s: ImuSample) -> NavState | None:
-        """Add one IMU sample; returns the IMU-rate propagated state once initialised."""
+    def feed_imu(self, s: ImuSample, want_state: bool = True) -> NavState | None:
+        """Add one IMU sample; returns the IMU-rate propagated state once initialised.
+
+        `want_state=False` (a replay that keeps only frame states) skips the propagation and the state's
+        covariance, about a third of the per-sample cost; the propagator catches up with the buffered
+        samples when a later call wants a state again."""
         prev_t = self.imu.last_t_ns
         g, a = s.gyro, s.accel
         # NaN fails both comparisons; two reductions instead of imu_sample_problem() on the hot path
@@ -262,9 +269,26 @@ class Estimator:
         if run.last_vision_t is not None and (s.t_ns - run.last_vision_t) * 1e-9 > self.bcfg.lost_timeout_s:
             self.reset(f"no usable camera frame for {(s.t_ns - run.last_vision_t) * 1e-9:.2f} s")
             return None
-        if self.propagator.add(s):
+        if want_state and self._propagate_to(s.t_ns):
             return self._propagated_state()
         return None
+
+    def _propagate_to(self, t_ns: int) -> bool:
+        """Advance the propagator through the buffered samples up to t_ns; True when it reached t_ns.
+
+        Lazy, so that samples nobody asks a state for cost nothing. The samples since the propagator's time
+        are in the buffer while that time is within IMU_KEEP_S (keyframes restart it; without any, a caller
+        that skipped states for longer gets one step across the trimmed part, held at its last sample)."""
+        p = self.propagator
+        if not p.ready or p.t_ns >= t_ns:
+            return False
+        if self.imu.t[-2:-1] == [p.t_ns]:  # the usual case: one new sample, the one just added
+            p.add(ImuSample(self.imu.t[-1], self.imu.gyro[-1], self.imu.accel[-1]))
+        else:
+            ts, g, a = self.imu.window(p.t_ns + 1, t_ns)
+            for k in range(len(ts)):
+                p.add(ImuSample(int(ts[k]), g[k], a[k]))
+        return p.t_ns == t_ns
 
     def _reject_imu(self, s: ImuSample) -> None:
         why = imu_sample_problem(s.gyro, s.accel) or "invalid sample"
@@ -443,7 +467,10 @@ class Estimator:
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
-        if new is not None and new != self.time_offset_ns:
+        if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
+            log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
+            self.time_offset_ns = new
+        elif new is not None and new != self.time_offset_ns:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
                      new * 1e-6, self.calib.time_offset_ns * 1e-6)
             self.time_offset_ns = new
@@ -537,7 +564,7 @@ class Estimator:
             T[:3, 3] = anchor[:3, 3]
             v = T_fix[:3, :3] @ v
         static = init.method == "static"
-        smoother = VioSmoother(self.calib, self.bcfg)
+        smoother = VioSmoother(self.refined_calibration(), self.bcfg)  # a reset keeps what was learnt
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
                                   sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff)
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
@@ -567,10 +594,8 @@ class Estimator:
         pose = est.pose.matrix()
         bias = est.bias
         self.gyro_prior.set_gyro_bias(bias.gyroscope())  # no gyro-bias rotation as fake parallax
+        # the newer samples are applied when an IMU-rate state is asked for (_propagate_to)
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
-        ts, g, a = self.imu.window(t + 1, self.imu.last_t_ns or t)
-        for k in range(len(ts)):
-            self.propagator.add(ImuSample(int(ts[k]), g[k], a[k]))
         self._update_health(t, ff)
         return self._frame_state(t, pose, est.velocity, bias)
 
@@ -624,6 +649,24 @@ class Estimator:
             return False
         return ff.parallax_px >= b.keyframe_min_parallax_px or len(ff.ids) < b.keyframe_min_tracks
 
+    def refined_calibration(self) -> StereoCalibration:
+        """The calibration with the smoother's refined extrinsics (`backend.refine_extrinsics`), else as given."""
+        if self._refined is None:
+            return self.calib
+        T0, T1, _ = self._refined
+        return dataclasses.replace(self.calib, cam0=self.calib.cam0.with_T_body_cam(T0),
+                                   cam1=self.calib.cam1.with_T_body_cam(T1))
+
+    def refinement_stats(self) -> dict | None:
+        """Refined extrinsics and how far they moved from the calibration, for the replay's stats."""
+        if self._refined is None:
+            return None
+        T0, T1, n = self._refined
+        d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
+        return {"T_body_cam0": T0.tolist(), "T_body_cam1": T1.tolist(), "refining_keyframes": int(n),
+                "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
+                "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3]))}
+
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
         run = self._state
         self.imu.integrate(run.pim, prev_t, t)
@@ -647,6 +690,8 @@ class Estimator:
                      and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
             est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still)
             self._check_plausible(est)
+            if est.T_body_cam0 is not None:
+                self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes)
             st = self._after_keyframe(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:

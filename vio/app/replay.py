@@ -153,7 +153,7 @@ class ReplayResult:
             "init_delay_s": None if self.init_t_ns is None or self.first_frame_t_ns is None
             else (self.init_t_ns - self.first_frame_t_ns) * 1e-9,
             "keyframes": int(sum(f["keyframe"] for f in self.frame_stats)),
-            "timing_ms": {k: summary(k) for k in ("frontend_ms", "backend_ms", "total_ms")},
+            "timing_ms": {k: summary(k) for k in ("frontend_ms", "backend_ms", "total_ms", "total_cpu_ms")},
             "frames_listed": self.frames_listed,
             "frames_unusable": self.frames_unusable,
             "unusable_reasons": dict(self.unusable_reasons),
@@ -213,9 +213,9 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                 lag = (t_data - t_first) * 1e-9 - (time.perf_counter() - wall0)
                 if lag > 0:
                     time.sleep(lag)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             if isinstance(ev, ImuSample):
-                est.feed_imu(ev)
+                est.feed_imu(ev, want_state=False)  # the replay keeps frame states only
             else:
                 if max_frames is not None and frames >= max_frames:
                     break
@@ -235,7 +235,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     why = _DETAIL.sub("", ff.reason) or "rejected by the front end"
                     unusable[why] = unusable.get(why, 0) + 1
                 frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
-                                    "total_ms": (time.perf_counter() - t0) * 1e3, "keyframe": bool(tm.keyframe),
+                                    "total_ms": (time.perf_counter() - t0) * 1e3,
+                                    "total_cpu_ms": (time.thread_time() - c0) * 1e3, "keyframe": bool(tm.keyframe),
                                     "stereo": ff.n_stereo})
                 if loop is not None:
                     if tm.keyframe and pf.state is not None and t_cam in loop_images:
@@ -277,7 +278,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                                                  "final": est.time_offset_ns * 1e-6},
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
-                              "estimator": {k: getattr(h, k) for k in _HEALTH_STATS}},
+                              "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
+                              "calibration_refined": est.refinement_stats()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error)
     summary = res.unusable_summary()
     if summary:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from vio.sim.motion import PROFILES
+from vio.sim.scene import SCENES
 
 _VARIANT_HELP = ("realism preset: clean (textured, still images, EuRoC IMU noise), realistic (blur, noise, "
                  "exposure drift, vibration, some plain walls), hard (strong blur, exposure jumps, plain areas, "
@@ -40,6 +41,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aliasing", type=float, default=None, metavar="M",
                    help="aliasing room: walls, floor and ceiling repeat their texture every M metres "
                         "(places that look the same but are not; loop-closure tests)")
+    p.add_argument("--scene", choices=SCENES, default="room",
+                   help="room (10 x 8 x 4 m, default) or hall (25 x 20 x 8 m machine hall: dim, far walls)")
+    p.add_argument("--calib-error", type=float, nargs="?", const=1.0, default=0.0, metavar="SCALE",
+                   help="write a slightly wrong calibration (images use the true one, kept in "
+                        "OUT/calibration_truth.yaml): extrinsics off by SCALE x 0.1 deg and 2 mm, intrinsics by "
+                        "SCALE x 0.5 px (default SCALE 1, a typical Kalibr error)")
+    p.add_argument("--right-dropout", action="append", default=[], metavar="START:LENGTH",
+                   help="no right image from START s for LENGTH s (repeatable)")
+    p.add_argument("--time-offset-drift-ms", type=float, default=0.0, metavar="MS",
+                   help="the time offset drifts by +-MS around --time-offset-ms (a sinusoid, see --drift-period)")
+    p.add_argument("--drift-period", type=float, default=60.0, metavar="S",
+                   help="period of the time offset drift in s (default: 60)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in OUT")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -54,6 +67,16 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _window(text: str) -> tuple[float, float]:
+    from vio import VioError
+
+    try:
+        start, length = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise VioError(f"--right-dropout: expected START:LENGTH in seconds such as 20:5, got {text!r}") from None
+    return start, length
+
+
 def run(args: argparse.Namespace) -> int:
     from vio.sim.generate import SimConfig, simulate
 
@@ -64,7 +87,9 @@ def run(args: argparse.Namespace) -> int:
                     imu_noise=not args.no_imu_noise, gyro_bias=args.gyro_bias, accel_bias=args.accel_bias,
                     vibration=args.vibration, plain_fraction=args.plain, exposure_ms=args.blur_ms,
                     image_noise=args.image_noise, drop_frames=args.drop_frames, scene_seed=args.scene_seed,
-                    aliasing_period_m=args.aliasing)
+                    aliasing_period_m=args.aliasing, scene=args.scene, calib_error=args.calib_error,
+                    right_dropouts=tuple(_window(w) for w in args.right_dropout),
+                    time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period)
     summary = simulate(args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.line())
     return 0

@@ -7,6 +7,26 @@ Huber-robust pinhole projection factors in cam0 (and cam1 where the front end fo
 with body_P_sensor = T_body_cam so the smoother works on body poses directly, and a weak prior at its
 first position (`landmark_prior_sigma_m`) that keeps the linear system well posed.
 
+Mono landmarks (`mono_landmarks`): a track without usable stereo depth (no right image, beyond
+`max_depth_m`, no stereo match) has its cam0 pixels remembered at each keyframe; once it has been seen at
+MONO_MIN_VIEWS keyframes inside the lag whose rays differ by `mono_min_parallax_deg`, it is triangulated
+from those keyframes' current estimates (gtsam.triangulatePoint3, refined) and becomes an ordinary landmark
+with the same Huber-robust projection factors, one per remembered keyframe. So far points, which constrain
+rotation best, and everything seen while the right camera is out keep feeding the smoother.
+
+Online extrinsic refinement (`refine_extrinsics`): T_body_cam0 and T_body_cam1 become variables E(0),
+E(1) with priors from the calibration's uncertainty (`extrinsic_sigma_rad`; the translation is held unless
+`refine_extrinsic_translation`, then `extrinsic_sigma_m`), tied by
+a between factor on T_cam0_cam1 that holds the stereo extrinsic (tight) or lets it move by
+`stereo_sigma_*` (`refine_stereo_extrinsic`). Projection factors then read the camera pose as X(j) * E
+(gtsam_unstable's ProjectionFactorPPP). The extrinsic is observable only when the body turns about two
+axes and moves; the gate: the keyframes inside the lag must span `extrinsic_min_rotation_deg` of rotation
+about the second most excited axis (smallest but one singular value of their rotation vectors about the
+newest one). Keyframes that fail the gate (hover, straight flight) use fixed projection factors at the
+current extrinsic estimate, so E only keeps its prior and what earlier motion taught it (marginalised
+into it as keyframes leave the lag): hovering neither refines nor corrupts it. E's stamp moves with
+every keyframe, so it never leaves the window.
+
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
 the last keyframe that saw it; a track seen again after its landmark left gets a fresh landmark.
@@ -19,7 +39,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, L, V, X
+from gtsam.symbol_shorthand import B, E, L, V, X
 
 from vio.calibration import StereoCalibration
 from vio.config import BackendConfig
@@ -55,12 +75,18 @@ class KeyframeEstimate:
     n_visual: int  # projection factors added at this keyframe
     n_landmarks: int  # landmarks observed at this keyframe
     extra_passes: int = 0  # relinearisation passes after the first update
+    T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
+    T_body_cam1: np.ndarray | None = None
 
 
 @dataclass
 class _Landmark:
     key: int
     last_t_s: float
+
+
+MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono track before it is triangulated
+MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
 
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
@@ -88,6 +114,11 @@ class VioSmoother:
         params.findUnusedFactorSlots = True
         self.smoother = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params)
         self.landmarks: dict[int, _Landmark] = {}
+        self._mono: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> (keyframe, cam0 pixel) without landmark
+        self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
+        self.n_mono_landmarks = 0
+        self.refine = bool(cfg.refine_extrinsics)
+        self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
         self.index = -1
         self.t0_ns = 0
@@ -141,6 +172,8 @@ class VioSmoother:
         values.insert(V(0), np.asarray(v_world, float))
         values.insert(B(0), bias)
         stamps = {X(0): 0.0, V(0): 0.0, B(0): 0.0}
+        if self.refine:
+            self._add_extrinsic_variables(graph, values, stamps)
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, pose, 0, 0.0)
@@ -163,6 +196,8 @@ class VioSmoother:
         values.insert(V(j), pred.velocity())
         values.insert(B(j), prev.bias)
         stamps = {X(j): t_s, V(j): t_s, B(j): t_s}
+        if self.refine:
+            stamps[E(0)] = stamps[E(1)] = t_s  # the extrinsics stay in the window for the whole flight
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -175,6 +210,33 @@ class VioSmoother:
         extra = self._update(graph, values, stamps, j, pred.pose())
         return self._finish(t_ns, n_vis, n_lm, extra)
 
+    def _add_extrinsic_variables(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                                 stamps: dict[int, float]) -> None:
+        cfg = self.cfg
+        # translation held unless asked for: on the 40 s aggressive flight it wandered 4.2 mm from a 2 mm
+        # error (absorbing what it cannot see: intrinsics, lever-arm directions the turns did not excite)
+        prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
+                        [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
+        graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
+        stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [cfg.stereo_sigma_m] * 3) if cfg.refine_stereo_extrinsic \
+            else _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
+        graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self.P_body_cam0.between(self.P_body_cam1), stereo))
+        values.insert(E(0), self.P_body_cam0)
+        values.insert(E(1), self.P_body_cam1)
+        stamps[E(0)] = stamps[E(1)] = 0.0
+
+    def _motion_excites_extrinsics(self, pose_pred: gtsam.Pose3, t_s: float) -> bool:
+        """The gate of the module doc: rotation about two axes among the keyframes inside the lag."""
+        horizon = t_s - self.cfg.lag_s + 0.05
+        R_new = pose_pred.rotation()
+        thetas = [gtsam.Rot3.Logmap(R_new.between(self._estimate.atPose3(X(i)).rotation()))
+                  for i, t in self._kf_t.items() if t >= horizon and self._estimate.exists(X(i))]
+        if len(thetas) < 3:
+            return False
+        sv = np.linalg.svd(np.asarray(thetas) - np.mean(thetas, axis=0), compute_uv=False)
+        spread = 2.0 * sv[1] / np.sqrt(len(thetas))  # ~ the peak-to-peak rotation about the second axis
+        return bool(np.degrees(spread) >= self.cfg.extrinsic_min_rotation_deg)
+
     def _finish(self, t_ns: int, n_vis: int, n_lm: int, extra: int) -> KeyframeEstimate:
         est = self._estimate
         j = self.index
@@ -182,9 +244,14 @@ class VioSmoother:
             pose = est.atPose3(X(j))
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
+            if self.refine:
+                self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
+                self.T_body_cam0 = self.P_body_cam0.matrix()
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
-        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra)
+        self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
+                                     self.T_body_cam0.copy() if self.refine else None,
+                                     self.P_body_cam1.matrix() if self.refine else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -192,6 +259,9 @@ class VioSmoother:
         horizon = t_s - self.cfg.lag_s
         if len(self.landmarks) > 4 * self.cfg.max_landmarks:
             self.landmarks = {tid: lm for tid, lm in self.landmarks.items() if lm.last_t_s >= horizon}
+        self._kf_t = {j: t for j, t in self._kf_t.items() if t >= horizon}
+        if len(self._mono) > 4 * self.cfg.max_landmarks:
+            self._mono = {tid: obs for tid, obs in self._mono.items() if obs[-1][0] in self._kf_t}
 
     def _active(self, track_id: int, t_s: float) -> _Landmark | None:
         """The track's landmark if it is still inside the smoother window (margin for round-off)."""
@@ -216,6 +286,10 @@ class VioSmoother:
         gate2 = cfg.outlier_gate_px ** 2
         n_vis, n_lm, n_new = 0, 0, 0
         stereo = np.isfinite(ff.depth_m)
+        self._kf_t[j] = t_s
+        refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
+        self.extrinsic_keyframes += int(refine_now)
+        factor = self._factor_maker(refine_now)
         for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
             uv0 = ff.uv0[k]
@@ -232,16 +306,33 @@ class VioSmoother:
                     continue
                 key = lm.key
             else:
-                if n_new >= cfg.max_new_landmarks or not stereo[k]:
+                if n_new >= cfg.max_new_landmarks:
                     continue
-                d = float(ff.depth_m[k])
-                if not (cfg.min_depth_m <= d <= cfg.max_depth_m):
+                d = float(ff.depth_m[k]) if stereo[k] else float("nan")
+                mono_obs: list[tuple[int, np.ndarray]] = []
+                if cfg.min_depth_m <= d <= cfg.max_depth_m:
+                    p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
+                    p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
+                    self._mono.pop(tid, None)
+                elif cfg.mono_landmarks:
+                    horizon = t_s - cfg.lag_s + 0.05  # keyframes about to be marginalised take no new factors
+                    mono_obs = [(i, uv) for i, uv in self._mono.get(tid, [])
+                                if i != j and self._kf_t.get(i, -1e9) >= horizon and self._estimate.exists(X(i))]
+                    p_w = self._triangulate(mono_obs, uv0, T_world_cam0) \
+                        if len(mono_obs) + 1 >= MONO_MIN_VIEWS else None
+                    if p_w is None:
+                        self._mono[tid] = mono_obs + [(j, uv0.copy())]
+                        continue
+                    del self._mono[tid]
+                    self.n_mono_landmarks += 1
+                else:
                     continue
-                p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
                 key = L(self._next_landmark)
                 self._next_landmark += 1
-                p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
                 values.insert(key, p_w)
+                for i, uv in mono_obs:  # the earlier keyframes that saw it, still inside the window
+                    graph.add(factor(uv, i, key, 0))
+                    n_vis += 1
                 if self.landmark_prior is not None:
                     # Without it a landmark whose observations the Huber loss has turned down (or a far one)
                     # can leave the system indeterminate, and the smoother cannot recover from the failed
@@ -250,12 +341,10 @@ class VioSmoother:
                 lm = _Landmark(key, t_s)
                 self.landmarks[tid] = lm
                 n_new += 1
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv0, self.pixel_noise, X(j), key, self.K0, False, False,
-                                                           self.P_body_cam0))
+            graph.add(factor(uv0, j, key, 0))
             n_vis += 1
             if stereo[k]:
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(ff.uv1[k], self.pixel_noise, X(j), key, self.K1,
-                                                               False, False, self.P_body_cam1))
+                graph.add(factor(ff.uv1[k], j, key, 1))
                 n_vis += 1
             lm.last_t_s = t_s
             stamps[key] = t_s
@@ -263,6 +352,46 @@ class VioSmoother:
             if n_lm >= cfg.max_landmarks:
                 break
         return n_vis, n_lm
+
+    def _factor_maker(self, refine: bool):
+        """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
+        as a variable (E(cam), when refining) or fixed at its current estimate."""
+        K = (self.K0, self.K1)
+        if refine:
+            from gtsam_unstable import ProjectionFactorPPPCal3_S2
+
+            return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, X(i), E(cam), key,
+                                                                      K[cam], False, False)
+        P = (self.P_body_cam0, self.P_body_cam1)
+        return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, X(i), key, K[cam],
+                                                                           False, False, P[cam])
+
+    def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
+                     T_world_cam0: np.ndarray) -> np.ndarray | None:
+        """World point of a mono track from its keyframe pixels and the current one, or None when the rays are
+        too parallel, the point lies outside the depth limits in a view, or does not reproject within
+        MONO_MAX_REPROJ_PX (a track that slid along an edge)."""
+        cfg = self.cfg
+        poses = [self._estimate.atPose3(X(i)).compose(self.P_body_cam0) for i, _ in obs]
+        poses.append(gtsam.Pose3(T_world_cam0))
+        pixels = [uv for _, uv in obs] + [uv0]
+        Kinv = np.linalg.inv(self.K0.K())
+        rays = [p.rotation().matrix() @ (Kinv @ np.array([u[0], u[1], 1.0])) for p, u in zip(poses, pixels)]
+        cos = float(rays[0] @ rays[-1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[-1])))
+        if np.degrees(np.arccos(min(cos, 1.0))) < cfg.mono_min_parallax_deg:
+            return None
+        try:
+            p_w = np.asarray(gtsam.triangulatePoint3(poses, self.K0, pixels, 1e-9, True), float).reshape(3)
+        except GTSAM_ERRORS:  # cheirality or a degenerate system: not a usable point (yet)
+            return None
+        for pose, uv in zip(poses, pixels):
+            p_c = pose.transformTo(p_w)
+            if not (cfg.min_depth_m <= p_c[2] <= cfg.max_depth_m):
+                return None
+            if np.sum((self.K0.K()[:2, :2] @ (p_c[:2] / p_c[2]) + self.K0.K()[:2, 2] - uv) ** 2) > \
+                    MONO_MAX_REPROJ_PX ** 2:
+                return None
+        return p_w
 
     def marginal_covariances(self) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariance of the newest pose (6x6, rot then trans, body tangent) and velocity."""

@@ -17,6 +17,16 @@ frame (~0.4 ms) and stereo on one frame in `span_frames` at least: a pair starts
 stereo depth that is `span_frames` or more back (stereo on every frame made a survey flight, which
 collects for the whole `max_collect_s`, replay ~20 % slower).
 
+Continuous tracking (`continuous=True`, `[backend] time_offset_continuous`): USB cameras and serial IMUs
+drift by milliseconds over a minute, so instead of stopping, collection goes on from the first accepted
+estimate on, on a shorter window (`track_window_s`: each estimate is the window's mean offset, so it lags by
+half the window). The estimates of the last TRACK_HISTORY_WINDOWS windows are fitted with a line (weights
+1/sigma^2, each estimate placed at its pairs' mean time); the newest estimate carried forward to the
+newest frame along the line's slope is applied, so a drift is followed without the half-window lag (the
+line's own value there overshot where the drift turned: extrapolated from its centre, 6 s back).
+Hovering gives no informative pairs: no solve, the offset stays where it was (and the PnP per frame
+goes on costing ~0.4 ms).
+
 Why frames apart rather than consecutive: shifting an interval by d changes its gyro integral by
 (w(t1) - w(t0)) d, so the signal grows with the interval while the visual rotation noise does not (at
 50 ms it drowned in the noise: +-5 ms sigma per 8 s window).
@@ -46,6 +56,10 @@ SOLVE_EVERY = 20
 PNP_MAX_DEPTH_M = 40.0  # farther stereo points hardly constrain the rotation's PnP translation coupling
 CHANGE_NS = 500_000  # smaller corrections are not applied (no jitter of the frame stamps)
 SIGNIFICANT_SIGMAS = 2.5  # an estimate replaces the applied offset only when this many sigmas away from it
+TRACK_CHANGE_NS = 200_000  # while tracking, smaller changes of the predicted offset are not applied
+TRACK_STEP_NS = 50_000  # between solves the offset follows the fitted drift in steps of this size
+TRACK_HISTORY_WINDOWS = 1.5  # estimates of this many tracking windows back make the drift line
+MAX_DRIFT_NS_PER_S = 2_000_000  # a fitted drift faster than 2 ms/s is noise, not a clock
 
 
 def _has_depth(ff: FeatureFrame) -> bool:
@@ -58,7 +72,8 @@ class OnlineTimeOffset:
 
     def __init__(self, calib: StereoCalibration, window_s: float = 8.0, max_offset_s: float = 0.05,
                  accept_sigma_s: float = 0.002, final_sigma_s: float = 0.0005, max_solves: int = 30,
-                 span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None) -> None:
+                 span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None,
+                 continuous: bool = False, track_window_s: float = 4.0) -> None:
         """`imu`: a buffer someone else fills (the estimator's one buffer), which must then keep at least
         `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`)."""
         cam = calib.cam0
@@ -88,6 +103,12 @@ class OnlineTimeOffset:
         self._new_pairs = 0
         self._postponed = 0  # pairs added while a due solve waited for a quiet frame
         self.keep_samples = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # the window at up to 1 kHz
+        self.continuous = continuous
+        self.tracking = False  # continuous mode after the first converged estimate
+        self._track_pairs = max(int(round(track_window_s * cam.rate_hz)), MIN_PAIRS)
+        self._history: deque[tuple[int, int, float]] = deque()  # (mean pair time ns, offset ns, sigma s)
+        self._history_ns = int(TRACK_HISTORY_WINDOWS * track_window_s * 1e9)
+        self._drift: tuple[int, float, float] | None = None  # (anchor ns, offset ns there, slope ns/ns)
         self._owned = imu is None
         self.imu = ImuBuffer() if imu is None else imu
 
@@ -101,11 +122,22 @@ class OnlineTimeOffset:
     def add_frame(self, ff: FeatureFrame, solve: bool = True) -> int | None:
         """Add a front-end result (camera clock); returns a newly accepted offset [ns], else None.
 
-        `solve=False` postpones a due solve (the caller's frame is busy) by up to SOLVE_EVERY more pairs."""
+        `solve=False` postpones a due solve (the caller's frame is busy) by up to SOLVE_EVERY more pairs.
+        While tracking, the offset also moves between solves along the fitted drift (steps of
+        TRACK_STEP_NS): held between solves, which are 1-4 s apart, it fell up to 0.8 ms behind."""
+        new = self._collect(ff, solve)
+        if new is None and self.tracking and self._drift is not None:
+            t_anchor, off_anchor, slope = self._drift
+            pred = int(round(off_anchor + slope * (int(ff.t_ns) + self.base_ns - t_anchor)))
+            if abs(pred - self.applied_ns) >= TRACK_STEP_NS:
+                self.offset_ns = self.applied_ns = new = pred
+        return new
+
+    def _collect(self, ff: FeatureFrame, solve: bool) -> int | None:
         if self.done:
             return None
         self._t_first = ff.t_ns if self._t_first is None else self._t_first
-        if ff.t_ns - self._t_first > self.max_collect_ns:  # never turned enough (hover): stop paying for it
+        if ff.t_ns - self._t_first > self.max_collect_ns and not self.tracking:  # hover: stop paying for it
             self._finish()
             return None
         if not ff.tracking_ok:
@@ -188,6 +220,8 @@ class OnlineTimeOffset:
             log.debug("time offset solve %d: no estimate (%s)", self.solves, e)
             est = None
         changed = None
+        if self.tracking:
+            return self._track(est, t0, t1)
         if est is not None and est.observable and est.sigma_s <= min(self.accept_sigma_s, self.sigma_s * 1.5):
             new = self.base_ns + int(round(est.offset_s * 1e9))
             self.offset_ns, self.sigma_s = new, est.sigma_s
@@ -205,9 +239,44 @@ class OnlineTimeOffset:
                       self.base_ns * 1e-6 + est.offset_s * 1e3, est.sigma_s * 1e3, est.rate_std_rad_s)
         if self.solves >= self.max_solves:
             self.done = True
-        if self.done:
+        if self.continuous and self.offset_ns is not None:  # tracking from the first estimate on: waiting
+            self.done = False                                 # for convergence (12 s) lagged a drift by 2 ms
+            self._start_tracking()
+        elif self.done:
             self._finish()
         return changed
+
+    def _start_tracking(self) -> None:
+        self.tracking = True
+        self._pairs = deque(list(self._pairs)[-self._track_pairs:], maxlen=self._track_pairs)
+        log.info("time offset: %+.1f ms; tracking it from now on, on %d-pair windows", self.offset_ns * 1e-6,
+                 self._track_pairs)
+
+    def _track(self, est, t0: np.ndarray, t1: np.ndarray) -> int | None:
+        """Tracking: add the window's estimate to the history, fit the drift line, apply its value now."""
+        if est is None or not est.observable or est.sigma_s > self.accept_sigma_s:
+            return None
+        t_mid = int(np.mean(0.5 * (t0 + t1)))
+        self._history.append((t_mid, self.base_ns + int(round(est.offset_s * 1e9)), est.sigma_s))
+        t_now = int(t1.max())
+        while self._history and self._history[0][0] < t_mid - self._history_ns:
+            self._history.popleft()
+        t, off, sig = (np.array(x, float) for x in zip(*self._history))
+        pred = off[-1]
+        if len(t) >= 3 and t[-1] - t[0] > 0.25 * self._history_ns:
+            w = 1.0 / np.maximum(sig, 1e-5) ** 2
+            tc = np.average(t, weights=w)
+            slope = np.sum(w * (t - tc) * (off - np.average(off, weights=w))) / np.sum(w * (t - tc) ** 2)
+            slope = float(np.clip(slope * 1e9, -MAX_DRIFT_NS_PER_S, MAX_DRIFT_NS_PER_S)) * 1e-9
+            pred = off[-1] + slope * (t_now - t[-1])  # the line's slope, from the newest estimate on
+            self._drift = (t_now, float(pred), slope)
+        self.offset_ns, self.sigma_s = int(round(pred)), est.sigma_s
+        if abs(self.offset_ns - self.applied_ns) < TRACK_CHANGE_NS:
+            return None
+        log.debug("time offset tracking: %+.2f ms at %.1f s (window estimate %+.2f +- %.2f ms)", pred * 1e-6,
+                  (t_now - self.base_ns - self._t_first) * 1e-9, off[-1] * 1e-6, est.sigma_s * 1e3)
+        self.applied_ns = self.offset_ns
+        return self.applied_ns
 
     def _finish(self) -> None:
         self.done = True

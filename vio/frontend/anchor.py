@@ -160,5 +160,9 @@ class AnchorRefiner:
         """Rows whose warp deforms the patch by more than `renew_deform` (largest |singular value - 1|)."""
         if len(anchors) == 0:
             return np.zeros(0, bool)
-        s = np.linalg.svd(anchors.A.astype(np.float64), compute_uv=False)
-        return np.abs(s - 1.0).max(axis=1) > self.renew_deform
+        # singular values of the 2x2 warps in closed form (np.linalg.svd on the stack was 0.3 ms per frame):
+        # Q +- R with Q, R the norms of the warp's rotation-like and reflection-like parts
+        A = anchors.A.astype(np.float64)
+        a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+        q, r = np.hypot(0.5 * (a + d), 0.5 * (c - b)), np.hypot(0.5 * (a - d), 0.5 * (c + b))
+        return np.maximum(np.abs(q + r - 1.0), np.abs(np.abs(q - r) - 1.0)) > self.renew_deform

@@ -33,9 +33,10 @@ def integrate_gyro(t_ns: np.ndarray, gyro: np.ndarray, t0_ns: int, t1_ns: int,
     ts = (t - t[0]).astype(float)
     rel = (knots - t[0]).astype(float)
     rates = np.column_stack([np.interp(rel, ts, w[:, k]) for k in range(3)])
-    for i in range(len(knots) - 1):
-        dt = (knots[i + 1] - knots[i]) * 1e-9
-        R = R @ so3_exp(0.5 * (rates[i] + rates[i + 1]) * dt)
+    dt = np.diff(knots)[:, None] * 1e-9
+    # all pieces' rotations in one call (one scipy call per piece was 1.7 ms of every frame), then the product
+    for Ri in so3_exp(0.5 * (rates[:-1] + rates[1:]) * dt):
+        R = R @ Ri
     return R
 
 

@@ -182,16 +182,21 @@ class StereoTracker:
         have = np.bincount(cell_of(live), minlength=cells) if len(live) else np.zeros(cells, int)
         need = np.maximum(quota - have, 0)
         cand_cell = cell_of(pts)
+        xy = pts.astype(np.int64)
+        # the mask only loses pixels and the quotas only shrink, so a corner that is masked out (or in a full
+        # cell) now stays out: dropping those first leaves the Python loop below the few real candidates
+        free = np.flatnonzero(mask[xy[:, 1], xy[:, 0]] != 0)
         taken: list[int] = []
         used = np.zeros(len(pts), bool)
         # pass 1 fills each cell up to its quota (spread); pass 2 tops up from the best corners anywhere
         for per_cell in (True, False):
-            for i in range(len(pts)):
+            cand = free[need[cand_cell[free]] > 0] if per_cell else free
+            for i in cand.tolist():
                 if len(taken) >= need_total:
                     break
                 if used[i] or (per_cell and need[cand_cell[i]] <= 0):
                     continue
-                x, y = int(pts[i, 0]), int(pts[i, 1])
+                x, y = int(xy[i, 0]), int(xy[i, 1])
                 if mask[y, x] == 0:
                     continue
                 used[i] = True

@@ -398,6 +398,12 @@ def quietest_window(imu: ImuData, seconds: float = STILL_WINDOW_S) -> tuple[slic
     if live.any():
         spread = np.where(live, spread, np.inf)
     i = int(np.argmin(spread))
+    still = np.flatnonzero(spread < STILL_SPREAD)
+    if len(still) > 1:
+        # a steady turn has a steady accelerometer too (a 40 s simulated survey flight's quietest window
+        # turned at 0.3 rad/s and read as a deg/s gyro): of the still-looking windows, the one turning least
+        rate = np.linalg.norm(imu.gyro[: n * win].reshape(n, win, 3).mean(axis=1), axis=1)
+        i = int(still[np.argmin(rate[still])])
     return slice(i * win, (i + 1) * win), float(spread[i])
 
 

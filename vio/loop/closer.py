@@ -5,7 +5,9 @@ Pipeline per keyframe: upright ORB -> bag of words -> best candidates older than
 PnP RANSAC on the candidate's stereo landmarks -> gravity check -> drift gate (the correction may not exceed
 what the odometry can have drifted since the candidate) -> temporal consistency (min_consistent verified
 candidates in a window of keyframes whose corrections agree) -> loop edges into the graph -> incremental
-re-solve (iSAM2; GNC re-decides the loop edges when the new ones do not fit)."""
+re-solve (iSAM2; GNC re-decides the loop edges when the new ones do not fit). Relocalising (a loaded map, or
+the flight before an estimator reset, not joined to this session yet): their best candidates are verified as
+well, with the reloc_* gates (docs/loop-closure.md)."""
 
 from __future__ import annotations
 
@@ -148,7 +150,17 @@ class LoopCloser:
     def _detect(self, i: int, bow: dict[int, float]) -> bool:
         c = self.cfg
         self._pending = [p for p in self._pending if i - p.i <= c.consistency_window]
-        cands = [(j, s) for j, s in self.index.query(bow, self._allowed(i), c.candidates) if s >= c.min_score]
+        ok = self._allowed(i)
+        cands = self.index.query(bow, ok, c.candidates)
+        mine = self._comp(self.keyframes[i].session)
+        others = [s for s in self._component if self._comp(s) != mine]
+        if others and c.reloc_candidates:  # relocalising (not joined to a map / the flight before a reset yet):
+            # their best ones too, or this flight's own keyframes crowd them out of the top `candidates`
+            seen = {j for j, _ in cands}
+            cands += [(j, s) for j, s in self.index.query(
+                bow, lambda j: ok(j) and self._comp(self.keyframes[j].session) != mine, c.reloc_candidates)
+                if j not in seen]
+        cands = [(j, s) for j, s in cands if s >= c.min_score]
         self.stats.queried += 1
         if not cands:
             self.stats.refused["no candidate"] += 1
@@ -158,13 +170,16 @@ class LoopCloser:
         reason = "pnp"
         for j, _score in cands:
             old = self.keyframes[j]
+            other = self._comp(old.session) != self._comp(kf.session)
+            min_inl = c.reloc_min_inliers if other else c.min_inliers
             res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
+                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
             if res is None:
                 continue
             back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=c.min_inliers)
-            if back is None or not _agree(res.T_old_new @ back.T_old_new, c.two_way_m, c.two_way_deg):
+                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
+            if back is None or not _agree(res.T_old_new @ back.T_old_new, *(
+                    (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg))):
                 reason = "two-way"
                 continue
             res = dataclasses.replace(res, T_old_new=_mean_pose(res.T_old_new, inv_T(back.T_old_new)),
@@ -174,7 +189,7 @@ class LoopCloser:
                 reason = "gravity"
                 continue
             corr = g.estimate[j] @ res.T_old_new @ inv_T(g.estimate[i])
-            if self._comp(old.session) == self._comp(kf.session):
+            if not other:
                 since = abs(kf.path_m - old.path_m) if old.session == kf.session else float("inf")
                 allowed_m = c.drift_gate_m + c.drift_gate_per_m * since
                 if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(roll_pitch_yaw(corr[:3, :3])[2])) > \

@@ -8,6 +8,8 @@ See docs/simulator.md.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from vio import VioError
@@ -55,4 +57,34 @@ def default_calibration(model: str = "radtan", width: int = 752, height: int = 4
     return StereoCalibration(cams[0], cams[1], imu or ImuNoise(), time_offset_ns=int(time_offset_ns))
 
 
-__all__ = ["default_calibration"]
+# A typical Kalibr error (issue 17): 0.05-0.1 deg and 1-2.5 mm in the camera-IMU extrinsics, up to 0.5 px
+# in the intrinsics. `perturbed_calibration` applies these magnitudes times a scale.
+CALIB_ERROR_ROT_DEG = 0.1
+CALIB_ERROR_TRANS_M = 0.002
+CALIB_ERROR_PX = 0.5
+
+
+def perturbed_calibration(calib: StereoCalibration, scale: float, rng: np.random.Generator) -> StereoCalibration:
+    """The calibration a slightly wrong calibration file states: the stereo rig's pose on the body turned
+    by exactly scale * 0.1 deg about a random axis and moved by scale * 2 mm in a random direction, and
+    fx, fy, cx, cy off by scale * 0.5 px (random signs).
+
+    The error is the rig's (the same for both cameras, T_cam1_cam0 kept), as a Kalibr calibration's is: its
+    stereo extrinsic and intrinsics come from one joint fit on the same images, so their errors agree.
+    Independent errors of this size would be a broken stereo calibration instead: 0.14 deg between the
+    cameras is ~1 px of disparity, 11 % of the depth at 5 m (a 40 s survey flight: ATE 0.23 m, not 0.005).
+    Exact magnitudes make flights of different seeds equally wrong, the random directions differently."""
+    from vio.geometry import so3_exp
+
+    def unit(v: np.ndarray) -> np.ndarray:
+        return v / np.linalg.norm(v)
+
+    dR = so3_exp(unit(rng.standard_normal(3)) * np.deg2rad(CALIB_ERROR_ROT_DEG * scale))
+    D = make_T(dR, unit(rng.standard_normal(3)) * CALIB_ERROR_TRANS_M * scale)  # body <- wrongly placed body
+    dk = rng.choice([-1.0, 1.0], 4) * CALIB_ERROR_PX * scale
+    cams = [replace(cam, fx=cam.fx + dk[0], fy=cam.fy + dk[1], cx=cam.cx + dk[2], cy=cam.cy + dk[3],
+                    T_body_cam=D @ cam.T_body_cam) for cam in (calib.cam0, calib.cam1)]
+    return replace(calib, cam0=cams[0], cam1=cams[1])
+
+
+__all__ = ["default_calibration", "perturbed_calibration"]

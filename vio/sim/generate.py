@@ -3,7 +3,14 @@
 Clocks: the truth (and the IMU) run on one clock; a frame exposed at true time t gets the camera stamp
 t_cam = t - time_offset, so the dataset obeys the calibration's t_imu = t_cam + time_offset_ns (recorded in
 mav0/kestrel.yaml). A positive `time_offset_ms` therefore stamps images *earlier* than the IMU samples
-taken at the same instant. The run's settings go to `<out>/simulation.yaml`.
+taken at the same instant. With `time_offset_drift_ms` the offset drifts as a slow sinusoid around that
+value (USB cameras, serial IMUs); the calibration states the mean and `<out>/time_offset_truth.csv` the
+true offset of every frame. The run's settings go to `<out>/simulation.yaml`.
+
+Calibration error (`calib_error`): the images are rendered with the true calibration but the dataset's
+sensor.yaml files state a perturbed one (vio.sim.perturbed_calibration); the truth is kept beside the
+dataset in `<out>/calibration_truth.yaml` (the project's calibration format), where a replay does not
+look for it.
 """
 
 from __future__ import annotations
@@ -18,13 +25,13 @@ import numpy as np
 import yaml
 
 from vio import VioError
-from vio.calibration import ImuNoise, StereoCalibration
+from vio.calibration import ImuNoise, StereoCalibration, save_calibration
 from vio.geometry import rot_to_quat_wxyz
-from vio.sim import default_calibration
+from vio.sim import default_calibration, perturbed_calibration
 from vio.sim.imu import ImuModel, ImuStream, random_bias, synthesize
 from vio.sim.motion import PROFILES, Motion, make_profile
 from vio.sim.render import CameraRenderer, Photometric
-from vio.sim.scene import Scene, default_scene
+from vio.sim.scene import SCENES, Scene, make_scene
 from vio.types import ImuSample, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -72,6 +79,11 @@ class SimConfig:
     drop_frames: float | None = None  # probability that a frame loses left, right or both images
     aliasing_period_m: float | None = None  # the room's walls, floor, ceiling repeat every this many metres
     scene_seed: int | None = None  # room texture and boxes; None: `seed` (a second flight in the same room: set it)
+    scene: str = "room"  # "room" (10 m x 8 m) or "hall" (25 m x 20 m, dim, far walls)
+    calib_error: float = 0.0  # scale of the error in the written calibration (1: 0.1 deg, 2 mm, 0.5 px)
+    right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
+    time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
+    time_offset_period_s: float = 60.0  # period of that drift
 
     def resolved(self) -> SimConfig:
         """Copy with the variant's values filled in and every value checked (VioError naming the field)."""
@@ -90,6 +102,15 @@ class SimConfig:
             v = getattr(cfg, name)
             if not (lo <= v <= hi):
                 raise VioError(f"simulate: {name} = {v} is outside [{lo}, {hi}]")
+        if cfg.scene not in SCENES:
+            raise VioError(f"simulate: unknown scene {cfg.scene!r}; expected one of {list(SCENES)}")
+        for name, (lo, hi) in {"calib_error": (0, 20), "time_offset_drift_ms": (0, 100),
+                               "time_offset_period_s": (1, 36000)}.items():
+            if not (lo <= getattr(cfg, name) <= hi):
+                raise VioError(f"simulate: {name} = {getattr(cfg, name)} is outside [{lo}, {hi}]")
+        for start, length in cfg.right_dropouts:
+            if not (start >= 0 and length > 0):
+                raise VioError(f"simulate: right dropout {start}:{length} needs start >= 0 and length > 0 s")
         if cfg.imu_rate_hz < cfg.rate_hz:
             raise VioError(f"simulate: imu_rate_hz {cfg.imu_rate_hz} is below the camera rate {cfg.rate_hz}")
         return cfg
@@ -124,6 +145,16 @@ class Simulation:
     scene: Scene
     imu: ImuStream
     frame_t_s: np.ndarray  # true exposure times (IMU clock), seconds from start
+    written_calibration: StereoCalibration  # what the dataset's sensor.yaml states (calibration unless calib_error)
+
+    def time_offset_ns(self, t_s: np.ndarray) -> np.ndarray:
+        """True camera-IMU offset (t_imu = t_cam + offset) of frames exposed at true times t_s."""
+        c = self.config
+        drift = c.time_offset_drift_ms * 1e6 * np.sin(2 * np.pi * np.asarray(t_s, float) / c.time_offset_period_s)
+        return np.round(self.calibration.time_offset_ns + drift).astype(np.int64)
+
+    def right_dropped(self, t_s: float) -> bool:
+        return any(start <= t_s < start + length for start, length in self.config.right_dropouts)
 
 
 def _grid(duration_s: float, rate_hz: float) -> np.ndarray:
@@ -140,12 +171,14 @@ def build(cfg: SimConfig) -> Simulation:
     calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
                                 int(round(cfg.time_offset_ms * 1e6)))
     motion = make_profile(cfg.profile, cfg.duration_s, cfg.seed, still_s=cfg.still_start_s)
-    scene = default_scene(cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
-                          cfg.plain_fraction, cfg.aliasing_period_m)
+    scene = make_scene(cfg.scene, cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
+                       cfg.plain_fraction, cfg.aliasing_period_m)
     model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
                      tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
     imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))
-    return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz))
+    written = calib if cfg.calib_error == 0 else \
+        perturbed_calibration(calib, cfg.calib_error, np.random.default_rng([cfg.seed, 6]))
+    return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)
 
 
 def _prepare_out(out: Path, overwrite: bool) -> None:
@@ -166,7 +199,11 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
     sim = build(cfg)
     cfg = sim.config
     _prepare_out(out, overwrite)
-    (out / "simulation.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    settings = dataclasses.asdict(cfg)
+    settings["right_dropouts"] = [list(w) for w in cfg.right_dropouts]  # safe_dump has no tuples
+    (out / "simulation.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))
+    if cfg.calib_error > 0:
+        save_calibration(sim.calibration, out / "calibration_truth.yaml")
     calib, motion, imu = sim.calibration, sim.motion, sim.imu
     cams = [(CameraRenderer(c, sim.scene), c.T_body_cam) for c in (calib.cam0, calib.cam1)]
     photo_rng = np.random.default_rng([cfg.seed, 3])
@@ -183,10 +220,14 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(sim.frame_t_s), unit="frame", desc="rendering", leave=False)
-    with EurocWriter(out, calib, overwrite=True) as writer:
+    offsets_ns = sim.time_offset_ns(sim.frame_t_s)
+    if cfg.time_offset_drift_ms > 0:
+        (out / "time_offset_truth.csv").write_text("#t_cam_ns,time_offset_ns\n" + "".join(
+            f"{T0_NS + round(t * 1e9) - o},{o}\n" for t, o in zip(sim.frame_t_s, offsets_ns)))
+    with EurocWriter(out, sim.written_calibration, overwrite=True) as writer:
         i_imu = 0
         for k, t in enumerate(sim.frame_t_s):
-            t_cam = int(T0_NS + round(t * 1e9) - calib.time_offset_ns)
+            t_cam = int(T0_NS + round(t * 1e9) - offsets_ns[k])
             while i_imu < len(imu_ns) and imu_ns[i_imu] <= t_cam:
                 writer.write_imu(ImuSample(int(imu_ns[i_imu]), imu.gyro[i_imu], imu.accel[i_imu]))
                 i_imu += 1
@@ -207,6 +248,9 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
                 if which in (1, 2):
                     images[1] = None
                     dropped[1] += 1
+            if images[1] is not None and sim.right_dropped(float(t)):
+                images[1] = None
+                dropped[1] += 1
             if images[0] is not None or images[1] is not None:
                 writer.write_frame(StereoFrame(t_cam, images[0], images[1], seq=k))
             if bar is not None:

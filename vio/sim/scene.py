@@ -107,7 +107,7 @@ class Scene:
     """Boxes + texture atlas. Build with `default_scene`; ray cast with `cast`; sample with `sample_points`."""
 
     def __init__(self, boxes: list[Box], ppm: float = 200.0, seed: int = 0, plain_fraction: float = 0.0,
-                 aliasing_period_m: float | None = None):
+                 aliasing_period_m: float | None = None, brightness: float = 1.0):
         if not boxes or not boxes[0].interior:
             raise VioError("scene: the first box must be the room (interior=True)")
         self.boxes = boxes
@@ -117,6 +117,7 @@ class Scene:
         self.hi = np.array([b.hi for b in boxes], dtype=float)
         # repeated walls: the room's faces repeat their texture every aliasing_period_m (identical shelves)
         self.aliasing_period_m = aliasing_period_m
+        self.brightness = float(brightness)  # < 1: a dim place (less contrast, the pixel noise counts more)
         self._build_atlas(np.random.default_rng([seed, 5150]), plain_fraction)
 
     # -- textures --------------------------------------------------------------------------------------
@@ -164,7 +165,7 @@ class Scene:
             self.face_axis[i] = f.axis
             self.face_cx[i] = ox + _PAD - f.u_range[0] * self.ppm
             self.face_cy[i] = oy + _PAD - f.v_range[0] * self.ppm
-        atlas = np.clip(atlas * 255.0, 0, 255)
+        atlas = np.clip(atlas * (255.0 * self.brightness), 0, 255)
         self.atlas = atlas.astype(np.float32)
         self.atlas_small = cv2.resize(cv2.GaussianBlur(self.atlas, (0, 0), MIP_FACTOR / 2.5),
                                       (width // MIP_FACTOR, height // MIP_FACTOR), interpolation=cv2.INTER_AREA)
@@ -277,3 +278,44 @@ def default_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0
         Box((-1.6, 0.4, 0.0), (-0.9, 1.2, 0.1)),
     ]
     return Scene(boxes, ppm=ppm, seed=seed, plain_fraction=plain_fraction, aliasing_period_m=aliasing_period_m)
+
+
+SCENES = ("room", "hall")
+HALL_MAX_PPM = 50.0  # the hall's 1700 m^2 of surface at 200 texels/m would not fit one cv2.remap atlas
+HALL_BRIGHTNESS = 0.4
+
+
+def hall_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0) -> Scene:
+    """A large dim machine hall: 25 m x 20 m x 8 m (x in [-12.5, 12.5], y in [-10, 10], z in [0, 8]),
+    the flight area (motion.FLIGHT_BOX) in its middle, so the walls are 10-15 m away (stereo disparity
+    3-5 px) and most texture is far: what the back end's depth limit and far landmarks are tested on.
+    Pillars and machines stand well outside the flight area. Textures are at most HALL_MAX_PPM texels/m
+    (a pixel at 10 m covers 2 cm) and the whole hall at HALL_BRIGHTNESS of the room's brightness."""
+    boxes = [
+        Box((-12.5, -10.0, 0.0), (12.5, 10.0, 8.0), interior=True),
+        Box((-6.3, -5.3, 0.0), (-5.7, -4.7, 8.0)),  # pillars
+        Box((5.7, -5.3, 0.0), (6.3, -4.7, 8.0)),
+        Box((-6.3, 4.7, 0.0), (-5.7, 5.3, 8.0)),
+        Box((5.7, 4.7, 0.0), (6.3, 5.3, 8.0)),
+        Box((8.0, -8.5, 0.0), (11.5, -5.5, 3.0)),  # machines and shelves along the walls
+        Box((-11.5, 6.0, 0.0), (-8.0, 9.0, 2.5)),
+        Box((-3.0, 8.5, 0.0), (4.0, 9.6, 4.5)),
+        Box((-10.0, -9.6, 0.0), (-4.0, -8.4, 4.0)),
+        Box((10.8, 1.0, 0.0), (12.0, 4.5, 5.0)),
+        Box((1.0, -4.5, 0.0), (2.5, -3.5, 0.8)),  # low crates beside the flight area
+        Box((-3.5, 3.2, 0.0), (-2.0, 4.2, 0.6)),
+    ]
+    return Scene(boxes, ppm=min(ppm, HALL_MAX_PPM), seed=seed, plain_fraction=plain_fraction,
+                 brightness=HALL_BRIGHTNESS)
+
+
+def make_scene(name: str, seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0,
+               aliasing_period_m: float | None = None) -> Scene:
+    """The scene called `name` (one of SCENES): the default room or the hall."""
+    if name == "room":
+        return default_scene(seed, ppm, plain_fraction, aliasing_period_m)
+    if name == "hall":
+        if aliasing_period_m:
+            raise VioError("simulate: --aliasing is for the room scene only")
+        return hall_scene(seed, ppm, plain_fraction)
+    raise VioError(f"simulate: unknown scene {name!r}; expected one of {list(SCENES)}")

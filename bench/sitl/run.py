@@ -1,0 +1,294 @@
+"""Closed-loop SITL test: ArduCopter SITL flies a mission on Kestrel's vision alone (docs/autopilot.md,
+"Closed-loop SITL test").
+
+    python -m bench.sitl.run --sitl-bin PATH/arducopter --mission box --out runs/sitl [--faults 2,10]
+
+What runs (all on loopback):
+- ArduCopter SITL (`--model quad --speedup 1`), GPS off, EKF3 on external nav (PARAMS below), its
+  SERIAL0 (tcp 5760) for this script, SERIAL1 (5762) for Kestrel's autopilot link, SERIAL2 (5763) for the
+  camera's truth stream;
+- `vio run` (the real daemon, a subprocess) with `[source] kind = "sitl"` (cameras rendered at the SITL's
+  SIM_STATE pose, drivers/sitl_camera.py) and `imu = "mavlink"` (the SITL's IMU), sending ODOMETRY back;
+- this script: records truth (SIM_STATE), the autopilot's estimate (LOCAL_POSITION_NED, ATTITUDE), EKF
+  status and STATUSTEXT; arms in GUIDED, takes off, streams the mission's position targets, covers the
+  cameras (the blackout file) for the `--faults` durations, lands; then writes report.json and report.md
+  (bench/sitl/report.py).
+
+No SITL binary: one line saying so, exit 2 (CI has none; tests/test_sitl_harness.py tests the pieces).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.sitl import mission as msn
+from bench.sitl import report as rep
+
+HOME = (-35.363261, 149.165230, 584.0)  # ArduPilot's CMAC default home; any place works
+DEFAULT_BIN = os.environ.get("KESTREL_SITL_BIN", "/work/sitl/ardupilot/build/sitl/bin/arducopter")
+PARAMS = {  # docs/autopilot.md "ArduPilot (EKF3)", plus what a GPS-less SITL needs
+    "AHRS_EKF_TYPE": 3, "EK3_ENABLE": 1, "EK2_ENABLE": 0,
+    "GPS_TYPE": 0, "GPS1_TYPE": 0, "SIM_GPS_DISABLE": 1, "SIM_GPS1_ENABLE": 0,  # names differ across versions
+    "VISO_TYPE": 1, "VISO_DELAY_MS": 50, "VISO_POS_M_NSE": 0.1, "VISO_VEL_M_NSE": 0.1, "VISO_YAW_M_NSE": 0.2,
+    "EK3_SRC1_POSXY": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 6, "EK3_SRC1_YAW": 6,
+    "COMPASS_USE": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0,
+    "SERIAL1_PROTOCOL": 2, "SERIAL2_PROTOCOL": 2,
+    "ARMING_CHECK": 0,  # the GPS and compass checks cannot pass without them; the EKF still gates arming
+    "FS_EKF_ACTION": 1,  # land on an EKF failsafe (what the blackout test watches for)
+}
+RECORDED = {"SIM_STATE": 20, "LOCAL_POSITION_NED": 20, "ATTITUDE": 20, "EKF_STATUS_REPORT": 5}
+
+
+class Recorder(threading.Thread):
+    """Reads the script's own SITL link and keeps every message the report needs, stamped on the host clock."""
+
+    def __init__(self, conn) -> None:
+        super().__init__(name="recorder", daemon=True)
+        self.conn = conn
+        self.stop = threading.Event()
+        self.truth: list = []  # (t_ns, n, e, d, yaw, q1..q4 = FRD body -> NED, w first)
+        self.local: list = []  # (t_ns, n, e, d)
+        self.att: list = []  # (t_ns, yaw)
+        self.ekf: list = []  # (t_ns, flags, pos_horiz_ratio, compass(yaw)_ratio)
+        self.text: list = []  # (t_ns, text)
+        self.modes: list = []  # (t_ns, custom_mode)
+        self.boot_ms = 0
+        self.mode = -1  # the autopilot's custom_mode and armed flag (component 1's HEARTBEAT only)
+        self.armed = False
+
+    def run(self) -> None:
+        from drivers.sitl_camera import ned_from_geodetic
+
+        while not self.stop.is_set():
+            m = self.conn.recv_match(blocking=True, timeout=0.2)
+            if m is None:
+                continue
+            t, kind = time.monotonic_ns(), m.get_type()
+            if kind == "SIM_STATE":
+                ned = ned_from_geodetic(HOME, m.lat_int or int(m.lat * 1e7), m.lon_int or int(m.lon * 1e7), m.alt)
+                self.truth.append((t, *ned, m.yaw, m.q1, m.q2, m.q3, m.q4))
+            elif kind == "LOCAL_POSITION_NED":
+                self.local.append((t, m.x, m.y, m.z))
+                self.boot_ms = m.time_boot_ms
+            elif kind == "ATTITUDE":
+                self.att.append((t, m.yaw))
+            elif kind == "EKF_STATUS_REPORT":
+                self.ekf.append((t, m.flags, m.pos_horiz_variance, m.compass_variance))
+            elif kind == "STATUSTEXT":
+                self.text.append((t, m.text))
+                print(f"[sitl] {m.text}", flush=True)
+            elif kind == "HEARTBEAT" and m.get_srcComponent() == 1:
+                self.mode, self.armed = m.custom_mode, bool(m.base_mode & 128)  # MAV_MODE_FLAG_SAFETY_ARMED
+                if not self.modes or self.modes[-1][1] != m.custom_mode:
+                    self.modes.append((t, m.custom_mode))
+
+
+def kestrel_config(out: Path, fps: float, width: int, height: int) -> Path:
+    cfg = f"""[source]
+kind = "sitl"
+imu = "mavlink"
+sitl_url = "tcp:127.0.0.1:5763"
+sitl_home = [{HOME[0]}, {HOME[1]}, {HOME[2]}]
+sitl_blackout_file = "{out / 'blackout'}"
+fps = {fps}
+width = {width}
+height = {height}
+
+[mavlink]
+url = "tcp:127.0.0.1:5762"
+mount = "camera-forward"
+origin_lat_deg = {HOME[0]}
+origin_lon_deg = {HOME[1]}
+origin_alt_m = {HOME[2]}
+
+[run]
+trajectory_file = "{out / 'kestrel.tum'}"
+status_file = "{out / 'status.json'}"
+"""
+    path = out / "kestrel.toml"
+    path.write_text(cfg)
+    return path
+
+
+def copter_defaults(binary: str) -> Path | None:
+    """ArduPilot's own SITL quad parameters (frame class, RC ranges...), next to the binary's source tree:
+    build/sitl/bin/arducopter -> Tools/autotest/default_params/copter.parm."""
+    p = Path(binary).resolve().parents[3] / "Tools" / "autotest" / "default_params" / "copter.parm"
+    return p if p.is_file() else None
+
+
+def start_sitl(binary: str, out: Path) -> subprocess.Popen:
+    """ArduCopter SITL in `out` (its eeprom.bin and logs land there): ArduPilot's quad defaults, then PARAMS."""
+    parm = out / "sitl.parm"
+    parm.write_text("".join(f"{k} {v}\n" for k, v in PARAMS.items()))
+    base = copter_defaults(binary)
+    defaults = f"{base},{parm}" if base else str(parm)
+    home = ",".join(str(x) for x in HOME) + ",0"
+    return subprocess.Popen([binary, "--model", "quad", "--speedup", "1", "--home", home, "--defaults", defaults,
+                             "-I0"], cwd=out, stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
+
+
+def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path) -> dict:
+    """Wait for vision, record the ground alignment, take off, follow `path`, black out, land. Returns the events."""
+    blackout = out / "blackout"
+    deadline = time.monotonic() + 120
+    while not any("external nav" in s for _, s in rec.text):
+        if time.monotonic() > deadline:
+            raise TimeoutError("EKF3 never reported 'using external nav data' (see kestrel.log)")
+        time.sleep(0.5)
+    time.sleep(3.0)  # ground samples for the start alignment
+    t_ground = (time.monotonic_ns() - 3_000_000_000, time.monotonic_ns())
+    msn.arm_and_takeoff(conn, rec, -path.waypoints[0, 2])
+    time.sleep(8.0)
+    t0 = time.monotonic_ns()
+    # blackouts evenly spaced over the mission: [(start [s into the path], duration [s])]
+    pending = [(path.duration_s * (k + 1) / (len(faults) + 1), d) for k, d in enumerate(faults)]
+    windows: list = []  # [host ns when the cameras went black, host ns when they came back, duration]
+    end_s = None
+    while (t := (time.monotonic_ns() - t0) * 1e-9) < path.duration_s:
+        if end_s is None and pending and t >= pending[0][0]:
+            start_s, dur = pending.pop(0)
+            blackout.touch()
+            windows.append([time.monotonic_ns(), None, dur])
+            end_s = start_s + dur
+        elif end_s is not None and t >= end_s:
+            blackout.unlink()
+            windows[-1][1] = time.monotonic_ns()
+            end_s = None
+        p, v = path.target(t)
+        msn.send_target(conn, p, v, rec.boot_ms)
+        time.sleep(0.1)
+    blackout.unlink(missing_ok=True)
+    msn.set_mode(conn, rec, "LAND")
+    deadline = time.monotonic() + 60
+    while rec.armed and time.monotonic() < deadline:
+        time.sleep(1.0)
+    return {"t_ground": t_ground, "t0": t0, "blackouts": windows}
+
+
+def summarise(rec: Recorder, path: msn.Path, ev: dict, out: Path) -> dict:
+    truth = np.array(rec.truth)
+    local = np.array(rec.local)
+    att = np.array(rec.att)
+    g0, g1 = ev["t_ground"]
+    on_ground = (local[:, 0] >= g0) & (local[:, 0] <= g1)
+    tg = local[on_ground, 0]
+    align = rep.start_alignment(local[on_ground, 1:4], np.interp(tg, att[:, 0], att[:, 1]),
+                                rep.interp_positions(tg, truth[:, 0], truth[:, 1:4]),
+                                np.interp(tg, truth[:, 0], truth[:, 4]))
+    flying = (truth[:, 0] >= ev["t0"]) & (truth[:, 0] <= ev["t0"] + path.duration_s * 1e9)
+    tf = truth[flying, 0]
+    p_truth = truth[flying, 1:4]
+    p_planned = align.apply(path.positions((tf - ev["t0"]) * 1e-9))
+    p_ekf = align.apply(rep.interp_positions(tf, local[:, 0], local[:, 1:4]))
+    ekf = np.array(rec.ekf) if rec.ekf else np.zeros((0, 4))
+    ekf_fly = ekf[(ekf[:, 0] >= ev["t0"]) & (ekf[:, 0] <= ev["t0"] + path.duration_s * 1e9)] if len(ekf) else ekf
+    summary = {
+        "mission duration [s]": path.duration_s,
+        "vehicle cross-track error vs mission path [m]": rep.error_stats(
+            rep.distance_to_polyline(p_truth, align.apply(path.waypoints))),
+        "vehicle error vs timed setpoint [m]": rep.error_stats(np.linalg.norm(p_truth - p_planned, axis=1)),
+        "autopilot estimate (LOCAL_POSITION_NED) vs truth [m]": rep.error_stats(
+            np.linalg.norm(p_ekf - p_truth, axis=1)),
+        "EKF yaw/compass test ratio": rep.ratio_stats(ekf_fly[:, 3]) if len(ekf_fly) else {"n": 0},
+        "EKF position test ratio": rep.ratio_stats(ekf_fly[:, 2]) if len(ekf_fly) else {"n": 0},
+        "failsafe STATUSTEXT": [s for _, s in rep.failsafe_events(rec.text)],
+        "flight modes (custom_mode) in order": [m for _, m in rec.modes],
+    }
+    for _start, end, dur in ev["blackouts"]:
+        if end is not None:
+            m = (tf >= end + 5e9) & (tf <= end + 15e9)  # settled: 5..15 s after the cameras came back
+            summary[f"blackout {dur:g} s: max |truth - setpoint| 5-15 s after [m]"] = rep.recovery_error(
+                tf[m], p_truth[m], p_planned[m], (end + 5e9, end + 15e9))
+    est = out / "kestrel.tum"
+    if est.exists():
+        from drivers.sitl_camera import T_world_body_from_sim
+        from vio.evaluation import evaluate
+        from vio.trajectory import Trajectory, read_tum
+
+        T_gt = np.array([T_world_body_from_sim(r[5:9], r[1:4]) for r in truth])
+        res = evaluate(read_tum(est), Trajectory.from_poses(truth[:, 0].astype(np.int64), T_gt), interpolate=True,
+                       crop_gt=True)
+        summary["Kestrel error vs SITL truth, 4-DoF aligned [m]"] = {
+            "rmse": res.ate_4dof.trans_m.rmse, "max": res.ate_4dof.trans_m.max, "coverage": res.coverage}
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sitl-bin", default=DEFAULT_BIN, help="ArduCopter SITL binary (env KESTREL_SITL_BIN)")
+    ap.add_argument("--mission", choices=("box", "eight", "both"), default="both")
+    ap.add_argument("--laps", type=int, default=2, help="laps of each pattern (2 laps of both: about 3.5 minutes)")
+    ap.add_argument("--faults", default="", help="camera blackouts during the mission, seconds, e.g. 2,10")
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=200)
+    ap.add_argument("--out", default="runs/sitl")
+    args = ap.parse_args(argv)
+    if not (os.path.isfile(args.sitl_bin) and os.access(args.sitl_bin, os.X_OK)):
+        print(f"no SITL binary at {args.sitl_bin}: build ArduCopter SITL (docs/autopilot.md) or pass --sitl-bin",
+              file=sys.stderr)
+        return 2
+    try:
+        faults = [float(x) for x in args.faults.split(",") if x.strip()]
+    except ValueError:
+        print(f"--faults {args.faults!r}: expected seconds separated by commas, e.g. 2,10", file=sys.stderr)
+        return 2
+    out = Path(args.out).resolve()
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    parts = {"box": [msn.box(laps=args.laps)], "eight": [msn.figure_eight(laps=args.laps)],
+             "both": [msn.box(laps=args.laps), msn.figure_eight(laps=args.laps)]}[args.mission]
+    path = msn.chain(*parts) if len(parts) > 1 else parts[0]
+
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    sitl = start_sitl(args.sitl_bin, out)
+    daemon = None
+    try:
+        conn = mavutil.mavlink_connection("tcp:127.0.0.1:5760", source_system=250, retries=30)
+        conn.wait_heartbeat(timeout=60)
+        for name, hz in RECORDED.items():
+            msg_id = getattr(mavutil.mavlink, f"MAVLINK_MSG_ID_{name}")
+            conn.mav.command_long_send(conn.target_system, 1, 511, 0, msg_id, 1e6 / hz, 0, 0, 0, 0, 0)
+        rec = Recorder(conn)
+        rec.start()
+        cfg = kestrel_config(out, args.fps, args.width, args.height)
+        daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
+                                  stdout=open(out / "kestrel.log", "w"), stderr=subprocess.STDOUT)
+        try:
+            ev = fly(conn, rec, path, faults, out)
+        finally:
+            rec.stop.set()
+            rec.join(2.0)
+        summary = summarise(rec, path, ev, out)
+    except (TimeoutError, ConnectionError, OSError, ValueError, IndexError) as e:
+        print(f"closed-loop run stopped: {e}", file=sys.stderr)
+        return 1
+    finally:
+        for p in (daemon, sitl):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    (out / "report.json").write_text(json.dumps(summary, indent=1, default=str))
+    (out / "report.md").write_text(rep.markdown(summary))
+    print(rep.markdown(summary))
+    return 0 if not summary["failsafe STATUSTEXT"] or faults else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

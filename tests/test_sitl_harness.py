@@ -1,0 +1,299 @@
+"""The closed-loop SITL harness's pieces (bench/sitl/, drivers/sitl_camera.py), without a SITL.
+
+The one test that needs an ArduCopter SITL binary skips when there is none (CI has none)."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import numpy as np
+import pytest
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
+
+from bench.sitl import mission as msn  # noqa: E402
+from bench.sitl import report as rep  # noqa: E402
+from bench.sitl.run import DEFAULT_BIN, HOME, main  # noqa: E402
+from drivers.sitl_camera import (  # noqa: E402
+    EARTH_RADIUS_M,
+    HOME_WORLD_M,
+    SitlCameraSource,
+    T_world_body_from_sim,
+    frd_calibration,
+    ned_from_geodetic,
+    world_from_ned,
+)
+from vio import VioError  # noqa: E402
+from vio.config import config_from_dict  # noqa: E402
+from vio.geometry import make_T, rot_to_quat_wxyz  # noqa: E402
+from vio.sim.scene import default_scene  # noqa: E402
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _sim_state(q_wxyz, ned) -> mav.MAVLink_sim_state_message:
+    """A SIM_STATE as ArduPilot's SITL sends it for an NED offset from HOME (inverse of the flat-earth map)."""
+    lat = HOME[0] + math.degrees(ned[0] / EARTH_RADIUS_M)
+    lon = HOME[1] + math.degrees(ned[1] / (EARTH_RADIUS_M * math.cos(math.radians(HOME[0]))))
+    return mav.MAVLink_sim_state_message(*q_wxyz, 0, 0, 0, 0, 0, -9.81, 0, 0, 0, lat, lon, HOME[2] - ned[2], 0, 0,
+                                         0, 0, 0, int(round(lat * 1e7)), int(round(lon * 1e7)))
+
+
+def test_geodetic_offsets_and_world_axes():
+    lat, lon, alt = HOME
+    ned = ned_from_geodetic(HOME, int(round((lat + 1e-5) * 1e7)), int(round((lon + 2e-5) * 1e7)), alt + 1.5)
+    assert ned[0] == pytest.approx(math.radians(1e-5) * EARTH_RADIUS_M, abs=0.01)  # ~1.11 m north
+    assert ned[1] == pytest.approx(math.radians(2e-5) * EARTH_RADIUS_M * math.cos(math.radians(lat)), abs=0.01)
+    assert ned[2] == pytest.approx(-1.5)
+    np.testing.assert_allclose(world_from_ned([0, 0, 0]), HOME_WORLD_M)
+    # north = world x, east = world -y, down = world -z
+    np.testing.assert_allclose(world_from_ned([1.0, 2.0, -3.0]) - HOME_WORLD_M, [1.0, -2.0, 3.0])
+
+
+def test_attitude_frd_in_world():
+    # level, nose north: FRD x along world x, FRD y (right = east) along world -y, FRD z (down) along world -z
+    T = T_world_body_from_sim([1.0, 0, 0, 0], np.zeros(3))
+    np.testing.assert_allclose(T[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+    # nose east (yaw +90 deg about down): forward is world -y
+    q_east = rot_to_quat_wxyz(_rz(math.pi / 2))
+    T = T_world_body_from_sim(q_east, np.array([0.0, 0.0, -1.0]))
+    np.testing.assert_allclose(T[:3, 0], [0.0, -1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], HOME_WORLD_M + [0, 0, 1.0])
+
+
+def test_camera_extrinsics_on_frd_body():
+    cal = frd_calibration(320, 200, 15.0)
+    for cam in (cal.cam0, cal.cam1):
+        R = cam.T_body_cam[:3, :3]  # columns: camera x (image right), y (image down), z (optical axis) in FRD
+        assert R[:, 2] @ [1, 0, 0] > math.cos(math.radians(3))  # looks forward
+        assert R[:, 0] @ [0, 1, 0] > math.cos(math.radians(3))  # image right = vehicle right
+        assert R[:, 1] @ [0, 0, 1] > math.cos(math.radians(3))  # image down = vehicle down
+    assert cal.baseline_m == pytest.approx(0.11, abs=0.005)
+    assert cal.cam0.width == 320 and cal.cam0.height == 200
+
+
+def test_rendered_frame_shows_the_scene_where_the_calibration_projects_it():
+    """A point on the wall ahead of the vehicle, projected with the calibration, has the depth of that wall:
+    pose, extrinsics and renderer agree (a wrong FRD/FLU or NED/ENU step would look at the floor or ceiling)."""
+    src = SitlCameraSource("tcp:unused", HOME, width=160, height=100, fps=15.0)
+    T_wb = T_world_body_from_sim([1.0, 0, 0, 0], np.array([0.0, 0.0, -1.5]))  # 1.5 m up, nose north (+x)
+    cam = src.calibration().cam0
+    T_wc = T_wb @ cam.T_body_cam
+    renderer = src._renderers()[0][0]
+    _, depth, _ = renderer.render(T_wc)
+    # the room's +x wall is at x = 5; the optical axis points along +x from x ~ 0
+    centre = depth[50, 80]
+    assert 4.0 < centre < 5.2
+    frame = src.render(T_wb, 123)
+    assert frame.left.dtype == np.uint8 and frame.left.std() > 5 and frame.t_ns == 123
+    scene = default_scene()
+    assert scene.contains(T_wb[:3, 3][None], margin=0.5)[0]
+
+
+def test_frames_follow_the_camera_rate_and_blackout(tmp_path):
+    flag = tmp_path / "blackout"
+    src = SitlCameraSource("tcp:unused", HOME, width=96, height=64, fps=10.0, blackout_file=str(flag))
+    msg = _sim_state([1.0, 0, 0, 0], [0.5, -0.3, -1.2])
+    frames = [f for k in range(50) if (f := src.on_sim_state(msg, 1_000_000_000 + k * 20_000_000)) is not None]
+    assert len(frames) == 10  # 1 s of 50 Hz SIM_STATE -> 10 frames at 10 Hz
+    assert np.diff([f.t_ns for f in frames]).min() >= 90_000_000
+    np.testing.assert_allclose(src.last_T_world_body[:3, 3], world_from_ned([0.5, -0.3, -1.2]), atol=0.02)
+    assert frames[-1].left.mean() > 20
+    flag.touch()
+    black = src.on_sim_state(msg, 3_000_000_000)
+    assert black is not None and black.left.max() == 0 and black.right.max() == 0
+    assert src.health()["frames_black"] == 1 and src.health()["blackout"]
+    flag.unlink()
+    assert src.on_sim_state(msg, 3_200_000_000).left.max() > 0
+
+
+def test_bad_home_is_a_clear_error():
+    with pytest.raises(VioError, match="sitl_home"):
+        SitlCameraSource("tcp:x", (float("nan"), 0.0, 0.0))
+
+
+def test_config_sitl_needs_the_autopilot_imu():
+    with pytest.raises(VioError, match="imu = 'mavlink'"):
+        config_from_dict({"source": {"kind": "sitl", "imu": "oak"}})
+    cfg = config_from_dict({"source": {"kind": "sitl", "imu": "mavlink", "sitl_url": "tcp:127.0.0.1:5763"},
+                           "mavlink": {"url": "tcp:127.0.0.1:5762"}})
+    assert cfg.source.kind == "sitl"
+
+
+def test_path_timing():
+    p = msn.Path(np.array([[0.0, 0, -1], [2.0, 0, -1], [2.0, 1.0, -1]]), speed_m_s=0.5, dwell_s=1.0)
+    assert p.duration_s == pytest.approx(1 + 4 + 1 + 2 + 1)
+    pos, vel = p.target(0.5)
+    np.testing.assert_allclose(pos, [0, 0, -1])
+    np.testing.assert_allclose(vel, 0)
+    pos, vel = p.target(3.0)  # half way along the first leg
+    np.testing.assert_allclose(pos, [1.0, 0, -1])
+    np.testing.assert_allclose(vel, [0.5, 0, 0])
+    np.testing.assert_allclose(p.target(100.0)[0], [2.0, 1.0, -1])
+
+
+def test_missions_stay_in_the_room_and_last_about_three_minutes():
+    path = msn.chain(msn.box(laps=2), msn.figure_eight(laps=2))
+    assert 180 < path.duration_s < 300
+    scene = default_scene()
+    world = world_from_ned(path.positions(np.linspace(0, path.duration_s, 400)))
+    assert scene.contains(world, margin=0.8).all()
+    np.testing.assert_allclose(path.waypoints[0], path.waypoints[-1], atol=1e-9)  # ends over the take-off point
+
+
+def test_distance_to_polyline():
+    line = np.array([[0.0, 0, 0], [2.0, 0, 0], [2.0, 2.0, 0]])
+    pts = np.array([[1.0, 0.5, 0], [3.0, 1.0, 0], [-1.0, 0, 0], [2.0, 2.0, 1.0]])
+    np.testing.assert_allclose(rep.distance_to_polyline(pts, line), [0.5, 1.0, 1.0, 1.0])
+
+
+def test_start_alignment_recovers_yaw_and_offset():
+    rng = np.random.default_rng(0)
+    p_local = rng.normal(size=(50, 3)) * 0.01
+    yaw_local = rng.normal(size=50) * 0.01 + 3.1  # near the +-pi wrap
+    true = rep.Alignment(0.3, np.array([1.0, -2.0, 0.5]))
+    a = rep.start_alignment(p_local, yaw_local, true.apply(p_local), rep.wrap_pi(yaw_local + 0.3))
+    assert a.yaw == pytest.approx(0.3, abs=1e-9)
+    np.testing.assert_allclose(a.t, true.t, atol=1e-9)
+
+
+def test_recovery_and_ratio_stats_and_failsafes():
+    t = np.arange(10) * 1_000_000_000
+    truth = np.zeros((10, 3))
+    truth[7] = [0.0, 1.2, 0.0]
+    expected = np.zeros((10, 3))
+    assert rep.recovery_error(t, truth, expected, (0, 5_000_000_000)) == 0.0
+    assert rep.recovery_error(t, truth, expected, (6_000_000_000, 9_000_000_000)) == pytest.approx(1.2)
+    assert math.isnan(rep.recovery_error(t, truth, expected, (20_000_000_000, 30_000_000_000)))
+    r = rep.ratio_stats(np.array([0.1, 0.5, 1.5, np.nan]))
+    assert r["n"] == 3 and r["outside_gate"] == 1 and r["max"] == 1.5
+    ev = rep.failsafe_events([(1, "EKF3 IMU0 is using external nav data"), (2, "EKF Failsafe: changed to LAND Mode")])
+    assert ev == [(2, "EKF Failsafe: changed to LAND Mode")]
+    md = rep.markdown({"a": 1.23456, "b": {"rms": 0.5}, "c": []})
+    assert "| a | 1.235 |" in md and "rms 0.500" in md and "| c | none |" in md
+
+
+def test_run_without_a_sitl_binary_says_so(tmp_path, capsys):
+    assert main(["--sitl-bin", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no SITL binary" in err[0]
+
+
+@pytest.mark.skipif(not os.access(DEFAULT_BIN, os.X_OK), reason="no ArduCopter SITL binary (KESTREL_SITL_BIN)")
+def test_sitl_boots_and_streams_truth(tmp_path):
+    """With a SITL binary: it boots with the harness's parameters and SIM_STATE reaches the camera source."""
+    from bench.sitl.run import start_sitl
+
+    proc = start_sitl(DEFAULT_BIN, tmp_path)
+    try:
+        from pymavlink import mavutil
+
+        gcs = mavutil.mavlink_connection("tcp:127.0.0.1:5760", source_system=250, retries=30)
+        assert gcs.wait_heartbeat(timeout=60) is not None
+        src = SitlCameraSource("tcp:127.0.0.1:5763", HOME, width=96, height=64, fps=5.0)
+        src.start()
+        deadline = time.monotonic() + 30
+        while src.states == 0 and time.monotonic() < deadline:
+            time.sleep(0.5)
+        src.stop()
+        assert src.states > 0
+        np.testing.assert_allclose(src.last_T_world_body[:3, 3], HOME_WORLD_M, atol=0.5)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_source_reads_a_sim_state_stream_over_mavlink():
+    """The threaded path: the source asks for SIM_STATE (MAV_CMD_SET_MESSAGE_INTERVAL 108) and turns a 40 Hz
+    stream from a stand-in autopilot (pymavlink over UDP loopback) into frames at its 10 Hz camera rate."""
+    from pymavlink import mavutil
+
+    port = _free_udp_port()
+    src = SitlCameraSource(f"udpin:127.0.0.1:{port}", HOME, width=64, height=48, fps=10.0)
+    src.start()
+    fc = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        requested, frames = [], []
+        deadline = time.monotonic() + 20
+        t_first = None
+        while time.monotonic() < deadline and (t_first is None or time.monotonic() - t_first < 1.5):
+            q = rot_to_quat_wxyz(_rz(0.2))
+            fc.mav.send(_sim_state(q, [1.0, 0.5, -1.0]))
+            while (m := fc.recv_match(type="COMMAND_LONG", blocking=False)) is not None:
+                requested.append((m.command, m.param1, m.param2))
+            frames += src.poll()
+            if frames and t_first is None:
+                t_first = time.monotonic()
+            time.sleep(0.025)
+        frames += src.poll()
+    finally:
+        src.stop()
+        fc.close()
+    assert (511, 108.0, pytest.approx(50_000.0)) in [(c, p1, p2) for c, p1, p2 in requested]
+    assert 8 <= len(frames) <= 20  # ~1.5 s at 10 Hz (SIM_STATE at 40 Hz, thinned)
+    assert src.health()["sim_states"] > len(frames)
+    np.testing.assert_allclose(src.last_T_world_body[:3, 3], world_from_ned([1.0, 0.5, -1.0]), atol=0.02)
+
+
+def test_open_source_combines_the_sitl_camera_with_the_autopilot_imu():
+    from drivers.base import CombinedSource
+    from drivers.mavlink_imu import MavlinkImuSource
+    from drivers.mavlink_link import MavlinkLink
+    from drivers.source import open_source
+
+    cfg = config_from_dict({"source": {"kind": "sitl", "imu": "mavlink", "width": 96, "height": 64},
+                            "mavlink": {"url": "tcp:127.0.0.1:5762"}})
+    src = open_source(cfg.source, mavlink_link=MavlinkLink("tcp:127.0.0.1:5762"))  # nothing is opened yet
+    assert isinstance(src, CombinedSource)
+    assert isinstance(src.camera, SitlCameraSource) and isinstance(src.imu, MavlinkImuSource)
+    assert src.calibration().cam0.width == 96
+
+
+def test_summary_of_a_perfect_synthetic_flight(tmp_path):
+    """run.summarise on recorded streams made up from a vehicle that flies the path exactly, in an autopilot
+    frame turned 30 deg and shifted from the truth NED: every error is ~0, the blackout recovers, Kestrel's
+    trajectory (truth in its own yawed world) has ~0 ATE. A wrong alignment or stamp pairing shows here."""
+    from types import SimpleNamespace
+
+    from bench.sitl.run import summarise
+    from vio.trajectory import Trajectory, write_tum
+
+    path = msn.box(laps=1, speed_m_s=1.0, dwell_s=1.0)
+    a = rep.Alignment(math.radians(30), np.array([0.4, -0.3, 0.0]))  # autopilot frame -> truth
+    t0 = 10_000_000_000
+    t_ns = np.arange(0, int((path.duration_s + 20) * 1e9), 50_000_000) + 5_000_000_000  # ground from 5 s
+    local_p = np.array([path.target(max(0.0, (t - t0) * 1e-9))[0] if t >= t0 else [0.0, 0.0, 0.0] for t in t_ns])
+    truth_p = a.apply(local_p)
+    yaw_local = np.full(len(t_ns), 0.1)
+    q = [rot_to_quat_wxyz(_rz(a.yaw + 0.1))] * len(t_ns)
+    rec = SimpleNamespace(
+        truth=[(t, *p, a.yaw + 0.1, *qq) for t, p, qq in zip(t_ns, truth_p, q)],
+        local=[(t, *p) for t, p in zip(t_ns, local_p)], att=[(t, y) for t, y in zip(t_ns, yaw_local)],
+        ekf=[(t, 0, 0.2, 0.3) for t in t_ns], text=[(t0, "EKF3 IMU0 is using external nav data")], modes=[(t0, 4)])
+    ev = {"t_ground": (5_000_000_000, 9_000_000_000), "t0": t0,
+          "blackouts": [[t0 + 2_000_000_000, t0 + 4_000_000_000, 2.0]]}
+    T_est = np.array([make_T(_rz(0.7) @ T[:3, :3], _rz(0.7) @ T[:3, 3] + [1, 2, 0])
+                      for T in (T_world_body_from_sim(r[5:9], r[1:4]) for r in rec.truth)])
+    write_tum(Trajectory.from_poses(t_ns, T_est), tmp_path / "kestrel.tum")
+    s = summarise(rec, path, ev, tmp_path)
+    assert s["vehicle cross-track error vs mission path [m]"]["max"] < 1e-6
+    assert s["vehicle error vs timed setpoint [m]"]["max"] < 0.06  # 50 ms sampling of a 1 m/s path
+    assert s["autopilot estimate (LOCAL_POSITION_NED) vs truth [m]"]["max"] < 1e-6
+    assert s["EKF yaw/compass test ratio"]["outside_gate"] == 0
+    assert s["failsafe STATUSTEXT"] == []
+    assert s["blackout 2 s: max |truth - setpoint| 5-15 s after [m]"] < 0.06
+    assert s["Kestrel error vs SITL truth, 4-DoF aligned [m]"]["rmse"] < 1e-3
