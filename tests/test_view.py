@@ -164,12 +164,12 @@ def test_daemon_streams_the_view_to_an_rrd(tmp_path):
     svc = Service(cfg, source_factory=source, notifier=SdNotifier(""))
     runner = threading.Thread(target=svc.run)
     runner.start()
-    deadline = time.monotonic() + 20
-    while svc.view.logged < 20 and time.monotonic() < deadline:
+    deadline = time.monotonic() + 30
+    while svc.view.logged < 8 and time.monotonic() < deadline:  # [view] rate_hz 5: about 2 s of flight
         time.sleep(0.05)
     svc.request_stop()
     runner.join(10)
-    assert svc.view.logged >= 20
+    assert svc.view.logged >= 8
     ents = set(rrd_entities(tmp_path / "d.rrd"))
     assert {"/camera/left", "/camera/left/tracks", "/health/tracks", "/health/resets"} <= ents, sorted(ents)
 

@@ -92,6 +92,7 @@ class LiveView:
         self._kf: list[np.ndarray] = []
         self._kf_logged = 0
         self._next_slow = 0.0
+        self._last_state_item = None  # the newest item logged with its state
         self._loop_version = -1
         self._thread = threading.Thread(target=self._loop, name="live-view", daemon=True)
         self._thread.start()
@@ -154,16 +155,19 @@ class LiveView:
             now = time.monotonic()
             with_state = now >= next_state or stop
             with_image = (now >= next_image or stop) and pending is not None and pending[1] is not None
+            logged_now = False
             if pending is not None and (with_state or with_image):
                 self._log_safely(pending, with_state, with_image)
-                pending = None
+                logged_now = True  # at stop: with everything (the path, the loop closure's final state)
                 if with_state:
+                    self._last_state_item = pending
                     next_state = now + 1.0 / s.rate_hz
                 if with_image:
                     next_image = now + 1.0 / s.image_hz
+                pending = None
             if stop:
-                if self.loop is not None:  # the loop worker has finished: its final corrected keyframes
-                    self._final_loop()
+                if not logged_now:  # the newest frame was logged already: its slow part once more, complete
+                    self._final(self._last_state_item)
                 self.thread_cpu_s = time.thread_time()
                 return
 
@@ -236,9 +240,16 @@ class LiveView:
         for k, v in counters.items():
             rec.log(f"health/{k}", rr.Scalars(float(v)))
 
-    def _final_loop(self) -> None:
+    def _final(self, item) -> None:
+        """The complete path, keyframes, counters and the loop worker's final state, at the end."""
         try:
-            self._log_loop()
+            if item is not None:
+                t_ns, _left, ff, st, _kf, counters = item
+                self.rec.set_time("sensor_time", timestamp=np.datetime64(int(t_ns), "ns"))
+                n_stereo = 0 if ff is None else int(np.isfinite(ff.depth_m).sum())
+                self._log_slow(st, ff, n_stereo, counters)
+            elif self.loop is not None:
+                self._log_loop()
         except Exception as e:  # as _log_safely
             self.errors += 1
             log.warning("live view: %s: %s", type(e).__name__, e)
