@@ -22,7 +22,7 @@ Entities (timeline `sensor_time`, the frame's stamp):
     world/body                 rr.Transform3D, T_world_body
     world/trajectory/odometry  rr.LineStrips3D, the odometry path so far
     world/keyframes            rr.Points3D, odometry keyframe positions
-    world/landmarks            rr.Points3D, this frame's stereo points in the world frame
+    world/landmarks            rr.Points3D, the newest keyframe's stereo points in the world frame
     world/covariance           rr.Ellipsoids3D, 3-sigma position covariance at the body
     world/trajectory/loop      rr.LineStrips3D, loop-corrected keyframe path (one strip per odometry segment),
                                with loop closure on
@@ -93,6 +93,7 @@ class LiveView:
         self._kf_logged = 0
         self._next_slow = 0.0
         self._last_state_item = None  # the newest item logged with its state
+        self._stereo_item = None  # the newest keyframe with stereo points not logged yet (world/landmarks)
         self._loop_version = -1
         self._thread = threading.Thread(target=self._loop, name="live-view", daemon=True)
         self._thread.start()
@@ -143,6 +144,8 @@ class LiveView:
                     self._path.append(p)
                     if it[4]:
                         self._kf.append(p)
+                        if it[2] is not None and np.isfinite(it[2].depth_m).any():
+                            self._stereo_item = it  # stereo depth comes with keyframes
             for pts in (self._path, self._kf):  # a daemon flies for hours: older history at half the density
                 if len(pts) > _MAX_POINTS:
                     pts[:] = pts[::-2][::-1]  # every second one, the newest kept
@@ -203,13 +206,16 @@ class LiveView:
         if st is not None:
             T = np.asarray(st.T_world_body)
             rec.log("world/body", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-            calib = self.calibration() if callable(self.calibration) else self.calibration
-            if n_stereo and calib is not None:
-                cam = calib.cam0
-                uv, z = ff.uv0[stereo], ff.depth_m[stereo]
-                xyz_c = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z])
-                T_wc = T @ cam.T_body_cam
-                rec.log("world/landmarks", rr.Points3D(xyz_c @ T_wc[:3, :3].T + T_wc[:3, 3], radii=0.01))
+        lm, self._stereo_item = self._stereo_item, None
+        calib = self.calibration() if callable(self.calibration) else self.calibration
+        if lm is not None and calib is not None:  # the newest keyframe's stereo points, once
+            ff_k, T = lm[2], np.asarray(lm[3].T_world_body)
+            ok = np.isfinite(ff_k.depth_m)
+            cam = calib.cam0
+            uv, z = ff_k.uv0[ok], ff_k.depth_m[ok]
+            xyz_c = np.column_stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z])
+            T_wc = T @ cam.T_body_cam
+            rec.log("world/landmarks", rr.Points3D(xyz_c @ T_wc[:3, :3].T + T_wc[:3, 3], radii=0.01))
         now = time.monotonic()
         if now >= self._next_slow or self._stop.is_set():
             self._next_slow = now + _SLOW_S
