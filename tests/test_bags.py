@@ -182,3 +182,116 @@ def test_mcap_cut_short_is_read_up_to_the_damage(flight):
     assert 0 < len(b) < len(d)
     frames = [e for e in b.events() if isinstance(e, StereoFrame)]
     assert len(frames) == len(b)
+
+
+def test_bag_section_chooses_topics_and_flags_win(flight):
+    """[bag] topics are used when no flag is given; a flag wins over the config; the section is validated
+    and shown by `vio config show`."""
+    names = BagTopics("/left", "/right", "/imu")
+    export_bag(EurocDataset(flight / "sim"), flight / "named.mcap", "mcap", "png", names)
+    (flight / "bag.toml").write_text('[bag]\nleft_topic = "/left"\nright_topic = "/right"\nimu_topic = "/imu"\n')
+    r = _vio("replay", "named.mcap", "--config", "bag.toml", "--calib", "calib.yaml", "-o", "named.tum",
+             "--no-progress", cwd=flight)
+    assert r.returncode == 0, r.stderr
+    assert (flight / "named.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
+    r = _vio("replay", "named.mcap", "--config", "bag.toml", "--calib", "calib.yaml", "--imu-topic", "/imu0",
+             "--no-progress", cwd=flight)
+    assert r.returncode == 1 and "imu /imu0" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    (flight / "bad.toml").write_text('[bag]\nimages = "jpeg"\n')
+    r = _vio("replay", "named.mcap", "--config", "bad.toml", "--calib", "calib.yaml", cwd=flight)
+    assert r.returncode != 0 and "[bag]: 'images' = 'jpeg' is not one of" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    show = _vio("config", "show", "bag.toml", cwd=flight)
+    assert show.returncode == 0, show.stderr
+    assert '[bag]' in show.stdout and 'left_topic = "/left"' in show.stdout and "images = \"auto\"" in show.stdout
+
+
+def test_bag_images_raw_or_compressed_with_image_transport_names(flight):
+    """image_transport publishes CompressedImage on TOPIC/compressed: [bag] images = 'compressed' (and 'auto',
+    when TOPIC is absent) reads those; 'raw' refuses a compressed topic and names the type."""
+    names = BagTopics("/cam0/image_raw/compressed", "/cam1/image_raw/compressed", "/imu0")
+    export_bag(EurocDataset(flight / "sim"), flight / "it.mcap", "mcap", "png", names)
+    calib = EurocDataset(flight / "sim").calibration
+    from vio.config import BagConfig
+
+    for images in ("compressed", "auto"):
+        b = BagDataset(flight / "it.mcap", calib, BagTopics.from_config(BagConfig(images=images)))
+        assert b.topics.left == "/cam0/image_raw/compressed" and b.topics.right == "/cam1/image_raw/compressed"
+        assert len(b) == len(EurocDataset(flight / "sim"))
+    with pytest.raises(VioError, match=r"no left /cam0/image_raw / right /cam1/image_raw topic"):
+        BagDataset(flight / "it.mcap", calib, BagTopics.from_config(BagConfig(images="raw")))
+    with pytest.raises(VioError, match=r"is sensor_msgs/msg/CompressedImage, expected sensor_msgs/msg/Image "
+                                       r"\(\[bag\] images = 'raw'\)"):
+        BagDataset(flight / "it.mcap", calib, BagTopics(names.left, names.right, "/imu0", "raw"))
+    raw = BagTopics(images="compressed")
+    export_bag(EurocDataset(flight / "sim"), flight / "raw.mcap", "mcap", "raw")
+    with pytest.raises(VioError, match=r"is sensor_msgs/msg/Image, expected sensor_msgs/msg/CompressedImage"):
+        BagDataset(flight / "raw.mcap", calib, raw)
+
+
+FOXGLOVE_CHANNELS = {  # topic -> (schema name, schema encoding, message encoding): the MCAP registry's ROS 2 ones
+    "/cam0/image_raw": ({"sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"}, "ros2msg", "cdr"),
+    "/cam1/image_raw": ({"sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"}, "ros2msg", "cdr"),
+    "/imu0": ({"sensor_msgs/msg/Imu"}, "ros2msg", "cdr"),
+    "/vio/odometry": ({"nav_msgs/msg/Odometry"}, "ros2msg", "cdr"),
+    "/vio/health": ({"vio_health"}, "jsonschema", "json"),
+}
+
+
+@pytest.mark.parametrize("images", ["png", "jpeg", "raw"])
+def test_recorded_mcap_is_on_the_schemas_foxglove_reads(tmp_path, images):
+    """Every channel the recorder writes (McapWriter, as `vio record --format mcap` and the daemon use it) is on
+    a standard schema and encoding, and every message decodes with Foxglove's own ROS 2 decoder (mcap_ros2,
+    which parses the ros2msg schema text as the Foxglove app does): nothing in the file needs Kestrel."""
+    import json
+
+    import cv2
+
+    mcap_ros2 = pytest.importorskip("mcap_ros2.decoder")
+    from mcap.reader import make_reader
+
+    from vio.io.bag import McapWriter
+    from vio.types import NavState
+
+    img = (np.arange(64 * 96, dtype=np.uint32).reshape(64, 96) % 251).astype(np.uint8)
+    with McapWriter(tmp_path / "f.mcap", images) as w:
+        for k in range(2):
+            t = 10**9 + k * 50_000_000
+            w.write_frame(StereoFrame(t, img, img, seq=k))
+            w.write_imu(ImuSample(t, np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 9.81])))
+            w.write_state(NavState(t_ns=t, T_world_body=np.eye(4), v_world=np.ones(3)))
+            w.write_json("/vio/health", t, {"resets": 0, "state": "tracking"})
+    factory = mcap_ros2.DecoderFactory()
+    seen: dict[str, int] = {}
+    with open(tmp_path / "f.mcap", "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, message in reader.iter_messages():
+            names, schema_encoding, message_encoding = FOXGLOVE_CHANNELS[channel.topic]
+            assert (schema.name in names, schema.encoding, channel.message_encoding) == \
+                (True, schema_encoding, message_encoding), channel.topic
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if message_encoding == "json":
+                assert json.loads(schema.data)["type"] == "object"
+                assert json.loads(message.data) == {"resets": 0, "state": "tracking"}
+                continue
+            msg = factory.decoder_for(channel.message_encoding, schema)(message.data)
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == message.log_time
+            if schema.name == "sensor_msgs/msg/CompressedImage":
+                assert msg.format == images  # 'png' or 'jpeg', the values Foxglove's image panel decodes
+                got = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
+                assert got.shape == img.shape
+                if images == "png":
+                    assert np.array_equal(got, img)
+            elif schema.name == "sensor_msgs/msg/Image":
+                assert (msg.encoding, msg.height, msg.width, msg.step) == ("mono8", 64, 96, 96)
+                assert np.array_equal(np.frombuffer(bytes(msg.data), np.uint8).reshape(64, 96), img)
+            elif schema.name == "sensor_msgs/msg/Imu":
+                assert msg.orientation_covariance[0] == -1.0 and msg.linear_acceleration.z == 9.81
+            else:
+                assert (msg.header.frame_id, msg.child_frame_id, msg.pose.pose.orientation.w) == ("world", "body", 1.0)
+    assert seen == dict.fromkeys(FOXGLOVE_CHANNELS, 2)
+    with open(tmp_path / "f.mcap", "rb") as f:
+        schemas = {s.name for s in make_reader(f).get_summary().schemas.values()}
+    camera = "sensor_msgs/msg/Image" if images == "raw" else "sensor_msgs/msg/CompressedImage"
+    assert schemas == {camera, "sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry", "vio_health"}

@@ -81,3 +81,18 @@ def test_cli_batch_local_with_compare(flights, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "1 better" in r.stdout
     assert (tmp_path / "new" / "compare.md").is_file()
+
+
+def test_the_driver_reads_the_inputs_and_writes_the_trajectories(flights, tmp_path):
+    """A worker on another machine gets the config and calibration as objects and hands the trajectory back
+    as text: it needs to see the flight and nothing else (docs/batch.md, pointing it at a cluster)."""
+    from vio import VioError
+    from vio.app.batch import replay_flight
+    from vio.config import VioConfig
+
+    with pytest.raises(VioError, match="cannot read config"):
+        run_batch([str(flights[0])], tmp_path / "x", options={"config": str(tmp_path / "none.toml")}, progress=False)
+    row = replay_flight(str(flights[0]), {"cfg": VioConfig(), "calibration": None})
+    assert row["ok"], row["error"]
+    assert row["tum"].startswith("# timestamp") and len(row["tum"].splitlines()) == row["poses"] + 1
+    assert not list(tmp_path.glob("**/*.tum"))

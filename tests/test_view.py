@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 
 pytest.importorskip("rerun")
 
+from vio import VioError  # noqa: E402
 from vio.app.view import LiveView, rrd_entities  # noqa: E402
 
 EXPECTED = {"/camera/left", "/camera/left/tracks", "/world/body", "/world/trajectory/odometry", "/world/keyframes",
@@ -47,25 +49,101 @@ def test_replay_view_writes_an_rrd_with_the_expected_entities(flight):
 
 
 def test_a_stuck_viewer_drops_frames_instead_of_blocking(tmp_path):
+    from vio.config import ViewConfig
+
     gate = threading.Event()
-    view = LiveView(str(tmp_path / "x.rrd"), None, queue_size=2)
+    view = LiveView(str(tmp_path / "x.rrd"), None, ViewConfig(queue_frames=2))
     view._log = lambda *a: gate.wait(10)  # the viewer thread hangs on its first item
     img = np.zeros((20, 30), np.uint8)
-    for k in range(20):
+    view.submit(0, img, None, None, False, {})
+    deadline = time.monotonic() + 5
+    while len(view._q) and time.monotonic() < deadline:  # the thread has taken it and hangs
+        time.sleep(0.01)
+    for k in range(1, 20):
         view.submit(k, img, None, None, False, {})
-    assert view.dropped >= 20 - 2 - 1  # queue of 2, plus the item the thread holds
-    assert len(view.submit_ms) == 20
+    assert view.dropped == 19 - 2  # a queue of 2 behind the item the thread holds (the oldest go)
+    assert view.stats()["submitted"] == 20
     gate.set()
     view.close()
-    assert view.logged + view.dropped == 20
+    assert view.logged + view.thinned + view.dropped == 20  # every frame is accounted for
+
+
+def test_the_view_thread_logs_at_its_rate_not_every_frame(tmp_path):
+    """A replay faster than the view's rates: frames are thinned in the view thread (not dropped in the frame
+    loop), the image goes out as a downscaled JPEG, and the last frame is still logged at close."""
+    from vio.config import ViewConfig
+
+    view = LiveView(str(tmp_path / "r.rrd"), None, ViewConfig(rate_hz=0.1, image_hz=0.1, queue_frames=100))
+    img = np.full((40, 60), 128, np.uint8)
+    view.submit(0, img, None, None, False, {"resets": 0})
+    deadline = time.monotonic() + 5
+    while view.logged == 0 and time.monotonic() < deadline:  # the first frame is logged at once
+        time.sleep(0.01)
+    for k in range(1, 50):
+        view.submit(k * 50_000_000, img, None, None, False, {"resets": 0})
+    view.close()
+    assert view.dropped == 0 and view.logged == 2 and view.thinned == 48, view.stats()
+    assert view.images == 2
+    assert rrd_entities(tmp_path / "r.rrd")["/camera/left"] == 2
+    import cv2
+    import rerun.chunk
+
+    ch = next(c for c in rerun.chunk.RrdReader(str(tmp_path / "r.rrd")).stream() if c.entity_path == "/camera/left")
+    rb = ch.to_record_batch()
+    assert rb.column("EncodedImage:media_type")[0].as_py() == ["image/jpeg"]
+    jpg = np.array(rb.column("EncodedImage:blob")[0].as_py()[0], np.uint8)
+    assert cv2.imdecode(jpg, cv2.IMREAD_UNCHANGED).shape == (20, 30)  # image_scale 0.5 by default
+
+
+def test_loop_closure_view_logs_the_corrected_trajectory(flight):
+    r = _replay(flight, "--loop", "--view", "loop.rrd")
+    assert r.returncode == 0, r.stderr
+    ents = rrd_entities(flight / "loop.rrd")
+    assert {"/world/trajectory/loop", "/world/loop/keyframes", "/health/loop_closures",
+            "/world/trajectory/odometry"} <= set(ents), sorted(ents)
+
+
+class _Loop:
+    """A loop worker stand-in: a pose graph of two segments with one accepted and one rejected loop edge."""
+
+    keep_snapshot = False
+
+    def __init__(self):
+        from vio.app.loop_worker import LoopSnapshot
+
+        self.snap = LoopSnapshot(4, 1, np.arange(12.0).reshape(4, 3), np.array([0, 0, 1, 1]),
+                                 ((2, 0, 1.0), (3, 1, 0.1)))
+
+    def snapshot(self):
+        return self.snap
+
+
+def test_loop_edges_and_corrected_keyframes_are_entities_of_their_own(tmp_path):
+    from vio.types import NavState
+
+    loop = _Loop()
+    view = LiveView(str(tmp_path / "e.rrd"), None, loop=loop)
+    assert loop.keep_snapshot is True  # the view asks the worker for snapshots
+    st = NavState(t_ns=1, T_world_body=np.eye(4), v_world=np.zeros(3))
+    for k in range(3):
+        view.submit(k, None, None, st, k == 1, {})
+    view.close()
+    assert view.errors == 0
+    ents = rrd_entities(tmp_path / "e.rrd")
+    assert ents.get("/world/loop/edges", 0) >= 1 and ents.get("/world/trajectory/loop", 0) >= 1, sorted(ents)
+    assert "/world/loop/keyframes" in ents and "/health/loop_closures" in ents
 
 
 def test_daemon_view_section_is_off_by_default():
     from vio.config import VioConfig, config_from_dict
 
     assert VioConfig().view.enabled is False
-    cfg = config_from_dict({"view": {"enabled": True, "target": "flight.rrd"}})
-    assert cfg.view.target == "flight.rrd"
+    cfg = config_from_dict({"view": {"enabled": True, "target": "flight.rrd", "rate_hz": 4}})
+    assert cfg.view.target == "flight.rrd" and cfg.view.rate_hz == 4.0
+    with pytest.raises(VioError, match="image_scale"):
+        config_from_dict({"view": {"image_scale": 2.0}})
+    with pytest.raises(VioError, match="serve_memory_mb"):
+        config_from_dict({"view": {"serve_memory_mb": 1}})
 
 
 def test_daemon_streams_the_view_to_an_rrd(tmp_path):
@@ -86,11 +164,29 @@ def test_daemon_streams_the_view_to_an_rrd(tmp_path):
     svc = Service(cfg, source_factory=source, notifier=SdNotifier(""))
     runner = threading.Thread(target=svc.run)
     runner.start()
-    deadline = time.monotonic() + 20
-    while svc.view.logged < 20 and time.monotonic() < deadline:
+    deadline = time.monotonic() + 30
+    while svc.view.logged < 8 and time.monotonic() < deadline:  # [view] rate_hz 5: about 2 s of flight
         time.sleep(0.05)
     svc.request_stop()
     runner.join(10)
-    assert svc.view.logged >= 20
+    assert svc.view.logged >= 8
     ents = set(rrd_entities(tmp_path / "d.rrd"))
     assert {"/camera/left", "/camera/left/tracks", "/health/tracks", "/health/resets"} <= ents, sorted(ents)
+
+
+def test_the_path_kept_for_the_view_is_bounded_and_ends_at_the_newest_pose(tmp_path, monkeypatch):
+    import vio.app.view as view_module
+    from vio.types import NavState
+
+    monkeypatch.setattr(view_module, "_MAX_POINTS", 10)
+    view = LiveView(str(tmp_path / "p.rrd"), None)
+    for k in range(200):
+        T = np.eye(4)
+        T[0, 3] = k
+        view.submit(k, None, None, NavState(t_ns=k, T_world_body=T, v_world=np.zeros(3)), True, {})
+        if k % 8 == 0:
+            time.sleep(0.01)
+    view.close()
+    assert view.errors == 0
+    assert len(view._path) <= 10 + 16 and len(view._kf) <= 10 + 16  # the limit, plus one batch of the queue
+    assert view._path[-1][0] == 199.0 and view._kf[-1][0] == 199.0

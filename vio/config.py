@@ -254,7 +254,30 @@ class ViewConfig:
                         "keyframes, landmarks, covariance, health counters; the estimator never waits for it")
     target: str = opt("serve", "'serve' (gRPC server + web viewer on this computer) or a path ending in .rrd")
     web_port: int = opt(9090, "web viewer port (target = 'serve')", min=1, max=65535)
-    queue_frames: int = opt(4, "frames waiting for the viewer before new ones are dropped", min=1, max=100)
+    queue_frames: int = opt(16, "frames waiting for the view thread (it takes them at twice its highest rate) "
+                            "before the oldest is dropped", min=1, max=100)
+    rate_hz: float = opt(5.0, "body pose and landmarks logged at most this often (wall clock; each entity costs some "
+                         "0.2 ms of CPU per log): the view thread shares the cores and the GIL with the estimator",
+                         min=0.1, max=200)
+    image_hz: float = opt(2.0, "left image (with its tracks) logged at most this often", min=0.1, max=200)
+    image_scale: float = opt(0.5, "left image scaled by this before JPEG encoding", min=0.1, max=1)
+    jpeg_quality: int = opt(75, "JPEG quality of the logged image", min=10, max=100)
+    serve_memory_mb: int = opt(256, "target = 'serve': what Rerun's gRPC server buffers for viewers that connect "
+                               "late, in MB (the oldest data goes first; Rerun's own default is 1 GiB)",
+                               min=16, max=65536)
+
+
+@dataclass(frozen=True)
+class BagConfig:
+    """What `vio replay FILE.bag|FILE.mcap|BAG_DIR` (and `vio batch`) read; --left-topic/--right-topic/
+    --imu-topic win over these."""
+
+    left_topic: str = opt("/cam0/image_raw", "left camera topic (sensor_msgs/Image or CompressedImage)")
+    right_topic: str = opt("/cam1/image_raw", "right camera topic")
+    imu_topic: str = opt("/imu0", "IMU topic (sensor_msgs/Imu)")
+    images: str = opt("auto", "camera messages: auto (Image or CompressedImage; TOPIC/compressed when the bag "
+                      "has no TOPIC), raw (sensor_msgs/Image only), compressed (CompressedImage only: TOPIC "
+                      "or image_transport's TOPIC/compressed)", choices=("auto", "raw", "compressed"))
 
 
 @dataclass(frozen=True)
@@ -334,6 +357,7 @@ class VioConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     map: MapConfig = field(default_factory=MapConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
+    bag: BagConfig = field(default_factory=BagConfig)
 
     @property
     def estimator(self) -> EstimatorConfig:

@@ -40,9 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="TOML configuration for every replay")
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for bags (see vio replay --calib)")
     p.add_argument("--calib-format", default="project", help="format of --calib (default: project)")
-    p.add_argument("--left-topic", default="/cam0/image_raw")
-    p.add_argument("--right-topic", default="/cam1/image_raw")
-    p.add_argument("--imu-topic", default="/imu0")
+    p.add_argument("--left-topic", help="bag topics, as vio replay's (default: [bag] in --config)")
+    p.add_argument("--right-topic")
+    p.add_argument("--imu-topic")
     p.add_argument("--compare", metavar="REPORT", help="another batch's report.json (or its folder): what got "
                    "better or worse")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -59,19 +59,33 @@ def _single_thread() -> None:
     cv2.setNumThreads(1)
 
 
-def replay_flight(path: str, out_tum: str, options: dict) -> dict:
-    """Replay one flight; a row of the report. Never raises: a failure is the row's `error`."""
+def replay_flight(path: str, options: dict) -> dict:
+    """Replay one flight; a row of the report, with the trajectory's TUM text under "tum" (what was estimated,
+    also when the flight failed). Never raises: a failure is the row's `error`. Reads only the flight:
+    `options` carries the VioConfig ("cfg") and calibration ("calibration") that the driver loaded, so a
+    worker on another machine needs the flight's path and nothing else of the driver's files."""
     _single_thread()
-    row: dict = {k: None for k in _ROW_FIELDS}
-    row.update(flight=Path(path).name, path=str(path), ok=False, worker=f"{os.uname().nodename}:{os.getpid()}")
-    t0 = time.perf_counter()
-    try:
-        from vio.app.replay import TumSink, load_calib_args, open_dataset, replay
-        from vio.config import load_config
+    import tempfile
 
-        cfg = load_config(options.get("config"))
-        calib = load_calib_args(options.get("calib"), options.get("calib_format", "project"))
-        dataset = open_dataset(path, calib, options.get("topics"))
+    row: dict = {k: None for k in _ROW_FIELDS}
+    row.update(flight=Path(path).name, path=str(path), ok=False, worker=f"{os.uname().nodename}:{os.getpid()}",
+               tum="")
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="vio-batch-") as tmp:
+        _replay_into(row, path, Path(tmp) / "traj.tum", options)
+        if (Path(tmp) / "traj.tum").is_file():
+            row["tum"] = (Path(tmp) / "traj.tum").read_text()
+    if row["wall_s"] is None:
+        row["wall_s"] = round(time.perf_counter() - t0, 3)
+    return row
+
+
+def _replay_into(row: dict, path: str, out_tum: Path, options: dict) -> None:
+    try:
+        from vio.app.replay import TumSink, open_dataset, replay
+
+        cfg = options["cfg"]
+        dataset = open_dataset(path, options.get("calibration"), options.get("topics"), cfg.bag)
         tum = TumSink(out_tum)
         try:
             res = replay(dataset, cfg, [tum], progress=False)
@@ -94,9 +108,6 @@ def replay_flight(path: str, out_tum: str, options: dict) -> dict:
     except Exception as e:  # a failed flight is a row, never a lost batch
         row["error"] = f"{type(e).__name__}: {' '.join(str(e).split())}" if not isinstance(e, VioError) else \
             " ".join(str(e).split())
-    if row["wall_s"] is None:
-        row["wall_s"] = round(time.perf_counter() - t0, 3)
-    return row
 
 
 def _run_local(jobs: list[tuple[str, str, dict]], workers: int, progress) -> list[dict]:
@@ -119,15 +130,26 @@ def _run_local(jobs: list[tuple[str, str, dict]], workers: int, progress) -> lis
 def _run_pool(cf, mp, jobs, workers: int, progress, rows: list) -> list[dict]:
     # spawn: a fresh interpreter per worker, as a Ray worker is (no state forked from the parent)
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futs = {pool.submit(replay_flight, *job): k for k, job in enumerate(jobs)}
+        futs = {pool.submit(replay_flight, jobs[k][0], jobs[k][2]): k for k in range(len(jobs))}
         for f in cf.as_completed(futs):
             k = futs[f]
             try:
-                rows[k] = f.result()
+                rows[k] = _store(f.result(), jobs[k][1])
             except Exception as e:  # the worker itself died (killed, out of memory)
                 rows[k] = _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}")
             progress(rows[k])
     return rows  # type: ignore[return-value]
+
+
+def _store(row: dict, out_tum: str) -> dict:
+    """The driver writes each trajectory (a cluster's workers need not see the output folder)."""
+    tum = row.pop("tum", "")
+    if tum:
+        try:
+            Path(out_tum).write_text(tum)
+        except OSError as e:  # the row says so; the batch goes on
+            row.update(ok=False, error=f"{out_tum}: cannot write the trajectory ({e.strerror})")
+    return row
 
 
 def _failed_row(path: str, error: str) -> dict:
@@ -149,7 +171,7 @@ def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, prog
         started = True
     try:
         task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": THREAD_ENV})(replay_flight)
-        refs = {task.remote(*job): k for k, job in enumerate(jobs)}
+        refs = {task.remote(path, opts): k for k, (path, _tum, opts) in enumerate(jobs)}
         rows: list[dict | None] = [None] * len(jobs)
         pending = list(refs)
         while pending:
@@ -157,7 +179,7 @@ def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, prog
             for ref in done:
                 k = refs[ref]
                 try:
-                    rows[k] = ray.get(ref)
+                    rows[k] = _store(ray.get(ref), jobs[k][1])
                 except Exception as e:  # the task's worker died
                     rows[k] = _failed_row(jobs[k][0], f"ray task failed: {type(e).__name__}: {e}")
                 progress(rows[k])
@@ -173,13 +195,14 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
     out = Path(out_dir)
     (out / "traj").mkdir(parents=True, exist_ok=True)
     workers = max(1, workers or os.cpu_count() or 1)
+    options = _load_inputs(options or {})
     names: dict[str, int] = {}
     jobs = []
     for f in flights:
         stem = Path(f).name or "flight"
         names[stem] = names.get(stem, 0) + 1
         tag = stem if names[stem] == 1 else f"{stem}-{names[stem]}"
-        jobs.append((str(f), str(out / "traj" / f"{tag}.tum"), dict(options or {})))
+        jobs.append((str(f), str(out / "traj" / f"{tag}.tum"), options))
     bar = None
     if progress and sys.stderr.isatty():
         from tqdm import tqdm
@@ -207,6 +230,19 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
               "wall_s": round(time.perf_counter() - wall0, 3), "flights": rows, "summary": summarise(rows)}
     write_report(report, out)
     return report
+
+
+def _load_inputs(options: dict) -> dict:
+    """The config and calibration files, read once here by the driver: a bad file fails the batch at once
+    (one line), and the workers get the objects, not paths they may not see."""
+    from vio.app.replay import load_calib_args
+    from vio.config import load_config
+
+    out = {k: v for k, v in options.items() if k not in ("config", "calib", "calib_format")}
+    out["cfg"] = options.get("cfg") or load_config(options.get("config"))
+    if "calibration" not in out:
+        out["calibration"] = load_calib_args(options.get("calib"), options.get("calib_format", "project"))
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:

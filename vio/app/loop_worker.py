@@ -2,7 +2,9 @@
 
 The frame loop only hands a keyframe over (`submit`: a non-blocking put into a bounded queue; a full queue
 drops the keyframe and counts it) and reads the newest correction (`correction`, under a lock). It never
-waits for retrieval, verification or the pose-graph solve."""
+waits for retrieval, verification or the pose-graph solve. A live view that asks for them (`keep_snapshot`)
+reads the corrected keyframe poses and loop edges as a `LoopSnapshot`, built in this thread after each
+keyframe so that the view never reads the pose graph while it is being solved."""
 
 from __future__ import annotations
 
@@ -10,14 +12,28 @@ import contextlib
 import logging
 import queue
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class LoopSnapshot:
+    """The pose graph as of one keyframe, for the view: corrected positions in the world (a loaded map's
+    keyframes first, in the map's frame), the odometry segment of each (a reset starts a new one) and the
+    loop edges as (i, j, GNC weight; below 0.5: rejected)."""
+
+    version: int  # keyframes processed when it was taken
+    closures: int
+    positions: np.ndarray  # (N, 3)
+    sessions: np.ndarray  # (N,)
+    loop_edges: tuple[tuple[int, int, float], ...]
+
+
 class LoopWorker:
-    def __init__(self, closer, max_queue: int = 64) -> None:
+    def __init__(self, closer, max_queue: int = 64, keep_snapshot: bool = False) -> None:
         self.closer = closer
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
         self._lock = threading.Lock()
@@ -25,6 +41,9 @@ class LoopWorker:
         self.closures = 0  # accepted closures so far (a new correction each time)
         self.dropped = 0
         self.error: str | None = None
+        self.keep_snapshot = keep_snapshot
+        self._snapshot: LoopSnapshot | None = None
+        self._processed = 0
         self._abandon = threading.Event()  # close() ran out of time: skip what is still queued
         self._thread = threading.Thread(target=self._run, name="loop-closure", daemon=True)
         self._thread.start()
@@ -42,6 +61,17 @@ class LoopWorker:
         with self._lock:
             return self._correction.copy(), self.closures
 
+    def snapshot(self) -> LoopSnapshot | None:
+        """The newest LoopSnapshot (None before the first keyframe, or without keep_snapshot)."""
+        with self._lock:
+            return self._snapshot
+
+    def _take_snapshot(self) -> LoopSnapshot:
+        c = self.closer
+        return LoopSnapshot(self._processed, self.closures, np.array([T[:3, 3] for T in c.graph.estimate]),
+                            np.array([k.session for k in c.keyframes]),
+                            tuple((e.i, e.j, e.weight) for e in c.graph.edges if e.kind == "loop"))
+
     def _run(self) -> None:
         while True:
             item = self._q.get()
@@ -55,6 +85,11 @@ class LoopWorker:
                     with self._lock:
                         self._correction = self.closer.correction()
                         self.closures += int(closed)
+                        self._processed += 1
+                    if self.keep_snapshot:
+                        snap = self._take_snapshot()
+                        with self._lock:
+                            self._snapshot = snap
             except Exception as e:  # the odometry goes on without loop closure
                 self.error = f"{type(e).__name__}: {e}"
                 log.error("loop closure stopped: %s", self.error)

@@ -44,9 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "or the files `vio calib import` reads, with --calib-format")
     p.add_argument("--calib-format", default="project", help="format of --calib: project (default), kalibr, euroc, "
                    "opencv, depthai")
-    p.add_argument("--left-topic", default="/cam0/image_raw", help="bag topic of the left images")
-    p.add_argument("--right-topic", default="/cam1/image_raw", help="bag topic of the right images")
-    p.add_argument("--imu-topic", default="/imu0", help="bag topic of the IMU")
+    p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
+    p.add_argument("--right-topic", help="bag topic of the right images (default: [bag], /cam1/image_raw)")
+    p.add_argument("--imu-topic", help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
     p.add_argument("--view", nargs="?", const="serve", metavar="FILE.rrd|serve",
                    help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
     p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
@@ -381,12 +381,16 @@ def load_calib_args(files: list[str] | None, fmt: str = "project"):
     return import_calibration(fmt, files)[0]
 
 
-def open_dataset(path: str, calibration=None, topics: tuple[str, str, str] | None = None):
-    """A EuRoC folder, or a bag / MCAP file (vio.io.bag) with the given (left, right, imu) topics."""
+def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | None, str | None] | None = None,
+                 bag=None):
+    """A EuRoC folder, or a bag / MCAP file (vio.io.bag): `bag` is the [bag] config section (None: its
+    defaults, EuRoC's names), and the (left, right, imu) `topics` given on the command line win over it."""
     from vio.io.bag import BagDataset, BagTopics, is_bag
 
     if is_bag(path):
-        return BagDataset(path, calibration, BagTopics(*topics) if topics else None)
+        from vio.config import BagConfig
+
+        return BagDataset(path, calibration, BagTopics.from_config(bag or BagConfig(), *(topics or ())))
     from vio.io.euroc import EurocDataset
 
     return EurocDataset(path, calibration)
@@ -399,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
-    dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic))
+    dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
     sinks: list[Sink] = []
     tum = TumSink(args.output) if args.output else None
     if tum is not None:
@@ -410,11 +414,6 @@ def run(args: argparse.Namespace) -> int:
 
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sinks.append(restamp_to_host_clock(mav))
-    view = None
-    if args.view:
-        from vio.app.view import LiveView
-
-        view = LiveView(args.view, dataset.calibration)
     loop = None
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
@@ -430,6 +429,11 @@ def run(args: argparse.Namespace) -> int:
         loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
         if mav is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
             sinks[-1] = corrected_sink(sinks[-1], loop, cfg.loop)
+    view = None
+    if args.view:
+        from vio.app.view import LiveView
+
+        view = LiveView(args.view, dataset.calibration, cfg.view, loop=loop)
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
@@ -446,7 +450,8 @@ def run(args: argparse.Namespace) -> int:
     if view is not None:
         vs = view.stats()
         res.extra["view"] = vs
-        print(f"view: {vs['logged']} frames logged, {vs['dropped']} dropped (viewer behind), cost in the frame loop "
+        print(f"view: {vs['logged']} of {vs['submitted']} frames logged ({vs['images']} images), {vs['thinned']} "
+              f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
     if res.frame_stats:

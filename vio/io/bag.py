@@ -17,6 +17,7 @@ A bag carries no camera-IMU calibration: the caller passes one.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -50,9 +51,20 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 
 @dataclass(frozen=True)
 class BagTopics:
+    """The topics to read (EuRoC's names by default) and which camera messages: 'auto' (Image or
+    CompressedImage; TOPIC/compressed, image_transport's name, when the bag has no TOPIC), 'raw' (Image only)
+    or 'compressed' (CompressedImage only, TOPIC or TOPIC/compressed). As `[bag]` in the config."""
+
     left: str = "/cam0/image_raw"
     right: str = "/cam1/image_raw"
     imu: str = "/imu0"
+    images: str = "auto"
+
+    @classmethod
+    def from_config(cls, bag, left: str | None = None, right: str | None = None,
+                    imu: str | None = None) -> BagTopics:
+        """The [bag] section (a vio.config.BagConfig), with the topics given on the command line winning."""
+        return cls(left or bag.left_topic, right or bag.right_topic, imu or bag.imu_topic, bag.images)
 
 
 def _need(module: str):
@@ -217,18 +229,35 @@ class BagDataset(EurocDataset):
         return f"{self.path} topic {topic}"
 
     # -- opening -------------------------------------------------------------------------------------------
+    def _camera_topic(self, topic: str) -> str:
+        """The topic a camera is read from, as `images` says: TOPIC, or image_transport's TOPIC/compressed."""
+        have, mode = self._bag.topics, self.topics.images
+        if mode == "raw":
+            return topic
+        compressed = f"{topic.rstrip('/')}/compressed"
+        if mode == "compressed":
+            return topic if have.get(topic, ("",))[0] == COMPRESSED or compressed not in have else compressed
+        return compressed if topic not in have and compressed in have else topic
+
     def _check_topics(self) -> None:
         have = self._bag.topics
-        wanted = (("left", self.topics.left, (IMAGE, COMPRESSED)), ("right", self.topics.right, (IMAGE, COMPRESSED)),
+        if self.topics.images not in ("auto", "raw", "compressed"):
+            raise VioError(f"{self.path}: images = {self.topics.images!r} is not one of auto, raw, compressed")
+        self.topics = dataclasses.replace(self.topics, left=self._camera_topic(self.topics.left),
+                                          right=self._camera_topic(self.topics.right))
+        cam_types = {"auto": (IMAGE, COMPRESSED), "raw": (IMAGE,), "compressed": (COMPRESSED,)}[self.topics.images]
+        wanted = (("left", self.topics.left, cam_types), ("right", self.topics.right, cam_types),
                   ("imu", self.topics.imu, (IMU,)))
         missing = [f"{what} {t}" for what, t, _ in wanted if t not in have]
         if missing:
             listing = ", ".join(f"{t} ({ty}, {n} msgs)" for t, (ty, n) in sorted(have.items())) or "none"
             raise VioError(f"{self.path}: no {' / '.join(missing)} topic; the bag has: {listing} "
-                           "(choose with --left-topic, --right-topic, --imu-topic)")
+                           "(choose with --left-topic, --right-topic, --imu-topic or [bag] in the config)")
         for what, t, types in wanted:
             if have[t][0] not in types:
-                raise VioError(f"{self.path}: topic {t} ({what}) is {have[t][0]}, expected {' or '.join(types)}")
+                why = f" ([bag] images = {self.topics.images!r})" if self.topics.images != "auto" else ""
+                raise VioError(f"{self.path}: topic {t} ({what}) is {have[t][0]}, expected "
+                               f"{' or '.join(types)}{why}")
 
     def _read_imu(self) -> ImuData:
         rows: list[tuple[int, float, float, float, float, float, float]] = []

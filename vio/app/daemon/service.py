@@ -121,7 +121,7 @@ class Service:
         if cfg.view.enabled:
             from vio.app.view import LiveView
 
-            self.view = LiveView(cfg.view.target, self._calibration_now, cfg.view.queue_frames, cfg.view.web_port)
+            self.view = LiveView(cfg.view.target, self._calibration_now, cfg.view)
         self.estimator = EstimatorWorker(self.stop, self._make_estimator, self.est_buf, self.latest,
                                          rc.max_imu_gap_s, view=self.view)
         mount = None
@@ -190,6 +190,9 @@ class Service:
             closer.load_map(load_map(self.cfg.map.load))
         self.loop = LoopWorker(closer, max_queue=16)  # full: the keyframe is dropped, the odometry never waits
         self.estimator.loop_worker = self.loop
+        if self.view is not None:  # the view shows the loop-corrected keyframes
+            self.loop.keep_snapshot = True
+            self.view.loop = self.loop
         self.estimator.loop_output = self._loop_output
 
     @property
