@@ -58,6 +58,7 @@ class AteResult:
     trans_m: ErrorStats
     rot_deg: ErrorStats
     errors_m: np.ndarray = field(repr=False)  # (M,) per matched pose
+    rotation_from: str = "positions"  # "orientations" when the path was too small to fix the rotation
 
 
 @dataclass
@@ -112,7 +113,9 @@ class EvalResult:
         for a in (self.ate_4dof, self.ate_se3):
             s = a.trans_m
             lines.append(f"ATE {a.alignment:<5} rmse {s.rmse:.4f} m  mean {s.mean:.4f}  median {s.median:.4f}  "
-                         f"max {s.max:.4f}  | rot rmse {a.rot_deg.rmse:.3f} deg")
+                         f"max {s.max:.4f}  | rot rmse {a.rot_deg.rmse:.3f} deg"
+                         + ("  (path too small: rotation aligned on orientations)"
+                            if a.rotation_from == "orientations" else ""))
         for r in self.rpe:
             lines.append(f"RPE {r.length_m:>5g} m: {r.trans_pct:6.2f} % (median {r.trans_pct_median:.2f})  "
                          f"{r.rot_deg_per_m:.4f} deg/m  ({r.n_pairs} segments)")
@@ -197,9 +200,36 @@ def associate(est: Trajectory, gt: Trajectory, max_dt_ns: int,
 
 # ------------------------------------------------------------------------------------------------ alignment
 
-def align_se3(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:
-    """Rigid T (4x4) minimising sum |p_gt - T p_est|^2 (Umeyama 1991 without scale)."""
+MIN_ALIGN_SPREAD_M = 0.05  # positions spread less than this (RMS) along an axis do not fix a rotation about it
+
+
+def _project_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+
+
+def _spread_m(p: np.ndarray) -> np.ndarray:
+    """RMS extent of the positions along their principal axes, largest first."""
+    return np.linalg.svd(p - p.mean(axis=0), compute_uv=False) / math.sqrt(len(p))
+
+
+def _mean_R_gt_est(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Chordal mean of R_gt_i R_est_i^T: the world rotation the orientations agree on."""
+    return _project_so3(np.sum(R_gt @ np.swapaxes(R_est, 1, 2), axis=0))
+
+
+def align_se3(p_est: np.ndarray, p_gt: np.ndarray, R_est: np.ndarray | None = None,
+              R_gt: np.ndarray | None = None) -> np.ndarray:
+    """Rigid T (4x4) minimising sum |p_gt - T p_est|^2 (Umeyama 1991 without scale).
+
+    A path that spans less than MIN_ALIGN_SPREAD_M in two directions (hovering, a straight line) leaves the
+    position fit's rotation undetermined, so a rotation error after it would be noise; with orientations
+    given, the rotation then comes from them (chordal mean) and the translation from the centroids.
+    """
     mu_e, mu_g = p_est.mean(axis=0), p_gt.mean(axis=0)
+    if R_est is not None and R_gt is not None and _spread_m(p_gt)[1] < MIN_ALIGN_SPREAD_M:
+        R = _mean_R_gt_est(R_est, R_gt)
+        return make_T(R, mu_g - R @ mu_e)
     cov = (p_gt - mu_g).T @ (p_est - mu_e) / len(p_est)
     U, _, Vt = np.linalg.svd(cov)
     S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
@@ -207,17 +237,23 @@ def align_se3(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:
     return make_T(R, mu_g - R @ mu_e)
 
 
-def align_4dof(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:
+def align_4dof(p_est: np.ndarray, p_gt: np.ndarray, R_est: np.ndarray | None = None,
+               R_gt: np.ndarray | None = None) -> np.ndarray:
     """Yaw about world z + translation minimising sum |p_gt - T p_est|^2 (closed form).
 
     VIO observes roll and pitch through gravity, so only yaw and position are free: aligning them alone
-    keeps roll/pitch errors visible instead of letting a full SE(3) fit hide them.
+    keeps roll/pitch errors visible instead of letting a full SE(3) fit hide them. A path that spans less
+    than MIN_ALIGN_SPREAD_M horizontally does not fix the yaw; with orientations given it comes from them.
     """
     mu_e, mu_g = p_est.mean(axis=0), p_gt.mean(axis=0)
     e, g = p_est - mu_e, p_gt - mu_g
-    a = np.sum(e[:, 0] * g[:, 0] + e[:, 1] * g[:, 1])
-    b = np.sum(e[:, 0] * g[:, 1] - e[:, 1] * g[:, 0])
-    yaw = math.atan2(b, a)
+    if R_est is not None and R_gt is not None and _spread_m(p_gt[:, :2])[0] < MIN_ALIGN_SPREAD_M:
+        R_m = _mean_R_gt_est(R_est, R_gt)
+        yaw = math.atan2(R_m[1, 0] - R_m[0, 1], R_m[0, 0] + R_m[1, 1])  # the yaw closest to R_m
+    else:
+        a = np.sum(e[:, 0] * g[:, 0] + e[:, 1] * g[:, 1])
+        b = np.sum(e[:, 0] * g[:, 1] - e[:, 1] * g[:, 0])
+        yaw = math.atan2(b, a)
     c, s = math.cos(yaw), math.sin(yaw)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return make_T(R, mu_g - R @ mu_e)
@@ -229,11 +265,17 @@ def _angles_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
-def _ate(name: str, T_align: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> AteResult:
+def _ate(name: str, T_est: np.ndarray, T_gt: np.ndarray) -> AteResult:
+    p_est, p_gt, R_est, R_gt = T_est[:, :3, 3], T_gt[:, :3, 3], T_est[:, :3, :3], T_gt[:, :3, :3]
+    if name == "SE(3)":
+        T_align, small = align_se3(p_est, p_gt, R_est, R_gt), _spread_m(p_gt)[1] < MIN_ALIGN_SPREAD_M
+    else:
+        T_align, small = align_4dof(p_est, p_gt, R_est, R_gt), _spread_m(p_gt[:, :2])[0] < MIN_ALIGN_SPREAD_M
     T = T_align @ T_est
     err = np.linalg.norm(T[:, :3, 3] - T_gt[:, :3, 3], axis=1)
-    R_err = np.swapaxes(T_gt[:, :3, :3], 1, 2) @ T[:, :3, :3]
-    return AteResult(name, T_align, ErrorStats.of(err), ErrorStats.of(_angles_deg(R_err)), err)
+    R_err = np.swapaxes(R_gt, 1, 2) @ T[:, :3, :3]
+    return AteResult(name, T_align, ErrorStats.of(err), ErrorStats.of(_angles_deg(R_err)), err,
+                     "orientations" if small else "positions")
 
 
 # ------------------------------------------------------------------------------------------------ RPE
@@ -290,8 +332,8 @@ def evaluate(est: Trajectory, gt: Trajectory, *, max_dt_ms: float = DEFAULT_MAX_
     est_m = est.subset(idx)
     T_est, T_gt = est_m.poses(), gt_m.poses()
     p_est, p_gt = T_est[:, :3, 3], T_gt[:, :3, 3]
-    ate4 = _ate("4-DoF", align_4dof(p_est, p_gt), T_est, T_gt)
-    ate6 = _ate("SE(3)", align_se3(p_est, p_gt), T_est, T_gt)
+    ate4 = _ate("4-DoF", T_est, T_gt)
+    ate6 = _ate("SE(3)", T_est, T_gt)
 
     t = est_m.t_ns
     dt_s = np.diff(t) * 1e-9
