@@ -221,7 +221,7 @@ class MavlinkImuSource(ThreadedSource):
             self.other_imu[kind if kind == "SCALED_IMU" else f"{kind} id {imu_id}"] += 1
         elif kind == "TIMESYNC":
             self._on_timesync(msg, t_arrival_ns)
-        elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg):
+        elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg, None if self.target is None else self.target[0]):
             if self.target is None:
                 self.target = (msg.get_srcSystem(), msg.get_srcComponent())
                 self._heartbeat_since_ns = t_arrival_ns

@@ -396,3 +396,22 @@ status_file = "{tmp_path / 'status.json'}"
         rc = proc.wait(10)
         fc.close()
     assert rc == 0 and "Traceback" not in log_path.read_text()
+
+
+def test_imu_source_locks_onto_the_autopilot_heartbeat_only() -> None:
+    """The rate request goes to the autopilot: not to Kestrel's own heartbeat forwarded back by ArduPilot
+    (component 197), not to a peripheral, and not to a second vehicle once locked on."""
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"), owns_link=False)
+
+    def hb(sysid: int, comp: int, kind: int, autopilot: int):
+        m = mavlink.MAVLink_heartbeat_message(kind, autopilot, 0, 0, mavlink.MAV_STATE_ACTIVE, 3)
+        m.pack(mavlink.MAVLink(None, srcSystem=sysid, srcComponent=comp))
+        src.on_message(m, time.monotonic_ns())
+
+    hb(1, 197, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID)
+    hb(1, 197, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    hb(1, mavlink.MAV_COMP_ID_PERIPHERAL, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert src.target is None
+    hb(1, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4)
+    hb(2, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert src.target == (1, 1)
