@@ -88,6 +88,9 @@ class Recorder(threading.Thread):
                 self.ekf.append((t, m.flags, m.pos_horiz_variance, m.compass_variance))
             elif kind == "ODOMETRY" and m.get_srcComponent() != 1:
                 self.odom.append((t, m.reset_counter))
+            elif kind == "COMMAND_ACK":  # a refused arm or takeoff says why only here
+                self.text.append((t, f"COMMAND_ACK {m.command} result {m.result}"))
+                print(f"[sitl] COMMAND_ACK {m.command} result {m.result}", flush=True)
             elif kind == "STATUSTEXT":
                 self.text.append((t, m.text))
                 print(f"[sitl] {m.text}", flush=True)
