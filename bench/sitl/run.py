@@ -145,13 +145,15 @@ def start_sitl(binary: str, out: Path) -> subprocess.Popen:
                              "-I0"], cwd=out, stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
 
 
-def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hold_on_loss: bool = True) -> dict:
+def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hold_on_loss: bool = True,
+        land_after_loss_s: float | None = None) -> dict:
     """Wait for vision, record the ground alignment, take off, follow `path`, black out, land. Returns the events.
 
     With `hold_on_loss` the mission clock stops at Kestrel's "VIO tracking lost" STATUSTEXT (the target
     stays where the vehicle was, zero velocity) and runs on at "VIO tracking regained": the autopilot
     dead-reckons through a blackout and keeps flying any moving target it is given, so holding is the
-    mission's job (docs/autopilot.md, "Camera blackouts")."""
+    mission's job (docs/autopilot.md, "Camera blackouts"). With `land_after_loss_s` the mission lands once
+    vision has been lost that long (the EKF's own failsafe comes only when its variance grows, ~8 s)."""
     blackout = out / "blackout"
     deadline = time.monotonic() + 120
     while not any("external nav" in s for _, s in rec.text):
@@ -170,12 +172,17 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
     end_ns = None
     t_mission, last_ns, n_text = 0.0, t0, 0
     lost = False
+    lost_since = None
     while t_mission < path.duration_s:
         now = time.monotonic_ns()
         if hold_on_loss:  # what a companion mission should do: hold where vision was lost, resume when back
             for _t, text in rec.text[n_text:]:
                 lost = True if "VIO tracking lost" in text else False if "VIO tracking regained" in text else lost
             n_text = len(rec.text)
+        if lost and land_after_loss_s is not None and lost_since is not None \
+                and now - lost_since > land_after_loss_s * 1e9:
+            break  # blind too long: land where it is (below) instead of waiting for the EKF failsafe
+        lost_since = (lost_since or now) if lost else None
         if not lost:
             t_mission += (now - last_ns) * 1e-9
         last_ns = now
@@ -192,6 +199,9 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
         msn.send_target(conn, p, v * (not lost), rec.boot_ms)
         clock.append((now, t_mission))
         time.sleep(0.1)
+    if end_ns is not None:  # landing mid-blackout: keep the cameras black for the blackout's full length
+        time.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
+        windows[-1][1] = time.monotonic_ns()
     blackout.unlink(missing_ok=True)
     msn.set_mode(conn, rec, "LAND")
     deadline = time.monotonic() + 60
@@ -230,7 +240,8 @@ def summarise(rec: Recorder | SimpleNamespace, path: msn.Path, ev: dict, out: Pa
                                 np.interp(tg, truth[:, 0], truth[:, 4]))
     clock = np.asarray(ev.get("clock") or [(ev["t0"], 0.0), (ev["t0"] + path.duration_s * 1e9, path.duration_s)],
                        dtype=float)
-    t_end = clock[-1, 0]
+    land = [t for t, m in rec.modes if int(m) == msn.COPTER_MODES["LAND"]]
+    t_end = min([clock[-1, 0], *land])  # after a LAND the setpoint means nothing
     flying = (truth[:, 0] >= ev["t0"]) & (truth[:, 0] <= t_end)
     tf = truth[flying, 0]
     p_truth = truth[flying, 1:4]
@@ -239,7 +250,7 @@ def summarise(rec: Recorder | SimpleNamespace, path: msn.Path, ev: dict, out: Pa
     ekf = np.asarray(rec.ekf, dtype=float).reshape(-1, 4)
     ekf_fly = ekf[(ekf[:, 0] >= ev["t0"]) & (ekf[:, 0] <= t_end)] if len(ekf) else ekf
     summary = {
-        "mission duration [s]": path.duration_s, "flown for [s]": (t_end - ev["t0"]) * 1e-9,
+        "mission duration [s]": path.duration_s, "flown until LAND [s]": (t_end - ev["t0"]) * 1e-9,
         "mission held while vision lost": bool(ev.get("hold_on_loss", False)),
         "vehicle cross-track error vs mission path [m]": rep.error_stats(
             rep.distance_to_polyline(p_truth, align.apply(path.waypoints))),
@@ -251,7 +262,6 @@ def summarise(rec: Recorder | SimpleNamespace, path: msn.Path, ev: dict, out: Pa
         "failsafe STATUSTEXT": [s for _, s in rep.failsafe_events(rec.text)],
         "flight modes (custom_mode) in order": [m for _, m in rec.modes],
     }
-    land = [t for t, m in rec.modes if int(m) == msn.COPTER_MODES["LAND"]]
     for start, end, dur in ev["blackouts"]:
         if end is None:
             continue
@@ -297,6 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/sitl")
     ap.add_argument("--no-hold", action="store_true",
                     help="keep streaming the moving mission target while Kestrel reports vision lost")
+    ap.add_argument("--land-after-loss", type=float, default=None, metavar="S",
+                    help="LAND once Kestrel has reported vision lost for S seconds (default: hold and leave it "
+                         "to the EKF failsafe)")
     ap.add_argument("--resummarise", action="store_true",
                     help="no flight: recompute report.json/report.md from --out's raw.npz and events.json")
     args = ap.parse_args(argv)
@@ -341,7 +354,8 @@ def main(argv: list[str] | None = None) -> int:
         daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
                                   stdout=open(out / "kestrel.log", "w"), stderr=subprocess.STDOUT)
         try:
-            ev = fly(conn, rec, path, faults, out, hold_on_loss=not args.no_hold)
+            ev = fly(conn, rec, path, faults, out, hold_on_loss=not args.no_hold,
+                     land_after_loss_s=args.land_after_loss)
         finally:
             rec.stop.set()
             rec.join(2.0)
