@@ -18,7 +18,9 @@ ImuSamples on the host clock like any other source (drivers/base.py).
   trips at 10 Hz feed a drift-tracking fit (timesync.ClockSync in round-trip mode) that maps it onto
   CLOCK_MONOTONIC; until the first answer (or if the autopilot never answers) the arrival-time lower
   envelope of the IMU messages themselves is used. A stamp that goes back by more than REBOOT_BACK_S is an
-  autopilot reboot: both fits restart and answers to requests sent before it are ignored.
+  autopilot reboot: both fits restart and answers to requests sent before it are ignored. A change of
+  mapping (the first TIMESYNC answer replacing the arrival envelope, a refit) is slewed in over a few
+  samples instead of stepped, so host stamps never go back and no sample is dropped for it.
 * Honesty: a duplicate stamp or one older than the previous (UDP reordering) is dropped and counted; gaps,
   the measured rate, stamp jitter and transport latency are in health(). No IMU message after
   NO_DATA_WARN_S with another IMU message on the link, or an acceleration far from 1 g at the start,
@@ -55,6 +57,7 @@ REQUEST_TRIES = 5
 NO_DATA_WARN_S = 3.0  # heartbeat seen, no configured IMU message for this long: say why, once
 STATS_WINDOW = 400  # samples behind the rate / jitter / latency figures
 CLOCK_DISAGREE_S = 1.0  # TIMESYNC-mapped stamp this far from the arrival: the IMU stamps use another clock
+SLEW_FRACTION = 0.5  # a mapping change moves the host stamps by at most this fraction of each sample interval
 
 
 class MavlinkImuSource(ThreadedSource):
@@ -110,6 +113,7 @@ class MavlinkImuSource(ThreadedSource):
         self._heartbeat_since_ns: int | None = None
         self._last_sample_arrival_ns: int | None = None
         self._last_dev_ns: int | None = None
+        self._slew_state: tuple[int, int] | None = None  # (last device stamp, dev->host offset given out) [ns]
         self._timesync_after_ns = 0  # answers to requests sent before this host time are ignored (reboot)
         self._pending_ts: deque[int] = deque(maxlen=64)
         self.timesync_sent = 0
@@ -221,7 +225,7 @@ class MavlinkImuSource(ThreadedSource):
             self.other_imu[kind if kind == "SCALED_IMU" else f"{kind} id {imu_id}"] += 1
         elif kind == "TIMESYNC":
             self._on_timesync(msg, t_arrival_ns)
-        elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg):
+        elif kind == "HEARTBEAT" and is_autopilot_heartbeat(msg, None if self.target is None else self.target[0]):
             if self.target is None:
                 self.target = (msg.get_srcSystem(), msg.get_srcComponent())
                 self._heartbeat_since_ns = t_arrival_ns
@@ -271,6 +275,7 @@ class MavlinkImuSource(ThreadedSource):
                         self.message, (self._last_dev_ns - t_dev) / 1e9)
             self.timesync.reset()
             self.arrival.reset()
+            self._slew_state = None
             self._timesync_after_ns = t_arrival_ns
             self._dev_stamps.clear()
             self.request_result = ""  # a rebooted autopilot has forgotten the requested rate
@@ -278,7 +283,7 @@ class MavlinkImuSource(ThreadedSource):
         self._last_dev_ns = t_dev
         self._last_sample_arrival_ns = t_arrival_ns
         self.arrival.add(t_dev, t_arrival_ns)
-        t_host = self._to_host(t_dev, t_arrival_ns)
+        t_host = self._slew(t_dev, self._to_host(t_dev, t_arrival_ns))
         if t_host is None or not self.monitor.check(t_host):
             return
         self._dev_stamps.append(t_dev)
@@ -289,6 +294,28 @@ class MavlinkImuSource(ThreadedSource):
         accel = self._R @ (raw_a * self.accel_scale)
         self._check_scale(accel, gyro)
         self._queue.put(ImuSample(t_host, gyro, accel))
+
+    def _slew(self, t_dev: int, t_host: int | None) -> int | None:
+        """Apply a change of the dev->host mapping gradually, so that host stamps never step back.
+
+        Why: the mapping changes when the first TIMESYNC answer replaces the arrival-time envelope (which
+        includes the link's minimum latency, tens of ms on a busy UART) and a little at each refit. Stepping
+        at once put the next samples at or before the last one given out, and they were dropped as
+        non-monotonic (~9 at every start-up of the SITL stand-in). Here the offset in use moves towards the
+        mapping's by at most SLEW_FRACTION of the sample interval per sample (45 ms in ~18 samples at 200 Hz),
+        so no sample is lost and the spacing stays >= half the true one. A change beyond REBOOT_BACK_S is
+        not a refinement but a new clock: applied at once."""
+        if t_host is None:
+            return None
+        target = t_host - t_dev
+        prev_dev, prev_off = self._slew_state if self._slew_state else (None, None)
+        if prev_dev is None or t_dev <= prev_dev or abs(target - prev_off) > REBOOT_BACK_S * 1e9:
+            off = target
+        else:
+            step = int(SLEW_FRACTION * (t_dev - prev_dev))
+            off = prev_off + max(-step, min(step, target - prev_off))
+        self._slew_state = (t_dev, off)
+        return t_dev + off
 
     def _to_host(self, t_dev: int, t_arrival_ns: int) -> int | None:
         """TIMESYNC mapping when it has answers and agrees with the arrivals, else the arrival envelope."""

@@ -49,9 +49,17 @@ _NOT_AUTOPILOT_TYPES = {mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLE
                         mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_ADSB}
 
 
-def is_autopilot_heartbeat(msg: Any) -> bool:
-    """True for a HEARTBEAT from a flight controller (not a GCS, a camera or another companion)."""
-    return msg.type not in _NOT_AUTOPILOT_TYPES and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+def is_autopilot_heartbeat(msg: Any, system: int | None = None) -> bool:
+    """True for a HEARTBEAT from a flight controller: component MAV_COMP_ID_AUTOPILOT1, a vehicle type, a
+    real autopilot; with `system`, from that system only.
+
+    Why all three: ArduPilot forwards every heartbeat it hears on every link, so Kestrel's own (component
+    197, ONBOARD_CONTROLLER, sent with the autopilot's system id) comes back, as do a GCS's, a gimbal's, a
+    peripheral's (components other than 1 that may claim a vehicle type) and, over a shared radio, other
+    vehicles' (`system` keeps the one the link locked onto)."""
+    return (msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1 and msg.type not in _NOT_AUTOPILOT_TYPES
+            and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+            and (system is None or msg.get_srcSystem() == system))
 
 
 _NETWORK_PREFIXES = ("tcp:", "udpout:", "udpin:", "udp:", "tcpin:", "udpbcast:")

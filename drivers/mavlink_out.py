@@ -69,6 +69,7 @@ class MavlinkStats:
     states_not_tracking: int = 0
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
+    other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
     timesync_answered: int = 0
     link_losses: int = 0
     reconnects: int = 0
@@ -191,6 +192,7 @@ class MavlinkOutput:
                 "system_id": self.system_id, "target_system": self.target_system,
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
                 "states_not_tracking": st.states_not_tracking, "autopilot_heartbeats": st.autopilot_heartbeats,
+                "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
                 "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms}
 
@@ -410,7 +412,11 @@ class MavlinkOutput:
                 return
             kind = msg.get_type()
             if kind == "HEARTBEAT":
-                if not is_autopilot_heartbeat(msg):
+                # once locked on, only the locked autopilot's heartbeats keep the link up; another system's
+                # (a second vehicle on a shared radio) takes over only after ours has been silent the timeout
+                locked = self._last_ap_heartbeat_ns is not None and now - self._last_ap_heartbeat_ns < self._timeout_ns
+                if not is_autopilot_heartbeat(msg, self.target_system if locked else None):
+                    self.stats.other_heartbeats += 1
                     continue
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1

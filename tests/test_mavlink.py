@@ -539,3 +539,30 @@ def test_real_time_rate_heartbeat_and_link_loss(ap, caplog):
     (tc, nc, _), (td, nd, _) = at(silent[1] + 0.3), at(6.4)
     assert nd - nc >= 0.8 * 30 * (td - tc)  # output went on through and after the silence
 
+
+
+def test_only_the_autopilots_own_heartbeat_is_trusted(ap):
+    """ArduPilot forwards every heartbeat on every link: Kestrel's own coming back (component 197), a
+    peripheral claiming a vehicle type, and a second vehicle must neither bring the link up nor move
+    target_system; only system 7 component 1 does."""
+    clock = FakeClock()
+    out = make_out(ap, clock)
+    out.poll()
+    ap.drain()
+
+    def hb(sysid: int, comp: int, kind: int, autopilot: int) -> None:
+        ap.conn.mav.srcSystem, ap.conn.mav.srcComponent = sysid, comp
+        ap.conn.mav.heartbeat_send(kind, autopilot, 0, 0, mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+        clock.advance(0.1)
+        out.poll()
+
+    hb(7, 197, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID)  # our own, echoed
+    hb(7, 197, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)  # our component, whatever it says
+    hb(7, mavlink.MAV_COMP_ID_PERIPHERAL, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert not out.link_up and out.health()["other_heartbeats"] == 3
+    hb(7, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert out.link_up and out.target_system == 7
+    hb(9, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)  # another vehicle on the radio
+    assert out.target_system == 7 and out.system_id == 7 and out.health()["other_heartbeats"] == 4
+    out.close()

@@ -396,3 +396,45 @@ status_file = "{tmp_path / 'status.json'}"
         rc = proc.wait(10)
         fc.close()
     assert rc == 0 and "Traceback" not in log_path.read_text()
+
+
+def test_imu_source_locks_onto_the_autopilot_heartbeat_only() -> None:
+    """The rate request goes to the autopilot: not to Kestrel's own heartbeat forwarded back by ArduPilot
+    (component 197), not to a peripheral, and not to a second vehicle once locked on."""
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"), owns_link=False)
+
+    def hb(sysid: int, comp: int, kind: int, autopilot: int):
+        m = mavlink.MAVLink_heartbeat_message(kind, autopilot, 0, 0, mavlink.MAV_STATE_ACTIVE, 3)
+        m.pack(mavlink.MAVLink(None, srcSystem=sysid, srcComponent=comp))
+        src.on_message(m, time.monotonic_ns())
+
+    hb(1, 197, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID)
+    hb(1, 197, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    hb(1, mavlink.MAV_COMP_ID_PERIPHERAL, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert src.target is None
+    hb(1, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4)
+    hb(2, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert src.target == (1, 1)
+
+
+def test_switch_from_arrival_stamps_to_timesync_drops_no_sample() -> None:
+    """The IMU messages reach the host 40 ms after they were made (an FC that batches, a busy UART), the
+    TIMESYNC round trips do not: the arrival-time mapping used before the first answer is 40 ms late, and
+    switching to TIMESYNC used to step every stamp back by 40 ms, dropping ~8 samples as non-monotonic (the
+    start-up drops of the SITL stand-in). The mapping now slews: nothing is dropped, stamps increase, and
+    after the first second they are within 5 ms of the instant each sample was made."""
+    class LateFC(FakeFC):  # answers TIMESYNC only after 0.5 s: the first samples are mapped by arrival
+        def _handle(self, msg) -> None:
+            if msg.get_type() != "TIMESYNC" or (self.start_ns and time.monotonic_ns() - self.start_ns > 5e8):
+                super()._handle(msg)
+
+    base = stream(lambda h: h, 600)
+    fc = LateFC(lambda now, start: base(now - 40_000_000, start))
+    src, samples = run_source(fc, 3.8)
+    h = src.health()
+    ks = [int(round(s.gyro[0] * 1e3)) for s in samples]
+    assert h["stream"]["non_monotonic"] == 0 and h["duplicates"] == h["out_of_order"] == 0
+    assert ks == list(range(len(ks))) and len(ks) >= 580
+    assert all(b.t_ns > a.t_ns for a, b in zip(samples, samples[1:]))
+    err = np.array([s.t_ns - (fc.start_ns + k * PERIOD_NS) for s, k in zip(samples, ks)]) / 1e6
+    assert h["clock_source"] == "timesync" and np.max(np.abs(err[200:])) < 5.0, np.max(np.abs(err[200:]))

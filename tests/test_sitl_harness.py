@@ -179,6 +179,40 @@ def test_recovery_and_ratio_stats_and_failsafes():
     assert "| a | 1.235 |" in md and "rms 0.500" in md and "| c | none |" in md
 
 
+def test_blackout_hold_is_measured_from_where_the_blackout_began():
+    t = np.arange(20) * 500_000_000
+    p = np.zeros((20, 3))
+    p[4:, 0] = 5.0  # somewhere else before the blackout: must not count
+    p[8:, 1] = np.minimum(np.arange(12) * 0.1, 0.6)  # drifts 0.6 m east while blind, descends 1 m
+    p[8:, 2] = np.linspace(0.0, 1.0, 12)
+    h = rep.blackout_hold(t, p, (t[8], t[15]))
+    assert h["n"] == 8 and h["horizontal_max_m"] == pytest.approx(0.6) and h["down_end_m"] == pytest.approx(7 / 11)
+    assert rep.landed_offset(t, p, t[8], t[-1]) == pytest.approx(0.6)
+    assert rep.blackout_hold(t, p, (t[-1] + 1, t[-1] + 2)) == {"n": 0}
+
+
+def test_kestrel_is_aligned_once_per_reset_segment():
+    """Two segments of one flight, the second in a new Kestrel frame (a reset: turned 90 deg, shifted 3 m):
+    one alignment per segment gives ~0 error, one alignment across the reset does not."""
+    from vio.evaluation import align_4dof
+
+    t = np.arange(200) * 50_000_000
+    gt = np.stack([np.cos(t * 1e-9), np.sin(2 * t * 1e-9), 0.1 * t * 1e-9], axis=1)
+    est = gt.copy()
+    est[100:] = est[100:] @ _rz(math.pi / 2).T + [3.0, 0.0, 0.0]
+    seg = rep.segment_ids(t, [t[100] - 1])
+    assert list(np.unique(seg, return_counts=True)[1]) == [100, 100]
+    r = rep.per_segment_error(est, gt, seg)
+    assert r["segments"] == 2 and r["rmse"] < 1e-9
+    T = align_4dof(est, gt)
+    assert np.sqrt(np.mean(np.sum((est @ T[:3, :3].T + T[:3, 3] - gt) ** 2, axis=1))) > 0.5
+    # a gap in the estimate (no poses while lost) also splits, without a recorded reset
+    t_gap = np.concatenate([t[:100], t[100:] + 2_000_000_000])
+    assert list(np.unique(rep.segment_ids(t_gap), return_counts=True)[1]) == [100, 100]
+    short = rep.per_segment_error(est, gt, rep.segment_ids(t, [t[195]]))
+    assert short["per_segment"][-1] == {"poses": 5, "rmse": None}
+
+
 def test_run_without_a_sitl_binary_says_so(tmp_path, capsys):
     assert main(["--sitl-bin", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -283,7 +317,8 @@ def test_summary_of_a_perfect_synthetic_flight(tmp_path):
     rec = SimpleNamespace(
         truth=[(t, *p, a.yaw + 0.1, *qq) for t, p, qq in zip(t_ns, truth_p, q)],
         local=[(t, *p) for t, p in zip(t_ns, local_p)], att=[(t, y) for t, y in zip(t_ns, yaw_local)],
-        ekf=[(t, 0, 0.2, 0.3) for t in t_ns], text=[(t0, "EKF3 IMU0 is using external nav data")], modes=[(t0, 4)])
+        ekf=[(t, 0, 0.2, 0.3) for t in t_ns], text=[(t0, "EKF3 IMU0 is using external nav data")], modes=[(t0, 4)],
+        odom=[])
     ev = {"t_ground": (5_000_000_000, 9_000_000_000), "t0": t0,
           "blackouts": [[t0 + 2_000_000_000, t0 + 4_000_000_000, 2.0]]}
     T_est = np.array([make_T(_rz(0.7) @ T[:3, :3], _rz(0.7) @ T[:3, 3] + [1, 2, 0])
@@ -296,4 +331,9 @@ def test_summary_of_a_perfect_synthetic_flight(tmp_path):
     assert s["EKF yaw/compass test ratio"]["outside_gate"] == 0
     assert s["failsafe STATUSTEXT"] == []
     assert s["blackout 2 s: max |truth - setpoint| 5-15 s after [m]"] < 0.06
-    assert s["Kestrel error vs SITL truth, 4-DoF aligned [m]"]["rmse"] < 1e-3
+    hold = s["blackout 2 s: drift from the blackout-start position while blind (truth) [m]"]
+    moved = path.positions(np.array([2.0, 4.0]))
+    # this synthetic vehicle flew on with the path during the blackout: it did not hold
+    assert hold["horizontal_max_m"] == pytest.approx(np.linalg.norm(moved[1, :2] - moved[0, :2]), abs=0.06)
+    k = s["Kestrel error vs SITL truth, 4-DoF aligned per reset segment [m]"]
+    assert k["segments"] == 1 and k["rmse"] < 1e-3

@@ -110,16 +110,28 @@ def set_mode(conn, state, mode: str, timeout_s: float = 10.0) -> None:
 
 
 def arm_and_takeoff(conn, state, alt_m: float, timeout_s: float = 60.0) -> None:
-    """GUIDED, arm (retrying while the pre-arm checks still wait for the EKF), MAV_CMD_NAV_TAKEOFF."""
+    """GUIDED, arm (retrying while the pre-arm checks still wait for the EKF), MAV_CMD_NAV_TAKEOFF, and wait
+    for the climb. Why wait: ArduCopter disarms again a few seconds after arming when the takeoff does not
+    start (seen once in SITL, the command lost or refused), and a mission flown on the ground measures
+    nothing; so arm and take off again until the local altitude shows the climb, or give up."""
     set_mode(conn, state, "GUIDED")
     deadline = time.monotonic() + timeout_s
-    while not state.armed:
+    while True:
+        while not state.armed:
+            if time.monotonic() > deadline:
+                raise TimeoutError("autopilot refused to arm (see its STATUSTEXT in the report)")
+            conn.mav.command_long_send(conn.target_system, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # COMPONENT_ARM_DISARM
+            time.sleep(2.0)
+        conn.mav.command_long_send(conn.target_system, 1, 22, 0, 0, 0, 0, float("nan"), 0, 0, alt_m)  # NAV_TAKEOFF
+        log.info("armed, taking off to %.1f m", alt_m)
+        climb_by = time.monotonic() + 6.0
+        while time.monotonic() < climb_by and state.armed:
+            if state.local and -state.local[-1][3] > 0.3 * alt_m:
+                return
+            time.sleep(0.2)
         if time.monotonic() > deadline:
-            raise TimeoutError("autopilot refused to arm (see its STATUSTEXT in the report)")
-        conn.mav.command_long_send(conn.target_system, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # COMPONENT_ARM_DISARM
-        time.sleep(2.0)
-    conn.mav.command_long_send(conn.target_system, 1, 22, 0, 0, 0, 0, float("nan"), 0, 0, alt_m)  # NAV_TAKEOFF
-    log.info("armed, taking off to %.1f m", alt_m)
+            raise TimeoutError(f"no climb to {alt_m:.1f} m after arming and NAV_TAKEOFF (see the STATUSTEXT)")
+        log.warning("no climb after NAV_TAKEOFF: arming and taking off again")
 
 
 def send_target(conn, pos_ned: np.ndarray, vel_ned: np.ndarray, boot_ms: int) -> None:

@@ -7,7 +7,10 @@ Frames: the mission is flown in the autopilot's local frame, which with vision p
 Kestrel's frame (docs/autopilot.md "Frames"). Its relation to the SITL's truth NED is fixed at the start:
 `start_alignment` takes the yaw and offset between the autopilot's estimate and the truth while the vehicle
 sits on the ground, and every later comparison uses that one transform. Drift of Kestrel therefore shows as
-tracking error, as it would on a real vehicle; nothing is re-fitted afterwards.
+tracking error, as it would on a real vehicle; nothing is re-fitted afterwards. Kestrel's own trajectory
+is the exception: each estimator reset starts a new Kestrel frame, so it is aligned once per reset segment
+(`per_segment_error`). Blackouts are judged against where the vehicle was when the cameras went black
+(`blackout_hold`, `landed_offset`), not against the mission setpoint that keeps moving meanwhile.
 """
 
 from __future__ import annotations
@@ -97,6 +100,77 @@ def recovery_error(t_ns: np.ndarray, p_truth: np.ndarray, p_expected: np.ndarray
     if not np.any(m):
         return float("nan")
     return float(np.max(np.linalg.norm(np.asarray(p_truth)[m] - np.asarray(p_expected)[m], axis=1)))
+
+
+def blackout_hold(t_ns: np.ndarray, p_truth: np.ndarray, window_ns: tuple[int, int]) -> dict:
+    """How far the vehicle moved while blind, against where it was when the cameras went black.
+
+    Why not the setpoint: the harness's setpoint keeps moving along the mission during a blackout, but a
+    vehicle that has lost vision should hold (or land) where it is, not chase it; the failure to catch is
+    a fly-away, i.e. motion away from the blackout-start position. Horizontal and vertical are separate
+    because a LAND failsafe descends on purpose."""
+    t = np.asarray(t_ns)
+    p = np.asarray(p_truth, dtype=float)
+    m = (t >= window_ns[0]) & (t <= window_ns[1])
+    if not np.any(m):
+        return {"n": 0}
+    p0 = p[int(np.argmax(m))]
+    d = p[m] - p0
+    return {"n": int(np.sum(m)), "horizontal_max_m": float(np.max(np.linalg.norm(d[:, :2], axis=1))),
+            "horizontal_end_m": float(np.linalg.norm(d[-1, :2])), "down_end_m": float(d[-1, 2])}
+
+
+def landed_offset(t_ns: np.ndarray, p_truth: np.ndarray, t_blackout_ns: int, t_landed_ns: int) -> float:
+    """Horizontal distance between where the vehicle touched down and where it was when the blackout began:
+    a failsafe LAND should come down under the blackout-start position."""
+    t = np.asarray(t_ns)
+    p = np.asarray(p_truth, dtype=float)
+    i0 = int(np.searchsorted(t, t_blackout_ns))
+    i1 = min(int(np.searchsorted(t, t_landed_ns)), len(t) - 1)
+    if i0 >= len(t):
+        return float("nan")
+    return float(np.linalg.norm(p[i1, :2] - p[i0, :2]))
+
+
+def segment_ids(t_ns: np.ndarray, reset_ns: list[int] | np.ndarray = (), max_gap_ns: int = 500_000_000) -> np.ndarray:
+    """Segment index of each estimate stamp: a new segment at every estimator reset and at every gap in the
+    estimate longer than `max_gap_ns` (a reset always follows a loss of tracking, and while lost the daemon
+    writes no pose, so the gap marks it even when the reset time itself was not recorded)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros(0, dtype=int)
+    new = np.zeros(len(t), dtype=bool)
+    new[1:] = np.diff(t) > max_gap_ns
+    for r in reset_ns:
+        k = int(np.searchsorted(t, int(r)))
+        if 0 < k < len(t):
+            new[k] = True
+    return np.cumsum(new)
+
+
+def per_segment_error(p_est: np.ndarray, p_gt: np.ndarray, seg: np.ndarray, min_poses: int = 10) -> dict:
+    """Kestrel vs truth with one 4-DoF (yaw + translation) alignment per reset segment.
+
+    Why per segment: each estimator reset starts a new world frame (origin and yaw of its own), which the
+    autopilot absorbs through reset_counter; one alignment across a reset would charge the frame change as
+    error. Segments shorter than `min_poses` are counted but not scored (an alignment of a few poses fits
+    anything)."""
+    from vio.evaluation import align_4dof
+
+    p_est, p_gt, seg = np.asarray(p_est, float), np.asarray(p_gt, float), np.asarray(seg)
+    errs, parts = [], []
+    for s in np.unique(seg):
+        m = seg == s
+        if np.sum(m) < min_poses:
+            parts.append({"poses": int(np.sum(m)), "rmse": None})
+            continue
+        T = align_4dof(p_est[m], p_gt[m])
+        e = np.linalg.norm(p_est[m] @ T[:3, :3].T + T[:3, 3] - p_gt[m], axis=1)
+        errs.append(e)
+        parts.append({"poses": int(np.sum(m)), "rmse": float(np.sqrt(np.mean(e**2))), "max": float(e.max())})
+    e = np.concatenate(errs) if errs else np.zeros(0)
+    return {"segments": len(parts), "rmse": float(np.sqrt(np.mean(e**2))) if len(e) else float("nan"),
+            "max": float(e.max()) if len(e) else float("nan"), "per_segment": parts}
 
 
 def markdown(summary: dict) -> str:
