@@ -57,7 +57,10 @@ log = logging.getLogger(__name__)
 SUPPORTED_MESSAGES = ("VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY")
 HEARTBEAT_PERIOD_NS = 1_000_000_000
 FLAP_CHANGES, FLAP_WINDOW_NS = 4, 3_000_000_000  # tracking changes within the window that count as flapping
-ORIGIN_REPEATS = 3  # SET_GPS_GLOBAL_ORIGIN / SET_HOME_POSITION sends after each link-up, 1 s apart
+# SET_GPS_GLOBAL_ORIGIN / SET_HOME_POSITION after each link-up, 1 s apart, until the autopilot reports
+# GPS_GLOBAL_ORIGIN (an autopilot still booting drops them: without an origin GUIDED take-off is refused),
+# at most ORIGIN_MAX_SENDS times; then one warning.
+ORIGIN_MAX_SENDS = 60
 
 @dataclass
 class MavlinkStats:
@@ -70,6 +73,7 @@ class MavlinkStats:
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
+    origin_confirmed: bool = False  # the autopilot reported GPS_GLOBAL_ORIGIN after we set it
     timesync_answered: int = 0
     link_losses: int = 0
     reconnects: int = 0
@@ -153,7 +157,7 @@ class MavlinkOutput:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         if link is not None:
-            link.subscribe({"HEARTBEAT", "TIMESYNC"}, self._on_link_message)
+            link.subscribe({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN"}, self._on_link_message)
             link.acquire()
 
     # ---------------------------------------------------------------- public API
@@ -295,6 +299,10 @@ class MavlinkOutput:
                 self._send_origin()
                 self._origin_left -= 1
                 self._next_origin_ns = now + 1_000_000_000
+                if self._origin_left == 0:
+                    log.warning("autopilot did not confirm the EKF origin after %d tries (no GPS_GLOBAL_ORIGIN): "
+                                "set it from the ground station, or GUIDED/AUTO take-off may be refused",
+                                ORIGIN_MAX_SENDS)
             if now >= self._next_send_ns:
                 with self._pending_lock:
                     state, self._pending = self._pending, None
@@ -352,6 +360,10 @@ class MavlinkOutput:
         self._send(mavlink.MAVLink_set_home_position_message(
             self.target_system, lat, lon, alt_mm, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0),
             "SET_HOME_POSITION")
+        # ask for the confirmation (an autopilot that already had the origin does not resend it unasked)
+        self._send(mavlink.MAVLink_command_long_message(
+            self.target_system, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+            float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
 
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")
@@ -431,6 +443,11 @@ class MavlinkOutput:
                             self._link.set_source_system(sysid)
                         else:
                             self._conn.mav.srcSystem = sysid
+            elif kind == "GPS_GLOBAL_ORIGIN" and self._origin_left > 0 and msg.get_srcSystem() == self.target_system:
+                self._origin_left = 0
+                self.stats.origin_confirmed = True
+                log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
+                         msg.longitude * 1e-7, msg.altitude * 1e-3)
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 # A request: answer with our clock (the one NavState.t_ns uses) and echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
@@ -441,7 +458,8 @@ class MavlinkOutput:
         if up and not self._link_up:
             log.info("autopilot link up (system %d) on %s", self.target_system, self.url)
             if math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg):
-                self._origin_left, self._next_origin_ns = ORIGIN_REPEATS, now
+                self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
+                self.stats.origin_confirmed = False
         elif self._link_up and not up:
             self.stats.link_losses += 1
             log.warning("autopilot link lost: no heartbeat for %.1f s", self.cfg.link_timeout_s)

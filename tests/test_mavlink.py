@@ -411,7 +411,10 @@ def test_timesync_request_is_answered_with_our_monotonic_clock(ap):
     out.close()
 
 
-def test_origin_is_sent_after_link_up_and_repeated(ap):
+def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
+    """An autopilot still booting drops SET_GPS_GLOBAL_ORIGIN (and then refuses a GUIDED take-off): the
+    origin and home go out every second, each with a request for GPS_GLOBAL_ORIGIN, until the autopilot
+    reports one; then they stop."""
     clock = FakeClock()
     out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
     out.poll()
@@ -419,14 +422,24 @@ def test_origin_is_sent_after_link_up_and_repeated(ap):
     assert not ap.of("SET_GPS_GLOBAL_ORIGIN")  # not before the autopilot is there
     ap.heartbeat()
     time.sleep(0.02)
-    for _ in range(6):
+    for _ in range(10):
         out.poll()
         clock.advance(0.6)
-    ap.drain()
-    origins = ap.of("SET_GPS_GLOBAL_ORIGIN")
-    assert len(origins) == 3 and len(ap.of("SET_HOME_POSITION")) == 3
+    got = ap.drain()
+    origins = ap.of("SET_GPS_GLOBAL_ORIGIN", got)
+    assert len(origins) == 5 and len(ap.of("SET_HOME_POSITION", got)) == 5  # polls 0.6 s apart, 1 s period
+    asks = [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_REQUEST_MESSAGE]
+    assert len(asks) == 5 and asks[0].param1 == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
     o = origins[0]
     assert (o.target_system, o.latitude, o.longitude, o.altitude) == (7, 473977419, 85455938, 488000)
+    assert not out.stats.origin_confirmed
+    ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
+    time.sleep(0.02)
+    for _ in range(10):
+        out.poll()
+        clock.advance(0.6)
+    assert out.stats.origin_confirmed
+    assert len(ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())) <= 1  # at most the one already due
     out.close()
 
 

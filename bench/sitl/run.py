@@ -153,11 +153,10 @@ def ensure_home(conn, rec: Recorder, timeout_s: float = 20.0) -> bool:
     [mavlink] origin_* would) until the autopilot reports a home. True when the harness had to.
 
     Why: GUIDED's NAV_TAKEOFF converts its altitude above home to one above the EKF origin and is refused
-    (COMMAND_ACK 22 result 4) while there is none. Kestrel sends SET_GPS_GLOBAL_ORIGIN/SET_HOME_POSITION
-    only ORIGIN_REPEATS times right after link-up (drivers/mavlink_out.py), which can be before EKF3 takes
-    them: in 3 of 6 runs of this session the SITL had no origin and refused the takeoff. That is a Kestrel
-    issue (docs/autopilot.md "Closed-loop SITL test"); the workaround here only makes the flight possible,
-    and the report says whether it was needed."""
+    (COMMAND_ACK 22 result 4) while there is none. Kestrel used to send SET_GPS_GLOBAL_ORIGIN/
+    SET_HOME_POSITION only 3 times right after link-up, which could be before EKF3 took them (3 of 6 runs
+    refused the takeoff); it now re-sends until GPS_GLOBAL_ORIGIN comes back (drivers/mavlink_out.py). This
+    stays as a second line, and the report says whether it was needed."""
     deadline = time.monotonic() + timeout_s
     by_harness = False
     lat, lon, alt_mm = int(HOME[0] * 1e7), int(HOME[1] * 1e7), int(HOME[2] * 1000)
