@@ -61,6 +61,9 @@ FLAP_CHANGES, FLAP_WINDOW_NS = 4, 3_000_000_000  # tracking changes within the w
 # GPS_GLOBAL_ORIGIN (an autopilot still booting drops them: without an origin GUIDED take-off is refused),
 # at most ORIGIN_MAX_SENDS times; then one warning.
 ORIGIN_MAX_SENDS = 60
+# land_after_loss_s: MAV_CMD_NAV_LAND is repeated 1 s apart until the autopilot accepts it (COMMAND_ACK) or
+# is seen disarmed, at most LAND_MAX_SENDS times per loss (a dropped command must not leave it dead-reckoning).
+LAND_MAX_SENDS = 5
 
 @dataclass
 class MavlinkStats:
@@ -74,6 +77,8 @@ class MavlinkStats:
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
     origin_confirmed: bool = False  # the autopilot reported GPS_GLOBAL_ORIGIN after we set it
+    land_requests: int = 0  # MAV_CMD_NAV_LAND sent because tracking was lost land_after_loss_s (all losses)
+    land_accepted: bool = False  # the autopilot acknowledged the last loss's LAND request
     timesync_answered: int = 0
     link_losses: int = 0
     reconnects: int = 0
@@ -144,6 +149,11 @@ class MavlinkOutput:
         self._reset_offset = 0  # resets forced here, added to the estimator's reset_counter
         self._last_reset_counter: int | None = None
         self._tracking: bool | None = None
+        self._lost_since_ns: int | None = None  # clock time tracking was lost (None while tracking)
+        self._land_left = 0  # LAND requests still to send for the current loss
+        self._land_done = False  # this loss has had its LAND request (one per loss)
+        self._next_land_ns = 0
+        self._ap_armed = False  # from the autopilot's HEARTBEAT base_mode
         self._changes: list[int] = []  # clock times of recent tracking changes (flap detection)
         self._flapping = False
         self._lock = threading.RLock()  # guards the connection and the schedule
@@ -157,7 +167,7 @@ class MavlinkOutput:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         if link is not None:
-            link.subscribe({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN"}, self._on_link_message)
+            link.subscribe({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN", "COMMAND_ACK"}, self._on_link_message)
             link.acquire()
 
     # ---------------------------------------------------------------- public API
@@ -198,7 +208,9 @@ class MavlinkOutput:
                 "states_not_tracking": st.states_not_tracking, "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
-                "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms}
+                "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms,
+                "land_after_loss_s": self.cfg.land_after_loss_s, "land_requests": st.land_requests,
+                "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed}
 
     def send_state(self, state: NavState) -> bool:
         """Offer the newest estimate; it is sent in the next slot of the `rate_hz` schedule, or never
@@ -209,6 +221,9 @@ class MavlinkOutput:
             self.stats.states_in += 1
             changed = self._tracking is not None and state.tracking != self._tracking
             self._tracking = state.tracking
+            if changed:
+                self._lost_since_ns = None if state.tracking else self._clock()
+                self._land_done = self._land_done and not state.tracking
             if self.T_frd_body is None:
                 self._pending = None
                 if not self._mount_warned:
@@ -290,6 +305,7 @@ class MavlinkOutput:
             self._read_incoming(now)
             self._update_link(now)
             self._check_flapping(now)
+            self._check_land_after_loss(now)
             if now >= self._next_heartbeat_ns:
                 self._next_heartbeat_ns = _next_slot(self._next_heartbeat_ns, HEARTBEAT_PERIOD_NS, now)
                 self._send(mavlink.MAVLink_heartbeat_message(
@@ -365,6 +381,35 @@ class MavlinkOutput:
             self.target_system, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
             float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
 
+    def _check_land_after_loss(self, now: int) -> None:
+        """With land_after_loss_s: once tracking has been lost that long and the autopilot is armed, ask it
+        to LAND where it is. Why here and not only in the autopilot: with vision gone its EKF dead-reckons on
+        the IMU and holds a position that drifts away (0.9-2.7 m in 10 s in the SITL test) until its variance
+        reaches FS_EKF_THRESH (8 s there); a LAND after a few seconds comes down near where vision was lost."""
+        if self.cfg.land_after_loss_s <= 0:
+            return
+        lost_ns = self._lost_since_ns
+        if (not self._land_done and lost_ns is not None and self._ap_armed and self._link_up
+                and now - lost_ns >= self.cfg.land_after_loss_s * 1e9):
+            self._land_done, self._land_left, self._next_land_ns = True, LAND_MAX_SENDS, now
+            self.stats.land_accepted = False
+            log.warning("tracking lost for %.1f s: asking the autopilot to LAND (land_after_loss_s = %g)",
+                        (now - lost_ns) / 1e9, self.cfg.land_after_loss_s)
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO lost: LAND requested")
+        if self._land_left > 0 and (self.stats.land_accepted or not self._ap_armed):
+            self._land_left = 0
+        if self._land_left > 0 and now >= self._next_land_ns:
+            # lat/lon NaN: land at the current position (PX4); ArduCopter switches to LAND mode
+            self._send(mavlink.MAVLink_command_long_message(
+                self.target_system, 1, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, math.nan, math.nan, math.nan, 0),
+                "COMMAND_LONG")
+            self.stats.land_requests += 1
+            self._land_left -= 1
+            self._next_land_ns = now + 1_000_000_000
+            if self._land_left == 0 and not self.stats.land_accepted:
+                log.warning("autopilot did not acknowledge LAND after %d requests: land it from the ground "
+                            "station", LAND_MAX_SENDS)
+
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")
 
@@ -432,6 +477,7 @@ class MavlinkOutput:
                     continue
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
+                self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 sysid = msg.get_srcSystem()
                 if sysid != self.target_system or (self.cfg.system_id == 0 and sysid != self.system_id):
                     log.info("autopilot is system %d; sending as %d/%d", sysid,
@@ -448,6 +494,14 @@ class MavlinkOutput:
                 self.stats.origin_confirmed = True
                 log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
                          msg.longitude * 1e-7, msg.altitude * 1e-3)
+            elif (kind == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_NAV_LAND and self._land_done
+                  and msg.get_srcSystem() == self.target_system):
+                accepted = msg.result == mavlink.MAV_RESULT_ACCEPTED
+                if accepted and not self.stats.land_accepted:
+                    log.info("autopilot accepted LAND")
+                elif not accepted:
+                    log.warning("autopilot refused LAND (COMMAND_ACK result %d)", msg.result)
+                self.stats.land_accepted = self.stats.land_accepted or accepted
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 # A request: answer with our clock (the one NavState.t_ns uses) and echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")

@@ -579,3 +579,63 @@ def test_only_the_autopilots_own_heartbeat_is_trusted(ap):
     hb(9, 1, mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)  # another vehicle on the radio
     assert out.target_system == 7 and out.system_id == 7 and out.health()["other_heartbeats"] == 4
     out.close()
+
+
+def test_land_after_loss_asks_an_armed_autopilot_to_land_once_per_loss(ap):
+    """land_after_loss_s: a loss shorter than S sends no LAND; a longer one while armed sends
+    MAV_CMD_NAV_LAND (repeated 1 s apart until acknowledged), one STATUSTEXT, and the status says so."""
+    clock = FakeClock()
+    out = make_out(ap, clock, land_after_loss_s=3.0)
+
+    def armed_heartbeat(armed: bool = True) -> None:
+        ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0, 4, mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+
+    def lose_for(s: float) -> list:
+        got = []
+        for _ in range(int(round(s / 0.5))):
+            clock.advance(0.5)
+            armed_heartbeat()
+            out.send_state(state(clock.t, tracking=False, quality=0))
+            got += ap.drain(0.01)
+        return got
+
+    def lands(msgs: list) -> list:
+        return [m for m in ap.of("COMMAND_LONG", msgs) if m.command == mavlink.MAV_CMD_NAV_LAND]
+
+    armed_heartbeat()
+    out.send_state(state(clock.t))
+    got = lose_for(2.5)  # a 2.5 s loss, then vision back: no LAND
+    clock.advance(0.1)
+    out.send_state(state(clock.t))
+    assert not lands(got + ap.drain()) and out.stats.land_requests == 0
+    got = lose_for(4.5)  # LAND once the loss has lasted 3 s, again at 4 s while unacknowledged
+    assert len(lands(got)) == 2 and lands(got)[0].target_system == 7
+    assert "VIO lost: LAND requested" in [m.text for m in ap.of("STATUSTEXT", got)]
+    assert not out.health()["land_accepted"]
+    ap.conn.mav.command_ack_send(mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_RESULT_ACCEPTED)
+    time.sleep(0.02)
+    got = lose_for(3.0)
+    assert not lands(got)  # acknowledged: no more requests during this loss
+    h = out.health()
+    assert h["land_accepted"] and h["land_requests"] == 2 and h["land_after_loss_s"] == 3.0
+    out.close()
+
+
+def test_land_after_loss_is_off_by_default_and_never_sent_while_disarmed(ap):
+    clock = FakeClock()
+    for cfg in ({}, {"land_after_loss_s": 1.0}):
+        out = make_out(ap, clock, **cfg)
+        ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED if not cfg else 0, 4,
+                                   mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+        out.send_state(state(clock.t))
+        for _ in range(10):
+            clock.advance(0.5)
+            out.send_state(state(clock.t, tracking=False, quality=0))
+        got = ap.drain()
+        assert not [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_NAV_LAND]
+        assert out.stats.land_requests == 0
+        out.close()

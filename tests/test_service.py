@@ -159,6 +159,13 @@ def test_status_text_names_what_a_person_needs() -> None:
         assert needle in text, needle
 
 
+def test_status_text_shows_the_land_after_loss_failsafe_only_when_configured() -> None:
+    s = _status()
+    assert "failsafe" not in format_status(s, "HEALTHY", 1000.5)
+    s["mavlink"] = {**s["mavlink"], "land_after_loss_s": 3.0, "land_requests": 1, "land_accepted": True}
+    assert "LAND after 3.0 s of lost vision: requests 1, accepted True" in format_status(s, "HEALTHY", 1000.5)
+
+
 def test_status_cli_exit_codes(tmp_path: Path) -> None:
     from vio.app.cli import main
 

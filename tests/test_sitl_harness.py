@@ -219,6 +219,20 @@ def test_run_without_a_sitl_binary_says_so(tmp_path, capsys):
     assert len(err) == 1 and "no SITL binary" in err[0]
 
 
+def test_kestrel_land_after_loss_reaches_the_daemon_config(tmp_path):
+    from bench.sitl.run import kestrel_config
+    from vio.config import load_config
+
+    assert load_config(kestrel_config(tmp_path, 15.0, 320, 200)).mavlink.land_after_loss_s == 0.0
+    assert load_config(kestrel_config(tmp_path, 15.0, 320, 200, 3.0)).mavlink.land_after_loss_s == 3.0
+
+
+def test_bad_ap_param_is_a_one_line_error(tmp_path, capsys):
+    assert main(["--sitl-bin", "/bin/true", "--ap-param", "FS_EKF_THRESH", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "NAME=NUMBER" in err[0]
+
+
 @pytest.mark.skipif(not os.environ.get("KESTREL_SITL_BIN") or not os.access(DEFAULT_BIN, os.X_OK),
                     reason="opt-in: set KESTREL_SITL_BIN to an ArduCopter SITL binary (it takes the fixed "
                            "ports 5760-5763, so it is never run by default)")

@@ -103,7 +103,7 @@ class Recorder(threading.Thread):
                     self.modes.append((t, m.custom_mode))
 
 
-def kestrel_config(out: Path, fps: float, width: int, height: int) -> Path:
+def kestrel_config(out: Path, fps: float, width: int, height: int, land_after_loss_s: float = 0.0) -> Path:
     cfg = f"""[source]
 kind = "sitl"
 imu = "mavlink"
@@ -120,6 +120,7 @@ mount = "camera-forward"
 origin_lat_deg = {HOME[0]}
 origin_lon_deg = {HOME[1]}
 origin_alt_m = {HOME[2]}
+land_after_loss_s = {land_after_loss_s}
 
 [run]
 trajectory_file = "{out / 'kestrel.tum'}"
@@ -137,10 +138,11 @@ def copter_defaults(binary: str) -> Path | None:
     return p if p.is_file() else None
 
 
-def start_sitl(binary: str, out: Path) -> subprocess.Popen:
-    """ArduCopter SITL in `out` (its eeprom.bin and logs land there): ArduPilot's quad defaults, then PARAMS."""
+def start_sitl(binary: str, out: Path, extra: dict | None = None) -> subprocess.Popen:
+    """ArduCopter SITL in `out` (its eeprom.bin and logs land there): ArduPilot's quad defaults, then PARAMS,
+    then `extra` (--ap-param)."""
     parm = out / "sitl.parm"
-    parm.write_text("".join(f"{k} {v}\n" for k, v in PARAMS.items()))
+    parm.write_text("".join(f"{k} {v}\n" for k, v in {**PARAMS, **(extra or {})}.items()))
     base = copter_defaults(binary)
     defaults = f"{base},{parm}" if base else str(parm)
     home = ",".join(str(x) for x in HOME) + ",0"
@@ -227,6 +229,8 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
             windows[-1][1] = now
             end_ns = None
         p, v = path.target(t_mission)
+        if rec.mode == msn.COPTER_MODES["LAND"]:
+            break  # LAND from the autopilot's failsafe or Kestrel's land_after_loss_s: no more targets
         msn.send_target(conn, p, v * (not lost), rec.boot_ms)
         clock.append((now, t_mission))
         time.sleep(0.1)
@@ -285,6 +289,9 @@ def summarise(rec: Recorder | SimpleNamespace, path: msn.Path, ev: dict, out: Pa
     summary = {
         "mission duration [s]": path.duration_s, "flown until LAND [s]": (t_end - ev["t0"]) * 1e-9,
         "mission held while vision lost": bool(ev.get("hold_on_loss", False)),
+        "LAND after vision lost [s]: Kestrel's land_after_loss_s / the harness's": [
+            ev.get("kestrel_land_after_loss_s", 0.0), ev.get("harness_land_after_loss_s")],
+        "ArduPilot parameters over PARAMS (--ap-param)": ev.get("ap_params", {}),
         "home set by the harness (Kestrel's origin not taken)": bool(ev.get("home_set_by_harness", False)),
         "vehicle cross-track error vs mission path [m]": rep.error_stats(
             rep.distance_to_polyline(p_truth, align.apply(path.waypoints))),
@@ -344,6 +351,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--land-after-loss", type=float, default=None, metavar="S",
                     help="LAND once Kestrel has reported vision lost for S seconds (default: hold and leave it "
                          "to the EKF failsafe)")
+    ap.add_argument("--kestrel-land-after-loss", type=float, default=0.0, metavar="S",
+                    help="Kestrel's own [mavlink] land_after_loss_s: the daemon asks the autopilot to LAND once "
+                         "tracking has been lost S s (the product's option; default 0 = off)")
+    ap.add_argument("--ap-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="an ArduPilot parameter over PARAMS (repeatable), e.g. FS_EKF_THRESH=0.5")
     ap.add_argument("--resummarise", action="store_true",
                     help="no flight: recompute report.json/report.md from --out's raw.npz and events.json")
     args = ap.parse_args(argv)
@@ -367,6 +379,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         print(f"--faults {args.faults!r}: expected seconds separated by commas, e.g. 2,10", file=sys.stderr)
         return 2
+    ap_params = {}
+    for item in args.ap_param:
+        name, _, value = item.partition("=")
+        try:
+            ap_params[name.strip()] = float(value)
+        except ValueError:
+            print(f"--ap-param {item!r}: expected NAME=NUMBER, e.g. FS_EKF_THRESH=0.5", file=sys.stderr)
+            return 2
     out = Path(args.out).resolve()
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
@@ -374,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    sitl = start_sitl(args.sitl_bin, out)
+    sitl = start_sitl(args.sitl_bin, out, ap_params)
     daemon = None
     try:
         conn = mavutil.mavlink_connection("tcp:127.0.0.1:5760", source_system=250, retries=30)
@@ -384,12 +404,14 @@ def main(argv: list[str] | None = None) -> int:
             conn.mav.command_long_send(conn.target_system, 1, 511, 0, msg_id, 1e6 / hz, 0, 0, 0, 0, 0)
         rec = Recorder(conn)
         rec.start()
-        cfg = kestrel_config(out, args.fps, args.width, args.height)
+        cfg = kestrel_config(out, args.fps, args.width, args.height, args.kestrel_land_after_loss)
         daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
                                   stdout=open(out / "kestrel.log", "w"), stderr=subprocess.STDOUT)
         try:
             ev = fly(conn, rec, path, faults, out, hold_on_loss=not args.no_hold,
                      land_after_loss_s=args.land_after_loss)
+            ev.update(kestrel_land_after_loss_s=args.kestrel_land_after_loss, ap_params=ap_params,
+                      harness_land_after_loss_s=args.land_after_loss)
         finally:
             rec.stop.set()
             rec.join(2.0)

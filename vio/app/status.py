@@ -88,6 +88,9 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
         f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}",
     ]
+    if mav.get("land_after_loss_s"):
+        lines.append(f"  failsafe  LAND after {_fmt(mav.get('land_after_loss_s'), ' s')} of lost vision: "
+                     f"requests {_fmt(mav.get('land_requests'))}, accepted {_fmt(mav.get('land_accepted'))}")
     unusable = e.get("unusable_reasons") or {}
     if e.get("frames_unusable") or e.get("imu_rejected"):
         reasons = ", ".join(f"{k} x{n}" for k, n in sorted(unusable.items(), key=lambda kv: -kv[1])[:3])
