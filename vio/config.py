@@ -89,7 +89,7 @@ class BackendConfig:
     min_depth_m: float = opt(0.3, "stereo depth below which a track does not become a landmark", min=0.01, max=100)
     max_depth_m: float = opt(40.0, "depth beyond which a track does not become a landmark (the front end's stereo "
                              "limit by default)", min=0.5, max=1000)
-    mono_landmarks: bool = opt(True, "tracks without usable stereo depth become landmarks triangulated over "
+    mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
                                "keyframes (far points, right camera out)")
     refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
                                   "makes them observable (see docs/estimator.md)")
