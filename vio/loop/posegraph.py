@@ -108,8 +108,7 @@ class PoseGraph:
             self.estimate.append(T_odom.copy())
             rot, trans = prior if prior is not None else (1e-3, 1e-3)
             self.priors[i] = (T_odom.copy(), rot, trans)
-            self._new_factors.add(gtsam.PriorFactorPose3(i, gtsam.Pose3(T_odom),
-                                                         gtsam.noiseModel.Diagonal.Sigmas(_sigmas(rot, trans))))
+            self._new_factors.add(self._prior(i))
             self._cum.append(np.zeros((6, 6)))
             self._segment.append(i)
         self._new_factors.add(self._attitude(i))
@@ -126,6 +125,10 @@ class PoseGraph:
         ang = float(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(T[:3, :3]))))
         dist = float(np.linalg.norm(T[:3, 3]))
         return _sigmas(n.odom_rot_rad + n.odom_rot_per_rad * ang, n.odom_trans_m + n.odom_trans_per_m * dist)
+
+    def _prior(self, i: int) -> gtsam.NonlinearFactor:
+        T, rot, trans = self.priors[i]
+        return gtsam.PriorFactorPose3(i, gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(_sigmas(rot, trans)))
 
     def _attitude(self, i: int) -> gtsam.NonlinearFactor:
         att = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.attitude_rad)
@@ -165,9 +168,7 @@ class PoseGraph:
         if key not in self._condensed_cache:
             fs = [self._attitude(v)]
             if v in self.priors:
-                T, rot, trans = self.priors[v]
-                fs.append(gtsam.PriorFactorPose3(v, gtsam.Pose3(T),
-                                                 gtsam.noiseModel.Diagonal.Sigmas(_sigmas(rot, trans))))
+                fs.append(self._prior(v))
             if a is not None:
                 Ad = _adjoint(inv_T(self.odom[v]))
                 cov = Ad @ (self._cum[v] - self._cum[a]) @ Ad.T
