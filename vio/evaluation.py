@@ -218,16 +218,26 @@ def _mean_R_gt_est(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     return _project_so3(np.sum(R_gt @ np.swapaxes(R_est, 1, 2), axis=0))
 
 
+def se3_rotation_undetermined(p_gt: np.ndarray) -> bool:
+    """A path that spans less than MIN_ALIGN_SPREAD_M in two directions (hovering, a straight line) leaves
+    a position fit's rotation undetermined, so a rotation error after it would be noise."""
+    return bool(_spread_m(p_gt)[1] < MIN_ALIGN_SPREAD_M)
+
+
+def yaw_undetermined(p_gt: np.ndarray) -> bool:
+    """Less than MIN_ALIGN_SPREAD_M of horizontal spread does not fix a position fit's yaw."""
+    return bool(_spread_m(p_gt[:, :2])[0] < MIN_ALIGN_SPREAD_M)
+
+
 def align_se3(p_est: np.ndarray, p_gt: np.ndarray, R_est: np.ndarray | None = None,
               R_gt: np.ndarray | None = None) -> np.ndarray:
     """Rigid T (4x4) minimising sum |p_gt - T p_est|^2 (Umeyama 1991 without scale).
 
-    A path that spans less than MIN_ALIGN_SPREAD_M in two directions (hovering, a straight line) leaves the
-    position fit's rotation undetermined, so a rotation error after it would be noise; with orientations
-    given, the rotation then comes from them (chordal mean) and the translation from the centroids.
+    With orientations given (for a path where se3_rotation_undetermined), the rotation comes from them
+    instead (chordal mean) and the translation from the centroids.
     """
     mu_e, mu_g = p_est.mean(axis=0), p_gt.mean(axis=0)
-    if R_est is not None and R_gt is not None and _spread_m(p_gt)[1] < MIN_ALIGN_SPREAD_M:
+    if R_est is not None and R_gt is not None:
         R = _mean_R_gt_est(R_est, R_gt)
         return make_T(R, mu_g - R @ mu_e)
     cov = (p_gt - mu_g).T @ (p_est - mu_e) / len(p_est)
@@ -242,12 +252,12 @@ def align_4dof(p_est: np.ndarray, p_gt: np.ndarray, R_est: np.ndarray | None = N
     """Yaw about world z + translation minimising sum |p_gt - T p_est|^2 (closed form).
 
     VIO observes roll and pitch through gravity, so only yaw and position are free: aligning them alone
-    keeps roll/pitch errors visible instead of letting a full SE(3) fit hide them. A path that spans less
-    than MIN_ALIGN_SPREAD_M horizontally does not fix the yaw; with orientations given it comes from them.
+    keeps roll/pitch errors visible instead of letting a full SE(3) fit hide them. With orientations given
+    (for a path where yaw_undetermined), the yaw comes from them instead.
     """
     mu_e, mu_g = p_est.mean(axis=0), p_gt.mean(axis=0)
     e, g = p_est - mu_e, p_gt - mu_g
-    if R_est is not None and R_gt is not None and _spread_m(p_gt[:, :2])[0] < MIN_ALIGN_SPREAD_M:
+    if R_est is not None and R_gt is not None:
         R_m = _mean_R_gt_est(R_est, R_gt)
         yaw = math.atan2(R_m[1, 0] - R_m[0, 1], R_m[0, 0] + R_m[1, 1])  # the yaw closest to R_m
     else:
@@ -267,10 +277,9 @@ def _angles_deg(R: np.ndarray) -> np.ndarray:
 
 def _ate(name: str, T_est: np.ndarray, T_gt: np.ndarray) -> AteResult:
     p_est, p_gt, R_est, R_gt = T_est[:, :3, 3], T_gt[:, :3, 3], T_est[:, :3, :3], T_gt[:, :3, :3]
-    if name == "SE(3)":
-        T_align, small = align_se3(p_est, p_gt, R_est, R_gt), _spread_m(p_gt)[1] < MIN_ALIGN_SPREAD_M
-    else:
-        T_align, small = align_4dof(p_est, p_gt, R_est, R_gt), _spread_m(p_gt[:, :2])[0] < MIN_ALIGN_SPREAD_M
+    align, undetermined = (align_se3, se3_rotation_undetermined) if name == "SE(3)" else (align_4dof, yaw_undetermined)
+    small = undetermined(p_gt)
+    T_align = align(p_est, p_gt, R_est, R_gt) if small else align(p_est, p_gt)
     T = T_align @ T_est
     err = np.linalg.norm(T[:, :3, 3] - T_gt[:, :3, 3], axis=1)
     R_err = np.swapaxes(R_gt, 1, 2) @ T[:, :3, :3]
