@@ -375,7 +375,8 @@ class VioSmoother:
         poses = [self._estimate.atPose3(X(i)).compose(self.P_body_cam0) for i, _ in obs]
         poses.append(gtsam.Pose3(T_world_cam0))
         pixels = [uv for _, uv in obs] + [uv0]
-        Kinv = np.linalg.inv(self.K0.K())
+        K = self.K0.K()
+        Kinv = np.linalg.inv(K)
         rays = [p.rotation().matrix() @ (Kinv @ np.array([u[0], u[1], 1.0])) for p, u in zip(poses, pixels)]
         cos = float(rays[0] @ rays[-1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[-1])))
         if np.degrees(np.arccos(min(cos, 1.0))) < cfg.mono_min_parallax_deg:
@@ -388,8 +389,7 @@ class VioSmoother:
             p_c = pose.transformTo(p_w)
             if not (cfg.min_depth_m <= p_c[2] <= cfg.max_depth_m):
                 return None
-            if np.sum((self.K0.K()[:2, :2] @ (p_c[:2] / p_c[2]) + self.K0.K()[:2, 2] - uv) ** 2) > \
-                    MONO_MAX_REPROJ_PX ** 2:
+            if np.sum((K[:2, :2] @ (p_c[:2] / p_c[2]) + K[:2, 2] - uv) ** 2) > MONO_MAX_REPROJ_PX ** 2:
                 return None
         return p_w
 
