@@ -35,23 +35,28 @@ class FeatureExtractor:
                                   fastThreshold=12)
 
     def extract(self, image: np.ndarray, ff: FeatureFrame | None) -> KeyframeFeatures:
-        kps = list(self.orb.detect(image, None))
-        p3 = [np.full(3, np.nan)] * len(kps)
+        det = self.orb.detect(image, None)
+        uv_det = cv2.KeyPoint.convert(det).reshape(-1, 2) if det else np.zeros((0, 2), np.float32)
+        p3 = np.full((len(uv_det), 3), np.nan)
+        uv_all = uv_det
         if ff is not None and len(ff.ids):
             ok = np.isfinite(ff.depth_m)
-            uv_raw = distort_px(self.cam, ff.uv0[ok])
             z = ff.depth_m[ok]
-            xy = np.column_stack([(ff.uv0[ok, 0] - self.cam.cx) / self.cam.fx,
-                                  (ff.uv0[ok, 1] - self.cam.cy) / self.cam.fy])
-            for (u, v), zz, (x, y) in zip(uv_raw, z, xy):
-                kps.append(cv2.KeyPoint(float(u), float(v), 19.0))
-                p3.append(np.array([x * zz, y * zz, zz]))
-        for i, kp in enumerate(kps):
+            xyz = np.column_stack([(ff.uv0[ok, 0] - self.cam.cx) / self.cam.fx * z,
+                                   (ff.uv0[ok, 1] - self.cam.cy) / self.cam.fy * z, z])
+            uv_all = np.vstack([uv_det, distort_px(self.cam, ff.uv0[ok]).astype(np.float32)])
+            p3 = np.vstack([p3, xyz])
+        # upright descriptors (angle 0; detected corners keep their pyramid level); class_id carries the row
+        # through compute(), which drops points near the border
+        for i, kp in enumerate(det):
             kp.angle = 0.0
             kp.class_id = i
+        n = len(det)
+        kps = list(det) + [cv2.KeyPoint(u, v, 19.0, 0.0, 0.0, 0, n + i)
+                           for i, (u, v) in enumerate(uv_all[n:].tolist())]
         kps, desc = self.orb.compute(image, kps)
         if desc is None or not kps:
             return KeyframeFeatures(np.zeros((0, 32), np.uint8), np.zeros((0, 2)), np.zeros((0, 3)))
-        keep = [kp.class_id for kp in kps]
-        uv_raw = np.array([kp.pt for kp in kps], np.float64)
-        return KeyframeFeatures(desc, undistort_px(self.cam, uv_raw), np.array([p3[i] for i in keep]).reshape(-1, 3))
+        keep = np.array([kp.class_id for kp in kps], np.int64)
+        uv_raw = uv_all[keep].astype(np.float64)
+        return KeyframeFeatures(desc, undistort_px(self.cam, uv_raw), p3[keep].reshape(-1, 3))

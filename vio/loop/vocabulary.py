@@ -19,6 +19,15 @@ DEFAULT_PATH = Path(__file__).with_name("data") / "vocabulary.npz"
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
 
 
+def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances between 32-byte descriptors broadcast against each other (..., 32) -> (...): XOR and
+    popcount on 64-bit words (numpy >= 2), 8x fewer operations than a byte lookup table."""
+    if hasattr(np, "bitwise_count"):
+        x = np.bitwise_xor(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
+        return np.bitwise_count(x).sum(-1, dtype=np.int32)
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(-1, dtype=np.int32)
+
+
 def unpack(desc: np.ndarray) -> np.ndarray:
     """(N, 32) uint8 descriptors -> (N, 256) float32 bits."""
     return np.unpackbits(np.asarray(desc, np.uint8), axis=1).astype(np.float32)
@@ -68,11 +77,11 @@ class Vocabulary:
         """Word id of each descriptor (N,)."""
         if len(desc) == 0:
             return np.zeros(0, np.int64)
-        d = np.asarray(desc, np.uint8)[:, None, :]
+        d = np.ascontiguousarray(desc, np.uint8)[:, None, :]
         node = np.zeros(len(d), np.int64)
         for _ in range(self.depth):
             children = node[:, None] * self.k + 1 + np.arange(self.k)[None, :]  # (N, k)
-            dist = _POPCOUNT[np.bitwise_xor(d, self.centres[children])].sum(2, dtype=np.int32)  # (N, k) Hamming
+            dist = hamming_rows(d, self.centres[children])  # (N, k)
             node = children[np.arange(len(d)), np.argmin(dist, axis=1)]
         return node - self.first_leaf
 
