@@ -29,15 +29,16 @@ def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio:
     if len(has3) < 4 or len(new.desc) < 4:
         return np.zeros((0, 2), np.int64)
     knn = _MATCHER.knnMatch(old.desc[has3], new.desc, k=2)
-    back = {m.queryIdx: m.trainIdx for m in _MATCHER.match(new.desc, old.desc[has3])}
-    pairs = []
-    for m in knn:
-        if len(m) < 2:
-            continue
-        a, b = m
-        if a.distance <= max_hamming and a.distance < ratio * b.distance and back.get(a.trainIdx) == a.queryIdx:
-            pairs.append((has3[a.queryIdx], a.trainIdx))
-    return np.array(pairs, np.int64).reshape(-1, 2)
+    cand = [(a.queryIdx, a.trainIdx) for m in knn if len(m) == 2
+            for a, b in [m] if a.distance <= max_hamming and a.distance < ratio * b.distance]
+    if not cand:
+        return np.zeros((0, 2), np.int64)
+    q, t = np.array(cand, np.int64).T
+    # mutual best: only the new features that passed are matched back (the same answer as matching all of them)
+    tu, inv = np.unique(t, return_inverse=True)
+    back = np.array([m.trainIdx for m in _MATCHER.match(new.desc[tu], old.desc[has3])], np.int64)
+    keep = back[inv] == q
+    return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
 
 
 def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam: np.ndarray, *,
