@@ -3,17 +3,17 @@
     python bench/loop_reloc.py [--starts 20] [--cache DIR] [--json out.json]
     python bench/loop_reloc.py --check f1.json f2_loop.tum f2.json FLIGHT2   # one replay's ATE in the map frame
 
-Default mode: the map flight (survey, 40 s or --map-duration, seed 2, 376x240, realistic) and a second flight in
-the same room (survey, 30 s, seed 12, scene seed 2: other path and start) are simulated once into --cache and
-replayed once each; their keyframes (image, features, odometry pose) are kept. The map is the first flight's
-loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh loop stage, the map
-loaded, with the second flight's keyframes from start k on (starts spread evenly over its first 60 %: each
-start's first keyframe is a moving one). Reported per start: the delay from its first keyframe to the keyframe
-that joined the map, edges with an error against ground truth > 0.2 m or 3 deg (false), and the ATE of the
+Default mode: the map flight (survey or --map-profile mapping, 40 s or --map-duration, seed 2, 376x240, realistic)
+and a second flight in the same room (survey, 30 s, seed 12, scene seed 2: other path and start) are simulated once
+into --cache and replayed once each; their keyframes (image, features, odometry pose) are kept. The map is the
+first flight's loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh loop
+stage, the map loaded, with the second flight's keyframes from start k on (starts spread evenly over its first 60
+%: each start's first keyframe is a moving one). Reported per start: the delay from its first keyframe to the
+keyframe that joined the map, edges with an error against ground truth > 0.2 m or 3 deg (false), and the ATE of the
 relocalised keyframes in the map's frame (flight 1's ground-truth alignment applied, no alignment of their own)
 against the second flight's odometry ATE (its own 4-DoF alignment). The odometry of a start is the one run's
-odometry from that keyframe on (the estimator is not restarted per start: its pose at the start is already in
-its own frame, which the new session's loose prior ignores)."""
+odometry from that keyframe on (the estimator is not restarted per start: its pose at the start is already in its
+own frame, which the new session's loose prior ignores)."""
 
 from __future__ import annotations
 
@@ -58,14 +58,15 @@ def _keyframes(data: Path, sim_kw: dict):
     from vio.sim.generate import SimConfig, simulate
 
     if not (data / "mav0").is_dir():
-        simulate(data, SimConfig(width=376, height=240, variant="realistic", profile="survey", **sim_kw),
+        simulate(data, SimConfig(width=376, height=240, variant="realistic", **{"profile": "survey", **sim_kw}),
                  overwrite=True, progress=False)
     rec = _Recorder()
     res = replay(EurocDataset(data), VioConfig(), progress=False, loop=rec)
     return rec.items, res
 
 
-def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0) -> dict:
+def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
+                map_profile: str = "survey") -> dict:
     from loop_closure import _gt_pose
 
     from vio.config import VioConfig
@@ -78,8 +79,8 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
 
     cfg = VioConfig().loop
     tag = f"-aliasing{aliasing}m" if aliasing else ""
-    d1, d2 = cache / f"map-survey-seed2-{map_s:g}s{tag}", cache / f"second-survey-seed12-scene2-30s{tag}"
-    items1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing})
+    d1, d2 = cache / f"map-{map_profile}-seed2-{map_s:g}s{tag}", cache / f"second-survey-seed12-scene2-30s{tag}"
+    items1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing, "profile": map_profile})
     items2, res2 = _keyframes(d2, {"duration_s": 30.0, "seed": 12, "scene_seed": 2, "aliasing_period_m": aliasing})
     ds1, ds2 = EurocDataset(d1), EurocDataset(d2)
     gt1, gt2 = ds1.groundtruth.trajectory, ds2.groundtruth.trajectory
@@ -89,7 +90,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     kt1 = np.array([k.t_ns for k in mapper.keyframes])
     ev1 = evaluate(Trajectory.from_poses(kt1, np.array(mapper.graph.estimate)), gt1)
     A = ev1.ate_4dof.T_gtworld_estworld
-    map_path = cache / f"map-{map_s:g}s{tag}.npz"
+    map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}.npz"
     mapper.save_map(map_path)
     m = load_map(map_path)
     odom = evaluate(Trajectory.from_poses(np.array([s.t_ns for s in res2.states]),
@@ -132,7 +133,8 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
               + f", false edges {false}", flush=True)
     delays = [r["delay_s"] if r["relocalised"] else np.inf for r in rows]
     ates = [r["ate_map_frame_m"] for r in rows if r["relocalised"]]
-    out = {"map_s": map_s, "aliasing_m": aliasing, "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
+    out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing,
+            "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
            "map_loop_edges": mapper.stats.accepted, "map_false_edges_active": map_false, "starts": rows,
            "odometry_ate_m": odom_ate, "within_2s": int(sum(d <= 2.0 for d in delays)),
            "relocalised": len(ates), "median_delay_s": float(np.median(delays)),
@@ -154,10 +156,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--aliasing", type=float, metavar="M", help="both flights in a room whose textures repeat "
                     "every M metres (vio simulate --aliasing): relocalisation must not take a look-alike place")
     ap.add_argument("--map-duration", type=float, default=40.0, metavar="S", help="length of the map flight")
+    ap.add_argument("--map-profile", default="survey", choices=("survey", "mapping"),
+                    help="the map flight: survey (heading within +-60 deg of a random one) or mapping (heading "
+                    "swept through +-180 deg: the room seen from every direction)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)
-    out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration)
+    out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from vio import VioError
 from vio.geometry import GRAVITY_M_S2
 
-PROFILES = ("hover", "survey", "aggressive")
+PROFILES = ("hover", "survey", "aggressive", "mapping")
 
 # Region the body may occupy in the default room (see scene.default_scene): every camera stays >= 1 m from
 # walls, floor, ceiling and boxes. Profiles are built to fit inside it; tests check that they do.
@@ -195,12 +195,23 @@ _PROFILE_SPECS: dict[str, dict[str, list[tuple[float, float]]]] = {
         "pitch": [(0.15, 1.1), (0.05, 2.7)],
         "yaw": [(1.0, 1.3), (0.25, 2.9)],
     },
+    # a mapping pass: the survey's path with the heading swept through +-180 deg (0.1 rad/s, yaw rate < 0.35
+    # rad/s), so that the map sees the room from every direction (a survey holds its heading within +-60 deg
+    # of a random one, and a later flight may look the other way)
+    "mapping": {
+        "x": [(2.3, 0.19)],
+        "y": [(1.5, 0.31)],
+        "z": [(0.35, 0.15), (0.05, 0.7)],
+        "roll": [(0.03, 0.45), (0.01, 1.3)],
+        "pitch": [(0.03, 0.38), (0.01, 1.1)],
+        "yaw": [(np.pi, 0.1), (0.1, 0.55)],
+    },
 }
-_CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8}
+_CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8, "mapping": 1.75}
 
 
 def make_profile(name: str, duration: float, seed: int = 0, still_s: float = 2.0, ramp_s: float = 2.0) -> Motion:
-    """A flight of the named profile ('hover', 'survey', 'aggressive'), randomised (phases, +-10 % rates,
+    """A flight of the named profile ('hover', 'survey', 'aggressive', 'mapping'), randomised (phases, +-10 % rates,
     start heading) by `seed`. `still_s` seconds at rest come first, then `ramp_s` seconds of speed-up."""
     if name not in _PROFILE_SPECS:
         raise VioError(f"unknown flight profile {name!r}; expected one of {list(PROFILES)}")
