@@ -27,6 +27,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
+COVERED_DEG = 25.0  # a start "sees a mapped view" when a map keyframe within 1 m looked this close to its way
+
+
 def check(map_stats: str, est2: str, stats2: str, ds2: str) -> int:
     """One replay pair (vio replay --save-map / --load-map): flight 2's ATE in the map's frame."""
     from vio.evaluation import load_trajectory
@@ -109,6 +112,18 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     map_false = false_edges(mapper, G1)
     print(f"map: {len(kt1)} keyframes, {mapper.stats.accepted} loop edges ({map_false} false active), keyframe ATE "
           f"{ev1.ate_4dof.trans_m.rmse:.4f} m", flush=True)
+    Tbc = ds1.calibration.cam0.T_body_cam
+    C1 = np.array([G @ Tbc for G in G1])
+
+    def nearest_view_deg(t_ns: int) -> float:
+        """Smallest angle between this keyframe's optical axis (ground truth) and that of a map keyframe whose
+        camera was within 1 m: how far off the map's views the second flight looks (inf: none within 1 m)."""
+        c = _gt_pose(gt2, t_ns) @ Tbc
+        near = np.linalg.norm(C1[:, :3, 3] - c[:3, 3], axis=1) <= 1.0
+        if not near.any():
+            return float("inf")
+        return float(np.degrees(np.arccos(np.clip(C1[near, :3, 2] @ c[:3, 2], -1, 1))).min())
+
     rows = []
     for s in np.linspace(0, 0.6 * len(items2), starts).astype(int):
         cl = LoopCloser(ds2.calibration, cfg)
@@ -120,7 +135,8 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         false = false_edges(cl, G)
         row = {"start_keyframe": int(s), "start_s": (own[0].t_ns - items2[0][0]) * 1e-9,
                "relocalised": cl.relocalised_t_ns is not None, "delay_s": None, "ate_map_frame_m": None,
-               "false_edges_active": false}
+               "false_edges_active": false,
+               "nearest_map_view_deg": min(nearest_view_deg(k.t_ns) for k in own if k.t_ns <= own[0].t_ns + 2e9)}
         if cl.relocalised_t_ns is not None:
             row["delay_s"] = (cl.relocalised_t_ns - own[0].t_ns) * 1e-9
             k = [n for n, kf in enumerate(own) if kf.t_ns >= cl.relocalised_t_ns]
@@ -130,8 +146,10 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         rows.append(row)
         print(f"start at {row['start_s']:5.1f} s: " + (f"relocalised after {row['delay_s']:.2f} s, ATE in the map's "
               f"frame {row['ate_map_frame_m']:.4f} m" if row["relocalised"] else "not relocalised")
-              + f", false edges {false}", flush=True)
+              + f", false edges {false}; nearest map view in its first 2 s {row['nearest_map_view_deg']:.0f} deg",
+              flush=True)
     delays = [r["delay_s"] if r["relocalised"] else np.inf for r in rows]
+    covered = [d for d, r in zip(delays, rows) if r["nearest_map_view_deg"] <= COVERED_DEG]
     ates = [r["ate_map_frame_m"] for r in rows if r["relocalised"]]
     out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing,
             "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
@@ -140,10 +158,13 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
            "relocalised": len(ates), "median_delay_s": float(np.median(delays)),
            "ate_map_frame_median_m": float(np.median(ates)) if ates else None,
            "ate_map_frame_max_m": float(max(ates)) if ates else None,
-           "false_edges_active": int(sum(r["false_edges_active"] for r in rows))}
+           "false_edges_active": int(sum(r["false_edges_active"] for r in rows)),
+           "covered_starts": len(covered), "covered_within_2s": int(sum(d <= 2.0 for d in covered))}
     print(f"{out['within_2s']}/{starts} starts relocalised within 2 s ({out['relocalised']} at all, median delay "
           f"{out['median_delay_s']:.2f} s); ATE in the map's frame median {out['ate_map_frame_median_m']} m, max "
           f"{out['ate_map_frame_max_m']} m, odometry ATE {odom_ate:.4f} m; false edges {out['false_edges_active']}")
+    print(f"starts whose first 2 s look within {COVERED_DEG:g} deg of a map view (camera within 1 m): "
+          f"{out['covered_within_2s']}/{out['covered_starts']} relocalised within 2 s")
     return out
 
 
