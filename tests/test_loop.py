@@ -159,6 +159,33 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
     assert r["relocalised"] and r["delay_s"] < 5.0
 
 
+def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
+    """An estimator reset starts an odometry segment in a frame of its own; until a loop edge joins it to the
+    first one its poses mean nothing in the map's frame, so the map must not hold them."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map
+
+    ds = EurocDataset(loop_flight)
+    closer = LoopCloser(ds.calibration, LoopConfig())
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    for k in range(6):  # 3 keyframes, a reset, 3 more (no stereo points: no closure can join them)
+        closer.add_keyframe(int(1e9 * k), make_T(np.eye(3), [0.5 * k, 0, 0]), img, None, reset_counter=k // 3)
+    h = closer.save_map(tmp_path / "m.npz")
+    m = load_map(tmp_path / "m.npz")
+    assert h["left_out_keyframes"] == 3 and len(m.features) == 3 and list(m.t_ns) == [0, int(1e9), int(2e9)]
+    assert "never joined" in m.header["note"]
+    # a flight that never relocalised in a loaded map adds nothing to it when saved again
+    again = LoopCloser(ds.calibration, LoopConfig())
+    again.load_map(m)
+    again.add_keyframe(int(9e9), np.eye(4), np.zeros_like(img), None)
+    assert again.save_map(tmp_path / "m2.npz")["left_out_keyframes"] == 1
+    assert len(load_map(tmp_path / "m2.npz").features) == 3
+
+
 def test_map_file_refuses_other_formats(tmp_path):
     from vio import VioError
     from vio.loop.mapfile import load_map

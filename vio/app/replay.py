@@ -475,7 +475,8 @@ def run(args: argparse.Namespace) -> int:
         loop_dict = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
             h = loop.closer.save_map(save_map)
-            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}")
+            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}"
+                  + (f" ({h['note']})" if h["left_out_keyframes"] else ""))
     if args.stats:
         d = res.stats_dict()
         if loop_dict is not None:

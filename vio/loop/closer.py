@@ -254,10 +254,24 @@ class LoopCloser:
             self._comp(self.keyframes[-1].session) == self._comp(0)
 
     def save_map(self, path) -> dict:
+        """Write the keyframes whose poses are in the map's frame: those of the first session (a loaded map's,
+        else this flight's start) and of every session a loop edge has joined to it. A segment after an
+        estimator reset that never relocalised, or a flight that never relocalised in the loaded map, has
+        poses in a frame of its own; saved beside the others it would put a later flight in the wrong place,
+        so it is left out (and counted in the header's `left_out_keyframes`)."""
         from vio.loop.mapfile import save_map
 
-        return save_map(path, [k.t_ns for k in self.keyframes], self.graph.estimate,
-                        [k.feats for k in self.keyframes], self.vocab, self.cam)
+        ref = self._comp(0)
+        keep = [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
+        left_out = len(self.keyframes) - len(keep)
+        note = ""
+        if left_out:
+            note = (f"{left_out} keyframes left out: their odometry segment was never joined to the map's frame "
+                    f"by a loop edge (an estimator reset, or no relocalisation in the loaded map)")
+            log.warning("map %s: %s", path, note)
+        h = save_map(path, [self.keyframes[k].t_ns for k in keep], [self.graph.estimate[k] for k in keep],
+                     [self.keyframes[k].feats for k in keep], self.vocab, self.cam, note=note)
+        return {**h, "left_out_keyframes": left_out}
 
     # --- outputs ----------------------------------------------------------------------------------
     def correction(self) -> np.ndarray:

@@ -240,8 +240,9 @@ class Service:
                 log.error("map not saved: loop closure still busy after the shutdown budget")
             elif self.cfg.map.save:
                 try:
-                    self.loop.closer.save_map(self.cfg.map.save)
-                    log.info("map saved to %s", self.cfg.map.save)
+                    h = self.loop.closer.save_map(self.cfg.map.save)
+                    log.info("map saved to %s: %d keyframes%s", self.cfg.map.save, h["keyframes"],
+                             f" ({h['note']})" if h["left_out_keyframes"] else "")
                 except Exception as e:  # noqa: BLE001 - a failed save must not hide the shutdown
                     log.error("map not saved: %s", e)
         if self.view is not None:
