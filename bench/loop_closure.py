@@ -2,7 +2,7 @@
 
     python bench/loop_closure.py [--flights survey:120:4:realistic,...] [--cache DIR] [--json out.json]
 
-For each flight (profile:duration_s:seed:variant[:aliasing period m] at 376x240; simulated once into
+For each flight (profile:duration_s:seed:variant[:aliasing period m] at 376x240 or --size; simulated once into
 --cache; an aliasing period repeats the room's textures, vio simulate --aliasing): replays with the
 loop-closure worker beside the odometry and reports ATE (4-DoF) of both trajectories, end-of-flight position
 drift (both trajectories aligned on their first pose, as an integrator sees it), loop edges accepted /
@@ -49,7 +49,7 @@ def _gt_pose(gt, t_ns: int) -> np.ndarray:
     return make_T(quat_wxyz_to_rot(gt.q_wxyz[k]), gt.p[k])
 
 
-def run_flight(spec: str, cache: Path) -> dict:
+def run_flight(spec: str, cache: Path, size: tuple[int, int] = (376, 240)) -> dict:
     import cv2
 
     from vio.app.loop_worker import LoopWorker
@@ -64,10 +64,12 @@ def run_flight(spec: str, cache: Path) -> dict:
 
     profile, dur, seed, variant, *alias = spec.split(":")
     period = float(alias[0]) if alias else None
-    data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-376x240" + (f"-aliasing{alias[0]}m" if alias else ""))
+    data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-{size[0]}x{size[1]}" +
+                    (f"-aliasing{alias[0]}m" if alias else ""))
     if not (data / "mav0").is_dir():
         simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
-                                 width=376, height=240, aliasing_period_m=period), overwrite=True, progress=False)
+                                 width=size[0], height=size[1], aliasing_period_m=period), overwrite=True,
+                 progress=False)
     ds = EurocDataset(data)
     gt = ds.groundtruth.trajectory
     cfg = VioConfig()
@@ -169,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flights", default=DEFAULT_FLIGHTS)
     ap.add_argument("--cache", default="/tmp/kestrel-loop-bench")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
     args = ap.parse_args(argv)
     if args.graph:
         rows = []
@@ -187,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for spec in args.flights.split(","):
-        r = run_flight(spec, Path(args.cache))
+        r = run_flight(spec, Path(args.cache), tuple(int(v) for v in args.size.lower().split("x")))
         rows.append(r)
         print(f"{r['flight']}: ATE {r['ate_odometry_m']:.4f} -> {r['ate_loop_m']:.4f} m ({r['ate_ratio']:.2f}x), "
               f"end drift {r['end_drift_odometry_m']:.4f} -> {r['end_drift_loop_m']:.4f} m, "

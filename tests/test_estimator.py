@@ -386,11 +386,13 @@ def test_phases_follow_the_life_cycle():
     assert est.reset_counter == 1 and "camera frame" in est.last_reset_reason
 
 
-def test_mono_landmarks_keep_feeding_the_smoother_without_stereo():
+@pytest.mark.parametrize("always", [True, False], ids=["mono_landmarks", "default: when stereo starves"])
+def test_mono_landmarks_keep_feeding_the_smoother_without_stereo(always):
     """Five seconds without any stereo depth (right camera out): tracks are triangulated over keyframes
-    instead, so the smoother keeps getting new landmarks and the flight stays accurate."""
+    instead, so the smoother keeps getting new landmarks and the flight stays accurate. By default this
+    happens only on keyframes whose stereo is starving (`mono_below_stereo`), not while stereo works."""
     cfg = VioConfig()
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, mono_landmarks=True))
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, mono_landmarks=always))
     est = Estimator(synthetic_calibration(), cfg)
     feed = est.feed_features
     born: list[tuple[float, int]] = []
@@ -408,6 +410,8 @@ def test_mono_landmarks_keep_feeding_the_smoother_without_stereo():
     assert est.reset_counter == 0
     n_during = max(n for t, n in born if t < 9.0) - max(n for t, n in born if t < 4.0)
     assert n_during > 30
+    if not always:
+        assert max(n for t, n in born if t < 4.0) == 0  # none while stereo works
     err = _aligned_errors(states, truth)
     assert np.sqrt(np.mean(err ** 2)) < 0.02 and err.max() < 0.04
 

@@ -91,6 +91,8 @@ class BackendConfig:
                              "limit by default)", min=0.5, max=1000)
     mono_landmarks: bool = opt(False, "tracks without usable stereo depth become landmarks triangulated over "
                                "keyframes (far points, right camera out)")
+    mono_below_stereo: int = opt(15, "with mono_landmarks off, mono landmarks are still made on keyframes with "
+                                 "fewer stereo matches than this (a right camera failing); 0: never", min=0, max=2000)
     refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
                                   "makes them observable (see docs/estimator.md)")
     refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "

@@ -7,7 +7,8 @@ Huber-robust pinhole projection factors in cam0 (and cam1 where the front end fo
 with body_P_sensor = T_body_cam so the smoother works on body poses directly, and a weak prior at its
 first position (`landmark_prior_sigma_m`) that keeps the linear system well posed.
 
-Mono landmarks (`mono_landmarks`): a track without usable stereo depth (no right image, beyond
+Mono landmarks (`mono_landmarks`, or on a keyframe with fewer than `mono_below_stereo` stereo matches): a
+track without usable stereo depth (no right image, beyond
 `max_depth_m`, no stereo match) has its cam0 pixels remembered at each keyframe; once it has been seen at
 MONO_MIN_VIEWS keyframes inside the lag whose rays differ by `mono_min_parallax_deg`, it is triangulated
 from those keyframes' current estimates (gtsam.triangulatePoint3, refined) and becomes an ordinary landmark
@@ -117,6 +118,7 @@ class VioSmoother:
         self._mono: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> (keyframe, cam0 pixel) without landmark
         self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
         self.n_mono_landmarks = 0
+        self.starved_keyframes = 0  # keyframes with fewer than mono_below_stereo stereo matches (mono landmarks made)
         self.refine = bool(cfg.refine_extrinsics)
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
@@ -286,6 +288,11 @@ class VioSmoother:
         gate2 = cfg.outlier_gate_px ** 2
         n_vis, n_lm, n_new = 0, 0, 0
         stereo = np.isfinite(ff.depth_m)
+        # mono landmarks: always with mono_landmarks, else on keyframes whose stereo is starving (a right camera
+        # out); their observations are remembered on every keyframe so that those start with earlier views
+        mono_now = cfg.mono_landmarks or int(np.count_nonzero(stereo)) < cfg.mono_below_stereo
+        mono_collect = mono_now or cfg.mono_below_stereo > 0
+        self.starved_keyframes += int(mono_now and not cfg.mono_landmarks)
         self._kf_t[j] = t_s
         refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
         self.extrinsic_keyframes += int(refine_now)
@@ -314,12 +321,12 @@ class VioSmoother:
                     p_c = d * (Kinv @ np.array([uv0[0], uv0[1], 1.0]))
                     p_w = T_world_cam0[:3, :3] @ p_c + T_world_cam0[:3, 3]
                     self._mono.pop(tid, None)
-                elif cfg.mono_landmarks:
+                elif mono_collect:
                     horizon = t_s - cfg.lag_s + 0.05  # keyframes about to be marginalised take no new factors
                     mono_obs = [(i, uv) for i, uv in self._mono.get(tid, [])
                                 if i != j and self._kf_t.get(i, -1e9) >= horizon and self._estimate.exists(X(i))]
                     p_w = self._triangulate(mono_obs, uv0, T_world_cam0) \
-                        if len(mono_obs) + 1 >= MONO_MIN_VIEWS else None
+                        if mono_now and len(mono_obs) + 1 >= MONO_MIN_VIEWS else None
                     if p_w is None:
                         self._mono[tid] = mono_obs + [(j, uv0.copy())]
                         continue
