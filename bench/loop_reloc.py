@@ -69,7 +69,7 @@ def _keyframes(data: Path, sim_kw: dict):
 
 
 def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
-                map_profile: str = "survey") -> dict:
+                map_profile: str = "survey", grow: tuple[int, ...] = ()) -> dict:
     from loop_closure import _gt_pose
 
     from vio.config import VioConfig
@@ -96,10 +96,29 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}.npz"
     mapper.save_map(map_path)
     m = load_map(map_path)
+    G1 = [_gt_pose(gt1, t) for t in m.t_ns]  # ground truth of each map keyframe (stamps repeat across flights)
+    grown = []
+    for seed in grow:  # more flights in the same room, each relocalised in the map so far and added to it
+        d = cache / f"grow-survey-seed{seed}-scene2-{map_s:g}s{tag}"
+        items, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing})
+        gt = EurocDataset(d).groundtruth.trajectory
+        cl = LoopCloser(ds1.calibration, cfg)
+        cl.load_map(m)
+        for it in items:
+            cl.add_keyframe(*it)
+        map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}.npz"
+        h = cl.save_map(map_path)
+        ref = cl._comp(0)
+        G1 += [_gt_pose(gt, k.t_ns) for k in cl.keyframes[cl.map_keyframes:] if cl._comp(k.session) == ref]
+        m = load_map(map_path)
+        grown.append({"seed": seed, "keyframes_added": h["keyframes"] - cl.map_keyframes,
+                      "left_out": h["left_out_keyframes"], "relocalised_after_s": None if cl.relocalised_t_ns is None
+                      else (cl.relocalised_t_ns - items[0][0]) * 1e-9})
+        print(f"map grown by flight seed {seed}: +{grown[-1]['keyframes_added']} keyframes "
+              f"({h['left_out_keyframes']} left out), {len(m.features)} in all", flush=True)
     odom = evaluate(Trajectory.from_poses(np.array([s.t_ns for s in res2.states]),
                                           np.array([s.T_world_body for s in res2.states])), gt2)
     odom_ate = odom.ate_4dof.trans_m.rmse
-    G1 = [_gt_pose(gt1, t) for t in kt1]
 
     def false_edges(cl, G) -> int:
         n = 0
@@ -109,7 +128,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
                 n += bool(np.linalg.norm(err[:3, 3]) > 0.2 or np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) > 3)
         return n
 
-    map_false = false_edges(mapper, G1)
+    map_false = false_edges(mapper, [_gt_pose(gt1, t) for t in kt1])
     print(f"map: {len(kt1)} keyframes, {mapper.stats.accepted} loop edges ({map_false} false active), keyframe ATE "
           f"{ev1.ate_4dof.trans_m.rmse:.4f} m", flush=True)
     Tbc = ds1.calibration.cam0.T_body_cam
@@ -151,7 +170,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     delays = [r["delay_s"] if r["relocalised"] else np.inf for r in rows]
     covered = [d for d, r in zip(delays, rows) if r["nearest_map_view_deg"] <= COVERED_DEG]
     ates = [r["ate_map_frame_m"] for r in rows if r["relocalised"]]
-    out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing,
+    out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing, "grown_by": grown,
             "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
            "map_loop_edges": mapper.stats.accepted, "map_false_edges_active": map_false, "starts": rows,
            "odometry_ate_m": odom_ate, "within_2s": int(sum(d <= 2.0 for d in delays)),
@@ -180,10 +199,14 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--map-profile", default="survey", choices=("survey", "mapping"),
                     help="the map flight: survey (heading within +-60 deg of a random one) or mapping (heading "
                     "swept through +-180 deg: the room seen from every direction)")
+    ap.add_argument("--grow", type=int, nargs="*", default=[], metavar="SEED",
+                    help="grow the map with more flights in the same room (survey, these seeds), each relocalised in "
+                    "the map so far and saved with it (as --load-map A --save-map AB does)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)
-    out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile)
+    out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile,
+                      tuple(args.grow))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
