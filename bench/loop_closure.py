@@ -49,7 +49,7 @@ def _gt_pose(gt, t_ns: int) -> np.ndarray:
     return make_T(quat_wxyz_to_rot(gt.q_wxyz[k]), gt.p[k])
 
 
-def run_flight(spec: str, cache: Path, size: tuple[int, int] = (376, 240)) -> dict:
+def run_flight(spec: str, cache: Path, size: tuple[int, int] = (376, 240), scene: str = "room") -> dict:
     import cv2
 
     from vio.app.loop_worker import LoopWorker
@@ -65,10 +65,11 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (376, 240)) -> di
     profile, dur, seed, variant, *alias = spec.split(":")
     period = float(alias[0]) if alias else None
     data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-{size[0]}x{size[1]}" +
-                    (f"-aliasing{alias[0]}m" if alias else ""))
+                    (f"-aliasing{alias[0]}m" if alias else "") + ("" if scene == "room" else f"-{scene}"))
     if not (data / "mav0").is_dir():
         simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
-                                 width=size[0], height=size[1], aliasing_period_m=period), overwrite=True,
+                                 width=size[0], height=size[1], aliasing_period_m=period, scene=scene),
+                 overwrite=True,
                  progress=False)
     ds = EurocDataset(data)
     gt = ds.groundtruth.trajectory
@@ -172,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/kestrel-loop-bench")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
+    ap.add_argument("--scene", default="room", help="simulator scene (room, hall, shelves: vio simulate --scene)")
     args = ap.parse_args(argv)
     if args.graph:
         rows = []
@@ -190,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for spec in args.flights.split(","):
-        r = run_flight(spec, Path(args.cache), tuple(int(v) for v in args.size.lower().split("x")))
+        r = run_flight(spec, Path(args.cache), tuple(int(v) for v in args.size.lower().split("x")), args.scene)
         rows.append(r)
         print(f"{r['flight']}: ATE {r['ate_odometry_m']:.4f} -> {r['ate_loop_m']:.4f} m ({r['ate_ratio']:.2f}x), "
               f"end drift {r['end_drift_odometry_m']:.4f} -> {r['end_drift_loop_m']:.4f} m, "

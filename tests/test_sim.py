@@ -10,7 +10,7 @@ import pytest
 
 from vio import VioError
 from vio.app.cli import main
-from vio.geometry import GRAVITY_M_S2, so3_exp, so3_log
+from vio.geometry import GRAVITY_M_S2, make_T, so3_exp, so3_log
 from vio.io.euroc import EurocDataset
 from vio.sim import default_calibration
 from vio.sim.generate import T0_NS, SimConfig, simulate
@@ -277,6 +277,24 @@ def test_calib_error_perturbs_only_the_written_calibration(tmp_path):
         a = sorted((tmp_path / "exact" / "mav0" / cam / "data").iterdir())
         b = sorted((tmp_path / "wrong" / "mav0" / cam / "data").iterdir())
         assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+
+
+def test_shelves_scene_repeats_the_same_view_every_2_4_m(calib):
+    """The aliasing scene: two cameras 2.4 m apart along the shelves see the same image (identical shelf units,
+    walls repeating alike), so only geometry and odometry can tell the places apart; every profile flies clear
+    of the shelves."""
+    from vio.sim.render import CameraRenderer
+    from vio.sim.scene import shelves_scene
+
+    scene = shelves_scene(seed=3, ppm=100.0)
+    for profile in PROFILES:
+        T = make_profile(profile, 60.0, seed=2).pose(np.linspace(0, 60, 601))
+        assert scene.contains((T @ calib.cam0.T_body_cam)[:, :3, 3], margin=0.8).all()
+    r = CameraRenderer(calib.cam0, scene)
+    R = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # looking along +y at the shelves, x to the right
+    a, b, c = (r.render(make_T(R, [x, 0.5, 1.8]))[0].astype(float) for x in (-1.2, 1.2, -0.5))
+    assert np.mean(np.abs(a - b)) < 3.0  # 2.4 m apart: the same view
+    assert np.mean(np.abs(a - c)) > 10.0  # 0.7 m apart: a different one
 
 
 def test_hall_is_large_dim_and_far(calib):

@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="aliasing room: walls, floor and ceiling repeat their texture every M metres "
                         "(places that look the same but are not; loop-closure tests)")
     p.add_argument("--scene", choices=SCENES, default="room",
-                   help="room (10 x 8 x 4 m, default) or hall (25 x 20 x 8 m machine hall: dim, far walls)")
+                   help="room (10 x 8 x 4 m, default), hall (25 x 20 x 8 m machine hall: dim, far walls) or shelves "
+                   "(the room with 8 identical shelf units every 2.4 m and walls repeating alike: aliasing)")
     p.add_argument("--calib-error", type=float, nargs="?", const=1.0, default=0.0, metavar="SCALE",
                    help="write a slightly wrong calibration (images use the true one, kept in "
                         "OUT/calibration_truth.yaml): extrinsics off by SCALE x 0.1 deg and 2 mm, intrinsics by "

@@ -79,7 +79,7 @@ class SimConfig:
     drop_frames: float | None = None  # probability that a frame loses left, right or both images
     aliasing_period_m: float | None = None  # the room's walls, floor, ceiling repeat every this many metres
     scene_seed: int | None = None  # room texture and boxes; None: `seed` (a second flight in the same room: set it)
-    scene: str = "room"  # "room" (10 m x 8 m) or "hall" (25 m x 20 m, dim, far walls)
+    scene: str = "room"  # "room" (10 m x 8 m), "hall" (25 m x 20 m, dim, far walls) or "shelves" (aliasing)
     calib_error: float = 0.0  # scale of the error in the written calibration (1: 0.1 deg, 2 mm, 0.5 px)
     right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms

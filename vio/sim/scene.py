@@ -107,7 +107,8 @@ class Scene:
     """Boxes + texture atlas. Build with `default_scene`; ray cast with `cast`; sample with `sample_points`."""
 
     def __init__(self, boxes: list[Box], ppm: float = 200.0, seed: int = 0, plain_fraction: float = 0.0,
-                 aliasing_period_m: float | None = None, brightness: float = 1.0):
+                 aliasing_period_m: float | None = None, brightness: float = 1.0,
+                 texture_copies: dict[int, int] | None = None):
         if not boxes or not boxes[0].interior:
             raise VioError("scene: the first box must be the room (interior=True)")
         self.boxes = boxes
@@ -118,6 +119,12 @@ class Scene:
         # repeated walls: the room's faces repeat their texture every aliasing_period_m (identical shelves)
         self.aliasing_period_m = aliasing_period_m
         self.brightness = float(brightness)  # < 1: a dim place (less contrast, the pixel noise counts more)
+        # box -> an earlier box of the same size whose face textures it repeats (identical shelf units)
+        self.texture_copies = dict(texture_copies or {})
+        for b, src in self.texture_copies.items():
+            if not (0 < src < b < len(boxes)) or not np.allclose(np.subtract(boxes[b].hi, boxes[b].lo),
+                                                                 np.subtract(boxes[src].hi, boxes[src].lo)):
+                raise VioError(f"scene: box {b} cannot copy the textures of box {src} (an earlier box of its size)")
         self._build_atlas(np.random.default_rng([seed, 5150]), plain_fraction)
 
     # -- textures --------------------------------------------------------------------------------------
@@ -147,10 +154,16 @@ class Scene:
         self.face_axis = np.zeros(n, np.int8)
         self.face_cx = np.zeros(n, np.float32)  # atlas x = p_u * ppm + face_cx
         self.face_cy = np.zeros(n, np.float32)
+        patches: dict[tuple[int, int, int], np.ndarray] = {}
         for i, f in enumerate(self.faces):
             w, h = sizes[i]
             ox, oy = offsets[i]
-            if not f.hidden:
+            src = self.texture_copies.get(f.box)
+            if not f.hidden and src is not None:  # (sizes may differ by a texel of round-off: the padding)
+                p = patches[(src, f.axis, f.side)]
+                hh, ww = min(h, p.shape[0]), min(w, p.shape[1])
+                atlas[oy:oy + hh, ox:ox + ww] = p[:hh, :ww]
+            elif not f.hidden:
                 # a per-face brightness stands in for lighting; plain patches mostly on the room itself
                 plain = plain_fraction if f.box == 0 else plain_fraction / 3
                 period = self.aliasing_period_m
@@ -161,7 +174,8 @@ class Scene:
                     patch = np.tile(tile, (int(np.ceil(h / th)), int(np.ceil(w / tw))))[:h, :w]
                 else:
                     patch = face_texture(rng, w, h, self.ppm, plain)
-                atlas[oy:oy + h, ox:ox + w] = patch * rng.uniform(0.7, 1.15)
+                patches[(f.box, f.axis, f.side)] = patch * rng.uniform(0.7, 1.15)
+                atlas[oy:oy + h, ox:ox + w] = patches[(f.box, f.axis, f.side)]
             self.face_axis[i] = f.axis
             self.face_cx[i] = ox + _PAD - f.u_range[0] * self.ppm
             self.face_cy[i] = oy + _PAD - f.v_range[0] * self.ppm
@@ -280,7 +294,19 @@ def default_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0
     return Scene(boxes, ppm=ppm, seed=seed, plain_fraction=plain_fraction, aliasing_period_m=aliasing_period_m)
 
 
-SCENES = ("room", "hall")
+def shelves_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0) -> Scene:
+    """The room with eight identical shelf units (1.6 m x 0.7 m x 2.2 m, the same textures) along its two long
+    walls every 2.4 m, and the walls, floor and ceiling repeating their texture every 2.4 m too: places 2.4 m
+    apart look the same but are not (the aliasing a warehouse aisle makes). The loop stage must refuse them."""
+    period, width, xs = 2.4, 1.6, (-4.4, -2.0, 0.4, 2.8)
+    boxes = [Box((-5.0, -4.0, 0.0), (5.0, 4.0, 4.0), interior=True)]
+    for y0, y1 in ((3.1, 3.8), (-3.8, -3.1)):
+        boxes += [Box((x, y0, 0.0), (x + width, y1, 2.2)) for x in xs]
+    return Scene(boxes, ppm=ppm, seed=seed, plain_fraction=plain_fraction, aliasing_period_m=period,
+                 texture_copies={b: 1 for b in range(2, len(boxes))})
+
+
+SCENES = ("room", "hall", "shelves")
 HALL_MAX_PPM = 50.0  # the hall's 1700 m^2 of surface at 200 texels/m would not fit one cv2.remap atlas
 HALL_BRIGHTNESS = 0.4
 
@@ -318,4 +344,8 @@ def make_scene(name: str, seed: int = 0, ppm: float = 200.0, plain_fraction: flo
         if aliasing_period_m:
             raise VioError("simulate: --aliasing is for the room scene only")
         return hall_scene(seed, ppm, plain_fraction)
+    if name == "shelves":
+        if aliasing_period_m:
+            raise VioError("simulate: the shelves scene repeats every 2.4 m by itself; --aliasing is for the room")
+        return shelves_scene(seed, ppm, plain_fraction)
     raise VioError(f"simulate: unknown scene {name!r}; expected one of {list(SCENES)}")
