@@ -297,6 +297,13 @@ def test_shelves_scene_repeats_the_same_view_every_2_4_m(calib):
     assert np.mean(np.abs(a - c)) > 10.0  # 0.7 m apart: a different one
 
 
+def test_simulate_refuses_aliasing_on_scenes_that_are_not_the_room(tmp_path, capsys):
+    for scene in ("shelves", "hall"):
+        assert main(["simulate", str(tmp_path / scene), "--scene", scene, "--aliasing", "1.5", "--duration", "1"]) == 1
+        assert "--aliasing is for the room" in capsys.readouterr().err
+        assert not (tmp_path / scene / "mav0").exists()
+
+
 def test_hall_is_large_dim_and_far(calib):
     """The hall keeps every profile's cameras clear of walls and pillars; what the cameras see is mostly
     beyond 5 m, and darker than the room."""
