@@ -109,13 +109,18 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}.npz"
         h = cl.save_map(map_path)
         ref = cl._comp(0)
-        G1 += [_gt_pose(gt, k.t_ns) for k in cl.keyframes[cl.map_keyframes:] if cl._comp(k.session) == ref]
+        kept = [n for n in range(cl.map_keyframes, len(cl.keyframes)) if cl._comp(cl.keyframes[n].session) == ref]
+        G1 += [_gt_pose(gt, cl.keyframes[n].t_ns) for n in kept]
+        err = [np.linalg.norm((A @ cl.graph.estimate[n])[:3, 3] - _gt_pose(gt, cl.keyframes[n].t_ns)[:3, 3])
+               for n in kept]
         m = load_map(map_path)
         grown.append({"seed": seed, "keyframes_added": h["keyframes"] - cl.map_keyframes,
                       "left_out": h["left_out_keyframes"], "relocalised_after_s": None if cl.relocalised_t_ns is None
-                      else (cl.relocalised_t_ns - items[0][0]) * 1e-9})
+                      else (cl.relocalised_t_ns - items[0][0]) * 1e-9,
+                      "keyframe_error_map_frame_m": float(np.sqrt(np.mean(np.square(err)))) if err else None})
         print(f"map grown by flight seed {seed}: +{grown[-1]['keyframes_added']} keyframes "
-              f"({h['left_out_keyframes']} left out), {len(m.features)} in all", flush=True)
+              f"({h['left_out_keyframes']} left out), {len(m.features)} in all; their position error in the map's "
+              f"frame {grown[-1]['keyframe_error_map_frame_m']:.4f} m RMS", flush=True)
     odom = evaluate(Trajectory.from_poses(np.array([s.t_ns for s in res2.states]),
                                           np.array([s.T_world_body for s in res2.states])), gt2)
     odom_ate = odom.ate_4dof.trans_m.rmse
