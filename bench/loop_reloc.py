@@ -3,17 +3,18 @@
     python bench/loop_reloc.py [--starts 20] [--cache DIR] [--json out.json]
     python bench/loop_reloc.py --check f1.json f2_loop.tum f2.json FLIGHT2   # one replay's ATE in the map frame
 
-Default mode: the map flight (survey or --map-profile mapping, 40 s or --map-duration, seed 2, 376x240, realistic)
-and a second flight in the same room (survey, 30 s, seed 12, scene seed 2: other path and start) are simulated once
-into --cache and replayed once each; their keyframes (image, features, odometry pose) are kept. The map is the
-first flight's loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh loop
-stage, the map loaded, with the second flight's keyframes from start k on (starts spread evenly over its first 60
-%: each start's first keyframe is a moving one). Reported per start: the delay from its first keyframe to the
+Default mode: the map flight (survey or --map-profile mapping, 40 s or --map-duration, seed 2, 376x240 or --size,
+realistic) and a second flight in the same room (survey, 30 s, seed 12, scene seed 2: other path and start) are
+simulated once into --cache and replayed once each; their keyframes (image, features, odometry pose) are kept. The
+map is the first flight's loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh
+loop stage, the map loaded, with the second flight's keyframes from start k on (starts spread evenly over its first
+60 %: each start's first keyframe is a moving one). Reported per start: the delay from its first keyframe to the
 keyframe that joined the map, edges with an error against ground truth > 0.2 m or 3 deg (false), and the ATE of the
 relocalised keyframes in the map's frame (flight 1's ground-truth alignment applied, no alignment of their own)
 against the second flight's odometry ATE (its own 4-DoF alignment). The odometry of a start is the one run's
 odometry from that keyframe on (the estimator is not restarted per start: its pose at the start is already in its
-own frame, which the new session's loose prior ignores)."""
+own frame, which the new session's loose prior ignores).
+"""
 
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def _keyframes(data: Path, sim_kw: dict):
     from vio.sim.generate import SimConfig, simulate
 
     if not (data / "mav0").is_dir():
-        simulate(data, SimConfig(width=376, height=240, variant="realistic", **{"profile": "survey", **sim_kw}),
+        simulate(data, SimConfig(variant="realistic", **{"profile": "survey", "width": 376, "height": 240, **sim_kw}),
                  overwrite=True, progress=False)
     rec = _Recorder()
     res = replay(EurocDataset(data), VioConfig(), progress=False, loop=rec)
@@ -69,7 +70,7 @@ def _keyframes(data: Path, sim_kw: dict):
 
 
 def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
-                map_profile: str = "survey", grow: tuple[int, ...] = ()) -> dict:
+                map_profile: str = "survey", grow: tuple[int, ...] = (), size: tuple[int, int] = (376, 240)) -> dict:
     from loop_closure import _gt_pose
 
     from vio.config import VioConfig
@@ -81,10 +82,13 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     from vio.trajectory import Trajectory
 
     cfg = VioConfig().loop
-    tag = f"-aliasing{aliasing}m" if aliasing else ""
+    tag = (f"-aliasing{aliasing}m" if aliasing else "") + ("" if size == (376, 240) else f"-{size[0]}x{size[1]}")
+    px = {"width": size[0], "height": size[1]}
     d1, d2 = cache / f"map-{map_profile}-seed2-{map_s:g}s{tag}", cache / f"second-survey-seed12-scene2-30s{tag}"
-    items1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing, "profile": map_profile})
-    items2, res2 = _keyframes(d2, {"duration_s": 30.0, "seed": 12, "scene_seed": 2, "aliasing_period_m": aliasing})
+    items1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing, "profile": map_profile,
+                                **px})
+    items2, res2 = _keyframes(d2, {"duration_s": 30.0, "seed": 12, "scene_seed": 2, "aliasing_period_m": aliasing,
+                                   **px})
     ds1, ds2 = EurocDataset(d1), EurocDataset(d2)
     gt1, gt2 = ds1.groundtruth.trajectory, ds2.groundtruth.trajectory
     mapper = LoopCloser(ds1.calibration, cfg)
@@ -100,7 +104,8 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     grown = []
     for seed in grow:  # more flights in the same room, each relocalised in the map so far and added to it
         d = cache / f"grow-survey-seed{seed}-scene2-{map_s:g}s{tag}"
-        items, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing})
+        items, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing,
+                                  **px})
         gt = EurocDataset(d).groundtruth.trajectory
         cl = LoopCloser(ds1.calibration, cfg)
         cl.load_map(m)
@@ -207,11 +212,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--grow", type=int, nargs="*", default=[], metavar="SEED",
                     help="grow the map with more flights in the same room (survey, these seeds), each relocalised in "
                     "the map so far and saved with it (as --load-map A --save-map AB does)")
+    ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile,
-                      tuple(args.grow))
+                      tuple(args.grow), tuple(int(v) for v in args.size.lower().split("x")))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
