@@ -113,8 +113,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
             cl.add_keyframe(*it)
         map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}.npz"
         h = cl.save_map(map_path)
-        ref = cl._comp(0)
-        kept = [n for n in range(cl.map_keyframes, len(cl.keyframes)) if cl._comp(cl.keyframes[n].session) == ref]
+        kept = [n for n in cl.map_frame_keyframes() if n >= cl.map_keyframes]
         G1 += [_gt_pose(gt, cl.keyframes[n].t_ns) for n in kept]
         err = [np.linalg.norm((A @ cl.graph.estimate[n])[:3, 3] - _gt_pose(gt, cl.keyframes[n].t_ns)[:3, 3])
                for n in kept]

@@ -118,7 +118,6 @@ class VioSmoother:
         self._mono: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> (keyframe, cam0 pixel) without landmark
         self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
         self.n_mono_landmarks = 0
-        self.starved_keyframes = 0  # keyframes with fewer than mono_below_stereo stereo matches (mono landmarks made)
         self.refine = bool(cfg.refine_extrinsics)
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
@@ -292,7 +291,6 @@ class VioSmoother:
         # out); their observations are remembered on every keyframe so that those start with earlier views
         mono_now = cfg.mono_landmarks or int(np.count_nonzero(stereo)) < cfg.mono_below_stereo
         mono_collect = mono_now or cfg.mono_below_stereo > 0
-        self.starved_keyframes += int(mono_now and not cfg.mono_landmarks)
         self._kf_t[j] = t_s
         refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
         self.extrinsic_keyframes += int(refine_now)

@@ -253,6 +253,11 @@ class LoopCloser:
         return bool(self.map_keyframes) and bool(self.keyframes) and \
             self._comp(self.keyframes[-1].session) == self._comp(0)
 
+    def map_frame_keyframes(self) -> list[int]:
+        """Indices of the keyframes in the map's frame: the first session's and every session joined to it."""
+        ref = self._comp(0)
+        return [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
+
     def save_map(self, path) -> dict:
         """Write the keyframes whose poses are in the map's frame: those of the first session (a loaded map's,
         else this flight's start) and of every session a loop edge has joined to it. A segment after an
@@ -261,8 +266,7 @@ class LoopCloser:
         so it is left out (and counted in the header's `left_out_keyframes`)."""
         from vio.loop.mapfile import save_map
 
-        ref = self._comp(0)
-        keep = [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
+        keep = self.map_frame_keyframes()
         left_out = len(self.keyframes) - len(keep)
         note = ""
         if left_out:

@@ -195,18 +195,11 @@ _PROFILE_SPECS: dict[str, dict[str, list[tuple[float, float]]]] = {
         "pitch": [(0.15, 1.1), (0.05, 2.7)],
         "yaw": [(1.0, 1.3), (0.25, 2.9)],
     },
-    # a mapping pass: the survey's path with the heading swept through +-180 deg (0.1 rad/s, yaw rate < 0.35
-    # rad/s), so that the map sees the room from every direction (a survey holds its heading within +-60 deg
-    # of a random one, and a later flight may look the other way)
-    "mapping": {
-        "x": [(2.3, 0.19)],
-        "y": [(1.5, 0.31)],
-        "z": [(0.35, 0.15), (0.05, 0.7)],
-        "roll": [(0.03, 0.45), (0.01, 1.3)],
-        "pitch": [(0.03, 0.38), (0.01, 1.1)],
-        "yaw": [(np.pi, 0.1), (0.1, 0.55)],
-    },
 }
+# a mapping pass: the survey's path with the heading swept through +-180 deg (0.1 rad/s, yaw rate < 0.35 rad/s),
+# so that the map sees the room from every direction (a survey holds its heading within +-60 deg of a random
+# one, and a later flight may look the other way)
+_PROFILE_SPECS["mapping"] = {**_PROFILE_SPECS["survey"], "yaw": [(np.pi, 0.1), (0.1, 0.55)]}
 _CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8, "mapping": 1.75}
 
 

@@ -340,12 +340,10 @@ def make_scene(name: str, seed: int = 0, ppm: float = 200.0, plain_fraction: flo
     """The scene called `name` (one of SCENES): the default room or the hall."""
     if name == "room":
         return default_scene(seed, ppm, plain_fraction, aliasing_period_m)
+    if name in ("hall", "shelves") and aliasing_period_m:
+        raise VioError("simulate: --aliasing is for the room scene only (the shelves scene repeats by itself)")
     if name == "hall":
-        if aliasing_period_m:
-            raise VioError("simulate: --aliasing is for the room scene only")
         return hall_scene(seed, ppm, plain_fraction)
     if name == "shelves":
-        if aliasing_period_m:
-            raise VioError("simulate: the shelves scene repeats every 2.4 m by itself; --aliasing is for the room")
         return shelves_scene(seed, ppm, plain_fraction)
     raise VioError(f"simulate: unknown scene {name!r}; expected one of {list(SCENES)}")
