@@ -135,6 +135,12 @@ class BackendConfig:
     time_offset_continuous: bool = opt(False, "keep tracking the time offset after it converged (a drifting camera "
                                         "or IMU clock) instead of freezing it; costs a PnP per frame all flight")
     time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
+    time_offset_state: bool = opt(False, "the residual camera-IMU offset as a smoother state per keyframe (a "
+                                  "random walk, observed through the projections of the turning, moving body)")
+    time_offset_state_sigma_ms: float = opt(3.0, "prior 1-sigma of that residual at the first keyframe", min=0.01,
+                                            max=100)
+    time_offset_walk_ms: float = opt(0.5, "random walk of the offset [ms per sqrt(s)]: a drifting USB camera or "
+                                     "serial IMU clock moves by up to ~0.5 ms/s", min=1e-4, max=100)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

@@ -56,6 +56,7 @@ IMU_KEEP_S = 3.0  # IMU history kept behind the newest sample (init windows, pen
 IMU_KEEP_NS = int(IMU_KEEP_S * 1e9)
 BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
 BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
+OMEGA_WINDOW_NS = 10_000_000  # gyro averaged over this much before a keyframe for the time offset state's twist
 
 
 @dataclass
@@ -457,6 +458,22 @@ class Estimator:
         return (self.bcfg.stereo_every_frame or not self.initialized or self._is_keyframe(t, preview)
                 or (self.offset_estimator is not None and self.offset_estimator.wants_stereo()))
 
+    @property
+    def time_offset_estimate_ns(self) -> int:
+        """Best knowledge of the offset: the applied one, or with the time state what the smoother puts on
+        its newest keyframe."""
+        run = self._state
+        state = run.smoother.time_offset_ns() if isinstance(run, _Running) else None
+        return self.time_offset_ns if state is None else state
+
+    def _omega(self, t: int, bias: gtsam.imuBias.ConstantBias) -> np.ndarray:
+        """Bias-corrected body rate at t: the gyro's mean over the last OMEGA_WINDOW_NS (one sample is mostly
+        motor vibration), for the time offset state's twist."""
+        _, gyro, _ = self.imu.window(t - OMEGA_WINDOW_NS, t)
+        if len(gyro) == 0:
+            return np.zeros(3)
+        return np.mean(gyro, axis=0) - np.asarray(bias.gyroscope(), float)
+
     def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
         """Feed the in-flight offset estimator; a confident new offset applies from the next frame on.
 
@@ -566,7 +583,10 @@ class Estimator:
         static = init.method == "static"
         smoother = VioSmoother(self.refined_calibration(), self.bcfg)  # a reset keeps what was learnt
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
-                                  sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff)
+                                  sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff,
+                                  omega_body=self._omega(init.t_ns, gtsam.imuBias.ConstantBias(
+                                      np.asarray(init.accel_bias, float), np.asarray(init.gyro_bias, float))),
+                                  applied_offset_ns=int(init.t_ns) - int(ff.t_ns))
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self.moving_init.clear()
@@ -688,7 +708,8 @@ class Estimator:
             v_pred = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
             still = (is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
                      and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
-            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still)
+            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still, omega_body=self._omega(t, last.bias),
+                                            applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
             self._check_plausible(est)
             if est.T_body_cam0 is not None:
                 self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes)

@@ -275,7 +275,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                        states[0].t_ns if states else None,
                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
-                                                 "final": est.time_offset_ns * 1e-6},
+                                                 "final": est.time_offset_estimate_ns * 1e-6},
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},

@@ -28,6 +28,17 @@ current extrinsic estimate, so E only keeps its prior and what earlier motion ta
 into it as keyframes leave the lag): hovering neither refines nor corrupts it. E's stamp moves with
 every keyframe, so it never leaves the window.
 
+Time offset as a state (`time_offset_state`): the images are stamped with the applied camera-IMU offset
+(the calibration's, or the in-flight gyro estimate's), and what is left of it, d(i) = true - applied, is a
+variable D(i) per keyframe with a random walk between keyframes (`time_offset_walk_ms`; a change of the
+applied offset enters that between factor as its measurement). The projections then see a camera-time
+body pose C(i) = X(i) * Exp(xi(i) d(i)), with xi(i) = (gyro, body-frame velocity) at the keyframe: the
+body's twist, so d is observed exactly where it matters (fast turns, fast flight) and keeps its prior
+when hovering (xi ~ 0: the offset changes nothing there). A tight custom factor holds C(i) to that
+model (what VINS-Fusion does with its feature-velocity compensation, written on the pose instead of on
+every observation: one factor per keyframe, not per pixel). X(i) stays the IMU-time state that the
+outputs and the IMU factors use.
+
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
 the last keyframe that saw it; a track seen again after its landmark left gets a fresh landmark.
@@ -40,7 +51,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, E, L, V, X
+from gtsam.symbol_shorthand import B, C, D, E, L, V, X
 
 from vio.calibration import StereoCalibration
 from vio.config import BackendConfig
@@ -78,6 +89,7 @@ class KeyframeEstimate:
     extra_passes: int = 0  # relinearisation passes after the first update
     T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
     T_body_cam1: np.ndarray | None = None
+    offset_residual_ns: int | None = None  # time offset state d (true - applied), None: not a state
 
 
 @dataclass
@@ -90,8 +102,31 @@ MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono 
 MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
 
+TIME_LINK_SIGMA = 1e-4  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad)
+
+
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
     return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(values, dtype=float))
+
+
+def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray) -> gtsam.CustomFactor:
+    """error = Log(X^-1 C) - xi d: the camera-time pose C is the IMU-time pose X moved along the body twist
+    xi = (omega, v_body) for d seconds."""
+    xi = np.asarray(xi, float).reshape(6)
+    xi_col = -xi.reshape(6, 1)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:
+        k = this.keys()
+        delta = values.atPose3(k[0]).between(values.atPose3(k[1]))
+        e = gtsam.Pose3.Logmap(delta) - xi * values.atDouble(k[2])
+        if H is not None:
+            J = gtsam.Pose3.LogmapDerivative(delta)
+            H[0] = -J @ delta.inverse().AdjointMap()
+            H[1] = J
+            H[2] = xi_col
+        return e
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA), [x_key, c_key, d_key], error)
 
 
 class VioSmoother:
@@ -119,6 +154,9 @@ class VioSmoother:
         self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
         self.n_mono_landmarks = 0
         self.refine = bool(cfg.refine_extrinsics)
+        self.time_state = bool(cfg.time_offset_state)
+        self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
+        self._kf_t_last = 0.0
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
         self.index = -1
@@ -127,6 +165,36 @@ class VioSmoother:
         self._estimate: gtsam.Values | None = None
 
     # -- helpers -------------------------------------------------------------------------------------
+    def _pose_key(self, i: int) -> int:
+        """The pose the projections of keyframe i read: the camera-time C(i) with the time state, else X(i)."""
+        return C(i) if self.time_state else X(i)
+
+    def _add_time_state(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
+                        j: int, t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
+                        applied_ns: int) -> gtsam.Pose3:
+        """D(j), C(j) and their factors (module doc); returns C(j)'s initial value."""
+        cfg = self.cfg
+        if j == 0:
+            d = 0.0
+            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, gtsam.noiseModel.Isotropic.Sigma(
+                1, cfg.time_offset_state_sigma_ms * 1e-3)))
+        else:
+            step = (applied_ns - self._applied_ns) * 1e-9  # the applied offset moved: the residual moves back
+            d = self._estimate.atDouble(D(j - 1)) - step
+            dt = max(t_s - self._kf_t_last, 1e-3)
+            graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, gtsam.noiseModel.Isotropic.Sigma(
+                1, cfg.time_offset_walk_ms * 1e-3 * np.sqrt(dt))))
+        self._applied_ns = int(applied_ns)
+        self._kf_t_last = t_s
+        omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
+        xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
+        cam_pose = pose.compose(gtsam.Pose3.Expmap(xi * d))
+        graph.add(time_link_factor(X(j), C(j), D(j), xi))
+        values.insert(D(j), float(d))
+        values.insert(C(j), cam_pose)
+        stamps[D(j)] = stamps[C(j)] = t_s
+        return cam_pose
+
     def _t_s(self, t_ns: int) -> float:
         """Smoother time in seconds relative to the first keyframe (float64 keeps sub-us precision)."""
         return (t_ns - self.t0_ns) * 1e-9
@@ -154,7 +222,8 @@ class VioSmoother:
     def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
                    accel_bias: np.ndarray, *, sigma_rp_rad: float = 0.02, sigma_yaw_rad: float = 1e-3,
                    sigma_p_m: float = 1e-3, sigma_v_m_s: float = 0.05, sigma_bg: float = 0.005,
-                   sigma_ba: float = 0.1, features: FeatureFrame | None = None) -> KeyframeEstimate:
+                   sigma_ba: float = 0.1, features: FeatureFrame | None = None,
+                   omega_body: np.ndarray | None = None, applied_offset_ns: int = 0) -> KeyframeEstimate:
         """First keyframe with priors: position and yaw are gauge freedoms (pinned), roll/pitch come
         from gravity, velocity and biases from the initialiser with honest uncertainty."""
         self.t0_ns = t_ns
@@ -175,15 +244,21 @@ class VioSmoother:
         stamps = {X(0): 0.0, V(0): 0.0, B(0): 0.0}
         if self.refine:
             self._add_extrinsic_variables(graph, values, stamps)
+        cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
+                                        applied_offset_ns) if self.time_state else pose
         n_vis, n_lm = 0, 0
         if features is not None:
-            n_vis, n_lm = self._add_visual(graph, values, stamps, features, pose, 0, 0.0)
+            n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
         extra = self._update(graph, values, stamps, 0, pose)
         return self._finish(t_ns, n_vis, n_lm, extra)
 
     def add_keyframe(self, t_ns: int, pim: gtsam.PreintegratedCombinedMeasurements,
-                     features: FeatureFrame | None, zero_velocity: bool = False) -> KeyframeEstimate:
-        """Add keyframe i+1 tied to i by `pim` (integrated from i's stamp to t_ns with i's bias)."""
+                     features: FeatureFrame | None, zero_velocity: bool = False,
+                     omega_body: np.ndarray | None = None, applied_offset_ns: int = 0) -> KeyframeEstimate:
+        """Add keyframe i+1 tied to i by `pim` (integrated from i's stamp to t_ns with i's bias).
+
+        `omega_body` (bias-corrected gyro at t_ns) and `applied_offset_ns` (the offset the frame stamps
+        carry) feed the time offset state, when it is on."""
         if self.last is None:
             raise SmootherFailure("add_keyframe before initialize")
         prev = self.last
@@ -204,9 +279,11 @@ class VioSmoother:
             # the IMU alone would integrate during hover-on-ground and before take-off.
             graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), _sigmas([0.01] * 3)))
             graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(), _sigmas([1e-3] * 3 + [2e-3] * 3)))
+        cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
+                                        applied_offset_ns) if self.time_state else pred.pose()
         n_vis, n_lm = 0, 0
         if features is not None and features.tracking_ok:
-            n_vis, n_lm = self._add_visual(graph, values, stamps, features, pred.pose(), j, t_s)
+            n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, j, t_s)
         self.index = j
         extra = self._update(graph, values, stamps, j, pred.pose())
         return self._finish(t_ns, n_vis, n_lm, extra)
@@ -245,6 +322,7 @@ class VioSmoother:
             pose = est.atPose3(X(j))
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
+            residual = int(round(est.atDouble(D(j)) * 1e9)) if self.time_state else None
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
@@ -252,7 +330,7 @@ class VioSmoother:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
                                      self.T_body_cam0.copy() if self.refine else None,
-                                     self.P_body_cam1.matrix() if self.refine else None)
+                                     self.P_body_cam1.matrix() if self.refine else None, residual)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -365,11 +443,11 @@ class VioSmoother:
         if refine:
             from gtsam_unstable import ProjectionFactorPPPCal3_S2
 
-            return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, X(i), E(cam), key,
-                                                                      K[cam], False, False)
+            return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i),
+                                                                      E(cam), key, K[cam], False, False)
         P = (self.P_body_cam0, self.P_body_cam1)
-        return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, X(i), key, K[cam],
-                                                                           False, False, P[cam])
+        return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i),
+                                                                           key, K[cam], False, False, P[cam])
 
     def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
                      T_world_cam0: np.ndarray) -> np.ndarray | None:
@@ -377,7 +455,7 @@ class VioSmoother:
         too parallel, the point lies outside the depth limits in a view, or does not reproject within
         MONO_MAX_REPROJ_PX (a track that slid along an edge)."""
         cfg = self.cfg
-        poses = [self._estimate.atPose3(X(i)).compose(self.P_body_cam0) for i, _ in obs]
+        poses = [self._estimate.atPose3(self._pose_key(i)).compose(self.P_body_cam0) for i, _ in obs]
         poses.append(gtsam.Pose3(T_world_cam0))
         pixels = [uv for _, uv in obs] + [uv0]
         K = self.K0.K()
@@ -397,6 +475,12 @@ class VioSmoother:
             if np.sum((K[:2, :2] @ (p_c[:2] / p_c[2]) + K[:2, 2] - uv) ** 2) > MONO_MAX_REPROJ_PX ** 2:
                 return None
         return p_w
+
+    def time_offset_ns(self) -> int | None:
+        """The camera-IMU offset the time state puts on the newest keyframe (applied + residual), or None."""
+        if self.last is None or self.last.offset_residual_ns is None:
+            return None
+        return self._applied_ns + self.last.offset_residual_ns
 
     def marginal_covariances(self) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariance of the newest pose (6x6, rot then trans, body tangent) and velocity."""
