@@ -301,3 +301,27 @@ def test_time_link_factor_jacobians_match_finite_differences():
             v.insert(3, d + eps)
         num[:, k] = (f.unwhitenedError(v) - e0) / eps
     np.testing.assert_allclose(H, num, atol=2e-4)
+
+
+def test_offset_rate_factor_is_the_offset_moved_by_its_rate():
+    import gtsam
+
+    from vio.backend.smoother import offset_rate_factor
+
+    f = offset_rate_factor(1, 2, 3, 0.1, 0.002, gtsam.noiseModel.Isotropic.Sigma(1, 1e-4))
+    vals = gtsam.Values()
+    for k, x in ((1, 0.003), (2, 0.004), (3, 0.0014)):  # 3 ms + 4 ms/s * 0.1 s - 2 ms (applied moved) = 1.4 ms
+        vals.insert(k, x)
+    assert abs(f.unwhitenedError(vals)[0]) < 1e-12
+    A = f.linearize(vals).jacobian()[0] * 1e-4
+    np.testing.assert_allclose(A, [[-1.0, -0.1, 1.0]])
+
+
+def test_online_time_offset_stops_at_its_first_estimate_when_the_smoother_refines():
+    """With the smoother's time offset state on, the gyro-based estimate is only the coarse step: it stops
+    (and stops costing a PnP per frame) at its first accepted estimate instead of collecting on."""
+    coarse, changes = _offset_run(8.0, speed=3.0, duration_s=14.0, coarse_only=True)
+    full, _ = _offset_run(8.0, speed=3.0, duration_s=14.0)
+    assert changes and abs(coarse.offset_ns * 1e-6 - 8.0) < 2.0
+    assert coarse.done and not coarse.wants_stereo()
+    assert coarse.solves < full.solves

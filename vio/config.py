@@ -139,8 +139,12 @@ class BackendConfig:
                                   "random walk, observed through the projections of the turning, moving body)")
     time_offset_state_sigma_ms: float = opt(3.0, "prior 1-sigma of that residual at the first keyframe", min=0.01,
                                             max=100)
-    time_offset_walk_ms: float = opt(0.5, "random walk of the offset [ms per sqrt(s)]: a drifting USB camera or "
-                                     "serial IMU clock moves by up to ~0.5 ms/s", min=1e-4, max=100)
+    time_offset_walk_ms: float = opt(0.05, "random walk of the offset [ms per sqrt(s)] around what its rate "
+                                     "predicts", min=1e-4, max=100)
+    time_offset_rate_walk_ms: float = opt(0.1, "random walk of the offset's rate [ms/s per sqrt(s)]: a clock skew "
+                                          "that itself changes slowly; 0 = no rate state", min=0, max=100)
+    time_offset_rate_sigma_ms: float = opt(0.5, "prior 1-sigma of that rate at the first keyframe [ms/s]", min=1e-4,
+                                           max=100)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

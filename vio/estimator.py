@@ -179,7 +179,8 @@ class Estimator:
         b = self.bcfg
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
-                                                 track_window_s=b.time_offset_track_window_s) \
+                                                 track_window_s=b.time_offset_track_window_s,
+                                                 coarse_only=b.time_offset_state) \
             if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         self._refined: tuple[np.ndarray, np.ndarray, int] | None = None  # smoother's T_body_cam0/1, keyframes

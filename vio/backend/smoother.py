@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, C, D, E, L, V, X
+from gtsam.symbol_shorthand import B, C, D, E, L, S, V, X
 
 from vio.calibration import StereoCalibration
 from vio.config import BackendConfig
@@ -102,7 +102,7 @@ MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono 
 MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
 
-TIME_LINK_SIGMA = 1e-4  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad)
+TIME_LINK_SIGMA = 1e-5  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad)
 
 
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
@@ -127,6 +127,22 @@ def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray) -> gtsa
         return e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA), [x_key, c_key, d_key], error)
+
+
+def offset_rate_factor(d_i: int, s_i: int, d_j: int, dt: float, step: float,
+                       noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """d(j) = d(i) + s(i) dt - step: the offset moves with its rate s (a clock's skew) between keyframes dt
+    apart, and back by `step` where the applied offset moved. Linear, so its Jacobians are constant."""
+    H = (np.array([[-1.0]]), np.array([[-dt]]), np.array([[1.0]]))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jac) -> np.ndarray:
+        k = this.keys()
+        e = values.atDouble(k[2]) - values.atDouble(k[0]) - values.atDouble(k[1]) * dt + step
+        if jac is not None:
+            jac[0], jac[1], jac[2] = H
+        return np.array([e])
+
+    return gtsam.CustomFactor(noise, [d_i, s_i, d_j], error)
 
 
 class VioSmoother:
@@ -174,16 +190,25 @@ class VioSmoother:
                         applied_ns: int) -> gtsam.Pose3:
         """D(j), C(j) and their factors (module doc); returns C(j)'s initial value."""
         cfg = self.cfg
+        rate = cfg.time_offset_rate_walk_ms > 0
         if j == 0:
             d = 0.0
-            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, gtsam.noiseModel.Isotropic.Sigma(
-                1, cfg.time_offset_state_sigma_ms * 1e-3)))
+            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, _sigmas([cfg.time_offset_state_sigma_ms * 1e-3])))
+            if rate:
+                graph.add(gtsam.PriorFactorDouble(S(0), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms * 1e-3])))
         else:
             step = (applied_ns - self._applied_ns) * 1e-9  # the applied offset moved: the residual moves back
-            d = self._estimate.atDouble(D(j - 1)) - step
             dt = max(t_s - self._kf_t_last, 1e-3)
-            graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, gtsam.noiseModel.Isotropic.Sigma(
-                1, cfg.time_offset_walk_ms * 1e-3 * np.sqrt(dt))))
+            walk = _sigmas([cfg.time_offset_walk_ms * 1e-3 * np.sqrt(dt)])
+            d = self._estimate.atDouble(D(j - 1)) - step
+            if rate:
+                r = self._estimate.atDouble(S(j - 1))
+                d += r * dt
+                graph.add(offset_rate_factor(D(j - 1), S(j - 1), D(j), dt, step, walk))
+                graph.add(gtsam.BetweenFactorDouble(S(j - 1), S(j), 0.0, _sigmas(
+                    [cfg.time_offset_rate_walk_ms * 1e-3 * np.sqrt(dt)])))
+            else:
+                graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, walk))
         self._applied_ns = int(applied_ns)
         self._kf_t_last = t_s
         omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
@@ -193,6 +218,9 @@ class VioSmoother:
         values.insert(D(j), float(d))
         values.insert(C(j), cam_pose)
         stamps[D(j)] = stamps[C(j)] = t_s
+        if rate:
+            values.insert(S(j), float(0.0 if j == 0 else r))
+            stamps[S(j)] = t_s
         return cam_pose
 
     def _t_s(self, t_ns: int) -> float:

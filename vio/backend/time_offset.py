@@ -73,9 +73,11 @@ class OnlineTimeOffset:
     def __init__(self, calib: StereoCalibration, window_s: float = 8.0, max_offset_s: float = 0.05,
                  accept_sigma_s: float = 0.002, final_sigma_s: float = 0.0005, max_solves: int = 30,
                  span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None,
-                 continuous: bool = False, track_window_s: float = 4.0) -> None:
+                 continuous: bool = False, track_window_s: float = 4.0, coarse_only: bool = False) -> None:
         """`imu`: a buffer someone else fills (the estimator's one buffer), which must then keep at least
-        `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`)."""
+        `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`).
+        `coarse_only`: stop at the first accepted estimate (the smoother's time offset state refines and
+        follows the offset from there, so collecting on costs a PnP per frame for nothing)."""
         cam = calib.cam0
         self.f_px = cam.fx
         self.c = np.array([cam.cx, cam.cy])
@@ -104,6 +106,7 @@ class OnlineTimeOffset:
         self._postponed = 0  # pairs added while a due solve waited for a quiet frame
         self.keep_samples = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # the window at up to 1 kHz
         self.continuous = continuous
+        self.coarse_only = coarse_only and not continuous
         self.tracking = False  # continuous mode after the first converged estimate
         self._track_pairs = max(int(round(track_window_s * cam.rate_hz)), MIN_PAIRS)
         self._history: deque[tuple[int, int, float]] = deque()  # (mean pair time ns, offset ns, sigma s)
@@ -227,7 +230,8 @@ class OnlineTimeOffset:
             self.offset_ns, self.sigma_s = new, est.sigma_s
             log.info("camera-IMU time offset %+.1f ms +- %.1f ms from %d frame pairs (solve %d)", new * 1e-6,
                      est.sigma_s * 1e3, est.n_pairs, self.solves)
-            self.done = est.sigma_s <= self.final_sigma_s and len(self._pairs) == self._pairs.maxlen
+            self.done = self.coarse_only or (est.sigma_s <= self.final_sigma_s
+                                             and len(self._pairs) == self._pairs.maxlen)
             # Compared with the applied offset, not the last estimate: estimates that creep by less than
             # CHANGE_NS per solve must still get applied (they once left a 10 ms offset stuck 1.2 ms short).
             # And only when significant: on the aggressive flights 0.5 ms of error costs ~2 cm of ATE, and
