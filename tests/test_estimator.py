@@ -416,7 +416,8 @@ def test_mono_landmarks_keep_feeding_the_smoother_without_stereo(always):
     assert np.sqrt(np.mean(err ** 2)) < 0.02 and err.max() < 0.04
 
 
-def _tilting_flight(calib, refine: bool, duration_s: float = 16.0, wrong=None, offset_ms=None, **backend):
+def _tilting_flight(calib, refine: bool, duration_s: float = 16.0, wrong=None, offset_ms=None, reset_at_s=None,
+                    **backend):
     """The simulator's aggressive profile (yaw, roll and pitch) over the synthetic scene's perfect tracks,
     replayed with calibration `wrong`; returns the estimator. `offset_ms(t)`: the images are stamped that
     much early (t_imu = t_cam + offset, the calibration saying 0); then also the trace of
@@ -435,18 +436,24 @@ def _tilting_flight(calib, refine: bool, duration_s: float = 16.0, wrong=None, o
     est = Estimator(wrong or calib, cfg)
     trace: list[tuple[float, float]] = []
     states, truth = [], []
+
+    def record(st) -> None:  # frame states, whichever call (IMU or frame) released them
+        if offset_ms is not None:
+            trace.append((st.t_ns * 1e-9, est.time_offset_estimate_ns * 1e-6))
+            states.append(st)
+            truth.append(m.pose(np.array([st.t_ns * 1e-9]))[0])
+
+    est.listeners.append(record)
     for i, tt in enumerate(t):
         t_ns = int(round(tt * 1e9))
         est.feed_imu(ImuSample(t_ns, imu.gyro[i], imu.accel[i]))
         if i % 10 == 0 and i > 0:
+            if reset_at_s is not None and abs(tt - reset_at_s) < 1e-6:
+                est.reset("forced by the test")
             ff = scene.observe(t_ns, m.pose(np.array([tt]))[0], pixel_sigma=0.3, rng=rng)
             if offset_ms is not None:
                 ff = dataclasses.replace(ff, t_ns=t_ns - int(round(offset_ms(tt) * 1e6)))
-            st = est.feed_features(ff)
-            if offset_ms is not None and st is not None:
-                trace.append((st.t_ns * 1e-9, est.time_offset_estimate_ns * 1e-6))
-                states.append(st)
-                truth.append(m.pose(np.array([st.t_ns * 1e-9]))[0])
+            est.feed_features(ff)
     if offset_ms is None:
         return est
     return est, np.c_[np.array(trace), _aligned_errors(states, np.array(truth))]
@@ -499,3 +506,13 @@ def test_time_offset_state_follows_a_drifting_offset():
     _, exact = _tilting_flight(calib, False, offset_ms=lambda t: 0.0)
     assert np.all(off[:, 1] == 0.0)  # no state: the estimate stays the calibration's
     assert rms(on[:, 2]) < 1.3 * rms(exact[:, 2]) and rms(off[:, 2]) > 5 * rms(on[:, 2])
+
+
+def test_time_offset_state_is_kept_across_a_reset():
+    """A reset drops the smoother, not what its time state learnt: the offset becomes the applied one."""
+    est, tr = _tilting_flight(synthetic_calibration(), False, duration_s=16.0, offset_ms=lambda t: 4.0,
+                              reset_at_s=9.0, time_offset_state=True)
+    assert est.reset_counter == 1
+    assert abs(est.time_offset_ns * 1e-6 - 4.0) < 1.0  # applied from the reset on (it was the calibration's 0)
+    after = tr[tr[:, 0] > 9.5]
+    assert len(after) and np.all(np.abs(after[:, 1] - 4.0) < 1.0)

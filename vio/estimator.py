@@ -355,6 +355,11 @@ class Estimator:
         `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
         IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
+        learnt = self._state.smoother.time_offset_ns() if bridge and isinstance(self._state, _Running) else None
+        if learnt is not None and learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
+            log.info("camera-IMU time offset: %.2f ms -> %.2f ms (the smoother's time state, kept across the reset)",
+                     self.time_offset_ns * 1e-6, learnt * 1e-6)
+            self.time_offset_ns = learnt
         # a running bridge (and its anchor) survives a failed restart: the last trusted state is older
         w = self._state if isinstance(self._state, _Waiting) else _Waiting()
         if not bridge:
