@@ -102,7 +102,8 @@ MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono 
 MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
 
-TIME_LINK_SIGMA = 1e-5  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad)
+TIME_LINK_SIGMA = 1e-4  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad; 1e-5 and the
+# offset in seconds made iSAM2 report indeterminate systems on 5 of 18 matrix flights)
 
 
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
@@ -111,7 +112,7 @@ def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
 
 def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray) -> gtsam.CustomFactor:
     """error = Log(X^-1 C) - xi d: the camera-time pose C is the IMU-time pose X moved along the body twist
-    xi = (omega, v_body) for d seconds."""
+    xi = (omega, v_body), given per unit of d (per ms, as the smoother keeps d)."""
     xi = np.asarray(xi, float).reshape(6)
     xi_col = -xi.reshape(6, 1)
 
@@ -193,28 +194,29 @@ class VioSmoother:
         rate = cfg.time_offset_rate_walk_ms > 0
         if j == 0:
             d = 0.0
-            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, _sigmas([cfg.time_offset_state_sigma_ms * 1e-3])))
+            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, _sigmas([cfg.time_offset_state_sigma_ms])))
             if rate:
-                graph.add(gtsam.PriorFactorDouble(S(0), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms * 1e-3])))
+                graph.add(gtsam.PriorFactorDouble(S(0), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms])))
         else:
-            step = (applied_ns - self._applied_ns) * 1e-9  # the applied offset moved: the residual moves back
+            step = (applied_ns - self._applied_ns) * 1e-6  # ms; the applied offset moved: the residual moves back
             dt = max(t_s - self._kf_t_last, 1e-3)
-            walk = _sigmas([cfg.time_offset_walk_ms * 1e-3 * np.sqrt(dt)])
+            walk = _sigmas([cfg.time_offset_walk_ms * np.sqrt(dt)])
             d = self._estimate.atDouble(D(j - 1)) - step
             if rate:
                 r = self._estimate.atDouble(S(j - 1))
                 d += r * dt
                 graph.add(offset_rate_factor(D(j - 1), S(j - 1), D(j), dt, step, walk))
                 graph.add(gtsam.BetweenFactorDouble(S(j - 1), S(j), 0.0, _sigmas(
-                    [cfg.time_offset_rate_walk_ms * 1e-3 * np.sqrt(dt)])))
+                    [cfg.time_offset_rate_walk_ms * np.sqrt(dt)])))
             else:
                 graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, walk))
         self._applied_ns = int(applied_ns)
         self._kf_t_last = t_s
         omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
         xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
-        cam_pose = pose.compose(gtsam.Pose3.Expmap(xi * d))
-        graph.add(time_link_factor(X(j), C(j), D(j), xi))
+        xi_ms = 1e-3 * xi  # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
+        cam_pose = pose.compose(gtsam.Pose3.Expmap(xi_ms * d))
+        graph.add(time_link_factor(X(j), C(j), D(j), xi_ms))
         values.insert(D(j), float(d))
         values.insert(C(j), cam_pose)
         stamps[D(j)] = stamps[C(j)] = t_s
@@ -350,7 +352,7 @@ class VioSmoother:
             pose = est.atPose3(X(j))
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
-            residual = int(round(est.atDouble(D(j)) * 1e9)) if self.time_state else None
+            residual = int(round(est.atDouble(D(j)) * 1e6)) if self.time_state else None
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
