@@ -355,8 +355,8 @@ class Estimator:
         `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
         IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
-        learnt = self._state.smoother.time_offset_ns() if bridge and isinstance(self._state, _Running) else None
-        if learnt is not None and learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
+        learnt = self.time_offset_estimate_ns if bridge else self.time_offset_ns
+        if learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
             log.info("camera-IMU time offset: %.2f ms -> %.2f ms (the smoother's time state, kept across the reset)",
                      self.time_offset_ns * 1e-6, learnt * 1e-6)
             self.time_offset_ns = learnt
@@ -472,13 +472,15 @@ class Estimator:
         state = run.smoother.time_offset_ns() if isinstance(run, _Running) else None
         return self.time_offset_ns if state is None else state
 
-    def _omega(self, t: int, bias: gtsam.imuBias.ConstantBias) -> np.ndarray:
-        """Bias-corrected body rate at t: the gyro's mean over the last OMEGA_WINDOW_NS (one sample is mostly
-        motor vibration), for the time offset state's twist."""
+    def _omega(self, t: int, gyro_bias: np.ndarray) -> np.ndarray | None:
+        """Bias-corrected body rate at t for the time offset state's twist (None without the state): the
+        gyro's mean over the last OMEGA_WINDOW_NS (one sample is mostly motor vibration)."""
+        if not self.bcfg.time_offset_state:
+            return None
         _, gyro, _ = self.imu.window(t - OMEGA_WINDOW_NS, t)
         if len(gyro) == 0:
             return np.zeros(3)
-        return np.mean(gyro, axis=0) - np.asarray(bias.gyroscope(), float)
+        return np.mean(gyro, axis=0) - np.asarray(gyro_bias, float)
 
     def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
         """Feed the in-flight offset estimator; a confident new offset applies from the next frame on.
@@ -590,8 +592,7 @@ class Estimator:
         smoother = VioSmoother(self.refined_calibration(), self.bcfg)  # a reset keeps what was learnt
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
                                   sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff,
-                                  omega_body=self._omega(init.t_ns, gtsam.imuBias.ConstantBias(
-                                      np.asarray(init.accel_bias, float), np.asarray(init.gyro_bias, float))),
+                                  omega_body=self._omega(init.t_ns, init.gyro_bias),
                                   applied_offset_ns=int(init.t_ns) - int(ff.t_ns))
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
@@ -714,7 +715,8 @@ class Estimator:
             v_pred = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
             still = (is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
                      and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
-            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still, omega_body=self._omega(t, last.bias),
+            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still,
+                                            omega_body=self._omega(t, last.bias.gyroscope()),
                                             applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
             self._check_plausible(est)
             if est.T_body_cam0 is not None:

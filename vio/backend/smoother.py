@@ -30,14 +30,15 @@ every keyframe, so it never leaves the window.
 
 Time offset as a state (`time_offset_state`): the images are stamped with the applied camera-IMU offset
 (the calibration's, or the in-flight gyro estimate's), and what is left of it, d(i) = true - applied, is a
-variable D(i) per keyframe with a random walk between keyframes (`time_offset_walk_ms`; a change of the
-applied offset enters that between factor as its measurement). The projections then see a camera-time
-body pose C(i) = X(i) * Exp(xi(i) d(i)), with xi(i) = (gyro, body-frame velocity) at the keyframe: the
-body's twist, so d is observed exactly where it matters (fast turns, fast flight) and keeps its prior
-when hovering (xi ~ 0: the offset changes nothing there). A tight custom factor holds C(i) to that
-model (what VINS-Fusion does with its feature-velocity compensation, written on the pose instead of on
-every observation: one factor per keyframe, not per pixel). X(i) stays the IMU-time state that the
-outputs and the IMU factors use.
+variable D(i) per keyframe, in ms, with its rate S(i) (a clock's skew, ms/s): d(j) = d(i) + s(i) dt plus a
+random walk (`time_offset_walk_ms`), s a random walk of its own (`time_offset_rate_walk_ms`; 0: no rate,
+d a plain random walk); a change of the applied offset between keyframes enters as a known step. The
+projections then see a camera-time body pose C(i) = X(i) * Exp(xi(i) d(i)), with xi(i) = (gyro,
+body-frame velocity) at the keyframe: the body's twist, so d is observed exactly where it matters (fast
+turns, fast flight) and keeps its prior when hovering (xi ~ 0: the offset changes nothing there). A tight
+custom factor holds C(i) to that model (what VINS-Fusion does with its feature-velocity compensation,
+written on the pose instead of on every observation: one factor per keyframe, not per pixel). X(i) stays
+the IMU-time state that the outputs and the IMU factors use.
 
 Landmark lifetime: every variable carries a time stamp and the smoother marginalises what falls out of
 the lag. A landmark's stamp is moved to its newest observation, so it leaves the window together with
@@ -173,7 +174,6 @@ class VioSmoother:
         self.refine = bool(cfg.refine_extrinsics)
         self.time_state = bool(cfg.time_offset_state)
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
-        self._kf_t_last = 0.0
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
         self.index = -1
@@ -199,7 +199,7 @@ class VioSmoother:
                 graph.add(gtsam.PriorFactorDouble(S(0), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms])))
         else:
             step = (applied_ns - self._applied_ns) * 1e-6  # ms; the applied offset moved: the residual moves back
-            dt = max(t_s - self._kf_t_last, 1e-3)
+            dt = max(t_s - self._t_s(self.last.t_ns), 1e-3)  # since the previous keyframe
             walk = _sigmas([cfg.time_offset_walk_ms * np.sqrt(dt)])
             d = self._estimate.atDouble(D(j - 1)) - step
             if rate:
@@ -211,7 +211,6 @@ class VioSmoother:
             else:
                 graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, walk))
         self._applied_ns = int(applied_ns)
-        self._kf_t_last = t_s
         omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
         xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
         xi_ms = 1e-3 * xi  # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
