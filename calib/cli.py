@@ -59,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--calibration", type=Path, help="project calibration YAML to start from (default: the dataset's)")
     s.add_argument("--config", type=Path, help="TOML configuration for the estimator")
     s.add_argument("--stereo", action="store_true", help="refine T_cam0_cam1 too (default: held)")
+    s.add_argument("--intrinsics", action="store_true", help="refine fx, fy, cx, cy of both cameras too "
+                   "([backend] refine_intrinsics; default: held)")
 
 
 def _run_import(args: argparse.Namespace) -> int:
@@ -137,8 +139,6 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import numpy as np
-
     from vio import VioError
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
@@ -146,7 +146,8 @@ def _run_refine(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=True,
-                                                               refine_stereo_extrinsic=args.stereo))
+                                                               refine_stereo_extrinsic=args.stereo,
+                                                               refine_intrinsics=args.intrinsics))
     run = replay_states(args.dataset, cfg.estimator,
                         calibration=load_calibration(args.calibration) if args.calibration else None)
     est, calib = run.estimator, run.dataset.calibration
@@ -154,13 +155,15 @@ def _run_refine(args: argparse.Namespace) -> int:
     if not refined or refined["refining_keyframes"] == 0:
         raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
                        "straight flight); record with turns about at least two axes")
-    out = dataclasses.replace(calib, cam0=calib.cam0.with_T_body_cam(np.asarray(refined["T_body_cam0"])),
-                              cam1=calib.cam1.with_T_body_cam(np.asarray(refined["T_body_cam1"])),
-                              time_offset_ns=int(est.time_offset_ns))
+    out = dataclasses.replace(est.refined_calibration(), time_offset_ns=int(est.time_offset_ns))
     save_calibration(out, args.output)
     print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
           f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
           f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
+    for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):
+        if args.intrinsics:
+            print(f"{name} fx fy cx cy moved " + " ".join(f"{getattr(after, k) - getattr(before, k):+.2f}"
+                                                         for k in ("fx", "fy", "cx", "cy")) + " px")
     print(f"wrote {args.output}")
     return 0
 

@@ -474,3 +474,25 @@ def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     out = tmp_path / "refined.yaml"
     assert main(["calib", "refine", str(tmp_path / "hover"), "--output", str(out)]) == 1
     assert "enough rotation" in capsys.readouterr().err and not out.exists()
+
+
+def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
+    """`vio calib refine --intrinsics` on a turning flight whose sensor.yaml is slightly wrong writes a loadable
+    calibration with refined extrinsics and focal lengths (the principal point held) and says how far each moved."""
+    from vio.app.cli import main
+    from vio.calibration import load_calibration
+    from vio.io.euroc import EurocDataset
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "turns"
+    simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
+                             still_start_s=1.0, calib_error=2.0, seed=3), progress=False)
+    stated = EurocDataset(data).calibration
+    out = tmp_path / "refined.yaml"
+    assert main(["calib", "refine", str(data), "--output", str(out), "--intrinsics"]) == 0
+    text = capsys.readouterr().out
+    assert "cam0 fx fy cx cy moved" in text and f"wrote {out}" in text
+    refined = load_calibration(out)
+    assert refined.cam0.fx != stated.cam0.fx and refined.cam1.fy != stated.cam1.fy
+    assert abs(refined.cam0.cx - stated.cam0.cx) < 0.01 and abs(refined.cam1.cy - stated.cam1.cy) < 0.01
+    assert not np.allclose(refined.cam0.T_body_cam, stated.cam0.T_body_cam)

@@ -183,7 +183,8 @@ class Estimator:
                                                  coarse_only=b.time_offset_state) \
             if b.estimate_time_offset else None
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
-        self._refined: tuple[np.ndarray, np.ndarray, int] | None = None  # smoother's T_body_cam0/1, keyframes
+        # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
+        self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
         self.reset_counter = 0
@@ -680,19 +681,25 @@ class Estimator:
         """The calibration with the smoother's refined extrinsics (`backend.refine_extrinsics`), else as given."""
         if self._refined is None:
             return self.calib
-        T0, T1, _ = self._refined
-        return dataclasses.replace(self.calib, cam0=self.calib.cam0.with_T_body_cam(T0),
-                                   cam1=self.calib.cam1.with_T_body_cam(T1))
+        T0, T1, _, k = self._refined
+        cams = [c.with_T_body_cam(T) for c, T in ((self.calib.cam0, T0), (self.calib.cam1, T1))]
+        if k is not None:
+            cams = [dataclasses.replace(c, fx=float(v[0]), fy=float(v[1]), cx=float(v[2]), cy=float(v[3]))
+                    for c, v in zip(cams, k)]
+        return dataclasses.replace(self.calib, cam0=cams[0], cam1=cams[1])
 
     def refinement_stats(self) -> dict | None:
         """Refined extrinsics and how far they moved from the calibration, for the replay's stats."""
         if self._refined is None:
             return None
-        T0, T1, n = self._refined
+        T0, T1, n, k = self._refined
         d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
-        return {"T_body_cam0": T0.tolist(), "T_body_cam1": T1.tolist(), "refining_keyframes": int(n),
-                "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
-                "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3]))}
+        out = {"T_body_cam0": T0.tolist(), "T_body_cam1": T1.tolist(), "refining_keyframes": int(n),
+               "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
+               "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3]))}
+        if k is not None:
+            out["intrinsics_fx_fy_cx_cy"] = [np.asarray(v, float).tolist() for v in k]
+        return out
 
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
         run = self._state
@@ -720,7 +727,7 @@ class Estimator:
                                             applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
             self._check_plausible(est)
             if est.T_body_cam0 is not None:
-                self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes)
+                self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
             st = self._after_keyframe(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:

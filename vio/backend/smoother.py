@@ -90,6 +90,7 @@ class KeyframeEstimate:
     extra_passes: int = 0  # relinearisation passes after the first update
     T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
     T_body_cam1: np.ndarray | None = None
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None  # refined (fx, fy, cx, cy) of cam0, cam1 (None: held)
     offset_residual_ns: int | None = None  # time offset state d (true - applied), None: not a state
 
 
@@ -105,6 +106,15 @@ MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close
 
 TIME_LINK_SIGMA = 1e-4  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad; 1e-5 and the
 # offset in seconds made iSAM2 report indeterminate systems on 5 of 18 matrix flights)
+
+
+def _k_key(cam: int) -> int:
+    """Key of camera `cam`'s intrinsics variable (refine_intrinsics)."""
+    return gtsam.symbol("k", cam)
+
+
+def _fxfycxcy(K: gtsam.Cal3_S2) -> np.ndarray:
+    return np.array([K.fx(), K.fy(), K.px(), K.py()])
 
 
 def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
@@ -172,6 +182,7 @@ class VioSmoother:
         self._kf_t: dict[int, float] = {}  # keyframe index -> smoother time, for the mono observations' keyframes
         self.n_mono_landmarks = 0
         self.refine = bool(cfg.refine_extrinsics)
+        self.refine_K = self.refine and bool(cfg.refine_intrinsics)
         self.time_state = bool(cfg.time_offset_state)
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
@@ -303,6 +314,8 @@ class VioSmoother:
         stamps = {X(j): t_s, V(j): t_s, B(j): t_s}
         if self.refine:
             stamps[E(0)] = stamps[E(1)] = t_s  # the extrinsics stay in the window for the whole flight
+            if self.refine_K:
+                stamps[_k_key(0)] = stamps[_k_key(1)] = t_s
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -331,6 +344,16 @@ class VioSmoother:
         values.insert(E(0), self.P_body_cam0)
         values.insert(E(1), self.P_body_cam1)
         stamps[E(0)] = stamps[E(1)] = 0.0
+        if self.refine_K:
+            # fx, fy, skew, cx, cy; the skew is held (no lens has one), and so is the principal point: a cx/cy
+            # error shifts the whole image as a turned camera does, so with both free they trade against the
+            # extrinsic rotation (in tests/test_estimator.py: cy 2 -> 1.4 px off, the rotation 0.04 -> 0.16 deg)
+            sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
+            k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
+            for cam, K in enumerate((self.K0, self.K1)):
+                graph.add(gtsam.PriorFactorCal3_S2(_k_key(cam), K, k_prior))
+                values.insert(_k_key(cam), K)
+                stamps[_k_key(cam)] = 0.0
 
     def _motion_excites_extrinsics(self, pose_pred: gtsam.Pose3, t_s: float) -> bool:
         """The gate of the module doc: rotation about two axes among the keyframes inside the lag."""
@@ -355,11 +378,15 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
+            if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
+                self.K0, self.K1 = est.atCal3_S2(_k_key(0)), est.atCal3_S2(_k_key(1))
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
                                      self.T_body_cam0.copy() if self.refine else None,
-                                     self.P_body_cam1.matrix() if self.refine else None, residual)
+                                     self.P_body_cam1.matrix() if self.refine else None,
+                                     tuple(_fxfycxcy(K) for K in (self.K0, self.K1)) if self.refine_K else None,
+                                     residual)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -469,6 +496,11 @@ class VioSmoother:
         """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
         as a variable (E(cam), when refining) or fixed at its current estimate."""
         K = (self.K0, self.K1)
+        if refine and self.refine_K:
+            from gtsam_unstable import ProjectionFactorPPPCCal3_S2
+
+            return lambda uv, i, key, cam: ProjectionFactorPPPCCal3_S2(uv, self.pixel_noise, self._pose_key(i),
+                                                                       E(cam), key, _k_key(cam), False, False)
         if refine:
             from gtsam_unstable import ProjectionFactorPPPCal3_S2
 
