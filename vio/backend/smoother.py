@@ -26,7 +26,9 @@ about the second most excited axis (smallest but one singular value of their rot
 newest one). Keyframes that fail the gate (hover, straight flight) use fixed projection factors at the
 current extrinsic estimate, so E only keeps its prior and what earlier motion taught it (marginalised
 into it as keyframes leave the lag): hovering neither refines nor corrupts it. E's stamp moves with
-every keyframe, so it never leaves the window.
+every keyframe, so it never leaves the window. With `refine_intrinsics` the focal lengths of both cameras
+are variables too (Cal3_S2, ProjectionFactorPPPC, under the same gate); the principal point is held unless
+`refine_principal_point`, because shifting it moves the image as turning the camera does.
 
 Time offset as a state (`time_offset_state`): the images are stamped with the applied camera-IMU offset
 (the calibration's, or the in-flight gyro estimate's), and what is left of it, d(i) = true - applied, is a
