@@ -70,7 +70,7 @@ def _calib_error_row(path: Path, row: dict) -> None:
     row["extrinsic_error_deg"] = float(np.rad2deg(np.linalg.norm(so3_log(d[:3, :3]))))
     row["extrinsic_error_mm"] = float(1e3 * np.linalg.norm(d[:3, 3]))
     k = refined.get("intrinsics_fx_fy_cx_cy")
-    if k is not None:  # largest error of fx, fy, cx, cy over both cameras, before and after
+    if k is not None:  # largest error of the refined fx, fy, cx, cy over both cameras
         true_k = [np.array([c.fx, c.fy, c.cx, c.cy]) for c in (truth.cam0, truth.cam1)]
         row["intrinsics_error_px"] = float(max(np.max(np.abs(np.asarray(v) - t)) for v, t in zip(k, true_k)))
 

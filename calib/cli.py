@@ -59,8 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--calibration", type=Path, help="project calibration YAML to start from (default: the dataset's)")
     s.add_argument("--config", type=Path, help="TOML configuration for the estimator")
     s.add_argument("--stereo", action="store_true", help="refine T_cam0_cam1 too (default: held)")
-    s.add_argument("--intrinsics", action="store_true", help="refine fx, fy, cx, cy of both cameras too "
-                   "([backend] refine_intrinsics; default: held)")
+    s.add_argument("--intrinsics", action="store_true", help="refine the focal lengths of both cameras too "
+                   "([backend] refine_intrinsics; cx, cy only with refine_principal_point; default: held)")
 
 
 def _run_import(args: argparse.Namespace) -> int:
@@ -160,8 +160,8 @@ def _run_refine(args: argparse.Namespace) -> int:
     print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
           f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
           f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
-    for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):
-        if args.intrinsics:
+    if args.intrinsics:
+        for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):
             print(f"{name} fx fy cx cy moved " + " ".join(f"{getattr(after, k) - getattr(before, k):+.2f}"
                                                          for k in ("fx", "fy", "cx", "cy")) + " px")
     print(f"wrote {args.output}")

@@ -98,11 +98,11 @@ class BackendConfig:
     refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
                                              "it wandered by 2x its error in tests); else only the rotation")
     refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
-    refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy, cx, cy of both cameras too (a cx/cy "
-                                  "error looks like a turned camera, so the extrinsic alone absorbs it)")
+    refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy of both cameras too (the principal "
+                                  "point only with refine_principal_point)")
     refine_principal_point: bool = opt(False, "with refine_intrinsics: cx, cy too (they trade against the extrinsic "
                                        "rotation: nearly the same image change)")
-    intrinsics_sigma_px: float = opt(1.0, "stated 1-sigma uncertainty of fx, fy, cx, cy when refined", min=1e-3,
+    intrinsics_sigma_px: float = opt(1.0, "stated 1-sigma uncertainty of the refined intrinsics", min=1e-3,
                                      max=100)
     extrinsic_sigma_rad: float = opt(0.0035, "stated 1-sigma rotation uncertainty of T_body_cam (0.2 deg)",
                                      min=1e-6, max=1)
