@@ -93,7 +93,7 @@ def test_profiles_fly_in_the_room_at_the_advertised_pace(profile, calib, scene):
         speeds.append(np.linalg.norm(m.velocity(t), axis=1).max())
         yaw_rates.append(np.abs(m.yaw_rate(t)).max())
     limits = {"hover": (0.0, 0.3, 0.0, 0.2), "survey": (0.35, 0.8, 0.1, 0.5), "aggressive": (1.0, 2.5, 1.5, 2.3),
-              "mapping": (0.35, 0.8, 0.25, 0.45)}
+              "mapping": (0.35, 0.8, 0.25, 0.45), "laps": (0.45, 0.8, 0.2, 0.6), "out-and-back": (0.4, 0.8, 0.25, 0.6)}
     v_lo, v_hi, w_lo, w_hi = limits[profile]
     assert v_lo <= min(speeds) and max(speeds) <= v_hi
     assert w_lo <= min(yaw_rates) and max(yaw_rates) <= w_hi

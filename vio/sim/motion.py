@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from vio import VioError
 from vio.geometry import GRAVITY_M_S2
 
-PROFILES = ("hover", "survey", "aggressive", "mapping")
+PROFILES = ("hover", "survey", "aggressive", "mapping", "laps", "out-and-back")
 
 # Region the body may occupy in the default room (see scene.default_scene): every camera stays >= 1 m from
 # walls, floor, ceiling and boxes. Profiles are built to fit inside it; tests check that they do.
@@ -33,16 +33,23 @@ FLIGHT_BOX_HI = np.array([2.6, 1.8, 2.8])
 
 @dataclass(frozen=True)
 class Sinusoids:
-    """f(sigma) = base + sum_k amp_k sin(omega_k sigma + phase_k), with its first two derivatives."""
+    """f(sigma) = base + rate sigma + sum_k amp_k sin(omega_k sigma + phase_k), with its first two derivatives.
+
+    `rate` is for a heading that keeps turning one way (laps); position terms leave it 0 (bounded curve)."""
 
     base: float
     amp: tuple[float, ...] = ()
     omega: tuple[float, ...] = ()
     phase: tuple[float, ...] = ()
+    rate: float = 0.0
 
     def eval(self, sigma: np.ndarray, order: int) -> np.ndarray:
         s = np.asarray(sigma, dtype=float)
         out = np.full_like(s, self.base if order == 0 else 0.0)
+        if order == 0:
+            out += self.rate * s
+        elif order == 1:
+            out += self.rate
         for a, w, ph in zip(self.amp, self.omega, self.phase):
             x = w * s + ph
             if order == 0:
@@ -56,6 +63,8 @@ class Sinusoids:
     @property
     def bound(self) -> float:
         """Largest |f - base| the curve can reach."""
+        if self.rate:
+            raise ValueError("a term with a rate is unbounded")
         return float(np.sum(np.abs(self.amp)))
 
 
@@ -200,20 +209,52 @@ _PROFILE_SPECS: dict[str, dict[str, list[tuple[float, float]]]] = {
 # so that the map sees the room from every direction (a survey holds its heading within +-60 deg of a random
 # one, and a later flight may look the other way)
 _PROFILE_SPECS["mapping"] = {**_PROFILE_SPECS["survey"], "yaw": [(np.pi, 0.1), (0.1, 0.55)]}
-_CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8, "mapping": 1.75}
+_CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8, "mapping": 1.75, "laps": 1.75, "out-and-back": 1.75}
+_WOBBLE = {"roll": [(0.03, 0.45), (0.01, 1.3)], "pitch": [(0.03, 0.38), (0.01, 1.1)]}  # as the survey's
+
+
+def _loop_course(name: str, rng: np.random.Generator) -> tuple[tuple[Sinusoids, ...], Sinusoids]:
+    """Position terms and heading of the two loop-closure courses, whose terms share one phase (so they are
+    built here rather than from independent random sinusoids like the other profiles):
+
+    - laps: an ellipse 4.6 m x 3 m round the room at ~0.6 m/s (a lap every ~20 s), clockwise or not by seed,
+      heading turning with the course (the camera looks roughly where it flies), height drifting +-0.3 m;
+    - out-and-back: 4.6 m along x and back, turning round at each end (the heading swings through 180 deg
+      while the vehicle stops there), at a random y, so the way back sees the room from the other side."""
+    w = 0.31 * (1 + 0.1 * (2 * rng.random() - 1))
+    ph = 2 * np.pi * rng.random()
+    z = _terms(rng, _CENTRE_Z[name], [(0.3, 0.13), (0.04, 0.7)])
+    if name == "laps":
+        turn = 1.0 if rng.random() < 0.5 else -1.0
+        x = Sinusoids(0.0, (2.3,), (w,), (ph,))
+        y = Sinusoids(0.0, (1.5 * turn,), (w,), (ph + np.pi / 2,))
+        # travel direction of (A sin th, turn B cos th) is about -turn * th for A ~ B: turn with it
+        yaw = Sinusoids(-turn * ph, (0.1,), (0.55,), (2 * np.pi * rng.random(),), rate=-turn * w)
+        return (x, y, z), yaw
+    w *= 0.85  # ~0.6 m/s on the straight
+    x = Sinusoids(0.0, (2.3,), (w,), (ph,))
+    y = _terms(rng, float(rng.uniform(-1.0, 1.0)), [(0.15, 0.23)])
+    # heading 0 while x grows (cos th > 0), pi on the way back: pi/2 - pi/2 cos th
+    yaw = Sinusoids(np.pi / 2, (np.pi / 2, 0.05), (w, 0.55), (ph - np.pi / 2, 2 * np.pi * rng.random()))
+    return (x, y, z), yaw
+
 
 
 def make_profile(name: str, duration: float, seed: int = 0, still_s: float = 2.0, ramp_s: float = 2.0) -> Motion:
-    """A flight of the named profile ('hover', 'survey', 'aggressive', 'mapping'), randomised (phases, +-10 % rates,
+    """A flight of the named profile (PROFILES), randomised (phases, +-10 % rates,
     start heading) by `seed`. `still_s` seconds at rest come first, then `ramp_s` seconds of speed-up."""
-    if name not in _PROFILE_SPECS:
+    if name not in PROFILES:
         raise VioError(f"unknown flight profile {name!r}; expected one of {list(PROFILES)}")
     if not (duration > 0):
         raise VioError(f"flight duration must be positive, got {duration}")
     if still_s < 0 or ramp_s <= 0:
         raise VioError(f"still start must be >= 0 and ramp > 0 s, got {still_s}, {ramp_s}")
-    spec = _PROFILE_SPECS[name]
     rng = np.random.default_rng([seed, 7411])
+    if name in ("laps", "out-and-back"):
+        pos, yaw = _loop_course(name, rng)
+        ang = (_terms(rng, 0.0, _WOBBLE["roll"]), _terms(rng, 0.0, _WOBBLE["pitch"]), yaw)
+        return Motion(name, pos, ang, float(duration), float(still_s), float(ramp_s), meta={"seed": seed})
+    spec = _PROFILE_SPECS[name]
     centre = np.array([0.0, 0.0, _CENTRE_Z[name]])
     if name == "hover":  # hover somewhere in the middle part of the room
         centre[:2] = rng.uniform(FLIGHT_BOX_LO[:2] + 0.5, FLIGHT_BOX_HI[:2] - 0.5)
