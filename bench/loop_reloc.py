@@ -3,7 +3,7 @@
     python bench/loop_reloc.py [--starts 20] [--cache DIR] [--json out.json]
     python bench/loop_reloc.py --check f1.json f2_loop.tum f2.json FLIGHT2   # one replay's ATE in the map frame
 
-Default mode: the map flight (survey or --map-profile mapping, 40 s or --map-duration, seed 2, 376x240 or --size,
+Default mode: the map flight (survey or --map-profile mapping / laps, 40 s or --map-duration, seed 2, 376x240 or --size,
 realistic) and a second flight in the same room (survey, 30 s, seed 12, scene seed 2: other path and start) are
 simulated once into --cache and replayed once each; their keyframes (image, features, odometry pose) are kept. The
 map is the first flight's loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh
@@ -205,9 +205,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--aliasing", type=float, metavar="M", help="both flights in a room whose textures repeat "
                     "every M metres (vio simulate --aliasing): relocalisation must not take a look-alike place")
     ap.add_argument("--map-duration", type=float, default=40.0, metavar="S", help="length of the map flight")
-    ap.add_argument("--map-profile", default="survey", choices=("survey", "mapping"),
-                    help="the map flight: survey (heading within +-60 deg of a random one) or mapping (heading "
-                    "swept through +-180 deg: the room seen from every direction)")
+    ap.add_argument("--map-profile", default="survey", choices=("survey", "mapping", "laps"),
+                    help="the map flight: survey (heading within +-60 deg of a random one), mapping (heading "
+                    "swept through +-180 deg: the room seen from every direction) or laps (round the room, "
+                    "looking along the course)")
     ap.add_argument("--grow", type=int, nargs="*", default=[], metavar="SEED",
                     help="grow the map with more flights in the same room (survey, these seeds), each relocalised in "
                     "the map so far and saved with it (as --load-map A --save-map AB does)")
