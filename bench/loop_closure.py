@@ -133,7 +133,6 @@ def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.nda
 
     src = closer.graph
     g = PoseGraph(src.noise)
-    seg = None
     for k, T in enumerate(src.odom):
         prev = k - 1 if k and closer.keyframes[k].session == closer.keyframes[k - 1].session else None
         seg = src.priors.get(k)

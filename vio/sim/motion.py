@@ -210,14 +210,13 @@ _PROFILE_SPECS: dict[str, dict[str, list[tuple[float, float]]]] = {
 # one, and a later flight may look the other way)
 _PROFILE_SPECS["mapping"] = {**_PROFILE_SPECS["survey"], "yaw": [(np.pi, 0.1), (0.1, 0.55)]}
 _CENTRE_Z = {"hover": 1.5, "survey": 1.75, "aggressive": 1.8, "mapping": 1.75, "laps": 1.75, "out-and-back": 1.75}
-_WOBBLE = {"roll": [(0.03, 0.45), (0.01, 1.3)], "pitch": [(0.03, 0.38), (0.01, 1.1)]}  # as the survey's
 
 
 def _loop_course(name: str, rng: np.random.Generator) -> tuple[tuple[Sinusoids, ...], Sinusoids]:
     """Position terms and heading of the two loop-closure courses, whose terms share one phase (so they are
     built here rather than from independent random sinusoids like the other profiles):
 
-    - laps: an ellipse 4.6 m x 3 m round the room at ~0.6 m/s (a lap every ~20 s), clockwise or not by seed,
+    - laps: an ellipse 4.6 m x 3 m round the room at ~0.7 m/s (a lap every ~20 s), clockwise or not by seed,
       heading turning with the course (the camera looks roughly where it flies), height drifting +-0.3 m;
     - out-and-back: 4.6 m along x and back, turning round at each end (the heading swings through 180 deg
       while the vehicle stops there), at a random y, so the way back sees the room from the other side."""
@@ -239,7 +238,6 @@ def _loop_course(name: str, rng: np.random.Generator) -> tuple[tuple[Sinusoids, 
     return (x, y, z), yaw
 
 
-
 def make_profile(name: str, duration: float, seed: int = 0, still_s: float = 2.0, ramp_s: float = 2.0) -> Motion:
     """A flight of the named profile (PROFILES), randomised (phases, +-10 % rates,
     start heading) by `seed`. `still_s` seconds at rest come first, then `ramp_s` seconds of speed-up."""
@@ -252,7 +250,8 @@ def make_profile(name: str, duration: float, seed: int = 0, still_s: float = 2.0
     rng = np.random.default_rng([seed, 7411])
     if name in ("laps", "out-and-back"):
         pos, yaw = _loop_course(name, rng)
-        ang = (_terms(rng, 0.0, _WOBBLE["roll"]), _terms(rng, 0.0, _WOBBLE["pitch"]), yaw)
+        wobble = _PROFILE_SPECS["survey"]  # the survey's roll and pitch
+        ang = (_terms(rng, 0.0, wobble["roll"]), _terms(rng, 0.0, wobble["pitch"]), yaw)
         return Motion(name, pos, ang, float(duration), float(still_s), float(ramp_s), meta={"seed": seed})
     spec = _PROFILE_SPECS[name]
     centre = np.array([0.0, 0.0, _CENTRE_Z[name]])
