@@ -129,6 +129,7 @@ def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.nda
     (ground truth between the same keyframes): what is left is the graph's own floor (the odometry's
     short-term error, which no pose graph over keyframes removes), so ATE loop - this = the edges' share."""
     from vio.geometry import inv_T
+    from vio.loop.closer import corrected_poses
     from vio.loop.posegraph import PoseGraph
 
     src = closer.graph
@@ -142,9 +143,7 @@ def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.nda
         if e.kind == "loop" and e.weight >= 0.5:
             g.add_loop(e.i, e.j, inv_T(_gt_pose(gt, kt[e.i])) @ _gt_pose(gt, kt[e.j]))
     g.optimize(decide=True)
-    corr = np.array([E @ inv_T(O) for E, O in zip(g.estimate, g.odom)])
-    idx = np.clip(np.searchsorted(np.array(kt), t_ns, side="right") - 1, 0, len(kt) - 1)
-    return np.einsum("nij,njk->nik", corr[idx], T_odom)
+    return corrected_poses(closer, g, t_ns, T_odom)
 
 
 def graph_scaling(n: int) -> dict:

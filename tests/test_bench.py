@@ -155,7 +155,8 @@ def test_loop_bench_true_edge_floor_uses_exact_edges_between_the_same_keyframes(
         g.add_loop(k % 40, k, np.linalg.inv(truth[k % 40]) @ truth[k] @ noise)
     g.optimize()
     t_ns = np.arange(n, dtype=np.int64) * 250_000_000
-    closer = SimpleNamespace(graph=g, keyframes=[SimpleNamespace(session=0, t_ns=int(t)) for t in t_ns])
+    closer = SimpleNamespace(graph=g, map_keyframes=0,
+                             keyframes=[SimpleNamespace(session=0, t_ns=int(t)) for t in t_ns])
     gt = Trajectory.from_poses(t_ns, np.array(truth))
     T_odom = np.array(g.odom)
     noisy = np.array([E @ np.linalg.inv(O) @ P for E, O, P in zip(g.estimate, g.odom, T_odom)])

@@ -135,7 +135,6 @@ def test_false_place_is_refused_by_the_drift_gate(loop_flight):
 def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_alone(laps_flight, tmp_path):
     from vio.app.cli import main
 
-
     out = {}
     for name, extra in (("off", []), ("on", ["--loop-output", str(tmp_path / "loop.tum"),
                                              "--save-map", str(tmp_path / "map.npz"),

@@ -286,16 +286,23 @@ class LoopCloser:
 
     def corrected_trajectory(self, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
         """Odometry poses (N, 4, 4) at t_ns mapped with the final correction of the keyframe before each."""
-        m = self.map_keyframes  # a loaded map's keyframes are not this flight's
-        if len(self.keyframes) <= m:
-            return np.array(T_odom)
-        kt = np.array([k.t_ns for k in self.keyframes[m:]])
-        corr = np.array([e @ inv_T(o) for e, o in zip(self.graph.estimate[m:], self.graph.odom[m:])])
-        idx = np.clip(np.searchsorted(kt, t_ns, side="right") - 1, 0, len(kt) - 1)
-        return np.einsum("nij,njk->nik", corr[idx], T_odom)
+        return corrected_poses(self, self.graph, t_ns, T_odom)
 
     def memory_per_keyframe_bytes(self) -> float:
         if not self.keyframes:
             return 0.0
         b = sum(k.feats.nbytes for k in self.keyframes) + sum(len(v) * 12 for v in self.index.vectors)
         return b / len(self.keyframes)
+
+
+def corrected_poses(closer: LoopCloser, graph: PoseGraph, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
+    """Odometry poses (N, 4, 4) at t_ns mapped with the correction (estimate @ odometry^-1) that `graph`, a
+    graph over `closer`'s keyframes, gives the keyframe before each; a loaded map's keyframes are skipped
+    (they are not this flight's). `graph` may be another solve of the same keyframes (bench/)."""
+    m = closer.map_keyframes
+    if len(closer.keyframes) <= m:
+        return np.array(T_odom)
+    kt = np.array([k.t_ns for k in closer.keyframes[m:]])
+    corr = np.array([e @ inv_T(o) for e, o in zip(graph.estimate[m:], graph.odom[m:])])
+    idx = np.clip(np.searchsorted(kt, t_ns, side="right") - 1, 0, len(kt) - 1)
+    return np.einsum("nij,njk->nik", corr[idx], T_odom)
