@@ -315,8 +315,10 @@ class EstimatorConfig:
 class LoopConfig:
     enabled: bool = opt(False, "run loop closure beside the odometry (docs/loop-closure.md)")
     vocabulary: str = opt("", "vocabulary file (npz); empty: the one shipped with the package")
-    orb_features: int = opt(300, "ORB corners detected per keyframe (plus the front end's stereo points)",
+    orb_features: int = opt(300, "FAST corners described per keyframe (plus the front end's stereo points)",
                             min=50, max=3000)
+    fast_threshold: int = opt(16, "FAST corner threshold (grey levels); an image with too few corners is "
+                              "searched again at half of it", min=1, max=255)
     candidates: int = opt(1, "best retrieval candidates verified per keyframe", min=1, max=20)
     min_score: float = opt(0.05, "bag-of-words L1 score below which a candidate is not verified", min=0, max=1)
     exclude_recent_s: float = opt(10.0, "keyframes of the same flight newer than this are no candidates",

@@ -21,7 +21,7 @@ import numpy as np
 from vio.calibration import StereoCalibration
 from vio.config import LoopConfig
 from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
-from vio.loop.database import BowIndex
+from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
 from vio.loop.posegraph import GraphNoise, PoseGraph
 from vio.loop.verify import gravity_disagreement_deg, pnp
@@ -88,10 +88,10 @@ class LoopCloser:
         self.cfg = cfg
         self.cam = calib.cam0
         self.vocab = vocabulary or Vocabulary.load(cfg.vocabulary or None)
-        self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features)
+        self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features, cfg.fast_threshold)
         self.graph = PoseGraph(GraphNoise(odom_trans_per_m=cfg.odom_sigma_per_m, loop_trans_m=cfg.loop_sigma_m,
                                           loop_rot_rad=np.radians(cfg.loop_sigma_deg)))
-        self.index = BowIndex()
+        self.index = BowIndex(self.vocab.n_words)
         self.keyframes: list[Keyframe] = []
         self.stats = LoopStats()
         self.session = 0
@@ -147,7 +147,7 @@ class LoopCloser:
             return j != i and (o.session != kf.session or kf.t_ns - o.t_ns > recent_ns)
         return ok
 
-    def _detect(self, i: int, bow: dict[int, float]) -> bool:
+    def _detect(self, i: int, bow: BowVector) -> bool:
         c = self.cfg
         self._pending = [p for p in self._pending if i - p.i <= c.consistency_window]
         ok = self._allowed(i)

@@ -1,70 +1,106 @@
-"""Bag-of-words image index: TF-IDF vectors, an inverted file, L1 scores (as DBoW2 scores them)."""
+"""Bag-of-words image index: TF-IDF vectors, an inverted file, L1 scores (as DBoW2 scores them).
+
+The inverted file is held as numpy arrays so that a query is a handful of vectorised operations however many
+words it has: the postings of all but the newest images sorted by word (CSR: `_start[w]` .. `_start[w + 1]`),
+and the newest images (`_tail`) as they came, merged into the sorted part every TAIL images."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+TAIL = 32  # images kept unsorted before a merge: a merge copies every posting, a query scans the tail
 
-def l1_score(a: dict[int, float], b: dict[int, float]) -> float:
+
+@dataclass(frozen=True)
+class BowVector:
+    """One image's L1-normalised TF-IDF vector: its words (sorted, unique) and their weights."""
+    words: np.ndarray  # (K,) int64
+    weights: np.ndarray  # (K,) float64, summing to 1
+
+    def __len__(self) -> int:
+        return len(self.words)
+
+
+def l1_score(a: BowVector, b: BowVector) -> float:
     """1 - |a - b|_1 / 2 for L1-normalised vectors: 1 identical, 0 no word in common."""
-    return -0.5 * sum(abs(a[w] - b[w]) - a[w] - b[w] for w in a.keys() & b.keys())
+    _, ia, ib = np.intersect1d(a.words, b.words, assume_unique=True, return_indices=True)
+    return float(np.minimum(a.weights[ia], b.weights[ib]).sum())
 
 
 class BowIndex:
-    """Inverted file: per word, the images that hold it and their weights (numpy arrays grown by doubling,
-    so that a query is a few array slices and one bincount, not a Python loop over postings)."""
-
-    def __init__(self) -> None:
-        self.vectors: list[dict[int, float]] = []
-        self._post: dict[int, list] = {}  # word -> [ids array, weights array, used length]
+    def __init__(self, n_words: int) -> None:
+        self.n_words = n_words
+        self.vectors: list[BowVector] = []
+        self._start = np.zeros(n_words + 1, np.int64)  # CSR over images [0, _sorted)
+        self._img = np.zeros(0, np.int64)
+        self._w = np.zeros(0)
+        self._sorted = 0
 
     def __len__(self) -> int:
         return len(self.vectors)
 
-    def add(self, v: dict[int, float]) -> int:
-        i = len(self.vectors)
+    def add(self, v: BowVector) -> int:
         self.vectors.append(v)
-        post = self._post
-        for w, x in v.items():
-            p = post.get(w)
-            if p is None:
-                post[w] = p = [np.empty(8, np.int64), np.empty(8), 0]
-            n = p[2]
-            if n == len(p[0]):
-                ids, ws = np.empty(2 * n, np.int64), np.empty(2 * n)
-                ids[:n], ws[:n] = p[0], p[1]
-                p[0], p[1] = ids, ws
-            p[0][n] = i
-            p[1][n] = x
-            p[2] = n + 1
-        return i
+        if len(self.vectors) - self._sorted >= TAIL:
+            self._merge()
+        return len(self.vectors) - 1
 
-    def query(self, v: dict[int, float], allowed, top: int) -> list[tuple[int, float]]:
+    def _merge(self) -> None:
+        """Move the tail into the sorted postings: each word's new images go after its old ones."""
+        tail = self.vectors[self._sorted:]
+        words = np.concatenate([v.words for v in tail])
+        img = np.repeat(np.arange(self._sorted, len(self.vectors)), [len(v) for v in tail])
+        w = np.concatenate([v.weights for v in tail])
+        order = np.argsort(words, kind="stable")  # by word, then by image (the tail is in image order)
+        words, img, w = words[order], img[order], w[order]
+        old_count = np.diff(self._start)
+        add_count = np.bincount(words, minlength=self.n_words)
+        start = np.zeros_like(self._start)
+        np.cumsum(old_count + add_count, out=start[1:])
+        n = start[-1]
+        new_img, new_w = np.empty(n, np.int64), np.empty(n)
+        # an old posting of word x moves by the tail postings of the words before x
+        shift = np.repeat(start[:-1] - self._start[:-1], old_count)
+        pos_old = np.arange(len(self._img)) + shift
+        new_img[pos_old], new_w[pos_old] = self._img, self._w
+        # a tail posting goes after its word's old ones, in order
+        first = np.searchsorted(words, words)  # index of the word's first tail posting
+        pos_new = start[words] + old_count[words] + (np.arange(len(words)) - first)
+        new_img[pos_new], new_w[pos_new] = img, w
+        self._start, self._img, self._w, self._sorted = start, new_img, new_w, len(self.vectors)
+
+    def query(self, v: BowVector, allowed, top: int) -> list[tuple[int, float]]:
         """Best `top` entries (index, score) among those with allowed(index) true."""
-        if not self.vectors or not v:
+        if not self.vectors or not len(v):
             return []
-        ids, ys, xs, lens = [], [], [], []
-        post = self._post
-        for w, x in v.items():
-            p = post.get(w)
-            if p is not None:
-                n = p[2]
-                ids.append(p[0][:n])
-                ys.append(p[1][:n])
-                xs.append(x)
-                lens.append(n)
-        if not ids:
-            return []
-        # |x - y| - x - y = -2 min(x, y): the L1 score over the words both hold, one vectorised pass
-        y = np.concatenate(ys)
-        acc = np.bincount(np.concatenate(ids), -2.0 * np.minimum(np.repeat(xs, lens), y), minlength=len(self.vectors))
-        order = np.argsort(acc)  # most negative sum = best score
+        acc = np.zeros(len(self.vectors))
+        # sorted part: gather the postings of the query's words (ranges of the CSR arrays)
+        lo, hi = self._start[v.words], self._start[v.words + 1]
+        counts = hi - lo
+        total = int(counts.sum())
+        if total:
+            offs = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(total)
+            x = np.repeat(v.weights, counts)
+            # |x - y| - x - y = -2 min(x, y): the L1 score over the words both hold
+            acc[:self._sorted] = np.bincount(self._img[offs], np.minimum(x, self._w[offs]), minlength=self._sorted)
+        # tail: a dense lookup of the query's weights
+        if self._sorted < len(self.vectors):
+            dense = np.zeros(self.n_words)
+            dense[v.words] = v.weights
+            tail = self.vectors[self._sorted:]
+            words = np.concatenate([t.words for t in tail])
+            img = np.repeat(np.arange(self._sorted, len(self.vectors)), [len(t) for t in tail])
+            acc += np.bincount(img, np.minimum(dense[words], np.concatenate([t.weights for t in tail])),
+                               minlength=len(self.vectors))
+        order = np.argsort(-acc, kind="stable")  # best score first
         out = []
         for i in order:
-            if acc[i] >= 0:
+            if acc[i] <= 0:
                 break
             if allowed(int(i)):
-                out.append((int(i), float(-0.5 * acc[i])))
+                out.append((int(i), float(acc[i])))
                 if len(out) == top:
                     break
         return out

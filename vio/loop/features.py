@@ -1,5 +1,10 @@
 """Keyframe descriptors: upright ORB (BRIEF at angle 0: a drone's camera hardly rolls about its axis) at the
-front end's stereo points (which carry depth: the 3D landmarks for PnP) and at detected ORB corners."""
+front end's stereo points (which carry depth: the 3D landmarks for PnP) and at FAST corners spread over the
+image on a grid.
+
+The corners are found at full resolution only (no image pyramid): on the simulator's flights at 752x480 and
+376x240 this retrieves and verifies as many loops as ORB's 4-level pyramid did, at half the cost
+(docs/loop-closure.md, "Cheaper detection")."""
 
 from __future__ import annotations
 
@@ -11,6 +16,11 @@ import numpy as np
 from vio.calibration import CameraCalibration
 from vio.frontend.undistort import distort_px, undistort_px
 from vio.types import FeatureFrame
+
+PATCH = 19  # BRIEF patch size [px]; corners closer than BORDER to the image edge cannot be described
+BORDER = 20
+SAME_PX = 0  # a corner this near (pixels, each axis, rounded) a front-end stereo point is that point
+GRID = (8, 6)  # cells across, down: each gets its share of the corners before the strongest rest
 
 
 @dataclass(frozen=True)
@@ -28,32 +38,78 @@ class KeyframeFeatures:
         return self.desc.nbytes + self.uv.astype(np.float32).nbytes + self.p_cam.astype(np.float32).nbytes
 
 
+def spread_corners(uv: np.ndarray, response: np.ndarray, shape: tuple[int, int], n: int) -> np.ndarray:
+    """Indices of at most n corners: the strongest n // cells in each grid cell first (texture anywhere in the
+    view counts for retrieval, not only the busiest patch), then the strongest of the rest."""
+    h, w = shape
+    cx, cy = GRID
+    cell = np.minimum((uv[:, 1] * cy / h).astype(np.int64), cy - 1) * cx + \
+        np.minimum((uv[:, 0] * cx / w).astype(np.int64), cx - 1)
+    order = np.lexsort((-response, cell))
+    cell = cell[order]
+    rank = np.arange(len(order)) - np.searchsorted(cell, cell)  # position within its cell, strongest first
+    per = max(1, n // (cx * cy))
+    first, rest = order[rank < per], order[rank >= per]
+    rest = rest[np.argsort(-response[rest], kind="stable")][:max(0, n - len(first))]
+    return np.concatenate([first, rest])[:n]
+
+
+def near(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(N,) bool: is uv within SAME_PX pixels (each axis, rounded) of a point of ref? One occupancy image,
+    not an N x M distance table (points outside the image are clamped to its edge)."""
+    h, w = shape
+    r = SAME_PX
+    occ = np.zeros((h + 4 * r + 1, w + 4 * r + 1), bool)  # pixel (x, y) at [y + 2r, x + 2r]
+    ix = np.clip(np.rint(ref[:, 0]).astype(np.int64), -r, w + r) + 2 * r
+    iy = np.clip(np.rint(ref[:, 1]).astype(np.int64), -r, h + r) + 2 * r
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            occ[iy + dy, ix + dx] = True
+    qx = np.clip(np.rint(uv[:, 0]).astype(np.int64), -r, w + r) + 2 * r
+    qy = np.clip(np.rint(uv[:, 1]).astype(np.int64), -r, h + r) + 2 * r
+    return occ[qy, qx]
+
+
 class FeatureExtractor:
-    def __init__(self, cam: CameraCalibration, n_features: int = 300) -> None:
+    def __init__(self, cam: CameraCalibration, n_features: int = 300, fast_threshold: int = 16) -> None:
         self.cam = cam
-        self.orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=4, edgeThreshold=19, patchSize=19,
-                                  fastThreshold=12)
+        self.n = n_features
+        self.fast = cv2.FastFeatureDetector_create(fast_threshold, True)
+        self.fast_dim = cv2.FastFeatureDetector_create(max(1, fast_threshold // 2), True)
+        self.orb = cv2.ORB_create(nfeatures=n_features, nlevels=1, edgeThreshold=PATCH, patchSize=PATCH)
+
+    def corners(self, image: np.ndarray) -> np.ndarray:
+        """(M, 2) FAST corners at least BORDER px inside the image, spread by `spread_corners`; a dim or blurred
+        image that gives fewer than 2n corners is searched again at half the threshold."""
+        h, w = image.shape[:2]
+        for fast in (self.fast, self.fast_dim):
+            kps = fast.detect(image, None)
+            if len(kps) >= 2 * self.n:
+                break
+        if not kps:
+            return np.zeros((0, 2), np.float32)
+        uv = cv2.KeyPoint.convert(kps).reshape(-1, 2)
+        response = np.fromiter((k.response for k in kps), np.float64, len(kps))
+        inside = np.flatnonzero((uv[:, 0] >= BORDER) & (uv[:, 0] < w - BORDER) &
+                                (uv[:, 1] >= BORDER) & (uv[:, 1] < h - BORDER))
+        return uv[inside[spread_corners(uv[inside], response[inside], (h, w), self.n)]]
 
     def extract(self, image: np.ndarray, ff: FeatureFrame | None) -> KeyframeFeatures:
-        det = self.orb.detect(image, None)
-        uv_det = cv2.KeyPoint.convert(det).reshape(-1, 2) if det else np.zeros((0, 2), np.float32)
-        p3 = np.full((len(uv_det), 3), np.nan)
-        uv_all = uv_det
+        uv_all = self.corners(image)
+        p3 = np.full((len(uv_all), 3), np.nan)
         if ff is not None and len(ff.ids):
             ok = np.isfinite(ff.depth_m)
             z = ff.depth_m[ok]
             xyz = np.column_stack([(ff.uv0[ok, 0] - self.cam.cx) / self.cam.fx * z,
                                    (ff.uv0[ok, 1] - self.cam.cy) / self.cam.fy * z, z])
-            uv_all = np.vstack([uv_det, distort_px(self.cam, ff.uv0[ok]).astype(np.float32)])
-            p3 = np.vstack([p3, xyz])
-        # upright descriptors (angle 0; detected corners keep their pyramid level); class_id carries the row
-        # through compute(), which drops points near the border
-        for i, kp in enumerate(det):
-            kp.angle = 0.0
-            kp.class_id = i
-        n = len(det)
-        kps = list(det) + [cv2.KeyPoint(u, v, 19.0, 0.0, 0.0, 0, n + i)
-                           for i, (u, v) in enumerate(uv_all[n:].tolist())]
+            uv_st = distort_px(self.cam, ff.uv0[ok]).astype(np.float32)
+            if len(uv_st) and len(uv_all):
+                # a corner on a stereo point would be its twin descriptor and fail every match's ratio test
+                uv_all = uv_all[~near(uv_all, uv_st, image.shape[:2])]
+            p3 = np.vstack([np.full((len(uv_all), 3), np.nan), xyz])
+            uv_all = np.vstack([uv_all, uv_st])
+        # class_id carries the row through compute(), which drops points too near the border
+        kps = [cv2.KeyPoint(u, v, float(PATCH), 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv_all.tolist())]
         kps, desc = self.orb.compute(image, kps)
         if desc is None or not kps:
             return KeyframeFeatures(np.zeros((0, 32), np.uint8), np.zeros((0, 2)), np.zeros((0, 3)))
