@@ -398,3 +398,40 @@ def test_vocabulary_words_descend_as_one_descriptor_at_a_time():
         return n - v.first_leaf
 
     assert v.words(desc).tolist() == [one(x) for x in desc]
+
+
+def _scale_consistent_matches(ex, img: np.ndarray, far: np.ndarray, s: float, x0: int, y0: int) -> int:
+    """Mutual best descriptor matches between an image and the same view from further off (`far`: scaled by
+    1/s, placed at x0, y0) that land within 3 px of where the scaling puts them."""
+    import cv2
+
+    from vio.frontend.undistort import distort_px
+
+    a, b = ex.extract(img, None), ex.extract(far, None)
+    m = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(a.desc, b.desc)
+    pa = distort_px(ex.cam, np.array([a.uv[x.queryIdx] for x in m]).reshape(-1, 2))  # back to image pixels
+    pb = distort_px(ex.cam, np.array([b.uv[x.trainIdx] for x in m]).reshape(-1, 2))
+    return int(np.count_nonzero(np.linalg.norm((pa + 0.5) / s - 0.5 + [x0, y0] - pb, axis=1) <= 3.0))
+
+
+def test_pyramid_levels_match_a_view_from_further_off(loop_flight):
+    """`orb_levels` 2 at 1.44: corners found and described on a second, smaller level, so that a place seen
+    from 1.73x further off (a map flown at another height) still matches; one level loses most matches."""
+    import cv2
+
+    from vio.io.euroc import EurocDataset
+    from vio.loop.features import FeatureExtractor
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    h, w = img.shape
+    s = 1.73
+    small = cv2.resize(img, (round(w / s), round(h / s)), interpolation=cv2.INTER_AREA)
+    far = np.zeros_like(img)
+    y0, x0 = (h - small.shape[0]) // 2, (w - small.shape[1]) // 2
+    far[y0:y0 + small.shape[0], x0:x0 + small.shape[1]] = small
+    cam = ds.calibration.cam0
+    one = _scale_consistent_matches(FeatureExtractor(cam, 300), img, far, s, x0, y0)
+    two = _scale_consistent_matches(FeatureExtractor(cam, 300, levels=2, level_scale=1.44), img, far, s, x0, y0)
+    print(f"scale-consistent matches at 1/{s}: one level {one}, two levels {two}")
+    assert two >= 2 * max(one, 10)

@@ -319,6 +319,9 @@ class LoopConfig:
                             min=50, max=3000)
     fast_threshold: int = opt(16, "FAST corner threshold (grey levels); an image with too few corners is "
                               "searched again at half of it", min=1, max=255)
+    orb_levels: int = opt(1, "image pyramid levels the corners are found and described on (scale steps of "
+                          "orb_level_scale: views of a place from other distances still match)", min=1, max=8)
+    orb_level_scale: float = opt(1.2, "scale between pyramid levels", min=1.05, max=2.0)
     candidates: int = opt(1, "best retrieval candidates verified per keyframe", min=1, max=20)
     min_score: float = opt(0.05, "bag-of-words L1 score below which a candidate is not verified", min=0, max=1)
     exclude_recent_s: float = opt(10.0, "keyframes of the same flight newer than this are no candidates",

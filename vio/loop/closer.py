@@ -88,7 +88,8 @@ class LoopCloser:
         self.cfg = cfg
         self.cam = calib.cam0
         self.vocab = vocabulary or Vocabulary.load(cfg.vocabulary or None)
-        self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features, cfg.fast_threshold)
+        self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features, cfg.fast_threshold, cfg.orb_levels,
+                                          cfg.orb_level_scale)
         self.graph = PoseGraph(GraphNoise(odom_trans_per_m=cfg.odom_sigma_per_m, loop_trans_m=cfg.loop_sigma_m,
                                           loop_rot_rad=np.radians(cfg.loop_sigma_deg)))
         self.index = BowIndex(self.vocab.n_words)

@@ -71,20 +71,23 @@ def near(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 class FeatureExtractor:
-    def __init__(self, cam: CameraCalibration, n_features: int = 300, fast_threshold: int = 16) -> None:
+    def __init__(self, cam: CameraCalibration, n_features: int = 300, fast_threshold: int = 16, levels: int = 1,
+                 level_scale: float = 1.2) -> None:
         self.cam = cam
-        self.n = n_features
+        self.levels, self.level_scale = levels, level_scale
+        # corners per level as ORB shares them: each level 1 / level_scale of the one above
+        share = level_scale ** -np.arange(levels)
+        self.n_level = np.maximum(1, np.round(n_features * share / share.sum())).astype(int)
         self.fast = cv2.FastFeatureDetector_create(fast_threshold, True)
         self.fast_dim = cv2.FastFeatureDetector_create(max(1, fast_threshold // 2), True)
-        self.orb = cv2.ORB_create(nfeatures=n_features, nlevels=1, edgeThreshold=PATCH, patchSize=PATCH)
+        self.orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=level_scale, nlevels=levels,
+                                  edgeThreshold=PATCH, patchSize=PATCH)
 
-    def corners(self, image: np.ndarray) -> np.ndarray:
-        """(M, 2) FAST corners at least BORDER px inside the image, spread by `spread_corners`; a dim or blurred
-        image that gives fewer than 2n corners is searched again at half the threshold."""
+    def _level_corners(self, image: np.ndarray, n: int) -> np.ndarray:
         h, w = image.shape[:2]
         for fast in (self.fast, self.fast_dim):
             kps = fast.detect(image, None)
-            if len(kps) >= 2 * self.n:
+            if len(kps) >= 2 * n:
                 break
         if not kps:
             return np.zeros((0, 2), np.float32)
@@ -92,10 +95,25 @@ class FeatureExtractor:
         response = np.fromiter((k.response for k in kps), np.float64, len(kps))
         inside = np.flatnonzero((uv[:, 0] >= BORDER) & (uv[:, 0] < w - BORDER) &
                                 (uv[:, 1] >= BORDER) & (uv[:, 1] < h - BORDER))
-        return uv[inside[spread_corners(uv[inside], response[inside], (h, w), self.n)]]
+        return uv[inside[spread_corners(uv[inside], response[inside], (h, w), n)]]
+
+    def corners(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """FAST corners at least BORDER px inside each pyramid level, spread by `spread_corners`, as (M, 2)
+        pixels of the full image and (M,) level; a dim or blurred level that gives fewer than twice its share
+        is searched again at half the threshold."""
+        h, w = image.shape[:2]
+        uv, octave = [], []
+        for lev, n in enumerate(self.n_level):
+            scale = self.level_scale ** lev
+            img = image if lev == 0 else cv2.resize(image, (round(w / scale), round(h / scale)),
+                                                    interpolation=cv2.INTER_LINEAR)
+            c = self._level_corners(img, int(n))
+            uv.append(c * np.float32(scale))
+            octave.append(np.full(len(c), lev, np.int64))
+        return np.vstack(uv), np.concatenate(octave)
 
     def extract(self, image: np.ndarray, ff: FeatureFrame | None) -> KeyframeFeatures:
-        uv_all = self.corners(image)
+        uv_all, octave = self.corners(image)
         p3 = np.full((len(uv_all), 3), np.nan)
         if ff is not None and len(ff.ids):
             ok = np.isfinite(ff.depth_m)
@@ -105,11 +123,16 @@ class FeatureExtractor:
             uv_st = distort_px(self.cam, ff.uv0[ok]).astype(np.float32)
             if len(uv_st) and len(uv_all):
                 # a corner on a stereo point would be its twin descriptor and fail every match's ratio test
-                uv_all = uv_all[~near(uv_all, uv_st, image.shape[:2])]
+                apart = ~(near(uv_all, uv_st, image.shape[:2]) & (octave == 0))
+                uv_all, octave = uv_all[apart], octave[apart]
             p3 = np.vstack([np.full((len(uv_all), 3), np.nan), xyz])
             uv_all = np.vstack([uv_all, uv_st])
-        # class_id carries the row through compute(), which drops points too near the border
-        kps = [cv2.KeyPoint(u, v, float(PATCH), 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv_all.tolist())]
+            octave = np.concatenate([octave, np.zeros(len(uv_st), np.int64)])
+        # class_id carries the row through compute(), which drops points too near the border; octave picks the
+        # pyramid level the descriptor is computed on
+        sizes = PATCH * self.level_scale ** octave
+        kps = [cv2.KeyPoint(u, v, sz, 0.0, 0.0, o, i)
+               for i, ((u, v), sz, o) in enumerate(zip(uv_all.tolist(), sizes.tolist(), octave.tolist()))]
         kps, desc = self.orb.compute(image, kps)
         if desc is None or not kps:
             return KeyframeFeatures(np.zeros((0, 32), np.uint8), np.zeros((0, 2)), np.zeros((0, 3)))
