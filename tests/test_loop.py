@@ -435,3 +435,33 @@ def test_pyramid_levels_match_a_view_from_further_off(loop_flight):
     two = _scale_consistent_matches(FeatureExtractor(cam, 300, levels=2, level_scale=1.44), img, far, s, x0, y0)
     print(f"scale-consistent matches at 1/{s}: one level {one}, two levels {two}")
     assert two >= 2 * max(one, 10)
+
+
+def test_corners_spread_over_the_image_and_survive_a_dim_one(loop_flight):
+    """FAST corners: every grid cell with texture gets its share before the strongest rest (a bright patch
+    cannot take them all), a dim copy of the image is searched again at half the threshold and still gives
+    its 300, and a black image gives none (no error)."""
+    import cv2
+
+    from vio.io.euroc import EurocDataset
+    from vio.loop.features import GRID, FeatureExtractor, spread_corners
+
+    rng = np.random.default_rng(3)
+    uv = np.column_stack([rng.uniform(0, 752, 4000), rng.uniform(0, 480, 4000)])
+    response = rng.uniform(0, 1, 4000)
+    response[(uv[:, 0] < 94) & (uv[:, 1] < 80)] += 10  # one cell far stronger than the rest
+    pick = spread_corners(uv, response, (480, 752), 300)
+    assert len(pick) == 300 and len(np.unique(pick)) == 300
+    cells = np.minimum((uv[pick, 1] * GRID[1] / 480).astype(int), GRID[1] - 1) * GRID[0] + \
+        np.minimum((uv[pick, 0] * GRID[0] / 752).astype(int), GRID[0] - 1)
+    assert np.bincount(cells, minlength=GRID[0] * GRID[1]).min() >= 300 // (GRID[0] * GRID[1])
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    ex = FeatureExtractor(ds.calibration.cam0, 300)
+    dim = (img.astype(np.float32) * 0.35).astype(np.uint8)
+    assert len(ex.fast.detect(dim, None)) < 600  # too few at the full threshold...
+    assert len(ex.corners(dim)[0]) == 300  # ...so the second search at half of it fills the share
+    uv0, octave = ex.corners(np.zeros_like(img))
+    assert len(uv0) == 0 and len(octave) == 0
+    assert len(ex.extract(np.zeros_like(img), None).desc) == 0
