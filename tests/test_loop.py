@@ -465,3 +465,27 @@ def test_corners_spread_over_the_image_and_survive_a_dim_one(loop_flight):
     uv0, octave = ex.corners(np.zeros_like(img))
     assert len(uv0) == 0 and len(octave) == 0
     assert len(ex.extract(np.zeros_like(img), None).desc) == 0
+
+
+def test_pose_graph_solves_a_loose_segment_prior_beside_tight_loop_edges():
+    """Recorded from bench/loop_reloc.py (second flight seed 13, the laps map): a flight not yet relocalised in
+    a loaded map (its segment held only by the loose 100 m / 180 deg prior) closes a loop on itself. With
+    Cholesky alone the decision graph's least squares threw "indeterminate linear system" and the loop stage
+    stopped for the rest of the flight; the solves now fall back to QR."""
+    from pathlib import Path
+
+    from vio.config import LoopConfig
+    from vio.loop.posegraph import GraphNoise, PoseGraph
+
+    z = np.load(Path(__file__).with_name("data") / "reloc_graph_loose_prior.npz")
+    c = LoopConfig()
+    g = PoseGraph(GraphNoise(odom_trans_per_m=c.odom_sigma_per_m, loop_trans_m=c.loop_sigma_m,
+                             loop_rot_rad=np.radians(c.loop_sigma_deg)))
+    for T, prev, prior in zip(z["T_odom"], z["prev"], z["prior"]):
+        g.add_node(T, None if prev < 0 else int(prev), None if np.isnan(prior[0]) else tuple(prior))
+    assert z["optimize_at"].tolist() == [[len(z["T_odom"]), len(z["loop_T"])]]
+    for (i, j), T, n in zip(z["loop_ij"], z["loop_T"], z["loop_inliers"]):
+        g.add_loop(int(i), int(j), T, int(n))
+    out = g.optimize()
+    assert out["loop_weights"] == [1.0, 1.0]
+    assert np.isfinite(np.array(g.estimate)).all()
