@@ -2,7 +2,7 @@
 
 The inverted file is held as numpy arrays so that a query is a handful of vectorised operations however many
 words it has: the postings of all but the newest images sorted by word (CSR: `_start[w]` .. `_start[w + 1]`),
-and the newest images (`_tail`) as they came, merged into the sorted part every TAIL images."""
+and the newest images (from `_sorted` on) as they came, merged into the sorted part every TAIL images."""
 
 from __future__ import annotations
 
@@ -47,12 +47,16 @@ class BowIndex:
             self._merge()
         return len(self.vectors) - 1
 
+    def _tail_postings(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The unsorted images' postings as flat (word, image, weight) arrays, in image order."""
+        tail = self.vectors[self._sorted:]
+        return (np.concatenate([v.words for v in tail]),
+                np.repeat(np.arange(self._sorted, len(self.vectors)), [len(v) for v in tail]),
+                np.concatenate([v.weights for v in tail]))
+
     def _merge(self) -> None:
         """Move the tail into the sorted postings: each word's new images go after its old ones."""
-        tail = self.vectors[self._sorted:]
-        words = np.concatenate([v.words for v in tail])
-        img = np.repeat(np.arange(self._sorted, len(self.vectors)), [len(v) for v in tail])
-        w = np.concatenate([v.weights for v in tail])
+        words, img, w = self._tail_postings()
         order = np.argsort(words, kind="stable")  # by word, then by image (the tail is in image order)
         words, img, w = words[order], img[order], w[order]
         old_count = np.diff(self._start)
@@ -89,11 +93,8 @@ class BowIndex:
         if self._sorted < len(self.vectors):
             dense = np.zeros(self.n_words)
             dense[v.words] = v.weights
-            tail = self.vectors[self._sorted:]
-            words = np.concatenate([t.words for t in tail])
-            img = np.repeat(np.arange(self._sorted, len(self.vectors)), [len(t) for t in tail])
-            acc += np.bincount(img, np.minimum(dense[words], np.concatenate([t.weights for t in tail])),
-                               minlength=len(self.vectors))
+            words, img, w = self._tail_postings()
+            acc += np.bincount(img, np.minimum(dense[words], w), minlength=len(self.vectors))
         order = np.argsort(-acc, kind="stable")  # best score first
         out = []
         for i in order:

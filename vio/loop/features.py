@@ -19,7 +19,6 @@ from vio.types import FeatureFrame
 
 PATCH = 19  # BRIEF patch size [px]; corners closer than BORDER to the image edge cannot be described
 BORDER = 20
-SAME_PX = 0  # a corner this near (pixels, each axis, rounded) a front-end stereo point is that point
 GRID = (8, 6)  # cells across, down: each gets its share of the corners before the strongest rest
 
 
@@ -54,20 +53,14 @@ def spread_corners(uv: np.ndarray, response: np.ndarray, shape: tuple[int, int],
     return np.concatenate([first, rest])[:n]
 
 
-def near(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(N,) bool: is uv within SAME_PX pixels (each axis, rounded) of a point of ref? One occupancy image,
-    not an N x M distance table (points outside the image are clamped to its edge)."""
+def same_pixel(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(N,) bool: does uv round to the pixel of a point of ref (points outside the image clamped to its edge)?"""
     h, w = shape
-    r = SAME_PX
-    occ = np.zeros((h + 4 * r + 1, w + 4 * r + 1), bool)  # pixel (x, y) at [y + 2r, x + 2r]
-    ix = np.clip(np.rint(ref[:, 0]).astype(np.int64), -r, w + r) + 2 * r
-    iy = np.clip(np.rint(ref[:, 1]).astype(np.int64), -r, h + r) + 2 * r
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            occ[iy + dy, ix + dx] = True
-    qx = np.clip(np.rint(uv[:, 0]).astype(np.int64), -r, w + r) + 2 * r
-    qy = np.clip(np.rint(uv[:, 1]).astype(np.int64), -r, h + r) + 2 * r
-    return occ[qy, qx]
+
+    def key(p: np.ndarray) -> np.ndarray:
+        return np.clip(np.rint(p[:, 1]), 0, h).astype(np.int64) * (w + 1) + \
+            np.clip(np.rint(p[:, 0]), 0, w).astype(np.int64)
+    return np.isin(key(uv), key(ref))
 
 
 class FeatureExtractor:
@@ -123,7 +116,7 @@ class FeatureExtractor:
             uv_st = distort_px(self.cam, ff.uv0[ok]).astype(np.float32)
             if len(uv_st) and len(uv_all):
                 # a corner on a stereo point would be its twin descriptor and fail every match's ratio test
-                apart = ~(near(uv_all, uv_st, image.shape[:2]) & (octave == 0))
+                apart = ~(same_pixel(uv_all, uv_st, image.shape[:2]) & (octave == 0))
                 uv_all, octave = uv_all[apart], octave[apart]
             p3 = np.vstack([np.full((len(uv_all), 3), np.nan), xyz])
             uv_all = np.vstack([uv_all, uv_st])
