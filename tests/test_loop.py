@@ -489,3 +489,46 @@ def test_pose_graph_solves_a_loose_segment_prior_beside_tight_loop_edges():
     out = g.optimize()
     assert out["loop_weights"] == [1.0, 1.0]
     assert np.isfinite(np.array(g.estimate)).all()
+
+
+def _stereo_keyframe(P_cam: np.ndarray, desc: np.ndarray, rng: np.random.Generator, K: np.ndarray,
+                     baseline_m: float, noise_px: float = 0.3):
+    """KeyframeFeatures of points P_cam seen by a stereo pair: pixel and disparity each noise_px off, the 3D
+    point back-projected from them (as the front end's stereo depth is)."""
+    from vio.loop.features import KeyframeFeatures
+
+    fx, cx, cy = K[0, 0], K[0, 2], K[1, 2]
+    z = P_cam[:, 2]
+    uv = P_cam[:, :2] / z[:, None] * fx + [cx, cy] + rng.normal(0, noise_px, (len(z), 2))
+    zz = fx * baseline_m / (fx * baseline_m / z + rng.normal(0, noise_px, len(z)))
+    return KeyframeFeatures(desc, uv, np.column_stack([(uv - [cx, cy]) / fx * zz[:, None], zz]))
+
+
+def test_edge_refinement_weighs_far_stereo_depths_by_their_disparity():
+    """Half the points 2-4 m away, half 8-15 m (where 0.3 px of disparity is 0.3-1 m of depth): PnP takes the
+    far depths as exact and its translation is off by millimetres; the two-view adjustment halves that."""
+    from vio.geometry import inv_T
+    from vio.loop.closer import _mean_pose
+    from vio.loop.verify import pnp, refine_edge
+
+    K = np.array([[460.0, 0, 376], [0, 460, 240], [0, 0, 1]])
+    b = 0.11
+    T_old_new = make_T(so3_exp(np.radians([1.0, 6.0, 2.0])), np.array([0.5, 0.1, 0.2]))
+    kw = dict(max_hamming=60, ratio=0.8, reproj_px=2.0, min_inliers=20)
+    err_mean, err_refined = [], []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        z = np.where(rng.random(150) < 0.5, rng.uniform(2, 4, 150), rng.uniform(8, 15, 150))
+        P = np.column_stack([rng.uniform(-0.7, 0.7, 150) * z, rng.uniform(-0.45, 0.45, 150) * z, z])
+        Pn = P @ T_old_new[:3, :3] - T_old_new[:3, :3].T @ T_old_new[:3, 3]  # in the new camera
+        seen = (Pn[:, 2] > 1) & (np.abs(Pn[:, 0] / Pn[:, 2]) < 0.8) & (np.abs(Pn[:, 1] / Pn[:, 2]) < 0.5)
+        desc = rng.integers(0, 256, (int(seen.sum()), 32), dtype=np.uint8)
+        old = _stereo_keyframe(P[seen], desc, rng, K, b)
+        new = _stereo_keyframe(Pn[seen], desc, rng, K, b)
+        fwd, back = pnp(old, new, K, np.eye(4), **kw), pnp(new, old, K, np.eye(4), **kw)
+        assert fwd is not None and back is not None and len(fwd.pairs) == fwd.inliers
+        T_mean = _mean_pose(fwd.T_old_new, inv_T(back.T_old_new))
+        T_ref = refine_edge(old, new, fwd, back, K, b, np.eye(4), T_mean)
+        err_mean.append(np.linalg.norm(T_mean[:3, 3] - T_old_new[:3, 3]))
+        err_refined.append(np.linalg.norm(T_ref[:3, 3] - T_old_new[:3, 3]))
+    assert np.mean(err_refined) < 0.6 * np.mean(err_mean), (np.mean(err_refined), np.mean(err_mean))

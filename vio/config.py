@@ -330,6 +330,9 @@ class LoopConfig:
     match_ratio: float = opt(0.8, "ratio test between the best and second-best match", min=0.1, max=1)
     min_inliers: int = opt(20, "PnP RANSAC inliers a candidate needs", min=6, max=1000)
     reproj_threshold_px: float = opt(2.0, "PnP inlier reprojection threshold", min=0.1, max=20)
+    refine_edges: bool = opt(False, "re-estimate a verified edge from both PnPs' inliers in one two-view bundle "
+                             "adjustment that weighs each stereo depth by its disparity (edges ~15 % more "
+                             "accurate, +1.2 ms per keyframe; docs/loop-closure.md)")
     two_way_m: float = opt(0.03, "PnP both ways (old landmarks in the new image and new in the old) must agree "
                            "within this distance", min=0.001, max=10)
     two_way_deg: float = opt(0.5, "and this angle", min=0.01, max=90)

@@ -24,7 +24,7 @@ from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
 from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
 from vio.loop.posegraph import GraphNoise, PoseGraph
-from vio.loop.verify import gravity_disagreement_deg, pnp
+from vio.loop.verify import gravity_disagreement_deg, pnp, refine_edge
 from vio.loop.vocabulary import Vocabulary
 from vio.types import FeatureFrame
 
@@ -87,6 +87,7 @@ class LoopCloser:
     def __init__(self, calib: StereoCalibration, cfg: LoopConfig, vocabulary: Vocabulary | None = None) -> None:
         self.cfg = cfg
         self.cam = calib.cam0
+        self.baseline_m = calib.baseline_m
         self.vocab = vocabulary or Vocabulary.load(cfg.vocabulary or None)
         self.extractor = FeatureExtractor(calib.cam0, cfg.orb_features, cfg.fast_threshold, cfg.orb_levels,
                                           cfg.orb_level_scale)
@@ -179,12 +180,18 @@ class LoopCloser:
                 continue
             back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
                        ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
-            if back is None or not _agree(res.T_old_new @ back.T_old_new, *(
-                    (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg))):
+            two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
+            if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
                 reason = "two-way"
                 continue
-            res = dataclasses.replace(res, T_old_new=_mean_pose(res.T_old_new, inv_T(back.T_old_new)),
-                                      inliers=min(res.inliers, back.inliers))
+            T_edge = _mean_pose(res.T_old_new, inv_T(back.T_old_new))
+            if c.refine_edges:
+                T_ref = refine_edge(old.feats, kf.feats, res, back, self.cam.K, self.baseline_m,
+                                    self.cam.T_body_cam, T_edge)
+                # the two PnPs agreed within the two-way tolerance: a refinement that leaves it is not trusted
+                if T_ref is not None and _agree(inv_T(T_edge) @ T_ref, *two_way):
+                    T_edge = T_ref
+            res = dataclasses.replace(res, T_old_new=T_edge, inliers=min(res.inliers, back.inliers))
             tilt = gravity_disagreement_deg(g.estimate[j][:3, :3], g.odom[i][:3, :3], res.T_old_new[:3, :3])
             if tilt > c.gravity_max_deg:
                 reason = "gravity"
