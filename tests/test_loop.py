@@ -532,3 +532,46 @@ def test_edge_refinement_weighs_far_stereo_depths_by_their_disparity():
         err_mean.append(np.linalg.norm(T_mean[:3, 3] - T_old_new[:3, 3]))
         err_refined.append(np.linalg.norm(T_ref[:3, 3] - T_old_new[:3, 3]))
     assert np.mean(err_refined) < 0.6 * np.mean(err_mean), (np.mean(err_refined), np.mean(err_mean))
+
+
+def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(loop_flight, monkeypatch, caplog):
+    """The same image at the same place after a 4 m excursion: a true closure. Its decision solve fails once
+    (as an ill-conditioned graph's did before the QR fallback); that closure is taken back, logged and
+    counted, and the next one is accepted as if nothing had happened."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.posegraph import PoseGraph
+    from vio.types import FeatureFrame
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    closer = LoopCloser(ds.calibration, LoopConfig(exclude_recent_s=1.0, min_consistent=1))
+    uv = closer.extractor.extract(img, FeatureFrame.empty(0, "")).uv
+    ff = FeatureFrame(0, np.arange(len(uv)), uv, uv, np.full(len(uv), 3.0), np.ones(len(uv), np.int64))
+    closer.add_keyframe(0, np.eye(4), img, ff)
+    for k, x in enumerate((1.0, 2.0, 1.0), start=1):  # out and back, 2 s apart
+        closer.add_keyframe(int(2e9 * k), make_T(np.eye(3), [x, 0, 0]), np.zeros_like(img), None)
+
+    calls = []
+    real_fits = PoseGraph._fits
+
+    def fits_once_broken(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("Indeterminant linear system detected while working near variable 4")
+        return real_fits(self, *a, **k)
+
+    monkeypatch.setattr(PoseGraph, "_fits", fits_once_broken)
+    back = make_T(np.eye(3), [0.01, 0, 0])
+    with caplog.at_level("WARNING", logger="vio.loop.closer"):
+        assert not closer.add_keyframe(int(8e9), back, img, ff)
+    assert closer.stats.refused["solve failed"] == 1 and closer.stats.accepted == 0
+    assert not [e for e in closer.graph.edges if e.kind == "loop"]
+    assert "did not solve" in caplog.text and "edges taken back" in caplog.text
+    assert closer.add_keyframe(int(10e9), back, img, ff)  # the stage goes on: the next closure is accepted
+    assert closer.stats.accepted >= 1 and len(calls) == 2
+    assert [e for e in closer.graph.edges if e.kind == "loop" and e.weight >= 0.5]
+    assert closer.correction()[0, 3] < 0  # pulled back toward the start, where the images say it is

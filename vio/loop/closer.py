@@ -23,7 +23,7 @@ from vio.config import LoopConfig
 from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
 from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
-from vio.loop.posegraph import GraphNoise, PoseGraph
+from vio.loop.posegraph import DecisionError, GraphNoise, PoseGraph
 from vio.loop.verify import gravity_disagreement_deg, pnp, refine_edge
 from vio.loop.vocabulary import Vocabulary
 from vio.types import FeatureFrame
@@ -64,7 +64,7 @@ class LoopStats:
     keyframes: int = 0
     queried: int = 0
     refused: dict = field(default_factory=lambda: dict.fromkeys(
-        ("no candidate", "pnp", "two-way", "gravity", "drift gate", "inconsistent"), 0))
+        ("no candidate", "pnp", "two-way", "gravity", "drift gate", "inconsistent", "solve failed"), 0))
     accepted: int = 0
     switched_off: int = 0
     gnc_decisions: int = 0  # closures after which the robust decision ran (the others fitted: fast path)
@@ -130,11 +130,22 @@ class LoopCloser:
         self.keyframes.append(kf)
         self.index.add(bow)
         self.stats.keyframes += 1
+        before = (len(self.graph.edges), dict(self._component), self.relocalised_t_ns, self.stats.accepted)
         accepted = self._detect(i, bow)
         self.stats.detect_ms.append((time.perf_counter() - t0) * 1e3)
         if accepted:
             t1 = time.perf_counter()
-            self.graph.optimize()
+            try:
+                self.graph.optimize()
+            except DecisionError as e:
+                # one closure whose graph does not solve costs that closure, not the stage for the rest of the
+                # flight: its edges are taken back and the graph is as it was before this keyframe
+                n = self.graph.drop_loops_from(before[0])
+                _, self._component, self.relocalised_t_ns, self.stats.accepted = before
+                self.stats.refused["solve failed"] += 1
+                log.warning("loop closure at keyframe %d (t %.3f s) dropped, %d edges taken back: the pose graph "
+                            "did not solve (%s)", i, t_ns * 1e-9, n, e)
+                return False
             self.stats.optimize_ms.append((time.perf_counter() - t1) * 1e3)
             self.stats.switched_off = sum(1 for e in self.graph.edges if e.kind == "loop" and e.weight < 0.5)
             self.stats.gnc_decisions = self.graph.decisions

@@ -40,6 +40,11 @@ def _cholesky_else_qr(solve):
         return solve("MULTIFRONTAL_QR")
 
 
+class DecisionError(RuntimeError):
+    """The decision solve after new loop edges failed. Raised before iSAM2 or any edge's weight is touched, so
+    the caller can take the new edges back (`drop_loops_from`) and go on with the graph as it was."""
+
+
 @dataclass(frozen=True)
 class GraphNoise:
     odom_rot_rad: float = 0.002  # per edge
@@ -132,6 +137,15 @@ class PoseGraph:
 
     def add_loop(self, i: int, j: int, T_i_j: np.ndarray, inliers: int = 0) -> None:
         self.edges.append(Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers))
+
+    def drop_loops_from(self, first: int) -> int:
+        """Take back the loop edges added since self.edges had `first` entries (not yet in iSAM2: after a
+        DecisionError); returns how many."""
+        tail = self.edges[first:]
+        if any(e.kind != "loop" for e in tail) or any(k in self._in_isam for k in range(first, len(self.edges))):
+            raise ValueError("only loop edges not yet solved can be taken back")
+        del self.edges[first:]
+        return len(tail)
 
     def _odom_sigmas(self, T: np.ndarray) -> np.ndarray:
         n = self.noise
@@ -241,12 +255,16 @@ class PoseGraph:
         the fact, a wrongly refused one comes back. Returns {'loop_weights': [...], 'decided': bool}."""
         loops = [k for k, e in enumerate(self.edges) if e.kind == "loop"]
         if loops:
-            known, values = self._condensed(loops)
-            if decide or not self._fits(known, values, [k for k in loops if self.edges[k].weight >= 0.5]):
-                decide = True
-                for k, w in zip(loops, self._decide(known, values, loops)):
-                    self.edges[k].weight = w
-                self.decisions += 1
+            try:
+                known, values = self._condensed(loops)
+                if decide or not self._fits(known, values, [k for k in loops if self.edges[k].weight >= 0.5]):
+                    weights = self._decide(known, values, loops)
+                    decide = True
+                    for k, w in zip(loops, weights):
+                        self.edges[k].weight = w
+                    self.decisions += 1
+            except RuntimeError as e:  # gtsam's solver errors (an indeterminate system that QR could not solve)
+                raise DecisionError(f"{type(e).__name__}: {e}") from e
         self._sync(loops)
         return {"loop_weights": [self.edges[k].weight for k in loops], "decided": decide}
 
