@@ -108,23 +108,27 @@ def test_vocabulary_retrieves_the_same_place_in_unseen_images(loop_flight):
     assert total >= 5 and hits >= 0.5 * total
 
 
-def test_false_place_is_refused_by_the_drift_gate(loop_flight):
-    """The same image at a place 3 m away (two identical shelves): PnP passes, the drift gate refuses."""
+def _closer_with_landmark_image(loop_flight):
+    """A loop stage that closes on one seen place (exclude_recent_s 1, min_consistent 1), one of the flight's
+    images, and its FeatureFrame with every corner a stereo point 3 m away, so that the image carries landmarks."""
     import cv2
 
     from vio.config import LoopConfig
     from vio.io.euroc import EurocDataset
     from vio.loop.closer import LoopCloser
+    from vio.types import FeatureFrame
 
     ds = EurocDataset(loop_flight)
     img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
     closer = LoopCloser(ds.calibration, LoopConfig(exclude_recent_s=1.0, min_consistent=1))
-    from vio.types import FeatureFrame
-    ff = FeatureFrame.empty(0, "")
-    # stereo points: give every ORB corner a depth of 3 m so that the image carries landmarks
-    feats = closer.extractor.extract(img, ff)
-    uv = feats.uv
+    uv = closer.extractor.extract(img, FeatureFrame.empty(0, "")).uv
     ff = FeatureFrame(0, np.arange(len(uv)), uv, uv, np.full(len(uv), 3.0), np.ones(len(uv), np.int64))
+    return closer, img, ff
+
+
+def test_false_place_is_refused_by_the_drift_gate(loop_flight):
+    """The same image at a place 3 m away (two identical shelves): PnP passes, the drift gate refuses."""
+    closer, img, ff = _closer_with_landmark_image(loop_flight)
     closer.add_keyframe(0, np.eye(4), img, ff)
     for k in range(1, 4):  # flying away: 1 m per keyframe, 2 s apart
         closer.add_keyframe(int(2e9 * k), make_T(np.eye(3), [1.0 * k, 0, 0]), np.zeros_like(img), None)
@@ -538,19 +542,9 @@ def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(l
     """The same image at the same place after a 4 m excursion: a true closure. Its decision solve fails once
     (as an ill-conditioned graph's did before the QR fallback); that closure is taken back, logged and
     counted, and the next one is accepted as if nothing had happened."""
-    import cv2
-
-    from vio.config import LoopConfig
-    from vio.io.euroc import EurocDataset
-    from vio.loop.closer import LoopCloser
     from vio.loop.posegraph import PoseGraph
-    from vio.types import FeatureFrame
 
-    ds = EurocDataset(loop_flight)
-    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
-    closer = LoopCloser(ds.calibration, LoopConfig(exclude_recent_s=1.0, min_consistent=1))
-    uv = closer.extractor.extract(img, FeatureFrame.empty(0, "")).uv
-    ff = FeatureFrame(0, np.arange(len(uv)), uv, uv, np.full(len(uv), 3.0), np.ones(len(uv), np.int64))
+    closer, img, ff = _closer_with_landmark_image(loop_flight)
     closer.add_keyframe(0, np.eye(4), img, ff)
     for k, x in enumerate((1.0, 2.0, 1.0), start=1):  # out and back, 2 s apart
         closer.add_keyframe(int(2e9 * k), make_T(np.eye(3), [x, 0, 0]), np.zeros_like(img), None)
