@@ -206,6 +206,9 @@ def test_online_time_offset_needs_stereo_on_few_frames():
     # a correct calibration is kept against estimates within 2.5 sigma of it
     (0.0, [(-0.52, 1.67), (0.01, 0.44), (0.58, 0.39), (0.49, 0.30), (0.9, 0.3)], [None, None, None, None, 0.9]),
     (5.0, [(5.4, 0.3), (4.6, 0.2), (3.0, 0.2)], [None, None, 3.0]),
+    # an estimate that no longer differs significantly from the calibration puts the calibration's value back
+    # (a hard flight once kept -1.0 ms, truth 0, while its later estimates said -0.5 +- 0.5 ms)
+    (0.0, [(-1.0, 0.4), (-0.5, 0.4), (-0.4, 0.3)], [-1.0, 0.0, None]),
 ])
 def test_online_time_offset_applies_significant_changes_only(monkeypatch, calib_ms, estimates, applied):
     import types
@@ -227,6 +230,23 @@ def test_online_time_offset_applies_significant_changes_only(monkeypatch, calib_
     got = [est._solve() for _ in estimates]
     assert [None if g is None else round(g * 1e-6, 2) for g in got] == applied
     assert est.offset_ns == int(round(estimates[-1][0] * 1e6))  # the newest estimate is always kept
+
+
+def test_online_time_offset_is_not_applied_while_the_vehicle_barely_turns(monkeypatch):
+    """At rotation rates spreading by less than 0.2 rad/s an estimate is kept but not applied: on a slow survey
+    a -4.1 +- 1.2 ms estimate (truth 0) once replaced a correct calibration, and there an offset hardly matters."""
+    import types
+
+    import vio.backend.time_offset as bto
+    from vio.backend.time_offset import OnlineTimeOffset
+
+    est = OnlineTimeOffset(synthetic_calibration(), max_solves=100)
+    est._pairs.extend([(0, 1, np.zeros(3), 20, np.eye(3))] * 5)
+    for rate_std, applied in ((0.15, None), (0.3, -4.1)):
+        monkeypatch.setattr(bto, "estimate_time_offset", lambda *a, r=rate_std, **k: types.SimpleNamespace(
+            offset_s=-4.1e-3, sigma_s=1.2e-3, observable=True, n_pairs=5, rate_std_rad_s=r))
+        got = est._solve()
+        assert (None if got is None else round(got * 1e-6, 1)) == applied
 
 
 def test_online_time_offset_solves_wait_for_a_quiet_frame():

@@ -55,7 +55,8 @@ MIN_PAIRS = 40  # first solve after this many informative pairs, then again ever
 SOLVE_EVERY = 20
 PNP_MAX_DEPTH_M = 40.0  # farther stereo points hardly constrain the rotation's PnP translation coupling
 CHANGE_NS = 500_000  # smaller corrections are not applied (no jitter of the frame stamps)
-SIGNIFICANT_SIGMAS = 2.5  # an estimate replaces the applied offset only when this many sigmas away from it
+SIGNIFICANT_SIGMAS = 2.5  # an estimate replaces the calibration's offset only when this many sigmas away from it
+MIN_APPLY_RATE_STD_RAD_S = 0.2  # slower turning than this: an estimate is not applied (see _solve)
 TRACK_CHANGE_NS = 200_000  # while tracking, smaller changes of the predicted offset are not applied
 TRACK_STEP_NS = 50_000  # between solves the offset follows the fitted drift in steps of this size
 TRACK_HISTORY_WINDOWS = 1.5  # estimates of this many tracking windows back make the drift line
@@ -225,19 +226,25 @@ class OnlineTimeOffset:
         changed = None
         if self.tracking:
             return self._track(est, t0, t1)
-        if est is not None and est.observable and est.sigma_s <= min(self.accept_sigma_s, self.sigma_s * 1.5):
+        if (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
+                and est.sigma_s <= min(self.accept_sigma_s, self.sigma_s * 1.5)):
             new = self.base_ns + int(round(est.offset_s * 1e9))
             self.offset_ns, self.sigma_s = new, est.sigma_s
-            log.info("camera-IMU time offset %+.1f ms +- %.1f ms from %d frame pairs (solve %d)", new * 1e-6,
-                     est.sigma_s * 1e3, est.n_pairs, self.solves)
+            log.info("camera-IMU time offset %+.1f ms +- %.1f ms from %d frame pairs (solve %d, rotation std "
+                     "%.2f rad/s)", new * 1e-6, est.sigma_s * 1e3, est.n_pairs, self.solves, est.rate_std_rad_s)
             self.done = self.coarse_only or (est.sigma_s <= self.final_sigma_s
                                              and len(self._pairs) == self._pairs.maxlen)
-            # Compared with the applied offset, not the last estimate: estimates that creep by less than
-            # CHANGE_NS per solve must still get applied (they once left a 10 ms offset stuck 1.2 ms short).
-            # And only when significant: on the aggressive flights 0.5 ms of error costs ~2 cm of ATE, and
-            # estimates 1-2 sigma off a correct calibration replaced it with a worse value.
-            if abs(new - self.applied_ns) >= max(CHANGE_NS, SIGNIFICANT_SIGMAS * est.sigma_s * 1e9):
-                changed = self.applied_ns = new
+            # Only an estimate significantly off the calibration's value replaces it, and one that is not (any
+            # more) puts the calibration's back: on the aggressive flights 0.5 ms of error costs ~2 cm of ATE,
+            # estimates 1-2 sigma off a correct calibration replaced it with a worse value, and a 2.5-sigma
+            # -1.0 ms on a hard flight whose later estimates came back to -0.5 +- 0.5 ms stayed applied
+            # (ATE 20 -> 95 mm). Compared with the applied offset, not the last estimate: estimates that
+            # creep by less than CHANGE_NS per solve must still get applied (they once left a 10 ms offset
+            # stuck 1.2 ms short).
+            target = new if abs(new - self.base_ns) >= SIGNIFICANT_SIGMAS * est.sigma_s * 1e9 else self.base_ns
+            if abs(target - self.applied_ns) >= max(CHANGE_NS, SIGNIFICANT_SIGMAS * est.sigma_s * 1e9
+                                                    if target != self.base_ns else 0):
+                changed = self.applied_ns = target
         elif est is not None:
             log.debug("time offset solve %d: %+.1f ms +- %.1f ms, rotation std %.2f rad/s: not used", self.solves,
                       self.base_ns * 1e-6 + est.offset_s * 1e3, est.sigma_s * 1e3, est.rate_std_rad_s)
