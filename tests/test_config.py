@@ -119,6 +119,8 @@ def test_missing_and_binary_files(tmp_path):
     ("[mavlink]\nmount_rpy_deg = [180.0, 0.0, 0.0]\n", "set mount = 'rpy'"),
     ("[backend]\nvision_timeout_s = 2.0\nlost_timeout_s = 1.0\n", "must not exceed lost_timeout_s"),
     ("[frontend]\nmax_depth_m = 10.0\n", "must lie inside the front end"),
+    ("[backend]\nimu_noise_adaptive = true\nimu_noise_scale = 8.0\nimu_noise_max_scale = 4.0\n",
+     "below imu_noise_scale"),
 ])
 def test_contradicting_settings_are_refused(tmp_path, text, match):
     """A mounting given for the wrong mode would be silently ignored, and the IMU flown upside down."""

@@ -78,7 +78,18 @@ class BackendConfig:
     max_speed_m_s: float = opt(30.0, "velocity above which the estimate is implausible (reset)", min=1, max=1000)
     max_gyro_bias_rad_s: float = opt(0.3, "gyro bias above which the estimate is implausible", min=0.01, max=10)
     max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
-    imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities", min=0.1, max=100)
+    imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities (with imu_noise_adaptive: "
+                                 "the least the white noise is scaled by)", min=0.1, max=100)
+    imu_noise_adaptive: bool = opt(True, "on an airframe that shakes the IMU (its white noise, measured over the last "
+                                   "2 s, above imu_noise_adaptive_above x the calibration's density on some axis), "
+                                   "set the pre-integration's white noise per axis from that measurement")
+    imu_noise_adaptive_above: float = opt(15.0, "measured white noise, in multiples of the calibration's density on "
+                                          "the noisiest axis, above which the adaptive IMU noise engages (it lets "
+                                          "go below 0.8x this)", min=1, max=1000)
+    imu_noise_adaptive_gain: float = opt(0.5, "share of the measured white noise the adaptive IMU noise takes (motor "
+                                         "harmonics partly integrate out)", min=0.01, max=10)
+    imu_noise_max_scale: float = opt(100.0, "largest multiplier the adaptive IMU noise may put on the calibration's "
+                                     "densities", min=1, max=10000)
     extra_iterations: int = opt(1, "extra relinearisation passes per keyframe, only when the solve moved the newest "
                                 "pose by more than extra_iteration_gate", min=0, max=10)
     extra_iteration_gate: float = opt(0.02, "newest-pose correction [m, rad] that triggers the extra passes",
@@ -471,6 +482,9 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if src.kind == "sitl" and len(src.sitl_home) != 3:
         raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m]")
     b, f = cfg.backend, cfg.frontend
+    if b.imu_noise_adaptive and b.imu_noise_max_scale < b.imu_noise_scale:
+        raise VioError(f"{source}: [backend] imu_noise_max_scale = {b.imu_noise_max_scale} is below imu_noise_scale "
+                       f"= {b.imu_noise_scale}, the least the adaptive IMU noise uses")
     if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
         raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "
                        f"front end's {f.min_depth_m}..{f.max_depth_m} m (points outside it are never matched)")

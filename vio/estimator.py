@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from vio.backend.preintegration import combined_params
+from vio.backend.preintegration import combined_params, measured_white_scale
 from vio.backend.smoother import SmootherFailure, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 
 IMU_KEEP_S = 3.0  # IMU history kept behind the newest sample (init windows, pending frames)
 IMU_KEEP_NS = int(IMU_KEEP_S * 1e9)
+IMU_NOISE_WINDOW_NS = 2_000_000_000  # IMU history measured at each keyframe (adaptive noise)
+IMU_NOISE_HISTORY_NS = 10_000_000_000  # keyframe measurements whose per-axis median sets the noise (adaptive noise)
+IMU_NOISE_MIN_READINGS = 10  # keyframe measurements before the adaptive noise may engage (a median of a few is noisy)
 BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
 BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
 OMEGA_WINDOW_NS = 10_000_000  # gyro averaged over this much before a keyframe for the time offset state's twist
@@ -206,9 +209,9 @@ class Estimator:
         self._flow_px = float("inf")  # median feature motion since the previous frame
         self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
         # continuous noise densities (variance per second), for the IMU-rate covariance growth
-        self._gyro_var_diag = np.diag(np.diag(np.asarray(self.params.getGyroscopeCovariance())))
-        self._gyro_var_mean = float(np.trace(self._gyro_var_diag)) / 3.0
-        self._accel_var_diag = np.diag(np.diag(np.asarray(self.params.getAccelerometerCovariance())))
+        self.white_scale: np.ndarray | None = None  # adaptive IMU noise: the scale in use (gyro xyz, accel xyz)
+        self._white_readings: deque[tuple[int, np.ndarray]] = deque()  # (t, measured scale) per keyframe
+        self._use_params(self.params)
         self._g2_horizontal = np.diag([9.81 ** 2, 9.81 ** 2, 0.0])
         self.frames_unusable = 0
         self.unusable_reasons: dict[str, int] = {}
@@ -616,7 +619,7 @@ class Estimator:
         elif (self.keyframes - 1) % self.bcfg.covariance_every_kf == 0:
             run.marginal_due = True
         self._cov_pose, self._cov_vel = run.kf_cov_pose, run.kf_cov_vel
-        run.pim = gtsam.PreintegratedCombinedMeasurements(self.params, est.bias)
+        run.pim = gtsam.PreintegratedCombinedMeasurements(self._interval_params(t), est.bias)
         if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
             self.tracker.mark_keyframe()
         pose = est.pose.matrix()
@@ -626,6 +629,55 @@ class Estimator:
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
         self._update_health(t, ff)
         return self._frame_state(t, pose, est.velocity, bias)
+
+    def _use_params(self, params: gtsam.PreintegrationCombinedParams) -> None:
+        """Noise of the pre-integration from here on; the IMU-rate covariance growth follows it."""
+        self._params_now = params
+        self._gyro_var_diag = np.diag(np.diag(np.asarray(params.getGyroscopeCovariance())))
+        self._gyro_var_mean = float(np.trace(self._gyro_var_diag)) / 3.0
+        self._accel_var_diag = np.diag(np.diag(np.asarray(params.getAccelerometerCovariance())))
+
+    def _interval_params(self, t: int) -> gtsam.PreintegrationCombinedParams:
+        """Pre-integration noise for the keyframe interval starting at t.
+
+        With `imu_noise_adaptive`, once the IMU samples (2 s windows, per-axis median over the last 10 s) show a
+        white noise above `imu_noise_adaptive_above` times the calibration's density on some axis, each axis's
+        white noise is `imu_noise_adaptive_gain` times what it shows (never below `imu_noise_scale`), until the
+        noisiest axis falls below 0.8 of the threshold. Why: an IMU factor that claims datasheet noise on a
+        shaking airframe outweighs the images it should be checked against, and the smoother's covariance then
+        claims more than it knows (docs/estimator.md, "IMU noise on a shaking airframe"). Below the threshold (a
+        normal airframe: the simulator's realistic variant reads 7-12x) the configured noise is left exactly as
+        it is."""
+        b = self.bcfg
+        if not b.imu_noise_adaptive:
+            return self.params
+        k = measured_white_scale(self.calib.imu, *self.imu.window(t - IMU_NOISE_WINDOW_NS, t))
+        if k is None:
+            return self._params_now
+        readings = self._white_readings
+        readings.append((t, k))
+        while readings and readings[0][0] < t - IMU_NOISE_HISTORY_NS:
+            readings.popleft()
+        # median over ~10 s: a 2 s window of a normal airframe reads up to ~2x its typical level
+        k = np.median(np.array([r for _, r in readings]), axis=0)
+        level = float(np.max(k))
+        if self.white_scale is None and (level <= b.imu_noise_adaptive_above or len(readings) < IMU_NOISE_MIN_READINGS):
+            return self._params_now
+        if self.white_scale is not None and level < 0.8 * b.imu_noise_adaptive_above:
+            log.info("IMU white noise down to %.1fx the calibration's density: pre-integration noise back to "
+                     "imu_noise_scale %.1f", level, b.imu_noise_scale)
+            self.white_scale = None
+            self._use_params(self.params)
+            return self._params_now
+        scale = np.clip(k * b.imu_noise_adaptive_gain, b.imu_noise_scale, b.imu_noise_max_scale)
+        if self.white_scale is not None and np.all(np.abs(scale / self.white_scale - 1.0) < 0.05):
+            return self._params_now  # the same within 5 %: no new parameter object
+        if self.white_scale is None:
+            log.info("IMU white noise reads %.1fx the calibration's density (gyro %s, accel %s: vibration): "
+                     "pre-integration noise follows it", level, np.round(k[:3], 1), np.round(k[3:], 1))
+        self.white_scale = scale
+        self._use_params(combined_params(self.calib.imu, b.imu_noise_scale, white_scale=scale))
+        return self._params_now
 
     def _marginal(self) -> None:
         """The newest keyframe's marginal covariances replace the grown ones (a few ms, up to ~10)."""
