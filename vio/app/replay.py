@@ -276,6 +276,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
                                                  "final": est.time_offset_estimate_ns * 1e-6},
+                              "imu_white_scale": None if est.white_scale is None
+                              else [round(float(x), 2) for x in est.white_scale],
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},

@@ -54,6 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the time offset drifts by +-MS around --time-offset-ms (a sinusoid, see --drift-period)")
     p.add_argument("--drift-period", type=float, default=60.0, metavar="S",
                    help="period of the time offset drift in s (default: 60)")
+    p.add_argument("--imu-from", metavar="EUROC_DIR", default=None,
+                   help="a real recording (EuRoC layout with imu0 and ground truth, e.g. ../shared/data/euroc/"
+                        "V1_02_medium_imu_gt): its raw IMU and its ground-truth motion replace --profile and the IMU "
+                        "model; the images are rendered along that motion (the variant's image settings apply)")
+    p.add_argument("--recorded-start", type=float, default=0.0, metavar="S",
+                   help="with --imu-from: start this many seconds into the recording's ground truth (default: 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in OUT")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -79,9 +85,17 @@ def _window(text: str) -> tuple[float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vio import VioError
     from vio.sim.generate import SimConfig, simulate
 
     w, h = _size(args.size)
+    if args.imu_from is not None:
+        model = {"--gyro-bias": args.gyro_bias, "--accel-bias": args.accel_bias, "--vibration": args.vibration,
+                 "--no-imu-noise": args.no_imu_noise or None, "--imu-rate": None if args.imu_rate == 200.0 else 1}
+        given = [k for k, v in model.items() if v is not None]
+        if given:
+            raise VioError(f"{', '.join(given)}: the IMU of --imu-from is the recording's; these options change "
+                           "only the simulated IMU")
     cfg = SimConfig(profile=args.profile, duration_s=args.duration, seed=args.seed, variant=args.variant,
                     rate_hz=args.rate, imu_rate_hz=args.imu_rate, still_start_s=args.still_start,
                     time_offset_ms=args.time_offset_ms, camera_model=args.camera_model, width=w, height=h,
@@ -90,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
                     image_noise=args.image_noise, drop_frames=args.drop_frames, scene_seed=args.scene_seed,
                     aliasing_period_m=args.aliasing, scene=args.scene, calib_error=args.calib_error,
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
-                    time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period)
+                    time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
+                    imu_from=args.imu_from, recorded_start_s=args.recorded_start)
     summary = simulate(args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.line())
     return 0

@@ -84,6 +84,8 @@ class SimConfig:
     right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
     time_offset_period_s: float = 60.0  # period of that drift
+    imu_from: str | None = None  # a EuRoC recording: its IMU and ground truth replace profile and IMU model
+    recorded_start_s: float = 0.0  # with imu_from: where in the recording's ground truth the flight starts
 
     def resolved(self) -> SimConfig:
         """Copy with the variant's values filled in and every value checked (VioError naming the field)."""
@@ -111,6 +113,8 @@ class SimConfig:
         for start, length in cfg.right_dropouts:
             if not (start >= 0 and length > 0):
                 raise VioError(f"simulate: right dropout {start}:{length} needs start >= 0 and length > 0 s")
+        if cfg.recorded_start_s < 0:
+            raise VioError(f"simulate: recorded_start_s = {cfg.recorded_start_s} is negative")
         if cfg.imu_rate_hz < cfg.rate_hz:
             raise VioError(f"simulate: imu_rate_hz {cfg.imu_rate_hz} is below the camera rate {cfg.rate_hz}")
         return cfg
@@ -166,6 +170,10 @@ def _grid(duration_s: float, rate_hz: float) -> np.ndarray:
 def build(cfg: SimConfig) -> Simulation:
     """Resolve the config and make calibration, trajectory, scene and IMU (no rendering yet)."""
     cfg = cfg.resolved()
+    if cfg.imu_from is not None:
+        from vio.sim.recorded import build_recorded
+
+        return build_recorded(cfg)
     rng = np.random.default_rng([cfg.seed, 1])
     noise = ImuNoise(rate_hz=cfg.imu_rate_hz)
     calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
