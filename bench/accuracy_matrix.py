@@ -5,7 +5,9 @@
 Flights (60 s each; generated once by `vio simulate` into the bench flight cache, see bench/flights.py):
 5 seeds x (survey, aggressive) on the default (realistic) variant, plus hard cases: the hard variant, a
 camera-IMU time offset of +-10 ms that the calibration does *not* know (the replay's calibration says 0),
-5 % dropped frames, a 0.08 rad/s gyro bias, strong motor vibration and large plain (low-texture) walls.
+5 % dropped frames, a 0.08 rad/s gyro bias, strong motor vibration and large plain (low-texture) walls;
+and, where ../shared/data is, EuRoC V1_01's and V1_02's real IMU and ground truth under rendered images
+(`vio simulate --imu-from`, the whole recordings: 145 s and 83.5 s).
 
 Replays run one after the other in this process with one thread for OpenCV/BLAS (the machine is shared:
 start it under `nice`). Each result is kept as JSON in --out and reused unless --rerun, so an interrupted
@@ -56,6 +58,26 @@ class MatrixFlight(FlightSpec):
         return super().simulate_args(out) + list(self.extra)
 
 
+SHARED_EUROC = Path(os.environ.get("KESTREL_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) \
+    / "euroc"
+RECORDINGS = {"V1_01": "V1_01_easy_excerpt", "V1_02": "V1_02_medium_imu_gt"}  # real IMU + ground truth
+
+
+@dataclass(frozen=True)
+class RecordedFlight(MatrixFlight):
+    """A recording's real IMU and ground truth with rendered images (`vio simulate --imu-from`), whole."""
+
+    recording: str = "V1_02"
+
+    @property
+    def key(self) -> str:
+        return f"recorded-{self.recording}-{self.variant}-seed{self.seed}-{self.size}"
+
+    def simulate_args(self, out: Path) -> list[str]:
+        return ["simulate", str(out), "--imu-from", str(SHARED_EUROC / RECORDINGS[self.recording]), "--duration",
+                "3600", "--seed", str(self.seed), "--variant", self.variant, "--size", self.size, "--no-progress"]
+
+
 @dataclass(frozen=True)
 class Case:
     name: str
@@ -81,6 +103,11 @@ def cases(duration_s: float = 60.0) -> list[Case]:
         Case("aggr-vibration1.5", f("aggressive", 4, "realistic", "--vibration", "1.5"), note="vibration 1.5 m/s^2"),
         Case("survey-plain0.5", f("survey", 5, "realistic", "--plain", "0.5"), note="half the walls plain"),
     ]
+    # EuRoC's real IMU (vibration, biases, 18-60x its datasheet's noise) under rendered images; only where
+    # ../shared/data is (KESTREL_SHARED_DATA), whole recordings whatever --duration says
+    out += [Case(f"real-imu-{name}", RecordedFlight("recorded", 0.0, 1, "realistic", "752x480", recording=name),
+                 note=f"EuRoC {name}'s IMU and ground truth, rendered images")
+            for name, folder in RECORDINGS.items() if (SHARED_EUROC / folder / "mav0").is_dir()]
     return out
 
 

@@ -26,10 +26,12 @@ def test_recorded_flight_keeps_the_recordings_imu_and_truth(source, tmp_path):
     simulate(tmp_path / "r", SimConfig(imu_from=str(source), recorded_start_s=1.0, duration_s=2.0, variant="clean",
                                        **TINY))
     src, rec = EurocDataset(source), EurocDataset(tmp_path / "r")
-    # the IMU is the recording's, sample for sample, over the flight's two seconds
+    # the IMU is the recording's, sample for sample, over the flight's two seconds and 50 ms either side
     t0 = src.groundtruth.trajectory.t_ns[0] + 1_000_000_000
-    sel = (src.imu.t_ns >= t0) & (src.imu.t_ns <= t0 + 2_000_000_000)
-    assert len(rec.imu) == sel.sum() == 401
+    sel = (src.imu.t_ns >= t0 - 50_000_000) & (src.imu.t_ns <= t0 + 2_050_000_000)
+    assert len(rec.imu) == sel.sum() == 421
+    assert rec.imu.t_ns[0] < rec.cam0_t[0] and rec.imu.t_ns[-1] > rec.cam0_t[-1]
+    assert not rec.stats.notes, rec.stats.notes
     np.testing.assert_array_equal(rec.imu.gyro, src.imu.gyro[sel])
     np.testing.assert_array_equal(rec.imu.accel, src.imu.accel[sel])
     assert np.all(np.diff(rec.imu.t_ns) == np.diff(src.imu.t_ns[sel]))

@@ -86,8 +86,9 @@ class BackendConfig:
     imu_noise_adaptive_above: float = opt(15.0, "measured white noise, in multiples of the calibration's density on "
                                           "the noisiest axis, above which the adaptive IMU noise engages (it lets "
                                           "go below 0.8x this)", min=1, max=1000)
-    imu_noise_adaptive_gain: float = opt(0.5, "share of the measured white noise the adaptive IMU noise takes (motor "
-                                         "harmonics partly integrate out)", min=0.01, max=10)
+    imu_noise_adaptive_gain: float = opt(1.0, "share of the measured white noise the adaptive IMU noise takes (1: all "
+                                         "of it; smaller trusts that motor harmonics integrate out)", min=0.01,
+                                         max=10)
     imu_noise_max_scale: float = opt(100.0, "largest multiplier the adaptive IMU noise may put on the calibration's "
                                      "densities", min=1, max=10000)
     extra_iterations: int = opt(1, "extra relinearisation passes per keyframe, only when the solve moved the newest "

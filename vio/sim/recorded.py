@@ -36,6 +36,7 @@ from vio.trajectory import Trajectory
 log = logging.getLogger(__name__)
 
 CLEARANCE_M = 0.3  # the recorded path must stay this far from the scene's walls and boxes
+IMU_MARGIN_NS = 50_000_000
 
 
 @dataclasses.dataclass
@@ -172,7 +173,8 @@ def build_recorded(cfg):
     t0_ns = int(rec.truth.t_ns[0] + round(start_s * 1e9))
     t1_ns = t0_ns + int(round(duration_s * 1e9))
     keep = (rec.truth.t_ns >= t0_ns - 100_000_000) & (rec.truth.t_ns <= t1_ns + 100_000_000)  # 0.1 s margin
-    sel = (rec.imu_t_ns >= t0_ns) & (rec.imu_t_ns <= t1_ns)
+    # 50 ms of IMU beyond the frames at both ends: the first and last frame must lie inside the IMU's span
+    sel = (rec.imu_t_ns >= t0_ns - IMU_MARGIN_NS) & (rec.imu_t_ns <= t1_ns + IMU_MARGIN_NS)
     if sel.sum() < 2 or np.any(np.diff(rec.imu_t_ns[sel]) > 50_000_000):
         raise VioError(f"--imu-from {cfg.imu_from}: the IMU does not cover {start_s:g}-{start_s + duration_s:g} s "
                        "of the ground truth without gaps over 50 ms")
