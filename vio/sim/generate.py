@@ -173,7 +173,8 @@ def build(cfg: SimConfig) -> Simulation:
     if cfg.imu_from is not None:
         from vio.sim.recorded import build_recorded
 
-        return build_recorded(cfg)
+        cfg, calib, motion, scene, imu, written = build_recorded(cfg)
+        return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)
     rng = np.random.default_rng([cfg.seed, 1])
     noise = ImuNoise(rate_hz=cfg.imu_rate_hz)
     calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,

@@ -155,9 +155,8 @@ def _placement(scene, p: np.ndarray, step_m: float = 0.25) -> tuple[float, np.nd
 
 
 def build_recorded(cfg):
-    """A `vio.sim.generate.Simulation` from `cfg.imu_from` (cfg already resolved)."""
-    from vio.sim.generate import Simulation, _grid
-
+    """The parts of a `vio.sim.generate.Simulation` from `cfg.imu_from` (cfg already resolved): (cfg with the
+    duration the recording allows, calibration, motion, scene, IMU stream, written calibration)."""
     rec = read_recording(cfg.imu_from)
     span_s = (rec.truth.t_ns[-1] - rec.truth.t_ns[0]) * 1e-9
     start_s = cfg.recorded_start_s
@@ -200,4 +199,4 @@ def build_recorded(cfg):
     log.info("recorded flight from %s: %.1f s from %.1f s on, %d IMU samples; path turned %d deg about the "
              "vertical and moved by %s m, %.2f m clear of the scene", rec.path, duration_s, start_s, len(imu_t_s),
              round(np.degrees(yaw)), shift.round(2).tolist(), margin)
-    return Simulation(cfg, calib, motion, scene, imu, _grid(duration_s, cfg.rate_hz), written)
+    return cfg, calib, motion, scene, imu, written
