@@ -170,21 +170,21 @@ def _grid(duration_s: float, rate_hz: float) -> np.ndarray:
 def build(cfg: SimConfig) -> Simulation:
     """Resolve the config and make calibration, trajectory, scene and IMU (no rendering yet)."""
     cfg = cfg.resolved()
+    scene = make_scene(cfg.scene, cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
+                       cfg.plain_fraction, cfg.aliasing_period_m)
     if cfg.imu_from is not None:
         from vio.sim.recorded import build_recorded
 
-        cfg, calib, motion, scene, imu, written = build_recorded(cfg)
-        return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)
-    rng = np.random.default_rng([cfg.seed, 1])
-    noise = ImuNoise(rate_hz=cfg.imu_rate_hz)
-    calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
-                                int(round(cfg.time_offset_ms * 1e6)))
-    motion = make_profile(cfg.profile, cfg.duration_s, cfg.seed, still_s=cfg.still_start_s)
-    scene = make_scene(cfg.scene, cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
-                       cfg.plain_fraction, cfg.aliasing_period_m)
-    model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
-                     tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
-    imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))
+        cfg, calib, motion, imu = build_recorded(cfg, scene)
+    else:
+        rng = np.random.default_rng([cfg.seed, 1])
+        noise = ImuNoise(rate_hz=cfg.imu_rate_hz)
+        calib = default_calibration(cfg.camera_model, cfg.width, cfg.height, cfg.rate_hz, noise,
+                                    int(round(cfg.time_offset_ms * 1e6)))
+        motion = make_profile(cfg.profile, cfg.duration_s, cfg.seed, still_s=cfg.still_start_s)
+        model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
+                         tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
+        imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))
     written = calib if cfg.calib_error == 0 else \
         perturbed_calibration(calib, cfg.calib_error, np.random.default_rng([cfg.seed, 6]))
     return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)

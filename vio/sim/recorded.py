@@ -11,10 +11,11 @@ images", not as EuRoC results.
 
 The cameras are EuRoC's VI-sensor rig (`vio.sim.default_calibration`) mounted on the recording's IMU
 frame, which is exact for EuRoC recordings (the same ADIS16448 and rig); for another rig the images are
-still consistent with the motion, only the mount is EuRoC's. The trajectory is moved horizontally to the
-centre of the scene's room (its height kept: EuRoC's z is above the floor) and must stay 0.3 m clear of
-walls and crates. The variant's image settings (blur, noise, exposure, plain walls, dropped frames) apply;
-its IMU settings do not (the IMU is the recording's).
+still consistent with the motion, only the mount is EuRoC's. The trajectory is turned about the vertical
+and moved horizontally to where it is farthest from the scene's walls and boxes (`_placement`; its height
+kept: EuRoC's z is above the floor) and must stay 0.3 m clear of them. The variant's image settings
+(blur, noise, exposure, plain walls, dropped frames) apply; its IMU settings do not (the IMU is the
+recording's).
 """
 
 from __future__ import annotations
@@ -28,9 +29,9 @@ import numpy as np
 from vio import VioError
 from vio.calibration import ImuNoise, StereoCalibration
 from vio.geometry import make_T
-from vio.sim import _R_FLU_EUROC, default_calibration, perturbed_calibration
+from vio.sim import _R_FLU_EUROC, default_calibration
 from vio.sim.imu import ImuStream
-from vio.sim.scene import make_scene
+from vio.sim.scene import Scene
 from vio.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -132,7 +133,7 @@ def _rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _placement(scene, p: np.ndarray, step_m: float = 0.25) -> tuple[float, np.ndarray, float]:
+def _placement(scene: Scene, p: np.ndarray, step_m: float = 0.25) -> tuple[float, np.ndarray, float]:
     """Where the recorded path fits the scene best: a turn about the vertical (a multiple of 90 deg: the
     IMU, in the body frame, does not see it) and a horizontal shift (heights kept: EuRoC's z is above the
     floor), chosen for the largest clearance from walls and boxes. Returns (yaw, shift, clearance)."""
@@ -154,9 +155,10 @@ def _placement(scene, p: np.ndarray, step_m: float = 0.25) -> tuple[float, np.nd
     return best
 
 
-def build_recorded(cfg):
-    """The parts of a `vio.sim.generate.Simulation` from `cfg.imu_from` (cfg already resolved): (cfg with the
-    duration the recording allows, calibration, motion, scene, IMU stream, written calibration)."""
+def build_recorded(cfg, scene: Scene) -> tuple:
+    """The recording-specific parts of a `vio.sim.generate.Simulation` from `cfg.imu_from` (cfg already
+    resolved), the path placed in `scene`: (cfg with the duration the recording allows, calibration, motion,
+    IMU stream)."""
     rec = read_recording(cfg.imu_from)
     span_s = (rec.truth.t_ns[-1] - rec.truth.t_ns[0]) * 1e-9
     start_s = cfg.recorded_start_s
@@ -177,8 +179,6 @@ def build_recorded(cfg):
     if sel.sum() < 2 or np.any(np.diff(rec.imu_t_ns[sel]) > 50_000_000):
         raise VioError(f"--imu-from {cfg.imu_from}: the IMU does not cover {start_s:g}-{start_s + duration_s:g} s "
                        "of the ground truth without gaps over 50 ms")
-    scene = make_scene(cfg.scene, cfg.seed if cfg.scene_seed is None else cfg.scene_seed, cfg.texels_per_m,
-                       cfg.plain_fraction, cfg.aliasing_period_m)
     yaw, shift, margin = _placement(scene, rec.truth.p[keep])
     if margin < CLEARANCE_M:
         raise VioError(f"--imu-from {cfg.imu_from}: the recorded path does not fit in the {cfg.scene} scene "
@@ -194,9 +194,7 @@ def build_recorded(cfg):
     imu = ImuStream(imu_t_s, rec.gyro[sel], rec.accel[sel], bg, ba)
     motion = RecordedMotion(f"recorded:{rec.path.name}", truth, v_world, imu_t_s, rec.gyro[sel] - bg)
     calib = _rig_on_recorded_imu(cfg, rec.noise)
-    written = calib if cfg.calib_error == 0 else \
-        perturbed_calibration(calib, cfg.calib_error, np.random.default_rng([cfg.seed, 6]))
     log.info("recorded flight from %s: %.1f s from %.1f s on, %d IMU samples; path turned %d deg about the "
              "vertical and moved by %s m, %.2f m clear of the scene", rec.path, duration_s, start_s, len(imu_t_s),
              round(np.degrees(yaw)), shift.round(2).tolist(), margin)
-    return cfg, calib, motion, scene, imu, written
+    return cfg, calib, motion, imu
