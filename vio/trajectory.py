@@ -16,6 +16,11 @@ from vio import VioError
 from vio.geometry import quat_wxyz_to_rot
 
 
+def interp_columns(tq: np.ndarray, ts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Each column of `values` (N, K), sampled at times `ts`, linearly interpolated at times `tq`: (..., K)."""
+    return np.stack([np.interp(tq, ts, values[:, k]) for k in range(values.shape[1])], axis=-1)
+
+
 @dataclass
 class Trajectory:
     """N poses of the body in the world: t_ns (N,) int64, p (N, 3) metres, q_wxyz (N, 4) Hamilton."""
@@ -74,7 +79,7 @@ class Trajectory:
             raise VioError("interpolation times lie outside the trajectory")
         rel = (self.t_ns - self.t_ns[0]).astype(float)
         q_rel = (t_ns - self.t_ns[0]).astype(float)
-        p = np.stack([np.interp(q_rel, rel, self.p[:, k]) for k in range(3)], axis=1)
+        p = interp_columns(q_rel, rel, self.p)
         slerp = Slerp(rel, Rotation.from_quat(self.q_wxyz[:, [1, 2, 3, 0]]))
         q = slerp(q_rel).as_quat()[:, [3, 0, 1, 2]]
         return Trajectory(t_ns, p, q)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vio import VioError
+from vio.trajectory import interp_columns
 
 log = logging.getLogger(__name__)
 
@@ -81,10 +82,6 @@ def _gyro_integral(imu_t_ns: np.ndarray, gyro: np.ndarray, t_ref_ns: int):
     dt = np.diff(ts)[:, None]
     G = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (gyro[1:] + gyro[:-1]) * dt, axis=0)])
     return ts, G
-
-
-def _interp3(tq: np.ndarray, ts: np.ndarray, G: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(tq, ts, G[:, k]) for k in range(3)])
 
 
 def _cost_terms(theta_b: np.ndarray, Gd: np.ndarray, dt: np.ndarray,
@@ -146,7 +143,7 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
     W = W / np.median(np.trace(W, axis1=1, axis2=2) / 3)  # unit typical weight: cost stays in rad^2
     dt = t1 - t0
     grid = np.arange(-max_offset_s, max_offset_s + 0.5 * grid_step_s, grid_step_s)
-    Gd = np.stack([_interp3(t1 + d, ts, G) - _interp3(t0 + d, ts, G) for d in grid])  # (n_d, N, 3)
+    Gd = np.stack([interp_columns(t1 + d, ts, G) - interp_columns(t0 + d, ts, G) for d in grid])  # (n_d, N, 3)
     # one robust pass: pairs KLT got wrong (fast turns, blur) would drag the bias and the offset
     cost, biases = _costs(theta_b, Gd, dt, W, np.arange(len(t0)))
     i_best = int(np.argmin(cost))
@@ -176,8 +173,8 @@ def estimate_time_offset(vis: VisualRotations, imu_t_ns: np.ndarray, gyro: np.nd
     sigma_boot = float(np.std(boots)) if boots else 0.0
     vis_rate = np.linalg.norm(theta_b, axis=1) / dt
     bias = biases[i_best]
-    gyro_rate = np.linalg.norm(_interp3(t1 + d_hat, ts, G) - _interp3(t0 + d_hat, ts, G) - bias * dt[:, None],
-                               axis=1) / dt
+    turned = interp_columns(t1 + d_hat, ts, G) - interp_columns(t0 + d_hat, ts, G)
+    gyro_rate = np.linalg.norm(turned - bias * dt[:, None], axis=1) / dt
     rate_std = float(np.std(vis_rate))
     observable = rate_std >= MIN_RATE_STD_RAD_S and abs(d_hat) < max_offset_s - 2 * grid_step_s
     return OffsetEstimate(

@@ -32,7 +32,7 @@ from vio.geometry import make_T
 from vio.sim import _R_FLU_EUROC, default_calibration
 from vio.sim.imu import ImuStream
 from vio.sim.scene import Scene
-from vio.trajectory import Trajectory
+from vio.trajectory import Trajectory, interp_columns
 
 log = logging.getLogger(__name__)
 
@@ -67,12 +67,11 @@ class RecordedMotion:
 
     def velocity(self, t_s: np.ndarray) -> np.ndarray:
         t = np.asarray(t_s, dtype=float)
-        ts = self.truth.t_s
-        return np.stack([np.interp(t, ts, self.v_world[:, k]) for k in range(3)], axis=-1)
+        return interp_columns(t, self.truth.t_s, self.v_world)
 
     def angular_velocity_body(self, t_s: np.ndarray) -> np.ndarray:
         t = np.asarray(t_s, dtype=float)
-        return np.stack([np.interp(t, self.rate_t_s, self.rate_body[:, k]) for k in range(3)], axis=-1)
+        return interp_columns(t, self.rate_t_s, self.rate_body)
 
     def yaw_rate(self, t_s: np.ndarray) -> np.ndarray:
         """Rate about the world's vertical (EuRoC's body x points up: Euler yaw is ill-defined there)."""
@@ -189,8 +188,8 @@ def build_recorded(cfg, scene: Scene) -> tuple:
     v_world = rec.v_world[keep] @ _rot_z(yaw).T
     imu_t_s = (rec.imu_t_ns[sel] - t0_ns) * 1e-9
     t_truth_all = (rec.truth.t_ns - t0_ns) * 1e-9
-    bg = np.stack([np.interp(imu_t_s, t_truth_all, rec.gyro_bias[:, k]) for k in range(3)], axis=1)
-    ba = np.stack([np.interp(imu_t_s, t_truth_all, rec.accel_bias[:, k]) for k in range(3)], axis=1)
+    bg = interp_columns(imu_t_s, t_truth_all, rec.gyro_bias)
+    ba = interp_columns(imu_t_s, t_truth_all, rec.accel_bias)
     imu = ImuStream(imu_t_s, rec.gyro[sel], rec.accel[sel], bg, ba)
     motion = RecordedMotion(f"recorded:{rec.path.name}", truth, v_world, imu_t_s, rec.gyro[sel] - bg)
     calib = _rig_on_recorded_imu(cfg, rec.noise)
