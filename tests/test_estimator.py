@@ -604,3 +604,24 @@ def test_adaptive_imu_noise_leaves_a_normal_airframe_alone():
     assert len(runs[0][1]) == len(runs[1][1]) > 100
     for a, b in zip(runs[0][1], runs[1][1]):
         assert a.t_ns == b.t_ns and np.array_equal(a.T_world_body, b.T_world_body)
+
+
+def test_restart_keeps_the_heading_of_a_body_whose_x_axis_is_up():
+    """A reset continues from the last pose with the restart's own roll/pitch: on EuRoC's mount (IMU x up)
+    the heading must carry over as well as on a level body (Euler yaw differences turned it by degrees)."""
+    from scipy.spatial.transform import Rotation
+
+    from vio.estimator import reanchored
+    from vio.geometry import make_T, so3_exp, yaw_between
+
+    up = np.array([0.0, 0.0, 1.0])
+    for R_body in (np.eye(3), Rotation.from_euler("ZYX", [-74.9, -67.6, 179.5], degrees=True).as_matrix(),
+                   Rotation.from_euler("y", -90, degrees=True).as_matrix()):
+        anchor = make_T(so3_exp([0.0, 0.0, 1.1]) @ R_body, [3.0, -2.0, 1.5])
+        # the restart: its own heading (arbitrary) and a gravity estimate 0.4 deg off the last one's
+        T0 = make_T(so3_exp([0.0, 0.0, -0.6]) @ so3_exp(np.radians([0.3, -0.25, 0.0])) @ R_body, [0.0, 0.0, 0.0])
+        T, v = reanchored(T0, np.array([1.0, 0.0, 0.0]), anchor)
+        assert abs(np.degrees(yaw_between(T[:3, :3], anchor[:3, :3]))) < 0.05
+        assert np.allclose(T[:3, 3], anchor[:3, 3])
+        assert np.allclose(T[:3, :3].T @ up, T0[:3, :3].T @ up)  # the restart's roll/pitch kept
+        assert np.allclose(v, so3_exp([0.0, 0.0, 1.7])[:, 0], atol=0.01)

@@ -127,3 +127,41 @@ def test_single_rotation_conversions_match_the_stacked_ones():
     np.testing.assert_allclose([so3_log(R) for R in Rs], so3_log(Rs), atol=1e-9)
     bent = Rs[0] * 1.001  # not a rotation: the nearest one, as scipy finds it
     np.testing.assert_allclose(so3_log(bent), Rotation.from_matrix(bent).as_rotvec())
+
+
+# EuRoC's IMU (x up): its body frame in the world of V1_01's first ground-truth pose
+R_EUROC_START = Rotation.from_euler("ZYX", [-74.9, -67.6, 179.5], degrees=True).as_matrix()
+
+
+def test_yaw_between_is_the_world_turn_whatever_the_body_axes():
+    from vio.geometry import roll_pitch_yaw, yaw_between
+
+    rng = np.random.default_rng(3)
+    x_up = Rotation.from_euler("y", -90, degrees=True).as_matrix()  # body x along world z
+    for R_b in [np.eye(3), R_EUROC_START, x_up, Rotation.random(random_state=5).as_matrix()]:
+        for yaw in rng.uniform(-3.0, 3.0, 5):
+            assert yaw_between(so3_exp([0, 0, yaw]) @ R_b, R_b) == pytest.approx(yaw, abs=1e-9)
+    # a 0.5 deg tilt between the two: the turn stays within that, the Euler yaws' difference does not
+    tilt = so3_exp(np.radians([0.35, -0.35, 0.0]))
+    R_a = so3_exp([0, 0, 0.2]) @ tilt @ R_EUROC_START
+    assert abs(math.degrees(yaw_between(R_a, R_EUROC_START)) - math.degrees(0.2)) < 0.05
+    euler = math.degrees(roll_pitch_yaw(R_a)[2] - roll_pitch_yaw(R_EUROC_START)[2])
+    assert abs(euler - math.degrees(0.2)) > 0.5
+
+
+def test_end_drift_aligns_the_first_pose_of_an_x_up_body():
+    from vio.evaluation import end_drift_m
+
+    n = 200
+    t = np.arange(n, dtype=np.int64) * 50_000_000
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    p = [2.0, -1.5, 1.0] + s * [-4.0, -1.0, 0.4] + 0.3 * np.sin(6 * s)  # ends 4 m from the start
+    R = np.array([so3_exp([0.1 * np.sin(k / 9), 0.05 * np.cos(k / 7), 0.02 * k]) @ R_EUROC_START for k in range(n)])
+    gt = Trajectory.from_poses(t, np.array([make_T(r, q) for r, q in zip(R, p)]))
+    # the estimate: the same path in another world frame (turned 40 deg, moved), its first pose tilted 0.3 deg
+    # off the truth (a gravity estimate is never exact) and its end 5 cm off
+    W = make_T(so3_exp([0, 0, math.radians(40)]), [1.0, 2.0, 0.0])
+    est = np.array([W @ make_T(r, q) for r, q in zip(R, p)])
+    est[0][:3, :3] = est[0][:3, :3] @ so3_exp(np.radians([0.0, 0.3, 0.3]))
+    est[-1][:3, 3] += W[:3, :3] @ [0.05, 0.0, 0.0]
+    assert end_drift_m(t, est, gt) == pytest.approx(0.05, abs=0.005)

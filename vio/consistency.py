@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp, so3_log
+from vio.geometry import make_T, so3_exp, so3_log, yaw_between
 from vio.types import NavState
 
 POSE_DOF = 6
@@ -55,7 +55,7 @@ def chi2_interval(dof: int, n_independent: int, confidence: float = 0.95) -> tup
 
 def _yaw_position_alignment(T_est0: np.ndarray, T_gt0: np.ndarray) -> np.ndarray:
     """T_gtworld_estworld from one pose pair: the yaw and position that map the first estimate onto the truth."""
-    dyaw = roll_pitch_yaw(T_gt0[:3, :3])[2] - roll_pitch_yaw(T_est0[:3, :3])[2]
+    dyaw = yaw_between(T_gt0[:3, :3], T_est0[:3, :3])
     R = so3_exp(np.array([0.0, 0.0, dyaw]))
     return make_T(R, T_gt0[:3, 3] - R @ T_est0[:3, 3])
 

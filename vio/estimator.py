@@ -42,7 +42,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp, so3_log
+from vio.geometry import make_T, roll_pitch_yaw, so3_exp, so3_log, yaw_between
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
@@ -154,6 +154,18 @@ def _reason_key(reason: str) -> str:
     """A reason without its numbers, so that counts group: "image too dark (mean grey 3.1 < 12)" -> "image too dark"."""
     key = reason.split(" (")[0].strip() or "unknown"
     return re.sub(r"[-+]?\d[\d.e+-]*", "N", key)
+
+
+def reanchored(T_world_body: np.ndarray, v_world: np.ndarray, anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A restart's initial pose and velocity turned about world z and moved so that it continues from
+    `anchor` (the last pose, or its IMU prediction): same position and heading, the restart's own roll/pitch.
+
+    The heading is compared in the world frame (`yaw_between`), not as Euler yaws, which for a body whose
+    z axis is not up (EuRoC's IMU: x up) turn the restart by degrees."""
+    T_fix = make_T(so3_exp(np.array([0.0, 0.0, yaw_between(anchor[:3, :3], T_world_body[:3, :3])])), np.zeros(3))
+    T = T_fix @ T_world_body
+    T[:3, 3] = anchor[:3, 3]
+    return T, T_fix[:3, :3] @ np.asarray(v_world, float)
 
 
 def make_tracker(calib: StereoCalibration, cfg: EstimatorConfig):
@@ -583,15 +595,10 @@ class Estimator:
                 if gap_s > BRIDGE_POSITION_MAX_S:
                     pred[:3, 3] = anchor[:3, 3]
                 log.info("reset bridged with the IMU over %.2f s: heading %+.1f deg, position %+.2f m", gap_s,
-                         np.degrees(roll_pitch_yaw(pred[:3, :3])[2] - roll_pitch_yaw(anchor[:3, :3])[2]),
+                         np.degrees(yaw_between(pred[:3, :3], anchor[:3, :3])),
                          float(np.linalg.norm(pred[:3, 3] - anchor[:3, 3])))
                 anchor = pred
-            yaw_old = roll_pitch_yaw(anchor[:3, :3])[2]
-            yaw_new = roll_pitch_yaw(T[:3, :3])[2]
-            T_fix = make_T(so3_exp(np.array([0.0, 0.0, yaw_old - yaw_new])), np.zeros(3))
-            T = T_fix @ T
-            T[:3, 3] = anchor[:3, 3]
-            v = T_fix[:3, :3] @ v
+            T, v = reanchored(T, v, anchor)
         static = init.method == "static"
         smoother = VioSmoother(self.refined_calibration(), self.bcfg)  # a reset keeps what was learnt
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,

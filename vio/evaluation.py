@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.geometry import inv_T, make_T
+from vio.geometry import closest_yaw, inv_T, make_T
 from vio.trajectory import Trajectory, read_tum
 
 log = logging.getLogger(__name__)
@@ -259,7 +259,7 @@ def align_4dof(p_est: np.ndarray, p_gt: np.ndarray, R_est: np.ndarray | None = N
     e, g = p_est - mu_e, p_gt - mu_g
     if R_est is not None and R_gt is not None:
         R_m = _mean_R_gt_est(R_est, R_gt)
-        yaw = math.atan2(R_m[1, 0] - R_m[0, 1], R_m[0, 0] + R_m[1, 1])  # the yaw closest to R_m
+        yaw = closest_yaw(R_m)
     else:
         a = np.sum(e[:, 0] * g[:, 0] + e[:, 1] * g[:, 1])
         b = np.sum(e[:, 0] * g[:, 1] - e[:, 1] * g[:, 0])
@@ -377,7 +377,7 @@ def end_drift_m(t_ns: np.ndarray, T_est: np.ndarray, gt: Trajectory) -> float:
     """Position error at the last pose, the estimate aligned on its first pose only (position and yaw): the
     drift an integrator sees at the end of a lap, which a whole-trajectory ATE alignment would spread out.
     Ground truth is taken at the nearest stamp."""
-    from vio.geometry import roll_pitch_yaw, so3_exp
+    from vio.geometry import so3_exp, yaw_between
 
     G = gt.poses()
 
@@ -385,7 +385,7 @@ def end_drift_m(t_ns: np.ndarray, T_est: np.ndarray, gt: Trajectory) -> float:
         return G[int(np.argmin(np.abs(gt.t_ns - t)))]
 
     G0, E0 = at(int(t_ns[0])), T_est[0]
-    dyaw = roll_pitch_yaw(G0[:3, :3])[2] - roll_pitch_yaw(E0[:3, :3])[2]
+    dyaw = yaw_between(G0[:3, :3], E0[:3, :3])
     A = make_T(so3_exp(np.array([0.0, 0.0, dyaw])), np.zeros(3))
     A[:3, 3] = G0[:3, 3] - A[:3, :3] @ E0[:3, 3]
     return float(np.linalg.norm((A @ T_est[-1])[:3, 3] - at(int(t_ns[-1]))[:3, 3]))

@@ -117,6 +117,21 @@ def roll_pitch_yaw(R_world_body: np.ndarray) -> np.ndarray:
         return Rotation.from_matrix(R_world_body).as_euler("ZYX")[::-1].copy()
 
 
+def closest_yaw(M: np.ndarray) -> float:
+    """Angle (rad) of the rotation about z closest to the 3x3 matrix M (maximises trace(Rz^T M))."""
+    return float(np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1]))
+
+
+def yaw_between(R_world_a: np.ndarray, R_world_b: np.ndarray) -> float:
+    """The turn about world z (rad) that best takes orientation b onto a: Rz(yaw) @ R_world_b ~ R_world_a.
+
+    Why not the difference of the two Euler yaws: those mean "heading" only for a body whose z axis is near
+    vertical. EuRoC's IMU has its x axis up (Z-Y-X pitch -70 deg), where a 0.5 deg tilt difference moves
+    the Euler yaw by ~1.4 deg, and a body axis exactly vertical leaves it undefined; here the two
+    orientations are compared in the world frame, whatever the body's axes."""
+    return closest_yaw(np.asarray(R_world_a, float) @ np.asarray(R_world_b, float).T)
+
+
 def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
     """R_world_body with zero yaw that makes the measured specific force point along world +z.
 
