@@ -11,7 +11,7 @@ from vio.backend.preintegration import combined_params
 from vio.backend.synthetic import Motion, SyntheticScene, imu_samples, synthetic_calibration
 from vio.calibration import ImuNoise
 from vio.config import InitConfig
-from vio.geometry import rotation_angle_deg
+from vio.geometry import rotation_angle_deg, so3_exp
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import is_still, static_initialize
@@ -368,3 +368,26 @@ def test_online_time_offset_stops_at_its_first_estimate_when_the_smoother_refine
     assert changes and abs(coarse.offset_ns * 1e-6 - 8.0) < 2.0
     assert coarse.done and not coarse.wants_stereo()
     assert coarse.solves < full.solves
+
+
+@pytest.mark.parametrize("R_body", [np.eye(3), so3_exp([0.0, -np.pi / 2, 0.0]),  # level; IMU x up
+                                    so3_exp([0.3, -1.2, 2.0])])  # EuRoC-like: x up-ish, turned
+def test_first_pose_prior_holds_yaw_about_world_z_whatever_the_mount(R_body):
+    """The first keyframe's prior pins the turn about world z (the gauge) and leaves tilt to gravity, also for
+    a body whose z axis is not up (a body-frame diagonal held a tilt axis instead on EuRoC's mount)."""
+    import gtsam
+
+    from vio.backend.smoother import level_prior
+
+    pose = gtsam.Pose3(gtsam.Rot3(R_body), np.array([1.0, 2.0, 3.0]))
+    prior = gtsam.PriorFactorPose3(0, pose, level_prior(R_body, 0.02, 0.001, 0.01))
+
+    def whitened(dphi_world: np.ndarray, dp_world: tuple = (0.0, 0.0, 0.0)) -> float:
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose3(gtsam.Rot3(so3_exp(dphi_world) @ R_body), pose.translation() + np.asarray(dp_world)))
+        return float(np.sqrt(2.0 * prior.error(v)))
+
+    assert whitened(np.array([0.0, 0.0, 0.001])) == pytest.approx(1.0, rel=1e-3)  # 1 sigma of yaw
+    assert whitened(np.array([0.02, 0.0, 0.0])) == pytest.approx(1.0, rel=1e-3)  # 1 sigma of tilt
+    assert whitened(np.array([0.0, 0.02, 0.0])) == pytest.approx(1.0, rel=1e-3)
+    assert whitened(np.zeros(3), (0.0, 0.01, 0.0)) == pytest.approx(1.0, rel=1e-3)

@@ -123,6 +123,21 @@ def _sigmas(values: list[float]) -> gtsam.noiseModel.Diagonal:
     return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(values, dtype=float))
 
 
+def level_prior(R_world_body: np.ndarray, sigma_tilt_rad: float, sigma_yaw_rad: float,
+                sigma_p_m: float) -> gtsam.noiseModel.Gaussian:
+    """Noise of a Pose3 prior that holds the turn about world z (yaw) and the tilt about world x, y with their
+    own sigmas, and the position isotropically.
+
+    Pose3's tangent is in the body frame, so the world-frame rotation covariance is turned into it
+    (R^T S R). A body-frame diagonal [tilt, tilt, yaw] is the same only for a body whose z axis is up; on
+    EuRoC's mount (IMU x up) it held a tilt axis at the yaw's 1 mrad and left the yaw at the tilt's 20."""
+    R = np.asarray(R_world_body, float)
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = R.T @ np.diag([sigma_tilt_rad ** 2, sigma_tilt_rad ** 2, sigma_yaw_rad ** 2]) @ R
+    cov[3:, 3:] = np.eye(3) * sigma_p_m ** 2  # isotropic: the same in any frame
+    return gtsam.noiseModel.Gaussian.Covariance(cov)
+
+
 def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray) -> gtsam.CustomFactor:
     """error = Log(X^-1 C) - xi d: the camera-time pose C is the IMU-time pose X moved along the body twist
     xi = (omega, v_body), given per unit of d (per ms, as the smoother keeps d)."""
@@ -273,10 +288,8 @@ class VioSmoother:
         pose = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
         bias = gtsam.imuBias.ConstantBias(np.asarray(accel_bias, float), np.asarray(gyro_bias, float))
         graph = gtsam.NonlinearFactorGraph()
-        # Pose3 tangent is (rot, trans) in the body frame; yaw is about world z, which for a near-level
-        # start is close to body z, so a body-frame diagonal is a fair approximation.
-        graph.add(gtsam.PriorFactorPose3(X(0), pose, _sigmas([sigma_rp_rad, sigma_rp_rad, sigma_yaw_rad] +
-                                                              [sigma_p_m] * 3)))
+        graph.add(gtsam.PriorFactorPose3(X(0), pose, level_prior(pose.rotation().matrix(), sigma_rp_rad,
+                                                                 sigma_yaw_rad, sigma_p_m)))
         graph.add(gtsam.PriorFactorVector(V(0), np.asarray(v_world, float), _sigmas([sigma_v_m_s] * 3)))
         graph.add(gtsam.PriorFactorConstantBias(B(0), bias, _sigmas([sigma_ba] * 3 + [sigma_bg] * 3)))
         values = gtsam.Values()
