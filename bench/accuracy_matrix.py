@@ -102,6 +102,8 @@ def cases(duration_s: float = 60.0) -> list[Case]:
         Case("aggr-gyrobias0.08", f("aggressive", 3, "realistic", "--gyro-bias", "0.08"), note="gyro bias 0.08 rad/s"),
         Case("aggr-vibration1.5", f("aggressive", 4, "realistic", "--vibration", "1.5"), note="vibration 1.5 m/s^2"),
         Case("survey-plain0.5", f("survey", 5, "realistic", "--plain", "0.5"), note="half the walls plain"),
+        Case("aggr-oak-mount", f("aggressive", 5, "realistic", "--imu-mount", "oak"),
+             note="IMU x up, as in a forward-looking OAK (aggressive-s5's flight, same images and samples)"),
     ]
     # EuRoC's real IMU (vibration, biases, 18-60x its datasheet's noise) under rendered images; only where
     # ../shared/data is (KESTREL_SHARED_DATA), whole recordings whatever --duration says

@@ -42,7 +42,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp, so3_log, yaw_between
+from vio.geometry import make_T, so3_exp, so3_log, yaw_between
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
@@ -608,8 +608,9 @@ class Estimator:
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self.moving_init.clear()
-        log.info("initialised (%s) at t=%d: roll/pitch %.2f/%.2f deg", init.method, init.t_ns,
-                 *np.degrees(roll_pitch_yaw(T[:3, :3])[:2]))
+        # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
+        log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
+                 *T[2, :3])
         return self._after_keyframe(init.t_ns, est, ff)
 
     def _after_keyframe(self, t: int, est, ff: FeatureFrame) -> NavState:

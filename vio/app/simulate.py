@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from vio.sim import IMU_MOUNTS
 from vio.sim.motion import PROFILES
 from vio.sim.scene import SCENES
 
@@ -54,6 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the time offset drifts by +-MS around --time-offset-ms (a sinusoid, see --drift-period)")
     p.add_argument("--drift-period", type=float, default=60.0, metavar="S",
                    help="period of the time offset drift in s (default: 60)")
+    p.add_argument("--imu-mount", choices=sorted(IMU_MOUNTS), default="flu",
+                   help="how the IMU sits on the vehicle: flu (square: x forward, z up; default) or oak (a "
+                        "forward-looking Luxonis OAK: IMU x up, z backwards); the same flight either way")
     p.add_argument("--imu-from", metavar="EUROC_DIR", default=None,
                    help="a real recording (EuRoC layout with imu0 and ground truth, e.g. ../shared/data/euroc/"
                         "V1_02_medium_imu_gt): its raw IMU and its ground-truth motion replace --profile and the IMU "
@@ -105,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
                     aliasing_period_m=args.aliasing, scene=args.scene, calib_error=args.calib_error,
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
                     time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
-                    imu_from=args.imu_from, recorded_start_s=args.recorded_start)
+                    imu_mount=args.imu_mount, imu_from=args.imu_from, recorded_start_s=args.recorded_start)
     summary = simulate(args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.line())
     return 0

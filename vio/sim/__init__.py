@@ -19,6 +19,12 @@ from vio.geometry import make_T
 # EuRoC's body frame has x up, y right, z forward; ours is FLU (x forward, y left, z up).
 _R_FLU_EUROC = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 
+# How the IMU (the estimator's body frame) sits in the vehicle's FLU frame (columns: the IMU's axes in FLU).
+# "flu": square with the vehicle; "oak": a Luxonis OAK looking forward, whose IMU has x up, y left and z
+# backwards (tests/data/depthai_calib.json: camera forward = IMU -z, camera down = IMU -x). An axis straight
+# up is what Euler-angle headings get wrong, so flights with it exercise that path end to end.
+IMU_MOUNTS = {"flu": np.eye(3), "oak": np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])}
+
 # EuRoC V1 cam0/cam1 (MT9M034 on the VI-sensor): intrinsics, radtan distortion and T_BS (body <- cam),
 # numbers from the dataset's sensor.yaml files. Keeping EuRoC's small misalignments makes the simulated
 # cameras as unrectified as real ones.
@@ -87,4 +93,4 @@ def perturbed_calibration(calib: StereoCalibration, scale: float, rng: np.random
     return replace(calib, cam0=cams[0], cam1=cams[1])
 
 
-__all__ = ["default_calibration", "perturbed_calibration"]
+__all__ = ["IMU_MOUNTS", "default_calibration", "perturbed_calibration"]

@@ -26,10 +26,10 @@ import yaml
 
 from vio import VioError
 from vio.calibration import ImuNoise, StereoCalibration, save_calibration
-from vio.geometry import rot_to_quat_wxyz
-from vio.sim import default_calibration, perturbed_calibration
+from vio.geometry import make_T, rot_to_quat_wxyz
+from vio.sim import IMU_MOUNTS, default_calibration, perturbed_calibration
 from vio.sim.imu import ImuModel, ImuStream, random_bias, synthesize
-from vio.sim.motion import PROFILES, Motion, make_profile
+from vio.sim.motion import PROFILES, Motion, MountedMotion, make_profile
 from vio.sim.render import CameraRenderer, Photometric
 from vio.sim.scene import SCENES, Scene, make_scene
 from vio.types import ImuSample, StereoFrame
@@ -84,6 +84,7 @@ class SimConfig:
     right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
     time_offset_period_s: float = 60.0  # period of that drift
+    imu_mount: str = "flu"  # the IMU's axes on the vehicle (vio.sim.IMU_MOUNTS): "flu" square, "oak" x up
     imu_from: str | None = None  # a EuRoC recording: its IMU and ground truth replace profile and IMU model
     recorded_start_s: float = 0.0  # with imu_from: where in the recording's ground truth the flight starts
 
@@ -104,6 +105,11 @@ class SimConfig:
             v = getattr(cfg, name)
             if not (lo <= v <= hi):
                 raise VioError(f"simulate: {name} = {v} is outside [{lo}, {hi}]")
+        if cfg.imu_mount not in IMU_MOUNTS:
+            raise VioError(f"simulate: unknown IMU mount {cfg.imu_mount!r}; expected one of {list(IMU_MOUNTS)}")
+        if cfg.imu_mount != "flu" and cfg.imu_from is not None:
+            raise VioError("simulate: an IMU mount applies to the simulated IMU only; --imu-from keeps the "
+                           "recording's (EuRoC's IMU has its x axis up already)")
         if cfg.scene not in SCENES:
             raise VioError(f"simulate: unknown scene {cfg.scene!r}; expected one of {list(SCENES)}")
         for name, (lo, hi) in {"calib_error": (0, 20), "time_offset_drift_ms": (0, 100),
@@ -185,6 +191,15 @@ def build(cfg: SimConfig) -> Simulation:
         model = ImuModel(noise if cfg.imu_noise else None, tuple(random_bias(rng, cfg.gyro_bias)),
                          tuple(random_bias(rng, cfg.accel_bias)), cfg.vibration)
         imu = synthesize(motion, _grid(cfg.duration_s, cfg.imu_rate_hz), model, np.random.default_rng([cfg.seed, 2]))
+        if cfg.imu_mount != "flu":
+            # the same flight, samples and noise, read in the IMU's axes (the motor vibration stays on the
+            # vehicle's); the rig stays on the vehicle: T_imu_cam = T_imu_vehicle T_vehicle_cam
+            R = IMU_MOUNTS[cfg.imu_mount]
+            imu = ImuStream(imu.t_s, imu.gyro @ R, imu.accel @ R, imu.gyro_bias @ R, imu.accel_bias @ R)
+            motion = MountedMotion(motion, R)
+            calib = dataclasses.replace(calib, **{k: dataclasses.replace(
+                c, T_body_cam=make_T(R.T, np.zeros(3)) @ c.T_body_cam) for k, c in
+                (("cam0", calib.cam0), ("cam1", calib.cam1))})
     written = calib if cfg.calib_error == 0 else \
         perturbed_calibration(calib, cfg.calib_error, np.random.default_rng([cfg.seed, 6]))
     return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)

@@ -261,3 +261,29 @@ def make_profile(name: str, duration: float, seed: int = 0, still_s: float = 2.0
     yaw0 = float(rng.uniform(-np.pi, np.pi))
     ang = (_terms(rng, 0.0, spec["roll"]), _terms(rng, 0.0, spec["pitch"]), _terms(rng, yaw0, spec["yaw"]))
     return Motion(name, pos, ang, float(duration), float(still_s), float(ramp_s), meta={"seed": seed})
+
+
+class MountedMotion:
+    """A vehicle's motion seen from an IMU mounted at its origin turned by R_vehicle_imu: poses, rates and
+    specific force in the IMU's axes (what the estimator calls the body), positions and velocities unchanged."""
+
+    def __init__(self, motion: Motion, R_vehicle_imu: np.ndarray) -> None:
+        self.vehicle = motion
+        self.R = np.asarray(R_vehicle_imu, float)
+
+    def __getattr__(self, name: str):  # position, velocity, acceleration, yaw_rate (the vehicle's), bounds
+        return getattr(self.vehicle, name)
+
+    def rotation(self, t_s: np.ndarray) -> np.ndarray:
+        return self.vehicle.rotation(t_s) @ self.R
+
+    def pose(self, t_s: np.ndarray) -> np.ndarray:
+        T = self.vehicle.pose(t_s).copy()
+        T[..., :3, :3] = T[..., :3, :3] @ self.R
+        return T
+
+    def angular_velocity_body(self, t_s: np.ndarray) -> np.ndarray:
+        return self.vehicle.angular_velocity_body(t_s) @ self.R  # R^T w, row-wise
+
+    def specific_force_body(self, t_s: np.ndarray) -> np.ndarray:
+        return self.vehicle.specific_force_body(t_s) @ self.R
