@@ -71,11 +71,10 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
         period = float(alias[0]) if alias else None
         data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-{size[0]}x{size[1]}" +
                         (f"-aliasing{alias[0]}m" if alias else "") + ("" if scene == "room" else f"-{scene}"))
-    if not (data / "mav0").is_dir():
-        simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
-                                 width=size[0], height=size[1], aliasing_period_m=period, scene=scene),
-                 overwrite=True,
-                 progress=False)
+        if not (data / "mav0").is_dir():
+            simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
+                                     width=size[0], height=size[1], aliasing_period_m=period, scene=scene),
+                     overwrite=True, progress=False)
     ds = EurocDataset(data)
     gt = ds.groundtruth.trajectory
     cfg = VioConfig()

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from vio.geometry import make_T, so3_exp, so3_log, yaw_between
+from vio.geometry import so3_log, yaw_position_alignment
 from vio.types import NavState
 
 POSE_DOF = 6
@@ -53,13 +53,6 @@ def chi2_interval(dof: int, n_independent: int, confidence: float = 0.95) -> tup
     return float(chi2.ppf(a, dof * n) / n), float(chi2.ppf(1.0 - a, dof * n) / n)
 
 
-def _yaw_position_alignment(T_est0: np.ndarray, T_gt0: np.ndarray) -> np.ndarray:
-    """T_gtworld_estworld from one pose pair: the yaw and position that map the first estimate onto the truth."""
-    dyaw = yaw_between(T_gt0[:3, :3], T_est0[:3, :3])
-    R = so3_exp(np.array([0.0, 0.0, dyaw]))
-    return make_T(R, T_gt0[:3, 3] - R @ T_est0[:3, 3])
-
-
 def pose_nees(states: list[NavState], truth_t_ns: np.ndarray, truth_T: np.ndarray, *,
               max_dt_ns: int = 2_000_000, skip_s: float = 0.0, realign_on_reset: bool = True) -> NeesResult:
     """NEES of each state's pose against truth at the same stamp (truth must be sampled at least as densely).
@@ -83,7 +76,7 @@ def pose_nees(states: list[NavState], truth_t_ns: np.ndarray, truth_T: np.ndarra
             continue
         T_gt = truth_T[j]
         if align is None or (realign_on_reset and st.reset_counter != counter):
-            align = _yaw_position_alignment(st.T_world_body, T_gt)
+            align = yaw_position_alignment(st.T_world_body, T_gt)  # T_gtworld_estworld
             counter = st.reset_counter
             if t_first is None:
                 t_first = st.t_ns

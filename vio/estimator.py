@@ -42,7 +42,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
-from vio.geometry import make_T, so3_exp, so3_log, yaw_between
+from vio.geometry import so3_log, yaw_between, yaw_position_alignment
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
@@ -162,10 +162,8 @@ def reanchored(T_world_body: np.ndarray, v_world: np.ndarray, anchor: np.ndarray
 
     The heading is compared in the world frame (`yaw_between`), not as Euler yaws, which for a body whose
     z axis is not up (EuRoC's IMU: x up) turn the restart by degrees."""
-    T_fix = make_T(so3_exp(np.array([0.0, 0.0, yaw_between(anchor[:3, :3], T_world_body[:3, :3])])), np.zeros(3))
-    T = T_fix @ T_world_body
-    T[:3, 3] = anchor[:3, 3]
-    return T, T_fix[:3, :3] @ np.asarray(v_world, float)
+    A = yaw_position_alignment(T_world_body, anchor)
+    return A @ T_world_body, A[:3, :3] @ np.asarray(v_world, float)
 
 
 def make_tracker(calib: StereoCalibration, cfg: EstimatorConfig):

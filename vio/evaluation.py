@@ -377,17 +377,14 @@ def end_drift_m(t_ns: np.ndarray, T_est: np.ndarray, gt: Trajectory) -> float:
     """Position error at the last pose, the estimate aligned on its first pose only (position and yaw): the
     drift an integrator sees at the end of a lap, which a whole-trajectory ATE alignment would spread out.
     Ground truth is taken at the nearest stamp."""
-    from vio.geometry import so3_exp, yaw_between
+    from vio.geometry import yaw_position_alignment
 
     G = gt.poses()
 
     def at(t: int) -> np.ndarray:
         return G[int(np.argmin(np.abs(gt.t_ns - t)))]
 
-    G0, E0 = at(int(t_ns[0])), T_est[0]
-    dyaw = yaw_between(G0[:3, :3], E0[:3, :3])
-    A = make_T(so3_exp(np.array([0.0, 0.0, dyaw])), np.zeros(3))
-    A[:3, 3] = G0[:3, 3] - A[:3, :3] @ E0[:3, 3]
+    A = yaw_position_alignment(T_est[0], at(int(t_ns[0])))
     return float(np.linalg.norm((A @ T_est[-1])[:3, 3] - at(int(t_ns[-1]))[:3, 3]))
 
 

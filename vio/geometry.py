@@ -132,6 +132,13 @@ def yaw_between(R_world_a: np.ndarray, R_world_b: np.ndarray) -> float:
     return closest_yaw(np.asarray(R_world_a, float) @ np.asarray(R_world_b, float).T)
 
 
+def yaw_position_alignment(T_a0: np.ndarray, T_b0: np.ndarray) -> np.ndarray:
+    """T_b_a from one pose pair: the turn about z and the shift that map pose T_a0 (in world a) onto T_b0 (in
+    world b), roll/pitch left as they are. Aligns an estimate on its first pose, as an autopilot's frame is."""
+    R = so3_exp(np.array([0.0, 0.0, yaw_between(T_b0[:3, :3], T_a0[:3, :3])]))
+    return make_T(R, T_b0[:3, 3] - R @ T_a0[:3, 3])
+
+
 def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
     """R_world_body with zero yaw that makes the measured specific force point along world +z.
 
