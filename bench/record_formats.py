@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{sum(isinstance(e, ImuSample) for e in events)} IMU samples, {data_s:.1f} s of data")
         out = {"data_s": data_s, "size": f"{w}x{h}"}
         writers = {"euroc png": lambda p: EurocWriter(p, ds.calibration, flush_interval_s=0.5),
+                   "euroc png level 1": lambda p: EurocWriter(p, ds.calibration, flush_interval_s=0.5, png_level=1),
                    "mcap png": lambda p: McapWriter(p.with_suffix(".mcap"), "png"),
                    "mcap jpeg": lambda p: McapWriter(p.with_suffix(".mcap"), "jpeg"),
                    "mcap raw": lambda p: McapWriter(p.with_suffix(".mcap"), "raw")}
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
             target = path if path.exists() else path.with_suffix(".mcap")
             size = _size(target)
-            print(f"{name:>10}: {size / data_s / 1e6:6.2f} MB/s, CPU {cpu / data_s:5.3f} s per s of data "
+            print(f"{name:>17}: {size / data_s / 1e6:6.2f} MB/s, CPU {cpu / data_s:5.3f} s per s of data "
                   f"({100 * cpu / data_s:.0f} % of one core), wall {wall:.1f} s")
             out[name] = {"MB_per_s": size / data_s / 1e6, "cpu_s_per_s": cpu / data_s, "wall_s": wall}
     finally:

@@ -62,7 +62,7 @@ def _wait_calibration(source: SensorSource, timeout_s: float, stop: threading.Ev
 def record(source: SensorSource, out: str | Path, *, duration_s: float | None = None,
            stop: threading.Event | None = None, calibration: StereoCalibration | None = None,
            overwrite: bool = False, calib_timeout_s: float = 30.0, fmt: str = "euroc",
-           images: str = "png") -> RecordStats:
+           images: str = "png", png_level: int = 0) -> RecordStats:
     """Record `source` into the EuRoC folder `out` until `duration_s` of data, `stop`, or the source ends.
 
     The duration counts data time (sensor stamps), so a finite fake source records the same span however
@@ -75,7 +75,7 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
         end_ns: int | None = None
         last = {"imu": -1, "frame": -1}
         wall_start = time.monotonic()
-        with _open_writer(out, calib, fmt, images, overwrite) as writer:
+        with _open_writer(out, calib, fmt, images, overwrite, png_level) as writer:
             next_flush = time.monotonic() + FLUSH_INTERVAL_S
             done = False
             while not stop.is_set() and not done:
@@ -118,7 +118,8 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
     return stats
 
 
-def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: str, overwrite: bool):
+def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: str, overwrite: bool,
+                 png_level: int = 0):
     """EurocWriter (a folder) or McapWriter (one file; sensors on ROS 2 schemas, `images` png/jpeg/raw)."""
     if fmt == "mcap":
         from vio.io.bag import McapWriter
@@ -129,7 +130,7 @@ def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: st
         return McapWriter(path, images)
     from vio.io.euroc import EurocWriter
 
-    return EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite)
+    return EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite, png_level=png_level)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -171,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
                  f" for {args.duration:g} s" if args.duration else " until SIGINT/SIGTERM")
         stats = record(source, args.out, duration_s=args.duration, stop=stop, calibration=calibration,
                        overwrite=args.overwrite, fmt=args.format or cfg.run.record_format,
-                       images=args.images or cfg.run.record_images)
+                       images=args.images or cfg.run.record_images, png_level=cfg.run.record_png_level)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

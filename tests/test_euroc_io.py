@@ -7,6 +7,7 @@ import os
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -281,6 +282,30 @@ def test_writer_reader_round_trip(tmp_path):
     gt = ds.groundtruth
     assert gt is not None and np.array_equal(gt.trajectory.t_ns, [t0, t0 + 10**8])
     assert gt.trajectory.p[1] == pytest.approx([1.5, 2.0, 3.0]) and gt.v_world[1] == pytest.approx([1, 1, 1])
+
+
+@pytest.mark.parametrize("level", [0, 1, 6])
+def test_writer_png_levels_are_lossless_and_level_0_is_stored(tmp_path, level):
+    """Level 0 (the default) writes PNGs without deflate or row filters: fast to write and to read back, the
+    size of the raw pixels; zlib levels shrink a smooth image. Every level reads back exactly."""
+    ramp = np.add.outer(np.arange(400), np.arange(640)).astype(np.uint8)  # smooth: deflate halves it at least
+    noise = np.random.default_rng(3).integers(0, 256, (400, 640), dtype=np.uint8)
+    with EurocWriter(tmp_path / "rec", _calibration(), png_level=level) as w:
+        w.write_frame(StereoFrame(1_000_000_000, ramp, noise))
+    files = [next((tmp_path / "rec" / "mav0" / c / "data").glob("*.png")) for c in ("cam0", "cam1")]
+    assert np.array_equal(cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED), ramp)
+    assert np.array_equal(cv2.imread(str(files[1]), cv2.IMREAD_UNCHANGED), noise)
+    size = files[0].stat().st_size
+    if level == 0:
+        assert 400 * 641 <= size < 400 * 641 * 1.01  # pixels + one filter byte per row + headers
+    else:
+        assert size < 400 * 641 / 2
+
+
+def test_writer_refuses_a_png_level_outside_zlibs(tmp_path):
+    with pytest.raises(VioError, match="PNG compression level must be 0-9, got 10"):
+        EurocWriter(tmp_path / "rec", _calibration(), png_level=10)
+    assert not (tmp_path / "rec").exists()
 
 
 def test_writer_refuses_to_overwrite(tmp_path):

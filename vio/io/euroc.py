@@ -731,16 +731,32 @@ def _imu_yaml(imu: ImuNoise) -> str:
     )
 
 
+def png_write_params(level: int) -> list[int]:
+    """cv2.imwrite parameters for a PNG at zlib `level`; 0 = stored without row filters (fastest both ways:
+    a filter only helps deflate, and undoing it costs the reader as much as inflating)."""
+    if level == 0:
+        return [cv2.IMWRITE_PNG_COMPRESSION, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    return [cv2.IMWRITE_PNG_COMPRESSION, level]
+
+
 class EurocWriter:
     """Writes a EuRoC ASL dataset incrementally (recording, simulation, tests).
 
     Images are lossless PNG. CSV rows are written as they come and flushed at least every
     `flush_interval_s` of data time, so a killed recorder loses at most that much; each image file is
     complete before its csv row is written, so a csv row never points at a half-written image.
+
+    `png_level` 0 (default) writes the PNG stored: no deflate and no row filter, as EuRoC's own files are
+    nearly. A 752x480 image then takes 0.3 ms to write and 0.2 ms to read on one core, against 3.0 and 2.6 ms
+    at zlib level 1 with adaptive filters (OpenCV's default), for 1.9x the bytes (docs/formats.md); levels
+    1-9 are zlib's, for a disk that cannot take 14 MB/s of 752x480 stereo at 20 Hz.
     """
 
     def __init__(self, root: str | Path, calibration: StereoCalibration, *, flush_interval_s: float = 0.5,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, png_level: int = 0) -> None:
+        if not 0 <= int(png_level) <= 9:
+            raise VioError(f"PNG compression level must be 0-9, got {png_level}")
+        self._png_params = png_write_params(int(png_level))
         self.root = Path(root)
         self.mav0 = self.root / "mav0"
         if self.mav0.exists() and any(self.mav0.iterdir()) and not overwrite:
@@ -779,7 +795,7 @@ class EurocWriter:
                 continue
             cam = f"cam{k}"
             path = self.mav0 / cam / "data" / name
-            if not cv2.imwrite(str(path), img):
+            if not cv2.imwrite(str(path), img, self._png_params):
                 raise VioError(f"{path}: cannot write image")
             self._cam[k].write(f"{frame.t_ns},{name}\n")
         self.frames_written += 1

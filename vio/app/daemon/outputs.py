@@ -219,8 +219,9 @@ class RecorderWorker(Worker):
 
     def __init__(self, stop: threading.Event, buf: SensorBuffer, record_dir: str,
                  calibration: Callable[[], Any], fmt: str = "euroc", images: str = "png",
-                 latest: Any = None, health: Callable[[], dict] | None = None) -> None:
+                 latest: Any = None, health: Callable[[], dict] | None = None, png_level: int = 0) -> None:
         super().__init__("recorder", stop)
+        self.png_level = png_level
         self.buf = buf
         self.record_dir = record_dir
         self.fmt = fmt  # euroc | mcap (then also the newest estimator state and, every second, the health)
@@ -256,7 +257,7 @@ class RecorderWorker(Worker):
             else:
                 from vio.io.euroc import EurocWriter
 
-                self.writer = EurocWriter(self.root, calib)
+                self.writer = EurocWriter(self.root, calib, png_level=self.png_level)
             self.state = "recording"
             log.info("recording to %s", self.root)
             while not self.stop_event.is_set():

@@ -131,7 +131,8 @@ class Service:
         self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
                                    vision_ok=self.camera_fresh, mount=mount)
         self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now,
-                                        rc.record_format, rc.record_images, self.latest, lambda: self._last_status)
+                                        rc.record_format, rc.record_images, self.latest, lambda: self._last_status,
+                                        rc.record_png_level)
                          if self.rec_buf is not None else None)
         self.started = time.time()
         self.started_mono = time.monotonic()
