@@ -263,13 +263,15 @@ class VioSmoother:
         extra = 0
         try:
             self.smoother.update(graph, values, stamps)
+            # the whole estimate (0.07 ms) rather than calculateEstimatePose3 (0.25 ms a keyframe) for the gate
+            self._estimate = self.smoother.calculateEstimate()
             if self.cfg.extra_iterations > 0:
-                corr = pose_pred.localCoordinates(self.smoother.calculateEstimatePose3(X(j)))
+                corr = pose_pred.localCoordinates(self._estimate.atPose3(X(j)))
                 if float(np.max(np.abs(corr))) > self.cfg.extra_iteration_gate:
                     for _ in range(self.cfg.extra_iterations):
                         self.smoother.update()
                         extra += 1
-            self._estimate = self.smoother.calculateEstimate()
+                    self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
             first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
             raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
