@@ -72,7 +72,7 @@ def _keyframes(data: Path, sim_kw: dict):
 
 def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
                 map_profile: str = "survey", grow: tuple[int, ...] = (), size: tuple[int, int] = (376, 240),
-                second_seeds: tuple[int, ...] = (12,)) -> dict:
+                second_seeds: tuple[int, ...] = (12,), grow_profile: str = "survey") -> dict:
     from loop_closure import _gt_pose
 
     from vio.config import VioConfig
@@ -103,9 +103,9 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     G1 = [_gt_pose(gt1, t) for t in m.t_ns]  # ground truth of each map keyframe (stamps repeat across flights)
     grown = []
     for seed in grow:  # more flights in the same room, each relocalised in the map so far and added to it
-        d = cache / f"grow-survey-seed{seed}-scene2-{map_s:g}s{tag}"
+        d = cache / f"grow-{grow_profile}-seed{seed}-scene2-{map_s:g}s{tag}"
         items, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing,
-                                  **px})
+                                  "profile": grow_profile, **px})
         gt = EurocDataset(d).groundtruth.trajectory
         cl = LoopCloser(ds1.calibration, cfg)
         cl.load_map(m)
@@ -190,6 +190,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     ates = [r["ate_map_frame_m"] for r in rows if r["relocalised"]]
     ratios = [r["ate_ratio_to_odometry"] for r in rows if r["relocalised"]]
     out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing, "grown_by": grown,
+           "grow_profile": grow_profile,
             "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
            "map_loop_edges": mapper.stats.accepted, "map_false_edges_active": map_false, "starts": rows,
            "second_seeds": list(second_seeds), "odometry_ate_m": odom_ates[second_seeds[0]],
@@ -224,8 +225,11 @@ def main(argv: list[str]) -> int:
                     "swept through +-180 deg: the room seen from every direction) or laps (round the room, "
                     "looking along the course)")
     ap.add_argument("--grow", type=int, nargs="*", default=[], metavar="SEED",
-                    help="grow the map with more flights in the same room (survey, these seeds), each relocalised in "
-                    "the map so far and saved with it (as --load-map A --save-map AB does)")
+                    help="grow the map with more flights in the same room (--grow-profile, these seeds), each "
+                    "relocalised in the map so far and saved with it (as --load-map A --save-map AB does)")
+    ap.add_argument("--grow-profile", default="survey", choices=("survey", "mapping", "laps"),
+                    help="the profile of the --grow flights (laps: a seed whose laps turn the other way than the "
+                    "map flight's, e.g. 7 against the map's seed 2, sees every wall from the other side)")
     ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
     ap.add_argument("--second-seeds", type=int, nargs="+", default=[12], metavar="SEED",
                     help="second flights (survey, 30 s, scene seed 2), --starts starts each (default: 12)")
@@ -233,7 +237,8 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile,
-                      tuple(args.grow), tuple(int(v) for v in args.size.lower().split("x")), tuple(args.second_seeds))
+                      tuple(args.grow), tuple(int(v) for v in args.size.lower().split("x")), tuple(args.second_seeds),
+                      args.grow_profile)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
