@@ -136,6 +136,38 @@ def test_false_place_is_refused_by_the_drift_gate(loop_flight):
     assert closer.stats.refused["drift gate"] == 1 and closer.stats.accepted == 0, closer.stats.refused
 
 
+def test_spacing_takes_a_hovering_keyframe_only_every_spacing_s_and_always_the_one_after_a_reset(loop_flight):
+    """With [loop] spacing_m set, a keyframe joins the loop stage once it is that far, spacing_deg turned or
+    spacing_s later than the last one taken: a hover (keyframes every 0.4 s at one pose) adds one view every 2 s
+    instead of five; slow flight (0.1 m per keyframe) one in two at 0.15 m; the first after an estimator reset is
+    always taken (a new odometry segment needs its node). With spacing_m 0 (the default) every one is taken."""
+    import dataclasses
+
+    closer, img, ff = _closer_with_landmark_image(loop_flight)
+    cfg = dataclasses.replace(closer.cfg, spacing_m=0.15, spacing_deg=5.0, spacing_s=2.0)
+    closer.cfg = cfg
+    for k in range(26):  # 10 s of hover
+        closer.add_keyframe(int(0.4e9 * k), np.eye(4), img, ff)
+    assert [round(k.t_ns * 1e-9, 1) for k in closer.keyframes] == [0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+    assert closer.stats.spaced_out == 20 and closer.stats.keyframes == 6
+    t = int(10.4e9)
+    for k in range(1, 9):  # 0.1 m per keyframe
+        closer.add_keyframe(t + int(0.4e9 * k), make_T(np.eye(3), [0.1 * k, 0, 0]), img, ff)
+    assert [round(float(closer.graph.odom[n][0, 3]), 1) for n in range(6, len(closer.keyframes))] == [0.2, 0.4, 0.6,
+                                                                                                        0.8]
+    turned = make_T(so3_exp(np.radians([0, 0, 6.0])), [0.8, 0, 0])  # 6 deg, no travel
+    closer.add_keyframe(t + int(4e9), turned, img, ff)
+    assert len(closer.keyframes) == 11
+    closer.add_keyframe(t + int(4.4e9), turned, img, ff, reset_counter=1)  # same place, after a reset
+    assert len(closer.keyframes) == 12 and closer.keyframes[-1].session == 1
+    from vio.io.euroc import EurocDataset
+
+    every = type(closer)(EurocDataset(loop_flight).calibration, dataclasses.replace(cfg, spacing_m=0.0))
+    for k in range(5):
+        every.add_keyframe(int(0.4e9 * k), np.eye(4), img, ff)
+    assert len(every.keyframes) == 5 and every.stats.spaced_out == 0
+
+
 def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_alone(laps_flight, tmp_path):
     from vio.app.cli import main
 

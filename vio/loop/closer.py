@@ -66,6 +66,7 @@ class LoopStats:
     refused: dict = field(default_factory=lambda: dict.fromkeys(
         ("no candidate", "pnp", "two-way", "gravity", "drift gate", "inconsistent", "solve failed"), 0))
     accepted: int = 0
+    spaced_out: int = 0  # odometry keyframes not taken (closer than [loop] spacing_* to the last one taken)
     switched_off: int = 0
     gnc_decisions: int = 0  # closures after which the robust decision ran (the others fitted: fast path)
     detect_ms: list = field(default_factory=list)  # extraction + retrieval + verification per keyframe
@@ -74,7 +75,8 @@ class LoopStats:
     def to_dict(self) -> dict:
         def mean(x):
             return float(np.mean(x)) if x else 0.0
-        return {"keyframes": self.keyframes, "queried": self.queried, "refused": dict(self.refused),
+        return {"keyframes": self.keyframes, "spaced_out": self.spaced_out, "queried": self.queried,
+                "refused": dict(self.refused),
                 "accepted": self.accepted, "switched_off": self.switched_off,
                 "gnc_decisions": self.gnc_decisions,
                 "detect_ms_mean": mean(self.detect_ms),
@@ -109,6 +111,9 @@ class LoopCloser:
         """Add one keyframe (odometry pose); returns True when a closure was accepted (graph re-solved)."""
         t0 = time.perf_counter()
         c = self.cfg
+        if self._spaced_out(t_ns, T_world_body, reset_counter):
+            self.stats.spaced_out += 1
+            return False
         feats = self.extractor.extract(image, ff)
         bow = self.vocab.bow(feats.desc)
         reset = self._last_reset is not None and reset_counter != self._last_reset
@@ -150,6 +155,26 @@ class LoopCloser:
             self.stats.switched_off = sum(1 for e in self.graph.edges if e.kind == "loop" and e.weight < 0.5)
             self.stats.gnc_decisions = self.graph.decisions
         return accepted
+
+    def _spaced_out(self, t_ns: int, T_world_body: np.ndarray, reset_counter: int) -> bool:
+        """A keyframe too close to the last one taken, in place, heading and time, to add a view (with
+        `spacing_m` > 0). The odometry makes a keyframe every 0.2-0.4 s whatever the motion: a hover or a slow
+        survey would fill the database with near-copies that each cost extraction and a verification. Always
+        taken: the first, the first after an estimator reset, and every one while a loaded map or the flight
+        before a reset is not joined yet (relocalisation wants every view)."""
+        c = self.cfg
+        if c.spacing_m <= 0 or not self.keyframes or len(self.keyframes) <= self.map_keyframes:
+            return False
+        if self._last_reset is not None and reset_counter != self._last_reset:
+            return False
+        mine = self._comp(self.session)
+        if any(self._comp(s) != mine for s in self._component):
+            return False
+        last = self.graph.odom[-1]
+        d = inv_T(last) @ T_world_body
+        return (float(np.linalg.norm(d[:3, 3])) < c.spacing_m
+                and float(np.degrees(np.linalg.norm(so3_log(d[:3, :3])))) < c.spacing_deg
+                and (t_ns - self.keyframes[-1].t_ns) * 1e-9 < c.spacing_s)
 
     def _allowed(self, i: int):
         kf = self.keyframes[i]
