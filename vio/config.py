@@ -336,9 +336,9 @@ class LoopConfig:
     orb_levels: int = opt(1, "image pyramid levels the corners are found and described on (scale steps of "
                           "orb_level_scale: views of a place from other distances still match)", min=1, max=8)
     orb_level_scale: float = opt(1.2, "scale between pyramid levels", min=1.05, max=2.0)
-    spacing_m: float = opt(0.0, "an odometry keyframe joins the loop stage only this far (or spacing_deg, or "
+    spacing_m: float = opt(0.2, "an odometry keyframe joins the loop stage only this far (or spacing_deg, or "
                            "spacing_s) from the last one that did; 0: every keyframe", min=0, max=100)
-    spacing_deg: float = opt(5.0, "or turned this much (with spacing_m > 0)", min=0.1, max=180)
+    spacing_deg: float = opt(7.0, "or turned this much (with spacing_m > 0)", min=0.1, max=180)
     spacing_s: float = opt(2.0, "or this long after it (with spacing_m > 0)", min=0.1, max=3600)
     candidates: int = opt(1, "best retrieval candidates verified per keyframe", min=1, max=20)
     min_score: float = opt(0.05, "bag-of-words L1 score below which a candidate is not verified", min=0, max=1)
