@@ -72,10 +72,10 @@ def _keyframes(data: Path, sim_kw: dict):
 
 def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
                 map_profile: str = "survey", grow: tuple[int, ...] = (), size: tuple[int, int] = (376, 240),
-                second_seeds: tuple[int, ...] = (12,), grow_profile: str = "survey") -> dict:
+                second_seeds: tuple[int, ...] = (12,), grow_profile: str = "survey", config: str | None = None) -> dict:
     from loop_closure import _gt_pose
 
-    from vio.config import VioConfig
+    from vio.config import VioConfig, load_config
     from vio.evaluation import evaluate
     from vio.geometry import inv_T, so3_log
     from vio.io.euroc import EurocDataset
@@ -83,7 +83,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     from vio.loop.mapfile import load_map
     from vio.trajectory import Trajectory
 
-    cfg = VioConfig().loop
+    cfg = load_config(config).loop if config else VioConfig().loop
     tag = (f"-aliasing{aliasing}m" if aliasing else "") + ("" if size == (376, 240) else f"-{size[0]}x{size[1]}")
     px = {"width": size[0], "height": size[1]}
     d1 = cache / f"map-{map_profile}-seed2-{map_s:g}s{tag}"
@@ -233,12 +233,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
     ap.add_argument("--second-seeds", type=int, nargs="+", default=[12], metavar="SEED",
                     help="second flights (survey, 30 s, scene seed 2), --starts starts each (default: 12)")
+    ap.add_argument("--config", metavar="FILE", help="TOML configuration whose [loop] section the loop stages use")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     out = multi_start(args.starts, Path(args.cache), args.aliasing, args.map_duration, args.map_profile,
                       tuple(args.grow), tuple(int(v) for v in args.size.lower().split("x")), tuple(args.second_seeds),
-                      args.grow_profile)
+                      args.grow_profile, args.config)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
