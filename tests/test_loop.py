@@ -49,6 +49,37 @@ def test_pose_graph_closes_loops_and_switches_off_20_false_edges():
         assert np.degrees(np.arccos(np.clip((e[:3, :3].T @ [0, 0, 1]) @ (o[:3, :3].T @ [0, 0, 1]), -1, 1))) < 1.0
 
 
+def test_loop_edges_the_graph_already_agrees_with_skip_the_fit_check_and_a_wrong_one_does_not():
+    """After the first closure, the next true edges of the same lap fit the current estimate and go into iSAM2
+    at once (no decision-graph solve); the solution is the one the full path gives. A wrong edge is far off
+    the estimate, takes the full path, and GNC switches it off."""
+    import dataclasses
+
+    from vio.loop.posegraph import GraphNoise
+
+    for quick in (True, False):
+        g, truth = _circle(90, np.random.default_rng(1))
+        if not quick:
+            g.noise = dataclasses.replace(GraphNoise(), quick_fit_share=0.0)  # the full path every time
+        for k in range(40, 48):  # a second lap closing on the first at every keyframe
+            g.add_loop(k - 40, k, np.linalg.inv(truth[k - 40]) @ truth[k])
+            g.optimize()
+        if quick:
+            assert g.quick_fits >= 5, g.quick_fits  # all but the first closure (and its aftermath)
+            est_quick = np.array(g.estimate)
+        else:
+            assert g.quick_fits == 0
+            assert np.abs(np.array(g.estimate)[:, :3, 3] - est_quick[:, :3, 3]).max() < 1e-3
+    g, truth = _circle(90, np.random.default_rng(1))
+    for k in range(40, 48):
+        g.add_loop(k - 40, k, np.linalg.inv(truth[k - 40]) @ truth[k])
+        g.optimize()
+    n_quick = g.quick_fits
+    g.add_loop(5, 60, make_T(so3_exp(np.r_[0, 0, 0.3]), np.r_[1.0, 0.5, 0.0]))  # a look-alike place
+    w = g.optimize()["loop_weights"]
+    assert g.quick_fits == n_quick and w[-1] < 0.5 and min(w[:-1]) >= 0.5
+
+
 @pytest.fixture(scope="module")
 def loop_flight(tmp_path_factory):
     """A 36 s survey flight (a lissajous: it passes its own path) in a room the vocabulary never saw."""
@@ -574,6 +605,8 @@ def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(l
     """The same image at the same place after a 4 m excursion: a true closure. Its decision solve fails once
     (as an ill-conditioned graph's did before the QR fallback); that closure is taken back, logged and
     counted, and the next one is accepted as if nothing had happened."""
+    import dataclasses
+
     from vio.loop.posegraph import PoseGraph
 
     closer, img, ff = _closer_with_landmark_image(loop_flight)
@@ -591,6 +624,8 @@ def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(l
         return real_fits(self, *a, **k)
 
     monkeypatch.setattr(PoseGraph, "_fits", fits_once_broken)
+    # this edge already fits the estimate (1 cm): without the quick path, so that the decision solve runs
+    closer.graph.noise = dataclasses.replace(closer.graph.noise, quick_fit_share=0.0)
     back = make_T(np.eye(3), [0.01, 0, 0])
     with caplog.at_level("WARNING", logger="vio.loop.closer"):
         assert not closer.add_keyframe(int(8e9), back, img, ff)

@@ -69,6 +69,7 @@ class LoopStats:
     spaced_out: int = 0  # odometry keyframes not taken (closer than [loop] spacing_* to the last one taken)
     switched_off: int = 0
     gnc_decisions: int = 0  # closures after which the robust decision ran (the others fitted: fast path)
+    quick_fits: int = 0  # closures whose new edges already fitted the graph's estimate (no fit check either)
     detect_ms: list = field(default_factory=list)  # extraction + retrieval + verification per keyframe
     optimize_ms: list = field(default_factory=list)
 
@@ -78,7 +79,7 @@ class LoopStats:
         return {"keyframes": self.keyframes, "spaced_out": self.spaced_out, "queried": self.queried,
                 "refused": dict(self.refused),
                 "accepted": self.accepted, "switched_off": self.switched_off,
-                "gnc_decisions": self.gnc_decisions,
+                "gnc_decisions": self.gnc_decisions, "quick_fits": self.quick_fits,
                 "detect_ms_mean": mean(self.detect_ms),
                 "detect_ms_p95": float(np.percentile(self.detect_ms, 95)) if self.detect_ms else 0.0,
                 "optimize_ms_mean": mean(self.optimize_ms),
@@ -154,6 +155,7 @@ class LoopCloser:
             self.stats.optimize_ms.append((time.perf_counter() - t1) * 1e3)
             self.stats.switched_off = sum(1 for e in self.graph.edges if e.kind == "loop" and e.weight < 0.5)
             self.stats.gnc_decisions = self.graph.decisions
+            self.stats.quick_fits = self.graph.quick_fits
         return accepted
 
     def _spaced_out(self, t_ns: int, T_world_body: np.ndarray, reset_counter: int) -> bool:
