@@ -265,6 +265,46 @@ def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tm
     assert len(load_map(tmp_path / "m2.npz").features) == 3
 
 
+def test_saved_map_counts_the_loop_edges_that_placed_each_part_and_warns_of_a_weak_one(loop_flight, tmp_path,
+                                                                                      caplog, capsys):
+    """A segment after an estimator reset that closes on the first one through 3 edges is saved (it is in the
+    map's frame), but the header says by how many edges each part is placed, the save warns that this one rests
+    on few, and `vio map info` shows it; a map saved again after loading keeps the parts it had."""
+    from vio.app.cli import main
+    from vio.loop.closer import WEAK_JOIN_EDGES
+    from vio.loop.mapfile import load_map
+
+    closer, img, ff = _closer_with_landmark_image(loop_flight)
+    closer.add_keyframe(0, np.eye(4), img, ff)
+    for k in range(1, 4):  # away from the place, nothing to close on
+        closer.add_keyframe(int(2e9 * k), make_T(np.eye(3), [1.0 * k, 0, 0]), np.zeros_like(img), None)
+    for k in range(4):  # an estimator reset: a new origin 5 m off, back at the first place
+        closer.add_keyframe(int(10e9 + 1e9 * k), make_T(np.eye(3), [5.0 + 0.01 * k, 0, 0]), img, ff, reset_counter=1)
+    assert closer.relocalised_t_ns is None and closer.keyframes[-1].session == 1  # no loaded map: joins session 0
+    joins = closer._join_edges(1)
+    assert 1 <= joins < WEAK_JOIN_EDGES
+    with caplog.at_level("WARNING", logger="vio.loop.closer"):
+        closer.save_map(tmp_path / "m.npz")
+    m = load_map(tmp_path / "m.npz")
+    # the fourth keyframe after the reset came once the segment was joined, 1 cm from the third: spaced out
+    assert m.header["parts"] == [{"keyframes": 4, "join_edges": None}, {"keyframes": 3, "join_edges": joins}]
+    assert f"joined to the rest by only {joins} loop edges" in caplog.text and "rests on them" in m.header["note"]
+    assert main(["map", "info", str(tmp_path / "m.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "part 1: 4 keyframes, the frame's origin" in out and f"part 2: 3 keyframes, joined by {joins}" in out
+    assert "weak" in out
+    again = type(closer)(_calib(loop_flight), closer.cfg)
+    again.load_map(m)
+    again.save_map(tmp_path / "m2.npz")
+    assert load_map(tmp_path / "m2.npz").header["parts"] == m.header["parts"]
+
+
+def _calib(flight):
+    from vio.io.euroc import EurocDataset
+
+    return EurocDataset(flight).calibration
+
+
 def test_map_file_refuses_other_formats(tmp_path):
     from vio import VioError
     from vio.loop.mapfile import load_map

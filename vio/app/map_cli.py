@@ -16,6 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from vio.loop.closer import WEAK_JOIN_EDGES
     from vio.loop.mapfile import load_map
 
     m = load_map(args.file)
@@ -36,4 +37,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"  vocabulary k={v['k']} depth {v['depth']} sha256 {v['sha256'][:16]}...")
     c = info["camera"]
     print(f"  camera {c['width']}x{c['height']} fx {c['fx']:.1f} fy {c['fy']:.1f}")
+    for k, part in enumerate(info.get("parts") or []):
+        j = part["join_edges"]
+        how = "the frame's origin" if j is None else f"joined by {j} loop edges" + (
+            " (weak: its place rests on them)" if j < WEAK_JOIN_EDGES else "")
+        print(f"  part {k + 1}: {part['keyframes']} keyframes, {how}")
+    if info.get("note"):
+        print(f"  note: {info['note']}")
     return 0

@@ -4,7 +4,10 @@ One `.npz` (numpy arrays, read with allow_pickle=False) holding a JSON header an
 
     header          JSON text: {"format": "kestrel-vio-map", "version": 1, "keyframes": N, "descriptors": M,
                     "created_utc": ..., "vocabulary": {"k", "depth", "sha256"}, "camera": {fx, fy, cx, cy,
-                    width, height}, "note": ...}
+                    width, height}, "note": ..., "parts": [{"keyframes": n, "join_edges": k or null}]}
+                    parts (optional, readers of version 1 ignore it): the keyframes in order, by the flight
+                    segment they came from; join_edges is the loop edges that placed a segment in the map's
+                    frame (null for the first, the frame's origin)
     kf_t_ns         (N,) int64    keyframe stamps (IMU clock of the mapping flight)
     kf_T_world_body (N, 4, 4) f64 loop-corrected keyframe poses in the map's world frame (ENU/FLU, z up)
     kf_offsets      (N+1,) int64  keyframe k owns descriptor rows kf_offsets[k]:kf_offsets[k+1]
@@ -45,13 +48,15 @@ def vocabulary_digest(voc) -> str:
 
 
 def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatures], vocabulary, cam,
-             note: str = "") -> dict:
+             note: str = "", parts: list[dict] | None = None) -> dict:
     offsets = np.concatenate([[0], np.cumsum([len(f.desc) for f in features])]).astype(np.int64)
     header = {"format": FORMAT, "version": VERSION, "keyframes": len(features), "descriptors": int(offsets[-1]),
               "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "vocabulary": {"k": vocabulary.k, "depth": vocabulary.depth, "sha256": vocabulary_digest(vocabulary)},
               "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
                          "height": cam.height}, "note": note}
+    if parts is not None:
+        header["parts"] = parts
 
     def cat(attr, shape, dtype):
         arrs = [getattr(f, attr) for f in features]
