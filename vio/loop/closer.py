@@ -118,12 +118,12 @@ class LoopCloser:
         """Add one keyframe (odometry pose); returns True when a closure was accepted (graph re-solved)."""
         t0 = time.perf_counter()
         c = self.cfg
-        if self._spaced_out(t_ns, T_world_body, reset_counter):
+        reset = self._last_reset is not None and reset_counter != self._last_reset
+        if not reset and self._spaced_out(t_ns, T_world_body):
             self.stats.spaced_out += 1
             return False
         feats = self.extractor.extract(image, ff)
         bow = self.vocab.bow(feats.desc)
-        reset = self._last_reset is not None and reset_counter != self._last_reset
         if reset:
             self.session += 1  # an estimator reset: the odometry chain breaks
         self._last_reset = reset_counter
@@ -164,19 +164,16 @@ class LoopCloser:
             self.stats.quick_fits = self.graph.quick_fits
         return accepted
 
-    def _spaced_out(self, t_ns: int, T_world_body: np.ndarray, reset_counter: int) -> bool:
+    def _spaced_out(self, t_ns: int, T_world_body: np.ndarray) -> bool:
         """A keyframe too close to the last one taken, in place, heading and time, to add a view (with
         `spacing_m` > 0). The odometry makes a keyframe every 0.2-0.4 s whatever the motion: a hover or a slow
         survey would fill the database with near-copies that each cost extraction and a verification. Always
-        taken: the first, the first after an estimator reset, and every one while a loaded map or the flight
-        before a reset is not joined yet (relocalisation wants every view)."""
+        taken: the first, the first after an estimator reset (the caller's test), and every one while a loaded
+        map or the flight before a reset is not joined yet (relocalisation wants every view)."""
         c = self.cfg
         if c.spacing_m <= 0 or not self.keyframes or len(self.keyframes) <= self.map_keyframes:
             return False
-        if self._last_reset is not None and reset_counter != self._last_reset:
-            return False
-        mine = self._comp(self.session)
-        if any(self._comp(s) != mine for s in self._component):
+        if self._relocalising(self.session):
             return False
         last = self.graph.odom[-1]
         d = inv_T(last) @ T_world_body
@@ -199,9 +196,9 @@ class LoopCloser:
         ok = self._allowed(i)
         cands = self.index.query(bow, ok, c.candidates)
         mine = self._comp(self.keyframes[i].session)
-        others = [s for s in self._component if self._comp(s) != mine]
-        if others and c.reloc_candidates:  # relocalising (not joined to a map / the flight before a reset yet):
-            # their best ones too, or this flight's own keyframes crowd them out of the top `candidates`
+        if c.reloc_candidates and self._relocalising(self.keyframes[i].session):
+            # not joined to a map / the flight before a reset yet: their best ones too, or this flight's own
+            # keyframes crowd them out of the top `candidates`
             seen = {j for j, _ in cands}
             cands += [(j, s) for j, s in self.index.query(
                 bow, lambda j: ok(j) and self._comp(self.keyframes[j].session) != mine, c.reloc_candidates)
@@ -273,6 +270,11 @@ class LoopCloser:
         if self.relocalised_t_ns is None and self.relocalised:
             self.relocalised_t_ns = self.keyframes[i].t_ns
         return True
+
+    def _relocalising(self, session: int) -> bool:
+        """Some session (a loaded map, the flight before a reset) is not joined to `session` by a loop edge."""
+        mine = self._comp(session)
+        return any(self._comp(s) != mine for s in self._component)
 
     def _comp(self, session: int) -> int:
         while self._component.get(session, session) != session:

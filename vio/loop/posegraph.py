@@ -224,8 +224,12 @@ class PoseGraph:
             return gtsam.GaussNewtonOptimizer(g, values, params).optimize()
 
         result = _cholesky_else_qr(solve)
-        bar = 0.5 * float(chi2.ppf(self.noise.gnc_inlier_probability, 6))
+        bar = self._tls_cost_bar()
         return all(f.error(result) <= bar for f in factors)
+
+    def _tls_cost_bar(self) -> float:
+        """A loop edge's factor error (0.5 chi^2) at GNC's TLS inlier threshold."""
+        return 0.5 * float(chi2.ppf(self.noise.gnc_inlier_probability, 6))
 
     def _decide(self, known: gtsam.NonlinearFactorGraph, values: gtsam.Values, loops: list[int]) -> list[float]:
         """GNC (TLS) weights of the loop edges `loops` (indices in self.edges) on the decision graph."""
@@ -284,7 +288,7 @@ class PoseGraph:
         new = [k for k in loops if self.edges[k].weight >= 0.5 and k not in self._in_isam]
         if not new:
             return False
-        bar = self.noise.quick_fit_share * 0.5 * float(chi2.ppf(self.noise.gnc_inlier_probability, 6))
+        bar = self.noise.quick_fit_share * self._tls_cost_bar()
         for k in new:
             e = self.edges[k]
             v = gtsam.Values()
