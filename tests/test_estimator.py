@@ -427,8 +427,8 @@ def _tilting_flight(calib, refine: bool, duration_s: float = 16.0, wrong=None, o
     from vio.types import ImuSample
 
     cfg = VioConfig()
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=refine,
-                                                               estimate_time_offset=False, **backend))
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, **{
+        "refine_extrinsics": refine, "estimate_time_offset": False, **backend}))
     m = make_profile("aggressive", duration_s, seed=1, still_s=1.0)
     t = np.arange(int(duration_s * 200) + 1) / 200.0
     imu = synthesize(m, t, ImuModel(noise=calib.imu), np.random.default_rng(0))
@@ -541,6 +541,34 @@ def test_time_offset_state_follows_a_drifting_offset():
     _, exact = _tilting_flight(calib, False, offset_ms=lambda t: 0.0)
     assert np.all(off[:, 1] == 0.0)  # no state: the estimate stays the calibration's
     assert rms(on[:, 2]) < 1.3 * rms(exact[:, 2]) and rms(off[:, 2]) > 5 * rms(on[:, 2])
+
+
+def test_time_offset_state_switches_itself_on_when_a_recheck_finds_the_offset_moved():
+    """A camera clock that runs 120 ppm slow (the offset grows 0.12 ms/s, the calibration saying 0): the
+    in-flight estimate finishes while the offset is still within its noise, a re-check finds it moved, applies
+    it and switches the time offset state on (`time_offset_state_auto`), which then follows the drift to the
+    end. Without re-checks the offset stays 4.8 ms off. Right stamps: no re-check applies anything and the
+    state stays off, so the trajectory is (to 1 mm) the one without the automatic state."""
+    calib = synthetic_calibration()
+
+    def skew(t):
+        return 0.12 * t
+
+    est, tr = _tilting_flight(calib, False, duration_s=40.0, offset_ms=skew, estimate_time_offset=True,
+                              time_offset_recheck_s=10.0, time_offset_state_auto=True)
+    assert est.time_state and est.reset_counter == 0 and est.offset_estimator.rechecks >= 1
+    assert abs(tr[-1, 1] - skew(tr[-1, 0])) < 0.5
+    never, tr_never = _tilting_flight(calib, False, duration_s=40.0, offset_ms=skew, estimate_time_offset=True,
+                                      time_offset_recheck_s=0.0, time_offset_state_auto=True)
+    assert not never.time_state and abs(tr_never[-1, 1] - skew(tr_never[-1, 0])) > 4.0
+    assert np.sqrt(np.mean(tr[:, 2] ** 2)) < np.sqrt(np.mean(tr_never[:, 2] ** 2))
+    exact, tr_exact = _tilting_flight(calib, False, duration_s=40.0, offset_ms=lambda t: 0.0,
+                                      estimate_time_offset=True, time_offset_recheck_s=10.0,
+                                      time_offset_state_auto=True)
+    assert not exact.time_state and exact.offset_estimator.rechecks >= 2 and np.all(tr_exact[:, 1] == 0.0)
+    _, tr_manual = _tilting_flight(calib, False, duration_s=40.0, offset_ms=lambda t: 0.0, estimate_time_offset=True,
+                                   time_offset_recheck_s=10.0, time_offset_state_auto=False)
+    np.testing.assert_allclose(tr_exact, tr_manual, atol=1e-3)
 
 
 def test_time_offset_state_is_kept_across_a_reset():

@@ -152,9 +152,16 @@ class BackendConfig:
     time_offset_window_s: float = opt(8.0, "frames per in-flight offset estimate", min=1, max=120)
     time_offset_continuous: bool = opt(False, "keep tracking the time offset after it converged (a drifting camera "
                                         "or IMU clock) instead of freezing it; costs a PnP per frame all flight")
+    time_offset_recheck_s: float = opt(0.0, "once the in-flight estimate has finished, check the offset again every "
+                                       "this many seconds on one window (a clock that drifts, or drifts later); "
+                                       "0 = never", min=0, max=3600)
     time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
     time_offset_state: bool = opt(False, "the residual camera-IMU offset as a smoother state per keyframe (a "
                                   "random walk, observed through the projections of the turning, moving body)")
+    time_offset_state_auto: bool = opt(False, "switch the time offset state on, from the next keyframe, when the "
+                                       "in-flight estimate finds the calibration's offset wrong (a rig whose "
+                                       "clocks disagree may also drift); off otherwise, so a right offset costs "
+                                       "nothing")
     time_offset_state_sigma_ms: float = opt(3.0, "prior 1-sigma of that residual at the first keyframe", min=0.01,
                                             max=100)
     time_offset_walk_ms: float = opt(0.05, "random walk of the offset [ms per sqrt(s)] around what its rate "

@@ -193,8 +193,11 @@ class Estimator:
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
                                                  track_window_s=b.time_offset_track_window_s,
-                                                 coarse_only=b.time_offset_state) \
+                                                 coarse_only=b.time_offset_state,
+                                                 recheck_s=0.0 if b.time_offset_state else b.time_offset_recheck_s) \
             if b.estimate_time_offset else None
+        # the smoother's time offset state: on from the start, or switched on by the in-flight estimate (auto)
+        self._time_state = bool(b.time_offset_state)
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
@@ -486,10 +489,15 @@ class Estimator:
         state = run.smoother.time_offset_ns() if isinstance(run, _Running) else None
         return self.time_offset_ns if state is None else state
 
+    @property
+    def time_state(self) -> bool:
+        """Whether the smoother follows the time offset as a state (configured, or switched on in flight)."""
+        return self._time_state
+
     def _omega(self, t: int, gyro_bias: np.ndarray) -> np.ndarray | None:
         """Bias-corrected body rate at t for the time offset state's twist (None without the state): the
         gyro's mean over the last OMEGA_WINDOW_NS (one sample is mostly motor vibration)."""
-        if not self.bcfg.time_offset_state:
+        if not self._time_state:
             return None
         _, gyro, _ = self.imu.window(t - OMEGA_WINDOW_NS, t)
         if len(gyro) == 0:
@@ -501,7 +509,7 @@ class Estimator:
 
         Its solves (tens of ms) wait for a frame that is no keyframe and computes no marginal, so that they
         never add to a keyframe solve."""
-        if self.offset_estimator is None or self.offset_estimator.done:
+        if self.offset_estimator is None or not self.offset_estimator.recheck_due(int(ff.t_ns)):
             return
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)
@@ -513,6 +521,21 @@ class Estimator:
             log.info("camera-IMU time offset: %.1f ms -> %.1f ms (calibration %.1f ms)", self.time_offset_ns * 1e-6,
                      new * 1e-6, self.calib.time_offset_ns * 1e-6)
             self.time_offset_ns = new
+            if self.bcfg.time_offset_state_auto and not self._time_state:
+                self._start_time_state()
+
+    def _start_time_state(self) -> None:
+        """The calibration's offset proved wrong: this rig's clocks are not what its file says, and clocks that
+        disagree often drift (USB cameras, serial IMUs). The smoother follows the offset as a state from the next
+        keyframe on. The gyro-based estimate goes on until it has converged (on the +-10 ms matrix flights the
+        state alone from the first correction ended 1.3x worse), but makes no re-checks after it: the state
+        follows. A rig whose offset the calibration gets right never pays for the state."""
+        self._time_state = True
+        if isinstance(self._state, _Running):
+            self._state.smoother.start_time_state()
+        if self.offset_estimator is not None:
+            self.offset_estimator.stop_rechecks()
+        log.info("time offset: the smoother follows it as a state from the next keyframe on")
 
     def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
         icfg = self.cfg.init
@@ -598,7 +621,8 @@ class Estimator:
                 anchor = pred
             T, v = reanchored(T, v, anchor)
         static = init.method == "static"
-        smoother = VioSmoother(self.refined_calibration(), self.bcfg)  # a reset keeps what was learnt
+        # a reset keeps what was learnt (the calibration refined, the time state once switched on)
+        smoother = VioSmoother(self.refined_calibration(), self.bcfg, time_state=self._time_state)
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
                                   sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff,
                                   omega_body=self._omega(init.t_ns, init.gyro_bias),

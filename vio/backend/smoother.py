@@ -177,7 +177,9 @@ def offset_rate_factor(d_i: int, s_i: int, d_j: int, dt: float, step: float,
 class VioSmoother:
     """Keyframe graph + fixed-lag smoother. Create, `initialize` once, then `add_keyframe` per keyframe."""
 
-    def __init__(self, calib: StereoCalibration, cfg: BackendConfig) -> None:
+    def __init__(self, calib: StereoCalibration, cfg: BackendConfig, time_state: bool | None = None) -> None:
+        """`time_state`: the time offset state from the first keyframe on (default: `cfg.time_offset_state`);
+        `start_time_state` switches it on later."""
         self.cfg = cfg
         self.calib = calib
         self.K0 = gtsam.Cal3_S2(calib.cam0.fx, calib.cam0.fy, 0.0, calib.cam0.cx, calib.cam0.cy)
@@ -200,7 +202,8 @@ class VioSmoother:
         self.n_mono_landmarks = 0
         self.refine = bool(cfg.refine_extrinsics)
         self.refine_K = self.refine and bool(cfg.refine_intrinsics)
-        self.time_state = bool(cfg.time_offset_state)
+        # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet)
+        self.time_from: int | None = 0 if (cfg.time_offset_state if time_state is None else time_state) else None
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
@@ -210,9 +213,20 @@ class VioSmoother:
         self._estimate: gtsam.Values | None = None
 
     # -- helpers -------------------------------------------------------------------------------------
+    @property
+    def time_state(self) -> bool:
+        """Whether the time offset state is on (from keyframe `time_from` on)."""
+        return self.time_from is not None
+
+    def start_time_state(self) -> None:
+        """The time offset state from the next keyframe on (the in-flight estimate found the offset wrong: it
+        may drift). Earlier keyframes keep reading X(i); the first D gets the prior of a first keyframe."""
+        if self.time_from is None:
+            self.time_from = self.index + 1
+
     def _pose_key(self, i: int) -> int:
         """The pose the projections of keyframe i read: the camera-time C(i) with the time state, else X(i)."""
-        return C(i) if self.time_state else X(i)
+        return C(i) if self.time_from is not None and i >= self.time_from else X(i)
 
     def _add_time_state(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
                         j: int, t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
@@ -220,11 +234,11 @@ class VioSmoother:
         """D(j), C(j) and their factors (module doc); returns C(j)'s initial value."""
         cfg = self.cfg
         rate = cfg.time_offset_rate_walk_ms > 0
-        if j == 0:
+        if j == self.time_from:
             d = 0.0
-            graph.add(gtsam.PriorFactorDouble(D(0), 0.0, _sigmas([cfg.time_offset_state_sigma_ms])))
+            graph.add(gtsam.PriorFactorDouble(D(j), 0.0, _sigmas([cfg.time_offset_state_sigma_ms])))
             if rate:
-                graph.add(gtsam.PriorFactorDouble(S(0), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms])))
+                graph.add(gtsam.PriorFactorDouble(S(j), 0.0, _sigmas([cfg.time_offset_rate_sigma_ms])))
         else:
             step = (applied_ns - self._applied_ns) * 1e-6  # ms; the applied offset moved: the residual moves back
             dt = max(t_s - self._t_s(self.last.t_ns), 1e-3)  # since the previous keyframe
@@ -248,7 +262,7 @@ class VioSmoother:
         values.insert(C(j), cam_pose)
         stamps[D(j)] = stamps[C(j)] = t_s
         if rate:
-            values.insert(S(j), float(0.0 if j == 0 else r))
+            values.insert(S(j), float(0.0 if j == self.time_from else r))
             stamps[S(j)] = t_s
         return cam_pose
 

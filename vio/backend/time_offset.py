@@ -27,6 +27,13 @@ line's own value there overshot where the drift turned: extrapolated from its ce
 Hovering gives no informative pairs: no solve, the offset stays where it was (and the PnP per frame
 goes on costing ~0.4 ms).
 
+Re-checks (`recheck_s`, `[backend] time_offset_recheck_s`): once collection has stopped, the offset is
+checked again every `recheck_s` on one window of pairs (at most twice its length of flight time, so a hover
+does not keep it running). An estimate significantly off the applied offset (SIGNIFICANT_SIGMAS, with the
+systematic error) from half a window on is applied: a clock that drifts slowly, or only later, is caught
+within a re-check period instead of never. In between it costs nothing; during a re-check what collection
+costs.
+
 Why frames apart rather than consecutive: shifting an interval by d changes its gyro integral by
 (w(t1) - w(t0)) d, so the signal grows with the interval while the visual rotation noise does not (at
 50 ms it drowned in the noise: +-5 ms sigma per 8 s window).
@@ -79,7 +86,8 @@ class OnlineTimeOffset:
     def __init__(self, calib: StereoCalibration, window_s: float = 8.0, max_offset_s: float = 0.05,
                  accept_sigma_s: float = 0.002, final_sigma_s: float = 0.0005, max_solves: int = 30,
                  span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None,
-                 continuous: bool = False, track_window_s: float = 4.0, coarse_only: bool = False) -> None:
+                 continuous: bool = False, track_window_s: float = 4.0, coarse_only: bool = False,
+                 recheck_s: float = 0.0) -> None:
         """`imu`: a buffer someone else fills (the estimator's one buffer), which must then keep at least
         `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`).
         `coarse_only`: stop at the first accepted estimate (the smoother's time offset state refines and
@@ -89,6 +97,7 @@ class OnlineTimeOffset:
         self.c = np.array([cam.cx, cam.cy])
         self.fxy = np.array([cam.fx, cam.fy])
         self.K = cam.K
+        self.cam_rate_hz = cam.rate_hz
         self.R_body_cam = cam.T_body_cam[:3, :3].copy()
         self.base_ns = int(calib.time_offset_ns)  # searched around the calibration's value
         self.max_offset_s = max_offset_s
@@ -118,6 +127,11 @@ class OnlineTimeOffset:
         self._history: deque[tuple[int, int, float]] = deque()  # (mean pair time ns, offset ns, sigma s)
         self._history_ns = int(TRACK_HISTORY_WINDOWS * track_window_s * 1e9)
         self._drift: tuple[int, float, float] | None = None  # (anchor ns, offset ns there, slope ns/ns)
+        self._recheck_ns = int(recheck_s * 1e9)
+        self._next_check_ns: int | None = None  # camera time of the next re-check (after collection stopped)
+        self.rechecking = False
+        self.rechecks = 0
+        self._t_last: int | None = None
         self._owned = imu is None
         self.imu = ImuBuffer() if imu is None else imu
 
@@ -146,7 +160,9 @@ class OnlineTimeOffset:
         if self.done:
             return None
         self._t_first = ff.t_ns if self._t_first is None else self._t_first
-        if ff.t_ns - self._t_first > self.max_collect_ns and not self.tracking:  # hover: stop paying for it
+        self._t_last = int(ff.t_ns)
+        limit = 2 * self._window_ns() if self.rechecking else self.max_collect_ns
+        if ff.t_ns - self._t_first > limit and not self.tracking:  # hover: stop paying for it
             self._finish()
             return None
         if not ff.tracking_ok:
@@ -178,11 +194,30 @@ class OnlineTimeOffset:
             return None
         return self._solve()
 
+    def _window_ns(self) -> int:
+        return int(self._pairs.maxlen / self.cam_rate_hz * 1e9)
+
+    def recheck_due(self, t_ns: int) -> bool:
+        """Whether the frame at t_ns (camera clock) is collected: while collecting, or a re-check starts here."""
+        if not self.done:
+            return True
+        if self._next_check_ns is None or t_ns < self._next_check_ns:
+            return False
+        self.done, self.rechecking = False, True
+        self.rechecks += 1
+        self._next_check_ns = None
+        self._t_first = int(t_ns)
+        self._recent.clear()
+        self._pairs.clear()
+        self._new_pairs = self._postponed = 0
+        log.debug("time offset: re-check %d (applied %+.2f ms)", self.rechecks, self.applied_ns * 1e-6)
+        return True
+
     def wants_stereo(self) -> bool:
         """Whether the next frame needs stereo depth for the pairs to come: true when none of the newest
         span_frames - 1 frames has it. Stereo on every frame doubled the image work (right image decoding
         and matching) for the up to `max_collect_s` that collection lasts on a flight that barely turns."""
-        if self.done:
+        if self.done or self.rechecking:  # a re-check uses the frames that have stereo anyway: it changes nothing
             return False
         newest = list(self._recent)[-(self.span_frames - 1):] if self.span_frames > 1 else []
         return not any(map(_has_depth, newest))
@@ -231,6 +266,8 @@ class OnlineTimeOffset:
         changed = None
         if self.tracking:
             return self._track(est, t0, t1)
+        if self.rechecking:
+            return self._recheck(est)
         if (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
                 and est.sigma_s <= min(self.accept_sigma_s, self.sigma_s * 1.5)):
             new = self.base_ns + int(round(est.offset_s * 1e9))
@@ -265,6 +302,24 @@ class OnlineTimeOffset:
             self._finish()
         return changed
 
+    def _recheck(self, est) -> int | None:
+        """A re-check's solve: apply an estimate that is significantly off the applied offset (from half a
+        window of pairs on: a first solve on 2 s of pairs is too easily a few sigma off); stop at a full window."""
+        if (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
+                and est.sigma_s <= self.accept_sigma_s and 2 * len(self._pairs) >= self._pairs.maxlen):
+            new = self.base_ns + int(round(est.offset_s * 1e9))
+            off_ns = float(np.hypot(est.sigma_s, SYSTEMATIC_SIGMA_S)) * 1e9
+            if abs(new - self.applied_ns) >= max(CHANGE_NS, SIGNIFICANT_SIGMAS * off_ns):
+                log.info("camera-IMU time offset re-checked: %+.1f ms +- %.1f ms from %d frame pairs, %+.1f ms "
+                         "applied: it moved", new * 1e-6, est.sigma_s * 1e3, est.n_pairs, self.applied_ns * 1e-6)
+                self.offset_ns = self.applied_ns = new
+                self.sigma_s = est.sigma_s
+                self._finish()
+                return new
+        if len(self._pairs) == self._pairs.maxlen:
+            self._finish()
+        return None
+
     def _start_tracking(self) -> None:
         self.tracking = True
         self._pairs = deque(list(self._pairs)[-self._track_pairs:], maxlen=self._track_pairs)
@@ -297,10 +352,23 @@ class OnlineTimeOffset:
         self.applied_ns = self.offset_ns
         return self.applied_ns
 
+    def stop_rechecks(self) -> None:
+        """No re-checks from now on (someone else follows the offset once this estimate has finished)."""
+        self._recheck_ns = 0
+        self._next_check_ns = None
+        if self.rechecking:
+            self._finish()
+
     def _finish(self) -> None:
         self.done = True
-        log.info("time offset: estimation finished after %d solves (offset %s)", self.solves,
-                 "unchanged" if self.offset_ns is None else f"{self.offset_ns * 1e-6:+.1f} ms")
+        if self._recheck_ns > 0 and not self.tracking and self._t_last is not None:
+            self._next_check_ns = self._t_last + self._recheck_ns
+        if self.rechecking:
+            self.rechecking = False
+            log.debug("time offset: re-check %d done (applied %+.2f ms)", self.rechecks, self.applied_ns * 1e-6)
+        else:
+            log.info("time offset: estimation finished after %d solves (offset %s)", self.solves,
+                     "unchanged" if self.offset_ns is None else f"{self.offset_ns * 1e-6:+.1f} ms")
         if self._owned:
             self.imu = ImuBuffer()
         self._pairs.clear()
