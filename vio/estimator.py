@@ -509,7 +509,7 @@ class Estimator:
 
         Its solves (tens of ms) wait for a frame that is no keyframe and computes no marginal, so that they
         never add to a keyframe solve."""
-        if self.offset_estimator is None or not self.offset_estimator.recheck_due(int(ff.t_ns)):
+        if self.offset_estimator is None or not self.offset_estimator.collects(int(ff.t_ns)):
             return
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)

@@ -197,8 +197,9 @@ class OnlineTimeOffset:
     def _window_ns(self) -> int:
         return int(self._pairs.maxlen / self.cam_rate_hz * 1e9)
 
-    def recheck_due(self, t_ns: int) -> bool:
-        """Whether the frame at t_ns (camera clock) is collected: while collecting, or a re-check starts here."""
+    def collects(self, t_ns: int) -> bool:
+        """Whether the frame at t_ns (camera clock) is collected: while collecting, or when a re-check is due
+        (which then starts here)."""
         if not self.done:
             return True
         if self._next_check_ns is None or t_ns < self._next_check_ns:
@@ -268,9 +269,8 @@ class OnlineTimeOffset:
             return self._track(est, t0, t1)
         if self.rechecking:
             return self._recheck(est)
-        if (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
-                and est.sigma_s <= min(self.accept_sigma_s, self.sigma_s * 1.5)):
-            new = self.base_ns + int(round(est.offset_s * 1e9))
+        if self._applicable(est, min(self.accept_sigma_s, self.sigma_s * 1.5)):
+            new = self._offset_ns(est)
             self.offset_ns, self.sigma_s = new, est.sigma_s
             log.info("camera-IMU time offset %+.1f ms +- %.1f ms from %d frame pairs (solve %d, rotation std "
                      "%.2f rad/s)", new * 1e-6, est.sigma_s * 1e3, est.n_pairs, self.solves, est.rate_std_rad_s)
@@ -302,12 +302,22 @@ class OnlineTimeOffset:
             self._finish()
         return changed
 
+    @staticmethod
+    def _applicable(est, max_sigma_s: float) -> bool:
+        """An estimate that may replace the applied offset: observable, sigma <= max_sigma_s, and made while
+        the vehicle turned enough (MIN_APPLY_RATE_STD_RAD_S)."""
+        return (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
+                and est.sigma_s <= max_sigma_s)
+
+    def _offset_ns(self, est) -> int:
+        """The estimate as an offset t_imu = t_cam + offset [ns] (it is solved around the calibration's)."""
+        return self.base_ns + int(round(est.offset_s * 1e9))
+
     def _recheck(self, est) -> int | None:
         """A re-check's solve: apply an estimate that is significantly off the applied offset (from half a
         window of pairs on: a first solve on 2 s of pairs is too easily a few sigma off); stop at a full window."""
-        if (est is not None and est.observable and est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S
-                and est.sigma_s <= self.accept_sigma_s and 2 * len(self._pairs) >= self._pairs.maxlen):
-            new = self.base_ns + int(round(est.offset_s * 1e9))
+        if self._applicable(est, self.accept_sigma_s) and 2 * len(self._pairs) >= self._pairs.maxlen:
+            new = self._offset_ns(est)
             off_ns = float(np.hypot(est.sigma_s, SYSTEMATIC_SIGMA_S)) * 1e9
             if abs(new - self.applied_ns) >= max(CHANGE_NS, SIGNIFICANT_SIGMAS * off_ns):
                 log.info("camera-IMU time offset re-checked: %+.1f ms +- %.1f ms from %d frame pairs, %+.1f ms "
@@ -331,7 +341,7 @@ class OnlineTimeOffset:
         if est is None or not est.observable or est.sigma_s > self.accept_sigma_s:
             return None
         t_mid = int(np.mean(0.5 * (t0 + t1)))
-        self._history.append((t_mid, self.base_ns + int(round(est.offset_s * 1e9)), est.sigma_s))
+        self._history.append((t_mid, self._offset_ns(est), est.sigma_s))
         t_now = int(t1.max())
         while self._history and self._history[0][0] < t_mid - self._history_ns:
             self._history.popleft()
