@@ -507,6 +507,35 @@ def test_vocabulary_words_descend_as_one_descriptor_at_a_time():
     assert v.words(desc).tolist() == [one(x) for x in desc]
 
 
+def test_one_call_descriptors_equal_upright_keypoints_made_one_by_one(loop_flight):
+    """The single-level path makes its keypoints in one call (angle -1 deg) and predicts which rows compute()
+    keeps: same descriptors and rows as upright (angle 0) keypoints made one by one, for points scattered over
+    the image and on every pixel and half pixel around its border, where compute() drops some."""
+    import cv2
+
+    from vio.io.euroc import EurocDataset
+    from vio.loop.features import PATCH, FeatureExtractor
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    h, w = img.shape
+    ex = FeatureExtractor(ds.calibration.cam0, 300)
+    rng = np.random.default_rng(5)
+    edge = np.arange(PATCH - 3, PATCH + 3, 0.5)
+    mid_x, mid_y = np.full_like(edge, w / 2), np.full_like(edge, h / 2)
+    uv = np.vstack([np.column_stack([rng.uniform(0, w, 400), rng.uniform(0, h, 400)]),
+                    np.column_stack([edge, mid_y]), np.column_stack([w - edge, mid_y]),
+                    np.column_stack([mid_x, edge]), np.column_stack([mid_x, h - edge])])
+    uv = uv.astype(np.float32)
+    desc, rows = ex._describe(img, uv, np.zeros(len(uv), np.int64))
+    kps = [cv2.KeyPoint(float(u), float(v), float(PATCH), 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv)]
+    kps, ref = ex.orb.compute(img, kps)
+    assert 0 < len(rows) < len(uv)  # some dropped at the border
+    assert rows.tolist() == [k.class_id for k in kps]
+    assert np.array_equal(desc, ref)
+    assert ex.slow_describes == 0  # the prediction held: no second pass
+
+
 def _scale_consistent_matches(ex, img: np.ndarray, far: np.ndarray, s: float, x0: int, y0: int) -> int:
     """Mutual best descriptor matches between an image and the same view from further off (`far`: scaled by
     1/s, placed at x0, y0) that land within 3 px of where the scaling puts them."""

@@ -73,6 +73,7 @@ class FeatureExtractor:
         self.n_level = np.maximum(1, np.round(n_features * share / share.sum())).astype(int)
         self.fast = cv2.FastFeatureDetector_create(fast_threshold, True)
         self.fast_dim = cv2.FastFeatureDetector_create(max(1, fast_threshold // 2), True)
+        self.slow_describes = 0  # single-level descriptions whose kept rows were not as predicted
         self.orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=level_scale, nlevels=levels,
                                   edgeThreshold=PATCH, patchSize=PATCH)
 
@@ -121,14 +122,37 @@ class FeatureExtractor:
             p3 = np.vstack([np.full((len(uv_all), 3), np.nan), xyz])
             uv_all = np.vstack([uv_all, uv_st])
             octave = np.concatenate([octave, np.zeros(len(uv_st), np.int64)])
-        # class_id carries the row through compute(), which drops points too near the border; octave picks the
-        # pyramid level the descriptor is computed on
-        sizes = PATCH * self.level_scale ** octave
-        kps = [cv2.KeyPoint(u, v, sz, 0.0, 0.0, o, i)
-               for i, ((u, v), sz, o) in enumerate(zip(uv_all.tolist(), sizes.tolist(), octave.tolist()))]
-        kps, desc = self.orb.compute(image, kps)
-        if desc is None or not kps:
+        described = self._describe(image, uv_all.astype(np.float32), octave)
+        if described is None:
             return KeyframeFeatures(np.zeros((0, 32), np.uint8), np.zeros((0, 2)), np.zeros((0, 3)))
-        keep = np.array([kp.class_id for kp in kps], np.int64)
+        desc, keep = described
         uv_raw = uv_all[keep].astype(np.float64)
         return KeyframeFeatures(desc, undistort_px(self.cam, uv_raw), p3[keep].reshape(-1, 3))
+
+    def _describe(self, image: np.ndarray, uv: np.ndarray, octave: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Upright descriptors of the points, and the rows they belong to (compute() drops points too near the
+        border); None when none is left.
+
+        On one level (the default) the keypoints are made in one call, which sets their angle to -1 deg instead
+        of 0: BRIEF samples the pixel each rotated pattern point rounds to, and for integer pattern points within
+        PATCH / 2 of the centre a 1 deg rotation moves none by more than 0.16 px, so the descriptors are the same.
+        The rows kept are predicted from ORB's border rule (the pixel a point rounds to at least PATCH from the
+        edge) and checked against the points compute() returns. Making a KeyPoint per point in Python, with its
+        row in class_id, cost ~0.3 ms a keyframe; it remains for pyramid levels and when the check fails."""
+        h, w = image.shape[:2]
+        if len(uv) and not octave.any():
+            r = np.rint(uv)
+            rows = np.flatnonzero((r[:, 0] >= PATCH) & (r[:, 0] < w - PATCH) & (r[:, 1] >= PATCH)
+                                  & (r[:, 1] < h - PATCH))
+            kps, desc = self.orb.compute(image, cv2.KeyPoint.convert(uv, float(PATCH)))
+            if desc is not None and len(kps) == len(rows) and \
+                    np.array_equal(cv2.KeyPoint.convert(kps).reshape(-1, 2), uv[rows]):
+                return desc, rows
+            self.slow_describes += 1
+        sizes = PATCH * self.level_scale ** octave
+        kps = [cv2.KeyPoint(u, v, sz, 0.0, 0.0, o, i)
+               for i, ((u, v), sz, o) in enumerate(zip(uv.tolist(), sizes.tolist(), octave.tolist()))]
+        kps, desc = self.orb.compute(image, kps)
+        if desc is None or not kps:
+            return None
+        return desc, np.array([kp.class_id for kp in kps], np.int64)

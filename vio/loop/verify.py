@@ -21,23 +21,21 @@ class PnpResult:
     pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))  # inlier (old, new) rows
 
 
-_MATCHER = cv2.BFMatcher(cv2.NORM_HAMMING)
-
-
 def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio: float) -> np.ndarray:
     """(M, 2) index pairs (old landmark, new feature): ratio test and mutual best."""
     has3 = np.flatnonzero(np.isfinite(old.p_cam[:, 0]))
     if len(has3) < 4 or len(new.desc) < 4:
         return np.zeros((0, 2), np.int64)
-    knn = _MATCHER.knnMatch(old.desc[has3], new.desc, k=2)
-    cand = [(a.queryIdx, a.trainIdx) for m in knn if len(m) == 2
-            for a, b in [m] if a.distance <= max_hamming and a.distance < ratio * b.distance]
-    if not cand:
+    # cv2.batchDistance is what BFMatcher's knnMatch calls, without a DMatch object per answer
+    dist, idx = cv2.batchDistance(old.desc[has3], new.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    best, second = dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
+    q = np.flatnonzero((best <= max_hamming) & (best < ratio * second))
+    if not len(q):
         return np.zeros((0, 2), np.int64)
-    q, t = np.array(cand, np.int64).T
+    t = idx[q, 0].astype(np.int64)
     # mutual best: only the new features that passed are matched back (the same answer as matching all of them)
     tu, inv = np.unique(t, return_inverse=True)
-    back = np.array([m.trainIdx for m in _MATCHER.match(new.desc[tu], old.desc[has3])], np.int64)
+    back = cv2.batchDistance(new.desc[tu], old.desc[has3], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1][:, 0]
     keep = back[inv] == q
     return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
 
