@@ -156,12 +156,13 @@ class BackendConfig:
                                        "this many seconds on one window (a clock that drifts, or drifts later); "
                                        "0 = never", min=0, max=3600)
     time_offset_track_window_s: float = opt(4.0, "frames per offset estimate while tracking", min=1, max=120)
-    time_offset_state: bool = opt(False, "the residual camera-IMU offset as a smoother state per keyframe (a "
-                                  "random walk, observed through the projections of the turning, moving body)")
-    time_offset_state_auto: bool = opt(False, "switch the time offset state on, from the next keyframe, when the "
-                                       "in-flight estimate finds the calibration's offset wrong (a rig whose "
-                                       "clocks disagree may also drift); off otherwise, so a right offset costs "
-                                       "nothing")
+    time_offset_state: bool = opt(True, "the residual camera-IMU offset as a smoother state per keyframe (a "
+                                  "random walk with a rate, observed through the projections of the turning, "
+                                  "moving body; it follows a drifting offset), from the first keyframe that "
+                                  "moves fast enough to show it")
+    time_offset_state_auto: bool = opt(False, "with time_offset_state off: switch the state on, from the next "
+                                       "keyframe, when the in-flight estimate finds the calibration's offset "
+                                       "wrong (a rig whose clocks disagree may also drift)")
     time_offset_state_sigma_ms: float = opt(3.0, "prior 1-sigma of that residual at the first keyframe", min=0.01,
                                             max=100)
     time_offset_walk_ms: float = opt(0.05, "random walk of the offset [ms per sqrt(s)] around what its rate "
@@ -170,6 +171,11 @@ class BackendConfig:
                                           "that itself changes slowly; 0 = no rate state", min=0, max=100)
     time_offset_rate_sigma_ms: float = opt(0.5, "prior 1-sigma of that rate at the first keyframe [ms/s]", min=1e-4,
                                            max=100)
+    time_offset_link_min_rate: float = opt(0.5, "the time offset state reads a keyframe's camera pose at its "
+                                           "offset only when the body turns at least this fast [rad/s] or moves "
+                                           "at least time_offset_link_min_speed; slower, the offset barely shows "
+                                           "and the state soaked up other errors instead", min=0, max=100)
+    time_offset_link_min_speed: float = opt(0.8, "see time_offset_link_min_rate [m/s]", min=0, max=100)
     zupt_max_flow_px: float = opt(0.5, "median frame-to-frame feature motion under which the images look still",
                                   min=0, max=20)
 

@@ -490,6 +490,13 @@ class Estimator:
         return self.time_offset_ns if state is None else state
 
     @property
+    def time_links(self) -> int:
+        """Keyframes of the running smoother whose camera pose the time state read at the offset (those moving
+        fast enough to show it: `time_offset_link_min_rate` / `_speed`)."""
+        run = self._state
+        return run.smoother.time_links if isinstance(run, _Running) else 0
+
+    @property
     def time_state(self) -> bool:
         """Whether the smoother follows the time offset as a state (configured, or switched on in flight)."""
         return self._time_state

@@ -276,7 +276,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                        int(ft[0]) + dataset.calibration.time_offset_ns if len(ft) else None,
                        extra={"time_offset_ms": {"calibration": dataset.calibration.time_offset_ns * 1e-6,
                                                  "final": est.time_offset_estimate_ns * 1e-6,
-                                                 "state": est.time_state},
+                                                 "state": est.time_state, "linked_keyframes": est.time_links},
                               "imu_white_scale": None if est.white_scale is None
                               else [round(float(x), 2) for x in est.white_scale],
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),

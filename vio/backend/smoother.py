@@ -37,7 +37,11 @@ random walk (`time_offset_walk_ms`), s a random walk of its own (`time_offset_ra
 d a plain random walk); a change of the applied offset between keyframes enters as a known step. The
 projections then see a camera-time body pose C(i) = X(i) * Exp(xi(i) d(i)), with xi(i) = (gyro,
 body-frame velocity) at the keyframe: the body's twist, so d is observed exactly where it matters (fast
-turns, fast flight) and keeps its prior when hovering (xi ~ 0: the offset changes nothing there). A tight
+turns, fast flight) and keeps its prior when hovering (xi ~ 0: the offset changes nothing there). Below
+`time_offset_link_min_rate` and `time_offset_link_min_speed` xi is taken as 0 (C(i) = X(i), d only walks
+on), and the state itself starts at the first keyframe above them: on survey flights (0.1 rad/s, 0.4 m/s)
+a weakly observed d soaked up other errors (it ended up to 4 ms off, ATE up to 1.6x), and a survey that
+never moves that fast has no time variables at all (the same trajectory as without the state). A tight
 custom factor holds C(i) to that model (what VINS-Fusion does with its feature-velocity compensation,
 written on the pose instead of on every observation: one factor per keyframe, not per pixel). X(i) stays
 the IMU-time state that the outputs and the IMU factors use.
@@ -202,8 +206,11 @@ class VioSmoother:
         self.n_mono_landmarks = 0
         self.refine = bool(cfg.refine_extrinsics)
         self.refine_K = self.refine and bool(cfg.refine_intrinsics)
-        # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet)
-        self.time_from: int | None = 0 if (cfg.time_offset_state if time_state is None else time_state) else None
+        # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
+        # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
+        self.time_from: int | None = None
+        self._time_pending = bool(cfg.time_offset_state if time_state is None else time_state)
+        self.time_links = 0  # keyframes whose camera pose was read at the offset (moving fast enough to show it)
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
@@ -219,10 +226,24 @@ class VioSmoother:
         return self.time_from is not None
 
     def start_time_state(self) -> None:
-        """The time offset state from the next keyframe on (the in-flight estimate found the offset wrong: it
-        may drift). Earlier keyframes keep reading X(i); the first D gets the prior of a first keyframe."""
+        """The time offset state from the next keyframe that moves fast enough to show the offset (the in-flight
+        estimate found the offset wrong: it may drift). Earlier keyframes keep reading X(i); the first D gets the
+        prior of a first keyframe."""
         if self.time_from is None:
-            self.time_from = self.index + 1
+            self._time_pending = True
+
+    def _shows_offset(self, omega_body: np.ndarray | None, v_world: np.ndarray) -> bool:
+        """Whether a keyframe turns or moves fast enough for the offset to show in its projections
+        (`time_offset_link_min_rate` / `time_offset_link_min_speed`)."""
+        w = 0.0 if omega_body is None else float(np.linalg.norm(omega_body))
+        return w >= self.cfg.time_offset_link_min_rate or \
+            float(np.linalg.norm(v_world)) >= self.cfg.time_offset_link_min_speed
+
+    def _time_state_at(self, j: int, omega_body: np.ndarray | None, v_world: np.ndarray) -> bool:
+        """Whether keyframe j has the time state, starting a pending one here when j shows the offset."""
+        if self._time_pending and self._shows_offset(omega_body, v_world):
+            self.time_from, self._time_pending = j, False
+        return self.time_from is not None
 
     def _pose_key(self, i: int) -> int:
         """The pose the projections of keyframe i read: the camera-time C(i) with the time state, else X(i)."""
@@ -255,6 +276,10 @@ class VioSmoother:
         self._applied_ns = int(applied_ns)
         omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
         xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
+        if self._shows_offset(omega_body, v_world):
+            self.time_links += 1
+        else:
+            xi = np.zeros(6)  # too slow to tell the offset: C(j) = X(j), d(j) only walks on (module doc)
         xi_ms = 1e-3 * xi  # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
         cam_pose = pose.compose(gtsam.Pose3.Expmap(xi_ms * d))
         graph.add(time_link_factor(X(j), C(j), D(j), xi_ms))
@@ -316,7 +341,7 @@ class VioSmoother:
         if self.refine:
             self._add_extrinsic_variables(graph, values, stamps)
         cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
-                                        applied_offset_ns) if self.time_state else pose
+                                        applied_offset_ns) if self._time_state_at(0, omega_body, v_world) else pose
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
@@ -353,7 +378,8 @@ class VioSmoother:
             graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), _sigmas([0.01] * 3)))
             graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(), _sigmas([1e-3] * 3 + [2e-3] * 3)))
         cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
-                                        applied_offset_ns) if self.time_state else pred.pose()
+                                        applied_offset_ns) \
+            if self._time_state_at(j, omega_body, pred.velocity()) else pred.pose()
         n_vis, n_lm = 0, 0
         if features is not None and features.tracking_ok:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, j, t_s)
