@@ -113,13 +113,14 @@ def cases(duration_s: float = 60.0) -> list[Case]:
     return out
 
 
-def replay_case(case: Case, path: Path, config: str | None) -> dict:
-    """Replay one flight; accuracy against its ground truth and the cost."""
+def replay_case(case: Case, path: Path, config) -> dict:
+    """Replay one flight with `config` (a TOML path, a VioConfig, or None for the defaults); accuracy against
+    its ground truth and the cost."""
     import cv2
 
     from vio import VioError
     from vio.app.replay import replay
-    from vio.config import load_config
+    from vio.config import VioConfig, load_config
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
 
@@ -129,7 +130,7 @@ def replay_case(case: Case, path: Path, config: str | None) -> dict:
     if not case.calib_offset_known:
         ds = EurocDataset(path, dataclasses.replace(ds.calibration, time_offset_ns=0))
     cpu0 = time.process_time()
-    res = replay(ds, load_config(config), progress=False)
+    res = replay(ds, config if isinstance(config, VioConfig) else load_config(config), progress=False)
     cpu_s = time.process_time() - cpu0
     d = res.stats_dict()
     d.pop("per_frame")

@@ -164,3 +164,27 @@ def test_loop_bench_true_edge_floor_uses_exact_edges_between_the_same_keyframes(
     ate = {name: evaluate(Trajectory.from_poses(t_ns, X), gt).ate_4dof.trans_m.rmse
            for name, X in (("odometry", T_odom), ("noisy", noisy), ("exact", exact))}
     assert ate["exact"] < 0.5 * ate["noisy"] and ate["exact"] < 0.2 * ate["odometry"], ate
+
+
+def test_null_compare_scales_and_summary() -> None:
+    """The null runs scale imu_noise_scale by 1, 1 +- 1e-4, 1 +- 2e-4...; the summary compares geometric means
+    per flight, leaves out flights one side lacks or could not evaluate (NaN), and names those beyond 10 %."""
+    from bench.null_compare import null_scales, summarise
+
+    assert null_scales(1) == [1.0]
+    assert null_scales(4) == pytest.approx([1.0, 1.0001, 0.9999, 1.0002])
+    a = {"f1": [0.010, 0.040], "f2": [0.010, 0.010], "f3": [0.010], "f4": [0.010]}
+    b = {"f1": [0.020, 0.020], "f2": [0.012, 0.012], "f3": [float("nan")], "f5": [0.010]}
+    s = summarise(a, b)
+    assert [r["flight"] for r in s["rows"]] == ["f1", "f2"]
+    assert s["rows"][0]["a"] == pytest.approx(0.020) and s["rows"][0]["ratio"] == pytest.approx(1.0)
+    assert s["rows"][1]["ratio"] == pytest.approx(1.2)
+    assert s["geo_mean_ratio"] == pytest.approx(math.sqrt(1.2))
+    assert s["worse"] == ["f2"] and s["better"] == []
+    assert s["stderr_factor"] == pytest.approx(math.exp(abs(math.log(1.2)) / math.sqrt(2) / math.sqrt(2)))
+
+
+def test_null_compare_refuses_an_unknown_case() -> None:
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "null_compare.py"), "--only", "no-such-flight"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and "unknown case(s) no-such-flight" in r.stderr and "Traceback" not in r.stderr
