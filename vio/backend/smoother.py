@@ -274,10 +274,10 @@ class VioSmoother:
             else:
                 graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, walk))
         self._applied_ns = int(applied_ns)
-        omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
-        xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
         if self._shows_offset(omega_body, v_world):
             self.time_links += 1
+            omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
+            xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
         else:
             xi = np.zeros(6)  # too slow to tell the offset: C(j) = X(j), d(j) only walks on (module doc)
         xi_ms = 1e-3 * xi  # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
