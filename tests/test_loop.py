@@ -602,6 +602,16 @@ def test_corners_spread_over_the_image_and_survive_a_dim_one(loop_flight):
     assert len(uv0) == 0 and len(octave) == 0
     assert len(ex.extract(np.zeros_like(img), None).desc) == 0
 
+    # after a dim image the next is searched once at half the threshold and its strong corners picked from
+    # that: the same corners as two searches by an extractor that saw nothing before (bright, dim, a shade
+    # darker, bright again)
+    seq = [img, dim, (img.astype(np.float32) * 0.3).astype(np.uint8), img, dim]
+    ex = FeatureExtractor(ds.calibration.cam0, 300)
+    for k, im in enumerate(seq):
+        fresh = FeatureExtractor(ds.calibration.cam0, 300).corners(im)[0]
+        np.testing.assert_array_equal(ex.corners(im)[0], fresh, err_msg=f"image {k}")
+    assert ex._dim == [True]
+
 
 def test_pose_graph_solves_a_loose_segment_prior_beside_tight_loop_edges():
     """Recorded from bench/loop_reloc.py (second flight seed 13, the laps map): a flight not yet relocalised in

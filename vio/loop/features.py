@@ -9,6 +9,7 @@ detection"). `levels` > 1 adds pyramid levels, for maps revisited from other dis
 from __future__ import annotations
 
 from dataclasses import dataclass
+from operator import attrgetter
 
 import cv2
 import numpy as np
@@ -63,6 +64,14 @@ def same_pixel(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.nd
     return np.isin(key(uv), key(ref))
 
 
+def _points(kps: list) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) float32 pixels and (N,) responses of OpenCV keypoints."""
+    if not kps:
+        return np.zeros((0, 2), np.float32), np.zeros(0)
+    return (cv2.KeyPoint.convert(kps).reshape(-1, 2),
+            np.fromiter(map(attrgetter("response"), kps), np.float64, len(kps)))
+
+
 class FeatureExtractor:
     def __init__(self, cam: CameraCalibration, n_features: int = 300, fast_threshold: int = 16, levels: int = 1,
                  level_scale: float = 1.2) -> None:
@@ -71,25 +80,42 @@ class FeatureExtractor:
         # corners per level as ORB shares them: each level 1 / level_scale of the one above
         share = level_scale ** -np.arange(levels)
         self.n_level = np.maximum(1, np.round(n_features * share / share.sum())).astype(int)
+        self.fast_threshold = fast_threshold
         self.fast = cv2.FastFeatureDetector_create(fast_threshold, True)
         self.fast_dim = cv2.FastFeatureDetector_create(max(1, fast_threshold // 2), True)
+        self._dim = [False] * levels  # per level: did the last image need the dim threshold?
         self.slow_describes = 0  # single-level descriptions whose kept rows were not as predicted
         self.orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=level_scale, nlevels=levels,
                                   edgeThreshold=PATCH, patchSize=PATCH)
 
-    def _level_corners(self, image: np.ndarray, n: int) -> np.ndarray:
+    def _level_corners(self, image: np.ndarray, n: int, lev: int = 0) -> np.ndarray:
         h, w = image.shape[:2]
-        for fast in (self.fast, self.fast_dim):
-            kps = fast.detect(image, None)
-            if len(kps) >= 2 * n:
-                break
-        if not kps:
-            return np.zeros((0, 2), np.float32)
-        uv = cv2.KeyPoint.convert(kps).reshape(-1, 2)
-        response = np.fromiter((k.response for k in kps), np.float64, len(kps))
+        uv, response = self._fast(image, n, lev)
         inside = np.flatnonzero((uv[:, 0] >= BORDER) & (uv[:, 0] < w - BORDER) &
                                 (uv[:, 1] >= BORDER) & (uv[:, 1] < h - BORDER))
         return uv[inside[spread_corners(uv[inside], response[inside], (h, w), n)]]
+
+    def _fast(self, image: np.ndarray, n: int, lev: int) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) FAST corners at the threshold, or at half of it when that finds fewer than 2n, and their
+        responses.
+
+        A FAST response is the largest threshold at which the point is still a corner, and non-maximum
+        suppression compares responses, so the corners at the threshold are exactly those at half of it whose
+        response reaches the threshold. Images come in runs (a dim hall stays dim), so after an image that
+        needed the half threshold the next is searched at half first and its strong corners picked from that:
+        one FAST pass instead of two, the same corners."""
+        if self._dim[lev]:
+            uv, response = _points(self.fast_dim.detect(image, None))
+            strong = response >= self.fast_threshold
+            if np.count_nonzero(strong) < 2 * n:
+                return uv, response
+            self._dim[lev] = False
+            return uv[strong], response[strong]
+        kps = self.fast.detect(image, None)
+        if len(kps) < 2 * n:
+            kps = self.fast_dim.detect(image, None)
+            self._dim[lev] = True
+        return _points(kps)
 
     def corners(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAST corners at least BORDER px inside each pyramid level, spread by `spread_corners`, as (M, 2)
@@ -101,7 +127,7 @@ class FeatureExtractor:
             scale = self.level_scale ** lev
             img = image if lev == 0 else cv2.resize(image, (round(w / scale), round(h / scale)),
                                                     interpolation=cv2.INTER_LINEAR)
-            c = self._level_corners(img, int(n))
+            c = self._level_corners(img, int(n), lev)
             uv.append(c * np.float32(scale))
             octave.append(np.full(len(c), lev, np.int64))
         return np.vstack(uv), np.concatenate(octave)
