@@ -50,9 +50,9 @@ def render(res: dict, out_rel: str) -> str:
         L += [f"**Note:** the machine was shared (load {info['load_avg_start'][0]:.1f} at the start): wall-clock "
               "timings include waiting for the CPU. The CPU-time real-time factor is less affected.", ""]
     L += ["## Targets", "", "| target | measured | limit | result |", "| --- | --- | --- | --- |"]
-    for key, label, op, limit in TARGETS:
+    for tid, key, label, op, limit in TARGETS:
         extra = f" (CPU time: {_f(head.get('rtf_one_core_cpu'))})" if key == "rtf_one_core" else ""
-        L.append(f"| {label} | {_f(head.get(key), 3)}{extra} | {op} {limit:g} | {verdict[key]} |")
+        L.append(f"| {label} | {_f(head.get(key), 3)}{extra} | {op} {limit:g} | {verdict.get(tid, 'n/a')} |")
     if head.get("frame_to_output_p50_ms") is not None:
         L += ["", "Latency is measured on the poses as sent: between camera frames the daemon sends IMU-propagated "
               "states, so a message's `time_usec` is usually a recent IMU sample. The visual update itself (camera "

@@ -69,7 +69,8 @@ def test_verdicts_pass_miss_and_missing() -> None:
             "synthetic_ate_m": None, "synthetic_rpe_pct": 0.5}
     v = run_suite.verdicts(head)
     assert v == {"rtf_one_core": "PASS", "p99_frame_ms": "MISS", "latency_p50_ms": "n/a",
-                 "memory_growth_mb": "PASS", "synthetic_ate_m": "n/a", "synthetic_rpe_pct": "PASS"}
+                 "memory_growth_mb": "PASS", "synthetic_ate_m": "n/a", "synthetic_rpe_pct": "PASS",
+                 "rtf_one_core_issue17": "MISS", "p99_frame_ms_issue17": "MISS"}
 
 
 def test_compare_rejects_unknown_revision(tmp_path: Path) -> None:
