@@ -674,3 +674,25 @@ def test_restart_keeps_the_heading_of_a_body_whose_x_axis_is_up():
         assert np.allclose(T[:3, 3], anchor[:3, 3])
         assert np.allclose(T[:3, :3].T @ up, T0[:3, :3].T @ up)  # the restart's roll/pitch kept
         assert np.allclose(v, so3_exp([0.0, 0.0, 1.7])[:, 0], atol=0.01)
+
+
+def test_a_flight_too_slow_for_the_time_state_keeps_the_gyro_offset_estimate_and_its_rechecks():
+    """The time offset state starts only at a keyframe whose motion shows the offset; a survey may never have
+    one. Until it starts, the gyro-based estimate is the only one and must run as it does without the state
+    (to convergence, with its re-checks); once the state has started, the state follows the offset and the
+    re-checks stop."""
+    calib = synthetic_calibration()
+
+    def skew(t):
+        return 0.12 * t
+
+    slow, _ = _tilting_flight(calib, False, duration_s=40.0, offset_ms=skew, profile="survey",
+                               estimate_time_offset=True, time_offset_recheck_s=10.0, time_offset_state=True)
+    assert slow.reset_counter == 0 and not slow._state.smoother.time_state  # never passed the state's gate...
+    # ...so the gyro estimate still collects to convergence and keeps its re-checks (on this 40 s survey it is
+    # still collecting at the end: `max_collect_s` is 120 s)
+    assert not slow.offset_estimator.coarse_only and slow.offset_estimator._recheck_ns == int(10e9)
+    fast, _ = _tilting_flight(calib, False, duration_s=16.0, offset_ms=lambda t: 0.0, estimate_time_offset=True,
+                              time_offset_recheck_s=10.0, time_offset_state=True)
+    assert fast._state.smoother.time_state and fast.offset_estimator.coarse_only
+    assert fast.offset_estimator.rechecks == 0 and fast.offset_estimator._recheck_ns == 0

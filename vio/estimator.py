@@ -193,11 +193,13 @@ class Estimator:
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
                                                  track_window_s=b.time_offset_track_window_s,
-                                                 coarse_only=b.time_offset_state,
-                                                 recheck_s=0.0 if b.time_offset_state else b.time_offset_recheck_s) \
+                                                 recheck_s=b.time_offset_recheck_s) \
             if b.estimate_time_offset else None
         # the smoother's time offset state: on from the start, or switched on by the in-flight estimate (auto)
         self._time_state = bool(b.time_offset_state)
+        # the smoother's state starts only at a keyframe whose motion shows the offset, which a slow flight may
+        # never have: until then the gyro-based estimate is the only one and runs as without the state
+        self._offset_handed_over = False
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
@@ -531,6 +533,16 @@ class Estimator:
             if self.bcfg.time_offset_state_auto and not self._time_state:
                 self._start_time_state()
 
+    def _hand_offset_to_state(self) -> None:
+        """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the
+        offset from here on: the gyro-based estimate stops at its next accepted solve (collecting on costs a PnP
+        per frame for nothing) and makes no re-checks. Before that it is the only estimate, so a flight that never
+        moves fast enough for the state keeps the full estimate and its re-checks."""
+        self._offset_handed_over = True
+        if self.offset_estimator is not None:
+            self.offset_estimator.coarse_only = not self.offset_estimator.continuous
+            self.offset_estimator.stop_rechecks()
+
     def _start_time_state(self) -> None:
         """The calibration's offset proved wrong: this rig's clocks are not what its file says, and clocks that
         disagree often drift (USB cameras, serial IMUs). The smoother follows the offset as a state from the next
@@ -815,6 +827,8 @@ class Estimator:
                                             omega_body=self._omega(t, last.bias.gyroscope()),
                                             applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
             self._check_plausible(est)
+            if run.smoother.time_state and not self._offset_handed_over:
+                self._hand_offset_to_state()
             if est.T_body_cam0 is not None:
                 self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
             st = self._after_keyframe(t, est, ff)
