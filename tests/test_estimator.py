@@ -696,3 +696,20 @@ def test_a_flight_too_slow_for_the_time_state_keeps_the_gyro_offset_estimate_and
                               time_offset_recheck_s=10.0, time_offset_state=True)
     assert fast._state.smoother.time_state and fast.offset_estimator.coarse_only
     assert fast.offset_estimator.rechecks == 0 and fast.offset_estimator._recheck_ns == 0
+
+
+def test_the_time_state_reports_the_offset_it_measured_not_one_carried_on_through_slow_keyframes():
+    """Only keyframes that move fast enough read the camera pose at the offset; on the others the state is only
+    carried on by its rate. The offset reported (and applied at a bridged reset) is the newest measured one while
+    it is inside the lag; none at all where no keyframe of the lag was read (the applied offset stands)."""
+    from vio.backend.smoother import D
+
+    calib = synthetic_calibration()
+    est, _ = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, time_offset_state=True,
+                             time_offset_link_min_rate=1.2, time_offset_link_min_speed=100.0)
+    sm = est._state.smoother
+    assert sm.time_state and 0 < sm.time_links < est.keyframes  # some keyframes read at the offset, not all
+    j, applied = sm._linked
+    assert sm.time_offset_ns() == applied + int(round(sm._estimate.atDouble(D(j)) * 1e6))
+    slow, _ = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, profile="survey", time_offset_state=True)
+    assert slow._state.smoother.time_offset_ns() is None and slow.time_offset_estimate_ns == slow.time_offset_ns

@@ -212,6 +212,7 @@ class VioSmoother:
         self._time_pending = bool(cfg.time_offset_state if time_state is None else time_state)
         self.time_links = 0  # keyframes whose camera pose was read at the offset (moving fast enough to show it)
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
+        self._linked: tuple[int, int] | None = None  # (keyframe, applied offset ns) of the newest linked keyframe
         self.extrinsic_keyframes = 0  # keyframes whose factors refined the extrinsics (passed the motion gate)
         self._next_landmark = 0
         self.index = -1
@@ -276,6 +277,7 @@ class VioSmoother:
         self._applied_ns = int(applied_ns)
         if self._shows_offset(omega_body, v_world):
             self.time_links += 1
+            self._linked = (j, int(applied_ns))
             omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
             xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
         else:
@@ -595,10 +597,14 @@ class VioSmoother:
         return p_w
 
     def time_offset_ns(self) -> int | None:
-        """The camera-IMU offset the time state puts on the newest keyframe (applied + residual), or None."""
-        if self.last is None or self.last.offset_residual_ns is None:
+        """The camera-IMU offset the time state measured (applied + residual) at the newest keyframe that moved
+        fast enough to show it, while that keyframe is inside the lag; else None. The newest keyframe's own value
+        is that one carried on by the rate through keyframes too slow to tell, which after a long slow stretch
+        is an extrapolation, not a measurement: not what a reset should apply to every frame stamp."""
+        if self._linked is None or self._estimate is None or not self._estimate.exists(D(self._linked[0])):
             return None
-        return self._applied_ns + self.last.offset_residual_ns
+        j, applied = self._linked
+        return applied + int(round(self._estimate.atDouble(D(j)) * 1e6))
 
     def marginal_covariances(self) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariance of the newest pose (6x6, rot then trans, body tangent) and velocity."""
