@@ -713,3 +713,13 @@ def test_the_time_state_reports_the_offset_it_measured_not_one_carried_on_throug
     assert sm.time_offset_ns() == applied + int(round(sm._estimate.atDouble(D(j)) * 1e6))
     slow, _ = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, profile="survey", time_offset_state=True)
     assert slow._state.smoother.time_offset_ns() is None and slow.time_offset_estimate_ns == slow.time_offset_ns
+
+
+def test_linked_keyframes_are_counted_over_the_flight_across_a_reset():
+    """The replay's `linked_keyframes` counts like `keyframes` does, over the whole flight: a reset drops the
+    smoother, not the count of what it read."""
+    calib = synthetic_calibration()
+    est, _ = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, reset_at_s=8.0, time_offset_state=True)
+    assert est.reset_counter >= 1
+    assert est.time_links > est._state.smoother.time_links > 0
+    assert est.time_links <= est.keyframes

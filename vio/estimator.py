@@ -200,6 +200,7 @@ class Estimator:
         # the smoother's state starts only at a keyframe whose motion shows the offset, which a slow flight may
         # never have: until then the gyro-based estimate is the only one and runs as without the state
         self._offset_handed_over = False
+        self._time_links_before = 0  # keyframes linked to the offset by smoothers dropped at resets
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
@@ -374,6 +375,8 @@ class Estimator:
         `bridge`: the last state is trustworthy and the IMU continuous, so it is carried forward with the
         IMU until the re-initialisation (heading always, position over gaps up to BRIDGE_POSITION_MAX_S)."""
         self.reset_counter += 1
+        if isinstance(self._state, _Running):
+            self._time_links_before += self._state.smoother.time_links  # the flight's count outlives the smoother
         learnt = self.time_offset_estimate_ns if bridge else self.time_offset_ns
         if learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
             log.info("camera-IMU time offset: %.2f ms -> %.2f ms (the smoother's time state, kept across the reset)",
@@ -493,10 +496,10 @@ class Estimator:
 
     @property
     def time_links(self) -> int:
-        """Keyframes of the running smoother whose camera pose the time state read at the offset (those moving
-        fast enough to show it: `time_offset_link_min_rate` / `_speed`)."""
+        """Keyframes of the flight whose camera pose the time state read at the offset (those moving fast
+        enough to show it: `time_offset_link_min_rate` / `_speed`), across resets as `keyframes` counts."""
         run = self._state
-        return run.smoother.time_links if isinstance(run, _Running) else 0
+        return self._time_links_before + (run.smoother.time_links if isinstance(run, _Running) else 0)
 
     @property
     def time_state(self) -> bool:
