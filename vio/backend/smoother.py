@@ -97,7 +97,6 @@ class KeyframeEstimate:
     T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
     T_body_cam1: np.ndarray | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None  # refined (fx, fy, cx, cy) of cam0, cam1 (None: held)
-    offset_residual_ns: int | None = None  # time offset state d (true - applied), None: not a state
 
 
 @dataclass
@@ -433,7 +432,6 @@ class VioSmoother:
             pose = est.atPose3(X(j))
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
-            residual = int(round(est.atDouble(D(j)) * 1e6)) if self.time_state else None
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
@@ -444,8 +442,7 @@ class VioSmoother:
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
                                      self.T_body_cam0.copy() if self.refine else None,
                                      self.P_body_cam1.matrix() if self.refine else None,
-                                     tuple(_fxfycxcy(K) for K in (self.K0, self.K1)) if self.refine_K else None,
-                                     residual)
+                                     tuple(_fxfycxcy(K) for K in (self.K0, self.K1)) if self.refine_K else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
