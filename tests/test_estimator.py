@@ -723,3 +723,12 @@ def test_linked_keyframes_are_counted_over_the_flight_across_a_reset():
     assert est.reset_counter >= 1
     assert est.time_links > est._state.smoother.time_links > 0
     assert est.time_links <= est.keyframes
+
+
+def test_the_automatic_time_state_keeps_the_gyro_estimate_going_to_convergence():
+    """`time_offset_state_auto` switches the state on when a re-check finds the offset moved and only stops the
+    re-checks: the gyro-based estimate is not cut to coarse-only when the switched-on state starts."""
+    calib = synthetic_calibration()
+    est, _ = _tilting_flight(calib, False, duration_s=40.0, offset_ms=lambda t: 0.12 * t, estimate_time_offset=True,
+                             time_offset_recheck_s=10.0, time_offset_state_auto=True, time_offset_state=False)
+    assert est.time_state and est._state.smoother.time_state and not est.offset_estimator.coarse_only

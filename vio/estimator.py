@@ -198,8 +198,10 @@ class Estimator:
         # the smoother's time offset state: on from the start, or switched on by the in-flight estimate (auto)
         self._time_state = bool(b.time_offset_state)
         # the smoother's state starts only at a keyframe whose motion shows the offset, which a slow flight may
-        # never have: until then the gyro-based estimate is the only one and runs as without the state
-        self._offset_handed_over = False
+        # never have: until then the gyro-based estimate is the only one and runs as without the state. Without
+        # the state asked for there is nothing to hand over (time_offset_state_auto's own switch keeps the
+        # estimate going to convergence, `_start_time_state`)
+        self._offset_handed_over = not b.time_offset_state
         self._time_links_before = 0  # keyframes linked to the offset by smoothers dropped at resets
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
