@@ -715,3 +715,52 @@ def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(l
     assert closer.stats.accepted >= 1 and len(calls) == 2
     assert [e for e in closer.graph.edges if e.kind == "loop" and e.weight >= 0.5]
     assert closer.correction()[0, 3] < 0  # pulled back toward the start, where the images say it is
+
+
+def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_session_closer():
+    """A second flight joins a loaded map: its first edges see the map's places from further off, with few PnP
+    inliers and centimetres of error (bench/loop_reloc.py: 12-20 inliers 30-70 mm off, 40-90 inliers 3-8 mm).
+    Their sigmas grow as sqrt(reloc_sigma_inliers / inliers) (at most 2x; edges within one session keep the
+    graph's), and the session's poses come out closer to the truth than with every edge weighed alike."""
+    from types import SimpleNamespace
+
+    from vio.config import LoopConfig
+    from vio.loop.closer import LoopCloser, _Candidate
+    from vio.loop.posegraph import GraphNoise, PoseGraph
+
+    c = LoopConfig()
+    me = SimpleNamespace(cfg=c, keyframes=[SimpleNamespace(session=0), SimpleNamespace(session=1),
+                                           SimpleNamespace(session=1)])
+    def scale(i, j, n):
+        return LoopCloser._sigma_scale(me, _Candidate(i, j, np.eye(4), np.eye(4), n))
+    assert scale(1, 0, 15) == pytest.approx(2.0) and scale(1, 0, 30) == pytest.approx(np.sqrt(2))
+    assert scale(1, 0, 200) == 1.0 and scale(2, 1, 15) == 1.0  # many inliers; within one session
+    assert LoopCloser._sigma_scale(SimpleNamespace(cfg=SimpleNamespace(reloc_sigma_inliers=0), keyframes=me.keyframes),
+                                   _Candidate(1, 0, np.eye(4), np.eye(4), 15)) == 1.0
+
+    rng = np.random.default_rng(3)
+    truth = [make_T(so3_exp(np.r_[0, 0, 0.05 * k]), np.r_[0.2 * k, 0.05 * k, 1.5]) for k in range(30)]
+    noise = GraphNoise(odom_trans_per_m=c.odom_sigma_per_m, loop_trans_m=c.loop_sigma_m,
+                       loop_rot_rad=np.radians(c.loop_sigma_deg))
+    errors = {}
+    for weighed in (False, True):
+        g = PoseGraph(noise)
+        for k in range(10):  # the map: fixed
+            g.add_node(truth[k], None, (1e-4, 1e-4))
+        prev, T = None, make_T(so3_exp(np.r_[0, 0, 1.0]), np.r_[5.0, -3.0, 1.5])  # the new flight's own origin
+        for k in range(10, 30):
+            if k > 10:
+                T = T @ np.linalg.inv(truth[k - 1]) @ truth[k] @ make_T(so3_exp(rng.normal(0, 1e-4, 3)),
+                                                                        rng.normal(0, 5e-4, 3))
+            prev = g.add_node(T, prev, (np.radians(c.segment_prior_deg), c.segment_prior_m) if k == 10 else None)
+        bad = make_T(so3_exp(np.r_[0.0, 0.0, np.radians(0.5)]), np.r_[0.0, 0.04, 0.0])
+        for m, k, n, err in [(2, 10, 13, bad), (3, 11, 16, bad), (4, 12, 14, bad),
+                             (5, 15, 80, np.eye(4)), (6, 18, 75, np.eye(4)), (7, 21, 90, np.eye(4)),
+                             (8, 24, 70, np.eye(4)), (9, 27, 85, np.eye(4))]:
+            s = float(np.clip(np.sqrt(c.reloc_sigma_inliers / n), 1, 2)) if weighed else 1.0
+            g.add_loop(m, k, np.linalg.inv(truth[m]) @ truth[k] @ err, n, s)
+        g.optimize(decide=True)
+        errors[weighed] = _ate(SimpleNamespace(estimate=g.estimate[10:]), truth[10:])
+    print(f"session position error: edges alike {errors[False] * 1e3:.1f} mm, weighed by inliers "
+          f"{errors[True] * 1e3:.1f} mm")
+    assert errors[True] < 0.8 * errors[False]

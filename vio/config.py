@@ -394,6 +394,8 @@ class LoopConfig:
                                  "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
                                  min=0.001, max=10)
     reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
+    reloc_sigma_inliers: int = opt(60, "an edge to another session with fewer PnP inliers than this has its "
+                                   "sigmas scaled by sqrt(this / inliers), at most 2x; 0 = off", min=0, max=10000)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",
                       choices=("off", "jump", "blend"))
     blend_rate_m_s: float = opt(0.2, "blend: correction applied at most this fast [m/s]", min=1e-3, max=100)

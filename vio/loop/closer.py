@@ -263,13 +263,24 @@ class LoopCloser:
             self.stats.refused["inconsistent"] += 1
             return False
         for p in agree:
-            self.graph.add_loop(p.j, p.i, p.T_j_i, p.inliers)
+            self.graph.add_loop(p.j, p.i, p.T_j_i, p.inliers, self._sigma_scale(p))
             self._join(self.keyframes[p.j].session, self.keyframes[p.i].session)
             self.stats.accepted += 1
         self._pending = [p for p in self._pending if p not in agree]
         if self.relocalised_t_ns is None and self.relocalised:
             self.relocalised_t_ns = self.keyframes[i].t_ns
         return True
+
+    def _sigma_scale(self, p: _Candidate) -> float:
+        """Sigma multiplier of an edge between two sessions (to a loaded map, or across an estimator reset):
+        sqrt(reloc_sigma_inliers / inliers), between 1 and 2. Such an edge sees a place from further off than a
+        loop within one flight, and its first few decide where the whole session sits in the map's frame: with
+        12-20 inliers they were 30-70 mm off where 40-90 inliers gave 3-8 mm (docs/loop-closure.md). A PnP
+        pose's error goes as 1 / sqrt(inliers). Edges within one session keep the graph's sigmas."""
+        ref = self.cfg.reloc_sigma_inliers
+        if not ref or self.keyframes[p.i].session == self.keyframes[p.j].session:
+            return 1.0
+        return float(np.clip(np.sqrt(ref / max(p.inliers, 1)), 1.0, 2.0))
 
     def _relocalising(self, session: int) -> bool:
         """Some session (a loaded map, the flight before a reset) is not joined to `session` by a loop edge."""

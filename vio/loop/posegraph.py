@@ -76,6 +76,7 @@ class Edge:
     kind: str  # "odometry" | "loop"
     weight: float = 1.0  # GNC weight after the last decision (loop edges)
     inliers: int = 0  # PnP inliers (loop edges)
+    sigma_scale: float = 1.0  # loop edge sigmas are the graph's times this (a weaker edge: fewer inliers)
 
 
 def _adjoint(T: np.ndarray) -> np.ndarray:
@@ -139,8 +140,8 @@ class PoseGraph:
             self._isam_update()
         return i
 
-    def add_loop(self, i: int, j: int, T_i_j: np.ndarray, inliers: int = 0) -> None:
-        self.edges.append(Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers))
+    def add_loop(self, i: int, j: int, T_i_j: np.ndarray, inliers: int = 0, sigma_scale: float = 1.0) -> None:
+        self.edges.append(Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers, sigma_scale=sigma_scale))
 
     def drop_loops_from(self, first: int) -> int:
         """Take back the loop edges added since self.edges had `first` entries (not yet in iSAM2: after a
@@ -166,7 +167,8 @@ class PoseGraph:
         return gtsam.AttitudeFactorPose3(i, gtsam.Unit3(UP), att, gtsam.Unit3(self.odom[i][:3, :3].T @ UP))
 
     def _loop_factor(self, e: Edge) -> gtsam.NonlinearFactor:
-        model = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(self.noise.loop_rot_rad, self.noise.loop_trans_m))
+        k = e.sigma_scale
+        model = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(self.noise.loop_rot_rad * k, self.noise.loop_trans_m * k))
         return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), model)
 
     def _isam_update(self, remove: list[int] | None = None) -> gtsam.ISAM2Result:
