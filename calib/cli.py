@@ -59,6 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--calibration", type=Path, help="project calibration YAML to start from (default: the dataset's)")
     s.add_argument("--config", type=Path, help="TOML configuration for the estimator")
     s.add_argument("--stereo", action="store_true", help="refine T_cam0_cam1 too (default: held)")
+    s.add_argument("--stereo-only", action="store_true",
+                   help="refine only cam1's rotation relative to cam0 ([backend] refine_stereo_rotation), the "
+                   "camera-IMU extrinsic held: for a stereo calibration that drifted (a principal point or mount "
+                   "off by a fraction of a pixel biases every depth); any recording that moves, no turns needed")
     s.add_argument("--intrinsics", action="store_true", help="refine the focal lengths of both cameras too "
                    "([backend] refine_intrinsics; cx, cy only with refine_principal_point; default: held)")
 
@@ -139,19 +143,35 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
 
+    import numpy as np
+
     from vio import VioError
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
     from vio.consistency import replay_states
 
     cfg = load_config(args.config)
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=True,
+    if args.stereo_only and (args.stereo or args.intrinsics):
+        raise VioError("--stereo-only refines cam1's rotation alone: leave out --stereo and --intrinsics")
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=not args.stereo_only,
                                                                refine_stereo_extrinsic=args.stereo,
+                                                               refine_stereo_rotation=args.stereo_only,
                                                                refine_intrinsics=args.intrinsics))
     run = replay_states(args.dataset, cfg.estimator,
                         calibration=load_calibration(args.calibration) if args.calibration else None)
     est, calib = run.estimator, run.dataset.calibration
     refined = est.refinement_stats()
+    if args.stereo_only:
+        if not refined:
+            raise VioError(f"{args.dataset}: the estimator never initialised; nothing was refined")
+        out = dataclasses.replace(est.refined_calibration(), time_offset_ns=int(est.time_offset_ns))
+        save_calibration(out, args.output)
+        shift = np.radians(refined["stereo_change_deg"]) * calib.cam1.fx
+        print(f"cam1 turned {refined['stereo_change_deg']:.4f} deg relative to cam0 over "
+              f"{refined['refining_keyframes']} keyframes ({est.reset_counter} resets): "
+              f"about {shift:.2f} px of disparity")
+        print(f"wrote {args.output}")
+        return 0
     if not refined or refined["refining_keyframes"] == 0:
         raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
                        "straight flight); record with turns about at least two axes")

@@ -476,18 +476,25 @@ def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     assert "enough rotation" in capsys.readouterr().err and not out.exists()
 
 
-def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
-    """`vio calib refine --intrinsics` on a turning flight whose sensor.yaml is slightly wrong writes a loadable
-    calibration with refined extrinsics and focal lengths (the principal point held) and says how far each moved."""
-    from vio.app.cli import main
-    from vio.calibration import load_calibration
+def _turning_flight(tmp_path, **sim):
+    """An 8 s aggressive flight (turns about every axis) at 376x240 whose sensor.yaml is wrong as `sim` says;
+    returns its folder and the calibration it states."""
     from vio.io.euroc import EurocDataset
     from vio.sim.generate import SimConfig, simulate
 
     data = tmp_path / "turns"
     simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
-                             still_start_s=1.0, calib_error=2.0, seed=3), progress=False)
-    stated = EurocDataset(data).calibration
+                             still_start_s=1.0, seed=3, **sim), progress=False)
+    return data, EurocDataset(data).calibration
+
+
+def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
+    """`vio calib refine --intrinsics` on a turning flight whose sensor.yaml is slightly wrong writes a loadable
+    calibration with refined extrinsics and focal lengths (the principal point held) and says how far each moved."""
+    from vio.app.cli import main
+    from vio.calibration import load_calibration
+
+    data, stated = _turning_flight(tmp_path, calib_error=2.0)
     out = tmp_path / "refined.yaml"
     assert main(["calib", "refine", str(data), "--output", str(out), "--intrinsics"]) == 0
     text = capsys.readouterr().out
@@ -496,3 +503,27 @@ def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
     assert refined.cam0.fx != stated.cam0.fx and refined.cam1.fy != stated.cam1.fy
     assert abs(refined.cam0.cx - stated.cam0.cx) < 0.01 and abs(refined.cam1.cy - stated.cam1.cy) < 0.01
     assert not np.allclose(refined.cam0.T_body_cam, stated.cam0.T_body_cam)
+
+
+def test_calib_refine_stereo_only_turns_cam1_back_and_holds_the_rest(tmp_path, capsys):
+    """A recording whose cam1 principal point the sensor.yaml states 1 px off (a stereo calibration that drifted):
+    `vio calib refine --stereo-only` writes a calibration in which only cam1's pose on the body moved, by about
+    what 1 px of disparity is, and says so; with --stereo as well it refuses with a message."""
+    import re
+
+    from vio.app.cli import main
+    from vio.calibration import load_calibration
+
+    data, stated = _turning_flight(tmp_path, stereo_error_px=1.0)
+    out = tmp_path / "refined.yaml"
+    assert main(["calib", "refine", str(data), "--output", str(out), "--stereo-only"]) == 0
+    said = capsys.readouterr().out
+    px = float(re.search(r"about ([0-9.]+) px of disparity", said).group(1))
+    assert 0.4 < px < 1.5 and f"wrote {out}" in said
+    refined = load_calibration(out)
+    np.testing.assert_allclose(refined.cam0.T_body_cam, stated.cam0.T_body_cam, atol=1e-9)
+    assert not np.allclose(refined.cam1.T_body_cam[:3, :3], stated.cam1.T_body_cam[:3, :3], atol=1e-4)
+    np.testing.assert_allclose(refined.cam1.T_body_cam[:3, 3], stated.cam1.T_body_cam[:3, 3], atol=1e-4)
+    assert main(["calib", "refine", str(data), "--output", str(tmp_path / "x.yaml"), "--stereo-only",
+                 "--stereo"]) == 1
+    assert "--stereo-only refines cam1's rotation alone" in capsys.readouterr().err

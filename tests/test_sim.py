@@ -382,3 +382,23 @@ def test_oak_imu_mount_is_the_same_flight_in_the_imus_axes(tmp_path):
         assert np.allclose(Ta[100] @ ca.T_body_cam, Tb[100] @ cb.T_body_cam)
     with pytest.raises(VioError, match="IMU mount"):
         SimConfig(imu_mount="sideways").resolved()
+
+
+def test_stereo_error_states_cam1_principal_point_off_and_nothing_else(tmp_path):
+    """--stereo-error: only cam1's cx in the written calibration moves (a disparity bias), the images are the
+    truth's, the truth is kept beside the dataset; an error beyond 20 px is refused by name."""
+    from vio import VioError
+    from vio.calibration import load_calibration
+
+    cfg = SimConfig(duration_s=0.2, variant="clean", seed=2, stereo_error_px=0.5, **TINY)
+    simulate(tmp_path / "s", cfg)
+    stated = EurocDataset(tmp_path / "s").calibration
+    truth = load_calibration(tmp_path / "s" / "calibration_truth.yaml")
+    assert stated.cam1.cx - truth.cam1.cx == pytest.approx(0.5, abs=1e-6)
+    for k in ("fx", "fy", "cy"):
+        assert getattr(stated.cam1, k) == pytest.approx(getattr(truth.cam1, k), abs=1e-9)
+        assert getattr(stated.cam0, k) == pytest.approx(getattr(truth.cam0, k), abs=1e-9)
+    assert stated.cam0.cx == pytest.approx(truth.cam0.cx, abs=1e-9)
+    np.testing.assert_allclose(stated.cam1.T_body_cam, truth.cam1.T_body_cam, atol=1e-12)
+    with pytest.raises(VioError, match="stereo_error_px"):
+        simulate(tmp_path / "t", dataclasses.replace(cfg, stereo_error_px=25.0))

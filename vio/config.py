@@ -110,6 +110,9 @@ class BackendConfig:
     refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
                                              "it wandered by 2x its error in tests); else only the rotation")
     refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
+    refine_stereo_rotation: bool = opt(False, "without refine_extrinsics: refine cam1's rotation relative to cam0 "
+                                       "(within stereo_sigma_rad) on every keyframe, the rest held: a principal "
+                                       "point or stereo mount that drifted biases every disparity")
     refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy of both cameras too (the principal "
                                   "point only with refine_principal_point)")
     refine_principal_point: bool = opt(False, "with refine_intrinsics: cx, cy too (they trade against the extrinsic "

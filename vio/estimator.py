@@ -802,7 +802,10 @@ class Estimator:
         d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
         out = {"T_body_cam0": T0.tolist(), "T_body_cam1": T1.tolist(), "refining_keyframes": int(n),
                "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
-               "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3]))}
+               "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3])),
+               "stereo_change_deg": float(np.degrees(np.linalg.norm(so3_log(
+                   (np.linalg.inv(np.linalg.inv(self.calib.cam0.T_body_cam) @ self.calib.cam1.T_body_cam)
+                    @ np.linalg.inv(T0) @ T1)[:3, :3]))))}
         if k is not None:
             out["intrinsics_fx_fy_cx_cy"] = [np.asarray(v, float).tolist() for v in k]
         return out

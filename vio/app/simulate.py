@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write a slightly wrong calibration (images use the true one, kept in "
                         "OUT/calibration_truth.yaml): extrinsics off by SCALE x 0.1 deg and 2 mm, intrinsics by "
                         "SCALE x 0.5 px (default SCALE 1, a typical Kalibr error)")
+    p.add_argument("--stereo-error", type=float, default=0.0, metavar="PX",
+                   help="write cam1's principal point cx PX pixels off (images use the true one, kept in "
+                        "OUT/calibration_truth.yaml): a stereo calibration that drifted, biasing every disparity")
     p.add_argument("--right-dropout", action="append", default=[], metavar="START:LENGTH",
                    help="no right image from START s for LENGTH s (repeatable)")
     p.add_argument("--time-offset-drift-ms", type=float, default=0.0, metavar="MS",
@@ -107,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
                     vibration=args.vibration, plain_fraction=args.plain, exposure_ms=args.blur_ms,
                     image_noise=args.image_noise, drop_frames=args.drop_frames, scene_seed=args.scene_seed,
                     aliasing_period_m=args.aliasing, scene=args.scene, calib_error=args.calib_error,
+                    stereo_error_px=args.stereo_error,
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
                     time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
                     imu_mount=args.imu_mount, imu_from=args.imu_from, recorded_start_s=args.recorded_start)

@@ -28,7 +28,9 @@ current extrinsic estimate, so E only keeps its prior and what earlier motion ta
 into it as keyframes leave the lag): hovering neither refines nor corrupts it. E's stamp moves with
 every keyframe, so it never leaves the window. With `refine_intrinsics` the focal lengths of both cameras
 are variables too (Cal3_S2, ProjectionFactorPPPC, under the same gate); the principal point is held unless
-`refine_principal_point`, because shifting it moves the image as turning the camera does.
+`refine_principal_point`, because shifting it moves the image as turning the camera does. With
+`refine_stereo_rotation` alone, only E(1) is a variable (cam1's rotation, on every keyframe): a principal point
+or mount that drifted biases every disparity, which only this takes out (docs/estimator.md).
 
 Time offset as a state (`time_offset_state`): the images are stamped with the applied camera-IMU offset
 (the calibration's, or the in-flight gyro estimate's), and what is left of it, d(i) = true - applied, is a
@@ -205,6 +207,10 @@ class VioSmoother:
         self.n_mono_landmarks = 0
         self.refine = bool(cfg.refine_extrinsics)
         self.refine_K = self.refine and bool(cfg.refine_intrinsics)
+        # cam1's rotation on the body refined alone (cam0 and the camera-IMU extrinsic held): what a stereo
+        # calibration that drifted does to the disparity (`refine_stereo_rotation`; with refine_extrinsics,
+        # refine_stereo_extrinsic does it instead)
+        self.refine_stereo = bool(cfg.refine_stereo_rotation) and not self.refine
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
         self.time_from: int | None = None
@@ -341,6 +347,11 @@ class VioSmoother:
         stamps = {X(0): 0.0, V(0): 0.0, B(0): 0.0}
         if self.refine:
             self._add_extrinsic_variables(graph, values, stamps)
+        elif self.refine_stereo:
+            graph.add(gtsam.PriorFactorPose3(E(1), self.P_body_cam1,
+                                             _sigmas([self.cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)))
+            values.insert(E(1), self.P_body_cam1)
+            stamps[E(1)] = 0.0
         cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
                                         applied_offset_ns) if self._time_state_at(0, omega_body, v_world) else pose
         n_vis, n_lm = 0, 0
@@ -373,6 +384,8 @@ class VioSmoother:
             stamps[E(0)] = stamps[E(1)] = t_s  # the extrinsics stay in the window for the whole flight
             if self.refine_K:
                 stamps[_k_key(0)] = stamps[_k_key(1)] = t_s
+        elif self.refine_stereo:
+            stamps[E(1)] = t_s
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -435,13 +448,15 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
+            elif self.refine_stereo:
+                self.P_body_cam1 = est.atPose3(E(1))
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
                 self.K0, self.K1 = est.atCal3_S2(_k_key(0)), est.atCal3_S2(_k_key(1))
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
-                                     self.T_body_cam0.copy() if self.refine else None,
-                                     self.P_body_cam1.matrix() if self.refine else None,
+                                     self.T_body_cam0.copy() if self.refine or self.refine_stereo else None,
+                                     self.P_body_cam1.matrix() if self.refine or self.refine_stereo else None,
                                      tuple(_fxfycxcy(K) for K in (self.K0, self.K1)) if self.refine_K else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
@@ -483,7 +498,7 @@ class VioSmoother:
         mono_collect = mono_now or cfg.mono_below_stereo > 0
         self._kf_t[j] = t_s
         refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
-        self.extrinsic_keyframes += int(refine_now)
+        self.extrinsic_keyframes += int(refine_now or self.refine_stereo)
         factor = self._factor_maker(refine_now)
         for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
@@ -563,6 +578,16 @@ class VioSmoother:
             return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i),
                                                                       E(cam), key, K[cam], False, False)
         P = (self.P_body_cam0, self.P_body_cam1)
+        if self.refine_stereo:  # cam0 fixed, cam1 through its variable pose on the body
+            from gtsam_unstable import ProjectionFactorPPPCal3_S2
+
+            def stereo_factor(uv, i, key, cam):
+                if cam == 0:
+                    return gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i), key, K[0],
+                                                                False, False, P[0])
+                return ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i), E(1), key, K[1], False,
+                                                  False)
+            return stereo_factor
         return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i),
                                                                            key, K[cam], False, False, P[cam])
 

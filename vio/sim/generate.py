@@ -10,7 +10,7 @@ true offset of every frame. The run's settings go to `<out>/simulation.yaml`.
 Calibration error (`calib_error`): the images are rendered with the true calibration but the dataset's
 sensor.yaml files state a perturbed one (vio.sim.perturbed_calibration); the truth is kept beside the
 dataset in `<out>/calibration_truth.yaml` (the project's calibration format), where a replay does not
-look for it.
+look for it. `stereo_error_px` states cam1's cx that far off instead (or as well): a disparity bias.
 """
 
 from __future__ import annotations
@@ -81,6 +81,7 @@ class SimConfig:
     scene_seed: int | None = None  # room texture and boxes; None: `seed` (a second flight in the same room: set it)
     scene: str = "room"  # "room" (10 m x 8 m), "hall" (25 m x 20 m, dim, far walls) or "shelves" (aliasing)
     calib_error: float = 0.0  # scale of the error in the written calibration (1: 0.1 deg, 2 mm, 0.5 px)
+    stereo_error_px: float = 0.0  # cam1's cx stated this far off in the written calibration (a drifted stereo pair)
     right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
     time_offset_period_s: float = 60.0  # period of that drift
@@ -112,7 +113,7 @@ class SimConfig:
                            "recording's (EuRoC's IMU has its x axis up already)")
         if cfg.scene not in SCENES:
             raise VioError(f"simulate: unknown scene {cfg.scene!r}; expected one of {list(SCENES)}")
-        for name, (lo, hi) in {"calib_error": (0, 20), "time_offset_drift_ms": (0, 100),
+        for name, (lo, hi) in {"calib_error": (0, 20), "stereo_error_px": (-20, 20), "time_offset_drift_ms": (0, 100),
                                "time_offset_period_s": (1, 36000)}.items():
             if not (lo <= getattr(cfg, name) <= hi):
                 raise VioError(f"simulate: {name} = {getattr(cfg, name)} is outside [{lo}, {hi}]")
@@ -202,6 +203,9 @@ def build(cfg: SimConfig) -> Simulation:
                 (("cam0", calib.cam0), ("cam1", calib.cam1))})
     written = calib if cfg.calib_error == 0 else \
         perturbed_calibration(calib, cfg.calib_error, np.random.default_rng([cfg.seed, 6]))
+    if cfg.stereo_error_px:  # a disparity bias: every stereo depth off, which nothing but the stereo pair shows
+        written = dataclasses.replace(written, cam1=dataclasses.replace(written.cam1,
+                                                                        cx=written.cam1.cx + cfg.stereo_error_px))
     return Simulation(cfg, calib, motion, scene, imu, _grid(cfg.duration_s, cfg.rate_hz), written)
 
 
@@ -226,7 +230,7 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
     settings = dataclasses.asdict(cfg)
     settings["right_dropouts"] = [list(w) for w in cfg.right_dropouts]  # safe_dump has no tuples
     (out / "simulation.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))
-    if cfg.calib_error > 0:
+    if cfg.calib_error > 0 or cfg.stereo_error_px:
         save_calibration(sim.calibration, out / "calibration_truth.yaml")
     calib, motion, imu = sim.calibration, sim.motion, sim.imu
     cams = [(CameraRenderer(c, sim.scene), c.T_body_cam) for c in (calib.cam0, calib.cam1)]
