@@ -1,10 +1,12 @@
-"""Issue 17's flights: a slightly wrong calibration, a dim hall, right-camera dropouts, a drifting offset.
+"""Issue 17's flights: a slightly wrong calibration, a drifted stereo pair, a dim hall, right-camera dropouts, a
+drifting offset.
 
     nice python bench/hard_world.py [--only NAME ...] [--duration 40] [--config x.toml] [--rerun] [--generate-only]
 
 Each case is a flight replayed next to its reference (the same flight without the difficulty), so the
 figures are ratios: ATE(case) / ATE(reference), which the issue's "Done when" bounds (calibration error
-<= 1.15, right dropouts <= 1.5, drifting offset <= 1.2; the hall <= 1 % of the path length). Flights are
+<= 1.15, right dropouts <= 1.5, drifting offset <= 1.2; the hall <= 1 % of the path length; the stereo error,
+cam1's cx stated 0.5 px off, has no bound in the issue and is held to the calibration error's). Flights are
 generated once by `vio simulate` into the bench cache (bench/flights.py); results are kept as JSON under
 --out and reused unless --rerun (an interrupted run resumes). Replays run one after the other in this
 process with one OpenCV/BLAS thread (bench/accuracy_matrix.replay_case); start it under `nice`.
@@ -31,7 +33,7 @@ from bench.flights import DEFAULT_CACHE, ensure_flight  # noqa: E402
 log = logging.getLogger("hard_world")
 
 # (case, reference or None, limit on the ratio ATE(case) / ATE(reference); for the hall: on ATE / path)
-LIMITS = {"calib": 1.15, "dropout": 1.5, "drift": 1.2, "hall": 0.01}
+LIMITS = {"calib": 1.15, "stereo": 1.15, "dropout": 1.5, "drift": 1.2, "hall": 0.01}
 
 
 def cases(duration_s: float = 40.0, seeds: tuple[int, ...] = (1,)) -> list[tuple[Case, str | None, str]]:
@@ -45,6 +47,8 @@ def cases(duration_s: float = 40.0, seeds: tuple[int, ...] = (1,)) -> list[tuple
             out.append((Case(ref, f(p, s)), None, ""))
             out.append((Case(f"{p}-s{s}-calib-error", f(p, s, "--calib-error", "1"),
                              note="0.1 deg / 2 mm / 0.5 px error in sensor.yaml"), ref, "calib"))
+            out.append((Case(f"{p}-s{s}-stereo-error", f(p, s, "--stereo-error", "0.5"),
+                             note="cam1's cx 0.5 px off in sensor.yaml (a disparity bias)"), ref, "stereo"))
         out.append((Case(f"survey-s{s}-right-dropout", f("survey", s, "--right-dropout", "12:5"),
                          note="no right image for 5 s"), f"survey-s{s}", "dropout"))
         out.append((Case(f"aggressive-s{s}-offset-drift", f("aggressive", s, "--time-offset-drift-ms", "5"),
@@ -89,11 +93,15 @@ def table(rows: dict[str, dict], plan: list[tuple[Case, str | None, str]]) -> st
             ratio = f"{r['ate_se3_m'] / ref_ate:.2f} (<= {LIMITS[kind]:g})"
         else:
             ratio = "-"
-        extra = ""
-        if "extrinsic_error_deg" in r:
-            extra = f"; refined T_body_cam0 off by {r['extrinsic_error_deg']:.3f} deg, {r['extrinsic_error_mm']:.2f} mm"
+        notes = [case.note] if case.note else []
+        refined = r.get("calibration_refined") or {}
+        if "extrinsic_error_deg" in r and refined.get("cam0_change_deg", 0.0) > 1e-6:
+            notes.append(f"refined T_body_cam0 off by {r['extrinsic_error_deg']:.3f} deg, "
+                         f"{r['extrinsic_error_mm']:.2f} mm")
+        elif refined.get("stereo_change_deg") is not None:  # refine_stereo_rotation alone: cam1 turned
+            notes.append(f"cam1 turned {refined['stereo_change_deg']:.4f} deg")
         lines.append(f"| {case.name} | {r['ate_se3_m']:.3f} | {'-' if ref_ate is None else f'{ref_ate:.3f}'} | "
-                     f"{ratio} | {r['resets']} | {r['path_m']:.1f} | {case.note}{extra} |")
+                     f"{ratio} | {r['resets']} | {r['path_m']:.1f} | {'; '.join(notes)} |")
     return "\n".join(lines)
 
 
