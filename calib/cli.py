@@ -161,25 +161,22 @@ def _run_refine(args: argparse.Namespace) -> int:
                         calibration=load_calibration(args.calibration) if args.calibration else None)
     est, calib = run.estimator, run.dataset.calibration
     refined = est.refinement_stats()
-    if args.stereo_only:
-        if not refined:
-            raise VioError(f"{args.dataset}: the estimator never initialised; nothing was refined")
-        out = dataclasses.replace(est.refined_calibration(), time_offset_ns=int(est.time_offset_ns))
-        save_calibration(out, args.output)
-        shift = np.radians(refined["stereo_change_deg"]) * calib.cam1.fx
-        print(f"cam1 turned {refined['stereo_change_deg']:.4f} deg relative to cam0 over "
-              f"{refined['refining_keyframes']} keyframes ({est.reset_counter} resets): "
-              f"about {shift:.2f} px of disparity")
-        print(f"wrote {args.output}")
-        return 0
-    if not refined or refined["refining_keyframes"] == 0:
+    if args.stereo_only and not refined:
+        raise VioError(f"{args.dataset}: the estimator never initialised; nothing was refined")
+    if not args.stereo_only and (not refined or refined["refining_keyframes"] == 0):
         raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
                        "straight flight); record with turns about at least two axes")
     out = dataclasses.replace(est.refined_calibration(), time_offset_ns=int(est.time_offset_ns))
     save_calibration(out, args.output)
-    print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
-          f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
-          f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
+    if args.stereo_only:
+        shift = np.radians(refined["stereo_change_deg"]) * calib.cam1.fx
+        print(f"cam1 turned {refined['stereo_change_deg']:.4f} deg relative to cam0 over "
+              f"{refined['refining_keyframes']} keyframes ({est.reset_counter} resets): "
+              f"about {shift:.2f} px of disparity")
+    else:
+        print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
+              f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
+              f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
     if args.intrinsics:
         for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):
             print(f"{name} fx fy cx cy moved " + " ".join(f"{getattr(after, k) - getattr(before, k):+.2f}"

@@ -804,8 +804,7 @@ class Estimator:
                "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
                "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3])),
                "stereo_change_deg": float(np.degrees(np.linalg.norm(so3_log(
-                   (np.linalg.inv(np.linalg.inv(self.calib.cam0.T_body_cam) @ self.calib.cam1.T_body_cam)
-                    @ np.linalg.inv(T0) @ T1)[:3, :3]))))}
+                   (self.calib.T_cam1_cam0 @ np.linalg.inv(T0) @ T1)[:3, :3]))))}
         if k is not None:
             out["intrinsics_fx_fy_cx_cy"] = [np.asarray(v, float).tolist() for v in k]
         return out

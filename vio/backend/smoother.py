@@ -578,18 +578,17 @@ class VioSmoother:
             return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i),
                                                                       E(cam), key, K[cam], False, False)
         P = (self.P_body_cam0, self.P_body_cam1)
-        if self.refine_stereo:  # cam0 fixed, cam1 through its variable pose on the body
-            from gtsam_unstable import ProjectionFactorPPPCal3_S2
 
-            def stereo_factor(uv, i, key, cam):
-                if cam == 0:
-                    return gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i), key, K[0],
-                                                                False, False, P[0])
-                return ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i), E(1), key, K[1], False,
-                                                  False)
-            return stereo_factor
-        return lambda uv, i, key, cam: gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i),
-                                                                           key, K[cam], False, False, P[cam])
+        def fixed(uv, i, key, cam):
+            return gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, self._pose_key(i), key, K[cam], False,
+                                                        False, P[cam])
+        if not self.refine_stereo:
+            return fixed
+        from gtsam_unstable import ProjectionFactorPPPCal3_S2
+
+        # refine_stereo_rotation: cam0 fixed, cam1 through its variable pose on the body
+        return lambda uv, i, key, cam: fixed(uv, i, key, 0) if cam == 0 else ProjectionFactorPPPCal3_S2(
+            uv, self.pixel_noise, self._pose_key(i), E(1), key, K[1], False, False)
 
     def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
                      T_world_cam0: np.ndarray) -> np.ndarray | None:
