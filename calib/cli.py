@@ -140,10 +140,11 @@ def _run_time_offset(args: argparse.Namespace) -> int:
     return 0
 
 
+SIGNIFICANT_SIGMA = 3.0  # a refined disparity bias smaller than this many sigmas leaves cam1 as calibrated
+
+
 def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
-
-    import numpy as np
 
     from vio import VioError
     from vio.calibration import load_calibration, save_calibration
@@ -167,16 +168,26 @@ def _run_refine(args: argparse.Namespace) -> int:
         raise VioError(f"{args.dataset}: no keyframe had enough rotation to refine the extrinsics (a hover or "
                        "straight flight); record with turns about at least two axes")
     out = dataclasses.replace(est.refined_calibration(), time_offset_ns=int(est.time_offset_ns))
-    save_calibration(out, args.output)
     if args.stereo_only:
-        shift = np.radians(refined["stereo_change_deg"]) * calib.cam1.fx
-        print(f"cam1 turned {refined['stereo_change_deg']:.4f} deg relative to cam0 over "
-              f"{refined['refining_keyframes']} keyframes ({est.reset_counter} resets): "
-              f"about {shift:.2f} px of disparity")
+        bias, sigma = refined["disparity_px"], refined.get("disparity_sigma_px")
+        where = f"over {refined['refining_keyframes']} keyframes ({est.reset_counter} resets)"
+        if sigma is not None and abs(bias) < SIGNIFICANT_SIGMA * sigma:
+            # what the recording cannot tell apart from zero is not a reason to change a calibration
+            out = dataclasses.replace(out, cam1=calib.cam1)
+            print(f"disparity bias {bias:+.2f} +- {sigma:.2f} px (1 sigma) {where}: under {SIGNIFICANT_SIGMA:g} sigma, "
+                  "not shown by this recording (one that moves further, past near and far texture, shows more); "
+                  "cam1 left as calibrated")
+        else:
+            told = "no uncertainty: the estimator was not running at the end" if sigma is None else \
+                f"+- {sigma:.2f} px, 1 sigma"
+            print(f"cam1 turned {refined['stereo_change_deg']:.4f} deg relative to cam0 {where}: a disparity bias of "
+                  f"{bias:+.2f} px ({told}) taken out; the calibration's disparities were too "
+                  f"{'large (depths too short)' if bias > 0 else 'small (depths too long)'}")
     else:
         print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
               f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
               f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
+    save_calibration(out, args.output)
     if args.intrinsics:
         for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):
             print(f"{name} fx fy cx cy moved " + " ".join(f"{getattr(after, k) - getattr(before, k):+.2f}"

@@ -800,11 +800,18 @@ class Estimator:
             return None
         T0, T1, n, k = self._refined
         d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
+        turn = so3_log((self.calib.T_cam1_cam0 @ np.linalg.inv(T0) @ T1)[:3, :3])  # about cam1's own axes
         out = {"T_body_cam0": T0.tolist(), "T_body_cam1": T1.tolist(), "refining_keyframes": int(n),
                "cam0_change_deg": float(np.degrees(np.linalg.norm(so3_log(d0[:3, :3])))),
                "cam0_change_mm": float(1e3 * np.linalg.norm(d0[:3, 3])),
-               "stereo_change_deg": float(np.degrees(np.linalg.norm(so3_log(
-                   (self.calib.T_cam1_cam0 @ np.linalg.inv(T0) @ T1)[:3, :3]))))}
+               "stereo_change_deg": float(np.degrees(np.linalg.norm(turn))),
+               # a turn about cam1's y axis moves every right pixel sideways: the disparity bias taken out
+               # (positive: the calibration's disparities were too large, its depths too short)
+               "disparity_px": float(turn[1] * self.calib.cam1.fx)}
+        sigma = self._state.smoother.stereo_rotation_sigma_rad() if isinstance(self._state, _Running) else None
+        if sigma is not None:
+            out["stereo_sigma_deg"] = np.degrees(sigma).tolist()
+            out["disparity_sigma_px"] = float(sigma[1] * self.calib.cam1.fx)
         if k is not None:
             out["intrinsics_fx_fy_cx_cy"] = [np.asarray(v, float).tolist() for v in k]
         return out

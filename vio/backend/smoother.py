@@ -635,6 +635,18 @@ class VioSmoother:
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"marginal covariance failed: {e}") from None
 
+    def stereo_rotation_sigma_rad(self) -> np.ndarray | None:
+        """1-sigma of cam1's refined rotation (about cam1's x, y, z) from the smoother's marginal of E(1); None
+        unless cam1 is refined alone (`refine_stereo_rotation`), or when the marginal fails. What a refined
+        stereo calibration can be trusted to: an interval, somewhat optimistic (the fixed lag marginalises)."""
+        if not self.refine_stereo:  # with refine_extrinsics, E(1)'s marginal is not the stereo extrinsic's
+            return None
+        try:
+            cov = np.asarray(self.smoother.marginalCovariance(E(1)))
+        except GTSAM_ERRORS:
+            return None
+        return np.sqrt(np.maximum(np.diag(cov)[:3], 0.0))
+
 
 def spread_order(uv: np.ndarray, track_len: np.ndarray, width: int, height: int, cols: int = 6,
                  rows: int = 4) -> np.ndarray:
