@@ -548,3 +548,24 @@ def test_calib_refine_stereo_only_leaves_cam1_alone_when_the_recording_cannot_sh
     assert m and abs(float(m.group(1))) < 3 * float(m.group(2)) and "cam1 left as calibrated" in said
     stated = EurocDataset(data).calibration
     np.testing.assert_allclose(load_calibration(out).cam1.T_body_cam, stated.cam1.T_body_cam, atol=1e-9)
+
+
+def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_check_passes(tmp_path, capsys):
+    """cam1's principal point stated 1 px sideways: every right pixel moves along its epipolar line, so the
+    epipolar, rectification and reprojection checks pass and the calibration looks fine; `--disparity` replays
+    the recording, finds the bias (well over 3 sigma) and fails the check with what to do about it."""
+    import re
+
+    from vio.app.cli import main
+
+    data, _ = _turning_flight(tmp_path, stereo_error_px=1.0)
+    assert main(["calib", "check", "-", str(data), "--max-frames", "10"]) == 0
+    said = capsys.readouterr().out
+    assert re.search(r"PASS  stereo epipolar error", said) and "overall: PASS" in said
+    assert re.search(r"SKIP  stereo disparity bias: .*add --disparity", said)
+    assert main(["calib", "check", "-", str(data), "--max-frames", "10", "--disparity"]) == 1
+    said = capsys.readouterr().out
+    m = re.search(r"FAIL  stereo disparity bias: ([0-9.]+) px .*\(([-+0-9.]+) \+- ([0-9.]+) px \(1 sigma\).*"
+                  r"depths short.*--stereo-only", said)
+    assert m and 0.4 < float(m.group(1)) < 1.5 and float(m.group(3)) < float(m.group(1)) / 3
+    assert "overall: FAIL" in said
