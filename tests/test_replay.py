@@ -27,6 +27,25 @@ def test_replay_cli_writes_tum_and_stats(v101_path, tmp_path, capsys):
     assert "ATE" in capsys.readouterr().out
 
 
+def test_replay_with_stereo_refinement_says_what_it_took_out_and_how_sure(v101_path, tmp_path, capsys):
+    """With `refine_stereo_rotation` the replay ends with the disparity bias it took out and its 1-sigma, in
+    its output and its stats; without a refinement it says nothing about the calibration."""
+    import re
+
+    cfg = tmp_path / "srot.toml"
+    cfg.write_text("[backend]\nrefine_stereo_rotation = true\n")
+    stats = tmp_path / "stats.json"
+    assert main(["-q", "replay", str(v101_path), "--config", str(cfg), "--stats", str(stats), "--no-progress"]) == 0
+    m = re.search(r"calibration: cam1 turned [0-9.]+ deg, a disparity bias of ([-+0-9.]+) \+- ([0-9.]+) px",
+                  capsys.readouterr().out)
+    d = json.loads(stats.read_text())["calibration_refined"]
+    assert m and float(m.group(1)) == pytest.approx(d["disparity_px"], abs=0.006)
+    # the excerpt hardly moves: whatever it turned, its sigma says it could not tell (the prior is 0.8 px)
+    assert 0.1 < d["disparity_sigma_px"] < 0.8 and abs(d["disparity_px"]) < 3 * d["disparity_sigma_px"]
+    assert main(["-q", "replay", str(v101_path), "--max-frames", "30", "--no-progress"]) == 0
+    assert "calibration:" not in capsys.readouterr().out
+
+
 def test_replay_of_missing_dataset_is_a_clear_error(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope"), "--output", str(tmp_path / "t.tum")]) == 1
     assert "dataset folder not found" in capsys.readouterr().err

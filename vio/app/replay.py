@@ -457,6 +457,15 @@ def run(args: argparse.Namespace) -> int:
               f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
+    refined = res.extra.get("calibration_refined")
+    if refined:  # [backend] refine_stereo_rotation / refine_extrinsics: what the flight taught about the rig
+        if "disparity_sigma_px" in refined:
+            print(f"calibration: cam1 turned {refined['stereo_change_deg']:.4f} deg, a disparity bias of "
+                  f"{refined['disparity_px']:+.2f} +- {refined['disparity_sigma_px']:.2f} px (1 sigma) taken out")
+        else:
+            print(f"calibration: T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, "
+                  f"{refined['cam0_change_mm']:.2f} mm; cam1 relative to cam0 {refined['stereo_change_deg']:.4f} "
+                  f"deg, over {refined['refining_keyframes']} refining keyframes")
     if res.frame_stats:
         sd = res.stats_dict()["timing_ms"]
         print("per frame [ms]: " + ", ".join(f"{k[:-3]} mean {v['mean']:.1f} p95 {v['p95']:.1f}"
