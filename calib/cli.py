@@ -148,7 +148,7 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from calib.check import DISPARITY_SIGNIFICANT
+    from calib.check import DISPARITY_SIGNIFICANT, disparity_told_from_zero
     from vio import VioError
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
@@ -174,7 +174,7 @@ def _run_refine(args: argparse.Namespace) -> int:
     if args.stereo_only:
         bias, sigma = refined["disparity_px"], refined.get("disparity_sigma_px")
         where = f"over {refined['refining_keyframes']} keyframes ({est.reset_counter} resets)"
-        if sigma is not None and abs(bias) < DISPARITY_SIGNIFICANT * sigma:
+        if not disparity_told_from_zero(bias, sigma):
             # what the recording cannot tell apart from zero is not a reason to change a calibration
             out = dataclasses.replace(out, cam1=calib.cam1)
             print(f"disparity bias {bias:+.2f} +- {sigma:.2f} px (1 sigma) {where}: under "
