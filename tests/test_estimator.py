@@ -760,8 +760,35 @@ def test_stereo_rotation_refinement_takes_a_shifted_principal_point_out_of_the_d
     refined = est.refined_calibration()
     d = np.linalg.inv(wrong.cam1.T_body_cam) @ refined.cam1.T_body_cam
     assert np.isclose(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))), st["stereo_change_deg"])
-    held, err_held = run()
-    assert held.refinement_stats() is None
+    held, err_held = run(stereo_check=False)
+    assert held.refinement_stats() is None and held.stereo_check_stats() is None
     print(f"1 px cx1 error: position error {err_held * 1e3:.1f} mm held, {err * 1e3:.1f} mm refined; cam1 turned "
           f"{st['stereo_change_deg']:.4f} deg (1 px: {expected:.4f})")
     assert err < 0.7 * err_held
+
+    # the default stereo check: holds cam1, sees the bias, lets go early, and ends near the refinement
+    checked, err_checked = run()
+    sc = checked.stereo_check_stats()
+    print(f"stereo check: let go at {sc['released_at_s']} s reading {sc['released_disparity_px']} px; position "
+          f"error {err_checked * 1e3:.1f} mm")
+    assert len(sc["released_at_s"]) == 1 and sc["released_at_s"][0] < 8.0
+    assert 0.6 < sc["released_disparity_px"][0] < 1.4  # the calibration's disparities 1 px too large
+    assert checked.refinement_stats()["stereo_change_deg"] > 0.7 * expected
+    assert err_checked < 0.7 * err_held
+
+
+def test_stereo_check_leaves_a_right_calibration_as_it_is():
+    """With the calibration right, the check reads a bias within its noise at every look, never lets go, and
+    the trajectory is the one the stereo held fixed gives (the hold allows a hundredth of a pixel)."""
+    calib = synthetic_calibration()
+    est, trace = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, time_offset_state=False)
+    plain, trace_plain = _tilting_flight(calib, False, offset_ms=lambda t: 0.0, time_offset_state=False,
+                                         stereo_check=False)
+    sc = est.stereo_check_stats()
+    assert sc is not None and sc["released_at_s"] == [] and est.refinement_stats() is None
+    assert abs(sc["disparity_px"]) < 3 * sc["sigma_px"] and sc["sigma_px"] < 0.1, sc
+    assert np.allclose(est.refined_calibration().cam1.T_body_cam, calib.cam1.T_body_cam)
+    err, err_plain = (float(np.sqrt(np.mean(tr[:, 2] ** 2))) for tr in (trace, trace_plain))
+    print(f"right calibration: check reads {sc['disparity_px']:+.3f} +- {sc['sigma_px']:.3f} px; position error "
+          f"{err * 1e3:.2f} mm checked, {err_plain * 1e3:.2f} mm without the check")
+    assert err < 1.1 * err_plain + 1e-4

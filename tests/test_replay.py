@@ -46,6 +46,39 @@ def test_replay_with_stereo_refinement_says_what_it_took_out_and_how_sure(v101_p
     assert "calibration:" not in capsys.readouterr().out
 
 
+def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, capsys, caplog):
+    """The default stereo check on a recording whose sensor.yaml states cam1's principal point 1 px off: the
+    replay warns once that the disparities are off (with what to run), refines cam1 from then, and says both in
+    its output and stats; the same recording with the calibration right keeps it and says that."""
+    import logging
+    import re
+
+    from vio.sim.generate import SimConfig, simulate
+
+    def flight(name: str, px: float):
+        data = tmp_path / name
+        simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
+                                 still_start_s=1.0, seed=3, stereo_error_px=px), progress=False)
+        stats = tmp_path / f"{name}.json"
+        with caplog.at_level(logging.WARNING, logger="vio.estimator"):
+            assert main(["-q", "replay", str(data), "--stats", str(stats), "--no-progress"]) == 0
+        return capsys.readouterr().out, json.loads(stats.read_text())
+
+    said, d = flight("drifted", 1.0)
+    warned = [r.getMessage() for r in caplog.records if "stereo check" in r.getMessage()]
+    assert len(warned) == 1 and "--stereo-only" in warned[0], warned
+    m = re.search(r"stereo check: disparities off by ([-+0-9.]+) px at ([0-9.]+) s: cam1 refined", said)
+    assert m and 0.4 < float(m.group(1)) < 1.6 and float(m.group(2)) < 6.0, said
+    assert d["stereo_check"]["released_at_s"] == [float(m.group(2))]
+    assert 0.4 < d["calibration_refined"]["disparity_px"] < 1.6 and "calibration: cam1 turned" in said
+    caplog.clear()
+    said, d = flight("right", 0.0)
+    assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px \(1 sigma\) at [0-9.]+ s: calibration "
+                     r"kept", said), said
+    assert d["stereo_check"]["released_at_s"] == [] and d["calibration_refined"] is None
+    assert not [r for r in caplog.records if "stereo check" in r.getMessage()]
+
+
 def test_replay_of_missing_dataset_is_a_clear_error(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope"), "--output", str(tmp_path / "t.tum")]) == 1
     assert "dataset folder not found" in capsys.readouterr().err

@@ -239,6 +239,7 @@ class Health:
     vision_age_s: float | None = None
     last_reset_reason: str = ""
     sensor_error: str | None = None
+    calibration_warning: str | None = None
 
 
 class ScriptedEstimator:

@@ -113,6 +113,17 @@ class BackendConfig:
     refine_stereo_rotation: bool = opt(False, "without refine_extrinsics: refine cam1's rotation relative to cam0 "
                                        "(within stereo_sigma_rad) on every keyframe, the rest held: a principal "
                                        "point or stereo mount that drifted biases every disparity")
+    stereo_check: bool = opt(True, "hold cam1's rotation at the calibration by a tight prior and test every few "
+                             "keyframes whether the data pull it away (a disparity bias); when they do beyond "
+                             "stereo_check_px and stereo_check_sigma, let go and refine it for the rest of the flight")
+    stereo_check_px: float = opt(0.15, "disparity bias [px] below which the stereo check lets the calibration "
+                                 "stand", min=0.0, max=20)
+    stereo_check_sigma: float = opt(4.0, "how many sigma the disparity bias must stand out before the check acts",
+                                    min=1.0, max=100)
+    stereo_check_every: int = opt(5, "keyframes between stereo checks (each reads a marginal of the smoother)",
+                                  min=1, max=1000)
+    stereo_hold_sigma_rad: float = opt(2e-5, "1-sigma of the prior that holds cam1's rotation while checking (a "
+                                       "hundredth of a pixel of disparity)", min=1e-7, max=1e-3)
     refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy of both cameras too (the principal "
                                   "point only with refine_principal_point)")
     refine_principal_point: bool = opt(False, "with refine_intrinsics: cx, cy too (they trade against the extrinsic "

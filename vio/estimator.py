@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 
 from vio.backend.preintegration import combined_params, measured_white_scale
-from vio.backend.smoother import SmootherFailure, VioSmoother
+from vio.backend.smoother import SmootherFailure, StereoFinding, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration
 from vio.config import EstimatorConfig, VioConfig
@@ -135,6 +135,7 @@ class EstimatorHealth:
     vision_age_s: float | None  # IMU time since the last usable frame reached the back end
     last_reset_reason: str
     sensor_error: str | None  # a diagnosed sensor problem (unit mistake, dead IMU) that blocks initialisation
+    calibration_warning: str | None = None  # the flight showed the calibration wrong (the stereo check let go)
 
 
 @dataclass(frozen=True)
@@ -206,6 +207,9 @@ class Estimator:
         self.moving_init = MovingInitializer(calib, self.cfg.init, self.params)
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
+        self._stereo_finding: StereoFinding | None = None  # the stereo check's newest reading (backend.stereo_check)
+        self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
+        self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
         self.reset_counter = 0
@@ -329,7 +333,15 @@ class Estimator:
         return EstimatorHealth(self.initialized, self._tracking_at(t) if t is not None else False,
                                self.reset_counter, self.frames_processed, self.frames_unusable,
                                dict(self.unusable_reasons), self.imu_rejected, dict(self.imu_rejected_reasons),
-                               self.frames_dropped, age, self.last_reset_reason, self.sensor_error)
+                               self.frames_dropped, age, self.last_reset_reason, self.sensor_error,
+                               self._calibration_warning())
+
+    def _calibration_warning(self) -> str | None:
+        if not self._stereo_released:
+            return None
+        f = self._stereo_released[-1]
+        return (f"stereo disparities off by {f.disparity_px:+.2f} +- {f.sigma_px:.2f} px (found in flight): cam1 "
+                "refined in flight since; fix the calibration (vio calib refine DATASET --stereo-only)")
 
     def _tracking_at(self, t: int) -> bool:
         """Tracking means vision: a usable frame reached the back end within vision_timeout_s of t."""
@@ -350,6 +362,8 @@ class Estimator:
     def _enqueue(self, item: StereoFrame | FeatureFrame) -> None:
         """Bounded wait for the IMU: a frame stamped far ahead of it, or one that would grow the queue past
         max_pending_frames (an IMU that stopped), is dropped and counted instead of waiting forever."""
+        if self._t_first_ns is None:
+            self._t_first_ns = int(item.t_ns)
         b = self.bcfg
         last_imu = self.imu.last_t_ns
         t_imu = int(item.t_ns) + self.time_offset_ns
@@ -794,10 +808,38 @@ class Estimator:
                     for c, v in zip(cams, k)]
         return dataclasses.replace(self.calib, cam0=cams[0], cam1=cams[1])
 
+    def _note_stereo_check(self, f: StereoFinding | None, t: int) -> None:
+        """Keep the stereo check's newest reading; say it once when it lets go of the calibration."""
+        if f is None or f.t_ns != t:
+            return
+        self._stereo_finding = f
+        if f.released:
+            self._stereo_released.append(f)
+            log.warning("stereo check: the disparities are off by %+.2f +- %.2f px (%.1f sigma): depths and scale "
+                        "were biased until now; refining cam1's rotation in flight from here. Fix the calibration "
+                        "(vio calib check CALIB DATASET --disparity, vio calib refine DATASET --stereo-only)",
+                        f.disparity_px, f.sigma_px, abs(f.disparity_px) / max(f.sigma_px, 1e-12))
+
+    def stereo_check_stats(self) -> dict | None:
+        """The stereo check's newest reading and when it let go of the calibration (None: check off or no
+        reading yet), for the replay's stats and status."""
+        f = self._stereo_finding
+        if f is None and not self._stereo_released:
+            return None
+        out: dict = {"released_at_s": [round((r.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None
+                                       else None for r in self._stereo_released],
+                     "released_disparity_px": [r.disparity_px for r in self._stereo_released]}
+        if f is not None:
+            out.update(disparity_px=f.disparity_px, sigma_px=f.sigma_px,
+                       at_s=round((f.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None else None)
+        return out
+
     def refinement_stats(self) -> dict | None:
         """Refined extrinsics and how far they moved from the calibration, for the replay's stats."""
-        if self._refined is None:
-            return None
+        b = self.bcfg
+        if self._refined is None or (b.stereo_check and not (b.refine_extrinsics or b.refine_stereo_rotation)
+                                     and not self._stereo_released):
+            return None  # nothing refined: the stereo check held the calibration (stereo_check_stats says why)
         T0, T1, n, k = self._refined
         d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
         turn = so3_log((self.calib.T_cam1_cam0 @ np.linalg.inv(T0) @ T1)[:3, :3])  # about cam1's own axes
@@ -845,6 +887,7 @@ class Estimator:
                 self._hand_offset_to_state()
             if est.T_body_cam0 is not None:
                 self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
+            self._note_stereo_check(run.smoother.stereo_finding, t)
             st = self._after_keyframe(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:

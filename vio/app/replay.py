@@ -27,7 +27,8 @@ log = logging.getLogger(__name__)
 Sink = Callable[[NavState], None]
 # Estimator.health() fields the stats JSON carries
 _HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unusable", "unusable_reasons",
-                 "imu_rejected", "imu_rejected_reasons", "frames_dropped", "last_reset_reason", "sensor_error")
+                 "imu_rejected", "imu_rejected_reasons", "frames_dropped", "last_reset_reason", "sensor_error",
+                 "calibration_warning")
 _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 
@@ -282,7 +283,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
-                              "calibration_refined": est.refinement_stats()},
+                              "calibration_refined": est.refinement_stats(),
+                              "stereo_check": est.stereo_check_stats()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error)
     summary = res.unusable_summary()
     if summary:
@@ -457,6 +459,14 @@ def run(args: argparse.Namespace) -> int:
               f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
+    check = res.extra.get("stereo_check")
+    if check:  # [backend] stereo_check: whether the flight showed the stereo calibration's disparities off
+        if check["released_at_s"]:
+            print(f"stereo check: disparities off by {check['released_disparity_px'][0]:+.2f} px at "
+                  f"{check['released_at_s'][0]:.1f} s: cam1 refined in flight from then (calibration line below)")
+        elif "disparity_px" in check:
+            print(f"stereo check: disparity bias {check['disparity_px']:+.2f} +- {check['sigma_px']:.2f} px (1 sigma) "
+                  f"at {check['at_s']:.1f} s: calibration kept")
     refined = res.extra.get("calibration_refined")
     if refined:  # [backend] refine_stereo_rotation / refine_extrinsics: what the flight taught about the rig
         if "disparity_sigma_px" in refined:

@@ -31,6 +31,11 @@ are variables too (Cal3_S2, ProjectionFactorPPPC, under the same gate); the prin
 `refine_principal_point`, because shifting it moves the image as turning the camera does. With
 `refine_stereo_rotation` alone, only E(1) is a variable (cam1's rotation, on every keyframe): a principal point
 or mount that drifted biases every disparity, which only this takes out (docs/estimator.md).
+The stereo check (`stereo_check`, when neither refinement is asked for) keeps that E(1) but holds its rotation at
+the calibration with a tight prior; every `stereo_check_every` keyframes the prior's pull and E(1)'s marginal
+say where the data alone would put it (a score test), and when that stands out (`stereo_check_px`,
+`stereo_check_sigma`) the hold's factor is removed, so E(1) is refined from then on with everything the flight
+has shown about it, while a good calibration is never moved by the refinement's wander.
 
 Time offset as a state (`time_offset_state`): the images are stamped with the applied camera-IMU offset
 (the calibration's, or the in-flight gyro estimate's), and what is left of it, d(i) = true - applied, is a
@@ -99,6 +104,16 @@ class KeyframeEstimate:
     T_body_cam0: np.ndarray | None = None  # the refined extrinsics (None: not refined)
     T_body_cam1: np.ndarray | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None  # refined (fx, fy, cx, cy) of cam0, cam1 (None: held)
+
+
+@dataclass
+class StereoFinding:
+    """The stereo check's newest reading: the disparity bias the data show against the calibration."""
+
+    t_ns: int
+    disparity_px: float  # positive: the calibration's disparities too large (its depths too short)
+    sigma_px: float  # 1-sigma of that
+    released: bool  # the hold was let go at this check: cam1's rotation is refined from here on
 
 
 @dataclass
@@ -211,6 +226,13 @@ class VioSmoother:
         # calibration that drifted does to the disparity (`refine_stereo_rotation`; with refine_extrinsics,
         # refine_stereo_extrinsic does it instead)
         self.refine_stereo = bool(cfg.refine_stereo_rotation) and not self.refine
+        # The stereo check (module doc): E(1) a variable as above, held at the calibration by a tight prior whose
+        # pull measures what the data say about it; the hold is let go when they show a disparity bias.
+        self.stereo_check = bool(cfg.stereo_check) and not self.refine and not self.refine_stereo
+        self.refine_stereo = self.refine_stereo or self.stereo_check
+        self._P_body_cam1_calib = self.P_body_cam1
+        self._hold_index: int | None = None  # the holding prior's factor index in the smoother, while it holds
+        self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
         self.time_from: int | None = None
@@ -358,6 +380,8 @@ class VioSmoother:
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
         extra = self._update(graph, values, stamps, 0, pose)
+        if self.stereo_check:
+            self._hold_stereo()
         return self._finish(t_ns, n_vis, n_lm, extra)
 
     def add_keyframe(self, t_ns: int, pim: gtsam.PreintegratedCombinedMeasurements,
@@ -448,6 +472,9 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
+            elif self._hold_index is not None:  # held: cam1 stays as calibrated unless the check lets go
+                if j > 0 and j % self.cfg.stereo_check_every == 0:
+                    self._check_stereo(t_ns, est.atPose3(E(1)))
             elif self.refine_stereo:
                 self.P_body_cam1 = est.atPose3(E(1))
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
@@ -563,6 +590,53 @@ class VioSmoother:
                 break
         return n_vis, n_lm
 
+    def _hold_stereo(self) -> None:
+        """Add the prior that holds E(1)'s rotation at the calibration and remember its index (to let go)."""
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib,
+                                     _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
+        try:
+            self.smoother.update(g, gtsam.Values(), {})
+            self._hold_index = int(self.smoother.getISAM2Result().getNewFactorsIndices()[0])
+            self._estimate = self.smoother.calculateEstimate()
+        except GTSAM_ERRORS as e:
+            raise SmootherFailure(f"smoother update failed holding the stereo extrinsic: {type(e).__name__}") from None
+
+    def _check_stereo(self, t_ns: int, held: gtsam.Pose3) -> None:
+        """Where E(1) would be without the hold, from where the hold lets it sit and how much it tightens it.
+
+        With the hold's information Lh (rotation block) and the posterior's Lp = cov(E(1))^-1, the data (and the
+        loose calibration prior) alone hold Ld = Lp - Lh, and in the linear(ised) problem the estimate without the
+        hold is Ld^-1 Lp d, d being where the held estimate sits relative to the calibration: a score test that
+        costs one marginal and leaves the trajectory alone. The turn about cam1's y axis times fx is the disparity
+        bias (positive: the calibration's disparities too large)."""
+        cfg = self.cfg
+        try:
+            cov = np.asarray(self.smoother.marginalCovariance(E(1)), float)
+            lam_post = np.linalg.inv(cov)
+            lam_data = lam_post.copy()
+            lam_data[:3, :3] -= np.eye(3) / cfg.stereo_hold_sigma_rad ** 2
+            S = np.linalg.inv(lam_data)
+        except (*GTSAM_ERRORS, np.linalg.LinAlgError):
+            return
+        d = np.asarray(self._P_body_cam1_calib.localCoordinates(held), float)
+        b = S @ (lam_post @ d)
+        if not (np.isfinite(S[1, 1]) and S[1, 1] > 0 and np.all(np.isfinite(b))):
+            return
+        fx = self.calib.cam1.fx
+        disp, sigma = float(b[1] * fx), float(np.sqrt(S[1, 1]) * fx)
+        release = abs(disp) >= cfg.stereo_check_px and abs(disp) >= cfg.stereo_check_sigma * sigma
+        if release:
+            try:
+                self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, [self._hold_index])
+                self._estimate = self.smoother.calculateEstimate()
+                self.P_body_cam1 = self._estimate.atPose3(E(1))
+            except GTSAM_ERRORS as e:
+                raise SmootherFailure(f"smoother update failed releasing the stereo extrinsic: "
+                                      f"{type(e).__name__}") from None
+            self._hold_index = None
+        self.stereo_finding = StereoFinding(t_ns, disp, sigma, release)
+
     def _factor_maker(self, refine: bool):
         """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
         as a variable (E(cam), when refining) or fixed at its current estimate."""
@@ -639,8 +713,8 @@ class VioSmoother:
         """1-sigma of cam1's refined rotation (about cam1's x, y, z) from the smoother's marginal of E(1); None
         unless cam1 is refined alone (`refine_stereo_rotation`), or when the marginal fails. What a refined
         stereo calibration can be trusted to: an interval, somewhat optimistic (the fixed lag marginalises)."""
-        if not self.refine_stereo:  # with refine_extrinsics, E(1)'s marginal is not the stereo extrinsic's
-            return None
+        if not self.refine_stereo or self._hold_index is not None:  # with refine_extrinsics, E(1)'s marginal is
+            return None  # not the stereo extrinsic's; while the stereo check holds it, the hold's
         try:
             cov = np.asarray(self.smoother.marginalCovariance(E(1)))
         except GTSAM_ERRORS:

@@ -347,6 +347,8 @@ class Service:
                         and camera_ok and (h is None or h.tracking))
         if h is not None and h.sensor_error:
             warnings.append(f"sensor error: {h.sensor_error}")
+        if h is not None and h.calibration_warning:
+            warnings.append(f"calibration: {h.calibration_warning}")
         if self.ready and not tracking:
             warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok, imu_ok)}")
         self._warn_stall(tracking, src.connected and imu_ok)
