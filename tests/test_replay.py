@@ -66,15 +66,16 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
 
     said, d = flight("drifted", 1.0)
     warned = [r.getMessage() for r in caplog.records if "stereo check" in r.getMessage()]
-    assert len(warned) == 1 and "--stereo-only" in warned[0], warned
-    m = re.search(r"stereo check: disparities off by ([-+0-9.]+) px at ([0-9.]+) s: cam1 refined", said)
-    assert m and 0.4 < float(m.group(1)) < 1.6 and float(m.group(2)) < 6.0, said
-    assert d["stereo_check"]["released_at_s"] == [float(m.group(2))]
+    assert len(warned) == 1 and "disparity bias" in warned[0] and "vio calib check" in warned[0], warned
+    m = re.search(r"stereo check: the right camera disagreed with the calibration at ([0-9.]+) s \(disparity bias "
+                  r"([-+0-9.]+) \+- [0-9.]+ px; cam1's focal lengths .*\): cam1 refined", said)
+    assert m and 0.4 < float(m.group(2)) < 1.6 and float(m.group(1)) < 6.0, said
+    assert d["stereo_check"]["released_at_s"] == [float(m.group(1))]
     assert 0.4 < d["calibration_refined"]["disparity_px"] < 1.6 and "calibration: cam1 turned" in said
     caplog.clear()
     said, d = flight("right", 0.0)
-    assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px \(1 sigma\) at [0-9.]+ s: calibration "
-                     r"kept", said), said
+    assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px; cam1's focal lengths at the image edge: "
+                     r"fx [-+0-9.]+ \+- [0-9.]+ px, fy .* \(1 sigma\) at [0-9.]+ s: calibration kept", said), said
     assert d["stereo_check"]["released_at_s"] == [] and d["calibration_refined"] is None
     assert not [r for r in caplog.records if "stereo check" in r.getMessage()]
 

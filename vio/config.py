@@ -116,6 +116,8 @@ class BackendConfig:
     stereo_check: bool = opt(True, "hold cam1's rotation at the calibration by a tight prior and test every few "
                              "keyframes whether the data pull it away (a disparity bias); when they do beyond "
                              "stereo_check_px and stereo_check_sigma, let go and refine it for the rest of the flight")
+    stereo_check_focal: bool = opt(True, "the stereo check holds and lets go cam1's focal lengths with its rotation "
+                                   "(two cameras' fx stated differently scale the disparities across the image)")
     stereo_check_px: float = opt(0.15, "disparity bias [px] below which the stereo check lets the calibration "
                                  "stand", min=0.0, max=20)
     stereo_check_sigma: float = opt(4.0, "how many sigma the disparity bias must stand out before the check acts",

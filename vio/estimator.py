@@ -340,8 +340,8 @@ class Estimator:
         if not self._stereo_released:
             return None
         f = self._stereo_released[-1]
-        return (f"stereo disparities off by {f.disparity_px:+.2f} +- {f.sigma_px:.2f} px (found in flight): cam1 "
-                "refined in flight since; fix the calibration (vio calib refine DATASET --stereo-only)")
+        return (f"the right camera disagrees with the stereo calibration ({f.describe()}, found in flight): cam1 "
+                "refined in flight since; fix the stereo calibration")
 
     def _tracking_at(self, t: int) -> bool:
         """Tracking means vision: a usable frame reached the back end within vision_timeout_s of t."""
@@ -815,10 +815,9 @@ class Estimator:
         self._stereo_finding = f
         if f.released:
             self._stereo_released.append(f)
-            log.warning("stereo check: the disparities are off by %+.2f +- %.2f px (%.1f sigma): depths and scale "
-                        "were biased until now; refining cam1's rotation in flight from here. Fix the calibration "
-                        "(vio calib check CALIB DATASET --disparity, vio calib refine DATASET --stereo-only)",
-                        f.disparity_px, f.sigma_px, abs(f.disparity_px) / max(f.sigma_px, 1e-12))
+            log.warning("stereo check: the right camera disagrees with the calibration (%s): depths and scale were "
+                        "biased until now; refining cam1 in flight from here. Fix the stereo calibration "
+                        "(docs/calibration.md: vio calib check CALIB DATASET --disparity)", f.describe())
 
     def stereo_check_stats(self) -> dict | None:
         """The stereo check's newest reading and when it let go of the calibration (None: check off or no
@@ -826,12 +825,15 @@ class Estimator:
         f = self._stereo_finding
         if f is None and not self._stereo_released:
             return None
-        out: dict = {"released_at_s": [round((r.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None
-                                       else None for r in self._stereo_released],
+        def at_s(r: StereoFinding) -> float | None:
+            return round((r.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None else None
+
+        out: dict = {"released_at_s": [at_s(r) for r in self._stereo_released],
+                     "released_readings": [r.describe() for r in self._stereo_released],
                      "released_disparity_px": [r.disparity_px for r in self._stereo_released]}
         if f is not None:
-            out.update(disparity_px=f.disparity_px, sigma_px=f.sigma_px,
-                       at_s=round((f.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None else None)
+            out.update(disparity_px=f.disparity_px, sigma_px=f.sigma_px, at_s=at_s(f), reading=f.describe(),
+                       focal_px=[list(x) for x in f.focal_px] if f.focal_px else None)
         return out
 
     def refinement_stats(self) -> dict | None:

@@ -114,6 +114,16 @@ class StereoFinding:
     disparity_px: float  # positive: the calibration's disparities too large (its depths too short)
     sigma_px: float  # 1-sigma of that
     released: bool  # the hold was let go at this check: cam1's rotation is refined from here on
+    focal_px: tuple[tuple[float, float], ...] | None = None  # (reading, sigma) of cam1's fx, fy at the image edge
+
+    def describe(self) -> str:
+        """The readings in words, e.g. 'disparity bias +0.49 +- 0.11 px; cam1's fx at the image edge +0.05 +- 0.10
+        px, fy -0.02 +- 0.08 px'."""
+        out = f"disparity bias {self.disparity_px:+.2f} +- {self.sigma_px:.2f} px"
+        if self.focal_px:
+            (fx, sx), (fy, sy) = self.focal_px
+            out += f"; cam1's focal lengths at the image edge: fx {fx:+.2f} +- {sx:.2f} px, fy {fy:+.2f} +- {sy:.2f} px"
+        return out
 
 
 @dataclass
@@ -231,7 +241,9 @@ class VioSmoother:
         self.stereo_check = bool(cfg.stereo_check) and not self.refine and not self.refine_stereo
         self.refine_stereo = self.refine_stereo or self.stereo_check
         self._P_body_cam1_calib = self.P_body_cam1
-        self._hold_index: int | None = None  # the holding prior's factor index in the smoother, while it holds
+        # with stereo_check_focal, cam1's intrinsics K(1) are a variable too, their fx, fy held and let go with E(1)
+        self.check_K1 = self.stereo_check and bool(cfg.stereo_check_focal)
+        self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
         self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
@@ -374,6 +386,11 @@ class VioSmoother:
                                              _sigmas([self.cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)))
             values.insert(E(1), self.P_body_cam1)
             stamps[E(1)] = 0.0
+            if self.check_K1:  # fx, fy within the stated uncertainty; skew and principal point held (see below)
+                graph.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1,
+                                                   _sigmas([self.cfg.intrinsics_sigma_px] * 2 + [1e-4] * 3)))
+                values.insert(_k_key(1), self.K1)
+                stamps[_k_key(1)] = 0.0
         cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
                                         applied_offset_ns) if self._time_state_at(0, omega_body, v_world) else pose
         n_vis, n_lm = 0, 0
@@ -410,6 +427,8 @@ class VioSmoother:
                 stamps[_k_key(0)] = stamps[_k_key(1)] = t_s
         elif self.refine_stereo:
             stamps[E(1)] = t_s
+            if self.check_K1:
+                stamps[_k_key(1)] = t_s
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -472,11 +491,13 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
-            elif self._hold_index is not None:  # held: cam1 stays as calibrated unless the check lets go
+            elif self._holds:  # held: cam1 stays as calibrated unless the check lets go
                 if j > 0 and j % self.cfg.stereo_check_every == 0:
                     self._check_stereo(t_ns, est.atPose3(E(1)))
             elif self.refine_stereo:
                 self.P_body_cam1 = est.atPose3(E(1))
+                if self.check_K1:
+                    self.K1 = est.atCal3_S2(_k_key(1))
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
                 self.K0, self.K1 = est.atCal3_S2(_k_key(0)), est.atCal3_S2(_k_key(1))
         except GTSAM_ERRORS as e:
@@ -484,7 +505,8 @@ class VioSmoother:
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
                                      self.T_body_cam0.copy() if self.refine or self.refine_stereo else None,
                                      self.P_body_cam1.matrix() if self.refine or self.refine_stereo else None,
-                                     tuple(_fxfycxcy(K) for K in (self.K0, self.K1)) if self.refine_K else None)
+                                     tuple(_fxfycxcy(K) for K in (self.K0, self.K1))
+                                     if self.refine_K or (self.check_K1 and not self._holds) else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
@@ -595,47 +617,65 @@ class VioSmoother:
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib,
                                      _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
+        if self.check_K1:  # fx, fy to the same hundredth of a pixel (at the image edge)
+            hold_px = self.cfg.stereo_hold_sigma_rad * self.calib.cam1.fx
+            g.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
         try:
             self.smoother.update(g, gtsam.Values(), {})
-            self._hold_index = int(self.smoother.getISAM2Result().getNewFactorsIndices()[0])
+            self._holds = [int(i) for i in self.smoother.getISAM2Result().getNewFactorsIndices()]
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"smoother update failed holding the stereo extrinsic: {type(e).__name__}") from None
 
     def _check_stereo(self, t_ns: int, held: gtsam.Pose3) -> None:
-        """Where E(1) would be without the hold, from where the hold lets it sit and how much it tightens it.
+        """Where cam1 would be without the holds, from where they let it sit and how much they tighten it.
 
-        With the hold's information Lh (rotation block) and the posterior's Lp = cov(E(1))^-1, the data (and the
-        loose calibration prior) alone hold Ld = Lp - Lh, and in the linear(ised) problem the estimate without the
-        hold is Ld^-1 Lp d, d being where the held estimate sits relative to the calibration: a score test that
-        costs one marginal and leaves the trajectory alone. The turn about cam1's y axis times fx is the disparity
-        bias (positive: the calibration's disparities too large)."""
+        With the holds' information Lh and the posterior's joint information Lp of E(1) (and K(1)), the data
+        (and the loose calibration priors) alone hold Ld = Lp - Lh, and in the linear(ised) problem the estimate
+        without the holds is Ld^-1 Lp d, d being where the held estimate sits relative to the calibration: a score
+        test that costs one marginal and leaves the trajectory alone. Read as pixels of disparity: the turn about
+        cam1's y axis times fx (positive: the calibration's disparities too large), and a focal length's change
+        times half the image width over fx (what it moves a pixel at the image's edge)."""
         cfg = self.cfg
+        keys = [E(1)] + ([_k_key(1)] if self.check_K1 else [])
+        hold = np.zeros(6 + 5 * self.check_K1)
+        hold[:3] = cfg.stereo_hold_sigma_rad ** -2.0
+        if self.check_K1:
+            hold[6:8] = (cfg.stereo_hold_sigma_rad * self.calib.cam1.fx) ** -2.0
         try:
-            cov = np.asarray(self.smoother.marginalCovariance(E(1)), float)
-            lam_post = np.linalg.inv(cov)
-            lam_data = lam_post.copy()
-            lam_data[:3, :3] -= np.eye(3) / cfg.stereo_hold_sigma_rad ** 2
-            S = np.linalg.inv(lam_data)
+            lam_post = np.asarray(self.smoother.getISAM2().jointMarginalInformation(keys).fullMatrix(), float)
+            S = np.linalg.inv(lam_post - np.diag(hold))
         except (*GTSAM_ERRORS, np.linalg.LinAlgError):
             return
         d = np.asarray(self._P_body_cam1_calib.localCoordinates(held), float)
+        if self.check_K1:
+            d = np.r_[d, np.asarray(self.K1.localCoordinates(self._estimate.atCal3_S2(_k_key(1))), float)]
         b = S @ (lam_post @ d)
-        if not (np.isfinite(S[1, 1]) and S[1, 1] > 0 and np.all(np.isfinite(b))):
+        var = np.diag(S)
+        if not (np.all(np.isfinite(b)) and np.all(np.isfinite(var)) and np.all(var[:3] > 0)):
             return
         fx = self.calib.cam1.fx
-        disp, sigma = float(b[1] * fx), float(np.sqrt(S[1, 1]) * fx)
-        release = abs(disp) >= cfg.stereo_check_px and abs(disp) >= cfg.stereo_check_sigma * sigma
+        # each reading in pixels, with its sigma: the disparity bias, then (K(1)) fx and fy at the image's edge
+        px = [(b[1] * fx, np.sqrt(var[1]) * fx)]
+        if self.check_K1 and np.all(var[6:8] > 0):
+            edge = 0.5 * np.array([self.calib.cam1.width, self.calib.cam1.height]) / np.array([fx, self.calib.cam1.fy])
+            px += [(b[6 + k] * edge[k], np.sqrt(var[6 + k]) * edge[k]) for k in (0, 1)]
+        shows = [abs(v) >= cfg.stereo_check_px and abs(v) >= cfg.stereo_check_sigma * sg for v, sg in px]
+        release = any(shows)
+        disp, sigma = (float(x) for x in px[0])
+        focal = tuple((float(v), float(sg)) for v, sg in px[1:]) or None
         if release:
             try:
-                self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, [self._hold_index])
+                self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, self._holds)
                 self._estimate = self.smoother.calculateEstimate()
                 self.P_body_cam1 = self._estimate.atPose3(E(1))
+                if self.check_K1:
+                    self.K1 = self._estimate.atCal3_S2(_k_key(1))
             except GTSAM_ERRORS as e:
                 raise SmootherFailure(f"smoother update failed releasing the stereo extrinsic: "
                                       f"{type(e).__name__}") from None
-            self._hold_index = None
-        self.stereo_finding = StereoFinding(t_ns, disp, sigma, release)
+            self._holds = []
+        self.stereo_finding = StereoFinding(t_ns, disp, sigma, release, focal)
 
     def _factor_maker(self, refine: bool):
         """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
@@ -660,7 +700,12 @@ class VioSmoother:
             return fixed
         from gtsam_unstable import ProjectionFactorPPPCal3_S2
 
-        # refine_stereo_rotation: cam0 fixed, cam1 through its variable pose on the body
+        # refine_stereo_rotation: cam0 fixed, cam1 through its variable pose on the body (and intrinsics)
+        if self.check_K1:
+            from gtsam_unstable import ProjectionFactorPPPCCal3_S2
+
+            return lambda uv, i, key, cam: fixed(uv, i, key, 0) if cam == 0 else ProjectionFactorPPPCCal3_S2(
+                uv, self.pixel_noise, self._pose_key(i), E(1), key, _k_key(1), False, False)
         return lambda uv, i, key, cam: fixed(uv, i, key, 0) if cam == 0 else ProjectionFactorPPPCal3_S2(
             uv, self.pixel_noise, self._pose_key(i), E(1), key, K[1], False, False)
 
@@ -713,7 +758,7 @@ class VioSmoother:
         """1-sigma of cam1's refined rotation (about cam1's x, y, z) from the smoother's marginal of E(1); None
         unless cam1 is refined alone (`refine_stereo_rotation`), or when the marginal fails. What a refined
         stereo calibration can be trusted to: an interval, somewhat optimistic (the fixed lag marginalises)."""
-        if not self.refine_stereo or self._hold_index is not None:  # with refine_extrinsics, E(1)'s marginal is
+        if not self.refine_stereo or self._holds:  # with refine_extrinsics, E(1)'s marginal is
             return None  # not the stereo extrinsic's; while the stereo check holds it, the hold's
         try:
             cov = np.asarray(self.smoother.marginalCovariance(E(1)))
