@@ -122,10 +122,13 @@ class BackendConfig:
                                  "stand", min=0.0, max=20)
     stereo_check_sigma: float = opt(4.0, "how many sigma the disparity bias must stand out before the check acts",
                                     min=1.0, max=100)
+    stereo_check_confirm: int = opt(2, "consecutive stereo checks whose reading must stand out before it acts (a "
+                                    "passing transient does not)", min=1, max=100)
     stereo_check_every: int = opt(5, "keyframes between stereo checks (each reads a marginal of the smoother)",
                                   min=1, max=1000)
-    stereo_hold_sigma_rad: float = opt(2e-5, "1-sigma of the prior that holds cam1's rotation while checking (a "
-                                       "hundredth of a pixel of disparity)", min=1e-7, max=1e-3)
+    stereo_hold_sigma_rad: float = opt(5e-6, "1-sigma of the priors that hold cam1's rotation (and, times fx, its "
+                                       "focal lengths) while checking: a few thousandths of a pixel",
+                                       min=1e-7, max=1e-3)
     refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy of both cameras too (the principal "
                                   "point only with refine_principal_point)")
     refine_principal_point: bool = opt(False, "with refine_intrinsics: cx, cy too (they trade against the extrinsic "

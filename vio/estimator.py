@@ -813,6 +813,7 @@ class Estimator:
         if f is None or f.t_ns != t:
             return
         self._stereo_finding = f
+        log.debug("stereo check t=%d: %s%s", t, f.describe(), " -> let go" if f.released else "")
         if f.released:
             self._stereo_released.append(f)
             log.warning("stereo check: the right camera disagrees with the calibration (%s): depths and scale were "
