@@ -771,10 +771,10 @@ def test_stereo_rotation_refinement_takes_a_shifted_principal_point_out_of_the_d
     sc = checked.stereo_check_stats()
     print(f"stereo check: let go at {sc['released_at_s']} s reading {sc['released_disparity_px']} px; position "
           f"error {err_checked * 1e3:.1f} mm")
-    assert len(sc["released_at_s"]) == 1 and sc["released_at_s"][0] < 8.0
+    assert len(sc["released_at_s"]) == 1 and sc["released_at_s"][0] < 7.0
     assert 0.6 < sc["released_disparity_px"][0] < 1.4  # the calibration's disparities 1 px too large
     assert checked.refinement_stats()["stereo_change_deg"] > 0.7 * expected
-    assert err_checked < 0.7 * err_held
+    assert err_checked < 0.8 * err_held
 
 
 def test_stereo_check_leaves_a_right_calibration_as_it_is():

@@ -133,6 +133,7 @@ class _Landmark:
     last_t_s: float
 
 
+CONFIRM_AFTER_KF = 2  # keyframes from a stereo check whose reading stood out to the one that confirms it
 MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono track before it is triangulated
 MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
@@ -247,6 +248,7 @@ class VioSmoother:
         self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
         self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         self._stood_out = 0  # consecutive checks whose reading stood out
+        self._next_check = cfg.stereo_check_every  # keyframe index of the next check
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
         self.time_from: int | None = None
@@ -494,8 +496,10 @@ class VioSmoother:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
             elif self._holds:  # held: cam1 stays as calibrated unless the check lets go
-                if j > 0 and j % self.cfg.stereo_check_every == 0:
+                if j >= self._next_check:
                     self._check_stereo(t_ns, est.atPose3(E(1)))
+                    # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
+                    self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
             elif self.refine_stereo:
                 self.P_body_cam1 = est.atPose3(E(1))
                 if self.check_K1:
