@@ -12,9 +12,11 @@ Checks and thresholds (pixels are cam1 pixels; "median" is over all stereo match
 - gravity when still: on the longest still span, |mean accel| must be g (PASS within 0.2 m/s^2, WARN
   0.5); with ground truth, the accel direction must match gravity seen through the GT attitude (PASS < 2
   deg, WARN < 5 deg). The accel spread and gyro mean are reported (vibration, gyro bias).
-- stereo disparity bias (`--disparity`: the recording is replayed with cam1's rotation refined): the bias
-  a drifted stereo calibration adds to every disparity, which the epipolar checks cannot see.  PASS under
-  0.1 px or under 3 sigma of the refinement's own uncertainty, WARN < 0.3 px, else FAIL.
+- stereo disparity bias and focal lengths (`--disparity`: the recording is replayed with the estimator's
+  stereo check reading, without ever letting go, where cam1's rotation and focal lengths would be if refined):
+  the bias a drifted stereo calibration adds to every disparity, and cam1's fx, fy against cam0's (at the image
+  edge), which the epipolar checks cannot see.  PASS under 0.1 px or under 3 sigma of the reading's own
+  uncertainty, WARN < 0.3 px, else FAIL.
 - units: the IMU recording (accel in g or mm/s^2, gyro in deg/s, an all-zero IMU), the stereo baseline and
   the camera-IMU lever arm (millimetres for metres) with vio/sanity.py's diagnosis, the one `vio replay`
   stops on: FAIL naming the likely mistake, else PASS.
@@ -282,45 +284,65 @@ def disparity_told_from_zero(bias_px: float, sigma_px: float | None) -> bool:
 
 
 def check_disparity(dataset_path: str | Path, calib: StereoCalibration | None = None,
-                    config=None) -> CheckResult:
-    """The recording replayed with cam1's rotation refined (`[backend] refine_stereo_rotation`): the disparity
-    bias the refinement takes out, against its 1-sigma from the smoother's marginal.
+                    config=None) -> list[CheckResult]:
+    """The recording replayed with the estimator's stereo check (`[backend] stereo_check`) held for the whole
+    flight: its last reading of where cam1's rotation and focal lengths would sit if refined, with their 1-sigma
+    (a score test on everything the smoother saw; the trajectory is the calibration's own).
 
     A cam1 turned about its own vertical axis (or a principal point off sideways) moves every right pixel
-    along its epipolar line, so the epipolar and rectification checks cannot see it; it biases every depth
-    (0.1 px is 1 % at 5 m for a 50 px m baseline) and the trajectory's scale with it: 0.5 px cost 3-22x of the
-    ATE on the simulator's flights (docs/estimator.md, "Stereo rotation refinement"). A bias under 3 sigma is
-    what the recording cannot tell from zero: PASS, with that said."""
+    along its epipolar line, and two cameras' focal lengths stated differently scale the disparities across the
+    image, so the epipolar and rectification checks cannot see either; both bias the depths (0.1 px is 1 % at 5 m
+    for a 50 px m baseline) and the trajectory's scale with them: 0.5 px cost 3-35x of the ATE on the simulator's
+    flights (docs/estimator.md, "The stereo check"). A reading under 3 sigma is what the recording cannot tell
+    from zero: PASS, with that said. Two rows: the disparity bias, and the larger of fx, fy at the image edge."""
     import dataclasses
 
     from vio.config import load_config
     from vio.consistency import replay_states
 
+    names = ("stereo disparity bias", "stereo focal lengths")
     cfg = load_config(config)
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=False,
-                                                               refine_stereo_rotation=True))
+    # the check on, never letting go (20 px, 100 sigma: its bounds), nothing else refined
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
+        cfg.backend, refine_extrinsics=False, refine_stereo_rotation=False, stereo_check=True,
+        stereo_check_focal=True, stereo_check_px=20.0, stereo_check_sigma=100.0))
     try:
         run = replay_states(dataset_path, cfg.estimator, calibration=calib)
     except VioError as e:  # e.g. an IMU in the wrong units, which the units check below names
-        return CheckResult("stereo disparity bias", "SKIP", float("nan"), "px",
-                           f"the replay refused the recording: {e}")
-    refined = run.estimator.refinement_stats()
-    if refined is None:
-        return CheckResult("stereo disparity bias", "SKIP", float("nan"), "px",
-                           "the estimator never initialised on this recording: nothing to measure")
-    bias, sigma = refined["disparity_px"], refined.get("disparity_sigma_px")
+        return [CheckResult(n, "SKIP", float("nan"), "px", f"the replay refused the recording: {e}") for n in names]
+    check = run.estimator.stereo_check_stats()
+    if check is None or "disparity_px" not in check:
+        return [CheckResult(n, "SKIP", float("nan"), "px", "the estimator never read the stereo calibration on this "
+                            "recording (too short, or it never initialised): nothing to measure") for n in names]
     fB = run.dataset.calibration.cam1.fx * float(np.linalg.norm(run.dataset.calibration.T_cam1_cam0[:3, 3]))
-    told = f"{bias:+.2f} +- {sigma:.2f} px (1 sigma)" if sigma is not None else f"{bias:+.2f} px (no sigma)"
+    at = f"at {check['at_s']:.1f} s" if check.get("at_s") is not None else "at the end"
+    out = []
+    bias, sigma = check["disparity_px"], check["sigma_px"]
+    told = f"{bias:+.2f} +- {sigma:.2f} px (1 sigma) {at}"
     if not disparity_told_from_zero(bias, sigma):
-        return CheckResult("stereo disparity bias", "PASS", abs(bias), "px",
-                           f"{told} over {refined['refining_keyframes']} keyframes: not told from zero by this "
-                           "recording (one that moves further, past near and far texture, tells more)")
-    verdict = _grade(abs(bias), DISPARITY_PASS_PX, DISPARITY_WARN_PX)
-    detail = f"{told} over {refined['refining_keyframes']} keyframes: depths {'short' if bias > 0 else 'long'} " \
-        f"by {100 * abs(bias) * 5.0 / fB:.1f} % at 5 m"
-    if verdict != "PASS":
-        detail += "; `vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out"
-    return CheckResult("stereo disparity bias", verdict, abs(bias), "px", detail)
+        out.append(CheckResult(names[0], "PASS", abs(bias), "px", f"{told}: not told from zero by this recording "
+                               "(one that moves further, past near and far texture, tells more)"))
+    else:
+        verdict = _grade(abs(bias), DISPARITY_PASS_PX, DISPARITY_WARN_PX)
+        detail = f"{told}: depths {'short' if bias > 0 else 'long'} by {100 * abs(bias) * 5.0 / fB:.1f} % at 5 m"
+        if verdict != "PASS":
+            detail += "; `vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out"
+        out.append(CheckResult(names[0], verdict, abs(bias), "px", detail))
+    if not check.get("focal_px"):
+        out.append(CheckResult(names[1], "SKIP", float("nan"), "px", "not read (stereo_check_focal off)"))
+        return out
+    (fx, sfx), (fy, sfy) = check["focal_px"]
+    worst, sw, axis = max((abs(fx), sfx, "fx"), (abs(fy), sfy, "fy"))
+    told = f"cam1 fx {fx:+.2f} +- {sfx:.2f} px, fy {fy:+.2f} +- {sfy:.2f} px at the image edge (1 sigma) {at}"
+    if not disparity_told_from_zero(worst, sw):
+        out.append(CheckResult(names[1], "PASS", worst, "px", f"{told}: not told from zero by this recording"))
+    else:
+        verdict = _grade(worst, DISPARITY_PASS_PX, DISPARITY_WARN_PX)
+        detail = f"{told}: {axis} of the two cameras disagree"
+        if verdict != "PASS":
+            detail += "; calibrate the stereo pair again (both cameras in one fit)"
+        out.append(CheckResult(names[1], verdict, worst, "px", detail))
+    return out
 
 
 def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None = None,
@@ -343,9 +365,9 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
         else:
             results += [check_epipolar(calib, m), check_rectified_rows(calib, ds, frames),
                         check_reprojection(calib, m)]
-        results.append(check_disparity(dataset_path, calib, config) if disparity else CheckResult(
+        results += check_disparity(dataset_path, calib, config) if disparity else [CheckResult(
             "stereo disparity bias", "SKIP", float("nan"), "px", "not checked: add --disparity, which replays the "
-            "recording; a disparity bias leaves the epipolar lines where they are"))
+            "recording; a disparity bias leaves the epipolar lines where they are")]
     results += check_gravity(ds) + check_units(ds)
     return results
 

@@ -37,8 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("dataset", type=Path)
     s.add_argument("--max-frames", type=int, default=40, help="stereo pairs to use (evenly spread)")
     s.add_argument("--disparity", action="store_true",
-                   help="also replay the recording with cam1's rotation refined and check the stereo disparity "
-                   "bias, which the epipolar checks cannot see (takes a replay: about a quarter of its length)")
+                   help="also replay the recording and check cam1 against cam0 with the estimator's stereo check: "
+                   "the disparity bias and the focal lengths, which the epipolar checks cannot see (takes a replay: "
+                   "about a quarter of its length)")
     s.add_argument("--config", type=Path, help="TOML configuration for the --disparity replay")
 
     s = sub.add_parser("imu-noise", help="IMU noise densities and random walks from Allan deviation")

@@ -569,3 +569,25 @@ def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_chec
                   r"depths short.*--stereo-only", said)
     assert m and 0.4 < float(m.group(1)) < 1.5 and float(m.group(3)) < float(m.group(1)) / 3
     assert "overall: FAIL" in said
+
+
+def test_calib_check_disparity_finds_two_cameras_whose_focal_lengths_disagree(tmp_path):
+    """cam1's fx stated 1 % too long (cam0 as it was): the right pixels move along the epipolar lines in
+    proportion to their distance from the centre, so the epipolar check passes; the stereo check's focal reading
+    finds it (about 1 % of half the image width at the edge) and fails it, while the disparity row (the turn about
+    cam1's y axis) stays small."""
+    import dataclasses
+
+    from calib.check import check_disparity, check_epipolar, collect_matches
+    from vio.io.euroc import EurocDataset
+
+    data, stated = _turning_flight(tmp_path)
+    wrong = dataclasses.replace(stated, cam1=dataclasses.replace(stated.cam1, fx=stated.cam1.fx * 1.01))
+    m, _ = collect_matches(EurocDataset(data, calibration=wrong), wrong, 10)
+    assert check_epipolar(wrong, m).verdict == "PASS"
+    disparity, focal = check_disparity(data, wrong)
+    edge_px = 0.01 * stated.cam1.width / 2
+    print(disparity, focal, edge_px)
+    assert focal.name == "stereo focal lengths" and focal.verdict == "FAIL", focal
+    assert 0.5 * edge_px < focal.value < 1.5 * edge_px and "fx of the two cameras disagree" in focal.detail
+    assert disparity.value < 0.5 * focal.value, disparity
