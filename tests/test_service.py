@@ -257,6 +257,7 @@ class ScriptedEstimator:
         self.tracking = False
         self.last_features: FeatureFrame | None = None
         self._done: list[ProcessedFrame] = []
+        self.calibration_warning: str | None = None  # what the stereo check says once it let go
 
     def feed_imu(self, s: ImuSample) -> None:
         return None
@@ -291,7 +292,8 @@ class ScriptedEstimator:
     def health(self) -> Health:
         return Health(initialized=self.n > 0, tracking=self.tracking, reset_counter=self.resets,
                       frames_processed=self.n, frames_unusable=self.unusable,
-                      unusable_reasons={"image too dark": self.unusable} if self.unusable else {})
+                      unusable_reasons={"image too dark": self.unusable} if self.unusable else {},
+                      calibration_warning=self.calibration_warning)
 
 
 @dataclass
@@ -407,6 +409,39 @@ def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, noti
     assert mavs[0].closed
     assert json.loads((tmp_path / "status.json").read_text())["state"] == "stopped"
     assert len((tmp_path / "traj.tum").read_text().splitlines()) >= 10
+
+
+def test_a_calibration_found_wrong_in_flight_shows_in_the_status_as_degraded(tmp_path: Path) -> None:
+    """The estimator's stereo check let go of the calibration: poses keep flowing (cam1 is refined), but the status
+    file says why the daemon is not simply running (state degraded, the warning, the estimator's own field), so
+    `vio status` does not call it healthy and the next flight is not flown on the same wrong file unnoticed."""
+    cfg = config_from_dict({"run": {"status_file": str(tmp_path / "status.json")}, "source": {"kind": "fake"}})
+    ests: list[ScriptedEstimator] = []
+
+    def make_est(c: str) -> ScriptedEstimator:
+        ests.append(ScriptedEstimator(c, []))
+        return ests[-1]
+
+    mavs: list[RecordingMavlink] = []
+    svc = Service(cfg, source_factory=lambda: _started(ScriptedSource([], threading.Event(), [])),
+                  estimator_factory=make_est, mavlink_factory=lambda: mavs.append(RecordingMavlink()) or mavs[-1])
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    status = tmp_path / "status.json"
+    try:
+        assert _wait(lambda: svc.ready and len(mavs[0].states) >= 5, 5.0)
+        assert _wait(lambda: status.exists() and json.loads(status.read_text())["state"] == "running", 3.0)
+        ests[0].calibration_warning = "the right camera disagrees with the stereo calibration (disparity bias +0.50)"
+        assert _wait(lambda: json.loads(status.read_text())["state"] == "degraded", 3.0)
+        st = json.loads(status.read_text())
+        assert any(w.startswith("calibration: the right camera disagrees") for w in st["warnings"]), st["warnings"]
+        assert st["estimator"]["calibration_warning"].startswith("the right camera") and not st["healthy"]
+        n = len(mavs[0].states)
+        assert _wait(lambda: len(mavs[0].states) > n + 3, 3.0)  # still flying on the refined calibration
+    finally:
+        svc.request_stop(signal.SIGTERM)
+        runner.join(5.0)
+    assert not runner.is_alive()
 
 
 def _started(src: ScriptedSource) -> ScriptedSource:
