@@ -109,12 +109,13 @@ class KeyframeEstimate:
 
 @dataclass
 class StereoFinding:
-    """The stereo check's newest reading: the disparity bias the data show against the calibration."""
+    """The stereo check's newest reading: the disparity bias (and cam1's focal lengths) the data show against the
+    calibration."""
 
     t_ns: int
     disparity_px: float  # positive: the calibration's disparities too large (its depths too short)
     sigma_px: float  # 1-sigma of that
-    released: bool  # the hold was let go at this check: cam1's rotation is refined from here on
+    released: bool  # the holds were let go at this check: cam1 is refined from here on
     focal_px: tuple[tuple[float, float], ...] | None = None  # (reading, sigma) of cam1's fx, fy at the image edge
 
     def describe(self) -> str:
@@ -238,8 +239,8 @@ class VioSmoother:
         # calibration that drifted does to the disparity (`refine_stereo_rotation`; with refine_extrinsics,
         # refine_stereo_extrinsic does it instead)
         self.refine_stereo = bool(cfg.refine_stereo_rotation) and not self.refine
-        # The stereo check (module doc): E(1) a variable as above, held at the calibration by a tight prior whose
-        # pull measures what the data say about it; the hold is let go when they show a disparity bias.
+        # The stereo check (module doc): E(1) (and K(1)) variables as above, held at the calibration by tight priors
+        # whose pull measures what the data say about them; the holds are let go when the data show cam1 off.
         self.stereo_check = bool(cfg.stereo_check) and not self.refine and not self.refine_stereo
         self.refine_stereo = self.refine_stereo or self.stereo_check
         self._P_body_cam1_calib = self.P_body_cam1
@@ -619,11 +620,12 @@ class VioSmoother:
         return n_vis, n_lm
 
     def _hold_stereo(self) -> None:
-        """Add the prior that holds E(1)'s rotation at the calibration and remember its index (to let go)."""
+        """Add the priors that hold cam1's rotation (and focal lengths) at the calibration; remember their indices
+        (to let go)."""
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib,
                                      _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
-        if self.check_K1:  # fx, fy to the same hundredth of a pixel (at the image edge)
+        if self.check_K1:  # fx, fy to the same few thousandths of a pixel
             hold_px = self.cfg.stereo_hold_sigma_rad * self.calib.cam1.fx
             g.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
         try:
