@@ -316,33 +316,29 @@ def check_disparity(dataset_path: str | Path, calib: StereoCalibration | None = 
                             "recording (too short, or it never initialised): nothing to measure") for n in names]
     fB = run.dataset.calibration.cam1.fx * float(np.linalg.norm(run.dataset.calibration.T_cam1_cam0[:3, 3]))
     at = f"at {check['at_s']:.1f} s" if check.get("at_s") is not None else "at the end"
-    out = []
     bias, sigma = check["disparity_px"], check["sigma_px"]
-    told = f"{bias:+.2f} +- {sigma:.2f} px (1 sigma) {at}"
-    if not disparity_told_from_zero(bias, sigma):
-        out.append(CheckResult(names[0], "PASS", abs(bias), "px", f"{told}: not told from zero by this recording "
-                               "(one that moves further, past near and far texture, tells more)"))
-    else:
-        verdict = _grade(abs(bias), DISPARITY_PASS_PX, DISPARITY_WARN_PX)
-        detail = f"{told}: depths {'short' if bias > 0 else 'long'} by {100 * abs(bias) * 5.0 / fB:.1f} % at 5 m"
-        if verdict != "PASS":
-            detail += "; `vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out"
-        out.append(CheckResult(names[0], verdict, abs(bias), "px", detail))
+    out = [_reading_row(names[0], bias, sigma, f"{bias:+.2f} +- {sigma:.2f} px (1 sigma) {at}",
+                        f"depths {'short' if bias > 0 else 'long'} by {100 * abs(bias) * 5.0 / fB:.1f} % at 5 m",
+                        "`vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out",
+                        " (one that moves further, past near and far texture, tells more)")]
     if not check.get("focal_px"):
-        out.append(CheckResult(names[1], "SKIP", float("nan"), "px", "not read (stereo_check_focal off)"))
-        return out
+        return out + [CheckResult(names[1], "SKIP", float("nan"), "px", "no reading of cam1's focal lengths")]
     (fx, sfx), (fy, sfy) = check["focal_px"]
     worst, sw, axis = max((abs(fx), sfx, "fx"), (abs(fy), sfy, "fy"))
-    told = f"cam1 fx {fx:+.2f} +- {sfx:.2f} px, fy {fy:+.2f} +- {sfy:.2f} px at the image edge (1 sigma) {at}"
-    if not disparity_told_from_zero(worst, sw):
-        out.append(CheckResult(names[1], "PASS", worst, "px", f"{told}: not told from zero by this recording"))
-    else:
-        verdict = _grade(worst, DISPARITY_PASS_PX, DISPARITY_WARN_PX)
-        detail = f"{told}: {axis} of the two cameras disagree"
-        if verdict != "PASS":
-            detail += "; calibrate the stereo pair again (both cameras in one fit)"
-        out.append(CheckResult(names[1], verdict, worst, "px", detail))
-    return out
+    return out + [_reading_row(names[1], worst, sw, f"cam1 fx {fx:+.2f} +- {sfx:.2f} px, fy {fy:+.2f} +- {sfy:.2f} px "
+                               f"at the image edge (1 sigma) {at}", f"{axis} of the two cameras disagree",
+                               "calibrate the stereo pair again (both cameras in one fit)")]
+
+
+def _reading_row(name: str, value: float, sigma: float, told: str, shown: str, remedy: str,
+                 unseen_hint: str = "") -> CheckResult:
+    """One stereo-check reading as a row: PASS when the recording cannot tell it from zero, else graded on its
+    size in pixels, with `shown` (what it means) and, unless it passes, `remedy`."""
+    if not disparity_told_from_zero(value, sigma):
+        return CheckResult(name, "PASS", abs(value), "px", f"{told}: not told from zero by this recording{unseen_hint}")
+    verdict = _grade(abs(value), DISPARITY_PASS_PX, DISPARITY_WARN_PX)
+    detail = f"{told}: {shown}" + (f"; {remedy}" if verdict != "PASS" else "")
+    return CheckResult(name, verdict, abs(value), "px", detail)
 
 
 def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None = None,

@@ -839,10 +839,8 @@ class Estimator:
 
     def refinement_stats(self) -> dict | None:
         """Refined extrinsics and how far they moved from the calibration, for the replay's stats."""
-        b = self.bcfg
-        if self._refined is None or (b.stereo_check and not (b.refine_extrinsics or b.refine_stereo_rotation)
-                                     and not self._stereo_released):
-            return None  # nothing refined: the stereo check held the calibration (stereo_check_stats says why)
+        if self._refined is None:  # nothing refined (a stereo check that held: stereo_check_stats says why)
+            return None
         T0, T1, n, k = self._refined
         d0 = np.linalg.inv(self.calib.cam0.T_body_cam) @ T0
         turn = so3_log((self.calib.T_cam1_cam0 @ np.linalg.inv(T0) @ T1)[:3, :3])  # about cam1's own axes

@@ -509,11 +509,13 @@ class VioSmoother:
                 self.K0, self.K1 = est.atCal3_S2(_k_key(0)), est.atCal3_S2(_k_key(1))
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
+        # while the stereo check holds cam1, nothing is refined: the extrinsics are reported as held (None)
+        refined = self.refine or (self.refine_stereo and not self._holds)
         self.last = KeyframeEstimate(t_ns, j, pose, vel, bias, n_vis, n_lm, extra,
-                                     self.T_body_cam0.copy() if self.refine or self.refine_stereo else None,
-                                     self.P_body_cam1.matrix() if self.refine or self.refine_stereo else None,
+                                     self.T_body_cam0.copy() if refined else None,
+                                     self.P_body_cam1.matrix() if refined else None,
                                      tuple(_fxfycxcy(K) for K in (self.K0, self.K1))
-                                     if self.refine_K or (self.check_K1 and not self._holds) else None)
+                                     if self.refine_K or (self.check_K1 and refined) else None)
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 
