@@ -792,3 +792,35 @@ def test_stereo_check_leaves_a_right_calibration_as_it_is():
     print(f"right calibration: check reads {sc['disparity_px']:+.3f} +- {sc['sigma_px']:.3f} px; position error "
           f"{err * 1e3:.2f} mm checked, {err_plain * 1e3:.2f} mm without the check")
     assert err < 1.1 * err_plain + 1e-4
+
+
+def test_with_the_rig_refined_the_stereo_check_holds_the_pair_relative_to_cam0_and_lets_a_drifted_one_go():
+    """refine_extrinsics turns the whole rig on the body (cam0 and cam1 together); the stereo check then holds
+    cam1's rotation relative to cam0 (it was off with the refinement before). cam1's principal point 1 px off:
+    the check lets go and reads about the 1 px from the keyframes that pass the motion gate; with the calibration
+    right it keeps it, reading within its noise, and the pair's relative rotation stays as calibrated."""
+    from vio.geometry import so3_log
+
+    truth = synthetic_calibration()
+    wrong = dataclasses.replace(truth, cam1=dataclasses.replace(truth.cam1, cx=truth.cam1.cx + 1.0))
+    rig = {"refine_extrinsics": True, "time_offset_state": False}
+    est, trace = _tilting_flight(truth, False, wrong=wrong, offset_ms=lambda t: 0.0, **rig)
+    sc = est.stereo_check_stats()
+    assert est.reset_counter == 0 and sc is not None
+    print(f"rig refined, cx1 1 px off: let go at {sc['released_at_s']} s reading {sc['released_disparity_px']} px")
+    assert len(sc["released_at_s"]) == 1 and sc["released_at_s"][0] < 10.0
+    assert 0.5 < sc["released_disparity_px"][0] < 1.5
+    assert est.refinement_stats()["refining_keyframes"] > 10
+    held, trace_held = _tilting_flight(truth, False, wrong=wrong, offset_ms=lambda t: 0.0, stereo_check=False, **rig)
+    err, err_held = (float(np.sqrt(np.mean(tr[:, 2] ** 2))) for tr in (trace, trace_held))
+    print(f"position error {err * 1e3:.1f} mm let go, {err_held * 1e3:.1f} mm with the pair held as stated")
+    assert err < 0.95 * err_held  # after letting go the pair is refined on the gated keyframes only
+
+    right, _ = _tilting_flight(truth, False, offset_ms=lambda t: 0.0, **rig)
+    sc = right.stereo_check_stats()
+    assert sc is not None and sc["released_at_s"] == [], sc
+    assert abs(sc["disparity_px"]) < 3 * sc["sigma_px"], sc
+    st = right.refinement_stats()
+    assert st["refining_keyframes"] > 10 and st["stereo_change_deg"] < 0.01, st  # the pair as calibrated
+    d = np.linalg.inv(truth.T_cam1_cam0) @ right.refined_calibration().T_cam1_cam0
+    assert np.degrees(np.linalg.norm(so3_log(d[:3, :3]))) < 0.01

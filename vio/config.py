@@ -115,7 +115,9 @@ class BackendConfig:
                                        "point or stereo mount that drifted biases every disparity")
     stereo_check: bool = opt(True, "hold cam1's rotation at the calibration by a tight prior and test every few "
                              "keyframes whether the data pull it away (a disparity bias); when they do beyond "
-                             "stereo_check_px and stereo_check_sigma, let go and refine it for the rest of the flight")
+                             "stereo_check_px and stereo_check_sigma, let go and refine it for the rest of the flight "
+                             "(with refine_extrinsics: cam1's rotation relative to cam0, read on the keyframes that "
+                             "pass the motion gate)")
     stereo_check_focal: bool = opt(True, "the stereo check holds and lets go cam1's focal lengths with its rotation "
                                    "(two cameras' fx stated differently scale the disparities across the image)")
     stereo_check_px: float = opt(0.15, "disparity bias [px] below which the stereo check lets the calibration "

@@ -31,6 +31,9 @@ are variables too (Cal3_S2, ProjectionFactorPPPC, under the same gate); the prin
 `refine_principal_point`, because shifting it moves the image as turning the camera does. With
 `refine_stereo_rotation` alone, only E(1) is a variable (cam1's rotation, on every keyframe): a principal point
 or mount that drifted biases every disparity, which only this takes out (docs/estimator.md).
+With `refine_extrinsics` the stereo check holds cam1's rotation relative to cam0 instead (a removable tight
+between factor E(0) -> E(1) over the loose stereo one): the rig turns on the body under the motion gate while the
+pair stays as calibrated until the data show it off, read from the keyframes that pass the gate.
 The stereo check (`stereo_check`, when neither refinement is asked for) keeps that E(1), and with
 `stereo_check_focal` cam1's intrinsics K(1) too, but holds cam1's rotation and focal lengths at the calibration with
 tight priors; every `stereo_check_every` keyframes the holds' pull and the joint marginal say where the data alone
@@ -241,11 +244,18 @@ class VioSmoother:
         self.refine_stereo = bool(cfg.refine_stereo_rotation) and not self.refine
         # The stereo check (module doc): E(1) (and K(1)) variables as above, held at the calibration by tight priors
         # whose pull measures what the data say about them; the holds are let go when the data show cam1 off.
-        self.stereo_check = bool(cfg.stereo_check) and not self.refine and not self.refine_stereo
-        self.refine_stereo = self.refine_stereo or self.stereo_check
+        # With refine_extrinsics the check holds cam1's rotation *relative to cam0* (E(0) -> E(1)), so that the rig
+        # can turn on the body under the motion gate while the stereo pair stays as calibrated until the data show
+        # it off (`_relative_rotation_information`); refine_stereo_extrinsic lets that relative pose move from the start instead.
+        self.stereo_check = bool(cfg.stereo_check) and not self.refine_stereo and not (
+            self.refine and cfg.refine_stereo_extrinsic)
+        self.check_relative = self.stereo_check and self.refine
+        self.refine_stereo = self.refine_stereo or (self.stereo_check and not self.refine)
         self._P_body_cam1_calib = self.P_body_cam1
+        self._P_cam0_cam1_calib = self.P_body_cam0.between(self.P_body_cam1)
         # with stereo_check_focal, cam1's intrinsics K(1) are a variable too, their fx, fy held and let go with E(1)
-        self.check_K1 = self.stereo_check and bool(cfg.stereo_check_focal)
+        # (alone: with the rig refined, K(1) has its own prior and is refined under the gate with K(0))
+        self.check_K1 = self.stereo_check and not self.refine and bool(cfg.stereo_check_focal)
         self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
         self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         self._stood_out = 0  # consecutive checks whose reading stood out
@@ -457,8 +467,12 @@ class VioSmoother:
         prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
                         [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
         graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
-        stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [cfg.stereo_sigma_m] * 3) if cfg.refine_stereo_extrinsic \
-            else _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
+        if cfg.refine_stereo_extrinsic:
+            stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [cfg.stereo_sigma_m] * 3)
+        elif self.check_relative:  # the rotation within its stated uncertainty, held tighter by the check
+            stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)
+        else:
+            stereo = _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
         graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self.P_body_cam0.between(self.P_body_cam1), stereo))
         values.insert(E(0), self.P_body_cam0)
         values.insert(E(1), self.P_body_cam1)
@@ -496,6 +510,9 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
                 self.T_body_cam0 = self.P_body_cam0.matrix()
+                if self._holds and j >= self._next_check:
+                    self._check_stereo(t_ns, self.P_body_cam0.between(self.P_body_cam1))
+                    self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
             elif self._holds:  # held: cam1 stays as calibrated unless the check lets go
                 if j >= self._next_check:
                     self._check_stereo(t_ns, est.atPose3(E(1)))
@@ -625,8 +642,11 @@ class VioSmoother:
         """Add the priors that hold cam1's rotation (and focal lengths) at the calibration; remember their indices
         (to let go)."""
         g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib,
-                                     _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
+        hold = _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)
+        if self.check_relative:
+            g.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib, hold))
+        else:
+            g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib, hold))
         if self.check_K1:  # fx, fy to the same few thousandths of a pixel
             hold_px = self.cfg.stereo_hold_sigma_rad * self.calib.cam1.fx
             g.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
@@ -647,19 +667,28 @@ class VioSmoother:
         cam1's y axis times fx (positive: the calibration's disparities too large), and a focal length's change
         times half the image width over fx (what it moves a pixel at the image's edge)."""
         cfg = self.cfg
-        keys = [E(1)] + ([_k_key(1)] if self.check_K1 else [])
-        hold = np.zeros(6 + 5 * self.check_K1)
-        hold[:3] = cfg.stereo_hold_sigma_rad ** -2.0
-        if self.check_K1:
-            hold[6:8] = (cfg.stereo_hold_sigma_rad * self.calib.cam1.fx) ** -2.0
+        if self.check_relative:
+            lam_post, d = self._relative_rotation_information(held)
+            if lam_post is None:
+                return
+            hold = np.full(3, cfg.stereo_hold_sigma_rad ** -2.0)
+        else:
+            keys = [E(1)] + ([_k_key(1)] if self.check_K1 else [])
+            hold = np.zeros(6 + 5 * self.check_K1)
+            hold[:3] = cfg.stereo_hold_sigma_rad ** -2.0
+            if self.check_K1:
+                hold[6:8] = (cfg.stereo_hold_sigma_rad * self.calib.cam1.fx) ** -2.0
+            try:
+                lam_post = np.asarray(self.smoother.getISAM2().jointMarginalInformation(keys).fullMatrix(), float)
+            except GTSAM_ERRORS:
+                return
+            d = np.asarray(self._P_body_cam1_calib.localCoordinates(held), float)
+            if self.check_K1:
+                d = np.r_[d, np.asarray(self.K1.localCoordinates(self._estimate.atCal3_S2(_k_key(1))), float)]
         try:
-            lam_post = np.asarray(self.smoother.getISAM2().jointMarginalInformation(keys).fullMatrix(), float)
             S = np.linalg.inv(lam_post - np.diag(hold))
-        except (*GTSAM_ERRORS, np.linalg.LinAlgError):
+        except np.linalg.LinAlgError:
             return
-        d = np.asarray(self._P_body_cam1_calib.localCoordinates(held), float)
-        if self.check_K1:
-            d = np.r_[d, np.asarray(self.K1.localCoordinates(self._estimate.atCal3_S2(_k_key(1))), float)]
         b = S @ (lam_post @ d)
         var = np.diag(S)
         if not (np.all(np.isfinite(b)) and np.all(np.isfinite(var)) and np.all(var[:3] > 0)):
@@ -689,6 +718,23 @@ class VioSmoother:
                                       f"{type(e).__name__}") from None
             self._holds = []
         self.stereo_finding = StereoFinding(t_ns, disp, sigma, release, focal)
+
+    def _relative_rotation_information(self, held: gtsam.Pose3) -> tuple[np.ndarray | None, np.ndarray]:
+        """With the rig refined: the posterior information of cam1's rotation relative to cam0 (about cam1's axes),
+        and where the held estimate `held` (E(0)^-1 E(1)) sits from the calibration's, for the score test.
+
+        E(0) = E0^ Exp(x0), E(1) = E1^ Exp(x1) give E(0)^-1 E(1) = R^ Exp(-Ad(R^-1) x0 + x1) to first order, so the
+        relative pose's covariance is A C A^T with A = [-Ad(R^-1), I] and C the joint marginal of E(0), E(1). The
+        hold acts on the rotation alone (its translation sigma is 1 km), so the rotation's marginal information
+        is the data's plus the hold's, as in the absolute check. (Conditioning on E(0) instead reads nothing where
+        E(0) is free to turn with the pair; only the keyframes that pass the motion gate inform E(0), E(1).)"""
+        try:
+            lam = np.asarray(self.smoother.getISAM2().jointMarginalInformation([E(0), E(1)]).fullMatrix(), float)
+            A = np.hstack([-np.asarray(held.inverse().AdjointMap(), float), np.eye(6)])
+            lam_rot = np.linalg.inv((A @ np.linalg.inv(lam) @ A.T)[:3, :3])
+        except (*GTSAM_ERRORS, np.linalg.LinAlgError):
+            return None, np.zeros(3)
+        return lam_rot, np.asarray(self._P_cam0_cam1_calib.localCoordinates(held), float)[:3]
 
     def _factor_maker(self, refine: bool):
         """Projection factor of pixel uv in camera `cam` of keyframe i on landmark `key`: with the extrinsic
