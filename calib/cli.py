@@ -151,6 +151,7 @@ def _run_refine(args: argparse.Namespace) -> int:
 
     from calib.check import DISPARITY_SIGNIFICANT, disparity_told_from_zero
     from vio import VioError
+    from vio.app.replay import stereo_check_line
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
     from vio.consistency import replay_states
@@ -191,6 +192,11 @@ def _run_refine(args: argparse.Namespace) -> int:
         print(f"T_body_cam0 moved {refined['cam0_change_deg']:.3f} deg, {refined['cam0_change_mm']:.2f} mm over "
               f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
               f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
+        # the stereo pair is held as calibrated unless the stereo check (or --stereo) lets it go
+        line = stereo_check_line(est.stereo_check_stats())
+        if line:
+            print(line.replace(" (calibration line below)", "") + f"; cam1 relative to cam0 moved "
+                  f"{refined['stereo_change_deg']:.4f} deg")
     save_calibration(out, args.output)
     if args.intrinsics:
         for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):

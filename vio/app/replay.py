@@ -401,6 +401,20 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
+
+def stereo_check_line(check: dict | None) -> str | None:
+    """One line on what the stereo check (`[backend] stereo_check`) found: whether the flight showed the stereo
+    calibration's disparities off (None: no check, or no reading yet)."""
+    if not check:
+        return None
+    if check["released_at_s"]:
+        return (f"stereo check: the right camera disagreed with the calibration at {check['released_at_s'][0]:.1f} s "
+                f"({check['released_readings'][0]}): cam1 refined in flight from then (calibration line below)")
+    if "disparity_px" in check:
+        return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
@@ -459,13 +473,9 @@ def run(args: argparse.Namespace) -> int:
               f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
-    check = res.extra.get("stereo_check")
-    if check:  # [backend] stereo_check: whether the flight showed the stereo calibration's disparities off
-        if check["released_at_s"]:
-            print(f"stereo check: the right camera disagreed with the calibration at {check['released_at_s'][0]:.1f} s "
-                  f"({check['released_readings'][0]}): cam1 refined in flight from then (calibration line below)")
-        elif "disparity_px" in check:
-            print(f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept")
+    line = stereo_check_line(res.extra.get("stereo_check"))
+    if line:
+        print(line)
     refined = res.extra.get("calibration_refined")
     if refined:  # [backend] refine_stereo_rotation / refine_extrinsics: what the flight taught about the rig
         if "disparity_sigma_px" in refined:
