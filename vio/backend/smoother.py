@@ -246,7 +246,8 @@ class VioSmoother:
         # whose pull measures what the data say about them; the holds are let go when the data show cam1 off.
         # With refine_extrinsics the check holds cam1's rotation *relative to cam0* (E(0) -> E(1)), so that the rig
         # can turn on the body under the motion gate while the stereo pair stays as calibrated until the data show
-        # it off (`_relative_rotation_information`); refine_stereo_extrinsic lets that relative pose move from the start instead.
+        # it off (`_relative_rotation_information`); refine_stereo_extrinsic lets that relative pose move from the
+        # start instead.
         self.stereo_check = bool(cfg.stereo_check) and not self.refine_stereo and not (
             self.refine and cfg.refine_stereo_extrinsic)
         self.check_relative = self.stereo_check and self.refine
