@@ -107,6 +107,9 @@ class BackendConfig:
                                  "fewer stereo matches than this (a right camera failing); 0: never", min=0, max=2000)
     refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
                                   "makes them observable (see docs/estimator.md)")
+    refine_extrinsics_auto: bool = opt(False, "without refine_extrinsics: start with the stereo check watching the "
+                                       "pair on every keyframe and switch to refine_extrinsics (with "
+                                       "refine_intrinsics as set) at the first keyframe that passes the motion gate")
     refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
                                              "it wandered by 2x its error in tests); else only the rotation")
     refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")

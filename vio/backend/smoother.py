@@ -220,6 +220,7 @@ class VioSmoother:
         self.calib = calib
         self.K0 = gtsam.Cal3_S2(calib.cam0.fx, calib.cam0.fy, 0.0, calib.cam0.cx, calib.cam0.cy)
         self.K1 = gtsam.Cal3_S2(calib.cam1.fx, calib.cam1.fy, 0.0, calib.cam1.cx, calib.cam1.cy)
+        self._K_calib = (self.K0, self.K1)  # the calibration's, for priors set later (refine_extrinsics_auto)
         self.P_body_cam0 = gtsam.Pose3(calib.cam0.T_body_cam)
         self.P_body_cam1 = gtsam.Pose3(calib.cam1.T_body_cam)
         self.T_body_cam0 = calib.cam0.T_body_cam
@@ -257,6 +258,12 @@ class VioSmoother:
         # with stereo_check_focal, cam1's intrinsics K(1) are a variable too, their fx, fy held and let go with E(1)
         # (alone: with the rig refined, K(1) has its own prior and is refined under the gate with K(0))
         self.check_K1 = self.stereo_check and not self.refine and bool(cfg.stereo_check_focal)
+        # refine_extrinsics_auto: the absolute check until the first keyframe that passes the motion gate, then the
+        # rig refinement with the relative check (`_start_rig_refinement`)
+        self._rig_pending = bool(cfg.refine_extrinsics_auto) and not self.refine and not cfg.refine_stereo_rotation
+        self._loose: list[int] = []  # factor indices of cam1's loose calibration priors (E(1), K(1)) in that mode
+        self._want_new: list[int] | None = None  # graph positions whose smoother factor indices the update keeps
+        self._new_idx: list[int] = []
         self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
         self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         self._stood_out = 0  # consecutive checks whose reading stood out
@@ -353,12 +360,19 @@ class VioSmoother:
         return (t_ns - self.t0_ns) * 1e-9
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
-                j: int, pose_pred: gtsam.Pose3) -> int:
+                j: int, pose_pred: gtsam.Pose3, remove: list[int] | None = None) -> int:
         """One iSAM2 update; extra relinearisation passes only when it moved the newest pose a lot (then
         the linearisation point was poor). Returns the number of extra passes made."""
         extra = 0
         try:
-            self.smoother.update(graph, values, stamps)
+            if remove:
+                self.smoother.update(graph, values, stamps, remove)
+            else:
+                self.smoother.update(graph, values, stamps)
+            if self._want_new is not None:
+                new = self.smoother.getISAM2Result().getNewFactorsIndices()
+                self._new_idx = [int(new[k]) for k in self._want_new]
+                self._want_new = None
             # the whole estimate (0.07 ms) rather than calculateEstimatePose3 (0.25 ms a keyframe) for the gate
             self._estimate = self.smoother.calculateEstimate()
             if self.cfg.extra_iterations > 0:
@@ -398,6 +412,7 @@ class VioSmoother:
         if self.refine:
             self._add_extrinsic_variables(graph, values, stamps)
         elif self.refine_stereo:
+            first_loose = graph.size()
             graph.add(gtsam.PriorFactorPose3(E(1), self.P_body_cam1,
                                              _sigmas([self.cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)))
             values.insert(E(1), self.P_body_cam1)
@@ -412,7 +427,11 @@ class VioSmoother:
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
+        if self._rig_pending and self.stereo_check:  # cam1's loose priors, which the rig refinement replaces
+            self._want_new = list(range(first_loose, first_loose + 1 + self.check_K1))
         extra = self._update(graph, values, stamps, 0, pose)
+        if self._rig_pending and self.stereo_check:
+            self._loose = self._new_idx
         if self.stereo_check:
             self._hold_stereo()
         return self._finish(t_ns, n_vis, n_lm, extra)
@@ -453,12 +472,62 @@ class VioSmoother:
         cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
                                         applied_offset_ns) \
             if self._time_state_at(j, omega_body, pred.velocity()) else pred.pose()
+        remove = None
+        if self._rig_pending and features is not None and features.tracking_ok \
+                and self._motion_excites_extrinsics(pred.pose(), t_s):
+            remove = self._start_rig_refinement(graph, values, stamps, t_s)
         n_vis, n_lm = 0, 0
         if features is not None and features.tracking_ok:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, j, t_s)
         self.index = j
-        extra = self._update(graph, values, stamps, j, pred.pose())
+        extra = self._update(graph, values, stamps, j, pred.pose(), remove)
+        if remove is not None and self._new_idx:
+            self._holds = self._new_idx  # the relative hold, added with this keyframe
         return self._finish(t_ns, n_vis, n_lm, extra)
+
+    def _start_rig_refinement(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                              stamps: dict[int, float], t_s: float) -> list[int]:
+        """refine_extrinsics_auto, at the first keyframe that passes the motion gate: from the absolute stereo
+        check to the rig refinement with the relative one. Cam1's absolute hold and loose priors go (returned for
+        the update to remove); E(0) (and K(0)) join with the calibration's priors, E(1) is tied to E(0) by the
+        loose stereo between factor, and, unless the check already let go, by the relative hold (its index is
+        kept after the update). What cam1's factors taught E(1) and K(1) so far stays in them."""
+        cfg = self.cfg
+        self.refine, self.refine_K, self.refine_stereo = True, bool(cfg.refine_intrinsics), False
+        # cam1's loose prior on E(1) goes; K(1)'s only where the rig refinement gives K(1) a prior of its own
+        remove = list(self._holds) + list(self._loose[:1 if not self.refine_K else None])
+        held = bool(self._holds) and not cfg.refine_stereo_extrinsic  # that one lets the pair move from here
+        self._holds, self._loose, self._rig_pending, self._new_idx = [], [], False, []
+        self.check_relative, self.check_K1 = held, False
+        self.stereo_check = held
+        prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
+                        [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
+        graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
+        values.insert(E(0), self.P_body_cam0)
+        checked = self._estimate.exists(E(1))  # the stereo check had E(1); without it the pair is held
+        if not checked:
+            values.insert(E(1), self.P_body_cam1)
+        free = cfg.refine_stereo_extrinsic
+        graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib, _sigmas(
+            [cfg.stereo_sigma_rad if checked or free else 1e-5] * 3 + [cfg.stereo_sigma_m if free else 1e-5] * 3)))
+        stamps[E(0)] = stamps[E(1)] = t_s
+        if self.refine_K:
+            sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
+            k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
+            for cam, K in enumerate(self._K_calib):
+                graph.add(gtsam.PriorFactorCal3_S2(_k_key(cam), K, k_prior))
+                if not self._estimate.exists(_k_key(cam)):
+                    values.insert(_k_key(cam), K)
+                stamps[_k_key(cam)] = t_s
+        if held:
+            self._want_new = [graph.size()]
+            graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib,
+                                               _sigmas([cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
+        log.info("motion turns the rig enough to refine the camera-IMU rotation%s from here; the stereo pair %s",
+                 " and the focal lengths" if self.refine_K else "",
+                 "held relative to cam0 by the stereo check" if held else
+                 "refined" if checked or free else "held as calibrated")
+        return remove
 
     def _add_extrinsic_variables(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                                  stamps: dict[int, float]) -> None:
