@@ -221,6 +221,8 @@ class VioSmoother:
         self.K0 = gtsam.Cal3_S2(calib.cam0.fx, calib.cam0.fy, 0.0, calib.cam0.cx, calib.cam0.cy)
         self.K1 = gtsam.Cal3_S2(calib.cam1.fx, calib.cam1.fy, 0.0, calib.cam1.cx, calib.cam1.cy)
         self._K_calib = (self.K0, self.K1)  # the calibration's, for priors set later (refine_extrinsics_auto)
+        # the cameras' pose and intrinsics variables; refine_extrinsics_auto gives cam1 fresh ones at its switch
+        self._e, self._k = [E(0), E(1)], [_k_key(0), _k_key(1)]
         self.P_body_cam0 = gtsam.Pose3(calib.cam0.T_body_cam)
         self.P_body_cam1 = gtsam.Pose3(calib.cam1.T_body_cam)
         self.T_body_cam0 = calib.cam0.T_body_cam
@@ -261,7 +263,6 @@ class VioSmoother:
         # refine_extrinsics_auto: the absolute check until the first keyframe that passes the motion gate, then the
         # rig refinement with the relative check (`_start_rig_refinement`)
         self._rig_pending = bool(cfg.refine_extrinsics_auto) and not self.refine and not cfg.refine_stereo_rotation
-        self._loose: list[int] = []  # factor indices of cam1's loose calibration priors (E(1), K(1)) in that mode
         self._want_new: list[int] | None = None  # graph positions whose smoother factor indices the update keeps
         self._new_idx: list[int] = []
         self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
@@ -360,15 +361,12 @@ class VioSmoother:
         return (t_ns - self.t0_ns) * 1e-9
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
-                j: int, pose_pred: gtsam.Pose3, remove: list[int] | None = None) -> int:
+                j: int, pose_pred: gtsam.Pose3) -> int:
         """One iSAM2 update; extra relinearisation passes only when it moved the newest pose a lot (then
         the linearisation point was poor). Returns the number of extra passes made."""
         extra = 0
         try:
-            if remove:
-                self.smoother.update(graph, values, stamps, remove)
-            else:
-                self.smoother.update(graph, values, stamps)
+            self.smoother.update(graph, values, stamps)
             if self._want_new is not None:
                 new = self.smoother.getISAM2Result().getNewFactorsIndices()
                 self._new_idx = [int(new[k]) for k in self._want_new]
@@ -412,26 +410,21 @@ class VioSmoother:
         if self.refine:
             self._add_extrinsic_variables(graph, values, stamps)
         elif self.refine_stereo:
-            first_loose = graph.size()
-            graph.add(gtsam.PriorFactorPose3(E(1), self.P_body_cam1,
+            graph.add(gtsam.PriorFactorPose3(self._e[1], self.P_body_cam1,
                                              _sigmas([self.cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)))
-            values.insert(E(1), self.P_body_cam1)
-            stamps[E(1)] = 0.0
+            values.insert(self._e[1], self.P_body_cam1)
+            stamps[self._e[1]] = 0.0
             if self.check_K1:  # fx, fy within the stated uncertainty; skew and principal point held (see below)
-                graph.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1,
+                graph.add(gtsam.PriorFactorCal3_S2(self._k[1], self.K1,
                                                    _sigmas([self.cfg.intrinsics_sigma_px] * 2 + [1e-4] * 3)))
-                values.insert(_k_key(1), self.K1)
-                stamps[_k_key(1)] = 0.0
+                values.insert(self._k[1], self.K1)
+                stamps[self._k[1]] = 0.0
         cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
                                         applied_offset_ns) if self._time_state_at(0, omega_body, v_world) else pose
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
-        if self._rig_pending and self.stereo_check:  # cam1's loose priors, which the rig refinement replaces
-            self._want_new = list(range(first_loose, first_loose + 1 + self.check_K1))
         extra = self._update(graph, values, stamps, 0, pose)
-        if self._rig_pending and self.stereo_check:
-            self._loose = self._new_idx
         if self.stereo_check:
             self._hold_stereo()
         return self._finish(t_ns, n_vis, n_lm, extra)
@@ -457,13 +450,13 @@ class VioSmoother:
         values.insert(B(j), prev.bias)
         stamps = {X(j): t_s, V(j): t_s, B(j): t_s}
         if self.refine:
-            stamps[E(0)] = stamps[E(1)] = t_s  # the extrinsics stay in the window for the whole flight
+            stamps[self._e[0]] = stamps[self._e[1]] = t_s  # the extrinsics stay in the window for the whole flight
             if self.refine_K:
-                stamps[_k_key(0)] = stamps[_k_key(1)] = t_s
+                stamps[self._k[0]] = stamps[self._k[1]] = t_s
         elif self.refine_stereo:
-            stamps[E(1)] = t_s
+            stamps[self._e[1]] = t_s
             if self.check_K1:
-                stamps[_k_key(1)] = t_s
+                stamps[self._k[1]] = t_s
         if zero_velocity:
             # Still vehicle: zero velocity and no motion since the last keyframe. Pins the drift that
             # the IMU alone would integrate during hover-on-ground and before take-off.
@@ -472,62 +465,60 @@ class VioSmoother:
         cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
                                         applied_offset_ns) \
             if self._time_state_at(j, omega_body, pred.velocity()) else pred.pose()
-        remove = None
-        if self._rig_pending and features is not None and features.tracking_ok \
-                and self._motion_excites_extrinsics(pred.pose(), t_s):
-            remove = self._start_rig_refinement(graph, values, stamps, t_s)
+        switch = self._rig_pending and features is not None and features.tracking_ok \
+            and self._motion_excites_extrinsics(pred.pose(), t_s)
+        if switch:
+            self._start_rig_refinement(graph, values, stamps, t_s)
         n_vis, n_lm = 0, 0
         if features is not None and features.tracking_ok:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, j, t_s)
         self.index = j
-        extra = self._update(graph, values, stamps, j, pred.pose(), remove)
-        if remove is not None and self._new_idx:
+        extra = self._update(graph, values, stamps, j, pred.pose())
+        if switch and self._new_idx:
             self._holds = self._new_idx  # the relative hold, added with this keyframe
         return self._finish(t_ns, n_vis, n_lm, extra)
 
     def _start_rig_refinement(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                              stamps: dict[int, float], t_s: float) -> list[int]:
+                              stamps: dict[int, float], t_s: float) -> None:
         """refine_extrinsics_auto, at the first keyframe that passes the motion gate: from the absolute stereo
-        check to the rig refinement with the relative one. Cam1's absolute hold and loose priors go (returned for
-        the update to remove); E(0) (and K(0)) join with the calibration's priors, E(1) is tied to E(0) by the
-        loose stereo between factor, and, unless the check already let go, by the relative hold (its index is
-        kept after the update). What cam1's factors taught E(1) and K(1) so far stays in them."""
+        check to the rig refinement with the relative one. E(0) (and K(0)) join with the calibration's priors;
+        cam1 gets *fresh* variables E(2), K(2), tied to E(0) by the loose stereo between factor and, unless the
+        check already let go, by the relative hold. Fresh, because the old E(1), K(1) carry what the check phase
+        taught them with cam0 held at the stated calibration, which would hold the rig there (on the 40 s
+        aggressive calibration-error flight of seed 3: 14.0 mm against 10.7 with the rig refined from
+        take-off); they leave the window with the keyframes that saw them."""
         cfg = self.cfg
         self.refine, self.refine_K, self.refine_stereo = True, bool(cfg.refine_intrinsics), False
-        # cam1's loose prior on E(1) goes; K(1)'s only where the rig refinement gives K(1) a prior of its own
-        remove = list(self._holds) + list(self._loose[:1 if not self.refine_K else None])
-        held = bool(self._holds) and not cfg.refine_stereo_extrinsic  # that one lets the pair move from here
-        self._holds, self._loose, self._rig_pending, self._new_idx = [], [], False, []
-        self.check_relative, self.check_K1 = held, False
-        self.stereo_check = held
+        free = cfg.refine_stereo_extrinsic  # that one lets the pair move from here
+        held = bool(self._holds) and not free
+        checked = bool(self._holds) or self.stereo_finding is not None or self._estimate.exists(self._e[1])
+        self._holds, self._rig_pending, self._new_idx = [], False, []
+        self.check_relative, self.check_K1, self.stereo_check = held, False, held
         prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
                         [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
         graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
         values.insert(E(0), self.P_body_cam0)
-        checked = self._estimate.exists(E(1))  # the stereo check had E(1); without it the pair is held
-        if not checked:
-            values.insert(E(1), self.P_body_cam1)
-        free = cfg.refine_stereo_extrinsic
-        graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib, _sigmas(
+        self._e, self._k = [E(0), E(2)], [_k_key(0), _k_key(2)]
+        values.insert(E(2), self.P_body_cam1)  # as calibrated, or where a check that let go refined it
+        rel = self.P_body_cam0.between(self.P_body_cam1)
+        graph.add(gtsam.BetweenFactorPose3(E(0), E(2), rel, _sigmas(
             [cfg.stereo_sigma_rad if checked or free else 1e-5] * 3 + [cfg.stereo_sigma_m if free else 1e-5] * 3)))
-        stamps[E(0)] = stamps[E(1)] = t_s
+        stamps[E(0)] = stamps[E(2)] = t_s
         if self.refine_K:
             sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
             k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
-            for cam, K in enumerate(self._K_calib):
-                graph.add(gtsam.PriorFactorCal3_S2(_k_key(cam), K, k_prior))
-                if not self._estimate.exists(_k_key(cam)):
-                    values.insert(_k_key(cam), K)
-                stamps[_k_key(cam)] = t_s
+            for key, K, K_now in zip(self._k, self._K_calib, (self.K0, self.K1)):
+                graph.add(gtsam.PriorFactorCal3_S2(key, K, k_prior))
+                values.insert(key, K_now)
+                stamps[key] = t_s
         if held:
             self._want_new = [graph.size()]
-            graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib,
+            graph.add(gtsam.BetweenFactorPose3(E(0), E(2), self._P_cam0_cam1_calib,
                                                _sigmas([cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
         log.info("motion turns the rig enough to refine the camera-IMU rotation%s from here; the stereo pair %s",
                  " and the focal lengths" if self.refine_K else "",
                  "held relative to cam0 by the stereo check" if held else
                  "refined" if checked or free else "held as calibrated")
-        return remove
 
     def _add_extrinsic_variables(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                                  stamps: dict[int, float]) -> None:
@@ -543,10 +534,10 @@ class VioSmoother:
             stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)
         else:
             stereo = _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
-        graph.add(gtsam.BetweenFactorPose3(E(0), E(1), self.P_body_cam0.between(self.P_body_cam1), stereo))
+        graph.add(gtsam.BetweenFactorPose3(self._e[0], self._e[1], self.P_body_cam0.between(self.P_body_cam1), stereo))
         values.insert(E(0), self.P_body_cam0)
-        values.insert(E(1), self.P_body_cam1)
-        stamps[E(0)] = stamps[E(1)] = 0.0
+        values.insert(self._e[1], self.P_body_cam1)
+        stamps[self._e[0]] = stamps[self._e[1]] = 0.0
         if self.refine_K:
             # fx, fy, skew, cx, cy; the skew is held (no lens has one), and so is the principal point: a cx/cy
             # error shifts the whole image as a turned camera does, so with both free they trade against the
@@ -554,9 +545,9 @@ class VioSmoother:
             sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
             k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
             for cam, K in enumerate((self.K0, self.K1)):
-                graph.add(gtsam.PriorFactorCal3_S2(_k_key(cam), K, k_prior))
-                values.insert(_k_key(cam), K)
-                stamps[_k_key(cam)] = 0.0
+                graph.add(gtsam.PriorFactorCal3_S2(self._k[cam], K, k_prior))
+                values.insert(self._k[cam], K)
+                stamps[self._k[cam]] = 0.0
 
     def _motion_excites_extrinsics(self, pose_pred: gtsam.Pose3, t_s: float) -> bool:
         """The gate of the module doc: rotation about two axes among the keyframes inside the lag."""
@@ -578,22 +569,22 @@ class VioSmoother:
             vel = np.asarray(est.atVector(V(j)), float)
             bias = est.atConstantBias(B(j))
             if self.refine:
-                self.P_body_cam0, self.P_body_cam1 = est.atPose3(E(0)), est.atPose3(E(1))
+                self.P_body_cam0, self.P_body_cam1 = est.atPose3(self._e[0]), est.atPose3(self._e[1])
                 self.T_body_cam0 = self.P_body_cam0.matrix()
                 if self._holds and j >= self._next_check:
                     self._check_stereo(t_ns, self.P_body_cam0.between(self.P_body_cam1))
                     self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
             elif self._holds:  # held: cam1 stays as calibrated unless the check lets go
                 if j >= self._next_check:
-                    self._check_stereo(t_ns, est.atPose3(E(1)))
+                    self._check_stereo(t_ns, est.atPose3(self._e[1]))
                     # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
                     self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
             elif self.refine_stereo:
-                self.P_body_cam1 = est.atPose3(E(1))
+                self.P_body_cam1 = est.atPose3(self._e[1])
                 if self.check_K1:
-                    self.K1 = est.atCal3_S2(_k_key(1))
+                    self.K1 = est.atCal3_S2(self._k[1])
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
-                self.K0, self.K1 = est.atCal3_S2(_k_key(0)), est.atCal3_S2(_k_key(1))
+                self.K0, self.K1 = est.atCal3_S2(self._k[0]), est.atCal3_S2(self._k[1])
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"newest keyframe missing from the estimate: {e}") from None
         # while the stereo check holds cam1, nothing is refined: the extrinsics are reported as held (None)
@@ -714,12 +705,12 @@ class VioSmoother:
         g = gtsam.NonlinearFactorGraph()
         hold = _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)
         if self.check_relative:
-            g.add(gtsam.BetweenFactorPose3(E(0), E(1), self._P_cam0_cam1_calib, hold))
+            g.add(gtsam.BetweenFactorPose3(self._e[0], self._e[1], self._P_cam0_cam1_calib, hold))
         else:
-            g.add(gtsam.PriorFactorPose3(E(1), self._P_body_cam1_calib, hold))
+            g.add(gtsam.PriorFactorPose3(self._e[1], self._P_body_cam1_calib, hold))
         if self.check_K1:  # fx, fy to the same few thousandths of a pixel
             hold_px = self.cfg.stereo_hold_sigma_rad * self.calib.cam1.fx
-            g.add(gtsam.PriorFactorCal3_S2(_k_key(1), self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
+            g.add(gtsam.PriorFactorCal3_S2(self._k[1], self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
         try:
             self.smoother.update(g, gtsam.Values(), {})
             self._holds = [int(i) for i in self.smoother.getISAM2Result().getNewFactorsIndices()]
@@ -743,7 +734,7 @@ class VioSmoother:
                 return
             hold = np.full(3, cfg.stereo_hold_sigma_rad ** -2.0)
         else:
-            keys = [E(1)] + ([_k_key(1)] if self.check_K1 else [])
+            keys = [self._e[1]] + ([self._k[1]] if self.check_K1 else [])
             hold = np.zeros(6 + 5 * self.check_K1)
             hold[:3] = cfg.stereo_hold_sigma_rad ** -2.0
             if self.check_K1:
@@ -754,7 +745,7 @@ class VioSmoother:
                 return
             d = np.asarray(self._P_body_cam1_calib.localCoordinates(held), float)
             if self.check_K1:
-                d = np.r_[d, np.asarray(self.K1.localCoordinates(self._estimate.atCal3_S2(_k_key(1))), float)]
+                d = np.r_[d, np.asarray(self.K1.localCoordinates(self._estimate.atCal3_S2(self._k[1])), float)]
         try:
             S = np.linalg.inv(lam_post - np.diag(hold))
         except np.linalg.LinAlgError:
@@ -780,9 +771,9 @@ class VioSmoother:
             try:
                 self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, self._holds)
                 self._estimate = self.smoother.calculateEstimate()
-                self.P_body_cam1 = self._estimate.atPose3(E(1))
+                self.P_body_cam1 = self._estimate.atPose3(self._e[1])
                 if self.check_K1:
-                    self.K1 = self._estimate.atCal3_S2(_k_key(1))
+                    self.K1 = self._estimate.atCal3_S2(self._k[1])
             except GTSAM_ERRORS as e:
                 raise SmootherFailure(f"smoother update failed releasing the stereo extrinsic: "
                                       f"{type(e).__name__}") from None
@@ -799,7 +790,7 @@ class VioSmoother:
         is the data's plus the hold's, as in the absolute check. (Conditioning on E(0) instead reads nothing where
         E(0) is free to turn with the pair; only the keyframes that pass the motion gate inform E(0), E(1).)"""
         try:
-            lam = np.asarray(self.smoother.getISAM2().jointMarginalInformation([E(0), E(1)]).fullMatrix(), float)
+            lam = np.asarray(self.smoother.getISAM2().jointMarginalInformation(self._e).fullMatrix(), float)
             A = np.hstack([-np.asarray(held.inverse().AdjointMap(), float), np.eye(6)])
             lam_rot = np.linalg.inv((A @ np.linalg.inv(lam) @ A.T)[:3, :3])
         except (*GTSAM_ERRORS, np.linalg.LinAlgError):
@@ -814,12 +805,12 @@ class VioSmoother:
             from gtsam_unstable import ProjectionFactorPPPCCal3_S2
 
             return lambda uv, i, key, cam: ProjectionFactorPPPCCal3_S2(uv, self.pixel_noise, self._pose_key(i),
-                                                                       E(cam), key, _k_key(cam), False, False)
+                                                                       self._e[cam], key, self._k[cam], False, False)
         if refine:
             from gtsam_unstable import ProjectionFactorPPPCal3_S2
 
             return lambda uv, i, key, cam: ProjectionFactorPPPCal3_S2(uv, self.pixel_noise, self._pose_key(i),
-                                                                      E(cam), key, K[cam], False, False)
+                                                                      self._e[cam], key, K[cam], False, False)
         P = (self.P_body_cam0, self.P_body_cam1)
 
         def fixed(uv, i, key, cam):
@@ -834,9 +825,9 @@ class VioSmoother:
             from gtsam_unstable import ProjectionFactorPPPCCal3_S2
 
             return lambda uv, i, key, cam: fixed(uv, i, key, 0) if cam == 0 else ProjectionFactorPPPCCal3_S2(
-                uv, self.pixel_noise, self._pose_key(i), E(1), key, _k_key(1), False, False)
+                uv, self.pixel_noise, self._pose_key(i), self._e[1], key, self._k[1], False, False)
         return lambda uv, i, key, cam: fixed(uv, i, key, 0) if cam == 0 else ProjectionFactorPPPCal3_S2(
-            uv, self.pixel_noise, self._pose_key(i), E(1), key, K[1], False, False)
+            uv, self.pixel_noise, self._pose_key(i), self._e[1], key, K[1], False, False)
 
     def _triangulate(self, obs: list[tuple[int, np.ndarray]], uv0: np.ndarray,
                      T_world_cam0: np.ndarray) -> np.ndarray | None:
@@ -890,7 +881,7 @@ class VioSmoother:
         if not self.refine_stereo or self._holds:  # with refine_extrinsics, E(1)'s marginal is
             return None  # not the stereo extrinsic's; while the stereo check holds it, the hold's
         try:
-            cov = np.asarray(self.smoother.marginalCovariance(E(1)))
+            cov = np.asarray(self.smoother.marginalCovariance(self._e[1]))
         except GTSAM_ERRORS:
             return None
         return np.sqrt(np.maximum(np.diag(cov)[:3], 0.0))
