@@ -151,10 +151,10 @@ def _run_refine(args: argparse.Namespace) -> int:
 
     from calib.check import DISPARITY_SIGNIFICANT, disparity_told_from_zero
     from vio import VioError
-    from vio.app.replay import stereo_check_line
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
     from vio.consistency import replay_states
+    from vio.estimator import stereo_check_line
 
     cfg = load_config(args.config)
     if args.stereo_only and (args.stereo or args.intrinsics):

@@ -402,18 +402,6 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
 
 
 
-def stereo_check_line(check: dict | None) -> str | None:
-    """One line on what the stereo check (`[backend] stereo_check`) found: whether the flight showed the stereo
-    calibration's disparities off (None: no check, or no reading yet)."""
-    if not check:
-        return None
-    if check["released_at_s"]:
-        return (f"stereo check: the right camera disagreed with the calibration at {check['released_at_s'][0]:.1f} s "
-                f"({check['released_readings'][0]}): cam1 refined in flight from then (calibration line below)")
-    if "disparity_px" in check:
-        return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept"
-    return None
-
 
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
@@ -473,6 +461,8 @@ def run(args: argparse.Namespace) -> int:
               f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
+    from vio.estimator import stereo_check_line
+
     line = stereo_check_line(res.extra.get("stereo_check"))
     if line:
         print(line)
