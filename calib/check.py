@@ -304,8 +304,8 @@ def check_disparity(dataset_path: str | Path, calib: StereoCalibration | None = 
     cfg = load_config(config)
     # the check on, never letting go (20 px, 100 sigma: its bounds), nothing else refined
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
-        cfg.backend, refine_extrinsics=False, refine_stereo_rotation=False, stereo_check=True,
-        stereo_check_focal=True, stereo_check_px=20.0, stereo_check_sigma=100.0))
+        cfg.backend, refine_extrinsics=False, refine_extrinsics_auto=False, refine_stereo_rotation=False,
+        stereo_check=True, stereo_check_focal=True, stereo_check_px=20.0, stereo_check_sigma=100.0))
     try:
         run = replay_states(dataset_path, cfg.estimator, calibration=calib)
     except VioError as e:  # e.g. an IMU in the wrong units, which the units check below names

@@ -49,7 +49,8 @@ def test_replay_with_stereo_refinement_says_what_it_took_out_and_how_sure(v101_p
 def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, capsys, caplog):
     """The default stereo check on a recording whose sensor.yaml states cam1's principal point 1 px off: the
     replay warns once that the disparities are off (with what to run), refines cam1 from then, and says both in
-    its output and stats; the same recording with the calibration right keeps it and says that."""
+    its output and stats; the same recording with the calibration right keeps it and says that. (This flight
+    turns enough for the automatic rig refinement to start: the check reads cam1 relative to cam0 from then.)"""
     import logging
     import re
 
@@ -68,15 +69,16 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
     warned = [r.getMessage() for r in caplog.records if "stereo check" in r.getMessage()]
     assert len(warned) == 1 and "disparity bias" in warned[0] and "vio calib check" in warned[0], warned
     m = re.search(r"stereo check: the right camera disagreed with the calibration at ([0-9.]+) s \(disparity bias "
-                  r"([-+0-9.]+) \+- [0-9.]+ px; cam1's focal lengths .*\): cam1 refined", said)
+                  r"([-+0-9.]+) \+- [0-9.]+ px[^)]*\): cam1 refined", said)
     assert m and 0.4 < float(m.group(2)) < 1.6 and float(m.group(1)) < 6.0, said
     assert d["stereo_check"]["released_at_s"] == [float(m.group(1))]
-    assert 0.4 < d["calibration_refined"]["disparity_px"] < 1.6 and "calibration: cam1 turned" in said
+    assert 0.4 < d["calibration_refined"]["disparity_px"] < 1.6 and "calibration: " in said
     caplog.clear()
     said, d = flight("right", 0.0)
-    assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px; cam1's focal lengths at the image edge: "
-                     r"fx [-+0-9.]+ \+- [0-9.]+ px, fy .* \(1 sigma\) at [0-9.]+ s: calibration kept", said), said
-    assert d["stereo_check"]["released_at_s"] == [] and d["calibration_refined"] is None
+    assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px[^\n]* \(1 sigma\) at [0-9.]+ s: "
+                     r"calibration kept", said), said
+    refined = d["calibration_refined"]  # the rig refined from the first turn on, the pair left as calibrated
+    assert d["stereo_check"]["released_at_s"] == [] and (refined is None or refined["stereo_change_deg"] < 0.01)
     assert not [r for r in caplog.records if "stereo check" in r.getMessage()]
 
 

@@ -107,9 +107,11 @@ class BackendConfig:
                                  "fewer stereo matches than this (a right camera failing); 0: never", min=0, max=2000)
     refine_extrinsics: bool = opt(False, "refine T_body_cam0/T_body_cam1 as smoother variables while the motion "
                                   "makes them observable (see docs/estimator.md)")
-    refine_extrinsics_auto: bool = opt(False, "without refine_extrinsics: start with the stereo check watching the "
+    refine_extrinsics_auto: bool = opt(True, "without refine_extrinsics: start with the stereo check watching the "
                                        "pair on every keyframe and switch to refine_extrinsics (with "
-                                       "refine_intrinsics as set) at the first keyframe that passes the motion gate")
+                                       "refine_intrinsics as set, the pair held relative to cam0) at the first "
+                                       "keyframe that passes the motion gate; a flight that never turns enough "
+                                       "is not refined")
     refine_extrinsic_translation: bool = opt(False, "refine the camera-IMU translation too (poorly observable: "
                                              "it wandered by 2x its error in tests); else only the rotation")
     refine_stereo_extrinsic: bool = opt(False, "let T_cam0_cam1 move too (within stereo_sigma_*); else it is held")
@@ -134,7 +136,8 @@ class BackendConfig:
     stereo_hold_sigma_rad: float = opt(5e-6, "1-sigma of the priors that hold cam1's rotation (and, times fx, its "
                                        "focal lengths) while checking: a few thousandths of a pixel",
                                        min=1e-7, max=1e-3)
-    refine_intrinsics: bool = opt(False, "with refine_extrinsics: refine fx, fy of both cameras too (the principal "
+    refine_intrinsics: bool = opt(True, "with the rig refinement (refine_extrinsics or refine_extrinsics_auto): "
+                                  "refine fx, fy of both cameras too (the principal "
                                   "point only with refine_principal_point)")
     refine_principal_point: bool = opt(False, "with refine_intrinsics: cx, cy too (they trade against the extrinsic "
                                        "rotation: nearly the same image change)")
