@@ -634,7 +634,8 @@ class VioSmoother:
         mono_collect = mono_now or cfg.mono_below_stereo > 0
         self._kf_t[j] = t_s
         refine_now = self.refine and j > 0 and self._motion_excites_extrinsics(pose_pred, t_s)
-        self.extrinsic_keyframes += int(refine_now or self.refine_stereo)
+        # keyframes whose factors refine a calibration variable (a stereo check that holds refines nothing)
+        self.extrinsic_keyframes += int(refine_now or (self.refine_stereo and not self._holds))
         factor = self._factor_maker(refine_now)
         for k in spread_order(ff.uv0, ff.track_len, self.calib.cam0.width, self.calib.cam0.height):
             tid = int(ff.ids[k])
