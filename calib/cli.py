@@ -193,10 +193,9 @@ def _run_refine(args: argparse.Namespace) -> int:
               f"{refined['refining_keyframes']} refining keyframes ({est.reset_counter} resets); time offset "
               f"{calib.time_offset_ns * 1e-6:+.2f} -> {est.time_offset_ns * 1e-6:+.2f} ms")
         # the stereo pair is held as calibrated unless the stereo check (or --stereo) lets it go
-        line = stereo_check_line(est.stereo_check_stats())
+        line = stereo_check_line(est.stereo_check_stats(), then="")
         if line:
-            print(line.replace(" (calibration line below)", "") + f"; cam1 relative to cam0 moved "
-                  f"{refined['stereo_change_deg']:.4f} deg")
+            print(f"{line}; cam1 relative to cam0 moved {refined['stereo_change_deg']:.4f} deg")
     save_calibration(out, args.output)
     if args.intrinsics:
         for name, before, after in (("cam0", calib.cam0, out.cam0), ("cam1", calib.cam1, out.cam1)):

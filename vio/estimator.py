@@ -983,14 +983,14 @@ def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:
         return float("inf")
     return float(np.median(np.linalg.norm(cur.uv0[ic] - prev.uv0[ip], axis=1)))
 
-def stereo_check_line(check: dict | None) -> str | None:
+def stereo_check_line(check: dict | None, then: str = " (calibration line below)") -> str | None:
     """One line on what the stereo check (`[backend] stereo_check`) found: whether the flight showed the stereo
-    calibration's disparities off (None: no check, or no reading yet)."""
+    calibration's disparities off (None: no check, or no reading yet); `then` follows a let-go's line."""
     if not check:
         return None
     if check["released_at_s"]:
         return (f"stereo check: the right camera disagreed with the calibration at {check['released_at_s'][0]:.1f} s "
-                f"({check['released_readings'][0]}): cam1 refined in flight from then (calibration line below)")
+                f"({check['released_readings'][0]}): cam1 refined in flight from then{then}")
     if "disparity_px" in check:
         return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept"
     return None

@@ -401,8 +401,6 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
-
-
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config

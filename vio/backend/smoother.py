@@ -488,66 +488,51 @@ class VioSmoother:
         aggressive calibration-error flight of seed 3: 14.0 mm against 10.7 with the rig refined from
         take-off); they leave the window with the keyframes that saw them."""
         cfg = self.cfg
+        checked = self._estimate.exists(self._e[1])  # the stereo check ran (held or let go)
+        held = bool(self._holds) and not cfg.refine_stereo_extrinsic  # that one lets the pair move from here
         self.refine, self.refine_K, self.refine_stereo = True, bool(cfg.refine_intrinsics), False
-        free = cfg.refine_stereo_extrinsic  # that one lets the pair move from here
-        held = bool(self._holds) and not free
-        checked = bool(self._holds) or self.stereo_finding is not None or self._estimate.exists(self._e[1])
         self._holds, self._rig_pending, self._new_idx = [], False, []
         self.check_relative, self.check_K1, self.stereo_check = held, False, held
-        prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
-                        [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
-        graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
-        values.insert(E(0), self.P_body_cam0)
         self._e, self._k = [E(0), E(2)], [_k_key(0), _k_key(2)]
-        values.insert(E(2), self.P_body_cam1)  # as calibrated, or where a check that let go refined it
-        rel = self.P_body_cam0.between(self.P_body_cam1)
-        graph.add(gtsam.BetweenFactorPose3(E(0), E(2), rel, _sigmas(
-            [cfg.stereo_sigma_rad if checked or free else 1e-5] * 3 + [cfg.stereo_sigma_m if free else 1e-5] * 3)))
-        stamps[E(0)] = stamps[E(2)] = t_s
-        if self.refine_K:
-            sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
-            k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
-            for key, K, K_now in zip(self._k, self._K_calib, (self.K0, self.K1)):
-                graph.add(gtsam.PriorFactorCal3_S2(key, K, k_prior))
-                values.insert(key, K_now)
-                stamps[key] = t_s
+        self._add_extrinsic_variables(graph, values, stamps, t_s, checked)
         if held:
             self._want_new = [graph.size()]
-            graph.add(gtsam.BetweenFactorPose3(E(0), E(2), self._P_cam0_cam1_calib,
-                                               _sigmas([cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)))
+            graph.add(self._pose_hold())
         log.info("motion turns the rig enough to refine the camera-IMU rotation%s from here; the stereo pair %s",
                  " and the focal lengths" if self.refine_K else "",
                  "held relative to cam0 by the stereo check" if held else
-                 "refined" if checked or free else "held as calibrated")
+                 "refined" if checked or cfg.refine_stereo_extrinsic else "held as calibrated")
 
     def _add_extrinsic_variables(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                                 stamps: dict[int, float]) -> None:
+                                 stamps: dict[int, float], t_s: float = 0.0, pair_checked: bool = False) -> None:
+        """The rig's variables E(0), cam1's pose self._e[1] (and with refine_K the intrinsics self._k) with the
+        calibration's priors, from take-off or (t_s) from the automatic switch. The pair's rotation is loose
+        (`stereo_sigma_rad`) where a stereo check holds or has let go of it (`pair_checked`, or check_relative),
+        or with refine_stereo_extrinsic (its translation too); otherwise held."""
         cfg = self.cfg
         # translation held unless asked for: on the 40 s aggressive flight it wandered 4.2 mm from a 2 mm
         # error (absorbing what it cannot see: intrinsics, lever-arm directions the turns did not excite)
         prior = _sigmas([cfg.extrinsic_sigma_rad] * 3 +
                         [cfg.extrinsic_sigma_m if cfg.refine_extrinsic_translation else 1e-5] * 3)
         graph.add(gtsam.PriorFactorPose3(E(0), self.P_body_cam0, prior))
-        if cfg.refine_stereo_extrinsic:
-            stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [cfg.stereo_sigma_m] * 3)
-        elif self.check_relative:  # the rotation within its stated uncertainty, held tighter by the check
-            stereo = _sigmas([cfg.stereo_sigma_rad] * 3 + [1e-5] * 3)
-        else:
-            stereo = _sigmas([1e-5] * 6)  # held; 1e-6 made the system numerically indeterminate
+        free = cfg.refine_stereo_extrinsic
+        # held: 1e-5; 1e-6 made the system numerically indeterminate
+        loose_rot = free or pair_checked or self.check_relative
+        stereo = _sigmas([cfg.stereo_sigma_rad if loose_rot else 1e-5] * 3 + [cfg.stereo_sigma_m if free else 1e-5] * 3)
         graph.add(gtsam.BetweenFactorPose3(self._e[0], self._e[1], self.P_body_cam0.between(self.P_body_cam1), stereo))
         values.insert(E(0), self.P_body_cam0)
-        values.insert(self._e[1], self.P_body_cam1)
-        stamps[self._e[0]] = stamps[self._e[1]] = 0.0
+        values.insert(self._e[1], self.P_body_cam1)  # as calibrated, or where a stereo check that let go put it
+        stamps[self._e[0]] = stamps[self._e[1]] = t_s
         if self.refine_K:
             # fx, fy, skew, cx, cy; the skew is held (no lens has one), and so is the principal point: a cx/cy
             # error shifts the whole image as a turned camera does, so with both free they trade against the
             # extrinsic rotation (in tests/test_estimator.py: cy 2 -> 1.4 px off, the rotation 0.04 -> 0.16 deg)
             sp = cfg.intrinsics_sigma_px if cfg.refine_principal_point else 1e-4
             k_prior = _sigmas([cfg.intrinsics_sigma_px] * 2 + [1e-4] + [sp] * 2)
-            for cam, K in enumerate((self.K0, self.K1)):
-                graph.add(gtsam.PriorFactorCal3_S2(self._k[cam], K, k_prior))
-                values.insert(self._k[cam], K)
-                stamps[self._k[cam]] = 0.0
+            for key, K, K_now in zip(self._k, self._K_calib, (self.K0, self.K1)):
+                graph.add(gtsam.PriorFactorCal3_S2(key, K, k_prior))
+                values.insert(key, K_now)
+                stamps[key] = t_s
 
     def _motion_excites_extrinsics(self, pose_pred: gtsam.Pose3, t_s: float) -> bool:
         """The gate of the module doc: rotation about two axes among the keyframes inside the lag."""
@@ -704,11 +689,7 @@ class VioSmoother:
         """Add the priors that hold cam1's rotation (and focal lengths) at the calibration; remember their indices
         (to let go)."""
         g = gtsam.NonlinearFactorGraph()
-        hold = _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)
-        if self.check_relative:
-            g.add(gtsam.BetweenFactorPose3(self._e[0], self._e[1], self._P_cam0_cam1_calib, hold))
-        else:
-            g.add(gtsam.PriorFactorPose3(self._e[1], self._P_body_cam1_calib, hold))
+        g.add(self._pose_hold())
         if self.check_K1:  # fx, fy to the same few thousandths of a pixel
             hold_px = self.cfg.stereo_hold_sigma_rad * self.calib.cam1.fx
             g.add(gtsam.PriorFactorCal3_S2(self._k[1], self.K1, _sigmas([hold_px] * 2 + [1e3] * 3)))
@@ -718,6 +699,14 @@ class VioSmoother:
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
             raise SmootherFailure(f"smoother update failed holding the stereo extrinsic: {type(e).__name__}") from None
+
+    def _pose_hold(self):
+        """The tight factor that holds cam1's rotation as calibrated: relative to cam0 with the rig refined, else
+        on the body (its translation sigma, 1 km, leaves the translation to the other factors)."""
+        hold = _sigmas([self.cfg.stereo_hold_sigma_rad] * 3 + [1e3] * 3)
+        if self.check_relative:
+            return gtsam.BetweenFactorPose3(self._e[0], self._e[1], self._P_cam0_cam1_calib, hold)
+        return gtsam.PriorFactorPose3(self._e[1], self._P_body_cam1_calib, hold)
 
     def _check_stereo(self, t_ns: int, held: gtsam.Pose3) -> None:
         """Where cam1 would be without the holds, from where they let it sit and how much they tighten it.
