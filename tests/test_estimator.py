@@ -857,3 +857,36 @@ def test_the_automatic_rig_refinement_starts_at_the_first_turn_and_keeps_the_ste
     assert auto.refinement_stats() is None and auto.stereo_check_stats() == plain.stereo_check_stats()
     assert auto.stereo_check_stats() is not None and len(T_auto) > 50
     np.testing.assert_array_equal(T_auto, T_plain)
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_the_window_leaves_together_every_nth_keyframe_and_never_grows_more_than_that(monkeypatch, every):
+    """`marginalize_every_kf`: what falls out of the lag leaves on every N-th keyframe only (iSAM2 then
+    re-eliminates the whole window on one update in N), so in between the window holds up to N-1 keyframes
+    past the lag, and right after a marginalisation none."""
+    import gtsam
+
+    from vio.backend import smoother as sm
+
+    spans: list[tuple[int, float]] = []
+    update = sm.VioSmoother._update
+
+    def recorded(self, graph, values, stamps, j, pose_pred):
+        extra = update(self, graph, values, stamps, j, pose_pred)
+        times = [t for k, t in self.smoother.timestamps().items() if gtsam.Symbol(k).chr() == ord("x")]
+        spans.append((j, max(times) - min(times)))
+        return extra
+
+    monkeypatch.setattr(sm.VioSmoother, "_update", recorded)
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, marginalize_every_kf=every))
+    est = Estimator(synthetic_calibration(), cfg)
+    states, _, truth, _ = _run(est, duration_s=8.0, still_s=1.0, seed=7)
+    assert est.reset_counter == 0 and np.sqrt(np.mean(_aligned_errors(states, truth) ** 2)) < 0.05
+    lag, step = cfg.backend.lag_s, cfg.backend.keyframe_max_interval_s
+    assert len(spans) > 12
+    for j, span in spans:
+        if j % every == 0:
+            assert span <= lag + 1e-6, (j, span)
+        assert span <= lag + (every - 1) * step + 1e-6, (j, span)
+    assert any(span > lag + 1e-6 for _, span in spans) == (every > 1)

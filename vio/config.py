@@ -68,6 +68,10 @@ class FrontendConfig:
 @dataclass(frozen=True)
 class BackendConfig:
     lag_s: float = opt(2.0, "fixed-lag smoother window length", min=0.2, max=60)
+    marginalize_every_kf: int = opt(3, "keyframes between marginalisations: the window grows past lag_s by up to "
+                                    "N-1 keyframes, which then leave together (each marginalisation makes iSAM2 "
+                                    "re-linearise and re-eliminate the whole window; 1: every keyframe)",
+                                    min=1, max=20)
     keyframe_min_parallax_px: float = opt(10.0, "median parallax that makes a new keyframe", min=0.0, max=200)
     keyframe_max_interval_s: float = opt(0.4, "longest time between keyframes", min=0.01, max=10)
     keyframe_min_interval_s: float = opt(0.2, "shortest time between keyframes (caps the solver rate)", min=0, max=10)
