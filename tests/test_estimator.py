@@ -859,34 +859,54 @@ def test_the_automatic_rig_refinement_starts_at_the_first_turn_and_keeps_the_ste
     np.testing.assert_array_equal(T_auto, T_plain)
 
 
-@pytest.mark.parametrize("every", [1, 3])
-def test_the_window_leaves_together_every_nth_keyframe_and_never_grows_more_than_that(monkeypatch, every):
+@pytest.mark.parametrize("every,between", [(1, False), (3, False), (3, True)])
+def test_the_window_leaves_together_every_nth_keyframe_and_never_grows_more_than_that(monkeypatch, every, between):
     """`marginalize_every_kf`: what falls out of the lag leaves on every N-th keyframe only (iSAM2 then
     re-eliminates the whole window on one update in N), so in between the window holds up to N-1 keyframes
-    past the lag, and right after a marginalisation none."""
+    past the lag, and right after a marginalisation none. `marginalize_between_frames`: the marginalisation
+    runs on the frame after its keyframe instead of in the keyframe's solve."""
     import gtsam
 
     from vio.backend import smoother as sm
 
-    spans: list[tuple[int, float]] = []
-    update = sm.VioSmoother._update
+    spans: list[tuple[str, int, float]] = []
+    update, marginalize = sm.VioSmoother._update, sm.VioSmoother.marginalize
+
+    def span(self) -> float:
+        times = [t for k, t in self.smoother.timestamps().items() if gtsam.Symbol(k).chr() == ord("x")]
+        return max(times) - min(times)
 
     def recorded(self, graph, values, stamps, j, pose_pred):
         extra = update(self, graph, values, stamps, j, pose_pred)
-        times = [t for k, t in self.smoother.timestamps().items() if gtsam.Symbol(k).chr() == ord("x")]
-        spans.append((j, max(times) - min(times)))
+        spans.append(("keyframe", j, span(self)))
         return extra
 
+    def recorded_marginalize(self):
+        due = self.marginalize_due
+        marginalize(self)
+        if due:
+            spans.append(("between", self.index, span(self)))
+
     monkeypatch.setattr(sm.VioSmoother, "_update", recorded)
+    monkeypatch.setattr(sm.VioSmoother, "marginalize", recorded_marginalize)
     cfg = VioConfig()
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, marginalize_every_kf=every))
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, marginalize_every_kf=every,
+                                                               marginalize_between_frames=between))
     est = Estimator(synthetic_calibration(), cfg)
     states, _, truth, _ = _run(est, duration_s=8.0, still_s=1.0, seed=7)
     assert est.reset_counter == 0 and np.sqrt(np.mean(_aligned_errors(states, truth) ** 2)) < 0.05
     lag, step = cfg.backend.lag_s, cfg.backend.keyframe_max_interval_s
-    assert len(spans) > 12
-    for j, span in spans:
-        if j % every == 0:
-            assert span <= lag + 1e-6, (j, span)
-        assert span <= lag + (every - 1) * step + 1e-6, (j, span)
-    assert any(span > lag + 1e-6 for _, span in spans) == (every > 1)
+    kf = [(j, s) for what, j, s in spans if what == "keyframe"]
+    between_frames = [(j, s) for what, j, s in spans if what == "between"]
+    assert len(kf) > 12
+    if between:  # every third keyframe's marginalisation on the next frame, never in a keyframe's solve
+        assert {j for j, _ in between_frames} == {j for j, _ in kf if j % every == 0}
+        assert all(s <= lag + 1e-6 for _, s in between_frames)
+        assert all(s <= lag + every * step + 1e-6 for _, s in kf)
+    else:
+        assert not between_frames
+        for j, s in kf:
+            if j % every == 0:
+                assert s <= lag + 1e-6, (j, s)
+            assert s <= lag + (every - 1) * step + 1e-6, (j, s)
+    assert any(s > lag + 1e-6 for _, s in kf) == (every > 1)

@@ -72,6 +72,9 @@ class BackendConfig:
                                     "N-1 keyframes, which then leave together (each marginalisation makes iSAM2 "
                                     "re-linearise and re-eliminate the whole window; 1: every keyframe)",
                                     min=1, max=20)
+    marginalize_between_frames: bool = opt(False, "run each marginalisation on the frame after its keyframe, in an "
+                                           "update of its own: no keyframe solve carries one (frame p99 -9 %), at "
+                                           "~3 % of the real-time factor")
     keyframe_min_parallax_px: float = opt(10.0, "median parallax that makes a new keyframe", min=0.0, max=200)
     keyframe_max_interval_s: float = opt(0.4, "longest time between keyframes", min=0.01, max=10)
     keyframe_min_interval_s: float = opt(0.2, "shortest time between keyframes (caps the solver rate)", min=0, max=10)

@@ -540,7 +540,8 @@ class Estimator:
         if self.offset_estimator is None or not self.offset_estimator.collects(int(ff.t_ns)):
             return
         run = self._state
-        quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due)
+        quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due
+                                                      or run.smoother.marginalize_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
@@ -862,7 +863,9 @@ class Estimator:
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
         run = self._state
         self.imu.integrate(run.pim, prev_t, t)
-        if run.marginal_due:  # the last keyframe's, computed here rather than on top of its solve
+        if run.smoother.marginalize_due:  # the last keyframe's marginalisation, here rather than in its solve
+            run.smoother.marginalize()
+        elif run.marginal_due:  # the last keyframe's marginal, computed here rather than on top of its solve
             self._marginal()
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):

@@ -269,6 +269,7 @@ class VioSmoother:
         # refine_extrinsics_auto: the absolute check until the first keyframe that passes the motion gate, then the
         # rig refinement with the relative check (`_start_rig_refinement`)
         self._rig_pending = bool(cfg.refine_extrinsics_auto) and not self.refine and not cfg.refine_stereo_rotation
+        self.marginalize_due = False  # the last keyframe's marginalisation waits for `marginalize`
         self._want_new: list[int] | None = None  # graph positions whose smoother factor indices the update keeps
         self._new_idx: list[int] = []
         self._holds: list[int] = []  # the holding priors' factor indices in the smoother, while they hold
@@ -376,7 +377,11 @@ class VioSmoother:
         # (three updates in four on the aggressive flights when marginalising at every keyframe): done on every
         # N-th keyframe only, the updates in between stay incremental (module doc)
         every = self.cfg.marginalize_every_kf
-        self.smoother.setSmootherLag(self.cfg.lag_s if every <= 1 or j % every == 0 else KEEP_ALL_LAG_S)
+        # a marginalisation still pending from the last keyframe (the caller had no frame between) goes with this
+        # update; one due at this keyframe waits for the caller's next frame (`marginalize`) when it asks for that
+        now = self.marginalize_due or (every <= 1 or j % every == 0) and not self.cfg.marginalize_between_frames
+        self.marginalize_due = every > 1 and j % every == 0 and self.cfg.marginalize_between_frames
+        self.smoother.setSmootherLag(self.cfg.lag_s if now else KEEP_ALL_LAG_S)
         try:
             self.smoother.update(graph, values, stamps)
             if self._want_new is not None:
@@ -396,6 +401,20 @@ class VioSmoother:
             first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
             raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
         return extra
+
+    def marginalize(self) -> None:
+        """The marginalisation due at the last keyframe, in an update of its own (no new factors): the caller runs
+        it on a frame that is no keyframe, so that a keyframe's solve never carries it (module doc)."""
+        if not self.marginalize_due:
+            return
+        self.marginalize_due = False
+        self.smoother.setSmootherLag(self.cfg.lag_s)
+        try:
+            self.smoother.update()
+            self._estimate = self.smoother.calculateEstimate()
+        except GTSAM_ERRORS as e:
+            first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+            raise SmootherFailure(f"smoother marginalisation failed: {type(e).__name__}: {first_line}") from None
 
     # -- API -----------------------------------------------------------------------------------------
     def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
