@@ -82,6 +82,26 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
     assert not [r for r in caplog.records if "stereo check" in r.getMessage()]
 
 
+def test_replay_runs_opencv_on_one_thread_unless_asked_and_refuses_a_bad_count(v101_path, tmp_path, capsys):
+    """One OpenCV thread by default: with OpenCV's pool, a replay sharing the machine with other work came out
+    different from the same replay alone (3 of 6 runs), which makes before/after comparisons unreliable."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        args = ["-q", "replay", str(v101_path), "--output", str(tmp_path / "t.tum"), "--max-frames", "20",
+                "--no-progress"]
+        assert main(args) == 0 and cv2.getNumThreads() == 1
+        cv2.setNumThreads(2)
+        assert main([*args, "--threads", "0"]) == 0 and cv2.getNumThreads() == 2
+        with pytest.raises(SystemExit) as e:
+            main([*args, "--threads", "-1"])
+        assert e.value.code == 2 and "below 0" in capsys.readouterr().err
+    finally:
+        cv2.setNumThreads(before)
+
+
 def test_replay_of_missing_dataset_is_a_clear_error(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope"), "--output", str(tmp_path / "t.tum")]) == 1
     assert "dataset folder not found" in capsys.readouterr().err
