@@ -63,8 +63,10 @@ the last keyframe that saw it; a track seen again after its landmark left gets a
 out of the lag leaves on every `marginalize_every_kf`-th keyframe (by default every third), the window growing
 past the lag by up to two keyframes in between: a keyframe's factors touch most of the window anyway, and with a
 marginalisation too iSAM2 re-linearises and re-eliminates all of it (gtsam switches to a batch step above 65 %
-of the variables), which it then does on one update in three instead of three in four (an update 11.2 -> 9.5 ms
-on the 40 s aggressive flight). Variables past the lag take no new factors, so the lag keeps its meaning.
+of the variables), which it then does on about one update in seven instead of three in four (an update 11.2 ->
+9.5 ms on the 40 s aggressive flight). Variables past the lag take no new factors, so the lag keeps its meaning.
+With `marginalize_between_frames` the estimator runs each marginalisation in an update of its own on the frame
+after its keyframe (`marginalize`), so that no keyframe's solve carries one.
 """
 
 from __future__ import annotations
@@ -214,6 +216,12 @@ def offset_rate_factor(d_i: int, s_i: int, d_j: int, dt: float, step: float,
     for k in (d_i, s_i, d_j):
         point.insert(k, 0.0)
     return gtsam.LinearContainerFactor(lin, point)
+
+
+def _failure(what: str, e: Exception) -> SmootherFailure:
+    """A gtsam error as a SmootherFailure with the error's first line (gtsam's messages run to many lines)."""
+    first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+    return SmootherFailure(f"smoother {what} failed: {type(e).__name__}: {first_line}")
 
 
 class VioSmoother:
@@ -379,8 +387,9 @@ class VioSmoother:
         every = self.cfg.marginalize_every_kf
         # a marginalisation still pending from the last keyframe (the caller had no frame between) goes with this
         # update; one due at this keyframe waits for the caller's next frame (`marginalize`) when it asks for that
-        now = self.marginalize_due or (every <= 1 or j % every == 0) and not self.cfg.marginalize_between_frames
-        self.marginalize_due = every > 1 and j % every == 0 and self.cfg.marginalize_between_frames
+        between = bool(self.cfg.marginalize_between_frames) and every > 1
+        now = self.marginalize_due or (not between and (every <= 1 or j % every == 0))
+        self.marginalize_due = between and j % every == 0
         self.smoother.setSmootherLag(self.cfg.lag_s if now else KEEP_ALL_LAG_S)
         try:
             self.smoother.update(graph, values, stamps)
@@ -398,8 +407,7 @@ class VioSmoother:
                         extra += 1
                     self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
-            first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
-            raise SmootherFailure(f"smoother update failed: {type(e).__name__}: {first_line}") from None
+            raise _failure("update", e) from None
         return extra
 
     def marginalize(self) -> None:
@@ -413,8 +421,7 @@ class VioSmoother:
             self.smoother.update()
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
-            first_line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
-            raise SmootherFailure(f"smoother marginalisation failed: {type(e).__name__}: {first_line}") from None
+            raise _failure("marginalisation", e) from None
 
     # -- API -----------------------------------------------------------------------------------------
     def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
