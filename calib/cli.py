@@ -97,9 +97,21 @@ def _run_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _one_opencv_thread() -> None:
+    """Replays whose result is a calibration or a verdict run OpenCV on one thread, as `vio replay` does: with its
+    pool, a replay on a busy machine came out different from the same replay alone (docs/evaluation.md,
+    "Reproducible replays")."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def _run_check(args: argparse.Namespace) -> int:
     from calib.check import check_calibration, format_report
     from vio.calibration import load_calibration
+
+    if args.disparity:
+        _one_opencv_thread()
 
     calib = None if str(args.calibration) == "-" else load_calibration(args.calibration)
     results = check_calibration(args.dataset, calib, max_frames=args.max_frames, disparity=args.disparity,
@@ -156,6 +168,7 @@ def _run_refine(args: argparse.Namespace) -> int:
     from vio.consistency import replay_states
     from vio.estimator import stereo_check_line
 
+    _one_opencv_thread()
     cfg = load_config(args.config)
     if args.stereo_only and (args.stereo or args.intrinsics):
         raise VioError("--stereo-only refines cam1's rotation alone: leave out --stereo and --intrinsics")

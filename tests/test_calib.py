@@ -472,7 +472,15 @@ def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     simulate(tmp_path / "hover", SimConfig(profile="hover", duration_s=3.0, variant="clean", width=376, height=240,
                                            texels_per_m=60.0, still_start_s=1.0))
     out = tmp_path / "refined.yaml"
-    assert main(["calib", "refine", str(tmp_path / "hover"), "--output", str(out)]) == 1
+    import cv2
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        assert main(["calib", "refine", str(tmp_path / "hover"), "--output", str(out)]) == 1
+        assert cv2.getNumThreads() == 1  # reproducible: as `vio replay`, one OpenCV thread (docs/evaluation.md)
+    finally:
+        cv2.setNumThreads(before)
     assert "enough rotation" in capsys.readouterr().err and not out.exists()
 
 
