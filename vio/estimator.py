@@ -986,6 +986,7 @@ def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:
         return float("inf")
     return float(np.median(np.linalg.norm(cur.uv0[ic] - prev.uv0[ip], axis=1)))
 
+
 def stereo_check_line(check: dict | None, then: str = " (calibration line below)") -> str | None:
     """One line on what the stereo check (`[backend] stereo_check`) found: whether the flight showed the stereo
     calibration's disparities off (None: no check, or no reading yet); `then` follows a let-go's line."""

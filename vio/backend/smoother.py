@@ -594,18 +594,16 @@ class VioSmoother:
             if self.refine:
                 self.P_body_cam0, self.P_body_cam1 = est.atPose3(self._e[0]), est.atPose3(self._e[1])
                 self.T_body_cam0 = self.P_body_cam0.matrix()
-                if self._holds and j >= self._next_check:
-                    self._check_stereo(t_ns, self.P_body_cam0.between(self.P_body_cam1))
-                    self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
-            elif self._holds:  # held: cam1 stays as calibrated unless the check lets go
-                if j >= self._next_check:
-                    self._check_stereo(t_ns, est.atPose3(self._e[1]))
-                    # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
-                    self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
-            elif self.refine_stereo:
+            elif self.refine_stereo and not self._holds:  # held: cam1 stays as calibrated unless the check lets go
                 self.P_body_cam1 = est.atPose3(self._e[1])
                 if self.check_K1:
                     self.K1 = est.atCal3_S2(self._k[1])
+            if self._holds and j >= self._next_check:
+                # cam1 where the holds let it sit: relative to cam0 with the rig refined, else on the body
+                held = self.P_body_cam0.between(self.P_body_cam1) if self.refine else est.atPose3(self._e[1])
+                self._check_stereo(t_ns, held)
+                # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
+                self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
                 self.K0, self.K1 = est.atCal3_S2(self._k[0]), est.atCal3_S2(self._k[1])
         except GTSAM_ERRORS as e:
