@@ -97,21 +97,14 @@ def _run_show(args: argparse.Namespace) -> int:
     return 0
 
 
-def _one_opencv_thread() -> None:
-    """Replays whose result is a calibration or a verdict run OpenCV on one thread, as `vio replay` does: with its
-    pool, a replay on a busy machine came out different from the same replay alone (docs/evaluation.md,
-    "Reproducible replays")."""
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
 def _run_check(args: argparse.Namespace) -> int:
     from calib.check import check_calibration, format_report
     from vio.calibration import load_calibration
 
-    if args.disparity:
-        _one_opencv_thread()
+    if args.disparity:  # a replay whose verdict must not depend on what else the machine was doing
+        from vio.frontend.runner import set_opencv_threads
+
+        set_opencv_threads(1)
 
     calib = None if str(args.calibration) == "-" else load_calibration(args.calibration)
     results = check_calibration(args.dataset, calib, max_frames=args.max_frames, disparity=args.disparity,
@@ -167,8 +160,9 @@ def _run_refine(args: argparse.Namespace) -> int:
     from vio.config import load_config
     from vio.consistency import replay_states
     from vio.estimator import stereo_check_line
+    from vio.frontend.runner import set_opencv_threads
 
-    _one_opencv_thread()
+    set_opencv_threads(1)  # the calibration written must not depend on what else the machine was doing
     cfg = load_config(args.config)
     if args.stereo_only and (args.stereo or args.intrinsics):
         raise VioError("--stereo-only refines cam1's rotation alone: leave out --stereo and --intrinsics")

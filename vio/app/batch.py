@@ -53,19 +53,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def _single_thread() -> None:
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
 def replay_flight(path: str, options: dict) -> dict:
     """Replay one flight; a row of the report, with the trajectory's TUM text under "tum" (what was estimated,
     also when the flight failed). Never raises: a failure is the row's `error`. Reads only the flight:
     `options` carries the VioConfig ("cfg") and calibration ("calibration") that the driver loaded, so a
     worker on another machine needs the flight's path and nothing else of the driver's files."""
-    _single_thread()
     import tempfile
+
+    from vio.frontend.runner import set_opencv_threads
+
+    set_opencv_threads(1)
 
     row: dict = {k: None for k in _ROW_FIELDS}
     row.update(flight=Path(path).name, path=str(path), ok=False, worker=f"{os.uname().nodename}:{os.getpid()}",

@@ -420,12 +420,10 @@ def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
 
-    if args.threads:
-        import cv2
+    if args.threads:  # 0: OpenCV's own pool
+        from vio.frontend.runner import set_opencv_threads
 
-        # OpenCV's pool hands out work as threads come free, which under load changed the trajectory (a
-        # replay is for comparing: one thread keeps it reproducible)
-        cv2.setNumThreads(args.threads)
+        set_opencv_threads(args.threads)
     cfg = load_config(args.config)
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)

@@ -13,6 +13,16 @@ from vio.frontend.tracker import StereoTracker
 from vio.types import FeatureFrame, ImuSample, StereoFrame
 
 
+def set_opencv_threads(n: int = 1) -> None:
+    """OpenCV's worker threads for a replay. One (the default) keeps it reproducible: OpenCV's pool hands out work
+    as threads come free, and on a machine busy with other work a replay came out different from the same replay
+    alone (docs/evaluation.md, "Reproducible replays"); one thread per process also keeps parallel replays from
+    competing for the cores."""
+    import cv2
+
+    cv2.setNumThreads(n)
+
+
 def run_frontend(dataset, cfg: FrontendConfig | None = None, max_frames: int | None = None,
                  tracker: StereoTracker | None = None, use_gyro: bool = True,
                  keyframe_every: int = 0) -> Iterator[tuple[StereoFrame, FeatureFrame]]:
