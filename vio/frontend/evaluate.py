@@ -151,6 +151,7 @@ def truth_errors(ffs: list[FeatureFrame], truth: SimTruth) -> dict:
         "depth_rel_error_p90_within_5m": float(np.percentile(rel, 90)),
         "depth_samples": len(rel_err),
         "reprojection_error_median_px": float(np.median(obs)),
+        "reprojection_error_p90_px": float(np.percentile(obs, 90)),
         "outlier_observations_fraction": float(np.mean(obs > OUTLIER_PX)),
         "outlier_tracks_fraction": len(bad_tracks) / max(len(seen), 1),
         "edge_born_observations_fraction": float(edge.mean()),
