@@ -80,7 +80,7 @@ class BackendConfig:
     keyframe_min_interval_s: float = opt(0.2, "shortest time between keyframes (caps the solver rate)", min=0, max=10)
     keyframe_min_tracks: int = opt(50, "tracked features below which a keyframe is forced", min=0, max=2000)
     pixel_sigma: float = opt(0.5, "std of a feature measurement [px] (the Huber loss starts at huber_k of it); the "
-                             "front end's anchor-refined tracks sit 0.2-0.3 px RMS from their true points (1.0 until "
+                             "front end's anchor-refined tracks sit 0.1-0.25 px RMS from their true points (1.0 until "
                              "2026-12-05: vision under-weighted against the IMU, docs/estimator.md)", min=0.05, max=20)
     huber_k: float = opt(1.345, "Huber threshold (in sigmas) of the robust visual loss", min=0.1, max=100)
     min_tracks_ok: int = opt(15, "tracked features below which tracking is lost", min=3, max=1000)
