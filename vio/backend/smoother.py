@@ -388,7 +388,7 @@ class VioSmoother:
         # a marginalisation still pending from the last keyframe (the caller had no frame between) goes with this
         # update; one due at this keyframe waits for the caller's next frame (`marginalize`) when it asks for that
         between = bool(self.cfg.marginalize_between_frames) and every > 1
-        now = self.marginalize_due or (not between and (every <= 1 or j % every == 0))
+        now = self.marginalize_due or (not between and j % every == 0)
         self.marginalize_due = between and j % every == 0
         self.smoother.setSmootherLag(self.cfg.lag_s if now else KEEP_ALL_LAG_S)
         try:
