@@ -40,6 +40,9 @@ class FrontendConfig:
     grid_rows: int = opt(6, "detection grid rows", min=1, max=64)
     klt_window_px: int = opt(21, "KLT window size (odd)", min=5, max=99)
     klt_pyramid_levels: int = opt(3, "KLT pyramid levels", min=0, max=8)
+    klt_half_resolution: bool = opt(True, "frame-to-frame KLT on half-resolution images (window and levels halved "
+                                    "to the same reach); the anchor refinement then places each track at full "
+                                    "resolution. Full resolution when anchor_patch_px = 0")
     fb_check_px: float = opt(1.0, "forward-backward KLT error above which a match is dropped (stereo; temporal "
                              "only with anchor_patch_px = 0)", min=0.05, max=20)
     ransac_threshold_px: float = opt(0.35, "RANSAC inlier threshold on temporal matches", min=0.1, max=20)
@@ -47,6 +50,7 @@ class FrontendConfig:
                                   min=2, max=100)
     anchor_patch_px: int = opt(15, "patch of the affine refinement against each track's first appearance; 0 = off",
                                min=0, max=41)
+    anchor_iterations: int = opt(3, "Gauss-Newton steps of the anchor refinement per frame", min=1, max=10)
     anchor_min_ncc: float = opt(0.85, "NCC with the first appearance below which a track is dropped", min=-1, max=1)
     anchor_renew_deform: float = opt(0.4, "patch scale/shear change at which the anchor patch is renewed",
                                      min=0.05, max=2)

@@ -51,8 +51,13 @@ class StereoTracker:
         self._fast = cv2.FastFeatureDetector_create(self.cfg.fast_threshold, True)
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.cfg.clahe else None
         c = self.cfg
-        self._anchor = (AnchorRefiner(c.anchor_patch_px | 1, min_ncc=c.anchor_min_ncc,
+        self._anchor = (AnchorRefiner(c.anchor_patch_px | 1, iterations=c.anchor_iterations, min_ncc=c.anchor_min_ncc,
                                       renew_deform=c.anchor_renew_deform) if c.anchor_patch_px else None)
+        # KLT only has to bring a track within reach of the anchor refinement, which places it at full
+        # resolution against its first appearance: on half-resolution images it costs a quarter
+        self._half = bool(c.klt_half_resolution and self._anchor is not None)
+        wh = (w // 2) | 1
+        self._klt_half = dict(self._klt, winSize=(wh, wh), maxLevel=max(0, c.klt_pyramid_levels - 1))
         self._next_id = 0
         self._last_t: int | None = None
         self._frame_count = 0
@@ -64,6 +69,7 @@ class StereoTracker:
     def _reset(self) -> None:
         """Forget all tracks: the next good frame starts fresh (new ids, new keyframe reference)."""
         self._prev_img: np.ndarray | None = None
+        self._prev_half: tuple[np.ndarray, np.ndarray] | None = None  # (full image, its pyrDown)
         self._ids = np.zeros(0, np.int64)
         self._raw = np.zeros((0, 2), np.float32)  # raw left pixels of the live tracks
         self._uv = np.zeros((0, 2))  # undistorted left pixels
@@ -132,8 +138,18 @@ class StereoTracker:
             return np.zeros(n, bool)
         # with anchor refinement, the NCC against the first appearance checks each match more strictly than the
         # forward-backward pass would, at a fraction of its cost
-        p1, ok = klt_fb(self._prev_img, img, self._raw, self._predict(R_prev_cur), self._klt, self.cfg.fb_check_px,
-                        backward=self._anchor is None)
+        guess = self._predict(R_prev_cur)
+        if self._half:  # pyrDown's pixel i is centred on the full image's pixel 2i: coordinates halve exactly
+            prev = self._prev_half
+            prev_small = prev[1] if prev is not None and prev[0] is self._prev_img else cv2.pyrDown(self._prev_img)
+            small = cv2.pyrDown(img)
+            self._prev_half = (img, small)
+            p1, ok = klt_fb(prev_small, small, self._raw * 0.5, guess * 0.5, self._klt_half, self.cfg.fb_check_px,
+                            backward=False)
+            p1 *= 2.0
+        else:
+            p1, ok = klt_fb(self._prev_img, img, self._raw, guess, self._klt, self.cfg.fb_check_px,
+                            backward=self._anchor is None)
         self._raw = np.where(ok[:, None], p1, self._raw).astype(np.float32)
         return ok
 
