@@ -910,3 +910,45 @@ def test_the_window_leaves_together_every_nth_keyframe_and_never_grows_more_than
                 assert s <= lag + 1e-6, (j, s)
             assert s <= lag + (every - 1) * step + 1e-6, (j, s)
     assert any(s > lag + 1e-6 for _, s in kf) == (every > 1)
+
+
+def test_a_keyframe_is_solved_on_the_frame_after_it_with_the_same_result():
+    """solve_next_frame: the keyframe's own frame sends the IMU prediction and the frame after it carries the
+    solve (the keyframe comes with that frame for the loop stage); the smoother gets the same factors, so each
+    keyframe's solved state is the one a solve on its own frame gives, and so is every frame that is no
+    keyframe."""
+    from collections import deque
+
+    runs = {}
+    for next_frame in (False, True):
+        cfg = VioConfig()
+        cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, solve_next_frame=next_frame))
+        est = Estimator(synthetic_calibration(), cfg)
+        est._processed = deque()  # keep every processed frame (the estimator keeps the newest 64)
+        _run(est, duration_s=6.0, still_s=1.0, seed=3)
+        assert est.reset_counter == 0
+        runs[next_frame] = (list(est._processed), est.keyframes)
+    (same, kf_same), (nxt, kf_next) = runs[False], runs[True]
+    assert [pf.t_ns for pf in same] == [pf.t_ns for pf in nxt]
+    assert kf_next in (kf_same, kf_same - 1)  # the last keyframe of the flight may still wait for its frame
+    chosen = [pf.t_ns for pf in same if pf.timings.keyframe]
+    assert len(chosen) >= 10 and chosen == [pf.t_ns for pf in nxt if pf.timings.keyframe]
+    solved_same = {pf.keyframe.t_ns: pf.keyframe.state for pf in same if pf.keyframe is not None}
+    assert all(pf.keyframe.t_ns == pf.t_ns for pf in same if pf.keyframe is not None)
+    n_deferred = 0
+    for prev, pf in zip(nxt, nxt[1:]):
+        if prev.timings.keyframe and prev.keyframe is None:  # chosen on prev, solved with pf
+            assert pf.keyframe is not None and pf.keyframe.t_ns == prev.t_ns
+            assert not pf.timings.keyframe
+            ref = solved_same[prev.t_ns]
+            np.testing.assert_allclose(pf.keyframe.state.T_world_body, ref.T_world_body, atol=1e-9)
+            np.testing.assert_allclose(pf.keyframe.state.v_world, ref.v_world, atol=1e-9)
+            n_deferred += 1
+        if not pf.timings.keyframe and pf.state is not None:
+            ref = same[nxt.index(pf)].state
+            np.testing.assert_allclose(pf.state.T_world_body, ref.T_world_body, atol=1e-9)
+    assert n_deferred >= len(chosen) - 2  # all but the first (initialisation) and possibly the last
+    # the keyframe's own frame: the prediction, close to but not the solve
+    gaps = [np.linalg.norm(pf.state.T_world_body[:3, 3] - solved_same[pf.t_ns].T_world_body[:3, 3])
+            for pf in nxt if pf.timings.keyframe and pf.keyframe is None and pf.state is not None]
+    assert len(gaps) >= 8 and 0 < np.median(gaps) < 0.02

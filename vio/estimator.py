@@ -107,6 +107,19 @@ class _Running:
     kf_cov_pose: np.ndarray = field(default_factory=lambda: np.eye(6) * 1e-2)  # at the last keyframe
     kf_cov_vel: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-2)
     marginal_due: bool = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
+    deferred: _DeferredKeyframe | None = None  # a keyframe chosen on the last frame, solved on this one
+
+
+@dataclass
+class _DeferredKeyframe:
+    """A keyframe chosen on its own frame and solved on the next (`solve_next_frame`): what its solve needs."""
+
+    t: int  # IMU-clock time of the keyframe
+    pim: gtsam.PreintegratedCombinedMeasurements  # the last keyframe -> t
+    ff: FeatureFrame
+    still: bool  # zero-velocity keyframe
+    omega_body: np.ndarray | None
+    applied_offset_ns: int
 
 
 @dataclass
@@ -149,6 +162,17 @@ class ProcessedFrame:
     features: FeatureFrame
     timings: FrameTimings
     state: NavState | None  # the frame-rate state (None before initialisation or after a reset)
+    keyframe: SolvedKeyframe | None = None  # the keyframe solved in this frame's call (this frame or the one before)
+
+
+@dataclass
+class SolvedKeyframe:
+    """A keyframe as solved by the smoother, for the stages that want keyframes (loop closure): with
+    `solve_next_frame` it is solved while the frame after it is processed, so it comes with that frame."""
+
+    t_ns: int  # camera stamp of the keyframe's own frame
+    features: FeatureFrame  # that frame's front-end output
+    state: NavState  # the smoother's state at the keyframe
 
 
 def _reason_key(reason: str) -> str:
@@ -226,6 +250,7 @@ class Estimator:
         self._track_quality = 0.0
         self._tracking = False
         self._was_keyframe = False
+        self._solved_kf: SolvedKeyframe | None = None  # set by a solve, handed out with the frame that made it
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
@@ -382,8 +407,18 @@ class Estimator:
             log.warning("%s; %d frames dropped so far", why, self.frames_dropped)
 
     def flush(self) -> NavState | None:
-        """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value."""
-        return self._drain(final=True)
+        """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value. A
+        keyframe still waiting for its solve (`solve_next_frame`) is solved, so that the flight's statistics
+        and refined calibration include it; no frame comes with it."""
+        out = self._drain(final=True)
+        run = self._state
+        if isinstance(run, _Running) and run.deferred is not None:
+            try:
+                self._solve_deferred(run)
+            except SmootherFailure as e:
+                self.reset(str(e), bridge=e.state_ok)
+            self._solved_kf = None
+        return out
 
     def reset(self, reason: str, bridge: bool = True) -> None:
         """Drop the smoother and re-initialise; the last pose becomes the new start (yaw and position).
@@ -492,7 +527,8 @@ class Estimator:
             self._latest = st
             for sink in self.listeners:
                 sink(st)
-        self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st))
+        self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st, self._solved_kf))
+        self._solved_kf = None
         return st
 
     def _needs_stereo(self, t: int, preview: FeatureFrame) -> bool:
@@ -674,11 +710,13 @@ class Estimator:
                  *T[2, :3])
         return self._after_keyframe(init.t_ns, est, ff)
 
-    def _after_keyframe(self, t: int, est, ff: FeatureFrame) -> NavState:
+    def _after_keyframe(self, t: int, est, ff: FeatureFrame, deferred: bool = False) -> NavState:
+        """Book-keeping after a keyframe's solve; `deferred`: the solve ran on the frame after the keyframe's, which
+        has already done what belongs to the keyframe's own frame (the keyframe time, the tracker's mark)."""
         run = self._state
         run.last_kf_t = t
         self.keyframes += 1
-        self._was_keyframe = True
+        self._was_keyframe = not deferred
         first = run.pim is None  # (re)start: always a marginal, at once
         if not first:  # grown up to this keyframe; replaced on the next frame when a marginal is due
             run.kf_cov_pose, run.kf_cov_vel = self._grown_covariance(run.pim)
@@ -689,15 +727,21 @@ class Estimator:
             run.marginal_due = True
         self._cov_pose, self._cov_vel = run.kf_cov_pose, run.kf_cov_vel
         run.pim = gtsam.PreintegratedCombinedMeasurements(self._interval_params(t), est.bias)
-        if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
-            self.tracker.mark_keyframe()
+        if not deferred:
+            self._mark_keyframe()
         pose = est.pose.matrix()
         bias = est.bias
         self.gyro_prior.set_gyro_bias(bias.gyroscope())  # no gyro-bias rotation as fake parallax
         # the newer samples are applied when an IMU-rate state is asked for (_propagate_to)
         self.propagator.reset(t, pose, est.velocity, bias.gyroscope(), bias.accelerometer(), self.imu.at(t))
         self._update_health(t, ff)
-        return self._frame_state(t, pose, est.velocity, bias)
+        st = self._frame_state(t, pose, est.velocity, bias)
+        self._solved_kf = SolvedKeyframe(int(ff.t_ns), ff, st)
+        return st
+
+    def _mark_keyframe(self) -> None:
+        if self.tracker is not None and hasattr(self.tracker, "mark_keyframe"):
+            self.tracker.mark_keyframe()
 
     def _use_params(self, params: gtsam.PreintegrationCombinedParams) -> None:
         """Noise of the pre-integration from here on; the IMU-rate covariance growth follows it."""
@@ -863,17 +907,15 @@ class Estimator:
     def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
         run = self._state
         self.imu.integrate(run.pim, prev_t, t)
-        if run.smoother.marginalize_due:  # the last keyframe's marginalisation, here rather than in its solve
+        if run.deferred is not None:  # the last frame's keyframe: its solve is this frame's back-end work
+            self._solve_deferred(run, t)
+        elif run.smoother.marginalize_due:  # the last keyframe's marginalisation, here rather than in its solve
             run.smoother.marginalize()
         elif run.marginal_due:  # the last keyframe's marginal, computed here rather than on top of its solve
             self._marginal()
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):
-            last = run.smoother.last
-            nav = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
-            self._cov_pose, self._cov_vel = self._grown_covariance(run.pim)
-            self._update_health(t, ff)
-            st = self._frame_state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
+            st = self._predicted_state(t, ff)
         else:
             icfg = self.cfg.init
             ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
@@ -883,21 +925,57 @@ class Estimator:
             v_pred = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias).velocity()
             still = (is_still(ts, gyro, accel, icfg) and ff.tracking_ok and self._flow_px <= self.bcfg.zupt_max_flow_px
                      and float(np.linalg.norm(v_pred)) <= self.bcfg.zupt_max_speed_m_s)
-            est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still,
-                                            omega_body=self._omega(t, last.bias.gyroscope()),
-                                            applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
-            self._check_plausible(est)
-            if run.smoother.time_state and not self._offset_handed_over:
-                self._hand_offset_to_state()
-            if est.T_body_cam0 is not None:
-                self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
-            self._note_stereo_check(run.smoother.stereo_finding, t)
-            st = self._after_keyframe(t, est, ff)
+            omega = self._omega(t, last.bias.gyroscope())
+            if self.bcfg.solve_next_frame:
+                # This frame sends the IMU prediction, as a frame that is no keyframe does; the next frame solves
+                # (and re-integrates its own IMU from here with the solved bias), so no frame pays stereo
+                # matching and the solve together. The tracker measures parallax from this frame on.
+                st = self._predicted_state(t, ff)
+                run.deferred = _DeferredKeyframe(t, run.pim, ff, still, omega, t - int(ff.t_ns))
+                run.last_kf_t = t
+                run.pim = gtsam.PreintegratedCombinedMeasurements(self._params_now, last.bias)  # until the solve
+                self._was_keyframe = True
+                self._mark_keyframe()
+            else:
+                est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still, omega_body=omega,
+                                                applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
+                st = self._after_solve(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:
             lost = "since the start" if vt is None else f"for {(t - vt) * 1e-9:.2f} s"
             self.reset(f"tracking lost: no usable camera frame {lost}")
         return st
+
+    def _predicted_state(self, t: int, ff: FeatureFrame) -> NavState:
+        """The frame's state from the last solved keyframe and the IMU since then (a frame that is not solved)."""
+        run = self._state
+        last = run.smoother.last
+        nav = run.pim.predict(gtsam.NavState(last.pose, last.velocity), last.bias)
+        self._cov_pose, self._cov_vel = self._grown_covariance(run.pim)
+        self._update_health(t, ff)
+        return self._frame_state(t, nav.pose().matrix(), np.asarray(nav.velocity()), last.bias)
+
+    def _solve_deferred(self, run: _Running, t_now: int | None = None) -> None:
+        """Solve the keyframe chosen on the last frame, then start the next interval's pre-integration at it with
+        the solved bias and bring it up to t_now: the same factors and states as a solve on the keyframe's own
+        frame."""
+        d, run.deferred = run.deferred, None
+        run.pim = d.pim
+        est = run.smoother.add_keyframe(d.t, d.pim, d.ff, zero_velocity=d.still, omega_body=d.omega_body,
+                                        applied_offset_ns=d.applied_offset_ns)
+        self._after_solve(d.t, est, d.ff, deferred=True)
+        if t_now is not None:
+            self.imu.integrate(run.pim, d.t, t_now)
+
+    def _after_solve(self, t: int, est, ff: FeatureFrame, deferred: bool = False) -> NavState:
+        run = self._state
+        self._check_plausible(est)
+        if run.smoother.time_state and not self._offset_handed_over:
+            self._hand_offset_to_state()
+        if est.T_body_cam0 is not None:
+            self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
+        self._note_stereo_check(run.smoother.stereo_finding, t)
+        return self._after_keyframe(t, est, ff, deferred)
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:
         """Last keyframe covariance grown by the IMU pre-integration since then.

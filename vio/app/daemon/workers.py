@@ -281,12 +281,14 @@ class EstimatorWorker(Worker):
 
     def _to_loop(self, pf: ProcessedFrame) -> None:
         """Hand a processed keyframe to the loop-closure thread."""
-        st = pf.state
-        if st is not None and pf.timings.keyframe:
+        kf = pf.keyframe  # solved in this frame's call: this frame's or (solve_next_frame) the last's
+        if kf is not None:
             for t, left in self._left:
-                if t == pf.t_ns:
-                    self.loop_worker.submit(st.t_ns, st.T_world_body, left, pf.features, st.reset_counter)
-        while self._left and self._left[0][0] <= pf.t_ns:
+                if t == kf.t_ns:
+                    st = kf.state
+                    self.loop_worker.submit(st.t_ns, st.T_world_body, left, kf.features, st.reset_counter)
+        # this frame's image stays until the next frame: it may be a keyframe solved then
+        while self._left and self._left[0][0] < pf.t_ns:
             self._left.popleft()
 
     def _emit(self, result: Any) -> None:
