@@ -764,3 +764,40 @@ def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_sess
     print(f"session position error: edges alike {errors[False] * 1e3:.1f} mm, weighed by inliers "
           f"{errors[True] * 1e3:.1f} mm")
     assert errors[True] < 0.8 * errors[False]
+
+
+def test_a_keyframe_solved_on_the_next_frame_reaches_the_loop_stage_as_one_solved_on_its_own_frame(laps_flight):
+    """With `solve_next_frame` the replay hands the loop stage each keyframe when the frame after it is processed:
+    the same keyframes, with their own frame's image, features and solved pose as without it."""
+    import dataclasses
+
+    from vio.app.replay import replay
+    from vio.config import VioConfig
+    from vio.io.euroc import EurocDataset
+
+    class Recorder:
+        dropped, error = 0, None
+
+        def __init__(self) -> None:
+            self.items: list = []
+
+        def submit(self, *item) -> None:
+            self.items.append(item)
+
+        def close(self) -> None:
+            pass
+
+    got = {}
+    for next_frame in (False, True):
+        cfg = VioConfig()
+        cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, solve_next_frame=next_frame))
+        rec = Recorder()
+        replay(EurocDataset(laps_flight), cfg, progress=False, max_frames=200, loop=rec)
+        got[next_frame] = rec.items
+    same, nxt = got[False], got[True]
+    assert len(same) >= 20 and len(nxt) in (len(same), len(same) - 1)  # the last may wait for its next frame
+    for (t_a, T_a, img_a, ff_a, r_a), (t_b, T_b, img_b, ff_b, r_b) in zip(same, nxt):
+        assert t_a == t_b and ff_a.t_ns == ff_b.t_ns and r_a == r_b == 0
+        assert img_a is img_b or np.array_equal(img_a, img_b)
+        np.testing.assert_array_equal(ff_a.ids, ff_b.ids)
+        np.testing.assert_allclose(T_a, T_b, atol=1e-9)
