@@ -113,10 +113,10 @@ class _Running:
 
 @dataclass
 class _DeferredKeyframe:
-    """A keyframe chosen on its own frame and solved on the next (`solve_next_frame`): what its solve needs."""
+    """A keyframe chosen on its own frame and solved on the next (`solve_next_frame`): what its solve needs besides
+    the running pre-integration, which stops at t until the solve (the next frame solves before integrating)."""
 
     t: int  # IMU-clock time of the keyframe
-    pim: gtsam.PreintegratedCombinedMeasurements  # the last keyframe -> t
     ff: FeatureFrame
     still: bool  # zero-velocity keyframe
     omega_body: np.ndarray | None
@@ -933,7 +933,7 @@ class Estimator:
                 # before its front end (`_solve_deferred_first`), so no frame pays stereo matching and the solve
                 # together. The tracker measures parallax from this frame on.
                 st = self._predicted_state(t, ff)
-                run.deferred = _DeferredKeyframe(t, run.pim, ff, still, omega, t - int(ff.t_ns))
+                run.deferred = _DeferredKeyframe(t, ff, still, omega, t - int(ff.t_ns))
                 run.last_kf_t = t
                 self._was_keyframe = True
                 self._mark_keyframe()
@@ -975,8 +975,7 @@ class Estimator:
         """Solve the keyframe chosen on the last frame: the same factors, and the next interval's pre-integration
         started at it with the solved bias, as a solve on the keyframe's own frame gives."""
         d, run.deferred = run.deferred, None
-        run.pim = d.pim
-        est = run.smoother.add_keyframe(d.t, d.pim, d.ff, zero_velocity=d.still, omega_body=d.omega_body,
+        est = run.smoother.add_keyframe(d.t, run.pim, d.ff, zero_velocity=d.still, omega_body=d.omega_body,
                                         applied_offset_ns=d.applied_offset_ns)
         self._after_solve(d.t, est, d.ff, deferred=True)
 
