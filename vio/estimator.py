@@ -579,7 +579,8 @@ class Estimator:
             return
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due
-                                                      or run.smoother.marginalize_due or run.just_solved)
+                                                      or run.smoother.marginalize_due or run.just_solved
+                                                      or run.smoother.check_due)
         new = self.offset_estimator.add_frame(ff, solve=quiet)
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
@@ -855,12 +856,12 @@ class Estimator:
                     for c, v in zip(cams, k)]
         return dataclasses.replace(self.calib, cam0=cams[0], cam1=cams[1])
 
-    def _note_stereo_check(self, f: StereoFinding | None, t: int) -> None:
+    def _note_stereo_check(self, f: StereoFinding | None) -> None:
         """Keep the stereo check's newest reading; say it once when it lets go of the calibration."""
-        if f is None or f.t_ns != t:
+        if f is None or f is self._stereo_finding:
             return
         self._stereo_finding = f
-        log.debug("stereo check t=%d: %s%s", t, f.describe(), " -> let go" if f.released else "")
+        log.debug("stereo check t=%d: %s%s", f.t_ns, f.describe(), " -> let go" if f.released else "")
         if f.released:
             self._stereo_released.append(f)
             log.warning("stereo check: the right camera disagrees with the calibration (%s): depths and scale were "
@@ -911,6 +912,8 @@ class Estimator:
         self.imu.integrate(run.pim, prev_t, t)
         if run.just_solved:  # the last frame's keyframe was this frame's back-end work: its dues wait a frame
             run.just_solved = False
+        elif run.smoother.check_due:  # the last keyframe's stereo check, here rather than on top of its solve
+            self._note_stereo_check(run.smoother.check_stereo())
         elif run.smoother.marginalize_due:  # the last keyframe's marginalisation, here rather than in its solve
             run.smoother.marginalize()
         elif run.marginal_due:  # the last keyframe's marginal, computed here rather than on top of its solve
@@ -986,7 +989,7 @@ class Estimator:
             self._hand_offset_to_state()
         if est.T_body_cam0 is not None:
             self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
-        self._note_stereo_check(run.smoother.stereo_finding, t)
+        self._note_stereo_check(run.smoother.stereo_finding)  # one the solve read (a check still due there)
         return self._after_keyframe(t, est, ff, deferred)
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:

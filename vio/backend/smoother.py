@@ -284,6 +284,7 @@ class VioSmoother:
         self.stereo_finding: StereoFinding | None = None  # the newest check's reading
         self._stood_out = 0  # consecutive checks whose reading stood out
         self._next_check = cfg.stereo_check_every  # keyframe index of the next check
+        self._check_due: tuple[int, int] | None = None  # (stamp, index) of the keyframe whose check is due
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
         self.time_from: int | None = None
@@ -476,6 +477,7 @@ class VioSmoother:
         carry) feed the time offset state, when it is on."""
         if self.last is None:
             raise SmootherFailure("add_keyframe before initialize")
+        self.check_stereo()  # one the caller has not read yet
         prev = self.last
         i, j = self.index, self.index + 1
         t_s = self._t_s(t_ns)
@@ -599,11 +601,7 @@ class VioSmoother:
                 if self.check_K1:
                     self.K1 = est.atCal3_S2(self._k[1])
             if self._holds and j >= self._next_check:
-                # cam1 where the holds let it sit: relative to cam0 with the rig refined, else on the body
-                held = self.P_body_cam0.between(self.P_body_cam1) if self.refine else est.atPose3(self._e[1])
-                self._check_stereo(t_ns, held)
-                # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
-                self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
+                self._check_due = (t_ns, j)  # read by the caller on its next frame (`check_stereo`)
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
                 self.K0, self.K1 = est.atCal3_S2(self._k[0]), est.atCal3_S2(self._k[1])
         except GTSAM_ERRORS as e:
@@ -743,6 +741,32 @@ class VioSmoother:
         if self.check_relative:
             return gtsam.BetweenFactorPose3(self._e[0], self._e[1], self._P_cam0_cam1_calib, hold)
         return gtsam.PriorFactorPose3(self._e[1], self._P_body_cam1_calib, hold)
+
+    @property
+    def check_due(self) -> bool:
+        """A stereo check is due (chosen at the last keyframe): `check_stereo` reads it."""
+        return self._check_due is not None
+
+    def check_stereo(self) -> StereoFinding | None:
+        """The stereo check due since the last keyframe, on the smoother as that keyframe left it; returns its
+        reading (stamped with that keyframe), None when none was due or it read nothing.
+
+        Not part of the keyframe's solve: its joint marginal costs 1-10 ms, which on top of a solve set the slowest
+        frames (issue 17's p99), so the estimator reads it on the next frame; a check still due when the next
+        keyframe comes is read first thing there (`add_keyframe`), where the old place in the solve put it."""
+        if self._check_due is None:
+            return None
+        t_ns, j = self._check_due
+        self._check_due = None
+        if not self._holds:  # let go in between (a rig switch)
+            return None
+        # cam1 where the holds let it sit: relative to cam0 with the rig refined, else on the body
+        held = self.P_body_cam0.between(self.P_body_cam1) if self.refine else self._estimate.atPose3(self._e[1])
+        before = self.stereo_finding
+        self._check_stereo(t_ns, held)
+        # a reading that stood out is confirmed (or not) soon: every keyframe flown biased costs
+        self._next_check = j + (CONFIRM_AFTER_KF if self._stood_out else self.cfg.stereo_check_every)
+        return None if self.stereo_finding is before else self.stereo_finding
 
     def _check_stereo(self, t_ns: int, held: gtsam.Pose3) -> None:
         """Where cam1 would be without the holds, from where they let it sit and how much they tighten it.
