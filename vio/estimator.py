@@ -233,6 +233,7 @@ class Estimator:
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
         self._stereo_finding: StereoFinding | None = None  # the stereo check's newest reading (backend.stereo_check)
+        self._offset_solved = False  # the time-offset estimator solved on this frame
         self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
         self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
@@ -575,13 +576,15 @@ class Estimator:
 
         Its solves (tens of ms) wait for a frame that is no keyframe and computes no marginal, so that they
         never add to a keyframe solve."""
+        self._offset_solved = False
         if self.offset_estimator is None or not self.offset_estimator.collects(int(ff.t_ns)):
             return
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due
-                                                      or run.smoother.marginalize_due or run.just_solved
-                                                      or run.smoother.check_due)
+                                                      or run.smoother.marginalize_due or run.just_solved)
+        solves = self.offset_estimator.solves
         new = self.offset_estimator.add_frame(ff, solve=quiet)
+        self._offset_solved = self.offset_estimator.solves > solves  # a stereo check due waits for the next frame
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
             self.time_offset_ns = new
@@ -912,12 +915,14 @@ class Estimator:
         self.imu.integrate(run.pim, prev_t, t)
         if run.just_solved:  # the last frame's keyframe was this frame's back-end work: its dues wait a frame
             run.just_solved = False
-        elif run.smoother.check_due:  # the last keyframe's stereo check, here rather than on top of its solve
-            self._note_stereo_check(run.smoother.check_stereo())
         elif run.smoother.marginalize_due:  # the last keyframe's marginalisation, here rather than in its solve
             run.smoother.marginalize()
         elif run.marginal_due:  # the last keyframe's marginal, computed here rather than on top of its solve
             self._marginal()
+        elif run.smoother.check_due and not self._offset_solved:
+            # the last keyframe's stereo check, on a frame that carries no other back-end work (the time-offset
+            # solves do not wait for it, so they fall on the frames they fell on before the check moved here)
+            self._note_stereo_check(run.smoother.check_stereo())
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):
             st = self._predicted_state(t, ff)
