@@ -794,6 +794,50 @@ def test_stereo_check_leaves_a_right_calibration_as_it_is():
     assert err < 1.1 * err_plain + 1e-4
 
 
+def test_the_stereo_check_is_read_after_its_keyframe_and_where_does_not_change_the_estimate(monkeypatch):
+    """The check's joint marginal (1-10 ms) is not paid inside a keyframe's solve: the estimator reads it on a
+    later frame, before the next keyframe; a check still due when that keyframe comes is read first thing in its
+    `add_keyframe`. Where it is read changes nothing: the smoother is as its keyframe left it either way, so a
+    flight whose estimator never reads it (every check at the next keyframe) gives the same states and readings."""
+    from vio.backend import smoother as sm
+
+    calib = synthetic_calibration()
+    wrong = dataclasses.replace(calib, cam1=dataclasses.replace(calib.cam1, cx=calib.cam1.cx + 1.0))  # it lets go
+    rig = {"time_offset_state": False, "refine_extrinsics_auto": False}  # the rig held: the check alone
+    calls: list[tuple[int, int, bool]] = []  # (keyframe stamp the check reads, smoother index then, in a solve)
+    in_solve = [False]
+    add, check, read = sm.VioSmoother.add_keyframe, sm.VioSmoother._check_stereo, sm.VioSmoother.check_stereo
+
+    def add_spy(self, *a, **k):
+        in_solve[0] = True
+        try:
+            return add(self, *a, **k)
+        finally:
+            in_solve[0] = False
+
+    def check_spy(self, t_ns, held):
+        calls.append((t_ns, self.index, in_solve[0]))
+        return check(self, t_ns, held)
+
+    monkeypatch.setattr(sm.VioSmoother, "add_keyframe", add_spy)
+    monkeypatch.setattr(sm.VioSmoother, "_check_stereo", check_spy)
+    est, trace = _tilting_flight(calib, False, wrong=wrong, offset_ms=lambda t: 0.0, **rig)
+    by_frame = list(calls)
+    assert len(by_frame) >= 3 and not any(inside for _, _, inside in by_frame)
+    assert len({t for t, _, _ in by_frame}) == len(by_frame)  # one reading per keyframe it was due at
+    sc = est.stereo_check_stats()
+    assert len(sc["released_at_s"]) == 1  # the 1 px shift is seen and let go, as with the check in the solve
+
+    calls.clear()
+    monkeypatch.setattr(sm.VioSmoother, "check_stereo", lambda self: read(self) if in_solve[0] else None)
+    late, trace_late = _tilting_flight(calib, False, wrong=wrong, offset_ms=lambda t: 0.0, **rig)
+    assert len(calls) >= len(by_frame) - 1 and all(inside for _, _, inside in calls)
+    # the same keyframes checked at the same smoother index, i.e. before the next keyframe's factors went in
+    assert [c[:2] for c in calls] == [c[:2] for c in by_frame][:len(calls)]
+    np.testing.assert_array_equal(np.asarray(trace_late), np.asarray(trace))
+    assert late.stereo_check_stats() == sc
+
+
 def test_with_the_rig_refined_the_stereo_check_holds_the_pair_relative_to_cam0_and_lets_a_drifted_one_go():
     """refine_extrinsics turns the whole rig on the body (cam0 and cam1 together); the stereo check then holds
     cam1's rotation relative to cam0 (it was off with the refinement before). cam1's principal point 1 px off:
