@@ -410,8 +410,8 @@ class Estimator:
 
     def flush(self) -> NavState | None:
         """Process frames still waiting for IMU (end of a recording): the IMU is held at its last value. A
-        keyframe still waiting for its solve (`solve_next_frame`) is solved, so that the flight's statistics
-        and refined calibration include it; no frame comes with it."""
+        keyframe still waiting for its solve (`solve_next_frame`) is solved, and a stereo check still due is read,
+        so that the flight's statistics and refined calibration include them; no frame comes with it."""
         out = self._drain(final=True)
         run = self._state
         if isinstance(run, _Running) and run.deferred is not None:
@@ -420,6 +420,9 @@ class Estimator:
             except SmootherFailure as e:
                 self.reset(str(e), bridge=e.state_ok)
             self._solved_kf = None
+        run = self._state
+        if isinstance(run, _Running) and run.smoother.check_due:  # the last keyframe's, for the flight's stats
+            self._note_stereo_check(run.smoother.check_stereo())
         return out
 
     def reset(self, reason: str, bridge: bool = True) -> None:
