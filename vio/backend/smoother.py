@@ -601,7 +601,7 @@ class VioSmoother:
                 if self.check_K1:
                     self.K1 = est.atCal3_S2(self._k[1])
             if self._holds and j >= self._next_check:
-                self._check_due = (t_ns, j)  # read by the caller on its next frame (`check_stereo`)
+                self._check_due = (t_ns, j)  # read by the caller on a later frame (`check_stereo`)
             if self.refine_K:  # the fixed factors, gating and triangulation use the refined intrinsics from now on
                 self.K0, self.K1 = est.atCal3_S2(self._k[0]), est.atCal3_S2(self._k[1])
         except GTSAM_ERRORS as e:
@@ -752,8 +752,9 @@ class VioSmoother:
         reading (stamped with that keyframe), None when none was due or it read nothing.
 
         Not part of the keyframe's solve: its joint marginal costs 1-10 ms, which on top of a solve set the slowest
-        frames (issue 17's p99), so the estimator reads it on the next frame; a check still due when the next
-        keyframe comes is read first thing there (`add_keyframe`), where the old place in the solve put it."""
+        frames (issue 17's p99), so the estimator reads it on a later frame that has no other back-end work; a
+        check still due when the next keyframe comes is read first thing there (`add_keyframe`). The smoother is
+        as the keyframe left it until then, so the reading (and a release) is what it was inside the solve."""
         if self._check_due is None:
             return None
         t_ns, j = self._check_due
