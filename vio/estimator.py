@@ -233,7 +233,6 @@ class Estimator:
         # smoother's T_body_cam0/1, keyframes that refined them, refined (fx, fy, cx, cy) of both cameras or None
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
         self._stereo_finding: StereoFinding | None = None  # the stereo check's newest reading (backend.stereo_check)
-        self._offset_solved = False  # the time-offset estimator solved on this frame
         self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
         self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
@@ -512,7 +511,7 @@ class Estimator:
             self.frames_unusable += 1
             key = _reason_key(ff.reason) if not ff.tracking_ok else f"fewer than {self.bcfg.min_tracks_ok} tracks"
             self.unusable_reasons[key] = self.unusable_reasons.get(key, 0) + 1
-        self._update_time_offset(ff, t)
+        offset_solved = self._update_time_offset(ff, t)
         prev_t = self._last_frame_t
         self._last_frame_t = t
         self._flow_px = median_flow_px(self._prev_ff, ff)
@@ -522,7 +521,7 @@ class Estimator:
         if not self.initialized:
             self._advance_bridge(t)
         try:
-            st = self._track(t, prev_t, ff) if self.initialized else self._try_init(t, ff)
+            st = self._track(t, prev_t, ff, offset_solved) if self.initialized else self._try_init(t, ff)
         except SmootherFailure as e:
             self.reset(str(e), bridge=e.state_ok)
             st = None
@@ -574,20 +573,19 @@ class Estimator:
             return np.zeros(3)
         return np.mean(gyro, axis=0) - np.asarray(gyro_bias, float)
 
-    def _update_time_offset(self, ff: FeatureFrame, t: int) -> None:
-        """Feed the in-flight offset estimator; a confident new offset applies from the next frame on.
+    def _update_time_offset(self, ff: FeatureFrame, t: int) -> bool:
+        """Feed the in-flight offset estimator; a confident new offset applies from the next frame on. Returns
+        whether it solved on this frame (a stereo check due then waits for the next one).
 
         Its solves (tens of ms) wait for a frame that is no keyframe and computes no marginal, so that they
         never add to a keyframe solve."""
-        self._offset_solved = False
         if self.offset_estimator is None or not self.offset_estimator.collects(int(ff.t_ns)):
-            return
+            return False
         run = self._state
         quiet = not isinstance(run, _Running) or not (self._is_keyframe(t, ff) or run.marginal_due
                                                       or run.smoother.marginalize_due or run.just_solved)
         solves = self.offset_estimator.solves
         new = self.offset_estimator.add_frame(ff, solve=quiet)
-        self._offset_solved = self.offset_estimator.solves > solves  # a stereo check due waits for the next frame
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
             self.time_offset_ns = new
@@ -597,6 +595,7 @@ class Estimator:
             self.time_offset_ns = new
             if self.bcfg.time_offset_state_auto and not self._time_state:
                 self._start_time_state()
+        return self.offset_estimator.solves > solves
 
     def _hand_offset_to_state(self) -> None:
         """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the
@@ -913,7 +912,7 @@ class Estimator:
             out["intrinsics_fx_fy_cx_cy"] = [np.asarray(v, float).tolist() for v in k]
         return out
 
-    def _track(self, t: int, prev_t: int, ff: FeatureFrame) -> NavState | None:
+    def _track(self, t: int, prev_t: int, ff: FeatureFrame, offset_solved: bool) -> NavState | None:
         run = self._state
         self.imu.integrate(run.pim, prev_t, t)
         if run.just_solved:  # the last frame's keyframe was this frame's back-end work: its dues wait a frame
@@ -922,7 +921,7 @@ class Estimator:
             run.smoother.marginalize()
         elif run.marginal_due:  # the last keyframe's marginal, computed here rather than on top of its solve
             self._marginal()
-        elif run.smoother.check_due and not self._offset_solved:
+        elif run.smoother.check_due and not offset_solved:
             # the last keyframe's stereo check, on a frame that carries no other back-end work (the time-offset
             # solves do not wait for it, so they fall on the frames they fell on before the check moved here)
             self._note_stereo_check(run.smoother.check_stereo())

@@ -757,10 +757,8 @@ class VioSmoother:
         as the keyframe left it until then, so the reading (and a release) is what it was inside the solve."""
         if self._check_due is None:
             return None
-        t_ns, j = self._check_due
+        t_ns, j = self._check_due  # due only while the holds hold: nothing lets go of them before it is read
         self._check_due = None
-        if not self._holds:  # let go in between (a rig switch)
-            return None
         # cam1 where the holds let it sit: relative to cam0 with the rig refined, else on the body
         held = self.P_body_cam0.between(self.P_body_cam1) if self.refine else self._estimate.atPose3(self._e[1])
         before = self.stereo_finding
