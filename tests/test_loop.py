@@ -680,6 +680,56 @@ def test_edge_refinement_weighs_far_stereo_depths_by_their_disparity():
     assert np.mean(err_refined) < 0.6 * np.mean(err_mean), (np.mean(err_refined), np.mean(err_mean))
 
 
+def _flipped(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
+    """Descriptors with `bits` random bits flipped in each (the same place seen from elsewhere)."""
+    out = np.unpackbits(desc, axis=1)
+    for row in out:
+        row[rng.choice(256, bits, replace=False)] ^= 1
+    return np.packbits(out, axis=1)
+
+
+def test_guided_matching_finds_what_the_ratio_test_hid_and_sharpens_the_pose():
+    """A repeated texture: 60 % of the places have a look-alike elsewhere in the new image (2 bits further than
+    the true match), which the ratio test turns down. PnP on the rest verifies the candidate; matching again by
+    projection finds the hidden ones (the pose says where each must be) and the refined pose is better. A
+    candidate that PnP does not verify stays refused whatever guided matching could add."""
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.verify import pnp
+
+    K = np.array([[460.0, 0, 376], [0, 460, 240], [0, 0, 1]])
+    T_old_new = make_T(so3_exp(np.radians([2.0, 25.0, 1.0])), np.array([0.8, 0.1, 0.3]))
+    kw = dict(max_hamming=60, ratio=0.8, reproj_px=2.0, min_inliers=20)
+    err, n_inl = {0.0: [], 8.0: []}, {0.0: [], 8.0: []}
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(2, 8, 300)
+        P = np.column_stack([rng.uniform(-0.7, 0.7, 300) * z, rng.uniform(-0.45, 0.45, 300) * z, z])
+        Pn = P @ T_old_new[:3, :3] - T_old_new[:3, :3].T @ T_old_new[:3, 3]
+        seen = (Pn[:, 2] > 1) & (np.abs(Pn[:, 0] / Pn[:, 2]) < 0.8) & (np.abs(Pn[:, 1] / Pn[:, 2]) < 0.5)
+        P, Pn = P[seen], Pn[seen]
+        n = len(P)
+        desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+        old = _stereo_keyframe(P, desc, rng, K, 0.11)
+        new = _stereo_keyframe(Pn, _flipped(desc, 20, rng), rng, K, 0.11)
+        twin = rng.random(n) < 0.6  # a look-alike elsewhere in the new image
+        uv_twin = rng.uniform([0, 0], [752, 480], (int(twin.sum()), 2))
+        new = KeyframeFeatures(np.vstack([new.desc, _flipped(desc[twin], 22, rng)]), np.vstack([new.uv, uv_twin]),
+                               np.vstack([new.p_cam, np.full((int(twin.sum()), 3), np.nan)]))
+        for px in err:
+            res = pnp(old, new, K, np.eye(4), guided_px=px, **kw)
+            assert res is not None and len(res.pairs) == res.inliers
+            assert np.all(res.pairs[:, 1] < n)  # no look-alike among the inliers
+            err[px].append(np.linalg.norm(res.T_old_new[:3, 3] - T_old_new[:3, 3]))
+            n_inl[px].append(res.inliers)
+        # verification is the RANSAC's: with min_inliers above what the ratio test leaves, guided matching
+        # does not rescue the candidate
+        strict = dict(kw, min_inliers=int(n_inl[0.0][-1]) + 5)
+        assert pnp(old, new, K, np.eye(4), guided_px=8.0, **strict) is None
+    assert np.mean(n_inl[8.0]) > 1.8 * np.mean(n_inl[0.0]), (np.mean(n_inl[8.0]), np.mean(n_inl[0.0]))
+    assert np.mean(err[8.0]) < 0.85 * np.mean(err[0.0]), (np.mean(err[8.0]), np.mean(err[0.0]))
+
+
 def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(loop_flight, monkeypatch, caplog):
     """The same image at the same place after a 4 m excursion: a true closure. Its decision solve fails once
     (as an ill-conditioned graph's did before the QR fallback); that closure is taken back, logged and

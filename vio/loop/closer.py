@@ -215,12 +215,12 @@ class LoopCloser:
             old = self.keyframes[j]
             other = self._comp(old.session) != self._comp(kf.session)
             min_inl = c.reloc_min_inliers if other else c.min_inliers
-            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                      ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
+            kw = dict(max_hamming=c.max_hamming, ratio=c.match_ratio, reproj_px=c.reproj_threshold_px,
+                      min_inliers=min_inl, guided_px=c.guided_radius_px)
+            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, **kw)
             if res is None:
                 continue
-            back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, max_hamming=c.max_hamming,
-                       ratio=c.match_ratio, reproj_px=c.reproj_threshold_px, min_inliers=min_inl)
+            back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, **kw)
             two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
             if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
                 reason = "two-way"

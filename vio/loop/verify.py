@@ -10,6 +10,7 @@ import numpy as np
 
 from vio.geometry import inv_T
 from vio.loop.features import KeyframeFeatures
+from vio.loop.vocabulary import popcount_u64
 
 
 @dataclass(frozen=True)
@@ -40,10 +41,57 @@ def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio:
     return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
 
 
+def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                 max_hamming: int, radius_px: float, nearest: int = 4) -> np.ndarray:
+    """(M, 2) pairs (old landmark, new feature) found by projection: each of the old keyframe's 3D points, put into
+    the new image with the pose (rvec, tvec), against the `nearest` new features within `radius_px` of it; the
+    smallest descriptor distance (<= max_hamming) wins, and each new feature keeps only its best old point.
+
+    No ratio test: the pose already tells where a point must be, so a texture that repeats elsewhere in the image
+    does not make its match ambiguous. Across a wide change of view the ratio test of `match` turns down most of
+    the true matches; these are the ones it left out."""
+    has3 = np.flatnonzero(np.isfinite(old.p_cam[:, 0]))
+    if not len(has3) or not len(new.uv):
+        return np.zeros((0, 2), np.int64)
+    R = cv2.Rodrigues(rvec)[0]
+    p = old.p_cam[has3] @ R.T + np.ravel(tvec)
+    front = p[:, 2] > 1e-3
+    has3, p = has3[front], p[front]
+    uv = (p[:, :2] / p[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+    k = min(nearest, len(new.uv))
+    d_px, near = cv2.batchDistance(uv.astype(np.float32), new.uv.astype(np.float32), cv2.CV_32F,
+                                   normType=cv2.NORM_L2, K=k)
+    rows, cols = np.nonzero(d_px <= radius_px)
+    if not len(rows):
+        return np.zeros((0, 2), np.int64)
+    o, n = has3[rows], near[rows, cols].astype(np.int64)
+    x = np.ascontiguousarray(old.desc[o] ^ new.desc[n]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
+    ham = popcount_u64(x).astype(np.int64).sum(axis=1)
+    keep = ham <= max_hamming
+    o, n, ham = o[keep], n[keep], ham[keep]
+    order = np.lexsort((ham, o))  # per old point its best candidate first ...
+    o, n, ham = o[order], n[order], ham[order]
+    first = np.r_[True, o[1:] != o[:-1]]
+    o, n, ham = o[first], n[first], ham[first]
+    order = np.lexsort((ham, n))  # ... then per new feature its best old point
+    o, n = o[order], n[order]
+    first = np.r_[True, n[1:] != n[:-1]]
+    return np.column_stack([o[first], n[first]]).reshape(-1, 2)
+
+
 def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam: np.ndarray, *,
-        max_hamming: int, ratio: float, reproj_px: float, min_inliers: int) -> PnpResult | None:
+        max_hamming: int, ratio: float, reproj_px: float, min_inliers: int, guided_px: float = 0.0
+        ) -> PnpResult | None:
+    """The new keyframe's body pose in the old one's from the old keyframe's 3D points seen in the new image
+    (descriptor matches, PnP RANSAC, Levenberg-Marquardt on the inliers); None when it is not verified.
+
+    With `guided_px` > 0 the pose is then refined on the matches found by projection (`guided_pairs`), which
+    across a wide change of view are about twice the ratio test's: kept where they give at least as many
+    inliers. The RANSAC's inlier count decides whether the candidate is verified at all, so the guided
+    matches make a verified pose more accurate without letting more candidates through."""
     pairs = match(old, new, max_hamming, ratio)
-    if len(pairs) < min_inliers:
+    n_matches = len(pairs)
+    if n_matches < min_inliers:
         return None
     obj = old.p_cam[pairs[:, 0]].astype(np.float64)
     img = new.uv[pairs[:, 1]].astype(np.float64)
@@ -58,12 +106,26 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
     good = err <= reproj_px
     if np.count_nonzero(good) < min_inliers:
         return None
+    pairs = pairs[inl]
+    if guided_px > 0:
+        g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
+        if len(g) >= np.count_nonzero(good):
+            g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
+            proj, _ = cv2.projectPoints(g_obj, rvec, tvec, K, None)
+            near = np.linalg.norm(proj[:, 0] - g_img, axis=1) <= reproj_px
+            if np.count_nonzero(near) >= np.count_nonzero(good):  # refit on what the pose explains
+                r2, t2 = cv2.solvePnPRefineLM(g_obj[near], g_img[near], K, None, rvec.copy(), tvec.copy())
+                proj, _ = cv2.projectPoints(g_obj, r2, t2, K, None)
+                g_err = np.linalg.norm(proj[:, 0] - g_img, axis=1)
+                g_good = g_err <= reproj_px
+                if np.count_nonzero(g_good) >= np.count_nonzero(good):
+                    rvec, tvec, pairs, err, good, n_matches = r2, t2, g, g_err, g_good, len(g)
     T_newcam_oldcam = np.eye(4)
     T_newcam_oldcam[:3, :3] = cv2.Rodrigues(rvec)[0]
     T_newcam_oldcam[:3, 3] = tvec[:, 0]
     T_old_new = T_body_cam @ inv_T(T_newcam_oldcam) @ inv_T(T_body_cam)
-    return PnpResult(T_old_new, int(np.count_nonzero(good)), len(pairs), float(np.sqrt(np.mean(err[good] ** 2))),
-                     pairs[inl[good]])
+    return PnpResult(T_old_new, int(np.count_nonzero(good)), n_matches, float(np.sqrt(np.mean(err[good] ** 2))),
+                     pairs[good])
 
 
 def gravity_disagreement_deg(R_world_old: np.ndarray, R_world_new: np.ndarray, R_old_new: np.ndarray) -> float:
