@@ -42,10 +42,10 @@ def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio:
 
 
 def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-                 max_hamming: int, radius_px: float, nearest: int = 4) -> np.ndarray:
+                 max_hamming: int, radius_px: float) -> np.ndarray:
     """(M, 2) pairs (old landmark, new feature) found by projection: each of the old keyframe's 3D points, put into
-    the new image with the pose (rvec, tvec), against the `nearest` new features within `radius_px` of it; the
-    smallest descriptor distance (<= max_hamming) wins, and each new feature keeps only its best old point.
+    the new image with the pose (rvec, tvec), against the new features within `radius_px` of it; the smallest
+    descriptor distance (<= max_hamming) wins, and each new feature keeps only its best old point.
 
     No ratio test: the pose already tells where a point must be, so a texture that repeats elsewhere in the image
     does not make its match ambiguous. Across a wide change of view the ratio test of `match` turns down most of
@@ -58,13 +58,19 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     front = p[:, 2] > 1e-3
     has3, p = has3[front], p[front]
     uv = (p[:, :2] / p[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
-    k = min(nearest, len(new.uv))
-    d_px, near = cv2.batchDistance(uv.astype(np.float32), new.uv.astype(np.float32), cv2.CV_32F,
-                                   normType=cv2.NORM_L2, K=k)
-    rows, cols = np.nonzero(d_px <= radius_px)
-    if not len(rows):
+    # the new features within radius_px in x of each projection (features sorted by x), then the radius itself:
+    # a few thousand pairs instead of an all-against-all distance table
+    by_x = np.argsort(new.uv[:, 0], kind="stable")
+    xs = new.uv[by_x, 0]
+    lo = np.searchsorted(xs, uv[:, 0] - radius_px, side="left")
+    cnt = np.searchsorted(xs, uv[:, 0] + radius_px, side="right") - lo
+    rows = np.repeat(np.arange(len(uv)), cnt)
+    start = np.cumsum(cnt) - cnt
+    n = by_x[np.repeat(lo, cnt) + np.arange(int(cnt.sum())) - np.repeat(start, cnt)]
+    near = np.sum((new.uv[n] - uv[rows]) ** 2, axis=1) <= radius_px ** 2
+    o, n = has3[rows[near]], n[near]
+    if not len(o):
         return np.zeros((0, 2), np.int64)
-    o, n = has3[rows], near[rows, cols].astype(np.int64)
     x = np.ascontiguousarray(old.desc[o] ^ new.desc[n]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
     ham = popcount_u64(x).astype(np.int64).sum(axis=1)
     keep = ham <= max_hamming
