@@ -688,46 +688,77 @@ def _flipped(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarra
     return np.packbits(out, axis=1)
 
 
+_WIDE_K = np.array([[460.0, 0, 376], [0, 460, 240], [0, 0, 1]])
+_WIDE_T_OLD_NEW = make_T(so3_exp(np.radians([2.0, 25.0, 1.0])), np.array([0.8, 0.1, 0.3]))
+_WIDE_KW = dict(max_hamming=60, ratio=0.8, reproj_px=2.0, min_inliers=20)
+
+
+def _wide_view_pair(seed: int):
+    """Old and new keyframe features of one place seen 25 deg apart: each descriptor 20 bits off in the new view,
+    and for 60 % of the places a look-alike elsewhere in the new image (22 bits off: the ratio test's loss).
+    Returns (old, new, number of true new features; the look-alikes come after them)."""
+    from vio.loop.features import KeyframeFeatures
+
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(2, 8, 300)
+    P = np.column_stack([rng.uniform(-0.7, 0.7, 300) * z, rng.uniform(-0.45, 0.45, 300) * z, z])
+    R, t = _WIDE_T_OLD_NEW[:3, :3], _WIDE_T_OLD_NEW[:3, 3]
+    Pn = P @ R - R.T @ t
+    seen = (Pn[:, 2] > 1) & (np.abs(Pn[:, 0] / Pn[:, 2]) < 0.8) & (np.abs(Pn[:, 1] / Pn[:, 2]) < 0.5)
+    P, Pn = P[seen], Pn[seen]
+    n = len(P)
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    old = _stereo_keyframe(P, desc, rng, _WIDE_K, 0.11)
+    new = _stereo_keyframe(Pn, _flipped(desc, 20, rng), rng, _WIDE_K, 0.11)
+    twin = rng.random(n) < 0.6
+    uv_twin = rng.uniform([0, 0], [752, 480], (int(twin.sum()), 2))
+    new = KeyframeFeatures(np.vstack([new.desc, _flipped(desc[twin], 22, rng)]), np.vstack([new.uv, uv_twin]),
+                           np.vstack([new.p_cam, np.full((int(twin.sum()), 3), np.nan)]))
+    return old, new, n
+
+
 def test_guided_matching_finds_what_the_ratio_test_hid_and_sharpens_the_pose():
     """A repeated texture: 60 % of the places have a look-alike elsewhere in the new image (2 bits further than
     the true match), which the ratio test turns down. PnP on the rest verifies the candidate; matching again by
     projection finds the hidden ones (the pose says where each must be) and the refined pose is better. A
     candidate that PnP does not verify stays refused whatever guided matching could add."""
-    from vio.loop.features import KeyframeFeatures
     from vio.loop.verify import pnp
 
-    K = np.array([[460.0, 0, 376], [0, 460, 240], [0, 0, 1]])
-    T_old_new = make_T(so3_exp(np.radians([2.0, 25.0, 1.0])), np.array([0.8, 0.1, 0.3]))
-    kw = dict(max_hamming=60, ratio=0.8, reproj_px=2.0, min_inliers=20)
     err, n_inl = {0.0: [], 8.0: []}, {0.0: [], 8.0: []}
     for seed in range(20):
-        rng = np.random.default_rng(seed)
-        z = rng.uniform(2, 8, 300)
-        P = np.column_stack([rng.uniform(-0.7, 0.7, 300) * z, rng.uniform(-0.45, 0.45, 300) * z, z])
-        Pn = P @ T_old_new[:3, :3] - T_old_new[:3, :3].T @ T_old_new[:3, 3]
-        seen = (Pn[:, 2] > 1) & (np.abs(Pn[:, 0] / Pn[:, 2]) < 0.8) & (np.abs(Pn[:, 1] / Pn[:, 2]) < 0.5)
-        P, Pn = P[seen], Pn[seen]
-        n = len(P)
-        desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-
-        old = _stereo_keyframe(P, desc, rng, K, 0.11)
-        new = _stereo_keyframe(Pn, _flipped(desc, 20, rng), rng, K, 0.11)
-        twin = rng.random(n) < 0.6  # a look-alike elsewhere in the new image
-        uv_twin = rng.uniform([0, 0], [752, 480], (int(twin.sum()), 2))
-        new = KeyframeFeatures(np.vstack([new.desc, _flipped(desc[twin], 22, rng)]), np.vstack([new.uv, uv_twin]),
-                               np.vstack([new.p_cam, np.full((int(twin.sum()), 3), np.nan)]))
+        old, new, n = _wide_view_pair(seed)
         for px in err:
-            res = pnp(old, new, K, np.eye(4), guided_px=px, **kw)
+            res = pnp(old, new, _WIDE_K, np.eye(4), guided_px=px, **_WIDE_KW)
             assert res is not None and len(res.pairs) == res.inliers
             assert np.all(res.pairs[:, 1] < n)  # no look-alike among the inliers
-            err[px].append(np.linalg.norm(res.T_old_new[:3, 3] - T_old_new[:3, 3]))
+            err[px].append(np.linalg.norm(res.T_old_new[:3, 3] - _WIDE_T_OLD_NEW[:3, 3]))
             n_inl[px].append(res.inliers)
         # verification is the RANSAC's: with min_inliers above what the ratio test leaves, guided matching
         # does not rescue the candidate
-        strict = dict(kw, min_inliers=int(n_inl[0.0][-1]) + 5)
-        assert pnp(old, new, K, np.eye(4), guided_px=8.0, **strict) is None
+        strict = dict(_WIDE_KW, min_inliers=int(n_inl[0.0][-1]) + 5)
+        assert pnp(old, new, _WIDE_K, np.eye(4), guided_px=8.0, **strict) is None
     assert np.mean(n_inl[8.0]) > 1.8 * np.mean(n_inl[0.0]), (np.mean(n_inl[8.0]), np.mean(n_inl[0.0]))
     assert np.mean(err[8.0]) < 0.85 * np.mean(err[0.0]), (np.mean(err[8.0]), np.mean(err[0.0]))
+
+
+def test_the_other_way_matched_from_the_first_pose_agrees_with_it_and_a_wrong_pose_finds_nothing():
+    """The edge's second PnP (new keyframe's points in the old image) is matched by projection from the first
+    one's pose: on the true place it lands within the two-way tolerance of the first and of the truth; started
+    from a pose 0.3 m / 3 deg off (a place that only looks alike) it finds too few matches and refuses."""
+    from vio.geometry import inv_T
+    from vio.loop.closer import _agree
+    from vio.loop.verify import pnp, pnp_from
+
+    kw = {k: _WIDE_KW[k] for k in ("max_hamming", "reproj_px", "min_inliers")}
+    for seed in range(10):
+        old, new, _ = _wide_view_pair(seed)
+        fwd = pnp(old, new, _WIDE_K, np.eye(4), guided_px=8.0, **_WIDE_KW)
+        back = pnp_from(new, old, _WIDE_K, np.eye(4), inv_T(fwd.T_old_new), guided_px=8.0, **kw)
+        assert back is not None and back.inliers > fwd.inliers * 0.8
+        assert _agree(fwd.T_old_new @ back.T_old_new, 0.03, 0.5)
+        assert _agree(inv_T(_WIDE_T_OLD_NEW) @ inv_T(back.T_old_new), 0.03, 0.5)
+        wrong = fwd.T_old_new @ make_T(so3_exp(np.radians([0.0, 3.0, 0.0])), np.array([0.3, 0.0, 0.0]))
+        assert pnp_from(new, old, _WIDE_K, np.eye(4), inv_T(wrong), guided_px=8.0, **kw) is None
 
 
 def test_a_closure_whose_graph_does_not_solve_is_dropped_and_the_stage_goes_on(loop_flight, monkeypatch, caplog):

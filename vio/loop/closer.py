@@ -24,7 +24,7 @@ from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
 from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
 from vio.loop.posegraph import DecisionError, GraphNoise, PoseGraph
-from vio.loop.verify import gravity_disagreement_deg, pnp, refine_edge
+from vio.loop.verify import gravity_disagreement_deg, pnp, pnp_from, refine_edge
 from vio.loop.vocabulary import Vocabulary
 from vio.types import FeatureFrame
 
@@ -220,7 +220,11 @@ class LoopCloser:
             res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, **kw)
             if res is None:
                 continue
-            back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, **kw)
+            if c.guided_radius_px > 0:  # the other way matched by projection from this pose (verify.pnp_from)
+                back = pnp_from(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, inv_T(res.T_old_new),
+                                **{k: kw[k] for k in ("max_hamming", "reproj_px", "min_inliers", "guided_px")})
+            else:
+                back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, **kw)
             two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
             if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
                 reason = "two-way"

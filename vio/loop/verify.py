@@ -74,6 +74,8 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     x = np.ascontiguousarray(old.desc[o] ^ new.desc[n]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
     ham = popcount_u64(x).astype(np.int64).sum(axis=1)
     keep = ham <= max_hamming
+    if not keep.any():
+        return np.zeros((0, 2), np.int64)
     o, n, ham = o[keep], n[keep], ham[keep]
     order = np.lexsort((ham, o))  # per old point its best candidate first ...
     o, n, ham = o[order], n[order], ham[order]
@@ -126,12 +128,43 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
                 g_good = g_err <= reproj_px
                 if np.count_nonzero(g_good) >= np.count_nonzero(good):
                     rvec, tvec, pairs, err, good, n_matches = r2, t2, g, g_err, g_good, len(g)
+    return _result(rvec, tvec, T_body_cam, err, good, pairs, n_matches)
+
+
+def _result(rvec: np.ndarray, tvec: np.ndarray, T_body_cam: np.ndarray, err: np.ndarray, good: np.ndarray,
+            pairs: np.ndarray, n_matches: int) -> PnpResult:
     T_newcam_oldcam = np.eye(4)
     T_newcam_oldcam[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T_newcam_oldcam[:3, 3] = tvec[:, 0]
+    T_newcam_oldcam[:3, 3] = np.ravel(tvec)
     T_old_new = T_body_cam @ inv_T(T_newcam_oldcam) @ inv_T(T_body_cam)
     return PnpResult(T_old_new, int(np.count_nonzero(good)), n_matches, float(np.sqrt(np.mean(err[good] ** 2))),
                      pairs[good])
+
+
+def pnp_from(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam: np.ndarray,
+             T_old_new_guess: np.ndarray, *, max_hamming: int, reproj_px: float, min_inliers: int, guided_px: float
+             ) -> PnpResult | None:
+    """As `pnp`, but the matches are found by projection from a pose guess (`guided_pairs`), with no RANSAC: the
+    other direction of an edge whose first PnP gave the guess. The pose is refit on the matches within
+    `guided_px` of the guess, then on those within `reproj_px`; None when fewer than `min_inliers` are left."""
+    T_nc_oc = inv_T(inv_T(T_body_cam) @ T_old_new_guess @ T_body_cam)
+    rvec, tvec = cv2.Rodrigues(T_nc_oc[:3, :3])[0], T_nc_oc[:3, 3:].copy()
+    g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
+    if len(g) < max(min_inliers, 6):
+        return None
+    obj, img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
+    for thr in (guided_px, reproj_px):
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
+        sel = np.linalg.norm(proj[:, 0] - img, axis=1) <= thr
+        if np.count_nonzero(sel) < max(min_inliers, 6):
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj[sel], img[sel], K, None, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
+    err = np.linalg.norm(proj[:, 0] - img, axis=1)
+    good = err <= reproj_px
+    if np.count_nonzero(good) < min_inliers:
+        return None
+    return _result(rvec, tvec, T_body_cam, err, good, g, len(g))
 
 
 def gravity_disagreement_deg(R_world_old: np.ndarray, R_world_new: np.ndarray, R_old_new: np.ndarray) -> float:
