@@ -409,7 +409,9 @@ class LoopConfig:
     reproj_threshold_px: float = opt(2.0, "PnP inlier reprojection threshold", min=0.1, max=20)
     guided_radius_px: float = opt(8.0, "a verified PnP pose is refined on the old keyframe's points matched again "
                                   "by projection: to the new features within this radius, no ratio test (about "
-                                  "twice the inliers across a wide change of view); 0: off", min=0, max=100)
+                                  "twice the inliers across a wide change of view), and the edge's other "
+                                  "direction is matched the same way from that pose instead of by a second "
+                                  "RANSAC; 0: off (ratio test and RANSAC both ways)", min=0, max=100)
     refine_edges: bool = opt(False, "re-estimate a verified edge from both PnPs' inliers in one two-view bundle "
                              "adjustment that weighs each stereo depth by its disparity (edges ~15 % more "
                              "accurate, +1.2 ms per keyframe; docs/loop-closure.md)")
