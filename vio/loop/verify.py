@@ -45,7 +45,8 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
                  max_hamming: int, radius_px: float) -> np.ndarray:
     """(M, 2) pairs (old landmark, new feature) found by projection: each of the old keyframe's 3D points, put into
     the new image with the pose (rvec, tvec), against the new features within `radius_px` of it; the smallest
-    descriptor distance (<= max_hamming) wins, and each new feature keeps only its best old point.
+    descriptor distance (<= max_hamming) wins, and a new feature chosen by several old points keeps the best of
+    them (one to one, not a full mutual-best test).
 
     No ratio test: the pose already tells where a point must be, so a texture that repeats elsewhere in the image
     does not make its match ambiguous. Across a wide change of view the ratio test of `match` turns down most of
