@@ -215,16 +215,15 @@ class LoopCloser:
             old = self.keyframes[j]
             other = self._comp(old.session) != self._comp(kf.session)
             min_inl = c.reloc_min_inliers if other else c.min_inliers
-            kw = dict(max_hamming=c.max_hamming, ratio=c.match_ratio, reproj_px=c.reproj_threshold_px,
-                      min_inliers=min_inl, guided_px=c.guided_radius_px)
-            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, **kw)
+            kw = dict(max_hamming=c.max_hamming, reproj_px=c.reproj_threshold_px, min_inliers=min_inl,
+                      guided_px=c.guided_radius_px)
+            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
             if res is None:
                 continue
             if c.guided_radius_px > 0:  # the other way matched by projection from this pose (verify.pnp_from)
-                back = pnp_from(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, inv_T(res.T_old_new),
-                                **{k: kw[k] for k in ("max_hamming", "reproj_px", "min_inliers", "guided_px")})
+                back = pnp_from(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, inv_T(res.T_old_new), **kw)
             else:
-                back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, **kw)
+                back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
             two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
             if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
                 reason = "two-way"

@@ -110,26 +110,40 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
         return None
     inl = inl[:, 0]
     rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj[inl], rvec, tvec, K, None)
-    err = np.linalg.norm(proj[:, 0] - img[inl], axis=1)
+    err = _reproj_err(obj[inl], img[inl], K, rvec, tvec)
     good = err <= reproj_px
     if np.count_nonzero(good) < min_inliers:
         return None
     pairs = pairs[inl]
     if guided_px > 0:
         g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-        if len(g) >= np.count_nonzero(good):
-            g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
-            proj, _ = cv2.projectPoints(g_obj, rvec, tvec, K, None)
-            near = np.linalg.norm(proj[:, 0] - g_img, axis=1) <= reproj_px
-            if np.count_nonzero(near) >= np.count_nonzero(good):  # refit on what the pose explains
-                r2, t2 = cv2.solvePnPRefineLM(g_obj[near], g_img[near], K, None, rvec.copy(), tvec.copy())
-                proj, _ = cv2.projectPoints(g_obj, r2, t2, K, None)
-                g_err = np.linalg.norm(proj[:, 0] - g_img, axis=1)
-                g_good = g_err <= reproj_px
-                if np.count_nonzero(g_good) >= np.count_nonzero(good):
-                    rvec, tvec, pairs, err, good, n_matches = r2, t2, g, g_err, g_good, len(g)
+        g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
+        n_good = int(np.count_nonzero(good))
+        fit = _refit(g_obj, g_img, K, rvec, tvec, (reproj_px,), n_good)  # on what the pose explains
+        if fit is not None and np.count_nonzero(fit[2] <= reproj_px) >= n_good:
+            rvec, tvec, err = fit
+            pairs, good, n_matches = g, err <= reproj_px, len(g)
     return _result(rvec, tvec, T_body_cam, err, good, pairs, n_matches)
+
+
+def _reproj_err(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """Reprojection error [px] of each 3D point `obj` against its pixel `img` under the pose (rvec, tvec)."""
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
+    return np.linalg.norm(proj[:, 0] - img, axis=1)
+
+
+def _refit(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+           thresholds: tuple[float, ...], need: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Levenberg-Marquardt refits of (rvec, tvec) on the points within each threshold [px] of it in turn; the refit
+    pose and every point's reprojection error under it, or None when fewer than `need` are within a threshold."""
+    if len(obj) < need:
+        return None
+    for thr in thresholds:
+        sel = _reproj_err(obj, img, K, rvec, tvec) <= thr
+        if np.count_nonzero(sel) < need:
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj[sel], img[sel], K, None, rvec.copy(), tvec.copy())
+    return rvec, tvec, _reproj_err(obj, img, K, rvec, tvec)
 
 
 def _result(rvec: np.ndarray, tvec: np.ndarray, T_body_cam: np.ndarray, err: np.ndarray, good: np.ndarray,
@@ -151,17 +165,11 @@ def pnp_from(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body
     T_nc_oc = inv_T(inv_T(T_body_cam) @ T_old_new_guess @ T_body_cam)
     rvec, tvec = cv2.Rodrigues(T_nc_oc[:3, :3])[0], T_nc_oc[:3, 3:].copy()
     g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-    if len(g) < max(min_inliers, 6):
-        return None
     obj, img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
-    for thr in (guided_px, reproj_px):
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
-        sel = np.linalg.norm(proj[:, 0] - img, axis=1) <= thr
-        if np.count_nonzero(sel) < max(min_inliers, 6):
-            return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj[sel], img[sel], K, None, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
-    err = np.linalg.norm(proj[:, 0] - img, axis=1)
+    fit = _refit(obj, img, K, rvec, tvec, (guided_px, reproj_px), max(min_inliers, 6))
+    if fit is None:
+        return None
+    rvec, tvec, err = fit
     good = err <= reproj_px
     if np.count_nonzero(good) < min_inliers:
         return None
