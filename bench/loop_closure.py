@@ -33,11 +33,29 @@ class _Recorder:
     """Stands in for the worker: keeps the keyframes (the one-core cost is measured on them afterwards)."""
 
     def __init__(self) -> None:
-        self.items: list = []
+        self.items: list = []  # keyframes as submitted
+        self.settles: list = []  # (keyframes submitted before, settled poses), in the order they came
         self.dropped, self.error = 0, None
 
     def submit(self, *item) -> None:
         self.items.append(item)
+
+    def settle(self, settled) -> None:
+        if settled:
+            self.settles.append((len(self.items), tuple(settled)))
+
+    def feed(self, closer, start: int = 0) -> None:
+        """The recorded keyframes from `start` on and the settled poses in between into `closer`, in the order
+        the worker would have had them, then its end of flight (`finish`)."""
+        s = 0
+        for n in range(start, len(self.items) + 1):
+            while s < len(self.settles) and self.settles[s][0] <= n:
+                for t_ns, T in self.settles[s][1]:
+                    closer.settle(t_ns, T)
+                s += 1
+            if n < len(self.items):
+                closer.add_keyframe(*self.items[n])
+        closer.finish()
 
     def close(self) -> None:
         pass
@@ -107,8 +125,7 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
     cv2.setNumThreads(1)
     seq = LoopCloser(ds.calibration, cfg.loop)
     t0 = time.perf_counter()
-    for item in rec.items:
-        seq.add_keyframe(*item)
+    rec.feed(seq)
     per_kf_ms = (time.perf_counter() - t0) / max(len(rec.items), 1) * 1e3
     cv2.setNumThreads(-1)
     st = seq.stats.to_dict()
@@ -141,6 +158,8 @@ def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.nda
         prev = k - 1 if k and closer.keyframes[k].session == closer.keyframes[k - 1].session else None
         seg = src.priors.get(k)
         g.add_node(T, prev, None if seg is None else seg[1:])
+    for k, T in src.settled.items():
+        g.settle(k, T)
     kt = [k.t_ns for k in closer.keyframes]
     for e in src.edges:
         if e.kind == "loop" and e.weight >= 0.5:

@@ -67,7 +67,7 @@ def _keyframes(data: Path, sim_kw: dict):
                  overwrite=True, progress=False)
     rec = _Recorder()
     res = replay(EurocDataset(data), VioConfig(), progress=False, loop=rec)
-    return rec.items, res
+    return rec, res
 
 
 def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: float = 40.0,
@@ -87,13 +87,12 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     tag = (f"-aliasing{aliasing}m" if aliasing else "") + ("" if size == (376, 240) else f"-{size[0]}x{size[1]}")
     px = {"width": size[0], "height": size[1]}
     d1 = cache / f"map-{map_profile}-seed2-{map_s:g}s{tag}"
-    items1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing, "profile": map_profile,
+    rec1, _ = _keyframes(d1, {"duration_s": map_s, "seed": 2, "aliasing_period_m": aliasing, "profile": map_profile,
                                 **px})
     ds1 = EurocDataset(d1)
     gt1 = ds1.groundtruth.trajectory
     mapper = LoopCloser(ds1.calibration, cfg)
-    for it in items1:
-        mapper.add_keyframe(*it)
+    rec1.feed(mapper)
     kt1 = np.array([k.t_ns for k in mapper.keyframes])
     ev1 = evaluate(Trajectory.from_poses(kt1, np.array(mapper.graph.estimate)), gt1)
     A = ev1.ate_4dof.T_gtworld_estworld
@@ -104,13 +103,12 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     grown = []
     for seed in grow:  # more flights in the same room, each relocalised in the map so far and added to it
         d = cache / f"grow-{grow_profile}-seed{seed}-scene2-{map_s:g}s{tag}"
-        items, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing,
+        rec, _ = _keyframes(d, {"duration_s": map_s, "seed": seed, "scene_seed": 2, "aliasing_period_m": aliasing,
                                   "profile": grow_profile, **px})
         gt = EurocDataset(d).groundtruth.trajectory
         cl = LoopCloser(ds1.calibration, cfg)
         cl.load_map(m)
-        for it in items:
-            cl.add_keyframe(*it)
+        rec.feed(cl)
         map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}.npz"
         h = cl.save_map(map_path)
         kept = [n for n in cl.map_frame_keyframes() if n >= cl.map_keyframes]
@@ -120,7 +118,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         m = load_map(map_path)
         grown.append({"seed": seed, "keyframes_added": h["keyframes"] - cl.map_keyframes,
                       "left_out": h["left_out_keyframes"], "relocalised_after_s": None if cl.relocalised_t_ns is None
-                      else (cl.relocalised_t_ns - items[0][0]) * 1e-9,
+                      else (cl.relocalised_t_ns - rec.items[0][0]) * 1e-9,
                       "keyframe_error_map_frame_m": float(np.sqrt(np.mean(np.square(err)))) if err else None})
         print(f"map grown by flight seed {seed}: +{grown[-1]['keyframes_added']} keyframes "
               f"({h['left_out_keyframes']} left out), {len(m.features)} in all; their position error in the map's "
@@ -151,7 +149,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     rows, odom_ates = [], {}
     for seed in second_seeds:  # second flights: other paths and starts in the same room
         d2 = cache / f"second-survey-seed{seed}-scene2-30s{tag}"
-        items2, res2 = _keyframes(d2, {"duration_s": 30.0, "seed": seed, "scene_seed": 2,
+        rec2, res2 = _keyframes(d2, {"duration_s": 30.0, "seed": seed, "scene_seed": 2,
                                        "aliasing_period_m": aliasing, **px})
         ds2 = EurocDataset(d2)
         gt2 = ds2.groundtruth.trajectory
@@ -159,12 +157,12 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
                                                   np.array([s.T_world_body for s in res2.states])),
                             gt2).ate_4dof.trans_m.rmse
         odom_ates[seed] = odom_ate
+        items2 = rec2.items
         print(f"second flight seed {seed}: {len(items2)} keyframes, odometry ATE {odom_ate:.4f} m", flush=True)
         for s in np.linspace(0, 0.6 * len(items2), starts).astype(int):
             cl = LoopCloser(ds2.calibration, cfg)
             cl.load_map(m)
-            for it in items2[s:]:
-                cl.add_keyframe(*it)
+            rec2.feed(cl, start=s)
             own = cl.keyframes[cl.map_keyframes:]
             G = G1 + [_gt_pose(gt2, k.t_ns) for k in own]
             false = false_edges(cl, G)
@@ -191,7 +189,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     ratios = [r["ate_ratio_to_odometry"] for r in rows if r["relocalised"]]
     out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing, "grown_by": grown,
            "grow_profile": grow_profile,
-            "map_keyframes": len(items1), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
+            "map_keyframes": len(rec1.items), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
            "map_loop_edges": mapper.stats.accepted, "map_false_edges_active": map_false, "starts": rows,
            "second_seeds": list(second_seeds), "odometry_ate_m": odom_ates[second_seeds[0]],
            "odometry_ate_by_seed_m": odom_ates, "within_2s": int(sum(d <= 2.0 for d in delays)),

@@ -80,6 +80,41 @@ def test_loop_edges_the_graph_already_agrees_with_skip_the_fit_check_and_a_wrong
     assert g.quick_fits == n_quick and w[-1] < 0.5 and min(w[:-1]) >= 0.5
 
 
+def test_settled_odometry_replaces_the_edges_and_attitude_factors_pending_or_already_solved():
+    """Keyframes whose first odometry poses jitter (1 cm, 0.3 deg each, not accumulated: what a filter estimate
+    carries) and whose settled poses are exact: once settled, with some nodes still pending and some already in
+    iSAM2 (flushed every 10), the graph's odometry edges and attitude factors are the settled ones, the decision
+    graph composes them, and with one exact loop edge the solution is the truth; `odom` (what the correction
+    maps) stays the first poses."""
+    from vio.loop.posegraph import PoseGraph
+
+    rng = np.random.default_rng(3)
+    n = 45
+    truth = [make_T(so3_exp(np.array([0, 0, 2 * np.pi * k / 40])),
+                    2 * np.array([np.cos(2 * np.pi * k / 40), np.sin(2 * np.pi * k / 40), 1.0])) for k in range(n)]
+    first = [T @ make_T(so3_exp(rng.normal(0, np.radians(0.3), 3)), rng.normal(0, 0.01, 3)) for T in truth]
+    first[0] = truth[0]
+    errs = {}
+    for settle in (False, True):
+        g, prev = PoseGraph(), None
+        for k in range(n):
+            prev = g.add_node(first[k], prev)
+            if settle and k >= 12:  # 12 keyframes late: the first ones are in iSAM2 by then, the later pending
+                g.settle(k - 12, truth[k - 12])
+        if settle:
+            for k in range(n - 12, n):
+                g.settle(k, truth[k])
+            assert len(g.settled) == n
+            for e in g.edges:
+                np.testing.assert_allclose(e.T_i_j, np.linalg.inv(truth[e.i]) @ truth[e.j], atol=1e-9)
+        g.add_loop(0, 40, np.linalg.inv(truth[0]) @ truth[40])
+        g.optimize(decide=True)  # the decision graph's composed odometry, then iSAM2
+        errs[settle] = max(float(np.linalg.norm(e[:3, 3] - t[:3, 3])) for e, t in zip(g.estimate, truth))
+        for o, f in zip(g.odom, first):
+            np.testing.assert_array_equal(o, f)
+    assert errs[False] > 5e-3 and errs[True] < 1e-4, errs
+
+
 @pytest.fixture(scope="module")
 def loop_flight(tmp_path_factory):
     """A 36 s survey flight (a lissajous: it passes its own path) in a room the vocabulary never saw."""
@@ -392,10 +427,13 @@ def test_loop_worker_drains_its_queue_before_it_stops():
         def correction(self):
             return np.eye(4)
 
+        def finish(self):
+            self.finished = True
+
     w = LoopWorker(Slow(0.02), max_queue=100)
     for k in range(10):
         w.submit(k, np.eye(4), None, None, 0)
-    assert w.close(wait=True, timeout_s=5.0) and w.closer.done == 10 and w.dropped == 0
+    assert w.close(wait=True, timeout_s=5.0) and w.closer.done == 10 and w.dropped == 0 and w.closer.finished
     w = LoopWorker(Slow(0.2), max_queue=100)
     for k in range(10):
         w.submit(k, np.eye(4), None, None, 0)
@@ -847,6 +885,25 @@ def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_sess
     assert errors[True] < 0.8 * errors[False]
 
 
+class _Recorder:
+    """Stands in for the loop worker in a replay: keeps the keyframes and the settled poses handed over."""
+
+    dropped, error = 0, None
+
+    def __init__(self) -> None:
+        self.items: list = []
+        self.settled: list = []
+
+    def submit(self, *item) -> None:
+        self.items.append(item)
+
+    def settle(self, settled) -> None:
+        self.settled.extend(settled)
+
+    def close(self) -> None:
+        pass
+
+
 def test_a_keyframe_solved_on_the_next_frame_reaches_the_loop_stage_as_one_solved_on_its_own_frame(laps_flight):
     """With `solve_next_frame` the replay hands the loop stage each keyframe when the frame after it is processed:
     the same keyframes, with their own frame's image, features and solved pose as without it."""
@@ -856,23 +913,11 @@ def test_a_keyframe_solved_on_the_next_frame_reaches_the_loop_stage_as_one_solve
     from vio.config import VioConfig
     from vio.io.euroc import EurocDataset
 
-    class Recorder:
-        dropped, error = 0, None
-
-        def __init__(self) -> None:
-            self.items: list = []
-
-        def submit(self, *item) -> None:
-            self.items.append(item)
-
-        def close(self) -> None:
-            pass
-
     got = {}
     for next_frame in (False, True):
         cfg = VioConfig()
         cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, solve_next_frame=next_frame))
-        rec = Recorder()
+        rec = _Recorder()
         replay(EurocDataset(laps_flight), cfg, progress=False, max_frames=200, loop=rec)
         got[next_frame] = rec.items
     same, nxt = got[False], got[True]
@@ -882,3 +927,38 @@ def test_a_keyframe_solved_on_the_next_frame_reaches_the_loop_stage_as_one_solve
         assert img_a is img_b or np.array_equal(img_a, img_b)
         np.testing.assert_array_equal(ff_a.ids, ff_b.ids)
         np.testing.assert_allclose(T_a, T_b, atol=1e-9)
+
+
+def test_keyframes_settle_once_in_order_with_better_relative_poses_than_at_their_solve(laps_flight):
+    """The odometry hands the loop stage each keyframe's pose again as it leaves the smoother's window
+    (`ProcessedFrame.settled`): every keyframe once, in order, and with lag_s of later data the poses of
+    consecutive keyframes are closer to the truth relative to each other than at their own solve (about half the
+    error on this flight): what the pose graph's odometry edges are made of (`[loop] settled_odometry`)."""
+    from vio.app.replay import replay
+    from vio.config import VioConfig
+    from vio.geometry import inv_T
+    from vio.io.euroc import EurocDataset
+
+    rec = _Recorder()
+    replay(EurocDataset(laps_flight), VioConfig(), progress=False, max_frames=200, loop=rec)
+    first = {t: T for t, T, *_ in rec.items}
+    ts = [t for t, _ in rec.settled]
+    assert ts == sorted(set(ts)) and set(ts) <= set(first)
+    # all but the keyframes of the last lag_s (2 s) and the marginalisation step (every third keyframe)
+    assert len(ts) >= len(first) - 10 and ts == sorted(first)[:len(ts)]
+    gt = EurocDataset(laps_flight).groundtruth.trajectory
+
+    def truth(t_ns: int) -> np.ndarray:
+        from vio.geometry import quat_wxyz_to_rot
+
+        k = int(np.argmin(np.abs(gt.t_ns - t_ns)))
+        return make_T(quat_wxyz_to_rot(gt.q_wxyz[k]), gt.p[k])
+
+    def rel_err_m(P: dict) -> float:
+        e = [np.linalg.norm((inv_T(inv_T(truth(a)) @ truth(b)) @ inv_T(P[a]) @ P[b])[:3, 3])
+             for a, b in zip(ts[:-1], ts[1:])]
+        return float(np.sqrt(np.mean(np.square(e))))
+
+    settled = dict(rec.settled)
+    assert max(np.linalg.norm(settled[t][:3, 3] - first[t][:3, 3]) for t in ts) < 0.05  # the same flight
+    assert rel_err_m(settled) < 0.8 * rel_err_m(first), (rel_err_m(settled), rel_err_m(first))

@@ -164,6 +164,9 @@ class ProcessedFrame:
     timings: FrameTimings
     state: NavState | None  # the frame-rate state (None before initialisation or after a reset)
     keyframe: SolvedKeyframe | None = None  # the keyframe solved in this frame's call (this frame or the one before)
+    # (stamp ns, T_world_body) of keyframes that left the smoother's window in this frame's call, each with its
+    # last (smoothed) estimate: the loop stage's odometry edges between keyframes use these once they come
+    settled: tuple[tuple[int, np.ndarray], ...] = ()
 
 
 @dataclass
@@ -532,7 +535,8 @@ class Estimator:
             self._latest = st
             for sink in self.listeners:
                 sink(st)
-        self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st, self._solved_kf))
+        settled = tuple(self._state.smoother.take_settled()) if isinstance(self._state, _Running) else ()
+        self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st, self._solved_kf, settled))
         self._solved_kf = None
         return st
 

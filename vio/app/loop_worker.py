@@ -32,6 +32,11 @@ class LoopSnapshot:
     loop_edges: tuple[tuple[int, int, float], ...]
 
 
+@dataclass(frozen=True)
+class _Settled:
+    poses: tuple  # ((stamp ns, T_world_body), ...) from ProcessedFrame.settled
+
+
 class LoopWorker:
     def __init__(self, closer, max_queue: int = 64, keep_snapshot: bool = False) -> None:
         self.closer = closer
@@ -56,6 +61,13 @@ class LoopWorker:
             self.dropped += 1
             return False
 
+    def settle(self, settled) -> None:
+        """Hand over the odometry's smoothed poses of keyframes that left its window (`ProcessedFrame.settled`),
+        behind the keyframes already queued. A full queue drops them: those edges keep the first estimates."""
+        if settled:
+            with contextlib.suppress(queue.Full):
+                self._q.put_nowait(_Settled(tuple(settled)))
+
     def correction(self) -> tuple[np.ndarray, int]:
         """(T_world_odom, number of closures) as of the last keyframe processed."""
         with self._lock:
@@ -77,8 +89,16 @@ class LoopWorker:
             item = self._q.get()
             try:
                 if item is None:
+                    if self.error is None and not self._abandon.is_set():
+                        self.closer.finish()
+                        with self._lock:
+                            self._correction = self.closer.correction()
                     return
-                if self._abandon.is_set():
+                if isinstance(item, _Settled):
+                    if self.error is None and not self._abandon.is_set():
+                        for t_ns, T in item.poses:
+                            self.closer.settle(t_ns, T)
+                elif self._abandon.is_set():
                     self.dropped += 1
                 elif self.error is None:
                     closed = self.closer.add_keyframe(*item)
@@ -104,7 +124,8 @@ class LoopWorker:
         if not wait:
             with contextlib.suppress(queue.Empty):
                 while True:
-                    if self._q.get_nowait() is not None:
+                    item = self._q.get_nowait()
+                    if item is not None and not isinstance(item, _Settled):
                         self.dropped += 1
                     self._q.task_done()
         with contextlib.suppress(queue.Full):

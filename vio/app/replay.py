@@ -255,6 +255,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                                     "total_cpu_ms": (time.thread_time() - c0) * 1e3, "keyframe": bool(tm.keyframe),
                                     "stereo": ff.n_stereo})
                 if loop is not None:
+                    loop.settle(pf.settled)
                     kf = pf.keyframe  # solved in this frame's call: this frame's or (solve_next_frame) the last's
                     if kf is not None and kf.t_ns in loop_images:
                         t_l = time.perf_counter()

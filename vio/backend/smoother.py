@@ -72,6 +72,7 @@ after its keyframe (`marginalize`), so that no keyframe's solve carries one.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 
 import gtsam
@@ -298,6 +299,10 @@ class VioSmoother:
         self.t0_ns = 0
         self.last: KeyframeEstimate | None = None
         self._estimate: gtsam.Values | None = None
+        # keyframes still in the window (index, stamp ns, smoother time s) and those that left it since the caller
+        # last asked, with the estimate they had just before (`take_settled`)
+        self._unsettled: deque[tuple[int, int, float]] = deque()
+        self._settled: list[tuple[int, np.ndarray]] = []
 
     # -- helpers -------------------------------------------------------------------------------------
     @property
@@ -392,6 +397,8 @@ class VioSmoother:
         now = self.marginalize_due or (not between and j % every == 0)
         self.marginalize_due = between and j % every == 0
         self.smoother.setSmootherLag(self.cfg.lag_s if now else KEEP_ALL_LAG_S)
+        if now:
+            self._settle(max(stamps.values()) - self.cfg.lag_s)
         try:
             self.smoother.update(graph, values, stamps)
             if self._want_new is not None:
@@ -418,11 +425,29 @@ class VioSmoother:
             return
         self.marginalize_due = False
         self.smoother.setSmootherLag(self.cfg.lag_s)
+        if self.last is not None:
+            self._settle(self._t_s(self.last.t_ns) - self.cfg.lag_s)
         try:
             self.smoother.update()
             self._estimate = self.smoother.calculateEstimate()
         except GTSAM_ERRORS as e:
             raise _failure("marginalisation", e) from None
+
+    def _settle(self, horizon_s: float) -> None:
+        """Before a marginalising update: the keyframes older than `horizon_s` (smoother time) are about to leave
+        the window; their estimate now has seen lag_s of later data, which the estimate at their own solve had not
+        (the loop stage's odometry edges are 12-20 % better for it, docs/loop-closure.md)."""
+        est = self._estimate
+        while self._unsettled and self._unsettled[0][2] < horizon_s:
+            i, t_ns, _ = self._unsettled.popleft()
+            if est is not None and est.exists(X(i)):
+                self._settled.append((t_ns, est.atPose3(X(i)).matrix()))
+
+    def take_settled(self) -> list[tuple[int, np.ndarray]]:
+        """(stamp ns, T_world_body) of the keyframes that left the window since the last call, each with its last
+        estimate in it (smoothed), oldest first."""
+        out, self._settled = self._settled, []
+        return out
 
     # -- API -----------------------------------------------------------------------------------------
     def initialize(self, t_ns: int, T_world_body: np.ndarray, v_world: np.ndarray, gyro_bias: np.ndarray,
@@ -613,6 +638,7 @@ class VioSmoother:
                                      self.P_body_cam1.matrix() if refined else None,
                                      tuple(_fxfycxcy(K) for K in (self.K0, self.K1))
                                      if self.refine_K or (self.check_K1 and refined) else None)
+        self._unsettled.append((j, int(t_ns), self._t_s(t_ns)))
         self._forget_old_landmarks(self._t_s(t_ns))
         return self.last
 

@@ -111,6 +111,7 @@ class LoopCloser:
         self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
         self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
+        self._own_node: dict[int, int] = {}  # this flight's keyframe stamp -> its node (for `settle`)
 
     # --- the stage --------------------------------------------------------------------------------
     def add_keyframe(self, t_ns: int, T_world_body: np.ndarray, image: np.ndarray, ff: FeatureFrame | None,
@@ -138,6 +139,7 @@ class LoopCloser:
             i = self.graph.add_node(T_world_body, prev)
             path = self.keyframes[prev].path_m + float(np.linalg.norm(
                 T_world_body[:3, 3] - self.graph.odom[prev][:3, 3]))
+        self._own_node[int(t_ns)] = i
         kf = Keyframe(int(t_ns), self.session, feats, path)
         self.keyframes.append(kf)
         self.index.add(bow)
@@ -163,6 +165,20 @@ class LoopCloser:
             self.stats.gnc_decisions = self.graph.decisions
             self.stats.quick_fits = self.graph.quick_fits
         return accepted
+
+    def settle(self, t_ns: int, T_world_body: np.ndarray) -> None:
+        """The odometry's smoothed pose of a keyframe as it left the odometry's window (`ProcessedFrame.settled`):
+        the odometry edges between settled keyframes are taken from these (`settled_odometry`); a keyframe the
+        stage did not take is ignored. Takes effect in the graph's next update (at the latest the next closure)."""
+        i = self._own_node.get(int(t_ns))
+        if i is not None and self.cfg.settled_odometry:
+            self.graph.settle(i, T_world_body)
+
+    def finish(self) -> None:
+        """End of the flight: what is still pending (keyframes, settled odometry edges) goes into the graph's
+        estimate, so that the corrected trajectory and a saved map include it."""
+        if any(e.kind == "loop" for e in self.graph.edges):
+            self.graph.refresh()
 
     def _spaced_out(self, t_ns: int, T_world_body: np.ndarray) -> bool:
         """A keyframe too close to the last one taken, in place, heading and time, to add a view (with

@@ -106,6 +106,16 @@ class PoseGraph:
         self._new_values = gtsam.Values()
         self._condensed_cache: dict[tuple, list] = {}
         self._in_isam: dict[int, int] = {}  # index in self.edges of a loop edge -> its iSAM2 factor index
+        # The odometry edge into each node (index in self.edges; None at a segment start); where each node's
+        # attitude factor and odometry edge are, ("att", node) / ("odom", edge): a position in the pending
+        # factors or an iSAM2 index, so that `settle` can replace them; and each node's pose composed along the
+        # odometry edges from its segment start (what the decision graph composes; = odom until settled)
+        self._into: list[int | None] = []
+        self._pending_at: dict[tuple[str, int], int] = {}
+        self._isam_at: dict[tuple[str, int], int] = {}
+        self._remove: list[int] = []  # iSAM2 factors to remove with the next update (replaced ones)
+        self._chain: list[np.ndarray] = []
+        self.settled: dict[int, np.ndarray] = {}  # node -> its smoothed odometry pose (`settle`)
 
     def __len__(self) -> int:
         return len(self.odom)
@@ -119,26 +129,59 @@ class PoseGraph:
         n = self.noise
         if prev is not None:
             T_rel = inv_T(self.odom[prev]) @ T_odom
+            self._into.append(len(self.edges))
             self.edges.append(Edge(prev, i, T_rel, "odometry"))
             self.estimate.append(self.estimate[prev] @ T_rel)
+            self._chain.append(self._chain[prev] @ T_rel)
             sig = self._odom_sigmas(T_rel)
-            self._new_factors.add(gtsam.BetweenFactorPose3(prev, i, gtsam.Pose3(T_rel),
-                                                           gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            self._add_replaceable(("odom", len(self.edges) - 1), self._odom_factor(self.edges[-1], sig))
             A = _adjoint(T_odom)
             self._cum.append(self._cum[prev] + A @ np.diag(sig ** 2) @ A.T)
             self._segment.append(self._segment[prev])
         else:
+            self._into.append(None)
+            self._chain.append(T_odom.copy())
             self.estimate.append(T_odom.copy())
             rot, trans = prior if prior is not None else (1e-3, 1e-3)
             self.priors[i] = (T_odom.copy(), rot, trans)
             self._new_factors.add(self._prior(i))
             self._cum.append(np.zeros((6, 6)))
             self._segment.append(i)
-        self._new_factors.add(self._attitude(i))
+        self._add_replaceable(("att", i), self._attitude(i))
         self._new_values.insert(i, gtsam.Pose3(self.estimate[i]))
         if self._new_values.size() >= n.flush_every:
             self._isam_update()
         return i
+
+    def settle(self, i: int, T_odom: np.ndarray) -> None:
+        """Node i's odometry pose as the odometry's smoother left it (with lag_s of later data) instead of its estimate
+        at i's own solve: its attitude factor takes the settled roll/pitch, and an odometry edge whose two ends are
+        both settled is replaced by the relative pose of the settled poses (same sigmas: the composed covariance
+        stays); `odom` (the pose the odometry reported, which the correction maps) is left alone."""
+        self.settled[i] = np.array(T_odom, float)
+        self._replace(("att", i), self._attitude(i))
+        heads = [i] + ([i + 1] if i + 1 < len(self._into) and self._into[i + 1] is not None
+                       and self.edges[self._into[i + 1]].i == i else [])
+        changed = None
+        for h in heads:
+            k = self._into[h]
+            if k is None or h not in self.settled or self.edges[k].i not in self.settled:
+                continue
+            e = self.edges[k]
+            sig = self._odom_sigmas(e.T_i_j)
+            e.T_i_j = inv_T(self.settled[e.i]) @ self.settled[h]
+            self._replace(("odom", k), self._odom_factor(e, sig))
+            changed = h if changed is None else min(changed, h)
+        seg = self._segment[i]
+        if changed is not None:
+            for h in range(changed, len(self._chain)):
+                if self._segment[h] != seg:
+                    break
+                e = self.edges[self._into[h]]
+                self._chain[h] = self._chain[e.i] @ e.T_i_j
+        # the decision graph's factors of i (attitude) and of the nodes whose composed odometry changed
+        self._condensed_cache = {key: f for key, f in self._condensed_cache.items()
+                                 if key[1] < i or self._segment[key[1]] != seg}
 
     def add_loop(self, i: int, j: int, T_i_j: np.ndarray, inliers: int = 0, sigma_scale: float = 1.0) -> None:
         self.edges.append(Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers, sigma_scale=sigma_scale))
@@ -158,13 +201,30 @@ class PoseGraph:
         dist = float(np.linalg.norm(T[:3, 3]))
         return _sigmas(n.odom_rot_rad + n.odom_rot_per_rad * ang, n.odom_trans_m + n.odom_trans_per_m * dist)
 
+    def _add_replaceable(self, key: tuple[str, int], f: gtsam.NonlinearFactor) -> None:
+        self._pending_at[key] = self._new_factors.size()
+        self._new_factors.add(f)
+
+    def _replace(self, key: tuple[str, int], f: gtsam.NonlinearFactor) -> None:
+        """Factor `key` replaced by f: in place while pending, else removed from iSAM2 with the next update."""
+        if key in self._pending_at:
+            self._new_factors.replace(self._pending_at[key], f)
+        else:
+            self._remove.append(self._isam_at.pop(key))
+            self._add_replaceable(key, f)
+
+    @staticmethod
+    def _odom_factor(e: Edge, sigmas: np.ndarray) -> gtsam.NonlinearFactor:
+        return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+
     def _prior(self, i: int) -> gtsam.NonlinearFactor:
         T, rot, trans = self.priors[i]
         return gtsam.PriorFactorPose3(i, gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(_sigmas(rot, trans)))
 
     def _attitude(self, i: int) -> gtsam.NonlinearFactor:
         att = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.attitude_rad)
-        return gtsam.AttitudeFactorPose3(i, gtsam.Unit3(UP), att, gtsam.Unit3(self.odom[i][:3, :3].T @ UP))
+        R = self.settled[i][:3, :3] if i in self.settled else self.odom[i][:3, :3]
+        return gtsam.AttitudeFactorPose3(i, gtsam.Unit3(UP), att, gtsam.Unit3(R.T @ UP))
 
     def _loop_factor(self, e: Edge) -> gtsam.NonlinearFactor:
         k = e.sigma_scale
@@ -172,7 +232,12 @@ class PoseGraph:
         return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), model)
 
     def _isam_update(self, remove: list[int] | None = None) -> gtsam.ISAM2Result:
-        r = self._isam.update(self._new_factors, self._new_values, remove or [])
+        r = self._isam.update(self._new_factors, self._new_values, (remove or []) + self._remove)
+        if self._pending_at:
+            idx = r.getNewFactorsIndices()
+            for k, pos in self._pending_at.items():
+                self._isam_at[k] = int(idx[pos])
+        self._pending_at, self._remove = {}, []
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         return r
@@ -205,7 +270,7 @@ class PoseGraph:
             if a is not None:
                 Ad = _adjoint(inv_T(self.odom[v]))
                 cov = Ad @ (self._cum[v] - self._cum[a]) @ Ad.T
-                fs.append(gtsam.BetweenFactorPose3(a, v, gtsam.Pose3(inv_T(self.odom[a]) @ self.odom[v]),
+                fs.append(gtsam.BetweenFactorPose3(a, v, gtsam.Pose3(inv_T(self._chain[a]) @ self._chain[v]),
                                                    gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
             self._condensed_cache[key] = fs
         return self._condensed_cache[key]
@@ -319,6 +384,11 @@ class PoseGraph:
         T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         T[:, :3, 3] = rows[:, 9:]
         self.estimate = list(T)
+
+    def refresh(self) -> None:
+        """Pending keyframes and replaced odometry edges into iSAM2 and the estimate re-read, with no new loop
+        decision (between closures the estimate is only brought up to date by the next closure)."""
+        self._sync([k for k, e in enumerate(self.edges) if e.kind == "loop"])
 
     def active_loops(self) -> list[Edge]:
         return [e for e in self.edges if e.kind == "loop" and e.weight >= 0.5]

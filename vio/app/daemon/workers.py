@@ -281,6 +281,7 @@ class EstimatorWorker(Worker):
 
     def _to_loop(self, pf: ProcessedFrame) -> None:
         """Hand a processed keyframe to the loop-closure thread."""
+        self.loop_worker.settle(pf.settled)
         kf = pf.keyframe  # solved in this frame's call: this frame's or (solve_next_frame) the last's
         if kf is not None:
             for t, left in self._left:
