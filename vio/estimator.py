@@ -255,6 +255,7 @@ class Estimator:
         self._tracking = False
         self._was_keyframe = False
         self._solved_kf: SolvedKeyframe | None = None  # set by a solve, handed out with the frame that made it
+        self.settled_at_end: list[tuple[int, np.ndarray]] = []  # flush(): keyframes still in the window, as they end
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
@@ -425,6 +426,9 @@ class Estimator:
         run = self._state
         if isinstance(run, _Running) and run.smoother.check_due:  # the last keyframe's, for the flight's stats
             self._note_stereo_check(run.smoother.check_stereo())
+        if isinstance(run, _Running):  # the window's keyframes as they end (ProcessedFrame.settled for the rest)
+            run.smoother.settle_all()
+            self.settled_at_end = run.smoother.take_settled()
         return out
 
     def reset(self, reason: str, bridge: bool = True) -> None:

@@ -278,6 +278,10 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
         if bar is not None:
             bar.close()
     est.flush()
+    if loop is not None:  # what settled in the frames flush() processed, then the window as it ends
+        for pf in est.take_processed():
+            loop.settle(pf.settled)
+        loop.settle(est.settled_at_end)
     wall = time.perf_counter() - wall0
     ft = dataset.frame_t[:frames] if frames else np.zeros(0, np.int64)
     data_s = float((ft[-1] - ft[0]) * 1e-9) if len(ft) > 1 else 0.0

@@ -443,6 +443,11 @@ class VioSmoother:
             if est is not None and est.exists(X(i)):
                 self._settled.append((t_ns, est.atPose3(X(i)).matrix()))
 
+    def settle_all(self) -> None:
+        """End of a recording: the keyframes still in the window are settled with their current estimate (no
+        later data will come)."""
+        self._settle(float("inf"))
+
     def take_settled(self) -> list[tuple[int, np.ndarray]]:
         """(stamp ns, T_world_body) of the keyframes that left the window since the last call, each with its last
         estimate in it (smoothed), oldest first."""
