@@ -9,7 +9,8 @@ loop-closure worker beside the odometry and reports ATE (4-DoF) of both trajecto
 drift (both trajectories aligned on their first pose, as an integrator sees it), loop edges accepted /
 switched off / refused, false edges (error against ground truth > 0.2 m or 3 deg) left active in the final
 graph, the real-time factor with and without loop closure, and the per-keyframe detection + verification
-cost measured again on one core (OpenCV one thread, the keyframes re-fed sequentially)."""
+cost measured again on one core (OpenCV one thread, the keyframes re-fed sequentially). `--refeed-config X.toml`
+also feeds those recorded keyframes to the loop stage with X's [loop] and reports both side by side."""
 
 from __future__ import annotations
 
@@ -68,15 +69,57 @@ def _gt_pose(gt, t_ns: int) -> np.ndarray:
     return make_T(quat_wxyz_to_rot(gt.q_wxyz[k]), gt.p[k])
 
 
+def _edge_figures(closer, gt) -> tuple[int, int, list[float]]:
+    """(false edges in all, false edges active, active edges' translation error in m) against ground truth: false is
+    > 0.2 m or 3 deg off."""
+    from vio.geometry import inv_T, so3_log
+
+    kt = [k.t_ns for k in closer.keyframes]
+    false_active = false_total = 0
+    edge_err_m = []
+    for e in closer.graph.edges:
+        if e.kind != "loop":
+            continue
+        err = inv_T(inv_T(_gt_pose(gt, kt[e.i])) @ _gt_pose(gt, kt[e.j])) @ e.T_i_j
+        bad = np.linalg.norm(err[:3, 3]) > 0.2 or np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) > 3.0
+        false_total += bad
+        false_active += bad and e.weight >= 0.5
+        if e.weight >= 0.5:
+            edge_err_m.append(float(np.linalg.norm(err[:3, 3])))
+    return int(false_total), int(false_active), edge_err_m
+
+
+def refeed(rec: _Recorder, calib, loop_cfg, gt, t: np.ndarray, T_odom: np.ndarray, ate_odom_m: float) -> dict:
+    """The recorded keyframes (and settled poses) into a fresh LoopCloser with `loop_cfg`, on this thread: its
+    accuracy on the odometry `T_odom` at `t` and its cost per odometry keyframe (OpenCV as the caller set it).
+    Two configurations re-fed from one recording see exactly the same keyframes."""
+    from vio.evaluation import end_drift_m, evaluate
+    from vio.loop.closer import LoopCloser
+    from vio.trajectory import Trajectory
+
+    cl = LoopCloser(calib, loop_cfg)
+    t0 = time.perf_counter()
+    rec.feed(cl)
+    per_kf_ms = (time.perf_counter() - t0) / max(len(rec.items), 1) * 1e3
+    T_loop = cl.corrected_trajectory(t, T_odom)
+    ate = evaluate(Trajectory.from_poses(t, T_loop), gt).ate_4dof.trans_m.rmse
+    false_total, false_active, err = _edge_figures(cl, gt)
+    return {"closer": cl, "ate_loop_m": ate, "ate_ratio": ate / ate_odom_m,
+            "ate_loop_true_edges_m": evaluate(Trajectory.from_poses(t, _with_true_edges(cl, gt, t, T_odom)),
+                                              gt).ate_4dof.trans_m.rmse,
+            "loop_edge_error_median_m": float(np.median(err)) if err else None,
+            "end_drift_loop_m": end_drift_m(t, T_loop, gt), "accepted": cl.stats.accepted,
+            "false_edges": false_total, "false_edges_active": false_active, "ms_per_keyframe": per_kf_ms}
+
+
 def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene: str = "room",
-               dataset: Path | None = None, config: Path | None = None) -> dict:
+               dataset: Path | None = None, config: Path | None = None, refeed_configs: tuple[Path, ...] = ()) -> dict:
     import cv2
 
     from vio.app.loop_worker import LoopWorker
     from vio.app.replay import replay
     from vio.config import VioConfig, load_config
     from vio.evaluation import end_drift_m, evaluate
-    from vio.geometry import inv_T, so3_log
     from vio.io.euroc import EurocDataset
     from vio.loop.closer import LoopCloser
     from vio.sim.generate import SimConfig, simulate
@@ -106,29 +149,22 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
     T_loop = closer.corrected_trajectory(t, T_odom)
     ev_o = evaluate(Trajectory.from_poses(t, T_odom), gt)
     ev_l = evaluate(Trajectory.from_poses(t, T_loop), gt)
-    kt = [k.t_ns for k in closer.keyframes]
-    false_active = false_total = 0
-    edge_err_m = []
-    for e in closer.graph.edges:
-        if e.kind != "loop":
-            continue
-        err = inv_T(inv_T(_gt_pose(gt, kt[e.i])) @ _gt_pose(gt, kt[e.j])) @ e.T_i_j
-        bad = np.linalg.norm(err[:3, 3]) > 0.2 or np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) > 3.0
-        false_total += bad
-        false_active += bad and e.weight >= 0.5
-        if e.weight >= 0.5:
-            edge_err_m.append(float(np.linalg.norm(err[:3, 3])))
+    false_total, false_active, edge_err_m = _edge_figures(closer, gt)
     ev_gt_edges = evaluate(Trajectory.from_poses(t, _with_true_edges(closer, gt, t, T_odom)), gt)
     # one-core cost: the same keyframes again, sequentially, OpenCV on one thread
     rec = _Recorder()
     replay(EurocDataset(data), cfg, progress=False, loop=rec)
     cv2.setNumThreads(1)
-    seq = LoopCloser(ds.calibration, cfg.loop)
-    t0 = time.perf_counter()
-    rec.feed(seq)
-    per_kf_ms = (time.perf_counter() - t0) / max(len(rec.items), 1) * 1e3
+    ate_odom = ev_o.ate_4dof.trans_m.rmse
+    one = refeed(rec, ds.calibration, cfg.loop, gt, t, T_odom, ate_odom)
+    per_kf_ms, st = one["ms_per_keyframe"], one.pop("closer").stats.to_dict()
+    # other loop configurations on exactly these keyframes (each beside this configuration's own re-feed)
+    others = {}
+    for path in refeed_configs:
+        other = refeed(rec, ds.calibration, load_config(path).loop, gt, t, T_odom, ate_odom)
+        other.pop("closer")
+        others[str(path)] = {"this": one, "other": other}
     cv2.setNumThreads(-1)
-    st = seq.stats.to_dict()
     return {"flight": data.name, "path_m": ev_o.path_length_m,
             "ate_odometry_m": ev_o.ate_4dof.trans_m.rmse, "ate_loop_m": ev_l.ate_4dof.trans_m.rmse,
             "ate_ratio": ev_l.ate_4dof.trans_m.rmse / ev_o.ate_4dof.trans_m.rmse,
@@ -141,7 +177,8 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
             "rtf_odometry": off.realtime_factor, "rtf_with_loop": on.realtime_factor,
             "one_core_ms_per_keyframe": per_kf_ms, "one_core_detect_ms_mean": st["detect_ms_mean"],
             "one_core_optimize_ms_max": st["optimize_ms_max"],
-            "memory_per_keyframe_bytes": closer.memory_per_keyframe_bytes(), "dropped": worker.dropped}
+            "memory_per_keyframe_bytes": closer.memory_per_keyframe_bytes(), "dropped": worker.dropped,
+            "refeed": others}
 
 
 def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
@@ -226,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="752x480", help="image size WxH of the flights (default 752x480, as vio "
                     "simulate and EuRoC; 376x240 runs 3x faster with half the edge accuracy)")
     ap.add_argument("--config", type=Path, help="TOML configuration (odometry and [loop]) instead of the defaults")
+    ap.add_argument("--refeed-config", type=Path, nargs="+", default=[], metavar="TOML",
+                    help="also feed the recorded keyframes to the loop stage with each of these configurations' "
+                         "[loop] (same keyframes, same odometry: an A/B of loop settings without replay noise)")
     ap.add_argument("--scene", default="room", help="simulator scene (room, hall, shelves: vio simulate --scene)")
     ap.add_argument("--datasets", nargs="+", type=Path, metavar="DIR",
                     help="recorded flights with ground truth (EuRoC ASL folders, e.g. made by `vio simulate "
@@ -253,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{dataset}: not an EuRoC ASL folder (no mav0/)", file=sys.stderr)
             return 2
         r = run_flight(spec, Path(args.cache), tuple(int(v) for v in args.size.lower().split("x")), args.scene,
-                       dataset, args.config)
+                       dataset, args.config, tuple(args.refeed_config))
         rows.append(r)
         print(f"{r['flight']}: ATE {r['ate_odometry_m']:.4f} -> {r['ate_loop_m']:.4f} m ({r['ate_ratio']:.2f}x; "
               f"with exact loop edges {r['ate_loop_true_edges_m']:.4f} m), "
@@ -263,6 +303,15 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['one_core_ms_per_keyframe']:.1f} ms/keyframe (one core), "
               f"opt max {r['one_core_optimize_ms_max']:.0f} ms, {r['memory_per_keyframe_bytes'] / 1024:.1f} KiB/kf",
               flush=True)
+        for path, ab in r["refeed"].items():
+            a, o = ab["this"], ab["other"]
+            print(f"  re-fed with {path}: loop ATE {a['ate_loop_m']:.4f} -> {o['ate_loop_m']:.4f} m "
+                  f"(ratio {a['ate_ratio']:.3f} -> {o['ate_ratio']:.3f}; exact edges "
+                  f"{a['ate_loop_true_edges_m']:.4f} -> {o['ate_loop_true_edges_m']:.4f}), "
+                  f"end drift {a['end_drift_loop_m']:.4f} -> "
+                  f"{o['end_drift_loop_m']:.4f} m, edges {a['accepted']} -> {o['accepted']} (false active "
+                  f"{a['false_edges_active']} -> {o['false_edges_active']}), {a['ms_per_keyframe']:.2f} -> "
+                  f"{o['ms_per_keyframe']:.2f} ms/keyframe", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
