@@ -779,6 +779,26 @@ def test_guided_matching_finds_what_the_ratio_test_hid_and_sharpens_the_pose():
     assert np.mean(err[8.0]) < 0.85 * np.mean(err[0.0]), (np.mean(err[8.0]), np.mean(err[0.0]))
 
 
+def test_a_candidate_the_ratio_test_fails_is_matched_from_the_odometry_prior_and_a_wrong_prior_finds_nothing():
+    """`[loop] prior_radius_px`: where the ratio test leaves too few matches for PnP (here: fewer than
+    min_inliers), the old points are matched by projection from where the odometry puts the new keyframe (1 deg,
+    5 cm off the truth): PnP RANSAC on those verifies the place, with no look-alike among its inliers and the
+    pose within 3 cm of the truth. A prior 1.5 m off (a look-alike place elsewhere) finds nothing."""
+    from vio.loop.verify import pnp
+
+    for seed in range(10):
+        old, new, n = _wide_view_pair(seed)
+        base = pnp(old, new, _WIDE_K, np.eye(4), **_WIDE_KW)  # the ratio test's matches alone
+        strict = dict(_WIDE_KW, min_inliers=int(base.inliers) + 5)
+        assert pnp(old, new, _WIDE_K, np.eye(4), guided_px=8.0, **strict) is None
+        prior = _WIDE_T_OLD_NEW @ make_T(so3_exp(np.radians([0.0, 1.0, 0.0])), np.array([0.05, 0.0, 0.0]))
+        res = pnp(old, new, _WIDE_K, np.eye(4), guided_px=8.0, prior=prior, prior_px=40.0, **strict)
+        assert res is not None and np.all(res.pairs[:, 1] < n)
+        assert np.linalg.norm(res.T_old_new[:3, 3] - _WIDE_T_OLD_NEW[:3, 3]) < 0.03
+        wrong = _WIDE_T_OLD_NEW @ make_T(np.eye(3), np.array([1.5, 0.0, 0.0]))
+        assert pnp(old, new, _WIDE_K, np.eye(4), guided_px=8.0, prior=wrong, prior_px=40.0, **strict) is None
+
+
 def test_the_other_way_matched_from_the_first_pose_agrees_with_it_and_a_wrong_pose_finds_nothing():
     """The edge's second PnP (new keyframe's points in the old image) is matched by projection from the first
     one's pose: on the true place it lands within the two-way tolerance of the first and of the truth; started

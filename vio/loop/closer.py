@@ -234,6 +234,10 @@ class LoopCloser:
             kw = dict(max_hamming=c.max_hamming, reproj_px=c.reproj_threshold_px, min_inliers=min_inl,
                       guided_px=c.guided_radius_px)
             res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
+            if res is None and not other and c.prior_radius_px > 0:
+                # matched by projection from where the graph puts the new keyframe (verify.pnp `prior`)
+                res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio,
+                          prior=inv_T(g.estimate[j]) @ g.estimate[i], prior_px=c.prior_radius_px, **kw)
             if res is None:
                 continue
             if c.guided_radius_px > 0:  # the other way matched by projection from this pose (verify.pnp_from)

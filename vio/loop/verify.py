@@ -88,17 +88,31 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     return np.column_stack([o[first], n[first]]).reshape(-1, 2)
 
 
+def _cam_pose(T_old_new: np.ndarray, T_body_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rvec, tvec) that put the old camera's points into the new camera, from the body pose T_old_new."""
+    T_nc_oc = inv_T(inv_T(T_body_cam) @ T_old_new @ T_body_cam)
+    return cv2.Rodrigues(T_nc_oc[:3, :3])[0], T_nc_oc[:3, 3:].copy()
+
+
 def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam: np.ndarray, *,
-        max_hamming: int, ratio: float, reproj_px: float, min_inliers: int, guided_px: float = 0.0
-        ) -> PnpResult | None:
+        max_hamming: int, ratio: float, reproj_px: float, min_inliers: int, guided_px: float = 0.0,
+        prior: np.ndarray | None = None, prior_px: float = 0.0) -> PnpResult | None:
     """The new keyframe's body pose in the old one's from the old keyframe's 3D points seen in the new image
     (descriptor matches, PnP RANSAC, Levenberg-Marquardt on the inliers); None when it is not verified.
 
     With `guided_px` > 0 the pose is then refined on the matches found by projection (`guided_pairs`), which
     across a wide change of view are about twice the ratio test's: kept where they give at least as many
     inliers. The RANSAC's inlier count decides whether the candidate is verified at all, so the guided
-    matches make a verified pose more accurate without letting more candidates through."""
-    pairs = match(old, new, max_hamming, ratio)
+    matches make a verified pose more accurate without letting more candidates through.
+
+    With a `prior` (T_old_new where the odometry puts the new keyframe) the RANSAC's matches are found by
+    projection from it, within `prior_px` (`guided_pairs`), instead of by the ratio test: on blurred images most
+    true matches fail the ratio test, while a look-alike place elsewhere does not project where the prior puts
+    the old points. The RANSAC still decides the pose and the inlier count."""
+    if prior is None:
+        pairs = match(old, new, max_hamming, ratio)
+    else:
+        pairs = guided_pairs(old, new, K, *_cam_pose(prior, T_body_cam), max_hamming, prior_px)
     n_matches = len(pairs)
     if n_matches < min_inliers:
         return None
@@ -162,8 +176,7 @@ def pnp_from(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body
     """As `pnp`, but the matches are found by projection from a pose guess (`guided_pairs`), with no RANSAC: the
     other direction of an edge whose first PnP gave the guess. The pose is refit on the matches within
     `guided_px` of the guess, then on those within `reproj_px`; None when fewer than `min_inliers` are left."""
-    T_nc_oc = inv_T(inv_T(T_body_cam) @ T_old_new_guess @ T_body_cam)
-    rvec, tvec = cv2.Rodrigues(T_nc_oc[:3, :3])[0], T_nc_oc[:3, 3:].copy()
+    rvec, tvec = _cam_pose(T_old_new_guess, T_body_cam)
     g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
     obj, img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
     fit = _refit(obj, img, K, rvec, tvec, (guided_px, reproj_px), max(min_inliers, 6))
