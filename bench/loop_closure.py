@@ -195,8 +195,8 @@ def _with_true_edges(closer, gt, t_ns: np.ndarray, T_odom: np.ndarray) -> np.nda
         prev = k - 1 if k and closer.keyframes[k].session == closer.keyframes[k - 1].session else None
         seg = src.priors.get(k)
         g.add_node(T, prev, None if seg is None else seg[1:])
-    for k, T in src.settled.items():
-        g.settle(k, T)
+        if k in src.settled:  # as it is added: settling the newest node recomposes nothing after it
+            g.settle(k, src.settled[k])
     kt = [k.t_ns for k in closer.keyframes]
     for e in src.edges:
         if e.kind == "loop" and e.weight >= 0.5:

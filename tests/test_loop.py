@@ -434,6 +434,14 @@ def test_loop_worker_drains_its_queue_before_it_stops():
     for k in range(10):
         w.submit(k, np.eye(4), None, None, 0)
     assert w.close(wait=True, timeout_s=5.0) and w.closer.done == 10 and w.dropped == 0 and w.closer.finished
+
+    class FailsAtTheEnd(Slow):
+        def finish(self):
+            raise RuntimeError("indeterminate linear system")
+
+    w = LoopWorker(FailsAtTheEnd(0.0), max_queue=100)  # the thread stops all the same, the error is kept
+    w.submit(0, np.eye(4), None, None, 0)
+    assert w.close(wait=True, timeout_s=5.0) and "indeterminate" in w.error
     w = LoopWorker(Slow(0.2), max_queue=100)
     for k in range(10):
         w.submit(k, np.eye(4), None, None, 0)

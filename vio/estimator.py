@@ -256,6 +256,7 @@ class Estimator:
         self._was_keyframe = False
         self._solved_kf: SolvedKeyframe | None = None  # set by a solve, handed out with the frame that made it
         self.settled_at_end: list[tuple[int, np.ndarray]] = []  # flush(): keyframes still in the window, as they end
+        self._settled_before_reset: list[tuple[int, np.ndarray]] = []  # settled in a call that then reset
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
@@ -426,6 +427,7 @@ class Estimator:
         run = self._state
         if isinstance(run, _Running) and run.smoother.check_due:  # the last keyframe's, for the flight's stats
             self._note_stereo_check(run.smoother.check_stereo())
+        self.settled_at_end = []
         if isinstance(run, _Running):  # the window's keyframes as they end (ProcessedFrame.settled for the rest)
             run.smoother.settle_all()
             self.settled_at_end = run.smoother.take_settled()
@@ -439,6 +441,8 @@ class Estimator:
         self.reset_counter += 1
         if isinstance(self._state, _Running):
             self._time_links_before += self._state.smoother.time_links  # the flight's count outlives the smoother
+            # keyframes that left the window before the failure keep their settled poses (the rest never settle)
+            self._settled_before_reset += self._state.smoother.take_settled()
         learnt = self.time_offset_estimate_ns if bridge else self.time_offset_ns
         if learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
             log.info("camera-IMU time offset: %.2f ms -> %.2f ms (the smoother's time state, kept across the reset)",
@@ -539,7 +543,10 @@ class Estimator:
             self._latest = st
             for sink in self.listeners:
                 sink(st)
-        settled = tuple(self._state.smoother.take_settled()) if isinstance(self._state, _Running) else ()
+        settled = tuple(self._settled_before_reset)
+        self._settled_before_reset = []
+        if isinstance(self._state, _Running):
+            settled += tuple(self._state.smoother.take_settled())
         self._processed.append(ProcessedFrame(int(ff.t_ns), ff, self.timings, st, self._solved_kf, settled))
         self._solved_kf = None
         return st

@@ -90,9 +90,13 @@ class LoopWorker:
             try:
                 if item is None:
                     if self.error is None and not self._abandon.is_set():
-                        self.closer.finish()
-                        with self._lock:
-                            self._correction = self.closer.correction()
+                        try:  # the thread stops whatever finish() does (close() waits for it)
+                            self.closer.finish()
+                            with self._lock:
+                                self._correction = self.closer.correction()
+                        except Exception as e:
+                            self.error = f"{type(e).__name__}: {e}"
+                            log.error("loop closure: the end-of-flight update failed: %s", self.error)
                     return
                 if isinstance(item, _Settled):
                     if self.error is None and not self._abandon.is_set():

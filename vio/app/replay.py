@@ -255,13 +255,13 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                                     "total_cpu_ms": (time.thread_time() - c0) * 1e3, "keyframe": bool(tm.keyframe),
                                     "stereo": ff.n_stereo})
                 if loop is not None:
-                    loop.settle(pf.settled)
                     kf = pf.keyframe  # solved in this frame's call: this frame's or (solve_next_frame) the last's
                     if kf is not None and kf.t_ns in loop_images:
                         t_l = time.perf_counter()
                         loop.submit(kf.state.t_ns, kf.state.T_world_body, loop_images[kf.t_ns], kf.features,
                                     kf.state.reset_counter)
                         loop_submit_ms.append((time.perf_counter() - t_l) * 1e3)
+                    loop.settle(pf.settled)  # after the keyframe, as the daemon does
                     # this frame's image stays until the next frame: it may be a keyframe solved then
                     for t in [t for t in loop_images if t < t_cam]:
                         del loop_images[t]

@@ -281,13 +281,13 @@ class EstimatorWorker(Worker):
 
     def _to_loop(self, pf: ProcessedFrame) -> None:
         """Hand a processed keyframe to the loop-closure thread."""
-        self.loop_worker.settle(pf.settled)
         kf = pf.keyframe  # solved in this frame's call: this frame's or (solve_next_frame) the last's
         if kf is not None:
             for t, left in self._left:
                 if t == kf.t_ns:
                     st = kf.state
                     self.loop_worker.submit(st.t_ns, st.T_world_body, left, kf.features, st.reset_counter)
+        self.loop_worker.settle(pf.settled)  # after the keyframe: a full queue drops these first
         # this frame's image stays until the next frame: it may be a keyframe solved then
         while self._left and self._left[0][0] < pf.t_ns:
             self._left.popleft()
