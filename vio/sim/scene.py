@@ -170,7 +170,9 @@ class Scene:
                 if f.box == 0 and period:
                     n = max(8, int(round(period * self.ppm)))
                     tw, th = min(w, n), min(h, n)
-                    tile = face_texture(rng, tw, th, self.ppm, plain)
+                    # no plain patches in the tile: at 1-3 m one would cover a whole period, and the repeated
+                    # walls would come out plain (nothing to alias; realistic flights rejected 40 % of their frames)
+                    tile = face_texture(rng, tw, th, self.ppm, 0.0)
                     patch = np.tile(tile, (int(np.ceil(h / th)), int(np.ceil(w / tw))))[:h, :w]
                 else:
                     patch = face_texture(rng, w, h, self.ppm, plain)
