@@ -993,3 +993,29 @@ def test_keyframes_settle_once_in_order_with_better_relative_poses_than_at_their
     settled = dict(rec.settled)
     assert max(np.linalg.norm(settled[t][:3, 3] - first[t][:3, 3]) for t in ts) < 0.05  # the same flight
     assert rel_err_m(settled) < 0.8 * rel_err_m(first), (rel_err_m(settled), rel_err_m(first))
+
+
+def test_keyframes_settled_in_a_call_that_then_resets_keep_their_settled_poses(laps_flight, monkeypatch):
+    """A keyframe's solve marginalises (and so settles) older keyframes, then fails: the estimator resets, and the
+    poses settled by that solve still reach the loop stage (the rest of the window never settles)."""
+    from vio.app.replay import replay
+    from vio.backend.smoother import SmootherFailure, VioSmoother
+    from vio.config import VioConfig
+    from vio.io.euroc import EurocDataset
+
+    orig = VioSmoother.add_keyframe
+    lost: list = []
+
+    def failing(self, *a, **kw):
+        est = orig(self, *a, **kw)
+        if not lost and self.index >= 12 and self._settled:
+            lost.extend(t for t, _ in self._settled)  # settled by this solve, not handed out yet
+            raise SmootherFailure("test: the solve after the marginalisation fails")
+        return est
+
+    monkeypatch.setattr(VioSmoother, "add_keyframe", failing)
+    rec = _Recorder()
+    res = replay(EurocDataset(laps_flight), VioConfig(), progress=False, max_frames=200, loop=rec)
+    assert res.resets >= 1 and lost
+    got = {t for t, _ in rec.settled}
+    assert set(lost) <= got
