@@ -412,9 +412,10 @@ class LoopConfig:
                                   "twice the inliers across a wide change of view), and the edge's other "
                                   "direction is matched the same way from that pose instead of by a second "
                                   "RANSAC; 0: off (ratio test and RANSAC both ways)", min=0, max=100)
-    prior_radius_px: float = opt(0.0, "a same-flight candidate whose ratio-test matches fail PnP is matched again "
+    prior_radius_px: float = opt(40.0, "a same-flight candidate whose ratio-test matches fail PnP is matched again "
                                  "by projection from where the pose graph puts the new keyframe, within this "
-                                 "radius, and PnP RANSAC runs on those; 0: off", min=0, max=500)
+                                 "radius, and PnP RANSAC runs on those (repeated textures, blur; "
+                                 "docs/loop-closure.md); 0: off", min=0, max=500)
     settled_odometry: bool = opt(True, "odometry edges between keyframes from the odometry smoother's estimate as "
                                  "each keyframe leaves its window (lag_s of later data) rather than at the "
                                  "keyframe's own solve (loop-corrected ATE 12-20 % lower; docs/loop-closure.md)")
