@@ -66,10 +66,13 @@ def test_loop_edges_the_graph_already_agrees_with_skip_the_fit_check_and_a_wrong
             g.optimize()
         if quick:
             assert g.quick_fits >= 5, g.quick_fits  # all but the first closure (and its aftermath)
-            est_quick = np.array(g.estimate)
+            g.refresh()  # the quick fits wait for the next iSAM2 update (defer_quick_fits)
+            est_quick, ate_quick = np.array(g.estimate), _ate(g, truth)
         else:
             assert g.quick_fits == 0
-            assert np.abs(np.array(g.estimate)[:, :3, 3] - est_quick[:, :3, 3]).max() < 1e-3
+            # the same least squares; the deferred edges were linearised at one point instead of eight (~1 mm)
+            assert np.abs(np.array(g.estimate)[:, :3, 3] - est_quick[:, :3, 3]).max() < 2e-3
+            assert abs(_ate(g, truth) - ate_quick) < 0.01 * ate_quick
     g, truth = _circle(90, np.random.default_rng(1))
     for k in range(40, 48):
         g.add_loop(k - 40, k, np.linalg.inv(truth[k - 40]) @ truth[k])

@@ -62,6 +62,9 @@ class GraphNoise:
     # without the fit check (the graph already agrees with them; in a lap that closes at every keyframe)
     quick_fit_share: float = 0.25
     relinearize_threshold: float = 0.01  # iSAM2 (measured: 0.001 costs 2-4x more for the same ATE)
+    # loop edges that already fit the estimate wait for the next iSAM2 update (every flush_every keyframes, or the
+    # next closure that takes the full path) instead of one update each: a lap closing at every keyframe
+    defer_quick_fits: bool = True
 
 
 def _sigmas(rot: float, trans: float) -> np.ndarray:
@@ -106,6 +109,7 @@ class PoseGraph:
         self._new_values = gtsam.Values()
         self._condensed_cache: dict[tuple, list] = {}
         self._in_isam: dict[int, int] = {}  # index in self.edges of a loop edge -> its iSAM2 factor index
+        self._queued: dict[int, int] = {}  # a loop edge waiting in the pending factors -> its position there
         # The odometry edge into each node (index in self.edges; None at a segment start); where each node's
         # attitude factor and odometry edge are, ("att", node) / ("odom", edge): a position in the pending
         # factors or an iSAM2 index, so that `settle` can replace them; and each node's pose composed along the
@@ -150,7 +154,10 @@ class PoseGraph:
         self._add_replaceable(("att", i), self._attitude(i))
         self._new_values.insert(i, gtsam.Pose3(self.estimate[i]))
         if self._new_values.size() >= n.flush_every:
+            queued = bool(self._queued)
             self._isam_update()
+            if queued:  # deferred loop edges went in: the estimate (and the correction) follows them now
+                self._read_estimate()
         return i
 
     def settle(self, i: int, T_odom: np.ndarray) -> None:
@@ -233,11 +240,13 @@ class PoseGraph:
 
     def _isam_update(self, remove: list[int] | None = None) -> gtsam.ISAM2Result:
         r = self._isam.update(self._new_factors, self._new_values, (remove or []) + self._remove)
-        if self._pending_at:
+        if self._pending_at or self._queued:
             idx = r.getNewFactorsIndices()
             for k, pos in self._pending_at.items():
                 self._isam_at[k] = int(idx[pos])
-        self._pending_at, self._remove = {}, []
+            for k, pos in self._queued.items():
+                self._in_isam[k] = int(idx[pos])
+        self._pending_at, self._remove, self._queued = {}, [], {}
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         return r
@@ -331,8 +340,16 @@ class PoseGraph:
         loops = [k for k, e in enumerate(self.edges) if e.kind == "loop"]
         if loops and not decide and self._fit_already(loops):
             self.quick_fits += 1
-            self._sync(loops)
+            if self.noise.defer_quick_fits:
+                for k in loops:
+                    if self.edges[k].weight >= 0.5 and k not in self._in_isam and k not in self._queued:
+                        self._queued[k] = self._new_factors.size()
+                        self._new_factors.add(self._loop_factor(self.edges[k]))
+            else:
+                self._sync(loops)
             return {"loop_weights": [self.edges[k].weight for k in loops], "decided": False}
+        if self._queued:  # the full path starts from an iSAM2 that holds every edge accepted so far
+            self._isam_update()
         if loops:
             try:
                 known, values = self._condensed(loops)
@@ -352,7 +369,7 @@ class PoseGraph:
         TLS threshold. The edges already in iSAM2 fit it (they were checked), and an edge the solution already
         agrees with moves it little, so the decision graph's check would pass; a first closure, a relocalisation
         or a wrong edge is far off the current estimate and takes the full path."""
-        new = [k for k in loops if self.edges[k].weight >= 0.5 and k not in self._in_isam]
+        new = [k for k in loops if self.edges[k].weight >= 0.5 and k not in self._in_isam and k not in self._queued]
         if not new:
             return False
         bar = self.noise.quick_fit_share * self._tls_cost_bar()
@@ -368,7 +385,7 @@ class PoseGraph:
     def _sync(self, loops: list[int]) -> None:
         """iSAM2 update: pending keyframes, loop edges with weight >= 0.5 in, the others out."""
         remove = [self._in_isam.pop(k) for k in loops if self.edges[k].weight < 0.5 and k in self._in_isam]
-        added = [k for k in loops if self.edges[k].weight >= 0.5 and k not in self._in_isam]
+        added = [k for k in loops if self.edges[k].weight >= 0.5 and k not in self._in_isam and k not in self._queued]
         first_new = self._new_factors.size()
         for k in added:
             self._new_factors.add(self._loop_factor(self.edges[k]))
@@ -378,6 +395,9 @@ class PoseGraph:
         for _ in range(self.noise.isam_iterations - 1):  # relinearise a large correction, while it moves
             if not self._isam.update().getVariablesRelinearized():
                 break
+        self._read_estimate()
+
+    def _read_estimate(self) -> None:
         values = self._isam.calculateEstimate()
         rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; keys 0..N-1 in order
         T = np.tile(np.eye(4), (len(rows), 1, 1))
