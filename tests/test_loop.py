@@ -454,6 +454,38 @@ def test_loop_worker_drains_its_queue_before_it_stops():
     assert w.closer.done + w.dropped == 10 and w.dropped >= 5
 
 
+def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
+    """Loop edges the pose graph deferred (quick fits) reach the estimate at a later keyframe that closes nothing:
+    the worker hands that correction out as a new version, so `[loop] output = jump` takes it; a keyframe that
+    neither closes nor moves it keeps the version."""
+    from vio.app.loop_worker import LoopWorker
+    from vio.geometry import make_T
+
+    class Closer:
+        def __init__(self):
+            self.corr, self.script = np.eye(4), iter([(False, 0.0), (True, 0.1), (False, 0.1), (False, 0.12)])
+
+        def add_keyframe(self, *item):
+            closed, x = next(self.script)
+            self.corr = make_T(np.eye(3), np.array([x, 0.0, 0.0]))
+            return closed
+
+        def correction(self):
+            return self.corr
+
+        def finish(self):
+            pass
+
+    w = LoopWorker(Closer(), max_queue=10)
+    versions = []
+    for k in range(4):
+        w.submit(k, np.eye(4), None, None, 0)
+        w._q.join()
+        versions.append(w.correction()[1])
+    assert w.close(wait=True, timeout_s=5.0)
+    assert versions == [0, 1, 1, 2] and w.closures == 1
+
+
 def test_vio_run_with_loop_closure_saves_a_map_on_sigterm(tmp_path):
     """The daemon with `[loop] enabled` and `[map] save`: on SIGTERM the loop thread drains its queue, the map
     is written, and `vio map info` reads it back with keyframes in it."""

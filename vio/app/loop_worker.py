@@ -43,7 +43,9 @@ class LoopWorker:
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
         self._lock = threading.Lock()
         self._correction = np.eye(4)
-        self.closures = 0  # accepted closures so far (a new correction each time)
+        self.closures = 0  # accepted closures so far
+        # versions of the correction: a closure, or loop edges the graph deferred (quick fits) brought in later
+        self.corrections = 0
         self.dropped = 0
         self.error: str | None = None
         self.keep_snapshot = keep_snapshot
@@ -69,9 +71,17 @@ class LoopWorker:
                 self._q.put_nowait(_Settled(tuple(settled)))
 
     def correction(self) -> tuple[np.ndarray, int]:
-        """(T_world_odom, number of closures) as of the last keyframe processed."""
+        """(T_world_odom, its version: +1 each time it changes) as of the last keyframe processed."""
         with self._lock:
-            return self._correction.copy(), self.closures
+            return self._correction.copy(), self.corrections
+
+    def _set_correction(self, closed: bool) -> None:
+        """The closer's newest correction; a new version when a closure was accepted or it moved (deferred edges)."""
+        T = self.closer.correction()
+        with self._lock:
+            if closed or not np.allclose(T, self._correction, rtol=0.0, atol=1e-9):
+                self.corrections += 1
+            self._correction = T
 
     def snapshot(self) -> LoopSnapshot | None:
         """The newest LoopSnapshot (None before the first keyframe, or without keep_snapshot)."""
@@ -92,8 +102,7 @@ class LoopWorker:
                     if self.error is None and not self._abandon.is_set():
                         try:  # the thread stops whatever finish() does (close() waits for it)
                             self.closer.finish()
-                            with self._lock:
-                                self._correction = self.closer.correction()
+                            self._set_correction(False)
                         except Exception as e:
                             self.error = f"{type(e).__name__}: {e}"
                             log.error("loop closure: the end-of-flight update failed: %s", self.error)
@@ -106,8 +115,8 @@ class LoopWorker:
                     self.dropped += 1
                 elif self.error is None:
                     closed = self.closer.add_keyframe(*item)
+                    self._set_correction(closed)
                     with self._lock:
-                        self._correction = self.closer.correction()
                         self.closures += int(closed)
                         self._processed += 1
                     if self.keep_snapshot:

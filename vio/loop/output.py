@@ -28,19 +28,19 @@ class CorrectedOutput:
         self.rate_rad_s = np.radians(blend_rate_deg_s)
         self._t = np.zeros(3)  # applied correction: translation and yaw
         self._yaw = 0.0
-        self._closures = 0
+        self._version = 0  # of the correction applied (jump mode takes each new one)
         self.jumps = 0  # reset_counter increments added (jump mode)
         self._last_t_ns: int | None = None
 
-    def apply(self, state: NavState, T_world_odom: np.ndarray, closures: int) -> NavState:
+    def apply(self, state: NavState, T_world_odom: np.ndarray, version: int) -> NavState:
         if self.mode == "off":
             return state
         target_t, target_yaw = _yaw_only(T_world_odom)
         dt = 0.0 if self._last_t_ns is None else max(state.t_ns - self._last_t_ns, 0) * 1e-9
         self._last_t_ns = state.t_ns
         if self.mode == "jump":
-            if closures != self._closures:
-                self._closures = closures
+            if version != self._version:
+                self._version = version
                 if not (np.allclose(target_t, self._t) and np.isclose(target_yaw, self._yaw)):
                     self.jumps += 1
                 self._t, self._yaw = target_t, target_yaw
