@@ -423,6 +423,7 @@ def test_loop_worker_drains_its_queue_before_it_stops():
     class Slow:
         def __init__(self, s):
             self.s, self.done = s, 0
+            self.graph = type("G", (), {"estimate_version": 0})()
 
         def add_keyframe(self, *item):
             time.sleep(self.s)
@@ -457,16 +458,17 @@ def test_loop_worker_drains_its_queue_before_it_stops():
 def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
     """Loop edges the pose graph deferred (quick fits) reach the estimate at a later keyframe that closes nothing:
     the worker hands that correction out as a new version, so `[loop] output = jump` takes it; a keyframe that
-    neither closes nor moves it keeps the version."""
+    neither closes nor re-solves keeps the version, also when a new odometry segment resets the correction."""
     from vio.app.loop_worker import LoopWorker
     from vio.geometry import make_T
 
     class Closer:
-        def __init__(self):
-            self.corr, self.script = np.eye(4), iter([(False, 0.0), (True, 0.1), (False, 0.1), (False, 0.12)])
+        def __init__(self):  # (closure accepted, graph re-solved, correction x)
+            self.script = iter([(False, 0, 0.0), (True, 1, 0.1), (False, 1, 0.1), (False, 2, 0.12), (False, 2, 0.0)])
+            self.corr, self.graph = np.eye(4), type("G", (), {"estimate_version": 0})()
 
         def add_keyframe(self, *item):
-            closed, x = next(self.script)
+            closed, self.graph.estimate_version, x = next(self.script)
             self.corr = make_T(np.eye(3), np.array([x, 0.0, 0.0]))
             return closed
 
@@ -478,12 +480,13 @@ def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
 
     w = LoopWorker(Closer(), max_queue=10)
     versions = []
-    for k in range(4):
+    for k in range(5):
         w.submit(k, np.eye(4), None, None, 0)
         w._q.join()
         versions.append(w.correction()[1])
     assert w.close(wait=True, timeout_s=5.0)
-    assert versions == [0, 1, 1, 2] and w.closures == 1
+    # the last: a new odometry segment (an estimator reset) whose correction starts at identity, no solve
+    assert versions == [0, 1, 1, 2, 2] and w.closures == 1
 
 
 def test_vio_run_with_loop_closure_saves_a_map_on_sigterm(tmp_path):

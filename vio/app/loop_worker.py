@@ -46,6 +46,7 @@ class LoopWorker:
         self.closures = 0  # accepted closures so far
         # versions of the correction: a closure, or loop edges the graph deferred (quick fits) brought in later
         self.corrections = 0
+        self._solved = 0  # the pose graph's estimate version behind the correction
         self.dropped = 0
         self.error: str | None = None
         self.keep_snapshot = keep_snapshot
@@ -76,11 +77,15 @@ class LoopWorker:
             return self._correction.copy(), self.corrections
 
     def _set_correction(self, closed: bool) -> None:
-        """The closer's newest correction; a new version when a closure was accepted or it moved (deferred edges)."""
+        """The closer's newest correction; a new version when a closure was accepted or the pose graph re-solved
+        without one (deferred edges brought in). Not when only a new odometry segment began (an estimator reset):
+        `jump` keeps the correction it has until a closure places the new segment."""
         T = self.closer.correction()
+        solved = self.closer.graph.estimate_version
         with self._lock:
-            if closed or not np.allclose(T, self._correction, rtol=0.0, atol=1e-9):
+            if closed or solved != self._solved:
                 self.corrections += 1
+            self._solved = solved
             self._correction = T
 
     def snapshot(self) -> LoopSnapshot | None:

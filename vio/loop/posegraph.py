@@ -110,6 +110,7 @@ class PoseGraph:
         self._condensed_cache: dict[tuple, list] = {}
         self._in_isam: dict[int, int] = {}  # index in self.edges of a loop edge -> its iSAM2 factor index
         self._queued: dict[int, int] = {}  # a loop edge waiting in the pending factors -> its position there
+        self.estimate_version = 0  # +1 each time the estimate is re-read from iSAM2 (closures, deferred edges)
         # The odometry edge into each node (index in self.edges; None at a segment start); where each node's
         # attitude factor and odometry edge are, ("att", node) / ("odom", edge): a position in the pending
         # factors or an iSAM2 index, so that `settle` can replace them; and each node's pose composed along the
@@ -398,6 +399,7 @@ class PoseGraph:
         self._read_estimate()
 
     def _read_estimate(self) -> None:
+        self.estimate_version += 1
         values = self._isam.calculateEstimate()
         rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; keys 0..N-1 in order
         T = np.tile(np.eye(4), (len(rows), 1, 1))
