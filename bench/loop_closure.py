@@ -89,9 +89,10 @@ def _edge_figures(closer, gt) -> tuple[int, int, list[float]]:
     return int(false_total), int(false_active), edge_err_m
 
 
-def refeed(rec: _Recorder, calib, loop_cfg, gt, t: np.ndarray, T_odom: np.ndarray, ate_odom_m: float) -> dict:
-    """The recorded keyframes (and settled poses) into a fresh LoopCloser with `loop_cfg`, on this thread: its
-    accuracy on the odometry `T_odom` at `t` and its cost per odometry keyframe (OpenCV as the caller set it).
+def refeed(rec: _Recorder, calib, loop_cfg, gt, t: np.ndarray, T_odom: np.ndarray, ate_odom_m: float):
+    """The recorded keyframes (and settled poses) into a fresh LoopCloser with `loop_cfg`, on this thread: the
+    closer, and its accuracy on the odometry `T_odom` at `t` and cost per odometry keyframe (OpenCV as the caller
+    set it).
     Two configurations re-fed from one recording see exactly the same keyframes."""
     from vio.evaluation import end_drift_m, evaluate
     from vio.loop.closer import LoopCloser
@@ -104,7 +105,7 @@ def refeed(rec: _Recorder, calib, loop_cfg, gt, t: np.ndarray, T_odom: np.ndarra
     T_loop = cl.corrected_trajectory(t, T_odom)
     ate = evaluate(Trajectory.from_poses(t, T_loop), gt).ate_4dof.trans_m.rmse
     false_total, false_active, err = _edge_figures(cl, gt)
-    return {"closer": cl, "ate_loop_m": ate, "ate_ratio": ate / ate_odom_m,
+    return cl, {"ate_loop_m": ate, "ate_ratio": ate / ate_odom_m,
             "ate_loop_true_edges_m": evaluate(Trajectory.from_poses(t, _with_true_edges(cl, gt, t, T_odom)),
                                               gt).ate_4dof.trans_m.rmse,
             "loop_edge_error_median_m": float(np.median(err)) if err else None,
@@ -156,14 +157,13 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
     replay(EurocDataset(data), cfg, progress=False, loop=rec)
     cv2.setNumThreads(1)
     ate_odom = ev_o.ate_4dof.trans_m.rmse
-    one = refeed(rec, ds.calibration, cfg.loop, gt, t, T_odom, ate_odom)
-    per_kf_ms, st = one["ms_per_keyframe"], one.pop("closer").stats.to_dict()
+    seq, one = refeed(rec, ds.calibration, cfg.loop, gt, t, T_odom, ate_odom)
+    per_kf_ms, st = one["ms_per_keyframe"], seq.stats.to_dict()
     # other loop configurations on exactly these keyframes (each beside this configuration's own re-feed)
     others = {}
     for path in refeed_configs:
-        other = refeed(rec, ds.calibration, load_config(path).loop, gt, t, T_odom, ate_odom)
-        other.pop("closer")
-        others[str(path)] = {"this": one, "other": other}
+        others[str(path)] = {"this": one, "other": refeed(rec, ds.calibration, load_config(path).loop, gt, t,
+                                                          T_odom, ate_odom)[1]}
     cv2.setNumThreads(-1)
     return {"flight": data.name, "path_m": ev_o.path_length_m,
             "ate_odometry_m": ev_o.ate_4dof.trans_m.rmse, "ate_loop_m": ev_l.ate_4dof.trans_m.rmse,

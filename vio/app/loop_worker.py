@@ -44,9 +44,9 @@ class LoopWorker:
         self._lock = threading.Lock()
         self._correction = np.eye(4)
         self.closures = 0  # accepted closures so far
-        # versions of the correction: a closure, or loop edges the graph deferred (quick fits) brought in later
-        self.corrections = 0
-        self._solved = 0  # the pose graph's estimate version behind the correction
+        # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
+        # graph deferred brought in later), not when only a new odometry segment begins
+        self._version = 0
         self.dropped = 0
         self.error: str | None = None
         self.keep_snapshot = keep_snapshot
@@ -72,21 +72,16 @@ class LoopWorker:
                 self._q.put_nowait(_Settled(tuple(settled)))
 
     def correction(self) -> tuple[np.ndarray, int]:
-        """(T_world_odom, its version: +1 each time it changes) as of the last keyframe processed."""
+        """(T_world_odom, its version: the pose graph's solves behind it) as of the last keyframe processed."""
         with self._lock:
-            return self._correction.copy(), self.corrections
+            return self._correction.copy(), self._version
 
-    def _set_correction(self, closed: bool) -> None:
-        """The closer's newest correction; a new version when a closure was accepted or the pose graph re-solved
-        without one (deferred edges brought in). Not when only a new odometry segment began (an estimator reset):
-        `jump` keeps the correction it has until a closure places the new segment."""
-        T = self.closer.correction()
-        solved = self.closer.graph.estimate_version
+    def _set_correction(self) -> None:
+        """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
+        estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
+        T, version = self.closer.correction(), self.closer.graph.estimate_version
         with self._lock:
-            if closed or solved != self._solved:
-                self.corrections += 1
-            self._solved = solved
-            self._correction = T
+            self._correction, self._version = T, version
 
     def snapshot(self) -> LoopSnapshot | None:
         """The newest LoopSnapshot (None before the first keyframe, or without keep_snapshot)."""
@@ -107,7 +102,7 @@ class LoopWorker:
                     if self.error is None and not self._abandon.is_set():
                         try:  # the thread stops whatever finish() does (close() waits for it)
                             self.closer.finish()
-                            self._set_correction(False)
+                            self._set_correction()
                         except Exception as e:
                             self.error = f"{type(e).__name__}: {e}"
                             log.error("loop closure: the end-of-flight update failed: %s", self.error)
@@ -120,7 +115,7 @@ class LoopWorker:
                     self.dropped += 1
                 elif self.error is None:
                     closed = self.closer.add_keyframe(*item)
-                    self._set_correction(closed)
+                    self._set_correction()
                     with self._lock:
                         self.closures += int(closed)
                         self._processed += 1

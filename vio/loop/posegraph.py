@@ -408,8 +408,8 @@ class PoseGraph:
         self.estimate = list(T)
 
     def refresh(self) -> None:
-        """Pending keyframes and replaced odometry edges into iSAM2 and the estimate re-read, with no new loop
-        decision (between closures the estimate is only brought up to date by the next closure)."""
+        """Pending keyframes, replaced odometry edges and deferred loop edges into iSAM2 and the estimate re-read,
+        with no new loop decision (between closures the estimate follows only deferred edges, at a flush)."""
         self._sync([k for k, e in enumerate(self.edges) if e.kind == "loop"])
 
     def active_loops(self) -> list[Edge]:
