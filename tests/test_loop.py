@@ -908,7 +908,7 @@ def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_sess
     """A second flight joins a loaded map: its first edges see the map's places from further off, with few PnP
     inliers and centimetres of error (bench/loop_reloc.py: 12-20 inliers 30-70 mm off, 40-90 inliers 3-8 mm).
     Their sigmas grow as sqrt(reloc_sigma_inliers / inliers) (at most 2x; edges within one session keep the
-    graph's), and the session's poses come out closer to the truth than with every edge weighed alike."""
+    graph's rule), and the session's poses come out closer to the truth than with every edge weighed alike."""
     from types import SimpleNamespace
 
     from vio.config import LoopConfig
@@ -921,9 +921,10 @@ def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_sess
     def scale(i, j, n):
         return LoopCloser._sigma_scale(me, _Candidate(i, j, np.eye(4), np.eye(4), n))
     assert scale(1, 0, 15) == pytest.approx(2.0) and scale(1, 0, 30) == pytest.approx(np.sqrt(2))
-    assert scale(1, 0, 200) == 1.0 and scale(2, 1, 15) == 1.0  # many inliers; within one session
-    assert LoopCloser._sigma_scale(SimpleNamespace(cfg=SimpleNamespace(reloc_sigma_inliers=0), keyframes=me.keyframes),
-                                   _Candidate(1, 0, np.eye(4), np.eye(4), 15)) == 1.0
+    assert scale(1, 0, 200) == 1.0  # many inliers: never tighter than the graph's between sessions
+    off = SimpleNamespace(cfg=SimpleNamespace(reloc_sigma_inliers=0, sigma_inliers=0), keyframes=me.keyframes)
+    assert LoopCloser._sigma_scale(off, _Candidate(1, 0, np.eye(4), np.eye(4), 15)) == 1.0
+    assert LoopCloser._sigma_scale(off, _Candidate(2, 1, np.eye(4), np.eye(4), 15)) == 1.0
 
     rng = np.random.default_rng(3)
     truth = [make_T(so3_exp(np.r_[0, 0, 0.05 * k]), np.r_[0.2 * k, 0.05 * k, 1.5]) for k in range(30)]
@@ -951,6 +952,61 @@ def test_edges_to_another_session_with_few_inliers_weigh_less_and_place_the_sess
     print(f"session position error: edges alike {errors[False] * 1e3:.1f} mm, weighed by inliers "
           f"{errors[True] * 1e3:.1f} mm")
     assert errors[True] < 0.8 * errors[False]
+
+
+def test_loop_edges_within_a_flight_weigh_by_their_inliers_both_ways():
+    """Within one flight a loop edge's sigmas scale by sqrt(sigma_inliers / inliers) between 0.5 and 2: an edge
+    with many PnP inliers is held tighter than the graph's sigmas, a weak one looser. On a lap whose weak edges
+    carry centimetres of error and whose strong ones millimetres, the poses come out closer to the truth than
+    with every edge weighed alike: the places seen twice agree better (their relative poses, what a loop edge
+    corrects; the first lap's own drift no edge can see)."""
+    from types import SimpleNamespace
+
+    from vio.config import LoopConfig
+    from vio.loop.closer import LoopCloser, _Candidate
+    from vio.loop.posegraph import GraphNoise, PoseGraph
+
+    c = LoopConfig()
+    me = SimpleNamespace(cfg=c, keyframes=[SimpleNamespace(session=0)] * 3)
+
+    def scale(n):
+        return LoopCloser._sigma_scale(me, _Candidate(2, 0, np.eye(4), np.eye(4), n))
+    assert scale(c.sigma_inliers) == pytest.approx(1.0)
+    assert scale(15) == pytest.approx(2.0) and scale(4 * c.sigma_inliers) == pytest.approx(0.5)
+    assert scale(5) == 2.0 and scale(10_000) == 0.5  # clipped
+
+    rng = np.random.default_rng(5)
+    n_kf = 40  # a lap of a 4 m circle, seen again from k = 20 on
+    truth = [make_T(so3_exp(np.r_[0, 0, 2 * np.pi * k / 20]),
+                    np.r_[2 * np.cos(2 * np.pi * k / 20), 2 * np.sin(2 * np.pi * k / 20), 1.5]) for k in range(n_kf)]
+    noise = GraphNoise(odom_trans_per_m=c.odom_sigma_per_m, loop_trans_m=c.loop_sigma_m,
+                       loop_rot_rad=np.radians(c.loop_sigma_deg))
+    steps = [np.linalg.inv(truth[k - 1]) @ truth[k] @ make_T(so3_exp(rng.normal(0, 2e-3, 3)), rng.normal(0, 4e-3, 3))
+             for k in range(1, n_kf)]
+    edges = []
+    for k in range(20, n_kf):
+        weak = k % 2 == 0
+        n = int(rng.integers(20, 26)) if weak else int(rng.integers(150, 240))
+        err = make_T(so3_exp(rng.normal(0, np.radians(0.4 if weak else 0.05), 3)),
+                     rng.normal(0, 0.03 if weak else 0.003, 3))
+        edges.append((k - 20, k, n, err))
+    errors = {}
+    for weighed in (False, True):
+        g = PoseGraph(noise)
+        prev, T = g.add_node(truth[0], None, (1e-4, 1e-4)), truth[0]
+        for k in range(1, n_kf):
+            T = T @ steps[k - 1]
+            prev = g.add_node(T, prev)
+        for m, k, n, err in edges:
+            s = float(np.clip(np.sqrt(c.sigma_inliers / n), 0.5, 2.0)) if weighed else 1.0
+            g.add_loop(m, k, np.linalg.inv(truth[m]) @ truth[k] @ err, n, s)
+        g.optimize(decide=True)
+        assert all(e.weight > 0.5 for e in g.edges if e.kind == "loop")  # all true: none switched off either way
+        errors[weighed] = np.sqrt(np.mean([np.sum((np.linalg.inv(g.estimate[m]) @ g.estimate[k] - np.linalg.inv(
+            truth[m]) @ truth[k])[:3, 3] ** 2) for m, k, _, _ in edges]))
+    print(f"places seen twice, relative position error: edges alike {errors[False] * 1e3:.1f} mm, weighed by "
+          f"inliers {errors[True] * 1e3:.1f} mm")
+    assert errors[True] < 0.85 * errors[False]
 
 
 class _Recorder:
