@@ -16,6 +16,7 @@ Two graphs, because a full-graph GNC solve costs seconds on a 10-minute flight (
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import gtsam
@@ -23,6 +24,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from vio.geometry import inv_T
+
+log = logging.getLogger(__name__)
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -192,7 +195,17 @@ class PoseGraph:
                                  if key[1] < i or self._segment[key[1]] != seg}
 
     def add_loop(self, i: int, j: int, T_i_j: np.ndarray, inliers: int = 0, sigma_scale: float = 1.0) -> None:
-        self.edges.append(Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers, sigma_scale=sigma_scale))
+        """A loop edge: node j's pose in node i's frame. An edge from a node to itself constrains nothing; it is kept
+        (the edge list stays in the caller's order) but switched off and never enters a solve."""
+        e = Edge(i, j, np.array(T_i_j, float), "loop", inliers=inliers, sigma_scale=sigma_scale)
+        if i == j:
+            log.warning("loop edge from keyframe %d to itself ignored: it constrains nothing", i)
+            e.weight = 0.0
+        self.edges.append(e)
+
+    def _loops(self) -> list[int]:
+        """Indices of the loop edges a solve can use (all but self-edges)."""
+        return [k for k, e in enumerate(self.edges) if e.kind == "loop" and e.i != e.j]
 
     def drop_loops_from(self, first: int) -> int:
         """Take back the loop edges added since self.edges had `first` entries (not yet in iSAM2: after a
@@ -234,8 +247,13 @@ class PoseGraph:
         R = self.settled[i][:3, :3] if i in self.settled else self.odom[i][:3, :3]
         return gtsam.AttitudeFactorPose3(i, gtsam.Unit3(UP), att, gtsam.Unit3(R.T @ UP))
 
-    def _loop_factor(self, e: Edge) -> gtsam.NonlinearFactor:
-        k = e.sigma_scale
+    def _loop_factor(self, e: Edge, decision: bool = False) -> gtsam.NonlinearFactor:
+        """The edge's factor with its sigmas scaled by `sigma_scale`. For a decision (the fit checks and GNC) an
+        edge is never held tighter than the graph's sigmas: GNC's TLS threshold is in sigmas, and with a few true
+        edges held tight against several strong false ones it switched the true ones off (3 true and 3-5 false
+        edges on a drifting lap, all at half the sigmas: 7 and 12 true edges off over 30 draws, none at the
+        graph's; tests/test_loop.py). What a tighter edge is for, a better estimate, comes from iSAM2."""
+        k = max(e.sigma_scale, 1.0) if decision else e.sigma_scale
         model = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(self.noise.loop_rot_rad * k, self.noise.loop_trans_m * k))
         return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), model)
 
@@ -290,7 +308,7 @@ class PoseGraph:
         them fit the solution (error under the TLS threshold GNC uses)?"""
         g = gtsam.NonlinearFactorGraph()
         g.push_back(known)
-        factors = [self._loop_factor(self.edges[k]) for k in loops]
+        factors = [self._loop_factor(self.edges[k], decision=True) for k in loops]
         for f in factors:
             g.add(f)
 
@@ -314,7 +332,7 @@ class PoseGraph:
         g.push_back(known)
         first_loop = g.size()
         for k in loops:
-            g.add(self._loop_factor(self.edges[k]))
+            g.add(self._loop_factor(self.edges[k], decision=True))
 
         def solve(linear: str) -> np.ndarray:
             params = gtsam.GncLMParams()
@@ -338,7 +356,8 @@ class PoseGraph:
         Otherwise (or with `decide`) GNC re-decides every loop edge ever added, switched-off ones included,
         and iSAM2's loop edges are brought in line: a wrong closure accepted earlier is switched off after
         the fact, a wrongly refused one comes back. Returns {'loop_weights': [...], 'decided': bool}."""
-        loops = [k for k, e in enumerate(self.edges) if e.kind == "loop"]
+        loops = self._loops()
+        every = [e for e in self.edges if e.kind == "loop"]  # the caller's edges, self-edges (off) included
         if loops and not decide and self._fit_already(loops):
             self.quick_fits += 1
             if self.noise.defer_quick_fits:
@@ -348,7 +367,7 @@ class PoseGraph:
                         self._new_factors.add(self._loop_factor(self.edges[k]))
             else:
                 self._sync(loops)
-            return {"loop_weights": [self.edges[k].weight for k in loops], "decided": False}
+            return {"loop_weights": [e.weight for e in every], "decided": False}
         if self._queued:  # the full path starts from an iSAM2 that holds every edge accepted so far
             self._isam_update()
         if loops:
@@ -363,7 +382,7 @@ class PoseGraph:
             except RuntimeError as e:  # gtsam's solver errors (an indeterminate system that QR could not solve)
                 raise DecisionError(f"{type(e).__name__}: {e}") from e
         self._sync(loops)
-        return {"loop_weights": [self.edges[k].weight for k in loops], "decided": decide}
+        return {"loop_weights": [e.weight for e in every], "decided": decide}
 
     def _fit_already(self, loops: list[int]) -> bool:
         """Every new (not yet solved) inlier loop edge fits the current estimate within quick_fit_share of the
@@ -379,7 +398,7 @@ class PoseGraph:
             v = gtsam.Values()
             v.insert(e.i, gtsam.Pose3(self.estimate[e.i]))
             v.insert(e.j, gtsam.Pose3(self.estimate[e.j]))
-            if self._loop_factor(e).error(v) > bar:
+            if self._loop_factor(e, decision=True).error(v) > bar:
                 return False
         return True
 
@@ -410,7 +429,7 @@ class PoseGraph:
     def refresh(self) -> None:
         """Pending keyframes, replaced odometry edges and deferred loop edges into iSAM2 and the estimate re-read,
         with no new loop decision (between closures the estimate follows only deferred edges, at a flush)."""
-        self._sync([k for k, e in enumerate(self.edges) if e.kind == "loop"])
+        self._sync(self._loops())
 
     def active_loops(self) -> list[Edge]:
         return [e for e in self.edges if e.kind == "loop" and e.weight >= 0.5]
