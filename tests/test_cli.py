@@ -104,7 +104,7 @@ def test_unexpected_error_is_one_line_with_a_hint(monkeypatch, capsys):
     assert main(["-q", "replay", "somewhere"]) == EXIT_FAILURE
     err = capsys.readouterr().err
     assert err == ("vio replay: internal error: RuntimeError: matrix not positive definite "
-                   "(run with -v for the traceback)\n")
+                   "(`vio -v replay ...` shows the traceback)\n")
     assert main(["-v", "replay", "somewhere"]) == EXIT_FAILURE
     err = capsys.readouterr().err
     assert "Traceback" in err and err.strip().endswith("vio replay: internal error: RuntimeError: matrix not "

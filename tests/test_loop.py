@@ -272,7 +272,7 @@ def test_spacing_takes_a_hovering_keyframe_only_every_spacing_s_and_always_the_o
     assert len(every.keyframes) == 5 and every.stats.spaced_out == 0
 
 
-def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_alone(laps_flight, tmp_path):
+def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_alone(laps_flight, tmp_path, capsys):
     from vio.app.cli import main
 
     out = {}
@@ -309,6 +309,32 @@ def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_a
 
     r = json.loads(stats.read_text())["loop"]["relocalisation"]
     assert r["relocalised"] and r["delay_s"] < 5.0
+    out = capsys.readouterr().out
+    assert "relocalisation: placed in the map" in out and "loop-corrected trajectory is in the map's frame" in out
+    assert "refused: " in out and "{" not in out.split("loop closure:")[-1].splitlines()[0]  # words, not a dict
+
+    # a map that cannot be read stops the replay before any output file is opened: the old trajectory stays
+    old = tmp_path / "keep.tum"
+    old.write_text("# an earlier flight\n")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes((tmp_path / "map.npz").read_bytes()[:5000])  # a copy cut short
+    assert main(["replay", str(laps_flight), "--load-map", str(bad), "-o", str(old), "--no-progress"]) == 1
+    assert old.read_text() == "# an earlier flight\n"
+    assert "truncated" in capsys.readouterr().err
+
+
+def test_replay_checks_every_output_path_before_it_replays(laps_flight, tmp_path, capsys):
+    """A typo in one output path used to surface after the whole replay and lose the map, stats and plot with it."""
+    from vio.app.cli import main
+
+    for bad, says in ((["--loop-output", str(tmp_path / "nodir" / "loop.tum")], "folder"),
+                      (["--stats", str(tmp_path)], "is a folder"),
+                      (["--loop-plot", str(tmp_path / "nodir" / "p.png")], "does not exist")):
+        assert main(["replay", str(laps_flight), "--loop", "--save-map", str(tmp_path / "m.npz"), "-o",
+                     str(tmp_path / "o.tum"), "--no-progress", *bad]) == 1
+        out, err = capsys.readouterr()
+        assert says in err and "replay:" not in out  # refused before the replay (which prints its summary)
+        assert not (tmp_path / "m.npz").exists() and not (tmp_path / "o.tum").exists()
 
 
 def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
@@ -378,9 +404,18 @@ def _calib(flight):
     return EurocDataset(flight).calibration
 
 
-def test_map_file_refuses_other_formats(tmp_path):
+def test_map_file_refuses_other_formats(tmp_path, capsys):
     from vio import VioError
+    from vio.app.cli import main
     from vio.loop.mapfile import load_map
+
+    (tmp_path / "random.kmap").write_bytes(np.random.default_rng(0).integers(0, 256, 4000, np.uint8).tobytes())
+    (tmp_path / "empty.kmap").write_bytes(b"")
+    for name, says in (("random.kmap", "not a Kestrel VIO map (not an .npz archive)"),
+                       ("empty.kmap", "truncated"), ("", "is a folder"), ("none.kmap", "no such map file")):
+        assert main(["map", "info", str(tmp_path / name)]) == 1
+        err = capsys.readouterr().err
+        assert says in err and "internal error" not in err and "allow_pickle" not in err, err
 
     np.savez(tmp_path / "x.npz", header=np.array('{"format": "other", "version": 1}'))
     with pytest.raises(VioError, match="not a Kestrel VIO map"):

@@ -452,10 +452,9 @@ class LoopConfig:
                                  "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
                                  min=0.001, max=10)
     reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
-    sigma_inliers: int = opt(60, "a loop edge within one session has its sigmas scaled by sqrt(this / inliers), "
-                             "between 0.5x and 2x: a PnP pose's error goes as 1 / sqrt(inliers), and a weak edge "
-                             "held as tight as a strong one pulls the graph by its error (loop ATE -4 %; "
-                             "docs/loop-closure.md); 0 = the graph's sigmas for every such edge", min=0, max=10000)
+    sigma_inliers: int = opt(60, "a loop edge within one flight has its sigmas scaled by sqrt(this / inliers), "
+                             "between 0.5x and 2x (a PnP pose's error goes as 1 / sqrt(inliers)); 0 = off",
+                             min=0, max=10000)
     reloc_sigma_inliers: int = opt(60, "an edge to another session with fewer PnP inliers than this has its "
                                    "sigmas scaled by sqrt(this / inliers), at most 2x; 0 = off", min=0, max=10000)
     output: str = opt("off", "what the autopilot gets: off (odometry), jump, blend (docs/autopilot.md)",

@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             import traceback
 
             traceback.print_exc()
-        hint = "" if verbose else " (run with -v for the traceback)"
+        hint = "" if verbose else f" (`vio -v {command} ...` shows the traceback)"
         print(f"vio {command}: internal error: {type(e).__name__}: {_one_line(e)}{hint}", file=sys.stderr)
         return EXIT_FAILURE
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import re
 import time
 from collections.abc import Callable
@@ -322,9 +323,10 @@ def corrected_sink(sink: Sink, loop, lcfg) -> Sink:
     return lambda st: sink(out.apply(st, *loop.correction()))
 
 
-def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None, plot_path: str | None = None) -> dict:
+def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None,
+                  plot_path: str | None = None) -> tuple[dict, Callable[[], None] | None]:
     """Loop-closure summary, the corrected trajectory (TUM), its accuracy and end-of-flight drift beside the
-    odometry's, and the loop-edge plot."""
+    odometry's; and the loop-edge plot as a call for the caller to make after the map and stats are written."""
     from vio.geometry import inv_T, rot_to_quat_wxyz
     from vio.trajectory import Trajectory, format_tum_line
 
@@ -335,10 +337,20 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None, plot_path:
         d["relocalisation"] = {"map_keyframes": closer.map_keyframes, "relocalised": closer.relocalised,
                                "delay_s": None if closer.relocalised_t_ns is None or not own
                                else (closer.relocalised_t_ns - own[0].t_ns) * 1e-9}
-        print(f"relocalisation: {d['relocalisation']}")
+        r = d["relocalisation"]
+        if r["relocalised"]:
+            after = "" if r["delay_s"] is None else f" {r['delay_s']:.2f} s after this flight's first keyframe"
+            print(f"relocalisation: placed in the map ({r['map_keyframes']} keyframes){after}; the loop-corrected "
+                  "trajectory is in the map's frame")
+        else:
+            log.warning("relocalisation: this flight never matched the map (%d keyframes): its loop-corrected "
+                        "trajectory is in its own frame, not the map's", r["map_keyframes"])
+            print(f"relocalisation: NOT placed in the map ({r['map_keyframes']} keyframes): the loop-corrected "
+                  "trajectory stays in this flight's own frame")
     d.update(dropped=loop.dropped, error=loop.error, memory_per_keyframe_bytes=closer.memory_per_keyframe_bytes(),
              loop_edges=[[int(e.i), int(e.j), float(e.weight)] for e in closer.graph.edges if e.kind == "loop"])
     T_gt = None
+    draw = None
     if res.states:
         t = np.array([s.t_ns for s in res.states])
         T_odom = np.array([s.T_world_body for s in res.states])
@@ -371,14 +383,18 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None, plot_path:
         if plot_path:
             from vio.loop.plot import plot_loop
 
-            plot_loop(plot_path, T_odom, T, closer.graph.estimate,
-                      [(e.i, e.j, e.weight) for e in closer.graph.edges if e.kind == "loop"], T_gt,
-                      f"{d['accepted']} loop edges accepted, {d['switched_off']} switched off")
-            print(f"loop-closure plot -> {plot_path}")
+            edges = [(e.i, e.j, e.weight) for e in closer.graph.edges if e.kind == "loop"]
+            estimate = list(closer.graph.estimate)
+            title = f"{d['accepted']} loop edges accepted, {d['switched_off']} switched off"
+
+            def draw() -> None:
+                plot_loop(plot_path, T_odom, T, estimate, edges, T_gt, title)
+                print(f"loop-closure plot -> {plot_path}")
+    refused = ", ".join(f"{n} {why}" for why, n in d["refused"].items() if n) or "none"
     print(f"loop closure: {d['keyframes']} keyframes, {d['accepted']} loop edges accepted "
-          f"({d['switched_off']} switched off by GNC), refused {d['refused']}; detection {d['detect_ms_mean']:.1f} ms "
+          f"({d['switched_off']} switched off by GNC), refused: {refused}; detection {d['detect_ms_mean']:.1f} ms "
           f"per keyframe (p95 {d['detect_ms_p95']:.1f}), optimisation max {d['optimize_ms_max']:.0f} ms")
-    return d
+    return d, draw
 
 
 def preflight(dataset) -> None:
@@ -423,6 +439,22 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
+def check_outputs(paths: dict[str, str | None]) -> None:
+    """Every output file can be written where it is asked for (its folder exists, it is no folder itself), checked
+    before a replay that may take an hour rather than after it, when a typo would lose the run's other outputs."""
+    for what, p in paths.items():
+        if not p:
+            continue
+        path = Path(p)
+        if path.is_dir():
+            raise VioError(f"{p}: is a folder; {what} needs a file name")
+        folder = path.parent if str(path.parent) else Path(".")
+        if not folder.is_dir():
+            raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK):
+            raise VioError(f"{p}: cannot write {what}: folder {folder} is not writable")
+
+
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
@@ -432,9 +464,28 @@ def run(args: argparse.Namespace) -> int:
 
         set_opencv_threads(args.threads)
     cfg = load_config(args.config)
+    save_map = args.save_map or cfg.map.save
+    load_map = args.load_map or cfg.map.load
+    check_outputs({"the trajectory": args.output, "the loop-corrected trajectory": args.loop_output,
+                   "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot})
+    if args.loop_plot:  # the [tools] extra, asked for now rather than after the replay
+        from vio.extras import pyplot
+
+        pyplot("loop-closure plot (--loop-plot)")
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
+    loop = None
+    if args.loop or cfg.loop.enabled or args.loop_output or args.loop_plot or save_map or load_map:
+        from vio.app.loop_worker import LoopWorker
+        from vio.loop.closer import LoopCloser
+
+        closer = LoopCloser(dataset.calibration, cfg.loop)
+        if load_map:  # read before any output file is opened: a bad map must not cost an old trajectory file
+            from vio.loop.mapfile import load_map as read_map
+
+            closer.load_map(read_map(load_map))
+        loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
     sinks: list[Sink] = []
     tum = TumSink(args.output) if args.output else None
     if tum is not None:
@@ -444,22 +495,10 @@ def run(args: argparse.Namespace) -> int:
         from drivers.mavlink_out import MavlinkOutput, restamp_to_host_clock
 
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
-        sinks.append(restamp_to_host_clock(mav))
-    loop = None
-    save_map = args.save_map or cfg.map.save
-    load_map = args.load_map or cfg.map.load
-    if args.loop or cfg.loop.enabled or args.loop_output or args.loop_plot or save_map or load_map:
-        from vio.app.loop_worker import LoopWorker
-        from vio.loop.closer import LoopCloser
-
-        closer = LoopCloser(dataset.calibration, cfg.loop)
-        if load_map:
-            from vio.loop.mapfile import load_map as read_map
-
-            closer.load_map(read_map(load_map))
-        loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
-        if mav is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
-            sinks[-1] = corrected_sink(sinks[-1], loop, cfg.loop)
+        sink = restamp_to_host_clock(mav)
+        if loop is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
+            sink = corrected_sink(sink, loop, cfg.loop)
+        sinks.append(sink)
     view = None
     if args.view:
         from vio.app.view import LiveView
@@ -515,9 +554,9 @@ def run(args: argparse.Namespace) -> int:
             eval_dict = ev.to_dict()
         except VioError as e:
             print(f"replay: no accuracy figures: {e}")
-    loop_dict = None
+    loop_dict, draw = None, None
     if loop is not None:
-        loop_dict = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
+        loop_dict, draw = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
             h = loop.closer.save_map(save_map)
             print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}"
@@ -532,6 +571,8 @@ def run(args: argparse.Namespace) -> int:
             Path(args.stats).write_text(json.dumps(d, indent=1))
         except OSError as e:
             raise VioError(f"{args.stats}: cannot write stats ({e.strerror})") from None
+    if draw is not None:  # last: the map and the stats are written whatever the plot does
+        draw()
     problem = res.vision_problem()
     if problem:
         raise VioError(problem)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,5 +86,15 @@ def load_map(path: str | Path) -> MapData:
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
             return MapData(header, z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64), feats)
-    except (OSError, KeyError, ValueError) as e:
-        raise VioError(f"{path}: cannot read the map ({e})") from None
+    except IsADirectoryError:
+        raise VioError(f"{path}: is a folder, not a map file") from None
+    except FileNotFoundError:
+        raise VioError(f"{path}: no such map file") from None
+    except OSError as e:
+        raise VioError(f"{path}: cannot read the map ({e.strerror or e})") from None
+    except (zipfile.BadZipFile, EOFError):
+        raise VioError(f"{path}: not a Kestrel VIO map, or a truncated one (not a complete .npz archive)") from None
+    except (KeyError, ValueError, json.JSONDecodeError) as e:
+        # numpy takes what is neither .npy nor .npz for a pickle, and suggests loading it unsafely: never
+        why = "not an .npz archive" if "pickle" in str(e) else str(e)
+        raise VioError(f"{path}: not a Kestrel VIO map ({why})") from None
