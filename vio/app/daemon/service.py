@@ -518,6 +518,17 @@ def _check_run_config(cfg: VioConfig) -> None:
             check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
         if cfg.mavlink.url:
             check_url(cfg.mavlink.url)
+    if cfg.map.load:  # a map that cannot be read would only kill the estimator thread once the sensors are up
+        from vio.loop.mapfile import load_map
+
+        try:
+            load_map(cfg.map.load)
+        except VioError as e:
+            raise VioError(f"[map] load: {e}") from None
+    if cfg.map.save:
+        folder = Path(cfg.map.save).parent
+        if not folder.is_dir() or not os.access(folder, os.W_OK):
+            raise VioError(f"[map] save = {cfg.map.save!r}: folder {folder} does not exist or is not writable")
     for key in ("record_dir", "trajectory_file"):
         value = getattr(cfg.run, key)
         if not value:
