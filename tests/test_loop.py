@@ -29,8 +29,12 @@ def _ate(g, truth) -> float:
     return float(np.sqrt(np.mean([np.sum((e[:3, 3] - t[:3, 3]) ** 2) for e, t in zip(g.estimate, truth)])))
 
 
-def test_pose_graph_closes_loops_and_switches_off_20_false_edges():
-    rng = np.random.default_rng(0)
+@pytest.mark.parametrize("seed", range(8))
+def test_pose_graph_closes_loops_and_switches_off_20_false_edges(seed):
+    """Twenty random wrong edges injected at once into a lap closed by three true ones: GNC switches every wrong
+    one off and keeps the true ones (on draw 5 GNC from all-free alone switched the three true ones off too and the
+    graph fell back to the odometry; the start with the accepted edges held wins on TLS cost)."""
+    rng = np.random.default_rng(seed)
     g, truth = _circle(121, rng)
     ate_odom = _ate(g, truth)
     for k in (40, 80, 120):
