@@ -421,6 +421,19 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
         err = capsys.readouterr().err
         assert says in err and "internal error" not in err and "allow_pickle" not in err, err
 
+    # the right header over arrays that do not fit together: refused whole, never loaded with keyframes missing
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1}')
+    good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    np.savez(tmp_path / "good.npz", **good)
+    assert len(load_map(tmp_path / "good.npz").features) == 2
+    for change, says in ((dict(desc=np.zeros((5, 16), np.uint8)), "descriptors"),
+                         (dict(kf_offsets=np.array([0, 5, 3])), "offsets"),
+                         (dict(kf_T_world_body=np.full((2, 4, 4), np.nan)), "poses"),
+                         (dict(kf_T_world_body=np.tile(np.eye(4), (1, 1, 1))), "poses")):
+        np.savez(tmp_path / "bad.npz", **{**good, **change})
+        with pytest.raises(VioError, match=f"damaged map.*{says}"):
+            load_map(tmp_path / "bad.npz")
     np.savez(tmp_path / "x.npz", header=np.array('{"format": "other", "version": 1}'))
     with pytest.raises(VioError, match="not a Kestrel VIO map"):
         load_map(tmp_path / "x.npz")

@@ -463,12 +463,14 @@ def test_run_config_error_exits_3(tmp_path: Path) -> None:
     assert r.returncode == 3 and "absent.toml" in r.stderr
     # a map that cannot be read is refused at start, not found by the estimator thread once the sensors are up
     (tmp_path / "cut.kmap").write_bytes(b"PK\x03\x04" + bytes(100))
-    for section, says in ((f'load = "{tmp_path / "cut.kmap"}"', "truncated"),
-                          (f'save = "{tmp_path / "nodir" / "m.kmap"}"', "does not exist")):
-        bad.write_text(f'[source]\nkind = "fake"\n[map]\n{section}\n')
+    for section, says in ((f'[map]\nload = "{tmp_path / "cut.kmap"}"', "truncated"),
+                          (f'[map]\nsave = "{tmp_path / "nodir" / "m.kmap"}"', "does not exist"),
+                          (f'[map]\nsave = "{tmp_path}"', "is a folder"),
+                          ('[loop]\noutput = "jump"', "needs the loop stage")):
+        bad.write_text(f'[source]\nkind = "fake"\n{section}\n')
         r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(bad)], capture_output=True,
                            text=True, timeout=60)
-        assert r.returncode == 3 and "[map]" in r.stderr and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert r.returncode == 3 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 # A `vio run` whose source can be unplugged from the test: while the file named by $KESTREL_TEST_UNPLUG

@@ -73,6 +73,27 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
     return header
 
 
+def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndarray, t_ns: np.ndarray,
+                   T: np.ndarray) -> str | None:
+    """What does not fit together in a map's arrays (a file damaged or written by something else), or None: a
+    map is flown on, so one that would load with keyframes missing, empty, or at NaN poses is refused whole."""
+    n = len(t_ns)
+    if n == 0:
+        return "no keyframes"
+    if T.shape != (n, 4, 4) or not np.isfinite(T).all():
+        return f"keyframe poses: shape {T.shape} or non-finite values for {n} keyframes"
+    if not np.allclose(T[:, 3], [0, 0, 0, 1]) or not np.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1),
+                                                                  np.eye(3), atol=1e-4):
+        return "keyframe poses are not rigid transforms"
+    if off.ndim != 1 or len(off) != n + 1 or off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != len(desc):
+        return f"keyframe offsets do not split the {len(desc)} descriptors into {n} keyframes"
+    if desc.ndim != 2 or desc.shape[1] != 32 or desc.dtype != np.uint8:
+        return f"descriptors {desc.shape} {desc.dtype}, ORB needs (N, 32) uint8"
+    if uv.shape != (len(desc), 2) or p.shape != (len(desc), 3) or not np.isfinite(uv).all():
+        return "pixels or points do not match the descriptors"
+    return None
+
+
 def load_map(path: str | Path) -> MapData:
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -84,8 +105,12 @@ def load_map(path: str | Path) -> MapData:
                                f"({VERSION})")
             off = z["kf_offsets"]
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
+            t_ns, T = z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64)
+            problem = _inconsistency(off, desc, uv, p, t_ns, T)
+            if problem:
+                raise VioError(f"{path}: damaged map ({problem})")
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
-            return MapData(header, z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64), feats)
+            return MapData(header, t_ns, T, feats)
     except IsADirectoryError:
         raise VioError(f"{path}: is a folder, not a map file") from None
     except FileNotFoundError:

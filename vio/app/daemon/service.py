@@ -527,8 +527,13 @@ def _check_run_config(cfg: VioConfig) -> None:
             raise VioError(f"[map] load: {e}") from None
     if cfg.map.save:
         folder = Path(cfg.map.save).parent
+        if Path(cfg.map.save).is_dir():
+            raise VioError(f"[map] save = {cfg.map.save!r}: is a folder; give the map file's name")
         if not folder.is_dir() or not os.access(folder, os.W_OK):
             raise VioError(f"[map] save = {cfg.map.save!r}: folder {folder} does not exist or is not writable")
+    if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
+        raise VioError(f"[loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] enabled "
+                       "= true (it would be ignored)")
     for key in ("record_dir", "trajectory_file"):
         value = getattr(cfg.run, key)
         if not value:
