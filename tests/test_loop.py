@@ -458,6 +458,15 @@ def test_autopilot_output_modes():
     x = np.array([o.T_world_body[0, 3] for o in out])
     assert np.all(np.diff(x) <= 0.5 * 0.1 + 1e-9) and x[-1] == pytest.approx(1.0)  # bounded rate, then there
     assert all(o.reset_counter == 0 for o in out)
+    # far from the odometry's origin a yaw correction turns the vehicle's position too: the bound holds at the
+    # vehicle (hovering 20 m out, a 30 deg correction: it moved at 1.75 m/s with only the translation bounded)
+    far = make_T(np.eye(3), [20.0, 0, 0])
+    hover = [NavState(int(k * 2e7), far, np.zeros(3)) for k in range(5000)]  # 50 Hz, 100 s
+    blend = CorrectedOutput("blend", blend_rate_m_s=0.2, blend_rate_deg_s=5.0)
+    C = make_T(so3_exp(np.radians([0, 0, 30.0])), [0.5, -0.3, 0])
+    q = np.array([blend.apply(s, C, 1).T_world_body[:3, 3] for s in hover])
+    assert np.linalg.norm(np.diff(q, axis=0), axis=1).max() <= 0.2 * 0.02 + 1e-9
+    assert np.allclose(q[-1], (C @ far)[:3, 3], atol=1e-6)  # and it gets there (10.5 m at 0.2 m/s: 53 s)
 
 
 def test_aliasing_room_repeats_its_wall_texture():

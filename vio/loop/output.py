@@ -19,6 +19,11 @@ def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
     return C[:3, 3].copy(), float(roll_pitch_yaw(C[:3, :3])[2])
 
 
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 class CorrectedOutput:
     def __init__(self, mode: str = "off", blend_rate_m_s: float = 0.2, blend_rate_deg_s: float = 5.0) -> None:
         if mode not in ("off", "jump", "blend"):
@@ -45,13 +50,18 @@ class CorrectedOutput:
                     self.jumps += 1
                 self._t, self._yaw = target_t, target_yaw
         else:
-            step = target_t - self._t
+            # Bounded where it matters, at the vehicle: the sent position moves by the correction at most
+            # rate_m_s * dt per step. A yaw change turns the odometry about its origin, so bounding the translation
+            # alone let a vehicle 20 m out move at 1.75 m/s under a 30 deg yaw correction (a review's finding).
+            p = state.T_world_body[:3, 3]
+            q_now = _rot_z(self._yaw) @ p + self._t  # where the applied correction sends the vehicle now
+            dyaw = float(np.angle(np.exp(1j * (target_yaw - self._yaw))))
+            self._yaw += float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
+            step = _rot_z(target_yaw) @ p + target_t - q_now
             n = float(np.linalg.norm(step))
             if n > self.rate_m_s * dt:
                 step *= self.rate_m_s * dt / n
-            self._t = self._t + step
-            dyaw = float(np.angle(np.exp(1j * (target_yaw - self._yaw))))
-            self._yaw += float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
+            self._t = q_now + step - _rot_z(self._yaw) @ p
         C = make_T(so3_exp(np.array([0.0, 0.0, self._yaw])), self._t)
         return dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=C[:3, :3] @ state.v_world,
                                    reset_counter=state.reset_counter + self.jumps)
