@@ -148,6 +148,7 @@ class MavlinkOutput:
         self._next_origin_ns = 0
         self._reset_offset = 0  # resets forced here, added to the estimator's reset_counter
         self._last_reset_counter: int | None = None
+        self._last_loop_jumps = 0
         self._tracking: bool | None = None
         self._lost_since_ns: int | None = None  # clock time tracking was lost (None while tracking)
         self._land_left = 0  # LAND requests still to send for the current loss
@@ -358,9 +359,16 @@ class MavlinkOutput:
 
     def _send_state_messages(self, state: NavState, now: int) -> None:
         if self._last_reset_counter is not None and state.reset_counter != self._last_reset_counter:
-            log.info("estimator reset: reset_counter %d -> %d", self._last_reset_counter, state.reset_counter)
-            self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
+            if state.loop_jumps - self._last_loop_jumps == state.reset_counter - self._last_reset_counter:
+                # [loop] output = jump: the loop-corrected pose stepped, the estimator did not reset
+                log.info("loop correction: position/yaw step, reset_counter %d -> %d", self._last_reset_counter,
+                         state.reset_counter)
+                self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO loop correction")
+            else:
+                log.info("estimator reset: reset_counter %d -> %d", self._last_reset_counter, state.reset_counter)
+                self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
         self._last_reset_counter = state.reset_counter
+        self._last_loop_jumps = state.loop_jumps
         for msg in self.build_messages(state):
             if not self._send(msg, msg.get_type()):
                 return

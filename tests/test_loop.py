@@ -517,9 +517,14 @@ def test_loop_worker_drains_its_queue_before_it_stops():
     from vio.app.loop_worker import LoopWorker
 
     class Slow:
+        map_keyframes, relocalised = 0, False
+
         def __init__(self, s):
+            from vio.loop.closer import LoopStats
+
             self.s, self.done = s, 0
             self.graph = type("G", (), {"estimate_version": 0})()
+            self.stats = LoopStats()
 
         def add_keyframe(self, *item):
             time.sleep(self.s)
@@ -559,9 +564,14 @@ def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
     from vio.geometry import make_T
 
     class Closer:
+        map_keyframes, relocalised = 0, False
+
         def __init__(self):  # (closure accepted, graph re-solved, correction x)
+            from vio.loop.closer import LoopStats
+
             self.script = iter([(False, 0, 0.0), (True, 1, 0.1), (False, 1, 0.1), (False, 2, 0.12), (False, 2, 0.0)])
             self.corr, self.graph = np.eye(4), type("G", (), {"estimate_version": 0})()
+            self.stats = LoopStats()
 
         def add_keyframe(self, *item):
             closed, self.graph.estimate_version, x = next(self.script)
@@ -611,6 +621,11 @@ save = "{map_path}"
 """, 30)
     assert rc == 0 and "Traceback" not in text, text[-3000:]
     assert "map saved to" in text and map_path.is_file(), text[-3000:]
+    # the loop stage's state in the health line and the status file (edges, no map loaded: no relocalisation)
+    assert " | loop " in text and " edges" in text, text[-3000:]
+    status = json.loads((tmp_path / "status.json").read_text())
+    assert status["loop"]["output"] == "off" and status["loop"]["relocalised"] is None
+    assert status["loop"]["keyframes"] > 0 and status["loop"]["loop_jumps"] == 0 and status["loop"]["error"] is None
     info = subprocess.run([sys.executable, "-m", "vio.app.cli", "map", "info", str(map_path), "--json"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert info.returncode == 0, info.stderr[-2000:]

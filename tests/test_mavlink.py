@@ -266,6 +266,20 @@ def test_reset_counter_follows_estimator_wraps_and_can_be_forced(ap):
     out.close()
 
 
+def test_a_loop_correction_step_is_announced_as_such_not_as_an_estimator_reset(ap):
+    """[loop] output = jump steps the pose with reset_counter + 1 (the autopilot must re-reference), but the ground
+    station should not read every loop closure as the estimator failing."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    texts = []
+    for i, (rc, jumps) in enumerate([(0, 0), (1, 1), (1, 1), (2, 1), (3, 2)]):
+        clock.advance(0.1)
+        out.send_state(state(1_000_000_000 * (i + 1), reset_counter=rc, loop_jumps=jumps))
+        texts += [m.text for m in ap.of("STATUSTEXT", ap.drain())]
+    assert texts == ["VIO loop correction", "VIO reset", "VIO loop correction"]
+    out.close()
+
+
 def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     clock = FakeClock()
     out = make_out(ap, clock, messages=["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"])

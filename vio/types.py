@@ -62,6 +62,7 @@ class NavState:
     quality: int = 100
     omega_body: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: bool = True
+    loop_jumps: int = 0  # of reset_counter's increments, those a loop correction made ([loop] output = jump)
 
 
 @dataclass(frozen=True)

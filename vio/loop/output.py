@@ -64,4 +64,5 @@ class CorrectedOutput:
             self._t = q_now + step - _rot_z(self._yaw) @ p
         C = make_T(so3_exp(np.array([0.0, 0.0, self._yaw])), self._t)
         return dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=C[:3, :3] @ state.v_world,
-                                   reset_counter=state.reset_counter + self.jumps)
+                                   reset_counter=state.reset_counter + self.jumps,
+                                   loop_jumps=state.loop_jumps + self.jumps)

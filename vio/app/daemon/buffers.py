@@ -116,6 +116,7 @@ class Output:
     state: NavState
     arrival_ns: int  # when the frame behind this state entered the daemon (host monotonic)
     produced_ns: int
+    odometry: NavState | None = None  # the state before a loop correction ([loop] output), for the TUM log
 
 
 class LatestState:

@@ -166,8 +166,8 @@ class OutputWorker(Worker):
         """Per camera frame: TUM line, and the latency from frame arrival until its state (or a newer one
         propagated from it) has been handed to the MAVLink output."""
         s = out.state
-        if s.tracking and self.vision_ok():
-            self.trajectory.write(s)
+        if s.tracking and self.vision_ok():  # the odometry, as docs/autopilot.md says, not the loop-corrected output
+            self.trajectory.write(out.odometry if out.odometry is not None else s)
         self.latency_ms.append((_now_ns() - out.arrival_ns) / 1e6)
 
     def _poll(self) -> None:

@@ -398,6 +398,10 @@ class Service:
                 "position_m": [round(float(x), 3) for x in state.T_world_body[:3, 3]] if state is not None else None,
                 **(_health_fields(h) if h is not None else {}),
             },
+            "loop": None if self.loop is None else {
+                **self.loop.status(), "output": self.cfg.loop.output,
+                # reset_counter increments that were loop-correction steps, not estimator resets
+                "loop_jumps": state.loop_jumps if state is not None else 0},
             "latency_ms": {"p50": round(lat[len(lat) // 2], 1), "max": round(lat[-1], 1)} if lat else None,
             "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld},
             "recording": recording,
@@ -417,16 +421,20 @@ class Service:
 
     @staticmethod
     def _summary(s: dict) -> str:
-        r, e = s["rates_hz"], s["estimator"]
+        r, e, lp = s["rates_hz"], s["estimator"], s.get("loop")
         lat = s["latency_ms"]
         parts = [
             s["state"],
             f"cam {r['camera']:.1f} Hz imu {r['imu']:.0f} Hz out {r['output']:.1f} Hz",
             f"tracks {_dash(e['tracks'])} q {_dash(e['quality'])}",
-            f"resets {e['reset_counter'] or 0}",
+            f"resets {(e['reset_counter'] or 0) - (lp['loop_jumps'] if lp else 0)}",
             f"latency {lat['p50']:.0f}/{lat['max']:.0f} ms" if lat else "latency -",
             f"mav {s['mavlink']['state']}",
         ]
+        if lp:
+            where = {None: "", True: ", in the map", False: ", not in the map yet"}[lp["relocalised"]]
+            parts.insert(4, f"loop {lp['loop_edges']} edges{where}"
+                         + (f", {lp['loop_jumps']} jumps" if lp["loop_jumps"] else ""))
         if s["warnings"]:
             parts.append("WARN " + "; ".join(s["warnings"]))
         return " | ".join(parts)

@@ -301,7 +301,9 @@ class EstimatorWorker(Worker):
             if self.view is not None:
                 self._to_view(pf)
         for state in _as_states(result):
+            odometry = None
             if self.loop_output is not None:
+                odometry = state
                 state = self.loop_output.apply(state, *self.loop_worker.correction())
             if self._reset_base:
                 state = dataclasses.replace(state, reset_counter=state.reset_counter + self._reset_base)
@@ -310,7 +312,7 @@ class EstimatorWorker(Worker):
             if state.tracking:
                 self.good_states += 1
                 self.last_state_time = time.monotonic()
-            self.out.publish(Output(state, arrival_ns, _now_ns()))
+            self.out.publish(Output(state, arrival_ns, _now_ns(), odometry))
 
     def _reset(self, why: str) -> None:
         self.resets += 1
