@@ -52,8 +52,8 @@ class LoopWorker:
         self.keep_snapshot = keep_snapshot
         self._snapshot: LoopSnapshot | None = None
         self._processed = 0
-        self._status = {"keyframes": 0, "closures": 0, "loop_edges": 0, "switched_off": 0,
-                        "map_keyframes": closer.map_keyframes, "relocalised": False if closer.map_keyframes else None}
+        # the closer's counts as of the last keyframe processed, for `status` (read from other threads)
+        self._counts = {"loop_edges": 0, "switched_off": 0, "relocalised": False if closer.map_keyframes else None}
         if closer.map_keyframes:
             log.info("loop closure: map of %d keyframes loaded; poses are in this flight's own frame until it "
                      "relocalises", closer.map_keyframes)
@@ -91,19 +91,18 @@ class LoopWorker:
     def status(self) -> dict:
         """Counts for the daemon's status file and health line (thread-safe copy)."""
         with self._lock:
-            return {**self._status, "dropped": self.dropped, "error": self.error}
+            return {"keyframes": self._processed, "closures": self.closures, **self._counts,
+                    "map_keyframes": self.closer.map_keyframes, "dropped": self.dropped, "error": self.error}
 
-    def _note_events(self) -> None:
+    def _note_events(self, closed: bool) -> None:
         """One log line per event an operator cares about: the first closure, the flight placed in a loaded map,
         loop edges switched off after the fact. (Every closure would be several lines a second in a lap.)"""
         c = self.closer
-        st = c.stats
-        new = {"keyframes": self._processed, "closures": self.closures, "loop_edges": st.accepted,
-               "switched_off": st.switched_off, "map_keyframes": c.map_keyframes,
+        new = {"loop_edges": c.stats.accepted, "switched_off": c.stats.switched_off,
                "relocalised": bool(c.relocalised) if c.map_keyframes else None}
-        old = self._status
-        if new["closures"] and not old["closures"]:
-            log.info("loop closure: first closure at keyframe %d (%d loop edges)", self._processed, st.accepted)
+        old = self._counts
+        if closed and self.closures == 1:
+            log.info("loop closure: first closure at keyframe %d (%d loop edges)", self._processed, new["loop_edges"])
         if new["relocalised"] and not old["relocalised"]:
             log.info("loop closure: relocalised in the map (%d keyframes): corrected poses are in the map's frame",
                      c.map_keyframes)
@@ -111,7 +110,7 @@ class LoopWorker:
             log.warning("loop closure: %d loop edge(s) switched off by GNC (inconsistent with the others)",
                         new["switched_off"] - old["switched_off"])
         with self._lock:
-            self._status = new
+            self._counts = new
 
     def snapshot(self) -> LoopSnapshot | None:
         """The newest LoopSnapshot (None before the first keyframe, or without keep_snapshot)."""
@@ -149,7 +148,7 @@ class LoopWorker:
                     with self._lock:
                         self.closures += int(closed)
                         self._processed += 1
-                    self._note_events()
+                    self._note_events(closed)
                     if self.keep_snapshot:
                         snap = self._take_snapshot()
                         with self._lock:

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
+from vio.geometry import is_se3
 from vio.loop.features import KeyframeFeatures
 
 FORMAT = "kestrel-vio-map"
@@ -82,8 +83,7 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         return "no keyframes"
     if T.shape != (n, 4, 4) or not np.isfinite(T).all():
         return f"keyframe poses: shape {T.shape} or non-finite values for {n} keyframes"
-    if not np.allclose(T[:, 3], [0, 0, 0, 1]) or not np.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1),
-                                                                  np.eye(3), atol=1e-4):
+    if not all(is_se3(Tk, tol=1e-4) for Tk in T):
         return "keyframe poses are not rigid transforms"
     if off.ndim != 1 or len(off) != n + 1 or off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != len(desc):
         return f"keyframe offsets do not split the {len(desc)} descriptors into {n} keyframes"

@@ -14,14 +14,13 @@ from vio.geometry import make_T, roll_pitch_yaw, so3_exp
 from vio.types import NavState
 
 
+def _yaw_rot(yaw: float) -> np.ndarray:
+    return so3_exp(np.array([0.0, 0.0, yaw]))
+
+
 def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
     """(translation, yaw) of a correction; its roll/pitch part is dropped."""
     return C[:3, 3].copy(), float(roll_pitch_yaw(C[:3, :3])[2])
-
-
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class CorrectedOutput:
@@ -54,15 +53,15 @@ class CorrectedOutput:
             # rate_m_s * dt per step. A yaw change turns the odometry about its origin, so bounding the translation
             # alone let a vehicle 20 m out move at 1.75 m/s under a 30 deg yaw correction (a review's finding).
             p = state.T_world_body[:3, 3]
-            q_now = _rot_z(self._yaw) @ p + self._t  # where the applied correction sends the vehicle now
+            q_now = _yaw_rot(self._yaw) @ p + self._t  # where the applied correction sends the vehicle now
             dyaw = float(np.angle(np.exp(1j * (target_yaw - self._yaw))))
             self._yaw += float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
-            step = _rot_z(target_yaw) @ p + target_t - q_now
+            step = _yaw_rot(target_yaw) @ p + target_t - q_now
             n = float(np.linalg.norm(step))
             if n > self.rate_m_s * dt:
                 step *= self.rate_m_s * dt / n
-            self._t = q_now + step - _rot_z(self._yaw) @ p
-        C = make_T(so3_exp(np.array([0.0, 0.0, self._yaw])), self._t)
+            self._t = q_now + step - _yaw_rot(self._yaw) @ p
+        C = make_T(_yaw_rot(self._yaw), self._t)
         return dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=C[:3, :3] @ state.v_world,
                                    reset_counter=state.reset_counter + self.jumps,
                                    loop_jumps=state.loop_jumps + self.jumps)

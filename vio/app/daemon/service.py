@@ -95,8 +95,11 @@ class Service:
 
     def __init__(self, cfg: VioConfig, *, source_factory: Callable[[], Source] | None = None,
                  estimator_factory: Callable[[StereoCalibration], EstimatorApi] | None = None,
-                 mavlink_factory: Callable[[], PoseOutput] | None = None, notifier: SdNotifier | None = None) -> None:
+                 mavlink_factory: Callable[[], PoseOutput] | None = None, notifier: SdNotifier | None = None,
+                 map_data: Any = None) -> None:
+        """`map_data`: `[map] load` as `vio run` already read and checked it at start (read here when None)."""
         self.cfg = cfg
+        self._map_data = map_data
         self.stop = threading.Event()
         self.notifier = notifier or SdNotifier()
         rc = cfg.run
@@ -186,9 +189,11 @@ class Service:
 
         closer = LoopCloser(calib, self.cfg.loop)
         if self.cfg.map.load:
-            from vio.loop.mapfile import load_map
+            if self._map_data is None:
+                from vio.loop.mapfile import load_map
 
-            closer.load_map(load_map(self.cfg.map.load))
+                self._map_data = load_map(self.cfg.map.load)
+            closer.load_map(self._map_data)
         self.loop = LoopWorker(closer, max_queue=16)  # full: the keyframe is dropped, the odometry never waits
         self.estimator.loop_worker = self.loop
         if self.view is not None:  # the view shows the loop-corrected keyframes
@@ -493,13 +498,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        _check_run_config(cfg)
+        map_data = _check_run_config(cfg)
     except VioError as e:
         print(f"vio run: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
     if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
         logging.getLogger().setLevel(cfg.run.log_level)
-    service = Service(cfg)
+    service = Service(cfg, map_data=map_data)
     signal.signal(signal.SIGTERM, service.request_stop)
     signal.signal(signal.SIGINT, service.request_stop)
     log.info("kestrel-vio starting: source %s, MAVLink %s, recording %s, watchdog %s", cfg.source.kind,
@@ -508,8 +513,9 @@ def run(args: argparse.Namespace) -> int:
     return service.run()
 
 
-def _check_run_config(cfg: VioConfig) -> None:
-    """Problems the daemon cannot recover from by retrying: report them now, with the key to fix."""
+def _check_run_config(cfg: VioConfig) -> Any:
+    """Problems the daemon cannot recover from by retrying: report them now, with the key to fix. Returns the
+    `[map] load` map it read (None without one), for the service to use rather than read it again."""
     src = cfg.source
     if src.kind == "euroc" and not src.dataset:
         raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
@@ -526,19 +532,21 @@ def _check_run_config(cfg: VioConfig) -> None:
             check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
         if cfg.mavlink.url:
             check_url(cfg.mavlink.url)
+    map_data = None
     if cfg.map.load:  # a map that cannot be read would only kill the estimator thread once the sensors are up
         from vio.loop.mapfile import load_map
 
         try:
-            load_map(cfg.map.load)
+            map_data = load_map(cfg.map.load)
         except VioError as e:
             raise VioError(f"[map] load: {e}") from None
     if cfg.map.save:
-        folder = Path(cfg.map.save).parent
-        if Path(cfg.map.save).is_dir():
-            raise VioError(f"[map] save = {cfg.map.save!r}: is a folder; give the map file's name")
-        if not folder.is_dir() or not os.access(folder, os.W_OK):
-            raise VioError(f"[map] save = {cfg.map.save!r}: folder {folder} does not exist or is not writable")
+        from vio.app.replay import check_outputs
+
+        try:
+            check_outputs({"the map": cfg.map.save})
+        except VioError as e:
+            raise VioError(f"[map] save: {e}") from None
     if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
         raise VioError(f"[loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] enabled "
                        "= true (it would be ignored)")
@@ -550,3 +558,4 @@ def _check_run_config(cfg: VioConfig) -> None:
         existing = next((p for p in (parent, *parent.parents) if p.exists()), None)
         if existing is not None and not os.access(existing, os.W_OK):
             raise VioError(f"[run] {key} = {value!r}: {existing} is not writable")
+    return map_data
