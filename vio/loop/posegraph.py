@@ -303,14 +303,20 @@ class PoseGraph:
             self._condensed_cache[key] = fs
         return self._condensed_cache[key]
 
-    def _fits(self, known: gtsam.NonlinearFactorGraph, values: gtsam.Values, loops: list[int]) -> bool:
-        """Least squares on the decision graph with the loop edges `loops` as inliers: does every one of
-        them fit the solution (error under the TLS threshold GNC uses)?"""
+    def _decision_graph(self, known: gtsam.NonlinearFactorGraph,
+                        loops: list[int]) -> tuple[gtsam.NonlinearFactorGraph, list[gtsam.NonlinearFactor]]:
+        """The decision graph's `known` factors followed by the loop edges `loops` (at the decision sigmas)."""
         g = gtsam.NonlinearFactorGraph()
         g.push_back(known)
         factors = [self._loop_factor(self.edges[k], decision=True) for k in loops]
         for f in factors:
             g.add(f)
+        return g, factors
+
+    def _fits(self, known: gtsam.NonlinearFactorGraph, values: gtsam.Values, loops: list[int]) -> bool:
+        """Least squares on the decision graph with the loop edges `loops` as inliers: does every one of
+        them fit the solution (error under the TLS threshold GNC uses)?"""
+        g, factors = self._decision_graph(known, loops)
 
         def solve(linear: str) -> gtsam.Values:
             params = gtsam.GaussNewtonParams()
@@ -334,12 +340,8 @@ class PoseGraph:
         cost win. GNC from all-free alone can lose a few true edges to many wrong ones arriving at once: with three
         accepted edges on a drifting lap and twenty wild wrong ones it switched the three off on one draw in twenty
         and the graph fell back to the odometry (tests/test_loop.py)."""
-        g = gtsam.NonlinearFactorGraph()
-        g.push_back(known)
-        first_loop = g.size()
-        factors = [self._loop_factor(self.edges[k], decision=True) for k in loops]
-        for f in factors:
-            g.add(f)
+        g, factors = self._decision_graph(known, loops)
+        first_loop = known.size()
         held = [first_loop + m for m, k in enumerate(loops)  # accepted before: in iSAM2 (or waiting to go in)
                 if self.edges[k].weight >= 0.5 and (k in self._in_isam or k in self._queued)]
         bar = self._tls_cost_bar()
