@@ -534,6 +534,9 @@ def test_loop_worker_drains_its_queue_before_it_stops():
         def correction(self):
             return np.eye(4)
 
+        def correction_uncertainty(self):
+            return None
+
         def finish(self):
             self.finished = True
 
@@ -580,6 +583,9 @@ def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
 
         def correction(self):
             return self.corr
+
+        def correction_uncertainty(self):
+            return None
 
         def finish(self):
             pass
@@ -1224,3 +1230,111 @@ def test_keyframes_settled_in_a_call_that_then_resets_keep_their_settled_poses(l
     assert res.resets >= 1 and lost
     got = {t for t, _ in rec.settled}
     assert set(lost) <= got
+
+
+def test_correction_uncertainty_carries_yaw_and_position_errors_to_the_pose_sent():
+    """A correction whose yaw and position are uncertain (covariance at a keyframe, world frame) moves every pose it
+    maps: drawn errors applied to the correction give, at a pose 6 m from the keyframe, the body-tangent pose and
+    world velocity scatter that `added_to` adds (yaw times the lever arm included); quality follows the sigma."""
+    from vio.geometry import inv_T, so3_log
+    from vio.loop.output import CorrectionUncertainty
+    from vio.types import NavState
+
+    rng = np.random.default_rng(4)
+    L = rng.normal(0, 1, (4, 4)) * np.r_[0.01, 0.02, 0.02, 0.01][:, None]
+    cov4 = L @ L.T + np.diag([1e-5, 1e-5, 1e-5, 1e-5])
+    p_kf = np.array([1.0, 2.0, 1.5])
+    unc = CorrectionUncertainty(cov4, p_kf)
+    T = make_T(so3_exp(np.array([0.1, -0.05, 2.0])), p_kf + [4.0, -4.5, 0.3])
+    st = NavState(0, T, np.array([1.5, -0.5, 0.2]), cov_pose=np.zeros((6, 6)), cov_vel=np.zeros((3, 3)), quality=90)
+    e_pose, e_vel = [], []
+    for d in rng.multivariate_normal(np.zeros(4), cov4, 20000):
+        # the corrected world is off by a yaw d[0] about the keyframe and a shift d[1:]
+        E = make_T(so3_exp(np.array([0, 0, d[0]])), p_kf + d[1:] - so3_exp(np.array([0, 0, d[0]])) @ p_kf)
+        Tp = E @ T
+        D = inv_T(T) @ Tp  # GTSAM Pose3 tangent: T_true = T_sent Exp(xi)
+        e_pose.append(np.r_[so3_log(D[:3, :3]), D[:3, 3]])
+        e_vel.append(E[:3, :3] @ st.v_world - st.v_world)
+    out = unc.added_to(st, quality_sigma_m=0.05)
+    np.testing.assert_allclose(out.cov_pose, np.cov(np.array(e_pose).T), atol=0.04 * np.abs(out.cov_pose).max())
+    np.testing.assert_allclose(out.cov_vel, np.cov(np.array(e_vel).T), atol=0.04 * np.abs(out.cov_vel).max())
+    sigma = np.sqrt(np.trace(out.cov_pose[3:, 3:]))
+    assert sigma > 0.1 and out.quality == round(100 * 0.05 / sigma) < 90
+
+
+def test_jump_output_holds_the_uncertainty_of_the_correction_it_holds():
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+    from vio.types import NavState
+
+    st = NavState(0, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+    a = CorrectionUncertainty(np.eye(4) * 1e-4, np.zeros(3))
+    b = CorrectionUncertainty(np.eye(4) * 1e-2, np.zeros(3))
+    C = make_T(np.eye(3), [1.0, 0, 0])
+    jump = CorrectedOutput("jump")
+    assert np.allclose(jump.apply(st, C, 1).cov_pose, st.cov_pose)  # no uncertainty: the odometry's own frame
+    first = jump.apply(st, C, 2, a)
+    assert first.cov_pose[3, 3] == pytest.approx(1e-6 + 1e-4)
+    assert np.allclose(jump.apply(st, C, 2, b).cov_pose, first.cov_pose)  # same version: the one it holds
+    assert jump.apply(st, C, 3, b).cov_pose[3, 3] == pytest.approx(1e-6 + 1e-2)
+    assert CorrectedOutput("off").apply(st, C, 3, b) is st
+
+
+def test_pose_graph_marginal_of_a_keyframe_not_yet_solved_equals_its_solved_one():
+    """Keyframes wait for the next flush; their covariance is carried from the newest solved one along the odometry.
+    Their yaw and position covariance (what the output uses) is what iSAM2 gives once they are in; roll and pitch
+    are larger until their attitude factors go in with them."""
+    from vio.loop.output import CorrectionUncertainty
+
+    rng = np.random.default_rng(5)
+    g, truth = _circle(20, rng)  # 20 solved (flush_every 10), with a loop edge
+    g.add_loop(0, 19, np.linalg.inv(truth[0]) @ truth[19])
+    g.optimize(decide=True)
+    step = make_T(so3_exp(np.r_[0.01, 0.0, 2 * np.pi / 40]), np.r_[0.3, 0.02, 0.01])
+    for i in range(20, 25):  # 5 more, pending
+        g.add_node(g.odom[-1] @ step, i - 1)
+    assert not g._isam.valueExists(20)
+    pending = [g.marginal(i) for i in range(20, 25)]
+    g.refresh()
+    for i, C in zip(range(20, 25), pending):
+        solved = g.marginal(i)
+        a, b = (CorrectionUncertainty.from_pose(g.estimate[i], M).cov_yaw_position for M in (C, solved))
+        np.testing.assert_allclose(a, b, rtol=0.1, atol=1e-2 * np.abs(b).max())
+        assert np.all(np.diag(a) >= np.diag(b) * (1 - 1e-4)) and np.all(np.diag(C)[:2] >= np.diag(solved)[:2])
+
+
+def test_a_relocalised_keyframes_uncertainty_covers_its_error_in_the_maps_frame():
+    """A second flight placed in a fixed map by loop edges that are off by millimetres (as PnP edges are, far under
+    the graph's 3 cm sigmas): the newest keyframe's yaw and position error in the map's frame, over 40 draws, against
+    the covariance the output adds (the pose graph's marginal scaled by the loop edges' variance factor). The
+    odometry's own covariance knows nothing of these edges (NEES in the hundreds); the raw marginal says far less
+    than the edges show; the scaled one is about right."""
+    from vio.loop.output import CorrectionUncertainty
+    from vio.loop.posegraph import PoseGraph
+
+    rng = np.random.default_rng(6)
+    truth = [make_T(so3_exp(np.r_[0, 0, 0.08 * k]), np.r_[0.25 * k, 0.4 * np.sin(0.3 * k), 1.5]) for k in range(40)]
+    nees: dict[str, list[float]] = {"raw": [], "scaled": []}
+    for _ in range(40):
+        g = PoseGraph()
+        for k in range(20):  # the map, fixed at the truth
+            g.add_node(truth[k], None, (1e-4, 1e-4))
+        prev, T = None, make_T(so3_exp(np.r_[0, 0, 0.7]), np.r_[3.0, -2.0, 1.5])
+        for k in range(20, 40):
+            if k > 20:
+                T = T @ np.linalg.inv(truth[k - 1]) @ truth[k] @ make_T(so3_exp(rng.normal(0, 1e-4, 3)),
+                                                                        rng.normal(0, 3e-4, 3))
+            prev = g.add_node(T, prev, (np.pi, 100.0) if k == 20 else None)
+        for m, k in zip(range(2, 20, 3), range(21, 40, 3)):  # six edges, 6 mm and 0.2 deg off
+            err = make_T(so3_exp(rng.normal(0, np.radians(0.2), 3)), rng.normal(0, 0.006, 3))
+            g.add_loop(m, k, np.linalg.inv(truth[m]) @ truth[k] @ err)
+        g.optimize(decide=True)
+        n = len(g) - 1
+        e = np.r_[np.arctan2(*(g.estimate[n][:3, :3] @ truth[n][:3, :3].T)[[1, 0], [0, 0]]),
+                  truth[n][:3, 3] - g.estimate[n][:3, 3]]
+        for name, k in (("raw", 1.0), ("scaled", g.loop_variance_factor())):
+            c = CorrectionUncertainty.from_pose(g.estimate[n], g.marginal(n) * k).cov_yaw_position
+            nees[name].append(float(e @ np.linalg.solve(c, e)))
+    raw, scaled = np.mean(nees["raw"]), np.mean(nees["scaled"])
+    print(f"yaw+position NEES (4 dof) of the newest keyframe: raw marginal {raw:.2f}, scaled {scaled:.2f}")
+    assert raw < 0.5  # the graph's loop sigmas are far wider than these edges' errors
+    assert 1.0 < scaled < 6.0  # honest-to-cautious (4 would be exact; the factor is a 95 % upper bound)

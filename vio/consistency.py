@@ -54,16 +54,18 @@ def chi2_interval(dof: int, n_independent: int, confidence: float = 0.95) -> tup
 
 
 def pose_nees(states: list[NavState], truth_t_ns: np.ndarray, truth_T: np.ndarray, *,
-              max_dt_ns: int = 2_000_000, skip_s: float = 0.0, realign_on_reset: bool = True) -> NeesResult:
+              max_dt_ns: int = 2_000_000, skip_s: float = 0.0, realign_on_reset: bool = True,
+              align: np.ndarray | None = None) -> NeesResult:
     """NEES of each state's pose against truth at the same stamp (truth must be sampled at least as densely).
 
     `skip_s`: leave out states in the first seconds after the first one (the alignment makes the first
     errors zero by construction). States are taken in order; with `realign_on_reset` a reset (reset_counter
     change) re-aligns, as the autopilot re-anchors its reference there; without, the error across the reset
-    counts (how well the reset bridge kept position and heading)."""
+    counts (how well the reset bridge kept position and heading). `align`: a fixed T_gtworld_estworld instead
+    (states in a frame tied to the truth's beforehand, e.g. a loaded map's): no state is spent on aligning."""
     truth_t_ns = np.asarray(truth_t_ns, dtype=np.int64)
     out = {k: [] for k in ("t", "n", "np", "nr", "s", "e")}
-    align = None
+    fixed = align
     counter = None
     t_first = None
     for st in states:
@@ -75,7 +77,9 @@ def pose_nees(states: list[NavState], truth_t_ns: np.ndarray, truth_T: np.ndarra
         if abs(int(truth_t_ns[j]) - st.t_ns) > max_dt_ns:
             continue
         T_gt = truth_T[j]
-        if align is None or (realign_on_reset and st.reset_counter != counter):
+        if t_first is None and fixed is not None:
+            t_first = st.t_ns
+        if fixed is None and (align is None or (realign_on_reset and st.reset_counter != counter)):
             align = yaw_position_alignment(st.T_world_body, T_gt)  # T_gtworld_estworld
             counter = st.reset_counter
             if t_first is None:

@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-import math
 import re
 import time
 from collections import deque
@@ -48,7 +47,7 @@ from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
 from vio.propagator import Propagator
 from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, accel_units_problem, gyro_units_problem, imu_sample_problem
-from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame
+from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame, covariance_quality
 
 log = logging.getLogger(__name__)
 
@@ -842,8 +841,7 @@ class Estimator:
         sigma beyond quality_sigma_m), so the autopilot's quality gate sees what the covariance says."""
         if not tracking:
             return 0
-        sigma = math.sqrt(max(cov_pose[3, 3] + cov_pose[4, 4] + cov_pose[5, 5], 0.0))  # >= the largest axis
-        q_cov = min(1.0, self.bcfg.quality_sigma_m / max(sigma, 1e-9))
+        q_cov = covariance_quality(cov_pose, self.bcfg.quality_sigma_m)
         return max(1, min(100, round(100 * min(self._track_quality, q_cov))))
 
     def _looks_still_visually(self, ff: FeatureFrame) -> bool:

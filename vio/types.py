@@ -6,6 +6,7 @@ All time stamps are integer nanoseconds on one host clock. Poses are 4x4 homogen
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -63,6 +64,13 @@ class NavState:
     omega_body: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: bool = True
     loop_jumps: int = 0  # of reset_counter's increments, those a loop correction made ([loop] output = jump)
+
+
+def covariance_quality(cov_pose: np.ndarray, quality_sigma_m: float) -> float:
+    """0..1: 1 up to a position sigma of quality_sigma_m, halving per doubling beyond it, so that `quality`, which
+    the autopilots gate on, never says more than the covariance sent beside it."""
+    sigma = math.sqrt(max(float(cov_pose[3, 3] + cov_pose[4, 4] + cov_pose[5, 5]), 0.0))  # >= the largest axis
+    return min(1.0, quality_sigma_m / max(sigma, 1e-9))
 
 
 @dataclass(frozen=True)

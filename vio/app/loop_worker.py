@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vio.loop.output import CorrectionUncertainty
+
 log = logging.getLogger(__name__)
 
 
@@ -43,6 +45,7 @@ class LoopWorker:
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
         self._lock = threading.Lock()
         self._correction = np.eye(4)
+        self._uncertainty: CorrectionUncertainty | None = None
         self.closures = 0  # accepted closures so far
         # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
         # graph deferred brought in later), not when only a new odometry segment begins
@@ -76,17 +79,19 @@ class LoopWorker:
             with contextlib.suppress(queue.Full):
                 self._q.put_nowait(_Settled(tuple(settled)))
 
-    def correction(self) -> tuple[np.ndarray, int]:
-        """(T_world_odom, its version: the pose graph's solves behind it) as of the last keyframe processed."""
+    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None]:
+        """(T_world_odom, its version: the pose graph's solves behind it, its uncertainty where the frame came
+        through loop edges) as of the last keyframe processed; the arguments of CorrectedOutput.apply."""
         with self._lock:
-            return self._correction.copy(), self._version
+            return self._correction.copy(), self._version, self._uncertainty
 
     def _set_correction(self) -> None:
         """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
         estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
         T, version = self.closer.correction(), self.closer.graph.estimate_version
+        unc = self.closer.correction_uncertainty()
         with self._lock:
-            self._correction, self._version = T, version
+            self._correction, self._version, self._uncertainty = T, version, unc
 
     def status(self) -> dict:
         """Counts for the daemon's status file and health line (thread-safe copy)."""

@@ -315,11 +315,11 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     return res
 
 
-def corrected_sink(sink: Sink, loop, lcfg) -> Sink:
+def corrected_sink(sink: Sink, loop, cfg) -> Sink:
     """`sink` fed with states mapped by the loop worker's newest correction, as [loop] output says."""
     from vio.loop.output import CorrectedOutput
 
-    out = CorrectedOutput(lcfg.output, lcfg.blend_rate_m_s, lcfg.blend_rate_deg_s)
+    out = CorrectedOutput.from_config(cfg)
     return lambda st: sink(out.apply(st, *loop.correction()))
 
 
@@ -497,7 +497,7 @@ def run(args: argparse.Namespace) -> int:
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
         sink = restamp_to_host_clock(mav)
         if loop is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
-            sink = corrected_sink(sink, loop, cfg.loop)
+            sink = corrected_sink(sink, loop, cfg)
         sinks.append(sink)
     view = None
     if args.view:

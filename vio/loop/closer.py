@@ -23,6 +23,7 @@ from vio.config import LoopConfig
 from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
 from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
+from vio.loop.output import CorrectionUncertainty
 from vio.loop.posegraph import DecisionError, GraphNoise, PoseGraph
 from vio.loop.verify import gravity_disagreement_deg, pnp, pnp_from, refine_edge
 from vio.loop.vocabulary import Vocabulary
@@ -397,6 +398,24 @@ class LoopCloser:
         if not len(self.graph):
             return np.eye(4)
         return self.graph.estimate[-1] @ inv_T(self.graph.odom[-1])
+
+    def correction_uncertainty(self) -> CorrectionUncertainty | None:
+        """How well the newest keyframe is placed in a frame that came to it through loop edges (a loaded map's, or
+        this flight's before an estimator reset): its yaw and position covariance in the pose graph (the map's own
+        keyframes held fixed), scaled by what the loop edges' residuals show of their actual errors
+        (PoseGraph.loop_variance_factor: the graph's loop sigmas are wide, set for GNC). None in the frame the
+        odometry itself started in (before a relocalisation, or in a
+        flight's first segment): there the correction only takes drift out and the odometry's covariance holds."""
+        if not self.keyframes:
+            return None
+        s = self.keyframes[-1].session
+        if self._comp(s) == s:
+            return None
+        n = len(self.graph) - 1
+        C = self.graph.marginal(n)
+        if C is None:
+            return None
+        return CorrectionUncertainty.from_pose(self.graph.estimate[n], C * self.graph.loop_variance_factor())
 
     def corrected_trajectory(self, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
         """Odometry poses (N, 4, 4) at t_ns mapped with the final correction of the keyframe before each."""

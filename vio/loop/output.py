@@ -2,7 +2,11 @@
 the newest loop correction T_world_odom, delivered as `off` (the odometry, untouched), `jump` (the whole
 correction at once, `reset_counter` incremented so that ArduPilot/PX4 re-reference instead of fighting the
 jump) or `blend` (the applied correction walks towards the newest one at a bounded rate: position and yaw
-move smoothly, reset_counter unchanged). Roll and pitch are never corrected (the IMU observes them)."""
+move smoothly, reset_counter unchanged). Roll and pitch are never corrected (the IMU observes them).
+
+In a frame that came through loop edges (a loaded map's, or the flight's own before an estimator reset) the
+pose is only as good as those edges: the odometry's covariance knows nothing of them (it starts small at the new
+segment's origin), so the correction's own uncertainty is added to what is sent (`CorrectionUncertainty`)."""
 
 from __future__ import annotations
 
@@ -11,7 +15,46 @@ import dataclasses
 import numpy as np
 
 from vio.geometry import make_T, roll_pitch_yaw, so3_exp
-from vio.types import NavState
+from vio.types import NavState, covariance_quality
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class CorrectionUncertainty:
+    """How well a correction places the odometry in the frame it maps into: the covariance of a keyframe's
+    corrected yaw and position there (4x4 over yaw [rad], x, y, z [m], world frame), and where that keyframe is.
+    Roll and pitch are left out: the output never corrects them."""
+
+    cov_yaw_position: np.ndarray
+    p_world: np.ndarray
+
+    @classmethod
+    def from_pose(cls, T_world_body: np.ndarray, cov_pose: np.ndarray) -> CorrectionUncertainty:
+        """From a pose and its covariance in GTSAM's Pose3 tangent (rotation then translation, body frame)."""
+        R = T_world_body[:3, :3]
+        G = np.zeros((4, 6))
+        G[0, :3] = R[2, :]  # world yaw of a body-frame rotation perturbation: the z row of R
+        G[1:, 3:] = R
+        return cls(G @ cov_pose @ G.T, T_world_body[:3, 3].copy())
+
+    def added_to(self, state: NavState, quality_sigma_m: float | None = None) -> NavState:
+        """`state` (already corrected) with this uncertainty carried to its pose and velocity: a yaw error turns
+        the path about the keyframe, so it grows with the distance from it. `quality` is capped as the
+        estimator caps it (vio.types.covariance_quality), so it never says more than the covariance."""
+        R, p = state.T_world_body[:3, :3], state.T_world_body[:3, 3]
+        J = np.zeros((6, 4))
+        J[:3, 0] = R.T @ UP
+        J[3:, 0] = R.T @ np.cross(UP, p - self.p_world)
+        J[3:, 1:] = R.T
+        Jv = np.zeros((3, 4))
+        Jv[:, 0] = np.cross(UP, state.v_world)
+        cov_pose = state.cov_pose + J @ self.cov_yaw_position @ J.T
+        quality = state.quality
+        if quality_sigma_m is not None and quality > 0:
+            quality = max(1, min(quality, round(100 * covariance_quality(cov_pose, quality_sigma_m))))
+        return dataclasses.replace(state, cov_pose=cov_pose, cov_vel=state.cov_vel + Jv @ self.cov_yaw_position @ Jv.T,
+                                   quality=quality)
 
 
 def _yaw_rot(yaw: float) -> np.ndarray:
@@ -24,7 +67,8 @@ def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 class CorrectedOutput:
-    def __init__(self, mode: str = "off", blend_rate_m_s: float = 0.2, blend_rate_deg_s: float = 5.0) -> None:
+    def __init__(self, mode: str = "off", blend_rate_m_s: float = 0.2, blend_rate_deg_s: float = 5.0,
+                 quality_sigma_m: float | None = 0.05) -> None:
         if mode not in ("off", "jump", "blend"):
             raise ValueError(f"loop output mode {mode!r}: expected off, jump or blend")
         self.mode = mode
@@ -35,8 +79,16 @@ class CorrectedOutput:
         self._version = 0  # of the correction applied (jump mode takes each new one)
         self.jumps = 0  # reset_counter increments added (jump mode)
         self._last_t_ns: int | None = None
+        self._unc: CorrectionUncertainty | None = None  # of the correction applied (the newest one in blend)
+        self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
 
-    def apply(self, state: NavState, T_world_odom: np.ndarray, version: int) -> NavState:
+    @classmethod
+    def from_config(cls, cfg) -> CorrectedOutput:
+        """As a vio.config.VioConfig says: [loop] output and blend rates, [backend] quality_sigma_m."""
+        return cls(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s, cfg.backend.quality_sigma_m)
+
+    def apply(self, state: NavState, T_world_odom: np.ndarray, version: int,
+              uncertainty: CorrectionUncertainty | None = None) -> NavState:
         if self.mode == "off":
             return state
         target_t, target_yaw = _yaw_only(T_world_odom)
@@ -48,7 +100,9 @@ class CorrectedOutput:
                 if not (np.allclose(target_t, self._t) and np.isclose(target_yaw, self._yaw)):
                     self.jumps += 1
                 self._t, self._yaw = target_t, target_yaw
+                self._unc = uncertainty
         else:
+            self._unc = uncertainty
             # Bounded where it matters, at the vehicle: the sent position moves by the correction at most
             # rate_m_s * dt per step. A yaw change turns the odometry about its origin, so bounding the translation
             # alone let a vehicle 20 m out move at 1.75 m/s under a 30 deg yaw correction (a review's finding).
@@ -62,6 +116,7 @@ class CorrectedOutput:
                 step *= self.rate_m_s * dt / n
             self._t = q_now + step - _yaw_rot(self._yaw) @ p
         C = make_T(_yaw_rot(self._yaw), self._t)
-        return dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=C[:3, :3] @ state.v_world,
-                                   reset_counter=state.reset_counter + self.jumps,
-                                   loop_jumps=state.loop_jumps + self.jumps)
+        out = dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=C[:3, :3] @ state.v_world,
+                                  reset_counter=state.reset_counter + self.jumps,
+                                  loop_jumps=state.loop_jumps + self.jumps)
+        return out if self._unc is None else self._unc.added_to(out, self.quality_sigma_m)

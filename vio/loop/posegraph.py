@@ -113,6 +113,7 @@ class PoseGraph:
         self._condensed_cache: dict[tuple, list] = {}
         self._in_isam: dict[int, int] = {}  # index in self.edges of a loop edge -> its iSAM2 factor index
         self._queued: dict[int, int] = {}  # a loop edge waiting in the pending factors -> its position there
+        self._variance_factor = (-1, 1.0)  # (estimate_version, loop_variance_factor) of the last computation
         self.estimate_version = 0  # +1 each time the estimate is re-read from iSAM2 (closures, deferred edges)
         # The odometry edge into each node (index in self.edges; None at a segment start); where each node's
         # attitude factor and odometry edge are, ("att", node) / ("odom", edge): a position in the pending
@@ -451,6 +452,42 @@ class PoseGraph:
         """Pending keyframes, replaced odometry edges and deferred loop edges into iSAM2 and the estimate re-read,
         with no new loop decision (between closures the estimate follows only deferred edges, at a flush)."""
         self._sync(self._loops())
+
+    def marginal(self, i: int) -> np.ndarray | None:
+        """6x6 covariance of node i's pose (GTSAM Pose3 tangent: rotation, translation, node frame) given the
+        factors in iSAM2. A node still waiting for the next flush is reached from the newest solved node of its
+        segment along the odometry (that node's covariance carried over, plus the composed odometry's); None if
+        its segment has no solved node yet. Loop edges still pending are left out (the covariance is larger)."""
+        a = i
+        while not self._isam.valueExists(a):
+            if self._into[a] is None:
+                return None
+            a = self.edges[self._into[a]].i
+        C = np.asarray(self._isam.marginalCovariance(a))
+        if a == i:
+            return C
+        Ad = _adjoint(inv_T(self._chain[i]) @ self._chain[a])  # node a's perturbation seen at node i
+        Ai = _adjoint(inv_T(self.odom[i]))
+        return Ad @ C @ Ad.T + Ai @ (self._cum[i] - self._cum[a]) @ Ai.T
+
+    def loop_variance_factor(self) -> float:
+        """How far the active loop edges' residuals at the estimate run from their sigmas: a 95 % upper bound on
+        the a-posteriori variance factor (their chi-square over 6 (n - 1) degrees of freedom, one placement taken
+        by the fit). The loop sigmas are set for the decisions (GNC's threshold is in sigmas) and run wide of the
+        edges' actual errors (about 0.2x on the bench flights); a covariance scaled by this factor says what the
+        edges show instead. 1 (the sigmas as set) while there are too few edges to tell."""
+        if self._variance_factor[0] == self.estimate_version:
+            return self._variance_factor[1]
+        loops = [e for e in self.active_loops() if e.i != e.j]
+        dof = 6 * (len(loops) - 1)
+        k = 1.0
+        if dof > 0:
+            v = gtsam.Values()
+            for n in {n for e in loops for n in (e.i, e.j)}:
+                v.insert(n, gtsam.Pose3(self.estimate[n]))
+            k = sum(2.0 * self._loop_factor(e).error(v) for e in loops) / float(chi2.ppf(0.05, dof))
+        self._variance_factor = (self.estimate_version, k)
+        return k
 
     def active_loops(self) -> list[Edge]:
         return [e for e in self.edges if e.kind == "loop" and e.weight >= 0.5]

@@ -118,8 +118,7 @@ class Service:
         if cfg.loop.enabled or cfg.map.load or cfg.map.save:
             from vio.loop.output import CorrectedOutput
 
-            self._loop_output = CorrectedOutput(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s) \
-                if cfg.loop.output != "off" else None
+            self._loop_output = CorrectedOutput.from_config(cfg) if cfg.loop.output != "off" else None
         self.view = None
         if cfg.view.enabled:
             from vio.app.view import LiveView
