@@ -632,11 +632,33 @@ save = "{map_path}"
     status = json.loads((tmp_path / "status.json").read_text())
     assert status["loop"]["output"] == "off" and status["loop"]["relocalised"] is None
     assert status["loop"]["keyframes"] > 0 and status["loop"]["loop_jumps"] == 0 and status["loop"]["error"] is None
+    assert status["loop"]["placement_sigma_m"] is None  # its own frame: the odometry's covariance holds
     info = subprocess.run([sys.executable, "-m", "vio.app.cli", "map", "info", str(map_path), "--json"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert info.returncode == 0, info.stderr[-2000:]
     header = json.loads(info.stdout)
     assert header["format"] == "kestrel-vio-map" and header["keyframes"] > 0 and header["landmarks_3d"] > 0
+    # the same room again with the map and jump output: placed in the map, and how well is said (and sent)
+    second = tmp_path / "second"
+    second.mkdir()
+    rc, text = fly_fake(second, f"""[source]
+kind = "fake"
+realtime = false
+fake_duration_s = 6.0
+width = 320
+height = 200
+[run]
+status_file = "{second / 'status.json'}"
+[loop]
+enabled = true
+output = "jump"
+[map]
+load = "{map_path}"
+""", 30)
+    assert rc == 0 and "relocalised in the map" in text, text[-3000:]
+    loop = json.loads((second / "status.json").read_text())["loop"]
+    assert loop["relocalised"] is True and 0 < loop["placement_sigma_m"] < 0.1, loop
+    assert ", in the map +-" in text, text[-3000:]
 
 
 def test_reset_mid_flight_relocalises_into_the_frame_before_it(loop_flight, tmp_path):

@@ -96,8 +96,11 @@ class LoopWorker:
     def status(self) -> dict:
         """Counts for the daemon's status file and health line (thread-safe copy)."""
         with self._lock:
+            u = self._uncertainty
             return {"keyframes": self._processed, "closures": self.closures, **self._counts,
-                    "map_keyframes": self.closer.map_keyframes, "dropped": self.dropped, "error": self.error}
+                    "map_keyframes": self.closer.map_keyframes, "dropped": self.dropped, "error": self.error,
+                    # how well the loop edges place the flight in the frame they brought (None in its own frame)
+                    "placement_sigma_m": None if u is None else round(u.position_sigma_m, 4)}
 
     def _note_events(self, closed: bool) -> None:
         """One log line per event an operator cares about: the first closure, the flight placed in a loaded map,

@@ -29,6 +29,11 @@ class CorrectionUncertainty:
     cov_yaw_position: np.ndarray
     p_world: np.ndarray
 
+    @property
+    def position_sigma_m(self) -> float:
+        """sqrt of the position variances' sum (>= the largest axis), as `quality` reads a covariance."""
+        return float(np.sqrt(max(np.trace(self.cov_yaw_position[1:, 1:]), 0.0)))
+
     @classmethod
     def from_pose(cls, T_world_body: np.ndarray, cov_pose: np.ndarray) -> CorrectionUncertainty:
         """From a pose and its covariance in GTSAM's Pose3 tangent (rotation then translation, body frame)."""
