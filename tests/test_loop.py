@@ -612,19 +612,23 @@ def test_vio_run_with_loop_closure_saves_a_map_on_sigterm(tmp_path):
 
     _need_pipeline()
     map_path = tmp_path / "room.map.npz"
-    rc, text = fly_fake(tmp_path, f"""[source]
+    def fly(folder, loop: str, map_line: str) -> tuple[int, str]:
+        return fly_fake(folder, f"""[source]
 kind = "fake"
 realtime = false
 fake_duration_s = 6.0
 width = 320
 height = 200
 [run]
-status_file = "{tmp_path / 'status.json'}"
+status_file = "{folder / 'status.json'}"
 [loop]
 enabled = true
+{loop}
 [map]
-save = "{map_path}"
+{map_line}
 """, 30)
+
+    rc, text = fly(tmp_path, "", f'save = "{map_path}"')
     assert rc == 0 and "Traceback" not in text, text[-3000:]
     assert "map saved to" in text and map_path.is_file(), text[-3000:]
     # the loop stage's state in the health line and the status file (edges, no map loaded: no relocalisation)
@@ -641,20 +645,7 @@ save = "{map_path}"
     # the same room again with the map and jump output: placed in the map, and how well is said (and sent)
     second = tmp_path / "second"
     second.mkdir()
-    rc, text = fly_fake(second, f"""[source]
-kind = "fake"
-realtime = false
-fake_duration_s = 6.0
-width = 320
-height = 200
-[run]
-status_file = "{second / 'status.json'}"
-[loop]
-enabled = true
-output = "jump"
-[map]
-load = "{map_path}"
-""", 30)
+    rc, text = fly(second, 'output = "jump"', f'load = "{map_path}"')
     assert rc == 0 and "relocalised in the map" in text, text[-3000:]
     loop = json.loads((second / "status.json").read_text())["loop"]
     assert loop["relocalised"] is True and 0 < loop["placement_sigma_m"] < 0.1, loop
