@@ -178,7 +178,10 @@ class MavlinkOutput:
         sent before the mount is known. Raises VioError when the calibration does not decide it."""
         m = mount_rotation(self.cfg.mount, self.cfg.mount_rpy_deg, np.asarray(T_body_cam0, dtype=float)[:3, :3],
                            self.cfg.camera_tilt_deg)
-        self.T_frd_body = make_T(m.R_frd_body, np.asarray(self.cfg.mount_offset_m, dtype=float))
+        T = make_T(m.R_frd_body, np.asarray(self.cfg.mount_offset_m, dtype=float))
+        if self.T_frd_body is not None and np.allclose(T, self.T_frd_body):
+            return  # the daemon hands the mount over again once the output is up: said once is enough
+        self.T_frd_body = T
         rpy = np.round(mount_rpy_deg_from_matrix(m.R_frd_body), 1).tolist()
         log.info("IMU mount from the calibration (%s): roll/pitch/yaw %s deg in the vehicle FRD frame", m.note, rpy)
         if m.off_axis_deg > SNAP_DEG:

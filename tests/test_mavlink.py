@@ -365,8 +365,11 @@ def test_unstated_camera_tilt_is_warned_about(caplog):
     assert any("camera_tilt_deg" in r.message and "25.0 deg" in r.message for r in caplog.records)
 
 
-def test_default_mount_from_the_calibration_is_not_upside_down(ap):
-    """No config file: the simulator's FLU IMU and forward camera give a level, upright vehicle (roll 0, not 180)."""
+def test_default_mount_from_the_calibration_is_not_upside_down(ap, caplog):
+    """No config file: the simulator's FLU IMU and forward camera give a level, upright vehicle (roll 0, not 180).
+    The daemon hands the mount over again once the output is up: logged once, not twice."""
+    import logging
+
     from vio.sim import default_calibration
 
     calib = default_calibration()
@@ -378,7 +381,10 @@ def test_default_mount_from_the_calibration_is_not_upside_down(ap):
     out.close()
     lazy = MavlinkOutput(MavlinkConfig(), f"udpout:127.0.0.1:{ap.port}", clock_ns=clock)
     assert lazy.T_frd_body is None and not lazy.send_state(state(2_000_000_000))  # no mount yet: nothing sent
-    lazy.set_camera_mount(calib.cam0.T_body_cam)
+    with caplog.at_level(logging.INFO, logger="drivers.mavlink_out"):
+        lazy.set_camera_mount(calib.cam0.T_body_cam)
+        lazy.set_camera_mount(calib.cam0.T_body_cam)
+    assert sum("IMU mount from the calibration" in r.getMessage() for r in caplog.records) == 1
     np.testing.assert_allclose(lazy.T_frd_body[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-9)
     lazy.close()
     assert att, "no pose message"
