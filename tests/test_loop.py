@@ -457,7 +457,10 @@ def test_autopilot_output_modes():
     out = [blend.apply(s, C, 1) for s in st]
     x = np.array([o.T_world_body[0, 3] for o in out])
     assert np.all(np.diff(x) <= 0.5 * 0.1 + 1e-9) and x[-1] == pytest.approx(1.0)  # bounded rate, then there
-    assert all(o.reset_counter == 0 for o in out)
+    assert all(o.reset_counter == 0 for o in out) and blend.remaining_m == 0.0
+    walk = CorrectedOutput("blend", blend_rate_m_s=0.5, blend_rate_deg_s=5.0)
+    walk.apply(st[0], C, 1), walk.apply(st[1], C, 1)  # one 0.1 s step of 0.05 m on a 1 m correction
+    assert walk.remaining_m == pytest.approx(np.linalg.norm((C @ st[1].T_world_body)[:3, 3]) - 0.05, abs=0.01)
     # far from the odometry's origin a yaw correction turns the vehicle's position too: the bound holds at the
     # vehicle (hovering 20 m out, a 30 deg correction: it moved at 1.75 m/s with only the translation bounded)
     far = make_T(np.eye(3), [20.0, 0, 0])

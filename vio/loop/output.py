@@ -84,6 +84,8 @@ class CorrectedOutput:
         self._version = 0  # of the correction applied (jump mode takes each new one)
         self.jumps = 0  # reset_counter increments added (jump mode)
         self._last_t_ns: int | None = None
+        # blend: how far the sent position still is from the newest correction's, at the vehicle (the walk left)
+        self.remaining_m = 0.0
         self._unc: CorrectionUncertainty | None = None  # of the correction applied (the newest one in blend)
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
 
@@ -117,6 +119,7 @@ class CorrectedOutput:
             self._yaw += float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
             step = _yaw_rot(target_yaw) @ p + target_t - q_now
             n = float(np.linalg.norm(step))
+            self.remaining_m = max(n - self.rate_m_s * dt, 0.0)
             if n > self.rate_m_s * dt:
                 step *= self.rate_m_s * dt / n
             self._t = q_now + step - _yaw_rot(self._yaw) @ p

@@ -405,7 +405,11 @@ class Service:
             "loop": None if self.loop is None else {
                 **self.loop.status(), "output": self.cfg.loop.output,
                 # reset_counter increments that were loop-correction steps, not estimator resets
-                "loop_jumps": state.loop_jumps if state is not None else 0},
+                "loop_jumps": state.loop_jumps if state is not None else 0,
+                # blend: metres the sent position still has to walk to the newest correction (it is that far off the
+                # loop-corrected pose on purpose, and the vehicle will move by it)
+                "blend_remaining_m": round(self._loop_output.remaining_m, 3)
+                if self._loop_output is not None and self.cfg.loop.output == "blend" else None},
             "latency_ms": {"p50": round(lat[len(lat) // 2], 1), "max": round(lat[-1], 1)} if lat else None,
             "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld},
             "recording": recording,
@@ -440,7 +444,9 @@ class Service:
             if lp.get("placement_sigma_m") is not None:
                 where += f" +-{lp['placement_sigma_m'] * 100:.1f} cm"
             parts.insert(4, f"loop {lp['loop_edges']} edges{where}"
-                         + (f", {lp['loop_jumps']} jumps" if lp["loop_jumps"] else ""))
+                         + (f", {lp['loop_jumps']} jumps" if lp["loop_jumps"] else "")
+                         + (f", blending {lp['blend_remaining_m']:.2f} m to go"
+                            if (lp.get("blend_remaining_m") or 0) >= 0.01 else ""))
         if s["warnings"]:
             parts.append("WARN " + "; ".join(s["warnings"]))
         return " | ".join(parts)
