@@ -394,7 +394,11 @@ def test_saved_map_counts_the_loop_edges_that_placed_each_part_and_warns_of_a_we
     assert f"joined to the rest by only {joins} loop edges" in caplog.text and "rests on them" in m.header["note"]
     assert main(["map", "info", str(tmp_path / "m.npz")]) == 0
     out = capsys.readouterr().out
-    assert "part 1: 4 keyframes, the frame's origin" in out and f"part 2: 3 keyframes, joined by {joins}" in out
+    assert "part 1: 4 keyframes over 6.0 s, the frame's origin" in out and "part 2: 3 keyframes over" in out
+    assert f"joined by {joins}" in out
+    # each part's time is its own (a grown map's parts are flights on clocks of their own), summed
+    span2 = (m.t_ns[-1] - m.t_ns[4]) * 1e-9
+    assert f"7 keyframes over {6.0 + span2:.1f} s of flight in 2 parts" in out, out
     assert "weak" in out
     again = type(closer)(_calib(loop_flight), closer.cfg)
     again.load_map(m)

@@ -22,15 +22,23 @@ def run(args: argparse.Namespace) -> int:
     m = load_map(args.file)
     p = m.T_world_body[:, :3, 3] if len(m.T_world_body) else np.zeros((0, 3))
     n3 = sum(f.n_3d for f in m.features)
+    # a grown map's parts are flights on clocks of their own (the host's monotonic clock since each boot): the
+    # time flown is summed part by part, never taken from the first stamp to the last
+    parts = m.header.get("parts") or []
+    if sum(int(q["keyframes"]) for q in parts) != len(m.t_ns):  # no parts (or not these keyframes'): one flight
+        parts = [{"keyframes": len(m.t_ns), "join_edges": None}]
+    ends = np.cumsum([0] + [int(q["keyframes"]) for q in parts])
+    spans = [float((m.t_ns[b - 1] - m.t_ns[a]) * 1e-9) if b - a > 1 else 0.0 for a, b in zip(ends[:-1], ends[1:])]
     info = {**m.header, "landmarks_3d": int(n3),
             "extent_m": {"min": p.min(0).round(3).tolist(), "max": p.max(0).round(3).tolist()} if len(p) else None,
-            "span_s": float((m.t_ns[-1] - m.t_ns[0]) * 1e-9) if len(m.t_ns) > 1 else 0.0}
+            "span_s": round(sum(spans), 3), "part_spans_s": [round(x, 3) for x in spans]}
     if args.json:
         print(json.dumps(info, indent=1))
         return 0
     print(f"{args.file}: {info['format']} version {info['version']}, created {info['created_utc']}")
-    print(f"  {info['keyframes']} keyframes over {info['span_s']:.1f} s, {info['descriptors']} descriptors, "
-          f"{n3} with stereo 3D points")
+    flown = f"{info['span_s']:.1f} s" + (f" of flight in {len(spans)} parts" if len(spans) > 1 else "")
+    print(f"  {info['keyframes']} keyframes over {flown}, {info['descriptors']} descriptors, {n3} with stereo 3D "
+          "points")
     if info["extent_m"]:
         print(f"  extent [m]: {info['extent_m']['min']} .. {info['extent_m']['max']}")
     v = info["vocabulary"]
@@ -41,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         j = part["join_edges"]
         how = "the frame's origin" if j is None else f"joined by {j} loop edges" + (
             " (weak: its place rests on them)" if j < WEAK_JOIN_EDGES else "")
-        print(f"  part {k + 1}: {part['keyframes']} keyframes, {how}")
+        print(f"  part {k + 1}: {part['keyframes']} keyframes over {spans[k]:.1f} s, {how}")
     if info.get("note"):
         print(f"  note: {info['note']}")
     return 0
