@@ -1329,7 +1329,7 @@ def test_a_relocalised_keyframes_uncertainty_covers_its_error_in_the_maps_frame(
     odometry's own covariance knows nothing of these edges (NEES in the hundreds); the raw marginal says far less
     than the edges show; the scaled one is about right."""
     from vio.loop.output import CorrectionUncertainty
-    from vio.loop.posegraph import PoseGraph
+    from vio.loop.posegraph import MIN_LOOP_VARIANCE_FACTOR, PoseGraph
 
     rng = np.random.default_rng(6)
     truth = [make_T(so3_exp(np.r_[0, 0, 0.08 * k]), np.r_[0.25 * k, 0.4 * np.sin(0.3 * k), 1.5]) for k in range(40)]
@@ -1355,6 +1355,46 @@ def test_a_relocalised_keyframes_uncertainty_covers_its_error_in_the_maps_frame(
             c = CorrectionUncertainty.from_pose(g.estimate[n], g.marginal(n) * k).cov_yaw_position
             nees[name].append(float(e @ np.linalg.solve(c, e)))
     raw, scaled = np.mean(nees["raw"]), np.mean(nees["scaled"])
+    exact = PoseGraph()  # edges with no error at all: the factor stops at its floor, never says "exact"
+    for k in range(6):
+        exact.add_node(truth[k], k - 1 if k else None)
+    for m in range(3):
+        exact.add_loop(m, m + 3, np.linalg.inv(truth[m]) @ truth[m + 3])
+    exact.optimize(decide=True)
+    assert exact.loop_variance_factor() == MIN_LOOP_VARIANCE_FACTOR
     print(f"yaw+position NEES (4 dof) of the newest keyframe: raw marginal {raw:.2f}, scaled {scaled:.2f}")
     assert raw < 0.5  # the graph's loop sigmas are far wider than these edges' errors
     assert 1.0 < scaled < 6.0  # honest-to-cautious (4 would be exact; the factor is a 95 % upper bound)
+
+
+def test_correction_uncertainty_falls_back_to_a_loop_edges_sigmas_when_gtsam_cannot_give_a_marginal(caplog):
+    """A marginal gtsam cannot compute must neither stop the loop stage nor send the pose with nothing added: one
+    loop edge's sigmas (unscaled) go instead, and the log says so once. In the flight's own frame: nothing."""
+    from types import SimpleNamespace
+
+    from vio.loop.closer import LoopCloser
+    from vio.loop.posegraph import GraphNoise
+
+    def broken(i):
+        raise RuntimeError("indeterminant system")
+
+    class Graph:
+        noise = GraphNoise()
+        estimate = [np.eye(4), make_T(np.eye(3), [1.0, 2.0, 0.5])]
+        marginal = staticmethod(broken)
+
+        def __len__(self):
+            return 2
+
+    noise = Graph.noise
+    me = SimpleNamespace(keyframes=[SimpleNamespace(session=0), SimpleNamespace(session=1)], graph=Graph(),
+                         _comp=lambda s: 0, _marginal_warned=False)
+    with caplog.at_level("WARNING", logger="vio.loop.closer"):
+        a = LoopCloser.correction_uncertainty(me)
+        b = LoopCloser.correction_uncertainty(me)
+    np.testing.assert_allclose(np.diag(a.cov_yaw_position), [noise.loop_rot_rad ** 2] + [noise.loop_trans_m ** 2] * 3)
+    np.testing.assert_allclose(a.p_world, [1.0, 2.0, 0.5])
+    np.testing.assert_allclose(b.cov_yaw_position, a.cov_yaw_position)
+    assert caplog.text.count("no marginal covariance") == 1
+    me._comp = lambda s: s  # its own frame
+    assert LoopCloser.correction_uncertainty(me) is None

@@ -110,6 +110,7 @@ class LoopCloser:
         self._last_reset: int | None = None
         self._pending: list[_Candidate] = []
         self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
+        self._marginal_warned = False  # correction_uncertainty fell back to the loop sigmas (said once)
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
         self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
         self._own_node: dict[int, int] = {}  # this flight's keyframe stamp -> its node (for `settle`)
@@ -412,10 +413,20 @@ class LoopCloser:
         if self._comp(s) == s:
             return None
         n = len(self.graph) - 1
-        C = self.graph.marginal(n)
+        try:
+            C = self.graph.marginal(n)
+            if C is not None:
+                C = C * self.graph.loop_variance_factor()
+        except RuntimeError as e:  # gtsam could not give it: one loop edge's sigmas, unscaled, rather than nothing
+            if not self._marginal_warned:
+                log.warning("loop closure: no marginal covariance from the pose graph (%s); the pose sent in the "
+                            "map's frame carries one loop edge's sigmas instead", e)
+                self._marginal_warned = True
+            g = self.graph.noise
+            C = np.diag([g.loop_rot_rad ** 2] * 3 + [g.loop_trans_m ** 2] * 3)
         if C is None:
             return None
-        return CorrectionUncertainty.from_pose(self.graph.estimate[n], C * self.graph.loop_variance_factor())
+        return CorrectionUncertainty.from_pose(self.graph.estimate[n], C)
 
     def corrected_trajectory(self, t_ns: np.ndarray, T_odom: np.ndarray) -> np.ndarray:
         """Odometry poses (N, 4, 4) at t_ns mapped with the final correction of the keyframe before each."""

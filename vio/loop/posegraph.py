@@ -43,6 +43,11 @@ def _cholesky_else_qr(solve):
         return solve("MULTIFRONTAL_QR")
 
 
+# loop_variance_factor's floor: an edge is never taken as better than 0.1x its sigmas (6 mm and 0.07 deg at the
+# defaults; the bench's PnP edges are 6-10 mm off, their residuals read 0.11-0.21x the sigmas)
+MIN_LOOP_VARIANCE_FACTOR = 0.01
+
+
 class DecisionError(RuntimeError):
     """The decision solve after new loop edges failed. Raised before iSAM2 or any edge's weight is touched, so
     the caller can take the new edges back (`drop_loops_from`) and go on with the graph as it was."""
@@ -475,7 +480,8 @@ class PoseGraph:
         the a-posteriori variance factor (their chi-square over 6 (n - 1) degrees of freedom, one placement taken
         by the fit). The loop sigmas are set for the decisions (GNC's threshold is in sigmas) and run wide of the
         edges' actual errors (about 0.2x on the bench flights); a covariance scaled by this factor says what the
-        edges show instead. 1 (the sigmas as set) while there are too few edges to tell."""
+        edges show instead. 1 (the sigmas as set) while there are too few edges to tell; never below
+        MIN_LOOP_VARIANCE_FACTOR (edges that agree with each other can still share one error, e.g. a calibration's)."""
         if self._variance_factor[0] == self.estimate_version:
             return self._variance_factor[1]
         loops = [e for e in self.active_loops() if e.i != e.j]
@@ -485,7 +491,8 @@ class PoseGraph:
             v = gtsam.Values()
             for n in {n for e in loops for n in (e.i, e.j)}:
                 v.insert(n, gtsam.Pose3(self.estimate[n]))
-            k = sum(2.0 * self._loop_factor(e).error(v) for e in loops) / float(chi2.ppf(0.05, dof))
+            k = max(sum(2.0 * self._loop_factor(e).error(v) for e in loops) / float(chi2.ppf(0.05, dof)),
+                    MIN_LOOP_VARIANCE_FACTOR)
         self._variance_factor = (self.estimate_version, k)
         return k
 
