@@ -1398,3 +1398,66 @@ def test_correction_uncertainty_falls_back_to_a_loop_edges_sigmas_when_gtsam_can
     assert caplog.text.count("no marginal covariance") == 1
     me._comp = lambda s: s  # its own frame
     assert LoopCloser.correction_uncertainty(me) is None
+
+
+def test_a_flight_that_takes_off_where_the_map_did_gets_its_map_frame_and_uncertainty_at_the_join(laps_flight,
+                                                                                                  tmp_path):
+    """A second flight whose own frame nearly coincides with the map's (the same take-off pad; here the same
+    flight): its first edges to the map already fit, and used to wait for the next flush (deferred quick fits).
+    Meanwhile the output kept no map frame (no new version) and the placement uncertainty came from iSAM2 without
+    the join's edges, i.e. from the new session's 100 m prior: metres (a review saw +-3.27 m and quality 2). A
+    closure that joins sessions is solved at once: a new version at the join, and centimetres."""
+    from vio.app.replay import replay
+    from vio.config import VioConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map
+
+    ds = EurocDataset(laps_flight)
+    rec = _Recorder()
+    replay(ds, VioConfig(), progress=False, max_frames=400, loop=rec)
+    cfg = VioConfig().loop
+    mapper = LoopCloser(ds.calibration, cfg)
+    for item in rec.items:
+        mapper.add_keyframe(*item)
+    mapper.save_map(tmp_path / "pad.npz")
+    cl = LoopCloser(ds.calibration, cfg)
+    cl.load_map(load_map(tmp_path / "pad.npz"))
+    sigmas = []
+    for item in rec.items:
+        version = cl.graph.estimate_version
+        cl.add_keyframe(*item)
+        if cl.relocalised_t_ns is not None:
+            if not sigmas:
+                assert cl.graph.estimate_version > version  # solved at the join, not deferred
+            u = cl.correction_uncertainty()
+            assert u is not None
+            sigmas.append(u.position_sigma_m)
+    assert sigmas, "never relocalised"
+    print(f"placement sigma over {len(sigmas)} keyframes: {min(sigmas) * 1e3:.1f}-{max(sigmas) * 1e3:.1f} mm")
+    assert max(sigmas) < 0.05
+
+
+def test_blend_holds_its_correction_through_an_estimator_reset_until_a_new_solve():
+    """After an estimator reset the newest correction is the new segment's own (identity, no new version) until a
+    closure joins it: blend walked towards it, away from the map, at its full rate, and dropped the uncertainty.
+    Like jump, it keeps what it holds until a new version; the walk left is reported, heading included."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+    from vio.types import NavState
+
+    C = make_T(so3_exp(np.radians([0, 0, 40.0])), [2.0, -1.0, 0])
+    unc = CorrectionUncertainty(np.eye(4) * 1e-4, np.zeros(3))
+    st = [NavState(int(k * 1e8), make_T(np.eye(3), [1.0, 0, 0]), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+          for k in range(2000)]  # 10 Hz, 200 s hovering 1 m from the odometry's origin
+    blend = CorrectedOutput("blend", blend_rate_m_s=0.2, blend_rate_deg_s=5.0)
+    out = blend.apply(st[0], C, 1, unc)
+    assert blend.remaining_deg == pytest.approx(40.0) and blend.remaining_m == pytest.approx(1.80, abs=0.01)
+    for s in st[1:400]:
+        out = blend.apply(s, C, 1, unc)
+    assert np.allclose(out.T_world_body, C @ st[0].T_world_body) and blend.remaining_m == blend.remaining_deg == 0
+    for s in st[400:800]:  # an estimator reset: the new segment's own correction, no new version
+        after = blend.apply(s, np.eye(4), 1, None)
+    assert np.allclose(after.T_world_body, out.T_world_body) and after.cov_pose[3, 3] == out.cov_pose[3, 3]
+    C2 = make_T(so3_exp(np.radians([0, 0, 41.0])), [2.0, -1.1, 0])
+    nxt = blend.apply(st[800], C2, 2, unc)  # the segment joined: a new version, walked to
+    assert 0 < blend.remaining_deg < 1.0 and np.linalg.norm(nxt.T_world_body[:3, 3] - out.T_world_body[:3, 3]) < 0.03

@@ -152,7 +152,10 @@ class LoopCloser:
         if accepted:
             t1 = time.perf_counter()
             try:
-                self.graph.optimize()
+                # a closure that joins two sessions (relocalisation, a segment after a reset) is solved now even when
+                # its edges already fit (frames that nearly coincide: a take-off from the map's own pad): the
+                # output takes a new frame only with a new estimate, and its uncertainty only from edges in iSAM2
+                self.graph.optimize(defer=self._component == before[1])
             except DecisionError as e:
                 # one closure whose graph does not solve costs that closure, not the stage for the rest of the
                 # flight: its edges are taken back and the graph is as it was before this keyframe

@@ -81,12 +81,14 @@ class CorrectedOutput:
         self.rate_rad_s = np.radians(blend_rate_deg_s)
         self._t = np.zeros(3)  # applied correction: translation and yaw
         self._yaw = 0.0
-        self._version = 0  # of the correction applied (jump mode takes each new one)
+        self._version = 0  # of the correction held (each new version is taken; see apply)
         self.jumps = 0  # reset_counter increments added (jump mode)
         self._last_t_ns: int | None = None
-        # blend: how far the sent position still is from the newest correction's, at the vehicle (the walk left)
+        # blend: how far the sent pose still is from the held correction's: position at the vehicle, and heading
         self.remaining_m = 0.0
-        self._unc: CorrectionUncertainty | None = None  # of the correction applied (the newest one in blend)
+        self.remaining_deg = 0.0
+        self._target: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # held correction: translation, yaw
+        self._unc: CorrectionUncertainty | None = None  # of the correction held
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
 
     @classmethod
@@ -98,25 +100,31 @@ class CorrectedOutput:
               uncertainty: CorrectionUncertainty | None = None) -> NavState:
         if self.mode == "off":
             return state
-        target_t, target_yaw = _yaw_only(T_world_odom)
         dt = 0.0 if self._last_t_ns is None else max(state.t_ns - self._last_t_ns, 0) * 1e-9
         self._last_t_ns = state.t_ns
-        if self.mode == "jump":
-            if version != self._version:
-                self._version = version
-                if not (np.allclose(target_t, self._t) and np.isclose(target_yaw, self._yaw)):
-                    self.jumps += 1
-                self._t, self._yaw = target_t, target_yaw
-                self._unc = uncertainty
-        else:
+        if version != self._version:
+            # A new correction comes with a new version (a solve); an estimator reset changes the correction without
+            # one (its new odometry segment, in a frame of its own until a closure joins it): both modes keep the
+            # correction, and its uncertainty, that they hold until then. (Blend walked towards the new segment's
+            # own frame, away from the map, at its full rate: a review's finding.)
+            self._version = version
+            self._target = _yaw_only(T_world_odom)
             self._unc = uncertainty
+            if self.mode == "jump":
+                if not (np.allclose(self._target[0], self._t) and np.isclose(self._target[1], self._yaw)):
+                    self.jumps += 1
+                self._t, self._yaw = self._target
+        if self.mode == "blend":
+            target_t, target_yaw = self._target
             # Bounded where it matters, at the vehicle: the sent position moves by the correction at most
             # rate_m_s * dt per step. A yaw change turns the odometry about its origin, so bounding the translation
             # alone let a vehicle 20 m out move at 1.75 m/s under a 30 deg yaw correction (a review's finding).
             p = state.T_world_body[:3, 3]
             q_now = _yaw_rot(self._yaw) @ p + self._t  # where the applied correction sends the vehicle now
             dyaw = float(np.angle(np.exp(1j * (target_yaw - self._yaw))))
-            self._yaw += float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
+            turn = float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
+            self._yaw += turn
+            self.remaining_deg = float(np.degrees(abs(dyaw - turn)))
             step = _yaw_rot(target_yaw) @ p + target_t - q_now
             n = float(np.linalg.norm(step))
             self.remaining_m = max(n - self.rate_m_s * dt, 0.0)

@@ -377,17 +377,19 @@ class PoseGraph:
                 w = w_held
         return [float(w[first_loop + m]) for m in range(len(loops))]
 
-    def optimize(self, decide: bool = False) -> dict:
+    def optimize(self, decide: bool = False, defer: bool = True) -> dict:
         """Bring the graph up to date after new loop edges. Fast path: least squares on the decision graph
         with the active and the new loop edges; if every one of them fits, they go into iSAM2 as they are.
         Otherwise (or with `decide`) GNC re-decides every loop edge ever added, switched-off ones included,
         and iSAM2's loop edges are brought in line: a wrong closure accepted earlier is switched off after
-        the fact, a wrongly refused one comes back. Returns {'loop_weights': [...], 'decided': bool}."""
+        the fact, a wrongly refused one comes back. `defer` = False: new edges that fit go into iSAM2 and the estimate
+        now, never deferred (a closure that joins two sessions: the output must see the new frame and its
+        uncertainty at once, even when the frames nearly coincide). Returns {'loop_weights': [...], 'decided': bool}."""
         loops = self._loops()
         every = [e for e in self.edges if e.kind == "loop"]  # the caller's edges, self-edges (off) included
         if loops and not decide and self._fit_already(loops):
             self.quick_fits += 1
-            if self.noise.defer_quick_fits:
+            if self.noise.defer_quick_fits and defer:
                 for k in loops:
                     if self.edges[k].weight >= 0.5 and k not in self._in_isam and k not in self._queued:
                         self._queued[k] = self._new_factors.size()

@@ -408,8 +408,10 @@ class Service:
                 "loop_jumps": state.loop_jumps if state is not None else 0,
                 # blend: metres the sent position still has to walk to the newest correction (it is that far off the
                 # loop-corrected pose on purpose, and the vehicle will move by it)
-                "blend_remaining_m": round(self._loop_output.remaining_m, 3)
-                if self._loop_output is not None and self.cfg.loop.output == "blend" else None},
+                **({"blend_remaining_m": round(self._loop_output.remaining_m, 3),
+                    "blend_remaining_deg": round(self._loop_output.remaining_deg, 2)}
+                   if self._loop_output is not None and self.cfg.loop.output == "blend" else
+                   {"blend_remaining_m": None, "blend_remaining_deg": None})},
             "latency_ms": {"p50": round(lat[len(lat) // 2], 1), "max": round(lat[-1], 1)} if lat else None,
             "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld},
             "recording": recording,
@@ -445,8 +447,7 @@ class Service:
                 where += f" +-{lp['placement_sigma_m'] * 100:.1f} cm"
             parts.insert(4, f"loop {lp['loop_edges']} edges{where}"
                          + (f", {lp['loop_jumps']} jumps" if lp["loop_jumps"] else "")
-                         + (f", blending {lp['blend_remaining_m']:.2f} m to go"
-                            if (lp.get("blend_remaining_m") or 0) >= 0.01 else ""))
+                         + _blend_to_go(lp))
         if s["warnings"]:
             parts.append("WARN " + "; ".join(s["warnings"]))
         return " | ".join(parts)
@@ -480,6 +481,15 @@ def shared_mavlink_link(cfg: VioConfig) -> Any:
     from drivers.mavlink_link import MavlinkLink
 
     return MavlinkLink(cfg.mavlink.url, source_system=cfg.mavlink.system_id or cfg.mavlink.target_system)
+
+
+def _blend_to_go(lp: dict) -> str:
+    """', blending 0.42 m, 12.0 deg to go' while a blend correction still walks (both parts are what the vehicle
+    will still be moved and turned by), else ''."""
+    m, deg = lp.get("blend_remaining_m") or 0.0, lp.get("blend_remaining_deg") or 0.0
+    if m < 0.01 and deg < 0.1:
+        return ""
+    return f", blending {m:.2f} m, {deg:.1f} deg to go"
 
 
 def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCalibration | None],
