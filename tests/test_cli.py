@@ -68,6 +68,7 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[backend]\nlag_s = 0.0\n", "[backend]: 'lag_s' = 0.0 is below the minimum 0.2"),
     ("[backend\n", "not valid TOML"),
     ("[nonsense]\n", "unknown section [nonsense]"),
+    ("[loop]\noutput = 'jump'\n", "[loop] output = 'jump' needs the loop stage, which is off"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

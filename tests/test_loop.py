@@ -426,7 +426,8 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
         assert says in err and "internal error" not in err and "allow_pickle" not in err, err
 
     # the right header over arrays that do not fit together: refused whole, never loaded with keyframes missing
-    hdr = np.array('{"format": "kestrel-vio-map", "version": 1}')
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + cam + '}')
     good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
                 p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
     np.savez(tmp_path / "good.npz", **good)
@@ -438,6 +439,22 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
         np.savez(tmp_path / "bad.npz", **{**good, **change})
         with pytest.raises(VioError, match=f"damaged map.*{says}"):
             load_map(tmp_path / "bad.npz")
+    # a header whose parts do not split the keyframes (a review's: `vio map info` stopped on an IndexError, and a map
+    # grown from it carried the damage on), or without its camera
+    for header, says in (('"parts": [{"keyframes": 5, "join_edges": null}], ' + cam, "parts"),
+                         ('"parts": [{"keyframes": 1, "join_edges": 2}, {"keyframes": 1, "join_edges": 3}], ' + cam,
+                          "parts"),
+                         ('"parts": "two", ' + cam, "parts"),
+                         ('"parts": [{"keyframes": 1, "join_edges": null}, {"keyframes": "1", "join_edges": 0}], '
+                          + cam, "parts"),
+                         ('"camera": {"width": 0}', "camera")):
+        bad_hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + header + '}')
+        np.savez(tmp_path / "bad.npz", **{**good, "header": bad_hdr})
+        with pytest.raises(VioError, match=f"damaged map.*{says}"):
+            load_map(tmp_path / "bad.npz")
+        assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1
+        err = capsys.readouterr().err
+        assert "damaged map" in err and "internal error" not in err, err
     np.savez(tmp_path / "x.npz", header=np.array('{"format": "other", "version": 1}'))
     with pytest.raises(VioError, match="not a Kestrel VIO map"):
         load_map(tmp_path / "x.npz")
@@ -1461,3 +1478,29 @@ def test_blend_holds_its_correction_through_an_estimator_reset_until_a_new_solve
     C2 = make_T(so3_exp(np.radians([0, 0, 41.0])), [2.0, -1.1, 0])
     nxt = blend.apply(st[800], C2, 2, unc)  # the segment joined: a new version, walked to
     assert 0 < blend.remaining_deg < 1.0 and np.linalg.norm(nxt.T_world_body[:3, 3] - out.T_world_body[:3, 3]) < 0.03
+
+
+def test_a_map_made_with_another_camera_is_said_to_rarely_place_the_flight(tmp_path, caplog):
+    """A 376x240 map loaded for a 752x480 flight matched 2 of 72 candidates and said only "NOT placed" (a review's
+    finding): the loop stage now says at load why it will rarely place the flight, and the replay repeats it."""
+    import dataclasses
+
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import load_map, save_map
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    c = calib.cam0
+    small = dataclasses.replace(c, width=c.width // 2, height=c.height // 2, fx=c.fx / 2, fy=c.fy / 2, cx=c.cx / 2,
+                                cy=c.cy / 2)
+    f = KeyframeFeatures(np.zeros((3, 32), np.uint8), np.zeros((3, 2)), np.zeros((3, 3)))
+    for cam, warned in ((small, True), (calib.cam0, False)):
+        save_map(tmp_path / "m.npz", [1], [np.eye(4)], [f], Vocabulary.load(), cam)
+        cl = LoopCloser(calib, VioConfig().loop)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="vio.loop.closer"):
+            cl.load_map(load_map(tmp_path / "m.npz"))
+        assert bool(cl.map_camera_warning) == warned and ("made with a 376x240 camera" in caplog.text) == warned

@@ -159,6 +159,18 @@ def test_status_text_names_what_a_person_needs() -> None:
         assert needle in text, needle
 
 
+def test_status_text_shows_the_loop_stage_when_it_runs() -> None:
+    s = _status()
+    assert "  loop " not in format_status(s, "HEALTHY", 1000.5)
+    s["loop"] = {"keyframes": 80, "closures": 6, "loop_edges": 12, "switched_off": 1, "relocalised": True,
+                 "map_keyframes": 92, "dropped": 0, "error": None, "placement_sigma_m": 0.0172, "output": "blend",
+                 "loop_jumps": 0, "blend_remaining_m": 0.42, "blend_remaining_deg": 12.0}
+    text = format_status(s, "HEALTHY", 1000.5)
+    for needle in ("output blend", "edges 12 (1 switched off), in the map +-1.7 cm",
+                   "blend still to go 0.42 m 12.0 deg", "map of 92 keyframes"):
+        assert needle in text, text
+
+
 def test_status_text_shows_the_land_after_loss_failsafe_only_when_configured() -> None:
     s = _status()
     assert "failsafe" not in format_status(s, "HEALTHY", 1000.5)

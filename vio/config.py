@@ -564,6 +564,9 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
                        "so that images and IMU are of the same flight)")
     if src.kind == "sitl" and len(src.sitl_home) != 3:
         raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m]")
+    if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
+        raise VioError(f"{source}: [loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] "
+                       "enabled = true (it would be ignored)")
     b, f = cfg.backend, cfg.frontend
     if b.imu_noise_adaptive and b.imu_noise_max_scale < b.imu_noise_scale:
         raise VioError(f"{source}: [backend] imu_noise_max_scale = {b.imu_noise_max_scale} is below imu_noise_scale "

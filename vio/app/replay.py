@@ -336,7 +336,8 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None,
         own = closer.keyframes[closer.map_keyframes:]
         d["relocalisation"] = {"map_keyframes": closer.map_keyframes, "relocalised": closer.relocalised,
                                "delay_s": None if closer.relocalised_t_ns is None or not own
-                               else (closer.relocalised_t_ns - own[0].t_ns) * 1e-9}
+                               else (closer.relocalised_t_ns - own[0].t_ns) * 1e-9,
+                               "camera_mismatch": closer.map_camera_warning}
         r = d["relocalisation"]
         if r["relocalised"]:
             after = "" if r["delay_s"] is None else f" {r['delay_s']:.2f} s after this flight's first keyframe"
@@ -346,7 +347,8 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None,
             log.warning("relocalisation: this flight never matched the map (%d keyframes): its loop-corrected "
                         "trajectory is in its own frame, not the map's", r["map_keyframes"])
             print(f"relocalisation: NOT placed in the map ({r['map_keyframes']} keyframes): the loop-corrected "
-                  "trajectory stays in this flight's own frame")
+                  "trajectory stays in this flight's own frame"
+                  + (f" ({closer.map_camera_warning})" if closer.map_camera_warning else ""))
     d.update(dropped=loop.dropped, error=loop.error, memory_per_keyframe_bytes=closer.memory_per_keyframe_bytes(),
              loop_edges=[[int(e.i), int(e.j), float(e.weight)] for e in closer.graph.edges if e.kind == "loop"])
     T_gt = None

@@ -98,6 +98,20 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         lines.append(f"  inputs    unusable frames {_fmt(e.get('frames_unusable'))}{reasons}, "
                      f"IMU samples rejected {_fmt(e.get('imu_rejected'))}, frames dropped by the estimator "
                      f"{_fmt(e.get('frames_dropped'))}")
+    lp = s.get("loop")
+    if lp:
+        where = {True: ", in the map", False: ", NOT in the map yet"}.get(lp.get("relocalised"), "")
+        if lp.get("placement_sigma_m") is not None:
+            where += f" +-{100 * float(lp['placement_sigma_m']):.1f} cm"
+        walk = ""
+        if lp.get("blend_remaining_m") is not None:
+            walk = (f", blend still to go {_fmt(lp.get('blend_remaining_m'), ' m', 2)} "
+                    f"{_fmt(lp.get('blend_remaining_deg'), ' deg')}")
+        lines.append(f"  loop      output {lp.get('output', '-')}, keyframes {_fmt(lp.get('keyframes'))}, edges "
+                     f"{_fmt(lp.get('loop_edges'))} ({_fmt(lp.get('switched_off'))} switched off){where}, "
+                     f"jumps {_fmt(lp.get('loop_jumps'))}{walk}"
+                     + (f", map of {lp['map_keyframes']} keyframes" if lp.get("map_keyframes") else "")
+                     + (f", STOPPED: {lp['error']}" if lp.get("error") else ""))
     rec = s.get("recording")
     if rec:
         failed = f": {rec.get('error')}" if rec.get("error") else ""

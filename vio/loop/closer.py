@@ -37,6 +37,17 @@ log = logging.getLogger(__name__)
 WEAK_JOIN_EDGES = 10
 
 
+def _camera_mismatch(map_cam: dict, cam) -> str | None:
+    """Why a map made with another camera will rarely place this flight (its features were seen at another size
+    and scale), or None. Said, not refused: the same rig at another resolution still shares some views."""
+    size, fx = (int(map_cam["width"]), int(map_cam["height"])), float(map_cam["fx"])
+    if size == (cam.width, cam.height) and abs(fx / cam.fx - 1.0) <= 0.02:
+        return None
+    return (f"the map was made with a {size[0]}x{size[1]} camera (fx {fx:.0f} px), this flight's is "
+            f"{cam.width}x{cam.height} (fx {cam.fx:.0f} px): its views are matched across the two and will rarely "
+            "place this flight; make the map with this camera and size")
+
+
 def _agree(T_identity: np.ndarray, max_m: float, max_deg: float) -> bool:
     """Is T_identity (the composition of two estimates of one relative pose, one inverted) near identity?"""
     return bool(np.linalg.norm(T_identity[:3, 3]) <= max_m and
@@ -111,6 +122,7 @@ class LoopCloser:
         self._pending: list[_Candidate] = []
         self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
         self._marginal_warned = False  # correction_uncertainty fell back to the loop sigmas (said once)
+        self.map_camera_warning: str | None = None  # a loaded map made with another camera size or focal length
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
         self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
         self._own_node: dict[int, int] = {}  # this flight's keyframe stamp -> its node (for `settle`)
@@ -343,6 +355,9 @@ class LoopCloser:
             self.index.add(self.vocab.bow(f.desc))
         self._component[0] = 0
         self.map_keyframes = len(m.features)
+        self.map_camera_warning = _camera_mismatch(m.header["camera"], self.cam)
+        if self.map_camera_warning:
+            log.warning("loop closure: %s", self.map_camera_warning)
         self._map_parts = list(m.header.get("parts") or [{"keyframes": len(m.features), "join_edges": None}])
         self.session = 1
         self._last_reset = None

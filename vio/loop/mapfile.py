@@ -94,6 +94,25 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
     return None
 
 
+def _header_problem(header: dict, n: int) -> str | None:
+    """What in a map's header does not fit its keyframes, or None: the parts (each flight that made the map, in
+    keyframe order) must split them exactly, and the camera must be a size; a map grown from a damaged one would
+    carry the damage on."""
+    parts = header.get("parts")
+    if parts is not None:
+        ok = isinstance(parts, list) and all(
+            isinstance(q, dict) and type(q.get("keyframes")) is int and q["keyframes"] >= 1
+            and (q.get("join_edges") is None or (type(q["join_edges"]) is int and q["join_edges"] >= 0))
+            for q in parts)
+        if not ok or sum(q["keyframes"] for q in parts) != n or (parts and parts[0].get("join_edges") is not None):
+            return f"its header's parts do not split its {n} keyframes"
+    cam = header.get("camera")
+    if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and cam[k] > 0
+                                            for k in ("width", "height", "fx", "fy")):
+        return "its header has no camera size and focal lengths"
+    return None
+
+
 def load_map(path: str | Path) -> MapData:
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -106,7 +125,7 @@ def load_map(path: str | Path) -> MapData:
             off = z["kf_offsets"]
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
             t_ns, T = z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64)
-            problem = _inconsistency(off, desc, uv, p, t_ns, T)
+            problem = _inconsistency(off, desc, uv, p, t_ns, T) or _header_problem(header, len(t_ns))
             if problem:
                 raise VioError(f"{path}: damaged map ({problem})")
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]

@@ -564,9 +564,6 @@ def _check_run_config(cfg: VioConfig) -> Any:
             check_outputs({"the map": cfg.map.save})
         except VioError as e:
             raise VioError(f"[map] save: {e}") from None
-    if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
-        raise VioError(f"[loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] enabled "
-                       "= true (it would be ignored)")
     for key in ("record_dir", "trajectory_file"):
         value = getattr(cfg.run, key)
         if not value:
