@@ -1504,3 +1504,31 @@ def test_a_map_made_with_another_camera_is_said_to_rarely_place_the_flight(tmp_p
         with caplog.at_level("WARNING", logger="vio.loop.closer"):
             cl.load_map(load_map(tmp_path / "m.npz"))
         assert bool(cl.map_camera_warning) == warned and ("made with a 376x240 camera" in caplog.text) == warned
+
+
+def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, monkeypatch):
+    """A map grown in place ([map] load and save the same file): a full disk half-way through the write must not
+    cost the old map (it was truncated first), and leaves no partial file behind."""
+    import errno
+
+    from vio import VioError
+    from vio.loop import mapfile
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim import default_calibration
+
+    cam, vocab = default_calibration().cam0, Vocabulary.load()
+    f = KeyframeFeatures(np.zeros((3, 32), np.uint8), np.zeros((3, 2)), np.zeros((3, 3)))
+    mapfile.save_map(tmp_path / "room.npz", [1], [np.eye(4)], [f], vocab, cam)
+    before = (tmp_path / "room.npz").read_bytes()
+
+    def full_disk(file, **arrays):
+        file.write(b"PK\x03\x04 half a map")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(mapfile.np, "savez_compressed", full_disk)
+    with pytest.raises(VioError, match="No space left on device.*the map that was there is kept"):
+        mapfile.save_map(tmp_path / "room.npz", [1, 2], [np.eye(4)] * 2, [f, f], vocab, cam)
+    assert (tmp_path / "room.npz").read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["room.npz"]
+    monkeypatch.undo()
+    assert len(mapfile.load_map(tmp_path / "room.npz").features) == 1

@@ -20,9 +20,11 @@ recomputed with the loading side's vocabulary, so a map survives a vocabulary up
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import json
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,14 +65,24 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
     def cat(attr, shape, dtype):
         arrs = [getattr(f, attr) for f in features]
         return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
+    # Written beside the target and renamed over it only when complete: a map grown in place (`[map] load` and
+    # `save` the same file) must not lose the old one to a full disk or a kill half-way through the write.
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with open(path, "wb") as f:
+        with open(tmp, "wb") as f:
             np.savez_compressed(f, header=np.array(json.dumps(header)), kf_t_ns=np.asarray(t_ns, np.int64),
                                 kf_T_world_body=np.asarray(T_world_body, np.float64).reshape(-1, 4, 4),
                                 kf_offsets=offsets, desc=cat("desc", (0, 32), np.uint8),
                                 uv=cat("uv", (0, 2), np.float32), p_cam=cat("p_cam", (0, 3), np.float32))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
     except OSError as e:
-        raise VioError(f"{path}: cannot write the map ({e.strerror})") from None
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise VioError(f"{path}: cannot write the map ({e.strerror or e}); "
+                       + ("the map that was there is kept" if path.exists() else "nothing written")) from None
     return header
 
 
