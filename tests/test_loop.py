@@ -1532,3 +1532,27 @@ def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, 
     assert (tmp_path / "room.npz").read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["room.npz"]
     monkeypatch.undo()
     assert len(mapfile.load_map(tmp_path / "room.npz").features) == 1
+
+
+def test_a_session_whose_joining_edges_are_switched_off_is_in_a_frame_of_its_own_again():
+    """The union of sessions followed every edge ever accepted: after GNC switched off a false relocalisation, the
+    flight still counted as in the map (status, placement uncertainty from a 100 m prior) and looked for the map
+    with the looser rules of a joined flight. Joins are now rebuilt from the edges GNC keeps."""
+    from types import SimpleNamespace as NS
+
+    from vio.loop.closer import LoopCloser
+    from vio.loop.posegraph import Edge
+
+    me = NS(_component={0: 0, 1: 0, 2: 1}, map_keyframes=2,
+            keyframes=[NS(session=0), NS(session=0), NS(session=1), NS(session=1), NS(session=2)],
+            graph=NS(edges=[Edge(2, 0, np.eye(4), "odometry"), Edge(0, 2, np.eye(4), "loop", weight=0.0),
+                            Edge(2, 4, np.eye(4), "loop", weight=1.0), Edge(3, 3, np.eye(4), "loop")]))
+    me._comp = lambda s: LoopCloser._comp(me, s)
+    me._join = lambda a, b: LoopCloser._join(me, a, b)
+    assert LoopCloser.relocalised.fget(me)  # session 2 joined through session 1 to the map, so far
+    LoopCloser._rejoin(me)
+    assert me._comp(1) == 1 and me._comp(2) == 1 and me._comp(0) == 0  # the edge to the map is off
+    assert not LoopCloser.relocalised.fget(me)
+    me.graph.edges[1].weight = 1.0  # GNC takes it back in
+    LoopCloser._rejoin(me)
+    assert me._comp(2) == 0 and LoopCloser.relocalised.fget(me)

@@ -114,6 +114,9 @@ class LoopWorker:
         if new["relocalised"] and not old["relocalised"]:
             log.info("loop closure: relocalised in the map (%d keyframes): corrected poses are in the map's frame",
                      c.map_keyframes)
+        if old["relocalised"] and new["relocalised"] is False:
+            log.warning("loop closure: no longer placed in the map (an estimator reset, or the edges that placed it "
+                        "switched off): poses are in a frame of their own until it relocalises again")
         if new["switched_off"] > old["switched_off"]:
             log.warning("loop closure: %d loop edge(s) switched off by GNC (inconsistent with the others)",
                         new["switched_off"] - old["switched_off"])

@@ -178,6 +178,9 @@ class LoopCloser:
                             "did not solve (%s)", i, t_ns * 1e-9, n, e)
                 return False
             self.stats.optimize_ms.append((time.perf_counter() - t1) * 1e3)
+            self._rejoin()
+            if self.relocalised_t_ns is None and self.relocalised:  # joined, and the solve kept the join
+                self.relocalised_t_ns = int(t_ns)
             self.stats.switched_off = sum(1 for e in self.graph.edges if e.kind == "loop" and e.weight < 0.5)
             self.stats.gnc_decisions = self.graph.decisions
             self.stats.quick_fits = self.graph.quick_fits
@@ -307,8 +310,6 @@ class LoopCloser:
             self._join(self.keyframes[p.j].session, self.keyframes[p.i].session)
             self.stats.accepted += 1
         self._pending = [p for p in self._pending if p not in agree]
-        if self.relocalised_t_ns is None and self.relocalised:
-            self.relocalised_t_ns = self.keyframes[i].t_ns
         return True
 
     def _sigma_scale(self, p: _Candidate) -> float:
@@ -337,6 +338,16 @@ class LoopCloser:
         while self._component.get(session, session) != session:
             session = self._component[session]
         return session
+
+    def _rejoin(self) -> None:
+        """Sessions joined by the loop edges GNC keeps, after a solve. A join is not forever: when GNC switches off
+        the edges that placed a session in the map (a false relocalisation in a repeated room), that session is in
+        a frame of its own again: it is not reported in the map, its pose carries no map placement, and it looks
+        for the map with the relocalisation rules again (reloc candidates, inliers, consistency)."""
+        self._component = {s: s for s in self._component}
+        for e in self.graph.edges:
+            if e.kind == "loop" and e.weight >= 0.5 and e.i != e.j:
+                self._join(self.keyframes[e.i].session, self.keyframes[e.j].session)
 
     def _join(self, a: int, b: int) -> None:
         ra, rb = self._comp(a), self._comp(b)
