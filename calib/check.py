@@ -218,7 +218,8 @@ def check_reprojection(calib: StereoCalibration, m: StereoMatches) -> CheckResul
 
 def check_units(dataset) -> list[CheckResult]:
     """IMU data and calibration units: the diagnosis `vio replay` stops on (vio/sanity.py via vio.io.euroc)."""
-    from vio.io.euroc import calibration_unit_checks, imu_units_problem
+    from vio.calibration import calibration_unit_checks
+    from vio.io.euroc import imu_units_problem
 
     calib = dataset.calibration
     problem = imu_units_problem(dataset.imu, dataset.mav0 / "imu0" / "data.csv")

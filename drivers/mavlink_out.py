@@ -64,6 +64,10 @@ ORIGIN_MAX_SENDS = 60
 # land_after_loss_s: MAV_CMD_NAV_LAND is repeated 1 s apart until the autopilot accepts it (COMMAND_ACK) or
 # is seen disarmed, at most LAND_MAX_SENDS times per loss (a dropped command must not leave it dead-reckoning).
 LAND_MAX_SENDS = 5
+# No estimate at all for this long (camera and IMU silent together: an OAK shares one cable for both; or the
+# estimator stopped) is a loss of tracking like a dark camera: the same STATUSTEXT, and land_after_loss_s counts
+# from the last estimate. The estimator sends IMU-rate states, the daemon at least frame-rate ones.
+NO_ESTIMATE_LOST_NS = 500_000_000
 
 @dataclass
 class MavlinkStats:
@@ -151,6 +155,7 @@ class MavlinkOutput:
         self._last_loop_jumps = 0
         self._tracking: bool | None = None
         self._lost_since_ns: int | None = None  # clock time tracking was lost (None while tracking)
+        self._last_state_at_ns: int | None = None  # clock time the newest state arrived (send_state)
         self._land_left = 0  # LAND requests still to send for the current loss
         self._land_done = False  # this loss has had its LAND request (one per loss)
         self._next_land_ns = 0
@@ -223,6 +228,7 @@ class MavlinkOutput:
         taken = False
         with self._pending_lock:
             self.stats.states_in += 1
+            self._last_state_at_ns = self._clock()
             changed = self._tracking is not None and state.tracking != self._tracking
             self._tracking = state.tracking
             if changed:
@@ -309,6 +315,7 @@ class MavlinkOutput:
             self._read_incoming(now)
             self._update_link(now)
             self._check_flapping(now)
+            self._check_estimates_stopped(now)
             self._check_land_after_loss(now)
             if now >= self._next_heartbeat_ns:
                 self._next_heartbeat_ns = _next_slot(self._next_heartbeat_ns, HEARTBEAT_PERIOD_NS, now)
@@ -391,6 +398,19 @@ class MavlinkOutput:
         self._send(mavlink.MAVLink_command_long_message(
             self.target_system, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
             float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
+
+    def _check_estimates_stopped(self, now: int) -> None:
+        """Tracking is lost too when no estimate arrives at all (NO_ESTIMATE_LOST_NS): with the camera and the IMU
+        gone together no state says tracking = false, and the autopilot heard nothing, not even to land."""
+        with self._pending_lock:
+            last = self._last_state_at_ns
+            stopped = bool(self._tracking) and last is not None and now - last >= NO_ESTIMATE_LOST_NS
+            if stopped:
+                self._tracking, self._lost_since_ns, self._land_done, self._pending = False, last, False, None
+        if stopped:
+            log.warning("no estimate for %.1f s (camera and IMU both silent, or the estimator stopped)",
+                        (now - last) / 1e9)
+            self._on_tracking_change(False)
 
     def _check_land_after_loss(self, now: int) -> None:
         """With land_after_loss_s: once tracking has been lost that long and the autopilot is armed, ask it

@@ -996,3 +996,20 @@ def test_a_keyframe_is_solved_on_the_frame_after_it_with_the_same_result():
     gaps = [np.linalg.norm(pf.state.T_world_body[:3, 3] - solved_same[pf.t_ns].T_world_body[:3, 3])
             for pf in nxt if pf.timings.keyframe and pf.keyframe is None and pf.state is not None]
     assert len(gaps) >= 8 and 0 < np.median(gaps) < 0.02
+
+
+def test_the_estimator_refuses_a_calibration_in_millimetres():
+    """Whatever path a calibration takes (a dataset reader refuses it sooner; a device's own report does not), the
+    estimator never flies a 110 m baseline: it says what is wrong instead."""
+    import dataclasses
+
+    from vio import VioError
+    from vio.estimator import Estimator
+    from vio.sim import default_calibration
+
+    c = default_calibration()
+    T = c.cam1.T_body_cam.copy()
+    T[:3, 3] *= 1000
+    with pytest.raises(VioError, match="look like millimetres"):
+        Estimator(dataclasses.replace(c, cam1=dataclasses.replace(c.cam1, T_body_cam=T)))
+    Estimator(c)  # metres: fine

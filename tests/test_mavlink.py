@@ -514,9 +514,9 @@ def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
     assert {m.get_type() for m in msgs} >= {"HEARTBEAT", "ODOMETRY"}
     peer.close()  # the autopilot side goes away: one warning, no busy loop of empty reads, then retries
     server.close()
-    for _ in range(20):
+    for _ in range(20):  # estimates keep coming (without them, 0.5 s on is a loss of tracking and says so)
         clock.advance(0.5)
-        out.poll()
+        out.send_state(state(clock.t))
     assert not out.connected and out.stats.io_errors >= 1
     assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 2
     out.close()
@@ -640,6 +640,42 @@ def test_land_after_loss_asks_an_armed_autopilot_to_land_once_per_loss(ap):
     assert not lands(got)  # acknowledged: no more requests during this loss
     h = out.health()
     assert h["land_accepted"] and h["land_requests"] == 2 and h["land_after_loss_s"] == 3.0
+    out.close()
+
+
+def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
+    """Camera and IMU gone together (an OAK's one cable): no state says tracking = false, and the autopilot heard
+    nothing, neither a STATUSTEXT nor, with land_after_loss_s, a LAND (a review's finding). No estimate for 0.5 s
+    is a loss; land_after_loss_s counts from the last estimate; estimates back: regained."""
+    clock = FakeClock()
+    out = make_out(ap, clock, land_after_loss_s=3.0)
+
+    def armed_heartbeat() -> None:
+        ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+
+    armed_heartbeat()
+    for _ in range(5):
+        clock.advance(0.05)
+        out.send_state(state(clock.t))
+    got = []
+    for _ in range(3):  # 0.3 s of silence: not yet
+        clock.advance(0.1)
+        out.poll()
+        got += ap.drain(0.01)
+    assert "VIO tracking lost" not in [m.text for m in ap.of("STATUSTEXT", got)]
+    for _ in range(30):  # to 3.3 s without an estimate
+        clock.advance(0.1)
+        armed_heartbeat()
+        out.poll()
+        got += ap.drain(0.01)
+    texts = [m.text for m in ap.of("STATUSTEXT", got)]
+    lands = [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_NAV_LAND]
+    assert "VIO tracking lost" in texts and "VIO lost: LAND requested" in texts and len(lands) == 1
+    clock.advance(0.1)
+    out.send_state(state(clock.t))
+    assert "VIO tracking regained" in [m.text for m in ap.of("STATUSTEXT", ap.drain())]
     out.close()
 
 

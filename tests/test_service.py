@@ -473,9 +473,21 @@ def test_run_config_error_exits_3(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(tmp_path / "absent.toml")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 3 and "absent.toml" in r.stderr
-    # a map that cannot be read is refused at start, not found by the estimator thread once the sensors are up
+    # a map that cannot be read is refused at start, not found by the estimator thread once the sensors are up;
+    # a calibration in millimetres too (vio replay refused it, vio run flew it: 49 m for 4.8 m, a review's finding)
     (tmp_path / "cut.kmap").write_bytes(b"PK\x03\x04" + bytes(100))
+    import dataclasses
+
+    from vio.calibration import save_calibration
+    from vio.sim import default_calibration
+
+    c = default_calibration()
+    mm = [dataclasses.replace(cam, T_body_cam=np.vstack([np.hstack([cam.T_body_cam[:3, :3],
+                                                                     1000 * cam.T_body_cam[:3, 3:]]), [0, 0, 0, 1]]))
+          for cam in (c.cam0, c.cam1)]
+    save_calibration(dataclasses.replace(c, cam0=mm[0], cam1=mm[1]), tmp_path / "calib_mm.yaml")
     for section, says in ((f'[map]\nload = "{tmp_path / "cut.kmap"}"', "truncated"),
+                          (f'calibration = "{tmp_path / "calib_mm.yaml"}"', "look like millimetres"),
                           (f'[map]\nsave = "{tmp_path / "nodir" / "m.kmap"}"', "does not exist"),
                           (f'[map]\nsave = "{tmp_path}"', "is a folder"),
                           ('[loop]\noutput = "jump"', "needs the loop stage")):

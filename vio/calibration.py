@@ -171,6 +171,22 @@ class StereoCalibration:
         return float(np.linalg.norm(self.T_cam1_cam0[:3, 3]))
 
 
+def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> list[tuple[str, float, str | None]]:
+    """(name, metres, problem or None) of the stereo baseline (when `stereo`) and the camera-IMU lever arm."""
+    from vio.sanity import baseline_units_problem, lever_arm_units_problem
+
+    lever = float(np.linalg.norm(calib.cam0.T_body_cam[:3, 3]))
+    out = [("camera-IMU lever arm", lever, lever_arm_units_problem(lever))]
+    if stereo:
+        out.insert(0, ("stereo baseline", calib.baseline_m, baseline_units_problem(calib.baseline_m)))
+    return [(name, v, f"calibration: {p}" if p else None) for name, v, p in out]
+
+
+def calibration_units_problem(calib: StereoCalibration, stereo: bool = True) -> str | None:
+    """The first unit mistake in a calibration (millimetres for metres...), or None."""
+    return next((p for _, _, p in calibration_unit_checks(calib, stereo) if p), None)
+
+
 # ---------------------------------------------------------------------------------------------- file I/O
 
 def _camera_to_dict(cam: CameraCalibration) -> dict:

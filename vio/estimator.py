@@ -35,10 +35,11 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from vio import VioError
 from vio.backend.preintegration import combined_params, measured_white_scale
 from vio.backend.smoother import SmootherFailure, StereoFinding, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
-from vio.calibration import StereoCalibration
+from vio.calibration import StereoCalibration, calibration_units_problem
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
@@ -205,6 +206,11 @@ class Estimator:
     """Stereo-inertial odometry: feed IMU samples and frames in time order."""
 
     def __init__(self, calib: StereoCalibration, cfg: EstimatorConfig | None = None, tracker=None) -> None:
+        # a calibration in millimetres flies a 1000x baseline: poses 10x off with sigmas that claim otherwise, on any
+        # path that reaches the estimator (a dataset reader refuses it sooner, a device's own report does not)
+        problem = calibration_units_problem(calib)
+        if problem:
+            raise VioError(problem)
         self.calib = calib
         if isinstance(cfg, VioConfig):  # keep only the sections the estimator reads
             cfg = cfg.estimator

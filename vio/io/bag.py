@@ -29,13 +29,12 @@ import cv2
 import numpy as np
 
 from vio import VioError
-from vio.calibration import StereoCalibration
+from vio.calibration import StereoCalibration, calibration_units_problem
 from vio.io.euroc import (
     DatasetStats,
     EurocDataset,
     ImuData,
     _step_problem,
-    calibration_unit_checks,
     image_size_problem,
     imu_units_problem,
 )
@@ -214,8 +213,7 @@ class BagDataset(EurocDataset):
         self.cam1_files = list(range(len(self.cam1_t)))
         self.has_cam1 = True
         self._check_overlap()
-        self.units_problem = imu_units_problem(self.imu, self.where("imu")) or next(
-            (p for _, _, p in calibration_unit_checks(calibration, True) if p), None)
+        self.units_problem = imu_units_problem(self.imu, self.where("imu")) or calibration_units_problem(calibration)
         if self.units_problem is None:
             self.imu = self._drop_out_of_range(self.imu)
         self.groundtruth = None

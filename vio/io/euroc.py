@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from vio import VioError
-from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, load_yaml
+from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, calibration_units_problem, load_yaml
 from vio.geometry import is_se3
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
@@ -425,17 +425,6 @@ def imu_units_problem(imu: ImuData, where: str | Path = "IMU") -> str | None:
     return f"{where}: {problem}" if problem else None
 
 
-def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> list[tuple[str, float, str | None]]:
-    """(name, metres, problem or None) of the stereo baseline (when `stereo`) and the camera-IMU lever arm."""
-    from vio.sanity import baseline_units_problem, lever_arm_units_problem
-
-    lever = float(np.linalg.norm(calib.cam0.T_body_cam[:3, 3]))
-    out = [("camera-IMU lever arm", lever, lever_arm_units_problem(lever))]
-    if stereo:
-        out.insert(0, ("stereo baseline", calib.baseline_m, baseline_units_problem(calib.baseline_m)))
-    return [(name, v, f"calibration: {p}" if p else None) for name, v, p in out]
-
-
 def image_size_problem(where, img: np.ndarray, calib: CameraCalibration, hint: str) -> str | None:
     """An image of another size than its calibration's, as one line (None when they agree)."""
     h, w = img.shape[:2]
@@ -483,8 +472,8 @@ class EurocDataset:
         self.calibration = calibration
         self._check_overlap()
         # a unit mistake is diagnosed on the data as recorded (mm/s^2 rows are all "out of range")
-        self.units_problem = imu_units_problem(self.imu, self.mav0 / "imu0" / "data.csv") or next(
-            (p for _, _, p in calibration_unit_checks(calibration, has_cam1) if p), None)
+        self.units_problem = imu_units_problem(self.imu, self.mav0 / "imu0" / "data.csv") or \
+            calibration_units_problem(calibration, has_cam1)
         if self.units_problem is None:
             self.imu = self._drop_out_of_range(self.imu)
         gt_path = self.mav0 / "state_groundtruth_estimate0" / "data.csv"

@@ -177,7 +177,12 @@ class Service:
             if calib is not None:
                 if (self.cfg.loop.enabled or self.cfg.map.load or self.cfg.map.save) and self.loop is None:
                     self._start_loop(calib)
-                return self._estimator_factory(calib)
+                try:
+                    return self._estimator_factory(calib)
+                except VioError as e:  # a calibration the estimator refuses (the device's own, in wrong units)
+                    log.error("estimator not started: %s", e)
+                    self.estimator.crashed = f"estimator not started: {e}"
+                    return None
             self.estimator.beat()
             self.source.calibration_ready.wait(0.1)
         return None  # stopping before the sensors ever came up
@@ -539,9 +544,11 @@ def _check_run_config(cfg: VioConfig) -> Any:
     if src.kind == "euroc" and not Path(src.dataset).exists():
         raise VioError(f"[source] dataset = {src.dataset!r}: folder not found")
     if src.calibration:
-        from vio.calibration import load_calibration
+        from vio.calibration import calibration_units_problem, load_calibration
 
-        load_calibration(src.calibration)  # raises VioError naming the file and key
+        problem = calibration_units_problem(load_calibration(src.calibration))  # VioError naming the file and key
+        if problem:
+            raise VioError(f"[source] calibration = {src.calibration!r}: {problem}")
     if src.imu == "mavlink":
         from drivers.mavlink_link import check_url
 
