@@ -68,6 +68,11 @@ _NETWORK_PREFIXES = ("tcp:", "udpout:", "udpin:", "udp:", "tcpin:", "udpbcast:")
 def check_url(url: str, key: str = "[mavlink] url") -> None:
     """Raise VioError, naming `key`, for a connection string that could never be opened (nothing is opened)."""
     if url.startswith(_NETWORK_PREFIXES):
+        _, _, where = url.partition(":")
+        host, sep, port = where.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise VioError(f"{key} {url!r}: expected {url.partition(':')[0]}:HOST:PORT with a port 1-65535 "
+                           "(e.g. udpout:127.0.0.1:14550)")
         return
     if url.startswith("/dev/") or url.upper().startswith("COM"):
         baud = url.partition(":")[2]

@@ -42,6 +42,7 @@ from drivers.mavlink_link import (  # noqa: F401 (mavutil, open_connection re-ex
     RECONNECT_MAX_S,
     RECONNECT_MIN_S,
     MavlinkLink,
+    check_url,
     is_autopilot_heartbeat,
     mavlink,
     mavutil,
@@ -90,6 +91,25 @@ class MavlinkStats:
     last_latency_ms: float = float("nan")  # send time - state time (meaningful when t_ns is host time)
 
 
+def check_mavlink_config(cfg: MavlinkConfig) -> None:
+    """What the output could never send with (VioError naming the key): checked when `vio run` / `vio config check`
+    start, not found by the output thread, which would retry it forever."""
+    if cfg.url:
+        check_url(cfg.url)
+    bad = [m for m in cfg.messages if m not in SUPPORTED_MESSAGES]
+    if bad or not cfg.messages:
+        raise VioError(f"[mavlink] messages: unknown {bad or 'none given'}; supported: {list(SUPPORTED_MESSAGES)}")
+    for key in ("mount_rpy_deg", "mount_offset_m"):
+        v = getattr(cfg, key)
+        if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+            raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
+    # Only ODOMETRY has a quality field the autopilots check (VISO_QUAL_MIN, EKF2_EV_QMIN); VISION_* would
+    # carry the lost pose as a good one.
+    if cfg.lost_output == "quality0" and list(cfg.messages) != ["ODOMETRY"]:
+        raise VioError("[mavlink] lost_output = 'quality0' needs messages = ['ODOMETRY'] (VISION_* messages "
+                       "have no quality field, so a lost pose would look valid)")
+
+
 class MavlinkOutput:
     """Sends NavStates to an autopilot over MAVLink 2 as component 197 (visual-inertial odometry).
 
@@ -108,19 +128,8 @@ class MavlinkOutput:
         self.url = link.url if link is not None else url if url is not None else cfg.url
         if not self.url:
             raise VioError("[mavlink] url is empty: give a connection string such as udpout:127.0.0.1:14550")
-        bad = [m for m in cfg.messages if m not in SUPPORTED_MESSAGES]
-        if bad:
-            raise VioError(f"[mavlink] messages: unknown {bad}; supported: {list(SUPPORTED_MESSAGES)}")
-        for key in ("mount_rpy_deg", "mount_offset_m"):
-            v = getattr(cfg, key)
-            if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
-                raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
-        # Only ODOMETRY has a quality field the autopilots check (VISO_QUAL_MIN, EKF2_EV_QMIN); VISION_* would
-        # carry the lost pose as a good one.
-        self._lost_as_quality0 = cfg.lost_output == "quality0" and cfg.messages == ["ODOMETRY"]
-        if cfg.lost_output == "quality0" and not self._lost_as_quality0:
-            raise VioError("[mavlink] lost_output = 'quality0' needs messages = ['ODOMETRY'] (VISION_* messages "
-                           "have no quality field, so a lost pose would look valid)")
+        check_mavlink_config(cfg)
+        self._lost_as_quality0 = cfg.lost_output == "quality0"
         if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
             log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
                         "estimate twice; send one kind")

@@ -58,7 +58,8 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
 
 def test_config_check_good_file(tmp_path, capsys):
     good = tmp_path / "good.toml"
-    good.write_text("[frontend]\nmax_features = 120\n[source]\nkind = 'euroc'\n")
+    good.write_text("[frontend]\nmax_features = 120\n[source]\nkind = 'fake'\n"
+                    "[mavlink]\nurl = 'udpout:127.0.0.1:14550'\n")
     assert main(["-q", "config", "check", str(good)]) == EXIT_OK
     out = capsys.readouterr()
     assert out.out.strip() == f"{good}: OK" and out.err == ""
@@ -69,6 +70,16 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[backend\n", "not valid TOML"),
     ("[nonsense]\n", "unknown section [nonsense]"),
     ("[loop]\noutput = 'jump'\n", "[loop] output = 'jump' needs the loop stage, which is off"),
+    # what `vio run` checks at start too (a review: these passed the check, and vio run retried them forever)
+    ("[source]\nkind = 'euroc'\n", "needs 'dataset'"),
+    ("[mavlink]\nurl = 'udp_out:127.0.0.1:14550'\n", "expected udpout:HOST:PORT"),
+    ("[mavlink]\nurl = 'udpout:127.0.0.1'\n", "with a port 1-65535"),
+    ("[mavlink]\nurl = 'udpout:127.0.0.1:146800'\n", "with a port 1-65535"),
+    ("[mavlink]\nurl = '/dev/ttyAMA0:9216OO'\n", "baud rate"),
+    ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['ODOMETRY2']\n", "unknown ['ODOMETRY2']"),
+    ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['VISION_POSITION_ESTIMATE']\nlost_output = 'quality0'\n",
+     "needs messages = ['ODOMETRY']"),
+    ("[source]\nkind = 'fake'\ncalibration = '/nonexistent/calib.yaml'\n", "calib.yaml"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

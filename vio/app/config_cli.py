@@ -11,7 +11,8 @@ from vio.config import config_to_toml, load_config
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="config_cmd", metavar="ACTION", required=True)
-    c = sub.add_parser("check", help="validate a TOML config file")
+    c = sub.add_parser("check", help="validate a TOML config file as `vio run` would at start (the files and "
+                       "connections it names included)")
     c.add_argument("file")
     s = sub.add_parser("show", help="print the effective config (defaults merged with FILE)")
     s.add_argument("file", nargs="?")
@@ -22,6 +23,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.file)
+        if args.config_cmd == "check":  # and what `vio run` checks at start: files it names, connection strings
+            from vio.app.daemon.service import check_run_config
+
+            try:
+                check_run_config(cfg)
+            except VioError as e:
+                raise VioError(f"{args.file}: {e}") from None
     except VioError as e:  # an invalid config has its own exit code, as in `vio run`
         print(f"vio config: error: {e}", file=sys.stderr)
         return EXIT_CONFIG

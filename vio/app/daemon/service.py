@@ -520,7 +520,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        map_data = _check_run_config(cfg)
+        map_data = check_run_config(cfg)
     except VioError as e:
         print(f"vio run: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
@@ -535,7 +535,7 @@ def run(args: argparse.Namespace) -> int:
     return service.run()
 
 
-def _check_run_config(cfg: VioConfig) -> Any:
+def check_run_config(cfg: VioConfig) -> Any:
     """Problems the daemon cannot recover from by retrying: report them now, with the key to fix. Returns the
     `[map] load` map it read (None without one), for the service to use rather than read it again."""
     src = cfg.source
@@ -549,13 +549,14 @@ def _check_run_config(cfg: VioConfig) -> Any:
         problem = calibration_units_problem(load_calibration(src.calibration))  # VioError naming the file and key
         if problem:
             raise VioError(f"[source] calibration = {src.calibration!r}: {problem}")
-    if src.imu == "mavlink":
+    if src.imu == "mavlink" and src.mavlink_imu_url:
         from drivers.mavlink_link import check_url
 
-        if src.mavlink_imu_url:
-            check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
-        if cfg.mavlink.url:
-            check_url(cfg.mavlink.url)
+        check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
+    if cfg.mavlink.url:  # a connection string that can never open would be retried forever, unseen by systemd
+        from drivers.mavlink_out import check_mavlink_config
+
+        check_mavlink_config(cfg.mavlink)
     map_data = None
     if cfg.map.load:  # a map that cannot be read would only kill the estimator thread once the sensors are up
         from vio.loop.mapfile import load_map
