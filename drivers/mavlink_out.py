@@ -69,6 +69,9 @@ LAND_MAX_SENDS = 5
 # estimator stopped) is a loss of tracking like a dark camera: the same STATUSTEXT, and land_after_loss_s counts
 # from the last estimate. The estimator sends IMU-rate states, the daemon at least frame-rate ones.
 NO_ESTIMATE_LOST_NS = 500_000_000
+# A vehicle this far from level at its first pose most likely stands level with a wrong [mavlink] mount (a
+# camera-down rig set up as camera-forward is 90 deg off); a copter in flight rarely leans this far.
+MOUNT_TILT_WARN_DEG = 45.0
 
 @dataclass
 class MavlinkStats:
@@ -89,6 +92,7 @@ class MavlinkStats:
     reconnects: int = 0
     io_errors: int = 0
     last_latency_ms: float = float("nan")  # send time - state time (meaningful when t_ns is host time)
+    first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
 
 
 def check_mavlink_config(cfg: MavlinkConfig) -> None:
@@ -129,6 +133,8 @@ class MavlinkOutput:
         if not self.url:
             raise VioError("[mavlink] url is empty: give a connection string such as udpout:127.0.0.1:14550")
         check_mavlink_config(cfg)
+        if link is None and url is not None:
+            check_url(url, "MAVLink connection")
         self._lost_as_quality0 = cfg.lost_output == "quality0"
         if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
             log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
@@ -228,7 +234,8 @@ class MavlinkOutput:
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
                 "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms,
                 "land_after_loss_s": self.cfg.land_after_loss_s, "land_requests": st.land_requests,
-                "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed}
+                "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed,
+                "first_tilt_deg": st.first_tilt_deg}
 
     def send_state(self, state: NavState) -> bool:
         """Offer the newest estimate; it is sent in the next slot of the `rate_hz` schedule, or never
@@ -388,12 +395,28 @@ class MavlinkOutput:
                 self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
         self._last_reset_counter = state.reset_counter
         self._last_loop_jumps = state.loop_jumps
+        if state.tracking and math.isnan(self.stats.first_tilt_deg):
+            self._check_mount(state)
         for msg in self.build_messages(state):
             if not self._send(msg, msg.get_type()):
                 return
         self._last_sent_t_ns = state.t_ns
         self.stats.states_sent += 1
         self.stats.last_latency_ms = (now - state.t_ns) / 1e6
+
+    def _check_mount(self, state: NavState) -> None:
+        """Say once when the first pose puts the vehicle far from level: the mount is then most likely wrong,
+        and a wrong mount turns the autopilot's axes (forward flown as down). Poses still go out: the vehicle
+        may really be leaning (a replay started in flight), and the operator decides."""
+        R_world_frd = np.asarray(state.T_world_body, dtype=float)[:3, :3] @ self.T_frd_body[:3, :3].T
+        # the vehicle's down axis against the world's down (world z is up)
+        tilt = float(np.degrees(np.arccos(np.clip(-R_world_frd[2, 2], -1.0, 1.0))))
+        self.stats.first_tilt_deg = round(tilt, 1)
+        if tilt > MOUNT_TILT_WARN_DEG:
+            log.warning("the vehicle is %.0f deg from level at its first pose: if it stands level, [mavlink] mount "
+                        "(%r) is wrong and the autopilot would fly these axes turned; check it before take-off",
+                        tilt, self.cfg.mount)
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"VIO: {tilt:.0f} deg tilt at start: check mount")
 
     def _send_origin(self) -> None:
         lat, lon = int(round(self.cfg.origin_lat_deg * 1e7)), int(round(self.cfg.origin_lon_deg * 1e7))

@@ -142,3 +142,18 @@ def test_bag_replay_without_rosbags_or_mcap_names_the_bags_extra(blocked, tmp_pa
     blocked(module)
     with pytest.raises(MissingExtra, match=r"needs the \[bags\] extra: pip install 'kestrel-vio\[bags\]'"):
         BagDataset(bag, StereoCalibration.__new__(StereoCalibration))
+
+
+def test_replay_view_without_rerun_names_the_view_extra_and_keeps_an_old_trajectory(tmp_path):
+    """The live view is asked for before any output file is opened: a missing extra must not cost the
+    trajectory file of an earlier replay."""
+    flight = tmp_path / "flight"
+    r = _vio_without((), "-q", "simulate", str(flight), "--duration", "2", "--size", "188x120", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    old = tmp_path / "old.tum"
+    old.write_text("1.0 0 0 0 0 0 0 1\n")
+    r = _vio_without(("rerun",), "-q", "replay", str(flight), "-o", str(old), "--view", str(tmp_path / "x.rrd"),
+                     "--no-progress")
+    assert r.returncode == 1, r.stdout + r.stderr
+    _one_line_naming(r.stderr, "view")
+    assert old.read_text() == "1.0 0 0 0 0 0 0 1\n"

@@ -280,6 +280,35 @@ def test_a_loop_correction_step_is_announced_as_such_not_as_an_estimator_reset(a
     out.close()
 
 
+def test_a_first_pose_far_from_level_warns_about_the_mount_once(ap, caplog):
+    """camera-down rig set up as camera-forward: the standing vehicle comes out 90 deg from level. Poses still go
+    out (it may really lean), but the log and the ground station say to check the mount; a level start says
+    nothing."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    with caplog.at_level(logging.WARNING, logger="drivers.mavlink_out"):
+        for _ in range(3):
+            clock.advance(0.1)
+            out.send_state(state(clock.t, T_world_body=make_T(rot("y", -90) @ R_LEVEL, np.zeros(3))))
+    got = ap.drain()
+    assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO: 90 deg tilt at start: check mount"]
+    assert len(ap.of("ODOMETRY", got)) == 3
+    assert sum("[mavlink] mount" in r.getMessage() for r in caplog.records) == 1
+    assert out.health()["first_tilt_deg"] == pytest.approx(90.0)
+    out.close()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    clock.advance(0.1)
+    out.send_state(state(clock.t, T_world_body=make_T(rot("x", 10) @ R_LEVEL, np.zeros(3))))
+    assert not ap.of("STATUSTEXT", ap.drain())
+    assert out.health()["first_tilt_deg"] == pytest.approx(10.0)
+    out.close()
+
+
+def test_a_connection_string_without_a_port_is_refused_when_given_as_an_argument():
+    with pytest.raises(VioError, match="PORT"):
+        MavlinkOutput(MavlinkConfig(mount="rpy"), "udpout:127.0.0.1")
+
+
 def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     clock = FakeClock()
     out = make_out(ap, clock, messages=["VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY"])

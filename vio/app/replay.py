@@ -488,6 +488,11 @@ def run(args: argparse.Namespace) -> int:
 
             closer.load_map(read_map(load_map))
         loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
+    view = None
+    if args.view:  # before any output file is opened: a missing [view] extra must not empty an old trajectory
+        from vio.app.view import LiveView
+
+        view = LiveView(args.view, dataset.calibration, cfg.view, loop=loop)
     sinks: list[Sink] = []
     tum = TumSink(args.output) if args.output else None
     if tum is not None:
@@ -501,11 +506,6 @@ def run(args: argparse.Namespace) -> int:
         if loop is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
             sink = corrected_sink(sink, loop, cfg)
         sinks.append(sink)
-    view = None
-    if args.view:
-        from vio.app.view import LiveView
-
-        view = LiveView(args.view, dataset.calibration, cfg.view, loop=loop)
     try:
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
