@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vio.calibration import CameraCalibration, StereoCalibration
+from vio.calibration import CameraCalibration, StereoCalibration, calibration_units_problem
 from vio.geometry import rotation_angle_deg
 
 _AXES = ("x", "y", "z")
@@ -64,4 +64,7 @@ def format_calibration(calib: StereoCalibration, title: str = "") -> str:
         f"random walk {imu.accelerometer_random_walk:.4g} m/s^3/sqrt(Hz)",
         f"  per sample     gyro {s['gyro']:.4g} rad/s, accel {s['accel']:.4g} m/s^2",
     ]
+    problem = calibration_units_problem(calib)
+    if problem:  # the numbers above would read as plausible millimetres: say what vio run / replay will refuse
+        lines.append(f"UNITS PROBLEM    {problem} (vio run and vio replay refuse this file)")
     return "\n".join(lines)

@@ -213,6 +213,12 @@ def test_show_reports_geometry(v101_path):
     # the VI-sensor cameras look along body +z (within 1.5 deg), image right is body +y
     assert axes["forward(z)"][0] == "+z" and axes["forward(z)"][1] < 2.0
     assert axes["right(x)"][0] == "+y"
+    assert "UNITS" not in text
+    # the same file written in millimetres: the baseline line alone (110080 mm) is easy to read past
+    mm = [replace(c, T_body_cam=np.vstack([np.hstack([c.T_body_cam[:3, :3], 1000 * c.T_body_cam[:3, 3:]]),
+                                                       [0, 0, 0, 1]])) for c in (calib.cam0, calib.cam1)]
+    text = format_calibration(replace(calib, cam0=mm[0], cam1=mm[1]))
+    assert "UNITS PROBLEM" in text and "millimetres" in text, text
 
 
 def test_cli_import_and_show(tmp_path, capsys):

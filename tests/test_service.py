@@ -159,6 +159,12 @@ def test_status_text_names_what_a_person_needs() -> None:
         assert needle in text, needle
 
 
+def test_status_text_says_when_no_pose_goes_to_an_autopilot() -> None:
+    s = _status()
+    s["mavlink"] = {"state": "off"}
+    assert "mavlink   OFF: [mavlink] url is empty" in format_status(s, "HEALTHY", 1000.5)
+
+
 def test_status_text_shows_the_loop_stage_when_it_runs() -> None:
     s = _status()
     assert "  loop " not in format_status(s, "HEALTHY", 1000.5)
@@ -490,7 +496,9 @@ def test_run_config_error_exits_3(tmp_path: Path) -> None:
                           (f'calibration = "{tmp_path / "calib_mm.yaml"}"', "look like millimetres"),
                           (f'[map]\nsave = "{tmp_path / "nodir" / "m.kmap"}"', "does not exist"),
                           (f'[map]\nsave = "{tmp_path}"', "is a folder"),
-                          ('[loop]\noutput = "jump"', "needs the loop stage")):
+                          ('[loop]\noutput = "jump"', "needs the loop stage"),
+                          (f'[run]\nstatus_file = "{tmp_path / "calib_mm.yaml" / "status.json"}"',
+                           "is a file, not a folder")):
         bad.write_text(f'[source]\nkind = "fake"\n{section}\n')
         r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(bad)], capture_output=True,
                            text=True, timeout=60)
@@ -627,6 +635,8 @@ def test_vio_run_end_to_end_with_fake_source(tmp_path: Path, notify_socket) -> N
             f"no READY=1; log:\n{log_path.read_text()[-3000:]}"
         assert _wait(lambda: ap.poses() >= 20, 20), f"autopilot got {ap.counts}"
         assert 197 in ap.components  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+        text = log_path.read_text()  # the lines docs/first-flight.md tells the operator to look for
+        assert "ready after" in text and text.count("first pose after") == 1, text[-3000:]
         # pull the cable for a while: the daemon logs it, keeps running, and poses resume afterwards
         (tmp_path / "unplugged").touch()
         assert _wait(lambda: "source lost" in log_path.read_text(), 10), log_path.read_text()[-3000:]

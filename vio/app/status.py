@@ -86,7 +86,9 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"  position  {e.get('position_m') or '-'} m (world, z up)   "
         f"latency frame->output p50 {_fmt(lat.get('p50'), ' ms')} max {_fmt(lat.get('max'), ' ms')}",
         f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
-        f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}",
+        f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}"
+        if mav.get("state") != "off" else
+        "  mavlink   OFF: [mavlink] url is empty, no pose goes to an autopilot",
     ]
     if mav.get("land_after_loss_s"):
         lines.append(f"  failsafe  LAND after {_fmt(mav.get('land_after_loss_s'), ' s')} of lost vision: "

@@ -572,12 +572,14 @@ def check_run_config(cfg: VioConfig) -> Any:
             check_outputs({"the map": cfg.map.save})
         except VioError as e:
             raise VioError(f"[map] save: {e}") from None
-    for key in ("record_dir", "trajectory_file"):
+    for key in ("record_dir", "trajectory_file", "status_file"):
         value = getattr(cfg.run, key)
         if not value:
             continue
         parent = Path(value) if key == "record_dir" else Path(value).parent
         existing = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        if existing is not None and not existing.is_dir():
+            raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
         if existing is not None and not os.access(existing, os.W_OK):
             raise VioError(f"[run] {key} = {value!r}: {existing} is not writable")
     return map_data

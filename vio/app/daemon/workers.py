@@ -208,6 +208,7 @@ class EstimatorWorker(Worker):
         self.last_state: NavState | None = None
         self.last_state_time = 0.0
         self.last_input = 0.0
+        self._born = time.monotonic()  # for the operator's "first pose after N s" line
         self._reset_base = 0
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
@@ -310,6 +311,8 @@ class EstimatorWorker(Worker):
             self.states += 1
             self.last_state = state
             if state.tracking:
+                if not self.good_states:
+                    log.info("first pose after %.1f s: tracking", time.monotonic() - self._born)
                 self.good_states += 1
                 self.last_state_time = time.monotonic()
             self.out.publish(Output(state, arrival_ns, _now_ns(), odometry))
