@@ -339,6 +339,15 @@ def test_replay_checks_every_output_path_before_it_replays(laps_flight, tmp_path
         out, err = capsys.readouterr()
         assert says in err and "replay:" not in out  # refused before the replay (which prints its summary)
         assert not (tmp_path / "m.npz").exists() and not (tmp_path / "o.tum").exists()
+    # one file named twice: the map over the trajectory (or over a map it only loads) lost one of them, exit 0
+    (tmp_path / "old.npz").write_bytes(b"a map")
+    for args, says in ((["-o", str(tmp_path / "same"), "--save-map", str(tmp_path / "same")],
+                        "the trajectory and the map would be written to the same file"),
+                       (["-o", str(tmp_path / "old.npz"), "--load-map", str(tmp_path / "old.npz")],
+                        "the trajectory would be written over the map it loads")):
+        assert main(["replay", str(laps_flight), "--no-progress", *args]) == 1
+        assert says in capsys.readouterr().err
+        assert not (tmp_path / "same").exists() and (tmp_path / "old.npz").read_bytes() == b"a map"
 
 
 def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
@@ -1314,6 +1323,23 @@ def test_jump_output_holds_the_uncertainty_of_the_correction_it_holds():
     assert np.allclose(jump.apply(st, C, 2, b).cov_pose, first.cov_pose)  # same version: the one it holds
     assert jump.apply(st, C, 3, b).cov_pose[3, 3] == pytest.approx(1e-6 + 1e-2)
     assert CorrectedOutput("off").apply(st, C, 3, b) is st
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_yaw_correction_turns_the_velocity_covariance_with_the_velocity(mode):
+    """cov_vel is world-frame: under a 90 deg yaw correction the odometry's uncertain axis (x, 0.1 m/s) is y in the
+    corrected frame; kept as it was, it was sent as the certain one (a review's finding)."""
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    cov = np.diag([1e-2, 1e-4, 1e-4])
+    C = make_T(so3_exp(np.r_[0, 0, np.pi / 2]), np.zeros(3))
+    output = CorrectedOutput(mode, blend_rate_m_s=1.0, blend_rate_deg_s=1e6)
+    output.apply(NavState(0, np.eye(4), np.array([1.0, 0, 0]), cov_vel=cov), C, 1)
+    out = output.apply(NavState(1_000_000_000, np.eye(4), np.array([1.0, 0, 0]), cov_vel=cov), C, 1)
+    assert output.remaining_deg == pytest.approx(0.0)  # the blend has turned by the whole correction in 1 s
+    np.testing.assert_allclose(out.v_world, [0, 1, 0], atol=1e-9)
+    np.testing.assert_allclose(np.diag(out.cov_vel), [1e-4, 1e-2, 1e-4], atol=1e-12)
 
 
 def test_pose_graph_marginal_of_a_keyframe_not_yet_solved_equals_its_solved_one():

@@ -441,9 +441,22 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
-def check_outputs(paths: dict[str, str | None]) -> None:
+def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
+                  grows: tuple[str, ...] = ()) -> None:
     """Every output file can be written where it is asked for (its folder exists, it is no folder itself), checked
-    before a replay that may take an hour rather than after it, when a typo would lose the run's other outputs."""
+    before a replay that may take an hour rather than after it, when a typo would lose the run's other outputs.
+    No two outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in
+    `grows` (a map saved over the map it loaded)."""
+    seen: dict[str, str] = {}
+    for what, p in paths.items():
+        if p:
+            key = os.path.realpath(p)
+            if key in seen:
+                raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
+            seen[key] = what
+    for what, p in (reads or {}).items():
+        if p and seen.get(os.path.realpath(p)) not in (None, *grows):
+            raise VioError(f"{p}: {seen[os.path.realpath(p)]} would be written over {what}")
     for what, p in paths.items():
         if not p:
             continue
@@ -469,7 +482,8 @@ def run(args: argparse.Namespace) -> int:
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
     check_outputs({"the trajectory": args.output, "the loop-corrected trajectory": args.loop_output,
-                   "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot})
+                   "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot},
+                  reads={"the map it loads": load_map, "the calibration": args.calibration}, grows=("the map",))
     if args.loop_plot:  # the [tools] extra, asked for now rather than after the replay
         from vio.extras import pyplot
 
