@@ -331,6 +331,9 @@ class MavlinkImuSource(ThreadedSource):
                 self._error_once("clock", f"{self.message} stamps are {(t_arrival_ns - t) / 1e9:.1f} s off the "
                                  "autopilot's TIMESYNC clock: they use another clock; mapped by arrival time")
         self.clock_source = "arrival"
+        if self.arrival.problem:  # a rate the fit cannot follow: no stamp rather than a wrong one
+            self._error_once("clock_rate", f"{self.message}: {self.arrival.problem}")
+            return None
         return self.arrival.to_host(t_dev)
 
     def _check_scale(self, accel: np.ndarray, gyro: np.ndarray) -> None:

@@ -53,6 +53,7 @@ class SerialImuSource(ThreadedSource):
         self.open_failures = 0
         self.disconnects = 0
         self.last_error = ""
+        self.clock_withheld = 0  # samples held back while the clock sync could not place their stamps
 
     def poll(self) -> list[Message]:
         return self._queue.drain()
@@ -103,6 +104,10 @@ class SerialImuSource(ThreadedSource):
         # (before the first fit) converting frame by frame would collapse a burst onto one arrival stamp
         for raw in raws:
             self.clock.add(raw.t_us * 1000, t_arrival_ns)
+        if self.clock.problem:  # stamps the clock sync cannot place: none at all is safer than wrong ones
+            self.clock_withheld += len(raws)
+            self.last_error = self.clock.problem
+            return
         for raw in raws:
             t_host = self.clock.to_host(raw.t_us * 1000)
             if t_host is None or not self.monitor.check(t_host):
@@ -113,5 +118,6 @@ class SerialImuSource(ThreadedSource):
         return {"name": self.name, "state": self.state, "port": self.port, "baud": self.baud,
                 "open_failures": self.open_failures, "disconnects": self.disconnects,
                 "queue_dropped": self._queue.dropped, "last_error": self.last_error,
+                "clock_withheld": self.clock_withheld,
                 "parser": self.parser.stats.as_dict(), "stream": self.monitor.as_dict(),
                 "clock": self.clock.as_dict()}

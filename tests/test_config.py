@@ -121,6 +121,7 @@ def test_missing_and_binary_files(tmp_path):
     ("[frontend]\nmax_depth_m = 10.0\n", "must lie inside the front end"),
     ("[backend]\nimu_noise_adaptive = true\nimu_noise_scale = 8.0\nimu_noise_max_scale = 4.0\n",
      "below imu_noise_scale"),
+    ("[source]\nimu = \"serial\"\nserial_port = \"\"\n", "needs \\[source\\] serial_port"),
 ])
 def test_contradicting_settings_are_refused(tmp_path, text, match):
     """A mounting given for the wrong mode would be silently ignored, and the IMU flown upside down."""

@@ -762,3 +762,29 @@ def test_a_driver_that_reconnects_itself_is_not_restarted(tmp_path: Path, monkey
         svc.request_stop()
         runner.join(5)
     assert events == ["start", "stop"]
+
+
+def test_a_serial_imu_that_cannot_open_is_named_in_the_status(tmp_path: Path, notify_socket) -> None:
+    """The camera delivers, the serial IMU's port does not exist: the status says why there is no IMU (the error
+    sat only in the driver's JSON, under 'sensors connected')."""
+    pytest.importorskip("serial")
+    _need_pipeline()
+    _, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, '[source]\nkind = "fake"\nwidth = 320\nheight = 200\nimu = "serial"\n'
+                                   f'serial_port = "{tmp_path / "ttyNOPE0"}"', ap.port, notify_path)
+    status = tmp_path / "status.json"
+
+    def says() -> bool:
+        try:
+            return any("cannot open serial IMU port" in w for w in json.loads(status.read_text())["warnings"])
+        except (OSError, ValueError, KeyError):
+            return False
+
+    try:
+        assert _wait(says, 30), log_path.read_text()[-3000:]
+        assert ap.poses() == 0
+    finally:
+        _stop_daemon(proc)
+        ap.stop.set()

@@ -554,6 +554,8 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if src.imu == "mavlink" and not (src.mavlink_imu_url or m.url):
         raise VioError(f"{source}: [source] imu = 'mavlink' needs a connection: [mavlink] url (shared with the pose "
                        "output) or [source] mavlink_imu_url")
+    if src.imu == "serial" and not src.serial_port.strip():
+        raise VioError(f"{source}: [source] imu = 'serial' needs [source] serial_port (e.g. /dev/ttyUSB0)")
     if src.imu == "mavlink" and src.mavlink_imu_message == "RAW_IMU" and not (
             src.mavlink_imu_accel_scale and src.mavlink_imu_gyro_scale):
         raise VioError(f"{source}: [source] mavlink_imu_message = 'RAW_IMU' is in the sensor's own units: set "

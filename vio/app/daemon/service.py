@@ -340,8 +340,9 @@ class Service:
             if not camera_ok:
                 warnings.append("camera: no frames" + (f" for {frame_age:.1f} s" if frame_age is not None else ""))
             if not imu_ok:
+                why = _driver_error(src.source, "imu")
                 warnings.append("IMU: no samples" + (f" for {imu_age:.1f} s" if imu_age is not None else "")
-                                + ": no poses")
+                                + ": no poses" + (f" ({why})" if why else ""))
         if self.est_buf.frames_dropped > self._logged_drops:
             warnings.append(f"{self.est_buf.frames_dropped - self._logged_drops} frames dropped (estimator behind)")
             self._logged_drops = self.est_buf.frames_dropped
@@ -467,6 +468,16 @@ class Service:
             if not getattr(self, "_status_warned", False):
                 log.warning("cannot write status file %s: %s", path, e.strerror)
                 self._status_warned = True
+
+
+def _driver_error(source: Any, part: str) -> str:
+    """The last error of one part ("camera", "imu") of a combined source, for the status line that says the part
+    is silent (the serial IMU's 'cannot open /dev/ttyUSB0' sat only in the driver's JSON)."""
+    try:
+        sub = source.health().get(part) if source is not None else None
+    except Exception:  # display only
+        return ""
+    return str(sub.get("last_error") or "") if isinstance(sub, dict) else ""
 
 
 def _default_estimator_factory(cfg: VioConfig) -> Callable[[Any], Any]:
