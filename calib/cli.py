@@ -28,6 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--cam-rate", type=float, default=20.0, help="camera frame rate [Hz] (files rarely say)")
     s.add_argument("--translation-unit", choices=("m", "cm", "mm"), default="m",
                    help="opencv only: unit of T (that of the calibration target)")
+    s.add_argument("--size", metavar="WxH", help="depthai only: the resolution the camera streams ([source] "
+                   "width x height); the intrinsics are scaled to it (default: the calibrated resolution)")
 
     s = sub.add_parser("show", help="print a calibration file in human-readable form")
     s.add_argument("file", type=Path)
@@ -75,11 +77,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _run_import(args: argparse.Namespace) -> int:
     from calib.importers import import_calibration
     from calib.show import format_calibration
+    from vio import VioError
     from vio.calibration import save_calibration
 
     kwargs = {"cam_rate_hz": args.cam_rate}
     if args.format == "opencv":
         kwargs["translation_unit"] = args.translation_unit
+    if args.size:
+        if args.format != "depthai":
+            raise VioError("--size: only a depthai calibration is rescaled on import (the others state their size)")
+        w, _, h = args.size.lower().partition("x")
+        if not (w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+            raise VioError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x400")
+        kwargs["size"] = (int(w), int(h))
     calib, notes = import_calibration(args.format, args.files, **kwargs)
     save_calibration(calib, args.output)
     print(format_calibration(calib, title=f"imported {args.format}: {' '.join(map(str, args.files))}"))

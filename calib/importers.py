@@ -259,8 +259,10 @@ def write_opencv_stereo(calib: StereoCalibration, path: Path) -> None:
 
 # --------------------------------------------------------------------------------------------- depthai
 
-def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
-    """depthai calibration JSON (CalibrationHandler.eepromToJsonFile / the device's backup), read by depthai."""
+def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0,
+                   size: tuple[int, int] | None = None) -> tuple[StereoCalibration, ImportNotes]:
+    """depthai calibration JSON (CalibrationHandler.eepromToJsonFile / the device's backup), read by depthai;
+    `size` (w, h): the streamed resolution the intrinsics are scaled to."""
     path = _single_file(files, "depthai", "calibration JSON file")
     from calib.depthai_import import require_depthai
 
@@ -271,9 +273,11 @@ def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[St
         raise VioError(f"{path}: depthai cannot read this calibration ({e})") from None
     notes = ImportNotes()
     try:
-        calib = stereo_from_depthai(handler, cam_rate_hz=cam_rate_hz, notes=notes)
+        calib = stereo_from_depthai(handler, cam_rate_hz=cam_rate_hz, notes=notes, size=size)
     except VioError as e:
         raise VioError(f"{path}: {e}") from None
+    except RuntimeError as e:  # depthai's own complaints about the file's contents (no intrinsics, ...)
+        raise VioError(f"{path}: depthai cannot use this calibration ({e})") from None
     return calib, notes
 
 

@@ -445,6 +445,23 @@ def test_depthai_conversion_scales_to_streamed_size(tmp_path):
     np.testing.assert_allclose(half.T_cam1_cam0, T_right_left, atol=1e-6)
 
 
+def test_cli_depthai_import_to_the_streamed_size(tmp_path, capsys):
+    """An OAK streams 640x400 from a 1280x800 calibration: `vio calib import depthai --size` writes the file for
+    what is streamed (a full-size file made vio run refuse every frame)."""
+    pytest.importorskip("depthai")
+    from vio.app.cli import main
+    from vio.calibration import load_calibration
+
+    path, _, _ = _depthai_json(tmp_path)
+    out = tmp_path / "c.yaml"
+    assert main(["calib", "import", "depthai", str(path), "--size", "640x400", "-o", str(out)]) == 0
+    c = load_calibration(out)
+    assert (c.cam0.width, c.cam0.height) == (640, 400) and c.cam0.fx == pytest.approx(798.1 / 2, abs=1e-3)
+    for bad, says in ((["--size", "640"], "expected WIDTHxHEIGHT"),):
+        assert main(["calib", "import", "depthai", str(path), *bad, "-o", str(tmp_path / "x.yaml")]) == 1
+        assert says in capsys.readouterr().err and not (tmp_path / "x.yaml").exists()
+
+
 def test_check_names_unit_mistakes(tmp_path):
     """`vio calib check` gives the diagnosis `vio replay` stops on: accel in g, a calibration in millimetres."""
     from calib.check import check_calibration

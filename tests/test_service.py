@@ -492,11 +492,14 @@ def test_run_config_error_exits_3(tmp_path: Path) -> None:
                                                                      1000 * cam.T_body_cam[:3, 3:]]), [0, 0, 0, 1]]))
           for cam in (c.cam0, c.cam1)]
     save_calibration(dataclasses.replace(c, cam0=mm[0], cam1=mm[1]), tmp_path / "calib_mm.yaml")
+    save_calibration(c, tmp_path / "calib_ok.yaml")
     for section, says in ((f'[map]\nload = "{tmp_path / "cut.kmap"}"', "truncated"),
                           (f'calibration = "{tmp_path / "calib_mm.yaml"}"', "look like millimetres"),
                           (f'[map]\nsave = "{tmp_path / "nodir" / "m.kmap"}"', "does not exist"),
                           (f'[map]\nsave = "{tmp_path}"', "is a folder"),
                           ('[loop]\noutput = "jump"', "needs the loop stage"),
+                          (f'calibration = "{tmp_path / "calib_ok.yaml"}"\nwidth = 320\nheight = 200',
+                           "is for 752x480 images, but the camera streams"),
                           (f'[run]\nstatus_file = "{tmp_path / "calib_mm.yaml" / "status.json"}"',
                            "is a file, not a folder")):
         bad.write_text(f'[source]\nkind = "fake"\n{section}\n')

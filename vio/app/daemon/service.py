@@ -557,9 +557,16 @@ def check_run_config(cfg: VioConfig) -> Any:
     if src.calibration:
         from vio.calibration import calibration_units_problem, load_calibration
 
-        problem = calibration_units_problem(load_calibration(src.calibration))  # VioError naming the file and key
+        calib = load_calibration(src.calibration)  # VioError naming the file and key
+        problem = calibration_units_problem(calib)
         if problem:
             raise VioError(f"[source] calibration = {src.calibration!r}: {problem}")
+        if src.kind in ("fake", "sitl", "oak") and (calib.cam0.width, calib.cam0.height) != (src.width, src.height):
+            # every frame would be refused as unusable, and the status would only say "not initialised yet"
+            raise VioError(f"[source] calibration = {src.calibration!r} is for {calib.cam0.width}x{calib.cam0.height} "
+                           f"images, but the camera streams [source] width x height = {src.width}x{src.height}: "
+                           "set width/height to the calibrated size, or import the calibration for the streamed one "
+                           f"(vio calib import depthai FILE --size {src.width}x{src.height} -o CALIB.yaml)")
     if src.imu == "mavlink" and src.mavlink_imu_url:
         from drivers.mavlink_link import check_url
 
