@@ -162,6 +162,15 @@ def test_association_nearest_and_interpolated(gt):
     assert interp.ate_se3.trans_m.rmse < 1e-9 and interp.ate_4dof.trans_m.rmse < 1e-9
 
 
+def test_ground_truth_for_a_small_part_of_the_estimate_is_said(gt):
+    """Ground truth cut to its last second: the ATE over those poses must not read as the flight's."""
+    t_s = (gt.t_ns - gt.t_ns[0]) * 1e-9
+    r = evaluate(gt, gt.subset(np.flatnonzero(t_s >= t_s[-1] - 1.0)))
+    assert r.partial.startswith(f"only {r.n_matched} of the {len(gt.t_ns)} estimated poses have ground truth")
+    assert "WARNING: only" in r.summary()
+    assert evaluate(gt, gt).partial == "" and "WARNING" not in evaluate(gt, gt).summary()
+
+
 def test_no_overlap_is_a_clear_error(gt):
     later = Trajectory(gt.t_ns + 10**12, gt.p, gt.q_wxyz)
     with pytest.raises(VioError, match=r"only 0 estimated poses have ground truth within 20 ms"):

@@ -377,6 +377,34 @@ def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tm
     assert len(load_map(tmp_path / "m2.npz").features) == 3
 
 
+def test_two_flights_growing_one_map_at_once_keep_both(loop_flight, tmp_path):
+    """Two runs load m.npz and save over it: the later save used to drop the earlier one's flight, unsaid. Now a
+    save finds the file changed since its run loaded it and writes beside it, keeping both."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    first = LoopCloser(ds.calibration, LoopConfig())
+    for k in range(3):
+        first.add_keyframe(int(1e9 * k), make_T(np.eye(3), [0.5 * k, 0, 0]), img, None)
+    first.save_map(tmp_path / "m.npz")
+    a, b = (LoopCloser(ds.calibration, LoopConfig()) for _ in range(2))
+    a.load_map(load_map(tmp_path / "m.npz"))
+    b.load_map(load_map(tmp_path / "m.npz"))
+    ha = a.save_map(tmp_path / "m.npz")
+    assert ha["path"] == str(tmp_path / "m.npz") and not ha["conflict"]
+    assert a.save_map(tmp_path / "m.npz")["conflict"] == ""  # its own earlier save is no conflict
+    before = (tmp_path / "m.npz").read_bytes()
+    hb = b.save_map(tmp_path / "m.npz")
+    assert "changed since this flight loaded it" in hb["conflict"] and hb["path"] != str(tmp_path / "m.npz")
+    assert (tmp_path / "m.npz").read_bytes() == before and len(load_map(hb["path"]).features) == 3
+
+
 def test_saved_map_counts_the_loop_edges_that_placed_each_part_and_warns_of_a_weak_one(loop_flight, tmp_path,
                                                                                       caplog, capsys):
     """A segment after an estimator reset that closes on the first one through 3 edges is saved (it is in the

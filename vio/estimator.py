@@ -319,6 +319,11 @@ class Estimator:
         if not self.imu.add(s):
             return None
         st = self._state
+        if isinstance(st, _Running) and prev_t is not None and (s.t_ns - prev_t) * 1e-9 > self.bcfg.max_imu_gap_s:
+            # the frames in the gap would be solved with an IMU factor across it: a motion nobody measured, which the
+            # stereo check then took for a camera fault (a review's finding); start again from the images instead
+            self.reset(f"IMU gap of {(s.t_ns - prev_t) * 1e-9:.2f} s: the motion in it is unknown", bridge=False)
+            st = self._state
         if isinstance(st, _Waiting) and st.bridge is not None and prev_t is not None and \
                 s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
             log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was", (s.t_ns - prev_t) * 1e-9)

@@ -139,6 +139,9 @@ def read_tum(path: str | Path) -> Trajectory:
             vals = [float(x) for x in parts[1:]]
         except ValueError:
             raise VioError(f"{path}:{i}: not a number in {s!r}") from None
+        if not -(2**63) <= t[-1] < 2**63:  # int64 nanoseconds reach the year 2262
+            raise VioError(f"{path}:{i}: time stamp {parts[0]} is out of range: TUM stamps are seconds (is this "
+                           "file in milliseconds or nanoseconds?)")
         if not np.all(np.isfinite(vals)):
             raise VioError(f"{path}:{i}: non-finite value")
         if np.linalg.norm(vals[3:7]) < 1e-9:

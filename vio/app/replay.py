@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import re
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -575,8 +576,10 @@ def run(args: argparse.Namespace) -> int:
         loop_dict, draw = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
             h = loop.closer.save_map(save_map)
-            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {save_map}"
+            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {h['path']}"
                   + (f" ({h['note']})" if h["left_out_keyframes"] else ""))
+            if h["conflict"]:
+                print(f"vio replay: {h['conflict']}", file=sys.stderr)
     if args.stats:
         d = res.stats_dict()
         if loop_dict is not None:

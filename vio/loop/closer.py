@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -121,6 +123,7 @@ class LoopCloser:
         self._last_reset: int | None = None
         self._pending: list[_Candidate] = []
         self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
+        self._map_stamp: tuple | None = None  # the loaded map file as read (mapfile.file_stamp)
         self._marginal_warned = False  # correction_uncertainty fell back to the loop sigmas (said once)
         self.map_camera_warning: str | None = None  # a loaded map made with another camera size or focal length
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
@@ -370,6 +373,7 @@ class LoopCloser:
         if self.map_camera_warning:
             log.warning("loop closure: %s", self.map_camera_warning)
         self._map_parts = list(m.header.get("parts") or [{"keyframes": len(m.features), "join_edges": None}])
+        self._map_stamp = getattr(m, "stamp", None)
         self.session = 1
         self._last_reset = None
 
@@ -390,8 +394,17 @@ class LoopCloser:
         estimator reset that never relocalised, or a flight that never relocalised in the loaded map, has
         poses in a frame of its own; saved beside the others it would put a later flight in the wrong place,
         so it is left out (and counted in the header's `left_out_keyframes`)."""
-        from vio.loop.mapfile import save_map
+        from vio.loop.mapfile import file_stamp, save_map
 
+        target, conflict = Path(path), ""
+        loaded = self._map_stamp
+        if loaded is not None and os.path.realpath(target) == loaded[0] and file_stamp(target) != loaded:
+            # two flights growing one map at once: the later save would drop the earlier one's keyframes unsaid
+            alt = target.with_name(f"{target.stem}.{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}{target.suffix}")
+            conflict = (f"{target} changed since this flight loaded it (another run saved over it): this flight's "
+                        f"map is written to {alt} instead, and {target} is kept as it is")
+            log.warning("map: %s", conflict)
+            target = alt
         keep = self.map_frame_keyframes()
         left_out = len(self.keyframes) - len(keep)
         notes = []
@@ -408,10 +421,12 @@ class LoopCloser:
                 notes.append(f"a part of {n} keyframes is joined to the rest by only {joins} loop edges: its place "
                              f"in the map's frame rests on them (it shared few views with the rest)")
                 log.warning("map %s: %s; fly it where the map's views are, or leave it out", path, notes[-1])
-        h = save_map(path, [self.keyframes[k].t_ns for k in keep], [self.graph.estimate[k] for k in keep],
+        h = save_map(target, [self.keyframes[k].t_ns for k in keep], [self.graph.estimate[k] for k in keep],
                      [self.keyframes[k].feats for k in keep], self.vocab, self.cam, note="; ".join(notes),
                      parts=parts)
-        return {**h, "left_out_keyframes": left_out}
+        if loaded is not None and not conflict and os.path.realpath(target) == loaded[0]:
+            self._map_stamp = file_stamp(target)  # this run's own save is no conflict for its next one
+        return {**h, "left_out_keyframes": left_out, "path": str(target), "conflict": conflict}
 
     def _join_edges(self, session: int) -> int:
         """Active loop edges between this session's keyframes and any other session's."""

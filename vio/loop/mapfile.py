@@ -45,6 +45,16 @@ class MapData:
     t_ns: np.ndarray
     T_world_body: np.ndarray
     features: list[KeyframeFeatures]
+    stamp: tuple | None = None  # file_stamp() of the file as it was read
+
+
+def file_stamp(path: str | Path) -> tuple | None:
+    """What tells whether a map file changed since it was read (another run saved over it): None when absent."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return os.path.realpath(path), st.st_size, st.st_mtime_ns, st.st_ino
 
 
 def vocabulary_digest(voc) -> str:
@@ -126,6 +136,7 @@ def _header_problem(header: dict, n: int) -> str | None:
 
 
 def load_map(path: str | Path) -> MapData:
+    stamp = file_stamp(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(str(z["header"]))
@@ -141,7 +152,7 @@ def load_map(path: str | Path) -> MapData:
             if problem:
                 raise VioError(f"{path}: damaged map ({problem})")
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
-            return MapData(header, t_ns, T, feats)
+            return MapData(header, t_ns, T, feats, stamp)
     except IsADirectoryError:
         raise VioError(f"{path}: is a folder, not a map file") from None
     except FileNotFoundError:

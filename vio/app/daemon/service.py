@@ -251,7 +251,7 @@ class Service:
             elif self.cfg.map.save:
                 try:
                     h = self.loop.closer.save_map(self.cfg.map.save)
-                    log.info("map saved to %s: %d keyframes%s", self.cfg.map.save, h["keyframes"],
+                    log.info("map saved to %s: %d keyframes%s", h["path"], h["keyframes"],
                              f" ({h['note']})" if h["left_out_keyframes"] else "")
                 except Exception as e:  # noqa: BLE001 - a failed save must not hide the shutdown
                     log.error("map not saved: %s", e)
