@@ -81,14 +81,16 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
             while not stop.is_set() and not done:
                 msgs = source.poll()
                 for m in msgs:
+                    key = "imu" if isinstance(m, ImuSample) else "frame"
                     if stats.first_t_ns is None:
                         stats.first_t_ns = m.t_ns
-                        if duration_s is not None:
-                            end_ns = m.t_ns + int(duration_s * 1e9)
+                    if duration_s is not None and last[key] < 0 and (end_ns is None or m.t_ns < end_ns):
+                        # the span counts from the later of the two streams' starts (a camera that boots after the
+                        # IMU would otherwise get less than asked); a source with one stream counts from it
+                        end_ns = max(end_ns or 0, m.t_ns + int(duration_s * 1e9))
                     if end_ns is not None and m.t_ns > end_ns:
                         done = True
                         continue
-                    key = "imu" if isinstance(m, ImuSample) else "frame"
                     if m.t_ns <= last[key]:  # EuRoC needs strictly increasing stamps per file
                         stats.dropped_out_of_order += 1
                         continue
@@ -159,6 +161,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and args.duration <= 0:
         raise VioError(f"--duration must be positive, got {args.duration}")
     calibration = load_calibration(src_cfg.calibration) if src_cfg.calibration else None
+    if (args.format or cfg.run.record_format) == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 
@@ -181,5 +185,11 @@ def run(args: argparse.Namespace) -> int:
     log.info("source health at the end: %s", stats.source_health)
     if stats.frames == 0 and stats.imu == 0:
         log.error("nothing was recorded; source health: %s", stats.source_health)
+        return 1
+    if stats.frames == 0 or (stats.imu == 0 and src_cfg.imu != "none"):
+        # what was recorded stays on disk, but a replay needs both streams
+        log.error("no %s was recorded (the %s delivered nothing): %s cannot be replayed; source health: %s",
+                  "camera frame" if stats.frames == 0 else "IMU sample", "camera" if stats.frames == 0 else "IMU",
+                  args.out, stats.source_health)
         return 1
     return 0

@@ -368,3 +368,18 @@ status_file = "{tmp_path / 'status.json'}"
     assert rc == 0 and took < 2.0, d.log[-3000:]
     assert "Traceback" not in d.log and "not feeding the systemd watchdog" not in d.log
 
+
+
+def test_an_image_write_that_fails_with_a_few_kib_left_is_called_a_full_disk(tmp_path, monkeypatch):
+    """44 KiB left, less than one PNG: the file system reports itself nearly, not exactly, full (a review found
+    'cannot write image' with no diagnosis)."""
+    import shutil
+    from collections import namedtuple
+
+    from vio.app.daemon import outputs
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(4 << 20, (4 << 20) - 45056, 45056))
+    assert "disk full: 44 KiB left" in outputs._storage_diagnosis(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(1 << 40, 1 << 39, 1 << 39))
+    assert outputs._storage_diagnosis(tmp_path) == ""

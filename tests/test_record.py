@@ -134,3 +134,29 @@ def test_sigterm_flushes_and_exits_cleanly(tmp_path: Path) -> None:
     assert "SIGTERM received" in log and "recorded" in log
     ds = EurocDataset(out)
     assert t_term - int(ds.imu.t_ns[-1]) < 100_000_000  # flushed up to the signal, not the last fsync
+
+
+class _LateCamera(FakeSource):
+    """The IMU streams 0.5 s before the first camera frame (an OAK's cameras boot after its IMU)."""
+
+    def poll(self):
+        return [m for m in super().poll() if isinstance(m, ImuSample) or m.t_ns >= T0 + 500_000_000]
+
+
+def test_duration_counts_from_the_later_stream_and_an_empty_stream_fails_the_command(tmp_path: Path, caplog) -> None:
+    stats = record(_LateCamera(width=160, height=100, fps=20, imu_rate_hz=200, duration_s=2.0, t0_ns=T0,
+                               realtime=False), tmp_path / "late", duration_s=1.0)
+    assert stats.frames == 21  # 1 s of video (0.5-1.5 s), not 0.5 s
+    # `vio record` whose IMU never delivers: the frames are kept, but the command fails and says why
+    pytest.importorskip("serial")
+    from vio.app.cli import main
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\nwidth = 160\nheight = 100\nimu = "serial"\n'
+                   f'serial_port = "{tmp_path / "ttyNOPE0"}"\n')
+    with caplog.at_level("ERROR"):
+        rc = main(["record", str(tmp_path / "noimu"), "--duration", "1", "--config", str(cfg)])
+    assert rc == 1 and any("no IMU sample was recorded" in r.getMessage() for r in caplog.records)
+    assert (tmp_path / "noimu" / "mav0" / "cam0" / "data.csv").exists()
+    (tmp_path / "afile").write_text("x")
+    assert main(["record", str(tmp_path / "afile"), "--duration", "1", "--config", str(cfg)]) == 1

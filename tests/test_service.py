@@ -150,6 +150,11 @@ def test_status_verdicts() -> None:
     assert evaluate(_status(healthy=False, state="unhealthy"), 1001.0, 3.0) == (EXIT_UNHEALTHY, "UNHEALTHY")
     assert evaluate(_status(), 1010.0, 3.0)[0] == EXIT_NOT_RUNNING  # stale file: daemon dead or hung
     assert evaluate(_status(state="stopped"), 1000.5, 3.0)[0] == EXIT_NOT_RUNNING
+    # killed (SIGKILL): its last status is fresh for up to stale_s, but its pid is gone
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    code, verdict = evaluate(_status(pid=int(dead.stdout)), 1001.0, 3.0)
+    assert code == EXIT_NOT_RUNNING and verdict.startswith("NOT RUNNING (pid"), verdict
+    assert evaluate(_status(pid=os.getpid()), 1001.0, 3.0)[0] == EXIT_HEALTHY
 
 
 def test_status_text_names_what_a_person_needs() -> None:

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -41,11 +43,27 @@ def read_status(path: Path) -> dict[str, Any]:
     return data
 
 
-def evaluate(status: dict[str, Any], now_unix: float, stale_s: float) -> tuple[int, str]:
+def _pid_gone(pid: Any) -> bool:
+    """The daemon that wrote the status is no longer a process (killed: its last status is still fresh)."""
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # another user's process (EPERM): it exists
+        return False
+    return False
+
+
+def evaluate(status: dict[str, Any], now_unix: float, stale_s: float,
+             pid_gone: Callable[[Any], bool] = _pid_gone) -> tuple[int, str]:
     """Exit code and a one-word verdict for a parsed status."""
     age = now_unix - float(status.get("written_unix", 0))
     if status.get("state") == "stopped":
         return EXIT_NOT_RUNNING, "STOPPED"
+    if pid_gone(status.get("pid")):
+        return EXIT_NOT_RUNNING, f"NOT RUNNING (pid {status.get('pid')} is gone: killed or crashed)"
     if age > stale_s:
         return EXIT_NOT_RUNNING, f"STALE ({age:.0f} s old: daemon not running or hung)"
     if status.get("healthy"):
@@ -128,6 +146,8 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
                  f"{', fed' if wd.get('fed') else ', NOT fed' if wd.get('enabled') else ''}")
     for w in s.get("warnings") or []:
         lines.append(f"  WARNING   {w}")
+    if s.get("state") == "stopped":
+        lines.append("  (stopped: the figures above are the last ones before the stop, not the vehicle's now)")
     return "\n".join(lines)
 
 

@@ -322,6 +322,9 @@ class RecorderWorker(Worker):
                 "frames": self.frames, "imu": self.imu, "frames_dropped": self.buf.frames_dropped}
 
 
+DISK_FULL_BYTES = 4 << 20  # below this much free space, a failed image write is taken for a full disk
+
+
 def _storage_diagnosis(root: Path | None) -> str:
     """What an image write error (cv2.imwrite only says it failed) most likely was."""
     if root is None:
@@ -329,8 +332,9 @@ def _storage_diagnosis(root: Path | None) -> str:
     if not root.exists():
         return " (the recording folder was removed)"
     with contextlib.suppress(OSError):
-        if shutil.disk_usage(root).free == 0:
-            return " (disk full)"
+        free = shutil.disk_usage(root).free
+        if free < DISK_FULL_BYTES:  # a file system keeps a few blocks back, and one image did not fit
+            return f" (disk full: {free // 1024} KiB left, No space left on device)"
     return ""
 
 
