@@ -326,6 +326,8 @@ record_dir = "{tmp_path / 'rec'}"
     (rec,) = (tmp_path / "rec").iterdir()
     ds = EurocDataset(rec)
     assert len(ds.imu) > 200 and len(ds) > 5 and len(list(ds.frames())) == len(ds)
+    # what the log and the status say was kept is what is on disk (it counted the writer's lost buffer too)
+    assert f"{len(ds)} frames and {len(ds.imu)} IMU samples before the error" in log, log[-3000:]
     print(f"\nIMU loss: RSS growth {growth:.1f} MB in 3 s; recording kept {len(ds)} frames, {len(ds.imu)} IMU")
 
 

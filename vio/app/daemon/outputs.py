@@ -312,7 +312,11 @@ class RecorderWorker(Worker):
         else:
             if self.writer is not None:
                 _close_writer_files(self.writer)
-            kept = _trim_partial_rows(self.root / "mav0") if self.root is not None else 0
+            rows = _trim_partial_rows(self.root / "mav0") if self.root is not None else {}
+            # what is on disk, not what was handed to the writer (its buffered tail is lost with the error)
+            frames, imu = rows.get("cam0", 0), rows.get("imu0", 0)
+            kept = frames + imu
+            self.frames, self.imu = frames, imu
         log.warning("recording stopped: %s; %s kept in %s (pose output goes on)", self.error,
                     f"{self.frames} frames and {self.imu} IMU samples before the error" if kept else "nothing",
                     self.root)
@@ -348,21 +352,21 @@ def _close_writer_files(writer: Any) -> None:
                 f.close()
 
 
-def _trim_partial_rows(mav0: Path) -> int:
+def _trim_partial_rows(mav0: Path) -> dict[str, int]:
     """Cut each csv of a recording back to its last complete line (a failed write can leave half a row);
-    returns how many csv files are left with data rows."""
-    kept = 0
-    for csv in (mav0 / "cam0" / "data.csv", mav0 / "cam1" / "data.csv", mav0 / "imu0" / "data.csv"):
+    returns the data rows left in each ("cam0", "cam1", "imu0")."""
+    rows: dict[str, int] = {}
+    for name in ("cam0", "cam1", "imu0"):
         try:
-            with open(csv, "rb+") as f:
+            with open(mav0 / name / "data.csv", "rb+") as f:
                 data = f.read()
                 end = data.rfind(b"\n") + 1
                 if end < len(data):
                     f.truncate(end)
-                kept += data.count(b"\n", 0, end) > 1
+                rows[name] = max(data.count(b"\n", 0, end) - 1, 0)  # the header line is no row
         except OSError:  # the folder was removed, or the disk refuses even this: nothing more to save
             continue
-    return kept
+    return rows
 
 
 def _fresh_record_dir(base: str) -> Path:
