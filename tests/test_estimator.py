@@ -73,6 +73,31 @@ def test_static_start_tracks_synthetic_flight_accurately():
     assert np.all(np.diff(t_imu) > 0)
 
 
+def test_start_yaw_follows_the_camera_where_the_imu_x_axis_is_vertical():
+    """An OAK's IMU (and EuRoC's) has x up: body x has no heading, and the start yaw came out of the rotation's
+    gimbal lock (115 deg on one flight), so a bench check "nose forward: x grows" failed on a right mount. Now the
+    camera's view sets it; with body x level nothing changes."""
+    from vio.geometry import gravity_aligned_rotation, roll_pitch_yaw, so3_exp
+
+    optical, image_top = np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0])  # camera forward, IMU x up
+    x_up = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # R_world_body taking body x to world z
+    for tilt in (np.zeros(3), np.array([0.01, -0.02, 0.005])):
+        accel = (so3_exp(tilt) @ x_up).T @ np.array([0, 0, 9.81])
+        R = gravity_aligned_rotation(accel, (optical, image_top))
+        view = R @ optical
+        assert abs(np.arctan2(view[1], view[0])) < 1e-9 and view[0] > 0.99
+        np.testing.assert_allclose(R.T @ [0, 0, 1], accel / np.linalg.norm(accel), atol=1e-12)
+    # a camera looking down (along body -x) from the same IMU: the image top is the heading
+    top_down = np.array([0.0, 1.0, 0.0])
+    R = gravity_aligned_rotation(x_up.T @ np.array([0, 0, 9.81]), (np.array([-1.0, 0, 0]), top_down))
+    top = R @ top_down
+    assert abs(np.arctan2(top[1], top[0])) < 1e-9 and top[0] > 0.99
+    # body x level: the yaw of before, the very same numbers
+    accel = np.array([0.3, -0.2, 9.8])
+    R = gravity_aligned_rotation(accel, (optical, image_top))
+    assert np.array_equal(R, gravity_aligned_rotation(accel)) and abs(roll_pitch_yaw(R)[2]) < 1e-12
+
+
 def test_an_imu_gap_resets_instead_of_integrating_across_it(caplog):
     """1 s without IMU samples while the cameras go on: the frames of the gap were solved with one IMU factor across
     it, a motion nobody measured (a replay's stereo check then blamed the right camera). Now the estimator resets

@@ -170,6 +170,13 @@ class StereoCalibration:
     def baseline_m(self) -> float:
         return float(np.linalg.norm(self.T_cam1_cam0[:3, 3]))
 
+    @property
+    def view_headings_body(self) -> tuple[np.ndarray, np.ndarray]:
+        """cam0's optical axis and its image top in the body frame: the start yaw's reference where the IMU's
+        x axis is vertical (geometry.gravity_aligned_rotation)."""
+        R = self.cam0.T_body_cam[:3, :3]
+        return R[:, 2].copy(), -R[:, 1]
+
 
 def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> list[tuple[str, float, str | None]]:
     """(name, metres, problem or None) of the stereo baseline (when `stereo`) and the camera-IMU lever arm."""

@@ -650,7 +650,8 @@ class Estimator:
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
         plausible = self._sensors_plausible(ts, gyro, accel, ff)
         # a smooth constant-velocity motion looks still to the IMU: the images must agree
-        init = static_initialize(ts, gyro, accel, t, icfg) if plausible and self._looks_still_visually(ff) else None
+        init = static_initialize(ts, gyro, accel, t, icfg, self.calib.view_headings_body) \
+            if plausible and self._looks_still_visually(ff) else None
         if init is not None and not self._bias_continuous(init):
             init = None
         if init is None and icfg.allow_moving_start:

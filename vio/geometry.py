@@ -9,6 +9,7 @@ costs ~100 us a call, Rot3 ~3 us, equal to 1e-15).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 
 import gtsam
 import numpy as np
@@ -139,11 +140,15 @@ def yaw_position_alignment(T_a0: np.ndarray, T_b0: np.ndarray) -> np.ndarray:
     return make_T(R, T_b0[:3, 3] - R @ T_a0[:3, 3])
 
 
-def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
-    """R_world_body with zero yaw that makes the measured specific force point along world +z.
+def gravity_aligned_rotation(accel_body: np.ndarray, headings: Sequence[np.ndarray] = ()) -> np.ndarray:
+    """R_world_body that makes the measured specific force point along world +z, with world +x along the
+    horizontal heading of the first of body x and then `headings` (body-frame axes) that lies at least 45 deg
+    off the vertical.
 
-    A still accelerometer reads R_world_body^T @ [0, 0, g]; the smallest rotation taking the measured
-    direction onto +z leaves yaw unobservable, as it is.
+    A still accelerometer reads R_world_body^T @ [0, 0, g]; yaw is unobservable, so it is a convention: body x
+    by default. An IMU whose x axis points up (an OAK's, EuRoC's sensor) has no heading of x, and the start yaw
+    came out of the rotation's gimbal lock, 115 deg on one flight; the camera's view (its optical axis, or the
+    image top for a camera looking down) is the heading an integrator expects there.
     """
     a = np.asarray(accel_body, dtype=float)
     n = np.linalg.norm(a)
@@ -152,5 +157,10 @@ def gravity_aligned_rotation(accel_body: np.ndarray) -> np.ndarray:
     z_body = a / n
     R, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [z_body])
     R_wb = R.as_matrix()
-    yaw = roll_pitch_yaw(R_wb)[2]
+    axes = [np.array([1.0, 0.0, 0.0]), *(np.asarray(h, dtype=float) for h in headings)]
+    flat = [R_wb @ (h / np.linalg.norm(h)) for h in axes]
+    level = [k for k, v in enumerate(flat) if np.hypot(v[0], v[1]) >= np.sqrt(0.5)]
+    k = level[0] if level else int(np.argmax([np.hypot(v[0], v[1]) for v in flat]))
+    # body x: its heading is the rotation's yaw (kept as the Euler angle: the same numbers as before)
+    yaw = roll_pitch_yaw(R_wb)[2] if k == 0 else float(np.arctan2(flat[k][1], flat[k][0]))
     return so3_exp(np.array([0.0, 0.0, -yaw])) @ R_wb

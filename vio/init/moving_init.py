@@ -143,7 +143,7 @@ class MovingInitializer:
             return None
         g = g / g_norm * GRAVITY_M_S2
         x_v = np.linalg.lstsq(A[:, :3 * n], y - A[:, 3 * n:] @ g, rcond=None)[0]
-        R_w_b0 = gravity_aligned_rotation(-g)
+        R_w_b0 = gravity_aligned_rotation(-g, self.calib.view_headings_body)
         last = self.frames[-1]
         T_w_b = make_T(R_w_b0, np.zeros(3)) @ last.T_b0_b
         v_w = R_w_b0 @ x_v[3 * (n - 1):]

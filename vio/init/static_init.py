@@ -61,9 +61,10 @@ def is_still(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, cfg: InitCon
 
 
 def static_initialize(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t_init_ns: int,
-                      cfg: InitConfig) -> InitialState | None:
+                      cfg: InitConfig, headings: tuple = ()) -> InitialState | None:
     """Initial state at `t_init_ns` from IMU samples of the window before it, or None if not still
-    or the window is not yet covered."""
+    or the window is not yet covered. `headings`: body axes for the start yaw after body x
+    (geometry.gravity_aligned_rotation)."""
     if len(t_ns) < 2:
         return None
     span_s = (t_ns[-1] - t_ns[0]) * 1e-9
@@ -71,7 +72,7 @@ def static_initialize(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t_i
         return None
     g_mean = gyro.mean(axis=0)
     a_mean = accel.mean(axis=0)
-    R_wb = gravity_aligned_rotation(a_mean)
+    R_wb = gravity_aligned_rotation(a_mean, headings)
     log.info("static initialisation: |a| %.3f m/s^2, gyro bias (%.4f %.4f %.4f) rad/s over %.2f s",
              float(np.linalg.norm(a_mean)), *g_mean, span_s)
     return InitialState(int(t_init_ns), make_T(R_wb, np.zeros(3)), np.zeros(3), g_mean, np.zeros(3), "static")
