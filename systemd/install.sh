@@ -8,6 +8,7 @@
 #   --dry-run   print every command instead of running it (no root needed)
 #   --enable    also `systemctl enable --now kestrel-vio`
 #   --no-venv   skip creating/upgrading the virtual environment (e.g. offline, already installed)
+#   --prefix D  install under D instead of /opt/kestrel-vio
 set -euo pipefail
 
 SERVICE_USER=kestrel

@@ -157,3 +157,15 @@ def test_replay_view_without_rerun_names_the_view_extra_and_keeps_an_old_traject
     assert r.returncode == 1, r.stdout + r.stderr
     _one_line_naming(r.stderr, "view")
     assert old.read_text() == "1.0 0 0 0 0 0 0 1\n"
+
+
+@pytest.mark.parametrize("section, module, extra", [('kind = "oak"', "depthai", "oak"),
+                                                    ('kind = "fake"\nimu = "serial"', "serial", "serial")])
+def test_config_check_and_run_refuse_a_source_whose_extra_is_missing(tmp_path, section, module, extra):
+    """vio run retried such a source forever ("degraded", unseen by systemd) while config check said OK."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[source]\n{section}\n")
+    for args in (("config", "check", str(cfg)), ("run", "--config", str(cfg))):
+        r = _vio_without((module,), "-q", *args, timeout=60)
+        assert r.returncode == 3, r.stdout + r.stderr
+        assert f"needs the [{extra}] extra" in r.stderr and "Traceback" not in r.stderr

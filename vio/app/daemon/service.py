@@ -550,6 +550,13 @@ def check_run_config(cfg: VioConfig) -> Any:
     """Problems the daemon cannot recover from by retrying: report them now, with the key to fix. Returns the
     `[map] load` map it read (None without one), for the service to use rather than read it again."""
     src = cfg.source
+    # an extra that is not installed: the source would be retried forever, "degraded", unseen by systemd
+    from vio.extras import require
+
+    if src.kind == "oak":
+        require("depthai", "oak", '[source] kind = "oak"')
+    if src.imu == "serial":
+        require("serial", "serial", '[source] imu = "serial"')
     if src.kind == "euroc" and not src.dataset:
         raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
     if src.kind == "euroc" and not Path(src.dataset).exists():
