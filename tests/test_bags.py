@@ -110,6 +110,7 @@ def test_exact_repeat_dropped_and_unsynchronised_right_camera_unpaired(flight):
                 w.write_frame(x)
     b = BagDataset(flight / "u.mcap", d.calibration)
     assert b.stats.unpaired_frames == n_shift
+    assert any(f"{n_shift} of {len(d)} left frames" in n and "no right image" in n for n in b.stats.notes)
     assert any("exact repeats" in n for n in b.stats.notes)
     assert len(b) == len(d)
     frames = [e for e in b.events() if isinstance(e, StereoFrame)]
@@ -182,6 +183,37 @@ def test_mcap_cut_short_is_read_up_to_the_damage(flight):
     assert 0 < len(b) < len(d)
     frames = [e for e in b.events() if isinstance(e, StereoFrame)]
     assert len(frames) == len(b)
+
+
+def test_mcap_with_a_damaged_chunk_is_read_up_to_it_and_says_so(flight):
+    """A flipped byte in a chunk changed an IMU sample that the replay then used: chunk CRCs are now checked."""
+    from mcap.reader import make_reader
+
+    d = EurocDataset(flight / "sim")
+    export_bag(d, flight / "crc.mcap", "mcap", "png")
+    data = bytearray((flight / "crc.mcap").read_bytes())
+    with open(flight / "crc.mcap", "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 3
+    mid = chunks[len(chunks) // 2]
+    data[mid.chunk_start_offset + mid.chunk_length // 2] ^= 0x10
+    (flight / "crc_bad.mcap").write_bytes(bytes(data))
+    b = BagDataset(flight / "crc_bad.mcap", d.calibration)
+    assert any("fails its CRC check" in n for n in b.stats.notes), b.stats.notes
+    assert 0 < len(b) < len(d)
+
+
+def test_files_that_are_not_mcap_and_one_topic_for_both_cameras_are_one_line_each(flight):
+    (flight / "empty.mcap").write_bytes(b"")
+    (flight / "text.mcap").write_text("not a recording\n" * 50)
+    for name, says in (("empty.mcap", "not a readable MCAP file"), ("text.mcap", "not a readable MCAP file"),
+                       ("absent.mcap", "absent.mcap: file not found")):
+        r = _vio("replay", name, "--calib", "calib.yaml", "--no-progress", cwd=flight)
+        assert r.returncode == 1 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    export_bag(EurocDataset(flight / "sim"), flight / "same.mcap", "mcap")
+    r = _vio("replay", "same.mcap", "--calib", "calib.yaml", "--right-topic", "/cam0/image_raw", "--no-progress",
+             cwd=flight)
+    assert r.returncode == 1 and "both read from /cam0/image_raw" in r.stderr, r.stderr
 
 
 def test_bag_section_chooses_topics_and_flags_win(flight):

@@ -96,3 +96,27 @@ def test_the_driver_reads_the_inputs_and_writes_the_trajectories(flights, tmp_pa
     assert row["ok"], row["error"]
     assert row["tum"].startswith("# timestamp") and len(row["tum"].splitlines()) == row["poses"] + 1
     assert not list(tmp_path.glob("**/*.tum"))
+
+
+def test_flights_of_one_name_are_two_rows_and_data_notes_show(flights, tmp_path):
+    """day1/f and day2/f: one row name for both, and --compare matched them to the last old row; a recording
+    with its right camera gone read "ok" with nothing said (a review's findings)."""
+    import shutil
+
+    for day in ("day1", "day2"):
+        shutil.copytree(flights[0], tmp_path / day / "f")
+    shutil.rmtree(tmp_path / "day2" / "f" / "mav0" / "cam1" / "data")
+    (tmp_path / "day2" / "f" / "mav0" / "cam1" / "data").mkdir()
+    (tmp_path / "day2" / "f" / "mav0" / "cam1" / "data.csv").write_text("#timestamp [ns],filename\n")
+    report = run_batch([str(tmp_path / "day1" / "f"), str(tmp_path / "day2" / "f")], tmp_path / "out", workers=1,
+                       progress=False)
+    names = [r["flight"] for r in report["flights"]]
+    assert names == ["f", "f-2"] and all(r["ok"] for r in report["flights"])
+    assert not report["flights"][0]["notes"] and "no right images" in report["flights"][1]["notes"][0]
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "no right images" in md and "with data notes 1" in md
+    (tmp_path / "afile").write_text("x")
+    from vio import VioError
+
+    with pytest.raises(VioError, match="cannot make the report folder"):
+        run_batch([str(flights[0])], tmp_path / "afile", workers=1, progress=False)

@@ -107,6 +107,32 @@ def test_replay_of_missing_dataset_is_a_clear_error(tmp_path, capsys):
     assert "dataset folder not found" in capsys.readouterr().err
 
 
+def test_a_replay_refused_before_it_starts_keeps_earlier_outputs(tmp_path, capsys):
+    """A calibration of another image size, or a --view that would write over an input or outside .rrd: said at
+    once, before any output file is opened (the -o of an earlier run was emptied, a recording overwritten by the
+    live view)."""
+    from vio.calibration import save_calibration
+    from vio.sim import default_calibration
+
+    flight = tmp_path / "f"
+    assert main(["-q", "simulate", str(flight), "--duration", "2", "--size", "188x120", "--no-progress"]) == 0
+    save_calibration(default_calibration(), tmp_path / "c752.yaml")  # 752x480
+    old = tmp_path / "old.tum"
+    old.write_text("1.0 0 0 0 0 0 0 1\n")
+    (tmp_path / "keep.rrd").write_bytes(b"an old view")
+    cases = ((["--calibration", str(tmp_path / "c752.yaml")], "the calibration is for 752x480"),
+             (["--view", str(flight / "mav0" / "cam0" / "sensor.yaml")], "is an .rrd file"),
+             (["--calibration", str(tmp_path / "c752.rrd"), "--view", str(tmp_path / "c752.rrd")], "written over"),
+             (["--view", str(tmp_path / "nodir" / "x.rrd")], "does not exist"),
+             (["--view", str(old)], "is an .rrd file"))
+    (tmp_path / "c752.rrd").write_bytes((tmp_path / "c752.yaml").read_bytes())
+    for args, says in cases:
+        assert main(["replay", str(flight), "-o", str(old), "--no-progress", *args]) == 1, args
+        assert says in capsys.readouterr().err, args
+        assert old.read_text() == "1.0 0 0 0 0 0 0 1\n" and (tmp_path / "keep.rrd").read_bytes() == b"an old view"
+    assert (flight / "mav0" / "cam0" / "sensor.yaml").read_text().strip()
+
+
 def test_short_synthetic_flight_is_accurate(tmp_path):
     sim = pytest.importorskip("vio.sim.generate")
     from vio.app.replay import replay

@@ -27,8 +27,8 @@ log = logging.getLogger(__name__)
 
 # fields of a row that depend on the machine and the load, not on the estimator
 TIMING_FIELDS = ("wall_s", "realtime_factor", "worker")
-_ROW_FIELDS = ("flight", "path", "ok", "error", "frames", "poses", "resets", "data_s", "ate_m", "ate_rot_deg",
-               "rpe_pct", "rpe_length_m", "coverage") + TIMING_FIELDS
+_ROW_FIELDS = ("flight", "path", "ok", "error", "notes", "frames", "poses", "resets", "data_s", "ate_m",
+               "ate_rot_deg", "rpe_pct", "rpe_length_m", "coverage") + TIMING_FIELDS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -83,6 +83,9 @@ def _replay_into(row: dict, path: str, out_tum: Path, options: dict) -> None:
 
         cfg = options["cfg"]
         dataset = open_dataset(path, options.get("calibration"), options.get("topics"), cfg.bag)
+        # what was repaired, skipped or cut when it was opened (a truncated recording, unpaired right images): a
+        # row that reads "ok" must say it too
+        row["notes"] = list(dataset.stats.notes)
         tum = TumSink(out_tum)
         try:
             res = replay(dataset, cfg, [tum], progress=False)
@@ -133,13 +136,15 @@ def _run_pool(cf, mp, jobs, workers: int, progress, rows: list) -> list[dict]:
             try:
                 rows[k] = _store(f.result(), jobs[k][1])
             except Exception as e:  # the worker itself died (killed, out of memory)
-                rows[k] = _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}")
+                rows[k] = _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}", jobs[k][1])
             progress(rows[k])
     return rows  # type: ignore[return-value]
 
 
 def _store(row: dict, out_tum: str) -> dict:
-    """The driver writes each trajectory (a cluster's workers need not see the output folder)."""
+    """The driver writes each trajectory (a cluster's workers need not see the output folder). The row is named
+    as its trajectory file: two flights called flight.mcap in two folders are two rows (compare keys on it)."""
+    row["flight"] = Path(out_tum).name[: -len(".tum")]
     tum = row.pop("tum", "")
     if tum:
         try:
@@ -149,9 +154,9 @@ def _store(row: dict, out_tum: str) -> dict:
     return row
 
 
-def _failed_row(path: str, error: str) -> dict:
+def _failed_row(path: str, error: str, out_tum: str) -> dict:
     row: dict = {k: None for k in _ROW_FIELDS}
-    row.update(flight=Path(path).name, path=str(path), ok=False, error=error)
+    row.update(flight=Path(out_tum).name[: -len(".tum")], path=str(path), ok=False, error=error)
     return row
 
 
@@ -178,7 +183,7 @@ def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, prog
                 try:
                     rows[k] = _store(ray.get(ref), jobs[k][1])
                 except Exception as e:  # the task's worker died
-                    rows[k] = _failed_row(jobs[k][0], f"ray task failed: {type(e).__name__}: {e}")
+                    rows[k] = _failed_row(jobs[k][0], f"ray task failed: {type(e).__name__}: {e}", jobs[k][1])
                 progress(rows[k])
     finally:
         if started:
@@ -190,7 +195,10 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
               options: dict | None = None, progress: bool = True) -> dict:
     """Replay `flights`, write the report files into `out_dir`, return the report."""
     out = Path(out_dir)
-    (out / "traj").mkdir(parents=True, exist_ok=True)
+    try:
+        (out / "traj").mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise VioError(f"--output {out}: cannot make the report folder ({e.strerror})") from None
     workers = max(1, workers or os.cpu_count() or 1)
     options = _load_inputs(options or {})
     names: dict[str, int] = {}
@@ -269,11 +277,12 @@ def _fmt(v, digits: int = 3) -> str:
 def markdown(report: dict) -> str:
     lines = [f"# vio batch: {report['summary']['ok']} of {report['summary']['flights']} flights ok "
              f"({report['engine']}, {report['wall_s']:.1f} s)", "",
-             "| flight | ATE 4-DoF rmse [m] | RPE [%] | resets | real-time factor | frames | error |",
+             "| flight | ATE 4-DoF rmse [m] | RPE [%] | resets | real-time factor | frames | error / data notes |",
              "| --- | ---: | ---: | ---: | ---: | ---: | --- |"]
     for r in report["flights"]:
+        said = "; ".join([r["error"]] if r["error"] else []) or "; ".join(r.get("notes") or [])
         lines.append(f"| {r['flight']} | {_fmt(r['ate_m'], 4)} | {_fmt(r['rpe_pct'], 2)} | {_fmt(r['resets'])} | "
-                     f"{_fmt(r['realtime_factor'], 2)} | {_fmt(r['frames'])} | {r['error'] or ''} |")
+                     f"{_fmt(r['realtime_factor'], 2)} | {_fmt(r['frames'])} | {said} |")
     s = report["summary"]
 
     def m(key: str, digits: int) -> str:
@@ -281,7 +290,8 @@ def markdown(report: dict) -> str:
                                           f"max {s[key]['max']:.{digits}f}"
 
     lines += ["", f"Summary: ATE [m] {m('ate_m', 4)}; RPE [%] {m('rpe_pct', 2)}; resets {s['resets']}; "
-              f"real-time factor {m('realtime_factor', 2)}; failed {s['failed']}.", ""]
+              f"real-time factor {m('realtime_factor', 2)}; failed {s['failed']}; with data notes "
+              f"{sum(1 for r in report['flights'] if r.get('notes'))}.", ""]
     return "\n".join(lines)
 
 

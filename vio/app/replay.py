@@ -433,6 +433,8 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     defaults, EuRoC's names), and the (left, right, imu) `topics` given on the command line win over it."""
     from vio.io.bag import BagDataset, BagTopics, is_bag
 
+    if Path(path).suffix in (".mcap", ".bag", ".db3") and not Path(path).exists():
+        raise VioError(f"{path}: file not found")
     if is_bag(path):
         from vio.config import BagConfig
 
@@ -482,9 +484,15 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
+    view_file = args.view if args.view and args.view != "serve" else None
+    if view_file and not view_file.endswith(".rrd"):  # it is written over: never a recording or a calibration
+        raise VioError(f"--view {view_file}: a live view recording is an .rrd file (or 'serve' for a web viewer)")
     check_outputs({"the trajectory": args.output, "the loop-corrected trajectory": args.loop_output,
-                   "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot},
-                  reads={"the map it loads": load_map, "the calibration": args.calibration}, grows=("the map",))
+                   "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot,
+                   "the live view recording": view_file},
+                  reads={"the map it loads": load_map, "the calibration": args.calibration,
+                         "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []}},
+                  grows=("the map",))
     if args.loop_plot:  # the [tools] extra, asked for now rather than after the replay
         from vio.extras import pyplot
 
@@ -492,6 +500,7 @@ def run(args: argparse.Namespace) -> int:
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
+    preflight(dataset)  # before any output is opened: a data problem must not empty an earlier run's files
     loop = None
     if args.loop or cfg.loop.enabled or args.loop_output or args.loop_plot or save_map or load_map:
         from vio.app.loop_worker import LoopWorker

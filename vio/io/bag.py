@@ -93,6 +93,7 @@ class _BagFile:
         self.typestore = _typestore()
         self.topics: dict[str, tuple[str, int]] = {}  # topic -> (msgtype, message count)
         self.truncated = False  # a bare MCAP file without its summary (recorder killed): read up to the damage
+        self.damaged: str | None = None  # a chunk that fails its CRC: read up to it (said, never used)
         if self.bare_mcap:
             reader = _need("mcap.reader")
             try:
@@ -105,6 +106,9 @@ class _BagFile:
                 for topic, ty, _raw, _r in self.messages(None):
                     old = self.topics.get(topic, (ty, 0))
                     self.topics[topic] = (ty, old[1] + 1)
+                if not self.topics:  # nothing readable at all: not a recording cut short, not an MCAP
+                    raise VioError(f"{path}: not a readable MCAP file (empty, another format, or damaged at its "
+                                   "start)")
             else:
                 counts = summary.statistics.channel_message_counts if summary.statistics else {}
                 for cid, ch in summary.channels.items():
@@ -118,22 +122,31 @@ class _BagFile:
                         old = self.topics.get(c.topic, (c.msgtype, 0))
                         self.topics[c.topic] = (c.msgtype, old[1] + c.msgcount)
             except Exception as e:  # rosbags raises its own error types for damaged or foreign files
-                raise VioError(f"{path}: cannot read the bag ({type(e).__name__}: {e})") from None
+                inside = sorted(path.glob("*.mcap")) if path.is_dir() else []
+                hint = (f"; an MCAP file inside cut short is read up to the damage when given alone: vio replay "
+                        f"{inside[0]}") if inside else ""
+                raise VioError(f"{path}: cannot read the bag ({type(e).__name__}: {e}){hint}") from None
 
     def messages(self, topics: list[str] | None) -> Iterator[tuple[str, str, bytes, object]]:
         if self.bare_mcap:
             reader = _need("mcap.reader")
             with open(self.path, "rb") as f:
-                r = reader.NonSeekingReader(f) if self.truncated else reader.make_reader(f)
-                it = r.iter_messages(topics=topics, log_time_order=False)
+                # streamed in file order with every chunk's CRC checked: a flipped bit in a chunk changed an IMU
+                # sample that was then used (a review's finding)
+                it = reader.NonSeekingReader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
                 while True:
                     try:
                         schema, ch, msg = next(it)
                     except StopIteration:
                         return
-                    except Exception:  # the damaged end of a file cut short: what came before is kept
+                    except Exception as e:  # the damaged end of a file cut short: what came before is kept
+                        if type(e).__name__ == "CRCValidationError":
+                            self.damaged = self.damaged or (f"a chunk ending at byte {f.tell()} fails its CRC check "
+                                                            "(a damaged file): read up to it, nothing after it")
+                            return
                         if not self.truncated:
-                            raise
+                            raise VioError(f"{self.path}: cannot read the MCAP file ({type(e).__name__}: {e})") \
+                                from None
                         return
                     if schema is not None:
                         yield ch.topic, schema.name, msg.data, None
@@ -209,6 +222,8 @@ class BagDataset(EurocDataset):
         self.calibration = calibration
         self.imu = self._read_imu()
         (self.cam0_t, self._cam0_drop), (self.cam1_t, self._cam1_drop) = self._read_cam_stamps()
+        if self._bag.damaged:
+            self.stats.notes.append(f"{p}: {self._bag.damaged}")
         self.cam0_files = list(range(len(self.cam0_t)))  # message ordinal after drops: never None
         self.cam1_files = list(range(len(self.cam1_t)))
         self.has_cam1 = True
@@ -246,6 +261,9 @@ class BagDataset(EurocDataset):
         cam_types = {"auto": (IMAGE, COMPRESSED), "raw": (IMAGE,), "compressed": (COMPRESSED,)}[self.topics.images]
         wanted = (("left", self.topics.left, cam_types), ("right", self.topics.right, cam_types),
                   ("imu", self.topics.imu, (IMU,)))
+        if self.topics.left == self.topics.right:
+            raise VioError(f"{self.path}: the left and right cameras are both read from {self.topics.left}: give "
+                           "each its own topic (--left-topic, --right-topic or [bag])")
         missing = [f"{what} {t}" for what, t, _ in wanted if t not in have]
         if missing:
             listing = ", ".join(f"{t} ({ty}, {n} msgs)" for t, (ty, n) in sorted(have.items())) or "none"
