@@ -793,6 +793,7 @@ def test_a_serial_imu_that_cannot_open_is_named_in_the_status(tmp_path: Path, no
     try:
         assert _wait(says, 30), log_path.read_text()[-3000:]
         assert ap.poses() == 0
+        assert "camera delivering, no IMU sample yet (cannot open serial IMU port" in log_path.read_text()
     finally:
         _stop_daemon(proc)
         ap.stop.set()

@@ -274,7 +274,9 @@ class Service:
             return
         up = time.monotonic() - self.started_mono
         if self.source.connected:
-            why = "sensors delivering"
+            # READY means the pipeline runs; a silent IMU is said here too (and in the status), not hidden
+            why = "sensors delivering" if self.source.last_imu else \
+                f"camera delivering, no IMU sample yet ({_driver_error(self.source.source, 'imu') or 'starting'})"
         elif up >= self.cfg.run.ready_timeout_s:
             why = f"no sensor data after {up:.0f} s ({self.source.last_error or 'starting'}); still trying"
         else:
