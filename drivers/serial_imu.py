@@ -108,6 +108,8 @@ class SerialImuSource(ThreadedSource):
             self.clock_withheld += len(raws)
             self.last_error = self.clock.problem
             return
+        if self.last_error.startswith("device clock runs"):  # the rate came back within reach: not the reason now
+            self.last_error = ""
         for raw in raws:
             t_host = self.clock.to_host(raw.t_us * 1000)
             if t_host is None or not self.monitor.check(t_host):

@@ -34,6 +34,19 @@ log = logging.getLogger(__name__)
 # about 1-2 %); a rate beyond 0.2 % is followed but said once (no crystal is that far off).
 MAX_DRIFT_PPM = 50_000.0
 FAST_DRIFT_PPM = 2_000.0
+# Until this many blocks, the slope stays within a crystal's 0.1 % (too few points to tell a fast clock from one
+# late block); from then on it is a median of the blocks' pairwise slopes, which one stalled read cannot bend.
+ROBUST_BLOCKS = 5
+EARLY_DRIFT_PPM = 1_000.0
+
+
+def _theil_sen(t: np.ndarray, d: np.ndarray) -> float:
+    """Median of the pairwise slopes: a late block (a stalled reader, a burst) moves a least-squares line through
+    ~20 block minima by tens of ms once the slope may reach per cents; the median does not follow it."""
+    i, j = np.triu_indices(len(t), 1)
+    dt = t[j] - t[i]
+    ok = dt > 0
+    return float(np.median((d[j] - d[i])[ok] / dt[ok])) if np.any(ok) else 0.0
 
 
 @dataclass
@@ -114,9 +127,14 @@ class ClockSync:
         d = np.array([b[1] for b in self._blocks], dtype=np.float64)
         t_ref = int(t[-1])
         if len(t) >= 3:
-            slope, icpt = np.polyfit(t - t_ref, d, 1)
-            self._check_rate(float(slope), len(t))
-            slope = float(np.clip(slope, -self.max_drift, self.max_drift))
+            # round trips scatter both ways around the truth: a plain fit; arrivals: the median slope
+            slope = float(np.polyfit(t - t_ref, d, 1)[0]) if self.roundtrip else _theil_sen(t, d)
+            limit = self.max_drift
+            if len(t) >= ROBUST_BLOCKS:
+                self._check_rate(slope, len(t))
+            else:
+                limit = min(limit, EARLY_DRIFT_PPM * 1e-6)
+            slope = float(np.clip(slope, -limit, limit))
             resid = d - slope * (t - t_ref)
             # lower envelope: shift the line down to touch the lowest residual (no point lies below it); round
             # trips scatter both ways around the truth, so their line is the plain fit

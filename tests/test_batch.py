@@ -112,6 +112,11 @@ def test_flights_of_one_name_are_two_rows_and_data_notes_show(flights, tmp_path)
                        progress=False)
     names = [r["flight"] for r in report["flights"]]
     assert names == ["f", "f-2"] and all(r["ok"] for r in report["flights"])
+    shutil.copytree(flights[0], tmp_path / "day3" / "f-2")  # a flight really called f-2 comes after two f's
+    again = run_batch([str(tmp_path / d / n) for d, n in (("day1", "f"), ("day3", "f-2"), ("day2", "f"))],
+                      tmp_path / "out2", workers=1, progress=False)
+    assert [r["flight"] for r in again["flights"]] == ["f", "f-2", "f-3"]
+    assert len(list((tmp_path / "out2" / "traj").glob("*.tum"))) == 3
     assert not report["flights"][0]["notes"] and "no right images" in report["flights"][1]["notes"][0]
     md = (tmp_path / "out" / "report.md").read_text()
     assert "no right images" in md and "with data notes 1" in md

@@ -124,7 +124,8 @@ def test_a_replay_refused_before_it_starts_keeps_earlier_outputs(tmp_path, capsy
              (["--view", str(flight / "mav0" / "cam0" / "sensor.yaml")], "is an .rrd file"),
              (["--calibration", str(tmp_path / "c752.rrd"), "--view", str(tmp_path / "c752.rrd")], "written over"),
              (["--view", str(tmp_path / "nodir" / "x.rrd")], "does not exist"),
-             (["--view", str(old)], "is an .rrd file"))
+             (["--view", str(old)], "is an .rrd file"),
+             (["--view", str(tmp_path / "keep.rrd"), "--mavlink", "udpout:127.0.0.1"], "HOST:PORT"))
     (tmp_path / "c752.rrd").write_bytes((tmp_path / "c752.yaml").read_bytes())
     for args, says in cases:
         assert main(["replay", str(flight), "-o", str(old), "--no-progress", *args]) == 1, args

@@ -177,7 +177,8 @@ class BackendConfig:
     lost_timeout_s: float = opt(1.0, "no usable camera frame (IMU time) for this long -> reset; the IMU-only "
                                 "state is carried forward and re-initialisation waits for vision", min=0.05, max=60)
     max_imu_gap_s: float = opt(0.5, "an IMU gap (no samples) this long -> reset without a bridge: the motion in it "
-                               "is unknown, and integrating across it was blamed on the cameras", min=0.02, max=60)
+                               "is unknown, and integrating across it was blamed on the cameras (the daemon's "
+                               "[run] max_imu_gap_s checks arrivals too: raise both)", min=0.02, max=60)
     vision_timeout_s: float = opt(0.3, "no usable camera frame (IMU time) for this long -> not tracking: no pose "
                                   "goes to the autopilot (see [mavlink] lost_output)", min=0.02, max=60)
     quality_sigma_m: float = opt(0.05, "position sigma at which the reported quality falls below 100 (it halves "

@@ -201,12 +201,15 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
         raise VioError(f"--output {out}: cannot make the report folder ({e.strerror})") from None
     workers = max(1, workers or os.cpu_count() or 1)
     options = _load_inputs(options or {})
-    names: dict[str, int] = {}
+    taken: set[str] = set()
     jobs = []
     for f in flights:
         stem = Path(f).name or "flight"
-        names[stem] = names.get(stem, 0) + 1
-        tag = stem if names[stem] == 1 else f"{stem}-{names[stem]}"
+        tag, k = stem, 1
+        while tag in taken:  # a/f, b/f-2, c/f: f, f-2, f-3 (never two rows, or two trajectories, of one name)
+            k += 1
+            tag = f"{stem}-{k}"
+        taken.add(tag)
         jobs.append((str(f), str(out / "traj" / f"{tag}.tum"), options))
     bar = None
     if progress and sys.stderr.isatty():

@@ -484,6 +484,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
+    if args.mavlink:  # a connection string that can never open: said before any output file is opened
+        from drivers.mavlink_link import check_url
+
+        check_url(args.mavlink, "--mavlink")
     view_file = args.view if args.view and args.view != "serve" else None
     if view_file and not view_file.endswith(".rrd"):  # it is written over: never a recording or a calibration
         raise VioError(f"--view {view_file}: a live view recording is an .rrd file (or 'serve' for a web viewer)")

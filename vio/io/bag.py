@@ -134,20 +134,26 @@ class _BagFile:
                 # streamed in file order with every chunk's CRC checked: a flipped bit in a chunk changed an IMU
                 # sample that was then used (a review's finding)
                 it = reader.NonSeekingReader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
+                read = 0
                 while True:
                     try:
                         schema, ch, msg = next(it)
                     except StopIteration:
                         return
                     except Exception as e:  # the damaged end of a file cut short: what came before is kept
-                        if type(e).__name__ == "CRCValidationError":
-                            self.damaged = self.damaged or (f"a chunk ending at byte {f.tell()} fails its CRC check "
-                                                            "(a damaged file): read up to it, nothing after it")
+                        if self.truncated:
                             return
-                        if not self.truncated:
-                            raise VioError(f"{self.path}: cannot read the MCAP file ({type(e).__name__}: {e})") \
-                                from None
-                        return
+                        if type(e).__name__ == "CRCValidationError" or read:
+                            # a chunk that fails its CRC, or that no longer decompresses (the same flipped bit
+                            # under zstd): what came before it is kept, and said
+                            why = "fails its CRC check" if type(e).__name__ == "CRCValidationError" else \
+                                f"cannot be read ({type(e).__name__})"
+                            self.damaged = self.damaged or (f"a chunk ending at byte {f.tell()} {why} (a damaged "
+                                                            "file): read up to it, nothing after it")
+                            return
+                        raise VioError(f"{self.path}: cannot read the MCAP file ({type(e).__name__}: {e})") \
+                            from None
+                    read += 1
                     if schema is not None:
                         yield ch.topic, schema.name, msg.data, None
             return

@@ -398,7 +398,8 @@ class LoopCloser:
 
         target, conflict = Path(path), ""
         loaded = self._map_stamp
-        if loaded is not None and os.path.realpath(target) == loaded[0] and file_stamp(target) != loaded:
+        now = file_stamp(target)
+        if loaded is not None and os.path.realpath(target) == loaded[0] and now is not None and now != loaded:
             # two flights growing one map at once: the later save would drop the earlier one's keyframes unsaid
             alt = target.with_name(f"{target.stem}.{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}{target.suffix}")
             conflict = (f"{target} changed since this flight loaded it (another run saved over it): this flight's "
