@@ -106,10 +106,7 @@ class SerialImuSource(ThreadedSource):
             self.clock.add(raw.t_us * 1000, t_arrival_ns)
         if self.clock.problem:  # stamps the clock sync cannot place: none at all is safer than wrong ones
             self.clock_withheld += len(raws)
-            self.last_error = self.clock.problem
             return
-        if self.last_error.startswith("device clock runs"):  # the rate came back within reach: not the reason now
-            self.last_error = ""
         for raw in raws:
             t_host = self.clock.to_host(raw.t_us * 1000)
             if t_host is None or not self.monitor.check(t_host):
@@ -119,7 +116,8 @@ class SerialImuSource(ThreadedSource):
     def health(self) -> dict[str, Any]:
         return {"name": self.name, "state": self.state, "port": self.port, "baud": self.baud,
                 "open_failures": self.open_failures, "disconnects": self.disconnects,
-                "queue_dropped": self._queue.dropped, "last_error": self.last_error,
+                # while the clock sync cannot place the stamps, that is why no sample comes (and it clears with it)
+                "queue_dropped": self._queue.dropped, "last_error": self.clock.problem or self.last_error,
                 "clock_withheld": self.clock_withheld,
                 "parser": self.parser.stats.as_dict(), "stream": self.monitor.as_dict(),
                 "clock": self.clock.as_dict()}

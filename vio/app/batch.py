@@ -144,7 +144,7 @@ def _run_pool(cf, mp, jobs, workers: int, progress, rows: list) -> list[dict]:
 def _store(row: dict, out_tum: str) -> dict:
     """The driver writes each trajectory (a cluster's workers need not see the output folder). The row is named
     as its trajectory file: two flights called flight.mcap in two folders are two rows (compare keys on it)."""
-    row["flight"] = Path(out_tum).name[: -len(".tum")]
+    row["flight"] = Path(out_tum).stem
     tum = row.pop("tum", "")
     if tum:
         try:
@@ -156,7 +156,7 @@ def _store(row: dict, out_tum: str) -> dict:
 
 def _failed_row(path: str, error: str, out_tum: str) -> dict:
     row: dict = {k: None for k in _ROW_FIELDS}
-    row.update(flight=Path(out_tum).name[: -len(".tum")], path=str(path), ok=False, error=error)
+    row.update(flight=Path(out_tum).stem, path=str(path), ok=False, error=error)
     return row
 
 

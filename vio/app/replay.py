@@ -458,8 +458,9 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
                 raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
             seen[key] = what
     for what, p in (reads or {}).items():
-        if p and seen.get(os.path.realpath(p)) not in (None, *grows):
-            raise VioError(f"{p}: {seen[os.path.realpath(p)]} would be written over {what}")
+        writer = seen.get(os.path.realpath(p)) if p else None
+        if writer not in (None, *grows):
+            raise VioError(f"{p}: {writer} would be written over {what}")
     for what, p in paths.items():
         if not p:
             continue

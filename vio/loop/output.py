@@ -135,8 +135,7 @@ class CorrectedOutput:
         R = C[:3, :3]
         # the velocity's covariance is world-frame like the velocity: it turns with it (left as it was, a yaw
         # correction made the odometry's uncertain axis read as its certain one: a review's finding)
-        cov_vel = None if state.cov_vel is None else R @ state.cov_vel @ R.T
         out = dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=R @ state.v_world,
-                                  cov_vel=cov_vel, reset_counter=state.reset_counter + self.jumps,
+                                  cov_vel=R @ state.cov_vel @ R.T, reset_counter=state.reset_counter + self.jumps,
                                   loop_jumps=state.loop_jumps + self.jumps)
         return out if self._unc is None else self._unc.added_to(out, self.quality_sigma_m)
