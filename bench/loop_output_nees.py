@@ -45,10 +45,10 @@ def _replay(path: Path, closer, cfg) -> tuple[list, list, list]:
     odo, a, b = [], [], []
 
     def sink(st) -> None:
-        T, version, unc = loop.correction()
+        T, version, unc, *segment = loop.correction()
         odo.append(st)
-        a.append(with_u.apply(st, T, version, unc))
-        b.append(without.apply(st, T, version, None))
+        a.append(with_u.apply(st, T, version, unc, *segment))
+        b.append(without.apply(st, T, version, None, *segment))
 
     replay(EurocDataset(path), cfg, [sink], progress=False, loop=loop)
     return odo, a, b

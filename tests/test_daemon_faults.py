@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_service import (
     LAUNCHER,
     REPO,
@@ -385,3 +386,69 @@ def test_an_image_write_that_fails_with_a_few_kib_left_is_called_a_full_disk(tmp
     assert "disk full: 44 KiB left" in outputs._storage_diagnosis(tmp_path)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(1 << 40, 1 << 39, 1 << 39))
     assert outputs._storage_diagnosis(tmp_path) == ""
+
+
+def test_a_recreated_estimator_is_a_new_segment_for_the_loop_stage_and_drops_the_held_correction() -> None:
+    """When reset() fails the daemon makes a new estimator, whose reset_counter starts at 0 again: the loop stage
+    was handed that 0 and chained the new frame to the old one as one flight (its keyframes saved into the map
+    metres off, with the old placement's small sigma), and the output kept mapping the new frame with the old
+    correction (a review's finding)."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.workers import EstimatorWorker
+    from vio.estimator import ProcessedFrame, SolvedKeyframe
+    from vio.geometry import make_T
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+
+    class FakeEstimator:
+        last_features = None
+
+        def __init__(self) -> None:
+            self.done: list = []
+
+        def reset(self, reason: str, bridge: bool = True) -> None:
+            raise RuntimeError("smoother in a bad state")
+
+        def take_processed(self) -> list:
+            done, self.done = self.done, []
+            return done
+
+    class FakeLoop:
+        def __init__(self) -> None:
+            self.counters: list[int] = []
+
+        def submit(self, t_ns, T, image, ff, reset_counter) -> bool:
+            self.counters.append(reset_counter)
+            return True
+
+        def settle(self, settled) -> None:
+            pass
+
+        def correction(self):
+            unc = CorrectionUncertainty(np.eye(4) * 1e-2, np.zeros(3))
+            return make_T(np.eye(3), [5.0, 0, 0]), 3, unc, 1, False
+
+    made: list[FakeEstimator] = []
+
+    def make() -> FakeEstimator:
+        made.append(FakeEstimator())
+        return made[-1]
+
+    loop, output = FakeLoop(), CorrectedOutput("jump")
+    w = EstimatorWorker(threading.Event(), make, None, LatestState(), 0.5, loop=loop, loop_output=output)
+    w.estimator = make()
+
+    def frame(t_ns: int) -> None:
+        st = NavState(t_ns, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+        w._left.append((t_ns, np.zeros((4, 4), np.uint8)))
+        w.estimator.done.append(ProcessedFrame(t_ns, None, None, st, SolvedKeyframe(t_ns, None, st)))
+        w._emit(st)
+
+    frame(10**9)
+    assert w.last_state.T_world_body[0, 3] == pytest.approx(5.0)  # the map's correction applied
+    w._reset("test")
+    assert len(made) == 2
+    frame(2 * 10**9)
+    assert loop.counters[0] != loop.counters[1]  # a new odometry segment for the loop stage
+    assert w.last_state.T_world_body[0, 3] == pytest.approx(0.0)  # no correction of the old frame
+    assert w.last_state.cov_pose[3, 3] == pytest.approx(1e-6)
+    assert w.last_state.reset_counter > 0

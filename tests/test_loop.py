@@ -598,6 +598,9 @@ def test_loop_worker_drains_its_queue_before_it_stops():
         def correction_uncertainty(self):
             return None
 
+        def correction_segment(self):
+            return 0, True
+
         def finish(self):
             self.finished = True
 
@@ -647,6 +650,9 @@ def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
 
         def correction_uncertainty(self):
             return None
+
+        def correction_segment(self):
+            return 0, True
 
         def finish(self):
             pass
@@ -1610,3 +1616,97 @@ def test_a_session_whose_joining_edges_are_switched_off_is_in_a_frame_of_its_own
     me.graph.edges[1].weight = 1.0  # GNC takes it back in
     LoopCloser._rejoin(me)
     assert me._comp(2) == 0 and LoopCloser.relocalised.fget(me)
+
+
+def test_after_an_estimator_reset_a_solve_of_the_new_segments_own_frame_is_not_taken():
+    """After a reset the correction held still maps the new segment (the reset keeps the last pose as origin), but
+    the next solve (deferred edges flushed, a closure inside the new segment) gave that segment's own frame with a
+    new version: blend walked the vehicle metres off the map with mm covariance and jump threw the map's frame
+    away (a review's finding). A solve is taken again once the segment is joined, or for the same segment."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+    from vio.types import NavState
+
+    C = make_T(so3_exp(np.radians([0, 0, 35.0])), [6.0, -4.0, 0])
+    unc = CorrectionUncertainty(np.eye(4) * 1e-2, np.zeros(3))
+    for mode in ("jump", "blend"):
+        out = CorrectedOutput(mode, blend_rate_m_s=1e3, blend_rate_deg_s=1e6)
+        st = [NavState(int(k * 1e8), make_T(np.eye(3), [1.0, 0, 0]), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+              for k in range(6)]
+        held = out.apply(st[0], C, 1, unc, 1, False)  # relocalised: session 1 joined to the map
+        held = out.apply(st[1], C, 1, unc, 1, False)
+        # estimator reset: session 2 in a frame of its own, and a solve (version 2) gives its own frame
+        after = out.apply(st[2], np.eye(4), 2, None, 2, True)
+        assert np.allclose(after.T_world_body, held.T_world_body)
+        assert after.cov_pose[3, 3] == pytest.approx(held.cov_pose[3, 3]) and after.reset_counter == held.reset_counter
+        C2 = make_T(so3_exp(np.radians([0, 0, 36.0])), [6.1, -4.0, 0])
+        joined = out.apply(st[3], C2, 3, unc, 2, False)  # a closure joins session 2 to the map: taken
+        out.apply(st[4], C2, 3, unc, 2, False)
+        assert np.allclose(out.apply(st[5], C2, 3, unc, 2, False).T_world_body, C2 @ st[5].T_world_body)
+        assert mode == "blend" or joined.reset_counter == held.reset_counter + 1
+    # the flight's own segment: every solve is taken, in its own frame too (drift corrections before any map)
+    out = CorrectedOutput("jump")
+    s = NavState(0, np.eye(4), np.zeros(3))
+    out.apply(s, make_T(np.eye(3), [0.1, 0, 0]), 1, None, 0, True)
+    assert out.apply(s, make_T(np.eye(3), [0.2, 0, 0]), 2, None, 0, True).T_world_body[0, 3] == pytest.approx(0.2)
+
+
+def test_a_restarted_output_applies_no_correction_and_takes_none_of_the_old_estimators_segments():
+    """A re-created estimator (the daemon's fallback when reset() fails) has a frame no correction held maps."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+    from vio.types import NavState
+
+    C = make_T(so3_exp(np.radians([0, 0, 35.0])), [6.0, -4.0, 0])
+    unc = CorrectionUncertainty(np.eye(4) * 1e-2, np.zeros(3))
+    s = NavState(0, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+    for mode in ("jump", "blend"):
+        out = CorrectedOutput(mode, blend_rate_m_s=1e3, blend_rate_deg_s=1e6)
+        out.apply(s, C, 4, unc, 1, False)
+        out.restart()
+        sent = out.apply(s, C, 5, unc, 1, False)  # a late solve of the old estimator's segment
+        assert np.allclose(sent.T_world_body, np.eye(4)) and sent.cov_pose[3, 3] == pytest.approx(1e-6)
+        C3 = make_T(np.eye(3), [0.3, 0, 0])
+        out.apply(s, C3, 6, None, 2, True)  # the new estimator's segment, its own frame: taken
+        later = NavState(10**9, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
+        assert out.apply(later, C3, 6, None, 2, True).T_world_body[0, 3] == pytest.approx(0.3)
+
+
+def test_a_blend_walks_no_further_over_a_gap_in_states_than_over_a_quarter_second():
+    """A 30 s gap between two states (a stall) let the blend take one 6 m step (a review's finding)."""
+    from vio.loop.output import MAX_BLEND_STEP_S, CorrectedOutput
+    from vio.types import NavState
+
+    out = CorrectedOutput("blend", blend_rate_m_s=0.2, blend_rate_deg_s=5.0)
+    C = make_T(np.eye(3), [10.0, 0, 0])
+    out.apply(NavState(0, np.eye(4), np.zeros(3)), C, 1)
+    sent = out.apply(NavState(30 * 10**9, np.eye(4), np.zeros(3)), C, 1)
+    assert sent.T_world_body[0, 3] == pytest.approx(0.2 * MAX_BLEND_STEP_S)
+
+
+def test_jump_counts_no_jump_for_the_same_yaw_on_either_side_of_pi():
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    out = CorrectedOutput("jump")
+    s = NavState(0, np.eye(4), np.zeros(3))
+    out.apply(s, make_T(so3_exp(np.r_[0, 0, np.pi - 1e-12]), np.zeros(3)), 1)
+    out.apply(s, make_T(so3_exp(np.r_[0, 0, -np.pi + 1e-12]), np.zeros(3)), 2)
+    assert out.jumps == 1
+
+
+def test_the_loop_stage_says_which_segment_its_correction_is_for_and_whether_it_is_joined():
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser
+    from vio.loop.features import KeyframeFeatures
+    from vio.sim import default_calibration
+
+    cl = LoopCloser(default_calibration(), VioConfig().loop)
+    f = KeyframeFeatures(np.zeros((3, 32), np.uint8), np.zeros((3, 2)), np.zeros((3, 3)))
+    cl.extractor.extract = lambda image, ff: f
+    cl._detect = lambda i, bow: False
+    assert cl.correction_segment() == (0, True)
+    cl.add_keyframe(0, np.eye(4), None, None, 0)
+    assert cl.correction_segment() == (0, True)
+    cl.add_keyframe(10**9, make_T(np.eye(3), [1.0, 0, 0]), None, None, 1)  # an estimator reset
+    assert cl.correction_segment() == (1, True)
+    cl._join(0, 1)
+    assert cl.correction_segment() == (1, False)

@@ -46,6 +46,7 @@ class LoopWorker:
         self._lock = threading.Lock()
         self._correction = np.eye(4)
         self._uncertainty: CorrectionUncertainty | None = None
+        self._segment: tuple[int, bool] = (0, True)  # the correction's odometry segment, and is it its own frame
         self.closures = 0  # accepted closures so far
         # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
         # graph deferred brought in later), not when only a new odometry segment begins
@@ -79,19 +80,20 @@ class LoopWorker:
             with contextlib.suppress(queue.Full):
                 self._q.put_nowait(_Settled(tuple(settled)))
 
-    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None]:
+    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool]:
         """(T_world_odom, its version: the pose graph's solves behind it, its uncertainty where the frame came
-        through loop edges) as of the last keyframe processed; the arguments of CorrectedOutput.apply."""
+        through loop edges, the odometry segment it is for, is that segment in a frame of its own) as of the last
+        keyframe processed; the arguments of CorrectedOutput.apply."""
         with self._lock:
-            return self._correction.copy(), self._version, self._uncertainty
+            return self._correction.copy(), self._version, self._uncertainty, *self._segment
 
     def _set_correction(self) -> None:
         """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
         estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
         T, version = self.closer.correction(), self.closer.graph.estimate_version
-        unc = self.closer.correction_uncertainty()
+        unc, seg = self.closer.correction_uncertainty(), self.closer.correction_segment()
         with self._lock:
-            self._correction, self._version, self._uncertainty = T, version, unc
+            self._correction, self._version, self._uncertainty, self._segment = T, version, unc, seg
 
     def status(self) -> dict:
         """Counts for the daemon's status file and health line (thread-safe copy)."""

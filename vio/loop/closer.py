@@ -445,6 +445,15 @@ class LoopCloser:
             return np.eye(4)
         return self.graph.estimate[-1] @ inv_T(self.graph.odom[-1])
 
+    def correction_segment(self) -> tuple[int, bool]:
+        """(the newest keyframe's session, is it in a frame of its own): a session no loop edge joins to another one
+        (a flight's first before any map placement, or a segment after an estimator reset not rejoined yet)."""
+        if not self.keyframes:
+            return 0, True
+        s = self.keyframes[-1].session
+        mine = self._comp(s)
+        return s, not any(self._comp(o) == mine for o in self._component if o != s)
+
     def correction_uncertainty(self) -> CorrectionUncertainty | None:
         """How well the newest keyframe is placed in a frame that came to it through loop edges (a loaded map's, or
         this flight's before an estimator reset): its yaw and position covariance in the pose graph (the map's own

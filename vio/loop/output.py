@@ -62,6 +62,9 @@ class CorrectionUncertainty:
                                    quality=quality)
 
 
+MAX_BLEND_STEP_S = 0.25  # states come at 10-200 Hz; a longer gap walks no further than this
+
+
 def _yaw_rot(yaw: float) -> np.ndarray:
     return so3_exp(np.array([0.0, 0.0, yaw]))
 
@@ -89,29 +92,64 @@ class CorrectedOutput:
         self.remaining_deg = 0.0
         self._target: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # held correction: translation, yaw
         self._unc: CorrectionUncertainty | None = None  # of the correction held
+        # the odometry segment (loop stage session) of the correction held, None until the first; after `restart`
+        # only segments from `_min_segment` on are taken (the new estimator's, not the old one's late solves)
+        self._segment: int | None = None
+        self._seen_segment = -1
+        self._min_segment = 0
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
+
+    def _takes(self, segment: int | None, own_frame: bool) -> bool:
+        """Is a new version's correction one for the odometry being sent? Not one of the old estimator's segments
+        after `restart`, nor a later segment's own frame (an estimator reset not rejoined yet)."""
+        if segment is None:
+            return True
+        if segment < self._min_segment:
+            return False
+        return self._segment is None or segment == self._segment or not own_frame
 
     @classmethod
     def from_config(cls, cfg) -> CorrectedOutput:
         """As a vio.config.VioConfig says: [loop] output and blend rates, [backend] quality_sigma_m."""
         return cls(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s, cfg.backend.quality_sigma_m)
 
+    def restart(self) -> None:
+        """A new estimator took over (the daemon re-created it): its odometry is in a frame of its own, which no
+        correction held so far maps, so none is applied (the caller moves reset_counter), and a later solve of the
+        old segment's keyframes is not taken either: only one for a segment the loop stage began after this."""
+        self._t, self._yaw = np.zeros(3), 0.0
+        self._target = (np.zeros(3), 0.0)
+        self._unc, self._segment = None, None
+        self.remaining_m = self.remaining_deg = 0.0
+        self._min_segment = self._seen_segment + 1
+
     def apply(self, state: NavState, T_world_odom: np.ndarray, version: int,
-              uncertainty: CorrectionUncertainty | None = None) -> NavState:
+              uncertainty: CorrectionUncertainty | None = None, segment: int | None = None,
+              own_frame: bool = False) -> NavState:
+        """`state` with the correction delivered as the mode says. `segment` is the odometry segment (the loop
+        stage's session) the correction was solved for, `own_frame` whether that segment is still in a frame of its
+        own (no loop edge joins it to another session): LoopWorker.correction() gives all of them."""
         if self.mode == "off":
             return state
-        dt = 0.0 if self._last_t_ns is None else max(state.t_ns - self._last_t_ns, 0) * 1e-9
+        # a gap in states (a stall) is not time to walk in: at most MAX_BLEND_STEP_S of blend per state
+        dt = 0.0 if self._last_t_ns is None else min(max(state.t_ns - self._last_t_ns, 0) * 1e-9, MAX_BLEND_STEP_S)
         self._last_t_ns = state.t_ns
-        if version != self._version:
-            # A new correction comes with a new version (a solve); an estimator reset changes the correction without
-            # one (its new odometry segment, in a frame of its own until a closure joins it): both modes keep the
-            # correction, and its uncertainty, that they hold until then. (Blend walked towards the new segment's
-            # own frame, away from the map, at its full rate: a review's finding.)
+        if segment is not None:
+            self._seen_segment = max(self._seen_segment, segment)
+        if version != self._version and self._takes(segment, own_frame):
+            # A new correction comes with a new version (a solve). After an estimator reset the newest segment is in
+            # a frame of its own until a closure joins it, and the estimator's reset kept its last pose as the new
+            # origin, so the correction held still maps it: both modes keep that correction, and its uncertainty,
+            # while a solve (any closure, or deferred edges going in) gives only the new segment's own frame.
+            # (Blend walked towards that frame, away from the map, and jump threw the map's frame away at the next
+            # solve: two reviews' findings.)
             self._version = version
+            self._segment = segment
             self._target = _yaw_only(T_world_odom)
             self._unc = uncertainty
             if self.mode == "jump":
-                if not (np.allclose(self._target[0], self._t) and np.isclose(self._target[1], self._yaw)):
+                turned = abs(float(np.angle(np.exp(1j * (self._target[1] - self._yaw))))) > 1e-8
+                if turned or not np.allclose(self._target[0], self._t):
                     self.jumps += 1
                 self._t, self._yaw = self._target
         if self.mode == "blend":

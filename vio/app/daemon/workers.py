@@ -287,7 +287,10 @@ class EstimatorWorker(Worker):
             for t, left in self._left:
                 if t == kf.t_ns:
                     st = kf.state
-                    self.loop_worker.submit(st.t_ns, st.T_world_body, left, kf.features, st.reset_counter)
+                    # the published counter: a re-created estimator counts from 0 again, and the loop stage must
+                    # see it as a new odometry segment (it chained the new frame to the old one as one flight)
+                    self.loop_worker.submit(st.t_ns, st.T_world_body, left, kf.features,
+                                            st.reset_counter + self._reset_base)
         self.loop_worker.settle(pf.settled)  # after the keyframe: a full queue drops these first
         # this frame's image stays until the next frame: it may be a keyframe solved then
         while self._left and self._left[0][0] < pf.t_ns:
@@ -330,6 +333,8 @@ class EstimatorWorker(Worker):
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
         self.estimator = self._make()
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
+        if self.loop_output is not None:
+            self.loop_output.restart()  # no loop correction maps the new estimator's frame
         self._last_imu_t = None
         self._arrivals.clear()
 
