@@ -1710,3 +1710,39 @@ def test_the_loop_stage_says_which_segment_its_correction_is_for_and_whether_it_
     assert cl.correction_segment() == (1, True)
     cl._join(0, 1)
     assert cl.correction_segment() == (1, False)
+
+
+def test_one_edge_to_a_loaded_map_is_not_made_consistent_by_an_edge_within_the_flight():
+    """Temporal consistency counts candidates of the newest one's kind only: one map edge and one agreeing edge
+    within the flight (frames that nearly coincide: a take-off from the map's pad) passed min_consistent (2) and
+    joined the flight to the map on one edge, where reloc_min_consistent asks for 3 (a review's finding)."""
+    from types import SimpleNamespace as NS
+
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser, _Candidate
+    from vio.loop.features import KeyframeFeatures
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    cfg = VioConfig().loop
+    assert cfg.min_consistent == 2 and cfg.reloc_min_consistent == 3
+    cl = LoopCloser(calib, cfg)
+    f = KeyframeFeatures(np.zeros((3, 32), np.uint8), np.zeros((3, 2)), np.zeros((3, 3)))
+    cl.extractor.extract = lambda image, ff: f
+    cl._detect = lambda i, bow: False
+    n = 10
+    cl.load_map(NS(t_ns=np.arange(n), T_world_body=[np.eye(4)] * n, features=[f] * n,
+                   header={"camera": {"width": calib.cam0.width, "height": calib.cam0.height, "fx": calib.cam0.fx}}))
+    for k in range(30):
+        cl.add_keyframe(10**10 + k * 10**9, make_T(np.eye(3), [0.1 * k, 0, 0]), None, None, 0)
+    eye = np.eye(4)
+    cl._pending = [_Candidate(n + 28, 3, eye, eye, 15), _Candidate(n + 29, n + 5, eye, eye, 40)]
+    assert not cl._consistent(n + 29)  # the newest (within the flight) has one of its kind
+    cl._pending.append(_Candidate(n + 29, 4, eye, eye, 15))
+    assert not cl._consistent(n + 29) and not cl.relocalised  # two map edges: reloc_min_consistent is 3
+    assert not any(e.kind == "loop" for e in cl.graph.edges)
+    cl._pending.append(_Candidate(n + 29, 5, eye, eye, 15))
+    # three map edges agree (two from one keyframe count once): keyframes 38 and 39 only
+    assert not cl._consistent(n + 29)
+    cl._pending.append(_Candidate(n + 27, 6, eye, eye, 15))
+    assert cl._consistent(n + 27) and cl.relocalised

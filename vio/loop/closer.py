@@ -303,8 +303,15 @@ class LoopCloser:
             d_yaw = roll_pitch_yaw(p.correction[:3, :3] @ newest.correction[:3, :3].T)[2]
             return bool(np.linalg.norm(p.correction[:3, 3] - newest.correction[:3, 3]) <= c.consistency_m
                         and abs(np.degrees(d_yaw)) <= c.consistency_deg)
-        agree = [p for p in self._pending if agrees(p)]
-        same = self._comp(self.keyframes[newest.j].session) == self._comp(self.keyframes[newest.i].session)
+        def frames(p: _Candidate) -> tuple[int, int]:
+            return self._comp(self.keyframes[p.i].session), self._comp(self.keyframes[p.j].session)
+
+        # only candidates of the newest one's kind count: within one frame, or between the same two frames (one
+        # edge to a loaded map with one agreeing edge within the flight passed min_consistent, not
+        # reloc_min_consistent, and joined the flight to the map: a review's finding)
+        kind = frames(newest)
+        agree = [p for p in self._pending if frames(p) == kind and agrees(p)]
+        same = kind[0] == kind[1]
         if len({p.i for p in agree}) < (c.min_consistent if same else c.reloc_min_consistent):
             self.stats.refused["inconsistent"] += 1
             return False
