@@ -81,6 +81,7 @@ class MavlinkStats:
     states_sent: int = 0
     states_superseded: int = 0  # replaced by a newer state before their send slot
     states_not_tracking: int = 0
+    states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
@@ -93,6 +94,12 @@ class MavlinkStats:
     io_errors: int = 0
     last_latency_ms: float = float("nan")  # send time - state time (meaningful when t_ns is host time)
     first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
+
+
+def _finite(state: NavState) -> bool:
+    """Is every number the pose messages are made of finite?"""
+    return all(bool(np.isfinite(a).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
+                                                      state.cov_pose, state.cov_vel))
 
 
 def check_mavlink_config(cfg: MavlinkConfig) -> None:
@@ -229,7 +236,8 @@ class MavlinkOutput:
         return {"link_up": self._link_up, "connected": self.connected, "url": self.url,
                 "system_id": self.system_id, "target_system": self.target_system,
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
-                "states_not_tracking": st.states_not_tracking, "autopilot_heartbeats": st.autopilot_heartbeats,
+                "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
+                "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
                 "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms,
@@ -242,6 +250,14 @@ class MavlinkOutput:
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
         goes out) and sends nothing. Returns whether the state was taken for sending."""
         taken = False
+        finite = _finite(state)
+        if not finite:
+            # never sent, not even as quality 0: the autopilot would read a NaN covariance as anything
+            if not self.stats.states_not_finite:
+                log.error("no pose sent: the estimate holds a NaN or infinite value (pose, velocity or covariance); "
+                          "a loss of tracking until it is finite again")
+            self.stats.states_not_finite += 1
+            state = dataclasses.replace(state, tracking=False, quality=0)
         with self._pending_lock:
             self.stats.states_in += 1
             self._last_state_at_ns = self._clock()
@@ -256,7 +272,7 @@ class MavlinkOutput:
                     log.warning("no pose sent: the IMU mount is not known yet (mount = %r needs the calibration)",
                                 self.cfg.mount)
                     self._mount_warned = True
-            elif not state.tracking and not self._lost_as_quality0:
+            elif not state.tracking and (not self._lost_as_quality0 or not finite):
                 self.stats.states_not_tracking += 1
                 self._pending = None
             elif self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns:

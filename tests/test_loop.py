@@ -484,7 +484,8 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
                          ('"parts": "two", ' + cam, "parts"),
                          ('"parts": [{"keyframes": 1, "join_edges": null}, {"keyframes": "1", "join_edges": 0}], '
                           + cam, "parts"),
-                         ('"camera": {"width": 0}', "camera")):
+                         ('"camera": {"width": 0}', "camera"),
+                         (cam.replace("752", "Infinity"), "camera")):
         bad_hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + header + '}')
         np.savez(tmp_path / "bad.npz", **{**good, "header": bad_hdr})
         with pytest.raises(VioError, match=f"damaged map.*{says}"):
@@ -495,6 +496,12 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
     np.savez(tmp_path / "x.npz", header=np.array('{"format": "other", "version": 1}'))
     with pytest.raises(VioError, match="not a Kestrel VIO map"):
         load_map(tmp_path / "x.npz")
+    # a header that is not an object, or whose version is not a number: one line, not an AttributeError/TypeError
+    for header, says in (("[1]", "not a Kestrel VIO map"),
+                         ('{"format": "kestrel-vio-map", "version": null}', "version")):
+        np.savez(tmp_path / "z.npz", **{**good, "header": np.array(header)})
+        with pytest.raises(VioError, match=says):
+            load_map(tmp_path / "z.npz")
     np.savez(tmp_path / "y.npz", header=np.array('{"format": "kestrel-vio-map", "version": 99}'))
     with pytest.raises(VioError, match="newer"):
         load_map(tmp_path / "y.npz")
@@ -1475,6 +1482,11 @@ def test_correction_uncertainty_falls_back_to_a_loop_edges_sigmas_when_gtsam_can
     assert caplog.text.count("no marginal covariance") == 1
     me._comp = lambda s: s  # its own frame
     assert LoopCloser.correction_uncertainty(me) is None
+    # a marginal that comes back NaN goes the same way (NaN read as quality 100 at the output: a review's finding)
+    Graph.marginal = staticmethod(lambda i: np.full((6, 6), np.nan))
+    Graph.loop_variance_factor = lambda self: 1.0
+    me._comp = lambda s: 0
+    np.testing.assert_allclose(LoopCloser.correction_uncertainty(me).cov_yaw_position, a.cov_yaw_position)
 
 
 def test_a_flight_that_takes_off_where_the_map_did_gets_its_map_frame_and_uncertainty_at_the_join(laps_flight,

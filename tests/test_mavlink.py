@@ -331,6 +331,33 @@ def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
     out.close()
 
 
+@pytest.mark.parametrize("lost_output", ["none", "quality0"])
+def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking(ap, lost_output, caplog):
+    """NaN compares false both ways: covariance_quality read a NaN covariance as quality 100 and the pose messages
+    carried the NaN (a review's finding). Such a state is a loss of tracking, sent as nothing, not even quality 0."""
+    from vio.types import covariance_quality
+
+    assert covariance_quality(np.full((6, 6), np.nan), 0.05) == 0.0
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"] if lost_output == "quality0" else
+                   ["VISION_POSITION_ESTIMATE", "ODOMETRY"], **({"lost_output": lost_output} if lost_output != "none"
+                                                                 else {}))
+    out.send_state(state(clock.t))
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1
+    for k in range(5):
+        clock.advance(0.05)
+        out.send_state(state(clock.t, cov_pose=np.full((6, 6), np.nan) if k % 2 else np.eye(6) * 1e-4,
+                             v_world=np.array([np.inf, 0, 0]) if not k % 2 else np.zeros(3)))
+    got = ap.drain()
+    assert not [m for m in got if m.get_type() in ("ODOMETRY", "VISION_POSITION_ESTIMATE")]
+    assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
+    assert out.health()["states_not_finite"] == 5 and "NaN or infinite" in caplog.text
+    clock.advance(0.05)
+    out.send_state(state(clock.t))
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1
+    out.close()
+
+
 def test_flapping_tracking_gives_one_unstable_message_then_the_final_state(ap):
     """Frames in bursts (an overloaded board) flip tracking every 0.2 s: the ground station gets "lost",
     "regained", "lost", then one "unstable", and the state it settled in once it held for 3 s."""

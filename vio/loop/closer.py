@@ -478,6 +478,8 @@ class LoopCloser:
             C = self.graph.marginal(n)
             if C is not None:
                 C = C * self.graph.loop_variance_factor()
+                if not np.isfinite(C).all():
+                    raise RuntimeError("it is not finite")
         except RuntimeError as e:  # gtsam could not give it: one loop edge's sigmas, unscaled, rather than nothing
             if not self._marginal_warned:
                 log.warning("loop closure: no marginal covariance from the pose graph (%s); the pose sent in the "

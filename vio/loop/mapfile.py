@@ -24,6 +24,7 @@ import contextlib
 import datetime
 import hashlib
 import json
+import math
 import os
 import zipfile
 from dataclasses import dataclass
@@ -129,8 +130,8 @@ def _header_problem(header: dict, n: int) -> str | None:
         if not ok or sum(q["keyframes"] for q in parts) != n or (parts and parts[0].get("join_edges") is not None):
             return f"its header's parts do not split its {n} keyframes"
     cam = header.get("camera")
-    if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and cam[k] > 0
-                                            for k in ("width", "height", "fx", "fy")):
+    if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
+                                            and cam[k] > 0 for k in ("width", "height", "fx", "fy")):
         return "its header has no camera size and focal lengths"
     return None
 
@@ -140,9 +141,13 @@ def load_map(path: str | Path) -> MapData:
     try:
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(str(z["header"]))
-            if header.get("format") != FORMAT:
-                raise VioError(f"{path}: not a Kestrel VIO map (format {header.get('format')!r})")
-            if int(header.get("version", 0)) > VERSION:
+            if not isinstance(header, dict) or header.get("format") != FORMAT:
+                got = header.get("format") if isinstance(header, dict) else type(header).__name__
+                raise VioError(f"{path}: not a Kestrel VIO map (format {got!r})")
+            version = header.get("version", 0)
+            if type(version) is not int:
+                raise VioError(f"{path}: damaged map (its header's version {version!r} is not a whole number)")
+            if version > VERSION:
                 raise VioError(f"{path}: map format version {header['version']} is newer than this program's "
                                f"({VERSION})")
             off = z["kf_offsets"]
