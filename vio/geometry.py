@@ -118,6 +118,12 @@ def roll_pitch_yaw(R_world_body: np.ndarray) -> np.ndarray:
         return Rotation.from_matrix(R_world_body).as_euler("ZYX")[::-1].copy()
 
 
+def yaw_of(R_world_body: np.ndarray) -> float:
+    """The Z-Y-X yaw of `roll_pitch_yaw` (rad) without scipy's object per call (the loop stage's gates ask it for
+    every candidate); pitch below 90 deg."""
+    return float(np.arctan2(R_world_body[1, 0], R_world_body[0, 0]))
+
+
 def closest_yaw(M: np.ndarray) -> float:
     """Angle (rad) of the rotation about z closest to the 3x3 matrix M (maximises trace(Rz^T M))."""
     return float(np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1]))

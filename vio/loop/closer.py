@@ -22,7 +22,7 @@ import numpy as np
 
 from vio.calibration import StereoCalibration
 from vio.config import LoopConfig
-from vio.geometry import inv_T, make_T, roll_pitch_yaw, so3_exp, so3_log
+from vio.geometry import inv_T, make_T, so3_exp, so3_log, yaw_of
 from vio.loop.database import BowIndex, BowVector
 from vio.loop.features import FeatureExtractor, KeyframeFeatures
 from vio.loop.output import CorrectionUncertainty
@@ -90,7 +90,9 @@ class LoopStats:
     gnc_decisions: int = 0  # closures after which the robust decision ran (the others fitted: fast path)
     quick_fits: int = 0  # closures whose new edges already fitted the graph's estimate (no fit check either)
     detect_ms: list = field(default_factory=list)  # extraction + retrieval + verification per keyframe
-    optimize_ms: list = field(default_factory=list)
+    # the pose graph's upkeep per keyframe: its node, and every flush_every keyframes their iSAM2 update
+    graph_ms: list = field(default_factory=list)
+    optimize_ms: list = field(default_factory=list)  # the re-solve after a closure
 
     def to_dict(self) -> dict:
         def mean(x):
@@ -101,6 +103,7 @@ class LoopStats:
                 "gnc_decisions": self.gnc_decisions, "quick_fits": self.quick_fits,
                 "detect_ms_mean": mean(self.detect_ms),
                 "detect_ms_p95": float(np.percentile(self.detect_ms, 95)) if self.detect_ms else 0.0,
+                "graph_ms_mean": mean(self.graph_ms),
                 "optimize_ms_mean": mean(self.optimize_ms),
                 "optimize_ms_max": float(max(self.optimize_ms)) if self.optimize_ms else 0.0}
 
@@ -146,6 +149,7 @@ class LoopCloser:
             self.session += 1  # an estimator reset: the odometry chain breaks
         self._last_reset = reset_counter
         first_ever = not self.keyframes
+        t_graph = time.perf_counter()
         if first_ever or self.keyframes[-1].session != self.session:
             self._component.setdefault(self.session, self.session)
             prior = (1e-3, 1e-3) if first_ever else (np.radians(c.segment_prior_deg), c.segment_prior_m)
@@ -157,13 +161,15 @@ class LoopCloser:
             path = self.keyframes[prev].path_m + float(np.linalg.norm(
                 T_world_body[:3, 3] - self.graph.odom[prev][:3, 3]))
         self._own_node[int(t_ns)] = i
+        graph_s = time.perf_counter() - t_graph
+        self.stats.graph_ms.append(graph_s * 1e3)
         kf = Keyframe(int(t_ns), self.session, feats, path)
         self.keyframes.append(kf)
         self.index.add(bow)
         self.stats.keyframes += 1
         before = (len(self.graph.edges), dict(self._component), self.relocalised_t_ns, self.stats.accepted)
         accepted = self._detect(i, bow)
-        self.stats.detect_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats.detect_ms.append((time.perf_counter() - t0 - graph_s) * 1e3)
         if accepted:
             t1 = time.perf_counter()
             try:
@@ -287,7 +293,7 @@ class LoopCloser:
             if not other:
                 since = abs(kf.path_m - old.path_m) if old.session == kf.session else float("inf")
                 allowed_m = c.drift_gate_m + c.drift_gate_per_m * since
-                if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(roll_pitch_yaw(corr[:3, :3])[2])) > \
+                if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(yaw_of(corr[:3, :3]))) > \
                         c.drift_gate_deg:
                     reason = "drift gate"
                     continue
@@ -300,7 +306,7 @@ class LoopCloser:
         c = self.cfg
         newest = self._pending[-1]
         def agrees(p: _Candidate) -> bool:
-            d_yaw = roll_pitch_yaw(p.correction[:3, :3] @ newest.correction[:3, :3].T)[2]
+            d_yaw = yaw_of(p.correction[:3, :3] @ newest.correction[:3, :3].T)
             return bool(np.linalg.norm(p.correction[:3, 3] - newest.correction[:3, 3]) <= c.consistency_m
                         and abs(np.degrees(d_yaw)) <= c.consistency_deg)
         def frames(p: _Candidate) -> tuple[int, int]:

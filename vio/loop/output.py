@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+from vio.geometry import make_T, so3_exp, yaw_of
 from vio.types import NavState, covariance_quality
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -71,7 +71,7 @@ def _yaw_rot(yaw: float) -> np.ndarray:
 
 def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
     """(translation, yaw) of a correction; its roll/pitch part is dropped."""
-    return C[:3, 3].copy(), float(roll_pitch_yaw(C[:3, :3])[2])
+    return C[:3, 3].copy(), yaw_of(C[:3, :3])
 
 
 class CorrectedOutput:
