@@ -19,12 +19,14 @@ import dataclasses
 import logging
 import math
 import os
+import secrets
 import select
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -96,10 +98,11 @@ class MavlinkStats:
     first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
 
 
-def _finite(state: NavState) -> bool:
-    """Is every number the pose messages are made of finite?"""
+def _sendable(state: NavState) -> bool:
+    """Is every number the pose messages are made of finite, and every variance >= 0?"""
     return all(bool(np.isfinite(a).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
-                                                      state.cov_pose, state.cov_vel))
+                                                      state.cov_pose, state.cov_vel)) and \
+        bool((np.diag(state.cov_pose) >= 0).all() and (np.diag(state.cov_vel) >= 0).all())
 
 
 def check_mavlink_config(cfg: MavlinkConfig) -> None:
@@ -116,9 +119,9 @@ def check_mavlink_config(cfg: MavlinkConfig) -> None:
             raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
     # Only ODOMETRY has a quality field the autopilots check (VISO_QUAL_MIN, EKF2_EV_QMIN); VISION_* would
     # carry the lost pose as a good one.
-    if cfg.lost_output == "quality0" and list(cfg.messages) != ["ODOMETRY"]:
-        raise VioError("[mavlink] lost_output = 'quality0' needs messages = ['ODOMETRY'] (VISION_* messages "
-                       "have no quality field, so a lost pose would look valid)")
+    if cfg.lost_output in ("quality0", "failed") and list(cfg.messages) != ["ODOMETRY"]:
+        raise VioError(f"[mavlink] lost_output = {cfg.lost_output!r} needs messages = ['ODOMETRY'] (VISION_* "
+                       "messages have no quality field, so a lost pose would look valid)")
 
 
 class MavlinkOutput:
@@ -133,7 +136,7 @@ class MavlinkOutput:
 
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None,
-                 link: MavlinkLink | None = None) -> None:
+                 link: MavlinkLink | None = None, counter_file: str | None = None) -> None:
         self.cfg = cfg
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
@@ -142,7 +145,14 @@ class MavlinkOutput:
         check_mavlink_config(cfg)
         if link is None and url is not None:
             check_url(url, "MAVLink connection")
-        self._lost_as_quality0 = cfg.lost_output == "quality0"
+        self._lost_as_quality0 = cfg.lost_output in ("quality0", "failed")
+        # ODOMETRY quality while lost: -1 is "failed" in the MAVLink spec, rejected by ArduPilot's VISO_QUAL_MIN and
+        # PX4's EKF2_EV_QMIN at their defaults (0); 0 is "unknown", which both fuse unless those are raised
+        self._lost_quality = -1 if cfg.lost_output == "failed" else 0
+        if cfg.lost_output == "quality0":
+            log.warning("[mavlink] lost_output = 'quality0': a lost pose goes out with quality 0 ('unknown'), which "
+                        "ArduPilot (VISO_QUAL_MIN) and PX4 (EKF2_EV_QMIN) fuse at their default 0; 'failed' sends "
+                        "-1, which they reject")
         if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
             log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
                         "estimate twice; send one kind")
@@ -172,7 +182,10 @@ class MavlinkOutput:
         self._link_up = False
         self._origin_left = 0
         self._next_origin_ns = 0
-        self._reset_offset = 0  # resets forced here, added to the estimator's reset_counter
+        # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
+        self._counter_file = Path(counter_file) if counter_file else None
+        self._counter_saved: int | None = None
+        self._reset_offset = self._first_counter()
         self._last_reset_counter: int | None = None
         self._last_loop_jumps = 0
         self._tracking: bool | None = None
@@ -250,12 +263,12 @@ class MavlinkOutput:
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
         goes out) and sends nothing. Returns whether the state was taken for sending."""
         taken = False
-        finite = _finite(state)
+        finite = _sendable(state)
         if not finite:
-            # never sent, not even as quality 0: the autopilot would read a NaN covariance as anything
+            # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
             if not self.stats.states_not_finite:
-                log.error("no pose sent: the estimate holds a NaN or infinite value (pose, velocity or covariance); "
-                          "a loss of tracking until it is finite again")
+                log.error("no pose sent: the estimate holds a NaN or infinite value, or a negative variance (pose, "
+                          "velocity or covariance); a loss of tracking until it is whole again")
             self.stats.states_not_finite += 1
             state = dataclasses.replace(state, tracking=False, quality=0)
         with self._pending_lock:
@@ -266,6 +279,8 @@ class MavlinkOutput:
             if changed:
                 self._lost_since_ns = None if state.tracking else self._clock()
                 self._land_done = self._land_done and not state.tracking
+                if state.tracking:
+                    self._land_left = 0
             if self.T_frd_body is None:
                 self._pending = None
                 if not self._mount_warned:
@@ -275,8 +290,9 @@ class MavlinkOutput:
             elif not state.tracking and (not self._lost_as_quality0 or not finite):
                 self.stats.states_not_tracking += 1
                 self._pending = None
-            elif self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns:
-                pass  # not newer than what the autopilot already has
+            elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \
+                    (self._pending is not None and state.t_ns < self._pending.t_ns):
+                pass  # not newer than what the autopilot already has, or than the state waiting for its slot
             else:
                 if self._pending is not None:
                     self.stats.states_superseded += 1
@@ -396,8 +412,49 @@ class MavlinkOutput:
                     usec, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, *od.p_ned,
                     [float(x) for x in od.q_ned_frd_wxyz], *od.v_frd, *od.omega_frd, pose_cov,
                     upper_triangle(vel_cov), reset, mavlink.MAV_ESTIMATOR_TYPE_VIO,
-                    int(min(max(state.quality, 1), 100)) if state.tracking else 0))
+                    int(min(max(state.quality, 1), 100)) if state.tracking else self._lost_quality))
         return out
+
+    def _first_counter(self) -> int:
+        """The reset_counter this process starts at: one past the last one sent before (a restart in flight moves
+        to a new origin, and an unchanged counter would have the autopilot fuse the jump as a measurement), or a
+        random one when none is known (a fresh state folder; the autopilot may still hold our last one)."""
+        p = self._counter_file
+        if p is None:
+            return 0
+        try:
+            last = int(p.read_text().strip())
+            if not 0 <= last <= 255:
+                raise ValueError(f"{last} is not 0-255")
+            log.info("reset_counter starts at %d: the last one sent before was %d (%s)", (last + 1) % 256, last, p)
+            self._counter_saved = last
+            return (last + 1) % 256
+        except FileNotFoundError:
+            why = "none kept yet"
+        except (OSError, ValueError) as e:
+            why = f"cannot read it: {getattr(e, 'strerror', None) or e}"
+        start = secrets.randbelow(256)
+        log.info("reset_counter starts at %d, a random value (%s: %s)", start, p, why)
+        return start
+
+    def _keep_counter(self, value: int) -> None:
+        """Write the reset_counter sent to `counter_file` when it changes (resets and loop jumps: rare), synced,
+        so that a restart, even after a power loss, starts past it."""
+        p = self._counter_file
+        if p is None or value == self._counter_saved:
+            return
+        tmp = p.with_name(f".{p.name}.tmp")
+        try:
+            with open(tmp, "w") as f:
+                f.write(f"{value}\n")
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, p)
+            self._counter_saved = value
+        except OSError as e:
+            log.warning("cannot keep the reset_counter in %s (%s): a restart will start at a random one", p,
+                        e.strerror or e)
+            self._counter_file = None
 
     def _send_state_messages(self, state: NavState, now: int) -> None:
         if self._last_reset_counter is not None and state.reset_counter != self._last_reset_counter:
@@ -416,6 +473,7 @@ class MavlinkOutput:
         for msg in self.build_messages(state):
             if not self._send(msg, msg.get_type()):
                 return
+        self._keep_counter((state.reset_counter + self._reset_offset) % 256)
         self._last_sent_t_ns = state.t_ns
         self.stats.states_sent += 1
         self.stats.last_latency_ms = (now - state.t_ns) / 1e6
@@ -467,10 +525,17 @@ class MavlinkOutput:
         reaches FS_EKF_THRESH (8 s there); a LAND after a few seconds comes down near where vision was lost."""
         if self.cfg.land_after_loss_s <= 0:
             return
-        lost_ns = self._lost_since_ns
-        if (not self._land_done and lost_ns is not None and self._ap_armed and self._link_up
-                and now - lost_ns >= self.cfg.land_after_loss_s * 1e9):
-            self._land_done, self._land_left, self._next_land_ns = True, LAND_MAX_SENDS, now
+        # decided and marked under the lock send_state() takes: tracking regained between the two must neither
+        # get a LAND nor leave this loss marked done for the next one (a review's finding: the failsafe was off)
+        with self._pending_lock:
+            lost_ns = self._lost_since_ns
+            due = (not self._land_done and lost_ns is not None and self._ap_armed and self._link_up
+                   and now - lost_ns >= self.cfg.land_after_loss_s * 1e9)
+            if due:
+                self._land_done, self._land_left, self._next_land_ns = True, LAND_MAX_SENDS, now
+            elif self._tracking:
+                self._land_left = 0  # tracking is back: the LAND already sent stands, no more of them
+        if due:
             self.stats.land_accepted = False
             log.warning("tracking lost for %.1f s: asking the autopilot to LAND (land_after_loss_s = %g)",
                         (now - lost_ns) / 1e9, self.cfg.land_after_loss_s)

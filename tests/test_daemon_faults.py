@@ -452,3 +452,28 @@ def test_a_recreated_estimator_is_a_new_segment_for_the_loop_stage_and_drops_the
     assert w.last_state.T_world_body[0, 3] == pytest.approx(0.0)  # no correction of the old frame
     assert w.last_state.cov_pose[3, 3] == pytest.approx(1e-6)
     assert w.last_state.reset_counter > 0
+
+
+def test_frames_never_processed_neither_pile_up_nor_shift_the_latency_of_later_ones() -> None:
+    """Arrival times were a queue popped once per processed frame: a frame the estimator dropped (or a reset
+    cleared) gave every later frame an older one's arrival (100 ms too much after a 1.6 s IMU outage, for good,
+    in the latency VISO_DELAY_MS is set from); and with the live view on, every left image fed while the IMU was
+    silent stayed in memory (300 MB a minute): a review's findings."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.workers import PENDING_FRAMES, EstimatorWorker, _remember
+    from vio.estimator import ProcessedFrame
+
+    w = EstimatorWorker(threading.Event(), lambda: None, None, LatestState(), 0.5)
+    for k in range(10):  # frames 0-9 fed at 50 ms, arriving 20 ms after their stamps
+        _remember(w._arrivals, k * 50_000_000, k * 50_000_000 + 20_000_000)
+
+    def done(*ks: int) -> list:
+        return [ProcessedFrame(k * 50_000_000, None, None, None) for k in ks]
+
+    assert w._frame_arrival(done(0, 1)) == 70_000_000
+    assert w._frame_arrival(done(5)) == 270_000_000  # 2-4 dropped by the estimator: not 2's arrival
+    assert sorted(w._arrivals) == [k * 50_000_000 for k in range(6, 10)]
+    pending: dict = {}
+    for k in range(1000):  # the IMU silent: frames fed, none processed
+        _remember(pending, k, np.zeros((400, 640), np.uint8))
+    assert len(pending) == PENDING_FRAMES and min(pending) == 1000 - PENDING_FRAMES

@@ -25,7 +25,7 @@ from drivers.mavlink_out import MavlinkOutput, mavlink, mavutil, restamp_to_host
 from vio import VioError
 from vio.config import MavlinkConfig
 from vio.geometry import make_T, so3_exp
-from vio.types import NavState
+from vio.types import NavState, covariance_quality
 
 # A level vehicle whose FRD body looks along world x: body x = world x, y = -world y, z = -world z.
 R_LEVEL = np.diag([1.0, -1.0, -1.0])
@@ -335,8 +335,6 @@ def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
 def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking(ap, lost_output, caplog):
     """NaN compares false both ways: covariance_quality read a NaN covariance as quality 100 and the pose messages
     carried the NaN (a review's finding). Such a state is a loss of tracking, sent as nothing, not even quality 0."""
-    from vio.types import covariance_quality
-
     assert covariance_quality(np.full((6, 6), np.nan), 0.05) == 0.0
     clock = FakeClock()
     out = make_out(ap, clock, messages=["ODOMETRY"] if lost_output == "quality0" else
@@ -344,17 +342,68 @@ def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking
                                                                  else {}))
     out.send_state(state(clock.t))
     assert len(ap.of("ODOMETRY", ap.drain())) == 1
-    for k in range(5):
+    bad = [dict(cov_pose=np.full((6, 6), np.nan)), dict(v_world=np.array([np.inf, 0, 0])),
+           dict(cov_pose=np.diag([1e-4] * 3 + [-0.5] * 3)), dict(cov_vel=np.diag([-1.0, 1, 1])),
+           dict(cov_pose=np.full((6, 6), np.nan))]
+    for kw in bad:
         clock.advance(0.05)
-        out.send_state(state(clock.t, cov_pose=np.full((6, 6), np.nan) if k % 2 else np.eye(6) * 1e-4,
-                             v_world=np.array([np.inf, 0, 0]) if not k % 2 else np.zeros(3)))
+        out.send_state(state(clock.t, **kw))
     got = ap.drain()
     assert not [m for m in got if m.get_type() in ("ODOMETRY", "VISION_POSITION_ESTIMATE")]
     assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
     assert out.health()["states_not_finite"] == 5 and "NaN or infinite" in caplog.text
+    assert covariance_quality(np.diag([1e-4] * 3 + [-0.5] * 3), 0.05) == 0.0  # it read 1: a review's finding
     clock.advance(0.05)
     out.send_state(state(clock.t))
     assert len(ap.of("ODOMETRY", ap.drain())) == 1
+    out.close()
+
+
+def test_a_pending_state_is_never_replaced_by_an_older_one(ap):
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    out.send_state(state(1_000_000_000))
+    ap.drain()
+    clock.advance(0.01)  # inside the slot: these wait
+    assert out.send_state(state(1_020_000_000))
+    assert not out.send_state(state(1_015_000_000))  # an older one (a frame state behind an IMU-rate one)
+    clock.advance(0.05)
+    out.poll()
+    assert [m.time_usec for m in ap.of("ODOMETRY", ap.drain())] == [1_020_000]
+    out.close()
+
+
+def _counted(ap: FakeAutopilot, clock, path) -> MavlinkOutput:
+    return MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                         clock_ns=clock, counter_file=str(path))
+
+
+def test_a_restarted_output_moves_reset_counter_on_from_the_last_one_sent(ap, tmp_path, caplog):
+    """A daemon restarted in flight (systemd after a crash or the watchdog) starts a new origin; with the counter
+    at 0 again, as the flight before had sent, the autopilot fused the jump as a measurement (a review's finding).
+    The counter sent is kept in [mavlink] counter_file and the next process starts one past it; with none kept,
+    at a random value."""
+    path = tmp_path / "reset_counter"
+    starts = []
+    for _ in range(3):
+        clock = FakeClock()
+        out = _counted(ap, clock, path)
+        out.send_state(state(clock.t, reset_counter=2))  # the estimator reset twice in this flight
+        starts.append(ap.of("ODOMETRY", ap.drain())[-1].reset_counter)
+        out.close()
+        assert int(path.read_text()) == starts[-1]
+    assert starts[1] == (starts[0] + 3) % 256 and starts[2] == (starts[1] + 3) % 256
+    path.write_text("not a number")
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        out = _counted(ap, FakeClock(), path)
+    assert "a random value" in caplog.text and "cannot read it" in caplog.text
+    out.close()
+    missing = tmp_path / "no-such-folder" / "reset_counter"
+    with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
+        out = _counted(ap, FakeClock(), missing)
+        out.send_state(state(1_000_000_000))
+        ap.drain()
+    assert "cannot keep the reset_counter" in caplog.text
     out.close()
 
 
@@ -377,15 +426,20 @@ def test_flapping_tracking_gives_one_unstable_message_then_the_final_state(ap):
     out.close()
 
 
-def test_lost_output_quality0_sends_odometry_marked_invalid(ap):
-    """lost_output = quality0: the autopilot still hears us while lost, with quality 0 (its QUAL_MIN rejects it)."""
+@pytest.mark.parametrize("lost_output, sent", [("failed", -1), ("quality0", 0)])
+def test_lost_output_quality0_sends_odometry_marked_invalid(ap, lost_output, sent, caplog):
+    """lost_output = failed: the autopilot still hears us while lost, with quality -1 (MAVLink's "failed", which
+    ArduPilot's VISO_QUAL_MIN and PX4's EKF2_EV_QMIN reject at their default 0); quality0 sends 0 ("unknown",
+    fused at those defaults: a review's finding), with a warning at start."""
     clock = FakeClock()
-    out = make_out(ap, clock, messages=["ODOMETRY"], lost_output="quality0")
+    with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
+        out = make_out(ap, clock, messages=["ODOMETRY"], lost_output=lost_output)
+    assert ("fuse at their default 0" in caplog.text) == (lost_output == "quality0")
     out.send_state(state(1_000_000_000, quality=80))
     clock.advance(0.05)
     out.send_state(state(clock.t, tracking=False, quality=0))
     got = ap.of("ODOMETRY", ap.drain())
-    assert [m.quality for m in got] == [80, 0]
+    assert [m.quality for m in got] == [80, sent]
     out.close()
     with pytest.raises(VioError, match="quality0"):
         MavlinkOutput(MavlinkConfig(mount="rpy", lost_output="quality0", messages=["VISION_POSITION_ESTIMATE"]),
@@ -732,6 +786,35 @@ def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
     clock.advance(0.1)
     out.send_state(state(clock.t))
     assert "VIO tracking regained" in [m.text for m in ap.of("STATUSTEXT", ap.drain())]
+    out.close()
+
+
+def test_no_land_request_once_tracking_is_back_and_the_next_loss_gets_its_own(ap):
+    """A LAND not acknowledged (the command or its ACK lost on the radio) was sent again and again after vision came
+    back, beside good poses; and the LAND decision raced tracking's return (a loss marked done while tracking,
+    leaving the next loss without a LAND): both reviews' findings. The decision is now made under the lock
+    send_state() takes."""
+    clock = FakeClock()
+    out = make_out(ap, clock, land_after_loss_s=3.0)
+
+    def step(dt: float, tracking: bool) -> list:
+        clock.advance(dt)
+        ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+        out.send_state(state(clock.t, tracking=tracking, quality=80 if tracking else 0))
+        return ap.drain(0.01)
+
+    def lands(msgs: list) -> list:
+        return [m for m in ap.of("COMMAND_LONG", msgs) if m.command == mavlink.MAV_CMD_NAV_LAND]
+
+    step(0.0, True)
+    got = sum((step(0.5, False) for _ in range(7)), [])  # 3.5 s lost: one LAND, unacknowledged
+    assert len(lands(got)) == 1
+    after = sum((step(0.1, True) for _ in range(40)), [])  # 4 s of good tracking
+    assert not lands(after) and len(ap.of("ODOMETRY", after)) >= 30
+    got = sum((step(0.5, False) for _ in range(8)), [])  # the next loss: its own LAND
+    assert len(lands(got)) >= 1
     out.close()
 
 

@@ -256,9 +256,14 @@ class MavlinkConfig:
                                  min=-90, max=90)
     mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "with mount = 'rpy': the IMU's orientation in the vehicle FRD frame, "
                               "roll/pitch/yaw [deg] (an IMU mounted z-up, x forward is [180, 0, 0])")
-    lost_output: str = opt("none", "while not tracking: 'none' sends no pose; 'quality0' keeps sending ODOMETRY "
-                           "with quality 0 (ArduPilot VISO_QUAL_MIN >= 1 and PX4 EKF2_EV_QMIN >= 1 reject it)",
-                           choices=("none", "quality0"))
+    lost_output: str = opt("none", "while not tracking: 'none' sends no pose; 'failed' keeps sending ODOMETRY "
+                           "with quality -1 (MAVLink's 'failed': ArduPilot VISO_QUAL_MIN and PX4 EKF2_EV_QMIN reject "
+                           "it at their default 0); 'quality0' with quality 0 ('unknown': fused unless they are >= 1)",
+                           choices=("none", "failed", "quality0"))
+    counter_file: str = opt("/var/lib/kestrel-vio/reset_counter", "where `vio run` keeps the last reset_counter "
+                            "sent: a restarted daemon (systemd after a crash or the watchdog) starts at the next "
+                            "value, so the autopilot re-references to its new origin; empty, or a folder that "
+                            "does not exist: a random start")
     mount_offset_m: list = opt([0.0, 0.0, 0.0], "IMU position in the vehicle FRD frame [m]")
     delay_ms: float = opt(0.0, "extra latency to report/document for VISO_DELAY_MS", min=0, max=1000)
     origin_lat_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN latitude; nan = do not send")

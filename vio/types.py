@@ -70,9 +70,9 @@ def covariance_quality(cov_pose: np.ndarray, quality_sigma_m: float) -> float:
     """0..1: 1 up to a position sigma of quality_sigma_m, halving per doubling beyond it, so that `quality`, which
     the autopilots gate on, never says more than the covariance sent beside it."""
     var = float(cov_pose[3, 3] + cov_pose[4, 4] + cov_pose[5, 5])
-    if not math.isfinite(var):
-        return 0.0  # NaN compares false both ways: min/max would have made it 1
-    sigma = math.sqrt(max(var, 0.0))  # >= the largest axis
+    if not math.isfinite(var) or min(cov_pose[3, 3], cov_pose[4, 4], cov_pose[5, 5]) < 0:
+        return 0.0  # NaN compares false both ways (min/max made it 1), and a negative variance is no sigma
+    sigma = math.sqrt(var)  # >= the largest axis
     return min(1.0, quality_sigma_m / max(sigma, 1e-9))
 
 

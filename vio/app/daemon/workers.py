@@ -212,7 +212,10 @@ class EstimatorWorker(Worker):
         self._reset_base = 0
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
-        self._arrivals: deque[int] = deque(maxlen=64)  # frames fed, not yet processed (they wait for IMU)
+        # frame stamp -> its arrival time, for frames fed and not yet processed (they wait for IMU); keyed by the
+        # stamp, since a frame the estimator drops or a reset clears never comes out (a queue then gave every later
+        # frame an older one's arrival, and the latency reported for VISO_DELAY_MS grew: a review's finding)
+        self._arrivals: dict[int, int] = {}
 
     def loop(self) -> None:
         self.estimator = self._make()
@@ -236,11 +239,11 @@ class EstimatorWorker(Worker):
                     self._emit(self.estimator.feed_imu(s))
                 if item is not None:
                     self.frames += 1
-                    self._arrivals.append(item[0])
+                    _remember(self._arrivals, int(item[1].t_ns), item[0])
                     if self.loop_worker is not None:
                         self._left.append((int(item[1].t_ns), item[1].left))
                     if self.view is not None:
-                        self._view_frames[int(item[1].t_ns)] = item[1].left
+                        _remember(self._view_frames, int(item[1].t_ns), item[1].left)
                     self._emit(self.estimator.feed_frame(item[1]))
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
@@ -275,9 +278,10 @@ class EstimatorWorker(Worker):
         A frame waits inside the estimator until the IMU reaches its stamp, so its state may come out of a
         later feed_imu(); take_processed() says which call finished which frames."""
         arrival = -1
-        for _ in done:
-            if self._arrivals:
-                arrival = self._arrivals.popleft()
+        for pf in done:
+            arrival = self._arrivals.pop(int(pf.t_ns), -1)
+            for old in [k for k in self._arrivals if k < pf.t_ns]:  # fed before it and never processed
+                del self._arrivals[old]
         return arrival
 
     def _to_loop(self, pf: ProcessedFrame) -> None:
@@ -337,6 +341,17 @@ class EstimatorWorker(Worker):
             self.loop_output.restart()  # no loop correction maps the new estimator's frame
         self._last_imu_t = None
         self._arrivals.clear()
+
+
+PENDING_FRAMES = 64  # frames fed and not processed yet that are remembered (3 s at 20 Hz)
+
+
+def _remember(pending: dict, t_ns: int, value: Any) -> None:
+    """pending[t_ns] = value, forgetting the oldest beyond PENDING_FRAMES: frames the estimator never processes
+    (it holds or drops them while the IMU is silent) must not pile up (full images: 300 MB a minute)."""
+    pending[t_ns] = value
+    while len(pending) > PENDING_FRAMES:
+        del pending[next(iter(pending))]
 
 
 def _iter_messages(source: Source, stop: threading.Event) -> Iterable[ImuSample | StereoFrame | None]:
