@@ -1055,3 +1055,31 @@ def test_the_estimator_refuses_a_calibration_in_millimetres():
     with pytest.raises(VioError, match="look like millimetres"):
         Estimator(dataclasses.replace(c, cam1=dataclasses.replace(c.cam1, T_body_cam=T)))
     Estimator(c)  # metres: fine
+
+
+def test_a_gyro_in_deg_per_s_never_starts_the_estimator_on_a_real_flight(v101_path, tmp_path, monkeypatch, caplog):
+    """The daemon has no replay's preflight: with the V1_01 excerpt's gyro in deg/s the units check came and went
+    (too noisy to look still every window), a moving start took the rotation for a 4 rad/s bias, and poses with
+    quality 100 went out until the first solve reset it (a review's finding). The units error now holds until a
+    window can judge the bias again, and a start whose bias the back end would refuse is not taken."""
+    import vio.app.replay as rp
+    from vio.io.euroc import EurocDataset
+
+    mav0 = tmp_path / "degs" / "mav0"
+    (mav0 / "imu0").mkdir(parents=True)
+    for c in ("cam0", "cam1", "state_groundtruth_estimate0"):
+        (mav0 / c).symlink_to(v101_path / "mav0" / c)
+    (mav0 / "imu0" / "sensor.yaml").write_text((v101_path / "mav0" / "imu0" / "sensor.yaml").read_text())
+    rows = []
+    for line in (v101_path / "mav0" / "imu0" / "data.csv").read_text().splitlines():
+        if line.startswith("#"):
+            rows.append(line)
+            continue
+        v = line.split(",")
+        rows.append(",".join([v[0]] + [repr(float(x) * 180 / np.pi) for x in v[1:4]] + v[4:]))
+    (mav0 / "imu0" / "data.csv").write_text("\n".join(rows) + "\n")
+    monkeypatch.setattr(rp, "preflight", lambda dataset: None)  # as live data: no look at the file beforehand
+    with caplog.at_level(logging.ERROR, logger="vio.estimator"):
+        r = rp.replay(EurocDataset(tmp_path / "degs"), progress=False)
+    assert not r.states, f"{len(r.states)} states"
+    assert "deg/s" in caplog.text and "deg/s" in r.sensor_error

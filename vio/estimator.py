@@ -278,6 +278,7 @@ class Estimator:
         self.frames_dropped = 0
         self.last_reset_reason = ""
         self.sensor_error: str | None = None
+        self._start_bias_refused = False  # the last start found was refused for its gyro bias (said once)
 
     # -- public API ------------------------------------------------------------------------------------
     @property
@@ -662,9 +663,26 @@ class Estimator:
                 # the visual alignment's bias is noisy (+-0.03 rad/s over 1 s), but it cannot take a turn for
                 # a bias: keep the start, with the last trusted bias
                 init = dataclasses.replace(init, gyro_bias=self._state.trusted_bias[1].copy())
+        if init is not None and not self._start_bias_plausible(init):
+            init = None
         if init is None:
             return None
         return self._start(init, ff)
+
+    def _start_bias_plausible(self, init: InitialState) -> bool:
+        """A start whose gyro bias the back end would refuse at its first solve (`_check_plausible`) is not taken:
+        a gyro in deg/s is too noisy to look still, so the units check came and went, a moving start took the
+        rotation for a 4 rad/s bias, and poses with quality 100 went out until the first solve reset (a review's
+        finding). Said once per spell, like the units check, and it holds initialisation back as that does."""
+        bg = float(np.max(np.abs(init.gyro_bias)))
+        if bg <= self.bcfg.max_gyro_bias_rad_s:
+            self._start_bias_refused = False
+            return True
+        if not self._start_bias_refused:
+            log.error("not initialising: the start's gyro bias is %.3f rad/s, beyond [backend] max_gyro_bias_rad_s "
+                      "(%g): a gyro in deg/s, or a start in a steady turn", bg, self.bcfg.max_gyro_bias_rad_s)
+        self._start_bias_refused = True
+        return False
 
     def _sensors_plausible(self, ts: np.ndarray, gyro: np.ndarray, accel: np.ndarray, ff: FeatureFrame) -> bool:
         """No initialisation on an IMU whose units or values are wrong: name the likely mistake once.
@@ -681,6 +699,11 @@ class Estimator:
         if problem is None:
             images_still = self._usable(ff) and self._flow_px <= self.bcfg.zupt_max_flow_px
             problem = gyro_units_problem(gyro, still or images_still, self.bcfg.max_gyro_bias_rad_s)
+            if problem is None and not (still or images_still) and self.sensor_error and \
+                    self.sensor_error.startswith("gyro reads"):
+                # a window that cannot judge the bias does not clear it: a gyro in deg/s is too noisy to look still
+                # every time, and the check came and went until a moving start took its rotation for a bias
+                problem = self.sensor_error
         if (problem and _reason_key(problem)) != (self.sensor_error and _reason_key(self.sensor_error)):
             if problem:
                 log.error("not initialising: %s", problem)
