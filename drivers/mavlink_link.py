@@ -26,6 +26,7 @@ import contextlib
 import logging
 import os
 import select
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -40,6 +41,19 @@ mavutil.set_dialect("ardupilotmega")  # re-import as the v2.0 dialect even if ma
 mavlink = mavutil.mavlink
 
 log = logging.getLogger(__name__)
+
+# a field out of its type's range (struct.error), or of the wrong type: the message cannot be packed; raised before
+# anything is written, so it says nothing about the link (a bad origin reconnected it every second: a review's)
+UNPACKABLE = (struct.error, OverflowError, TypeError)
+_unpackable_said: set[str] = set()
+
+
+def unpackable(msg: Any, e: Exception) -> None:
+    """Log once per message type that it could not be packed (and is not sent)."""
+    name = msg.get_type() if hasattr(msg, "get_type") else type(msg).__name__
+    if name not in _unpackable_said:
+        _unpackable_said.add(name)
+        log.error("%s not sent: a field cannot be packed (%s)", name, e)
 
 OUR_COMPONENT = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
 RECONNECT_MIN_S, RECONNECT_MAX_S = 0.5, 5.0
@@ -183,6 +197,9 @@ class MavlinkLink:
                 conn.mav.send(msg)
                 if getattr(conn, "portdead", False):  # mavutil's serial write swallows the error
                     raise OSError("serial write failed")
+            except UNPACKABLE as e:  # the message, not the link: dropped, the link stays
+                unpackable(msg, e)
+                return False
             except Exception as e:  # serial unplugged, socket reset: pyserial/socket raise various types
                 self._failed(e, conn)
                 return False

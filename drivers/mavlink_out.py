@@ -43,12 +43,14 @@ from drivers.mavlink_link import (  # noqa: F401 (mavutil, open_connection re-ex
     OUR_COMPONENT,
     RECONNECT_MAX_S,
     RECONNECT_MIN_S,
+    UNPACKABLE,
     MavlinkLink,
     check_url,
     is_autopilot_heartbeat,
     mavlink,
     mavutil,
     open_connection,
+    unpackable,
 )
 from vio import VioError
 from vio.config import MavlinkConfig
@@ -98,6 +100,9 @@ class MavlinkStats:
     first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
 
 
+MAX_LEVER_ARM_M = 2.0  # [mavlink] mount_offset_m: no drone's IMU sits further from its centre
+
+
 def _sendable(state: NavState) -> bool:
     """Is every number the pose messages are made of finite, and every variance >= 0?"""
     return all(bool(np.isfinite(a).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
@@ -117,6 +122,22 @@ def check_mavlink_config(cfg: MavlinkConfig) -> None:
         v = getattr(cfg, key)
         if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
             raise VioError(f"[mavlink] {key} must be 3 finite numbers, got {v!r}")
+    if max(abs(float(x)) for x in cfg.mount_offset_m) > MAX_LEVER_ARM_M:
+        raise VioError(f"[mavlink] mount_offset_m = {list(cfg.mount_offset_m)}: a lever arm over {MAX_LEVER_ARM_M} m "
+                       "(the IMU's position from the vehicle's centre, in metres; centimetres would swing every "
+                       "position sent by metres at each turn)")
+    lat, lon = cfg.origin_lat_deg, cfg.origin_lon_deg
+    if math.isfinite(lat) != math.isfinite(lon) or \
+            (math.isfinite(lat) and not (-90 <= lat <= 90 and -180 <= lon <= 180)):
+        raise VioError(f"[mavlink] origin_lat_deg / origin_lon_deg = {lat}, {lon}: degrees, latitude within +-90 and "
+                       "longitude within +-180, both or neither (a ground station's 1e7 integers divided by 1e7)")
+    if not math.isfinite(cfg.origin_alt_m) or abs(cfg.origin_alt_m) > 10_000:
+        raise VioError(f"[mavlink] origin_alt_m = {cfg.origin_alt_m}: metres above mean sea level, within +-10 km")
+    both = {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages)
+    if "ODOMETRY" in cfg.messages and both:
+        raise VioError(f"[mavlink] messages = {list(cfg.messages)}: ODOMETRY and {sorted(both)} carry the same "
+                       "estimate, which ArduPilot would fuse twice; send ODOMETRY alone (PX4, ArduPilot) or the "
+                       "VISION_* ones")
     # Only ODOMETRY has a quality field the autopilots check (VISO_QUAL_MIN, EKF2_EV_QMIN); VISION_* would
     # carry the lost pose as a good one.
     if cfg.lost_output in ("quality0", "failed") and list(cfg.messages) != ["ODOMETRY"]:
@@ -153,9 +174,6 @@ class MavlinkOutput:
             log.warning("[mavlink] lost_output = 'quality0': a lost pose goes out with quality 0 ('unknown'), which "
                         "ArduPilot (VISO_QUAL_MIN) and PX4 (EKF2_EV_QMIN) fuse at their default 0; 'failed' sends "
                         "-1, which they reject")
-        if "ODOMETRY" in cfg.messages and {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE"} & set(cfg.messages):
-            log.warning("[mavlink] messages: ArduPilot fuses ODOMETRY and VISION_* alike, so it would use each "
-                        "estimate twice; send one kind")
         # None until the mount is known (mount = camera-*: from the calibration, see set_camera_mount)
         self.T_frd_body: np.ndarray | None = None
         if cfg.mount == "rpy":
@@ -673,6 +691,9 @@ class MavlinkOutput:
             return False
         try:
             self._conn.mav.send(msg)
+        except UNPACKABLE as e:  # the message, not the connection
+            unpackable(msg, e)
+            return False
         except Exception as e:
             self._io_failed(e)
             return False

@@ -138,3 +138,13 @@ def test_the_estimator_gets_only_its_sections():
 
     est = Estimator(default_calibration(), VioConfig())
     assert isinstance(est.cfg, EstimatorConfig) and not hasattr(est.cfg, "mavlink")
+
+
+def test_a_quality_sigma_beyond_a_metre_is_refused():
+    """5 typed for 5 cm kept quality 100 until the position sigma reached 5 m (a review's finding)."""
+    from vio import VioError
+    from vio.config import config_from_dict
+
+    with pytest.raises(VioError, match="quality_sigma_m.*maximum 1.0"):
+        config_from_dict({"backend": {"quality_sigma_m": 5}})
+    assert config_from_dict({"backend": {"quality_sigma_m": 0.1}}).backend.quality_sigma_m == 0.1

@@ -182,7 +182,8 @@ class BackendConfig:
     vision_timeout_s: float = opt(0.3, "no usable camera frame (IMU time) for this long -> not tracking: no pose "
                                   "goes to the autopilot (see [mavlink] lost_output)", min=0.02, max=60)
     quality_sigma_m: float = opt(0.05, "position sigma at which the reported quality falls below 100 (it halves "
-                                 "at twice this sigma)", min=0.001, max=100)
+                                 "at twice this sigma) [m]; at most 1 m (5 meant as cm kept quality 100 up to 5 m)",
+                                 min=0.001, max=1.0)
     max_pending_frames: int = opt(20, "frames waiting for the IMU to reach their stamp; beyond it the oldest is "
                                   "dropped (an IMU that stops must not grow memory)", min=1, max=1000)
     max_frame_lead_s: float = opt(1.0, "a frame stamped this far ahead of the newest IMU sample is dropped",
