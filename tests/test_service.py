@@ -643,6 +643,10 @@ def test_vio_run_end_to_end_with_fake_source(tmp_path: Path, notify_socket) -> N
             f"no READY=1; log:\n{log_path.read_text()[-3000:]}"
         assert _wait(lambda: ap.poses() >= 20, 20), f"autopilot got {ap.counts}"
         assert 197 in ap.components  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+        # a second daemon on the same configuration is refused (two sent to the autopilot as one: a review's)
+        second = subprocess.run([sys.executable, "-c", LAUNCHER, "run", "--config", str(tmp_path / "config.toml")],
+                                cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert second.returncode == 3 and f"another vio run (pid {proc.pid})" in second.stderr, second.stderr
         text = log_path.read_text()  # the lines docs/first-flight.md tells the operator to look for
         assert "ready after" in text and text.count("first pose after") == 1, text[-3000:]
         # pull the cable for a while: the daemon logs it, keeps running, and poses resume afterwards

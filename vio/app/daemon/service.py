@@ -99,6 +99,7 @@ class Service:
                  map_data: Any = None) -> None:
         """`map_data`: `[map] load` as `vio run` already read and checked it at start (read here when None)."""
         self.cfg = cfg
+        self.instance_lock: Any = None  # the open lock file (single_instance), held for the life of the process
         self._map_data = map_data
         self.stop = threading.Event()
         self.notifier = notifier or SdNotifier()
@@ -537,15 +538,53 @@ def run(args: argparse.Namespace) -> int:
     except VioError as e:
         print(f"vio run: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
+    try:
+        lock = single_instance(cfg)  # held (open) for the life of the process
+    except VioError as e:
+        print(f"vio run: {e}", file=sys.stderr)
+        return EXIT_CONFIG
     if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
         logging.getLogger().setLevel(cfg.run.log_level)
     service = Service(cfg, map_data=map_data)
+    service.instance_lock = lock
     signal.signal(signal.SIGTERM, service.request_stop)
     signal.signal(signal.SIGINT, service.request_stop)
     log.info("kestrel-vio starting: source %s, MAVLink %s, recording %s, watchdog %s", cfg.source.kind,
              cfg.mavlink.url or "off", cfg.run.record_dir or "off",
              f"{service.watchdog_s:.1f} s" if service.watchdog_s else "off")
     return service.run()
+
+
+def single_instance(cfg: VioConfig) -> Any:
+    """The open lock file (`[run] status_file` + ".lock") this process holds, or None without a status file.
+
+    Two daemons on one configuration (the service, and one started by hand on the bench) both sent to the
+    autopilot as component 197, their poses interleaved with time going backwards, and wrote one status and
+    trajectory file in turn (a review's finding). The second is refused, naming the first's pid; the lock goes
+    with the process, however it ends."""
+    import fcntl
+
+    if not cfg.run.status_file:
+        return None
+    path = Path(cfg.run.status_file + ".lock")
+    try:
+        f = open(path, "a+")
+    except OSError as e:
+        raise VioError(f"cannot open the instance lock {path} ({e.strerror or e})") from None
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        pid = f.read().strip() or "?"
+        f.close()
+        raise VioError(f"another vio run (pid {pid}) is running with this configuration's status file "
+                       f"({cfg.run.status_file}): two daemons would send to the autopilot as one; stop it first "
+                       "(systemctl stop kestrel-vio)") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
 
 
 def check_run_config(cfg: VioConfig) -> Any:
