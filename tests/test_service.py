@@ -263,6 +263,7 @@ class Health:
     last_reset_reason: str = ""
     sensor_error: str | None = None
     calibration_warning: str | None = None
+    stereo_warning: str | None = None
 
 
 class ScriptedEstimator:

@@ -30,7 +30,7 @@ Sink = Callable[[NavState], None]
 # Estimator.health() fields the stats JSON carries
 _HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unusable", "unusable_reasons",
                  "imu_rejected", "imu_rejected_reasons", "frames_dropped", "last_reset_reason", "sensor_error",
-                 "calibration_warning")
+                 "calibration_warning", "stereo_warning")
 _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 

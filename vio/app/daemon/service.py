@@ -362,6 +362,8 @@ class Service:
             warnings.append(f"sensor error: {h.sensor_error}")
         if h is not None and h.calibration_warning:
             warnings.append(f"calibration: {h.calibration_warning}")
+        if h is not None and h.stereo_warning:
+            warnings.append(f"stereo: {h.stereo_warning}")
         if self.ready and not tracking:
             warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok, imu_ok)}")
         self._warn_stall(tracking, src.connected and imu_ok)
