@@ -25,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("format", choices=FORMATS)
     s.add_argument("files", nargs="+", type=Path)
     s.add_argument("-o", "--output", type=Path, required=True, help="project calibration YAML to write")
+    s.add_argument("--overwrite", action="store_true", help="replace --output if it exists")
     s.add_argument("--cam-rate", type=float, default=20.0, help="camera frame rate [Hz] (files rarely say)")
     s.add_argument("--translation-unit", choices=("m", "cm", "mm"), default="m",
                    help="opencv only: unit of T (that of the calibration target)")
@@ -50,6 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--end", type=float, default=None, help="last second to use (from the IMU start)")
     s.add_argument("--plot", type=Path, help="write the Allan deviation plot (PNG)")
     s.add_argument("-o", "--output", type=Path, help="write kalibr-style imu.yaml with the fitted noise")
+    s.add_argument("--overwrite", action="store_true", help="replace --output if it exists")
 
     s = sub.add_parser("time-offset", help="estimate the camera-IMU time offset (t_imu = t_cam + offset)")
     s.add_argument("dataset", type=Path)
@@ -63,6 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "writes the calibration with the refined extrinsics and the in-flight time offset")
     s.add_argument("dataset", type=Path)
     s.add_argument("-o", "--output", type=Path, required=True, help="refined project calibration YAML to write")
+    s.add_argument("--overwrite", action="store_true", help="replace --output if it exists")
     s.add_argument("--calibration", type=Path, help="project calibration YAML to start from (default: the dataset's)")
     s.add_argument("--config", type=Path, help="TOML configuration for the estimator")
     s.add_argument("--stereo", action="store_true", help="refine T_cam0_cam1 too (default: held)")
@@ -74,12 +77,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "([backend] refine_intrinsics; cx, cy only with refine_principal_point; default: held)")
 
 
+def check_output(path: Path, overwrite: bool) -> None:
+    """Refuse, before any work, an output that would destroy a file or cannot be written (VioError, one line).
+
+    `calib imu-noise -o` wrote its seven IMU lines over a whole calibration, and a read-only folder ended in an
+    "internal error" after the work was done (a review's findings)."""
+    import os
+
+    from vio import VioError
+
+    if path.is_dir():
+        raise VioError(f"{path}: is a folder; give the file to write")
+    if path.exists() and not overwrite:
+        raise VioError(f"{path} exists: not replaced (--overwrite replaces it)")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise VioError(f"{path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise VioError(f"{path}: cannot write there (read-only or no permission)")
+
+
 def _run_import(args: argparse.Namespace) -> int:
     from calib.importers import import_calibration
     from calib.show import format_calibration
     from vio import VioError
     from vio.calibration import save_calibration
 
+    check_output(args.output, args.overwrite)
     kwargs = {"cam_rate_hz": args.cam_rate}
     if args.format == "opencv":
         kwargs["translation_unit"] = args.translation_unit
@@ -134,6 +158,8 @@ def _reference_noise(dataset: Path):
 def _run_imu_noise(args: argparse.Namespace) -> int:
     from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
 
+    if args.output:
+        check_output(args.output, args.overwrite)
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
     print(format_noise(result, source, _reference_noise(args.dataset)))
@@ -172,6 +198,7 @@ def _run_refine(args: argparse.Namespace) -> int:
     from vio.estimator import stereo_check_line
     from vio.frontend.runner import set_opencv_threads
 
+    check_output(args.output, args.overwrite)
     set_opencv_threads(1)  # the calibration written must not depend on what else the machine was doing
     cfg = load_config(args.config)
     if args.stereo_only and (args.stereo or args.intrinsics):

@@ -622,3 +622,37 @@ def test_calib_check_disparity_finds_two_cameras_whose_focal_lengths_disagree(tm
     assert focal.name == "stereo focal lengths" and focal.verdict == "FAIL", focal
     assert 0.5 * edge_px < focal.value < 1.5 * edge_px and "fx of the two cameras disagree" in focal.detail
     assert disparity.value < 0.5 * focal.value, disparity
+
+
+def test_calib_outputs_never_replace_a_file_unasked_nor_fail_after_the_work(tmp_path, capsys):
+    """`vio calib imu-noise -o` wrote its IMU lines over a whole calibration, and a read-only folder ended in an
+    "internal error" after the work (a review's findings): an existing output needs --overwrite, and what cannot
+    be written is refused first, in one line."""
+    import os
+
+    from vio.app.cli import main
+
+    src = [str(DATA / "kalibr_camchain_imucam.yaml")]
+    out = tmp_path / "calib.yaml"
+    assert main(["calib", "import", "kalibr", *src, "-o", str(out)]) == 0
+    kept = out.read_text()
+    csv = tmp_path / "imu.csv"
+    t = np.arange(4000) * 5_000_000
+    rows = np.column_stack([t, np.random.default_rng(0).normal(0, 1e-3, (4000, 3)),
+                            np.random.default_rng(1).normal(0, 1e-2, (4000, 3)) + [0, 0, 9.81]])
+    csv.write_text("#timestamp,wx,wy,wz,ax,ay,az\n" + "\n".join(
+        ",".join([str(int(r[0]))] + [f"{x:.6f}" for x in r[1:]]) for r in rows) + "\n")
+    capsys.readouterr()
+    for argv in (["calib", "import", "kalibr", *src, "-o", str(out)],
+                 ["calib", "imu-noise", str(csv), "-o", str(out)]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert f"{out} exists: not replaced (--overwrite replaces it)" in err and "internal error" not in err
+        assert out.read_text() == kept
+    assert main(["calib", "import", "kalibr", *src, "-o", str(out), "--overwrite"]) == 0
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o555)
+        assert main(["calib", "import", "kalibr", *src, "-o", str(ro / "c.yaml")]) == 1
+        assert "cannot write there" in capsys.readouterr().err

@@ -132,3 +132,15 @@ def test_interrupt_is_130(monkeypatch, capsys):
     monkeypatch.setattr(vio.app.replay, "run", stop)
     assert main(["-q", "replay", "somewhere"]) == 130
     assert capsys.readouterr().err == "vio replay: interrupted\n"
+
+
+def test_a_place_that_cannot_be_written_is_one_line_not_an_internal_error(tmp_path, capsys):
+    """`vio simulate` / `record` / `calib import` into a read-only folder said "internal error: OSError ..." (a
+    review's finding): an OSError that is the user's to fix (read-only, full, no permission, not a folder) is one
+    error line naming the place, exit 1."""
+    from vio.app.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    assert main(["simulate", str(tmp_path / "afile" / "out"), "--duration", "1", "--size", "376x240"]) == 1
+    err = capsys.readouterr().err
+    assert "internal error" not in err and f"{tmp_path / 'afile'}" in err and err.count("\n") == 1, err

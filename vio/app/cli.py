@@ -7,6 +7,7 @@ modules import heavy dependencies (gtsam, depthai, pymavlink, matplotlib) inside
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import importlib.util
 import logging
@@ -33,6 +34,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 # Exit codes shared by all commands.
 EXIT_OK = 0
+# OSErrors that are the user's to fix (what they pointed a command at), said in one line, not as internal errors
+_USER_OS_ERRORS = (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.ENOENT, errno.ENOTDIR,
+                   errno.EISDIR, errno.EEXIST)
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_CONFIG = 3
@@ -105,6 +109,11 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_FAILURE
     except Exception as e:
+        if isinstance(e, OSError) and e.errno in _USER_OS_ERRORS and not verbose:
+            # a place the user gave that cannot be written (read-only, full, no permission): their fix, not a bug
+            where = f"{e.filename}: " if e.filename else ""
+            print(f"vio {command}: error: {where}{e.strerror or e}", file=sys.stderr)
+            return EXIT_FAILURE
         if verbose:
             import traceback
 
