@@ -157,6 +157,20 @@ def test_status_verdicts() -> None:
     assert evaluate(_status(pid=os.getpid()), 1001.0, 3.0)[0] == EXIT_HEALTHY
 
 
+def test_status_json_of_a_daemon_that_is_gone_says_so(tmp_path, capsys) -> None:
+    """`vio status --json` after a kill -9 printed the last file as written: "degraded", tracking true, while the
+    text said NOT RUNNING (a review's finding)."""
+    from vio.app.cli import main
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    path = tmp_path / "status.json"
+    path.write_text(json.dumps(_status(pid=int(dead.stdout), written_unix=time.time(), state="degraded")))
+    assert main(["status", "--file", str(path), "--json"]) == EXIT_NOT_RUNNING
+    out = json.loads(capsys.readouterr().out)
+    assert out["state"] == "not running" and out["estimator"]["tracking"] is False and not out["healthy"]
+    assert out["last_written_state"] == "degraded" and out["verdict"].startswith("NOT RUNNING (pid")
+
+
 def test_status_text_names_what_a_person_needs() -> None:
     text = format_status(_status(warnings=["autopilot link down"]), "HEALTHY", 1000.5)
     for needle in ("HEALTHY", "up 1h02m05s", "camera 20.0 Hz", "IMU 200 Hz", "tracks 140", "resets 1",

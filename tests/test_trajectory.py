@@ -168,3 +168,17 @@ def test_end_drift_aligns_the_first_pose_of_an_x_up_body():
     est[0][:3, :3] = est[0][:3, :3] @ so3_exp(np.radians([0.0, 0.3, 0.3]))
     est[-1][:3, 3] += W[:3, :3] @ [0.05, 0.0, 0.0]
     assert end_drift_m(t, est, gt) == pytest.approx(0.05, abs=0.005)
+
+
+def test_a_tum_file_cut_mid_line_reads_up_to_the_cut(tmp_path, caplog):
+    """The daemon's trajectory file on a full disk ended in half a row and `vio eval` refused the whole flight (a
+    review's finding): a last line without its newline that does not parse is left out, with a warning; the same
+    half row with a newline after it is still an error (damage in the middle of a file is not a cut)."""
+    rows = "".join(f"{k}.0 {k} 0 0 0 0 0 1\n" for k in range(1, 6))
+    (tmp_path / "cut.tum").write_text(rows + "6.0 6 0 0 0 0")
+    with caplog.at_level("WARNING", logger="vio.trajectory"):
+        tr = read_tum(tmp_path / "cut.tum")
+    assert len(tr.t_ns) == 5 and "cut.tum:6: last line cut short" in caplog.text
+    (tmp_path / "bad.tum").write_text(rows + "6.0 6 0 0 0 0\n")
+    with pytest.raises(VioError, match="bad.tum:6: expected 8 values"):
+        read_tum(tmp_path / "bad.tum")

@@ -6,6 +6,7 @@ written with 9 decimals so that a round trip keeps the nanoseconds exactly.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from vio import VioError
 from vio.geometry import quat_wxyz_to_rot
+
+log = logging.getLogger(__name__)
 
 
 def interp_columns(tq: np.ndarray, ts: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -121,17 +124,23 @@ def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory; errors name the file and line."""
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        text = path.read_text()
     except OSError as e:
         raise VioError(f"{path}: cannot read ({e.strerror})") from None
     except UnicodeDecodeError:
         raise VioError(f"{path}: not a text file") from None
+    lines = text.splitlines()
     t, p, q = [], [], []
     for i, line in enumerate(lines, start=1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         parts = s.replace(",", " ").split()
+        if len(parts) != 8 and i == len(lines) and not text.endswith("\n"):
+            # a write that stopped mid-line (a full disk, a power cut): the poses before it are whole
+            log.warning("%s:%d: last line cut short (no newline at the end): left out, %d poses read before it",
+                        path, i, len(t))
+            break
         if len(parts) != 8:
             raise VioError(f"{path}:{i}: expected 8 values 't x y z qx qy qz qw', got {len(parts)}")
         try:

@@ -175,6 +175,12 @@ def run(args: argparse.Namespace) -> int:
     now = time.time()
     code, verdict = evaluate(status, now, args.stale_s)
     if args.json:
+        if code == EXIT_NOT_RUNNING and status.get("state") != "stopped":
+            # the daemon's last word, from a process that is gone or hung: its "tracking" and state are no longer
+            # true (a review's finding: --json said degraded and tracking after a kill -9); the rest is kept
+            status = {**status, "state": "not running", "healthy": False, "verdict": verdict,
+                      "last_written_state": status.get("state"),
+                      "estimator": {**(status.get("estimator") or {}), "tracking": False}}
         print(json.dumps(status, indent=1))
     else:
         print(format_status(status, verdict, now))
