@@ -144,3 +144,35 @@ def test_a_place_that_cannot_be_written_is_one_line_not_an_internal_error(tmp_pa
     assert main(["simulate", str(tmp_path / "afile" / "out"), "--duration", "1", "--size", "376x240"]) == 1
     err = capsys.readouterr().err
     assert "internal error" not in err and f"{tmp_path / 'afile'}" in err and err.count("\n") == 1, err
+
+
+def test_config_check_reads_a_euroc_source_as_vio_replay_would(tmp_path, capsys, v101_path):
+    """A EuRoC source without its IMU file, or with a calibration for another image size, passed `config check`,
+    and the daemon retried it forever (a review's finding): both are refused at start, naming the dataset."""
+    import shutil
+
+    broken = tmp_path / "noimu"
+    (broken / "mav0" / "imu0").mkdir(parents=True)
+    for c in ("cam0", "cam1"):
+        (broken / "mav0" / c).symlink_to(v101_path / "mav0" / c)
+    shutil.copy(v101_path / "mav0" / "imu0" / "sensor.yaml", broken / "mav0" / "imu0")
+    half = tmp_path / "half.yaml"
+    assert main(["-q", "calib", "import", "euroc", str(v101_path), "-o", str(tmp_path / "full.yaml")]) == 0
+    text = (tmp_path / "full.yaml").read_text()
+    import yaml
+
+    c = yaml.safe_load(text)
+    for cam in ("cam0", "cam1"):  # the same camera calibrated at half the size
+        c[cam]["intrinsics"] = [v / 2 for v in c[cam]["intrinsics"]]
+        c[cam]["resolution"] = [376, 240]
+    half.write_text(yaml.safe_dump(c))
+    capsys.readouterr()
+    for src, says in ((f"dataset = '{broken}'", "imu0/data.csv"),
+                      (f"dataset = '{v101_path}'\ncalibration = '{half}'", "752x480")):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f"[source]\nkind = 'euroc'\n{src}\n")
+        assert main(["-q", "config", "check", str(cfg)]) == EXIT_CONFIG
+        err = capsys.readouterr().err
+        assert "[source] dataset = " in err and says in err and "Traceback" not in err, err
+    cfg.write_text(f"[source]\nkind = 'euroc'\ndataset = '{v101_path}'\n")
+    assert main(["-q", "config", "check", str(cfg)]) == EXIT_OK
