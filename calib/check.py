@@ -225,8 +225,9 @@ def check_units(dataset) -> list[CheckResult]:
     problem = imu_units_problem(dataset.imu, dataset.mav0 / "imu0" / "data.csv")
     out = [CheckResult("IMU units", "FAIL" if problem else "PASS", float("nan"), "",
                        problem or "accel about g and gyro plausible for rad/s on the quietest second")]
-    for name, metres, why in calibration_unit_checks(calib, dataset.has_cam1):
-        out.append(CheckResult(name, "FAIL" if why else "PASS", metres, "m", why or "plausible length in metres"))
+    for name, value, why in calibration_unit_checks(calib, dataset.has_cam1):
+        unit, ok = ("s", "plausible time offset") if "time" in name else ("m", "plausible length in metres")
+        out.append(CheckResult(name, "FAIL" if why else "PASS", value, unit, why or ok))
     return out
 
 

@@ -484,6 +484,26 @@ def test_check_names_unit_mistakes(tmp_path):
     assert "units of g" in res["gravity magnitude when still"].detail
     assert res["stereo baseline"].verdict == "FAIL" and "millimetres" in res["stereo baseline"].detail
     assert res["camera-IMU lever arm"].verdict == "FAIL"
+    assert res["camera-IMU time offset"].verdict == "PASS"
+    late = replace(calib, time_offset_ns=5_000_000_000)  # 5 s: another unit, or the wrong clock
+    res = {r.name: r for r in check_calibration(data, late, max_frames=2)}
+    assert res["camera-IMU time offset"].verdict == "FAIL" and "5000 ms" in res["camera-IMU time offset"].detail
+
+
+def test_a_time_offset_that_is_not_whole_nanoseconds_is_refused(tmp_path):
+    """0.005 (meant as seconds) was read as 0 unsaid (a review's finding)."""
+    from vio import VioError
+    from vio.calibration import load_calibration, save_calibration
+    from vio.sim import default_calibration
+
+    save_calibration(default_calibration(), tmp_path / "c.yaml")
+    text = (tmp_path / "c.yaml").read_text()
+    assert "time_offset_ns: 0" in text
+    (tmp_path / "s.yaml").write_text(text.replace("time_offset_ns: 0", "time_offset_ns: 0.005"))
+    with pytest.raises(VioError, match="whole nanoseconds.*5000000"):
+        load_calibration(tmp_path / "s.yaml")
+    (tmp_path / "f.yaml").write_text(text.replace("time_offset_ns: 0", "time_offset_ns: 5000000.0"))
+    assert load_calibration(tmp_path / "f.yaml").time_offset_ns == 5_000_000
 
 
 def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):

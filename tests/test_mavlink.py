@@ -307,6 +307,14 @@ def test_a_first_pose_far_from_level_warns_about_the_mount_once(ap, caplog):
     assert not ap.of("STATUSTEXT", ap.drain())
     assert out.health()["first_tilt_deg"] == pytest.approx(10.0)
     out.close()
+    # a camera tilt left out of the config (22 deg on the EuRoC bench set-up): the log says so, no STATUSTEXT
+    caplog.clear()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    with caplog.at_level(logging.WARNING, logger="drivers.mavlink_out"):
+        clock.advance(0.1)
+        out.send_state(state(clock.t, T_world_body=make_T(rot("y", -22) @ R_LEVEL, np.zeros(3))))
+    assert not ap.of("STATUSTEXT", ap.drain()) and "set [mavlink] camera_tilt_deg" in caplog.text
+    out.close()
 
 
 @pytest.mark.parametrize("cfg, says", [

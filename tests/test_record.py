@@ -62,6 +62,15 @@ def test_record_stops_on_event_and_refuses_to_overwrite(tmp_path: Path) -> None:
     assert len(EurocDataset(tmp_path / "ds").imu) == stats.imu
     with pytest.raises(VioError, match="refusing to overwrite"):
         record(_fake(), tmp_path / "ds")
+    # --overwrite replaces the old recording whole: its images stayed beside the new CSVs (a review's finding)
+    old_pngs = {p.name for p in (tmp_path / "ds" / "mav0" / "cam0" / "data").iterdir()}
+    stop2 = threading.Event()
+    src2 = FakeSource(width=64, height=64, fps=20, realtime=True)
+    src2.start()
+    threading.Timer(0.3, stop2.set).start()
+    again = record(src2, tmp_path / "ds", stop=stop2, overwrite=True)
+    pngs = {p.name for p in (tmp_path / "ds" / "mav0" / "cam0" / "data").iterdir()}
+    assert len(pngs) == again.frames == len(EurocDataset(tmp_path / "ds")) and old_pngs
 
 
 def test_euroc_source_replays_a_dataset_unchanged(v101_path: Path, tmp_path: Path) -> None:

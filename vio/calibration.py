@@ -178,6 +178,9 @@ class StereoCalibration:
         return R[:, 2].copy(), -R[:, 1]
 
 
+MAX_TIME_OFFSET_S = 0.2  # a camera-IMU offset beyond this is a unit or sign mistake, not a clock
+
+
 def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> list[tuple[str, float, str | None]]:
     """(name, metres, problem or None) of the stereo baseline (when `stereo`) and the camera-IMU lever arm."""
     from vio.sanity import baseline_units_problem, lever_arm_units_problem
@@ -186,6 +189,10 @@ def calibration_unit_checks(calib: StereoCalibration, stereo: bool = True) -> li
     out = [("camera-IMU lever arm", lever, lever_arm_units_problem(lever))]
     if stereo:
         out.insert(0, ("stereo baseline", calib.baseline_m, baseline_units_problem(calib.baseline_m)))
+    off_s = calib.time_offset_ns * 1e-9
+    out.append(("camera-IMU time offset", off_s, None if abs(off_s) <= MAX_TIME_OFFSET_S else
+                f"time_offset_ns = {calib.time_offset_ns} is {off_s * 1e3:.0f} ms: beyond any camera-IMU offset "
+                f"(+-{MAX_TIME_OFFSET_S * 1e3:.0f} ms; a USB camera's is tens of ms): in another unit?"))
     return [(name, v, f"calibration: {p}" if p else None) for name, v, p in out]
 
 
@@ -278,7 +285,13 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibrat
         raise VioError(f"{where}: imu: {e}") from None
     except (TypeError, ValueError) as e:
         raise VioError(f"{where}: imu: malformed value ({e})") from None
-    return StereoCalibration(cam0=cam0, cam1=cam1, imu=imu, time_offset_ns=int(d.get("time_offset_ns", 0)))
+    off = d.get("time_offset_ns", 0)
+    if isinstance(off, bool) or not isinstance(off, (int, float)) or off != off or (isinstance(off, float)
+                                                                                   and not off.is_integer()):
+        # int() of 0.005 (meant as seconds) was 0, unsaid (a review's finding)
+        raise VioError(f"{where}: time_offset_ns = {off!r}: whole nanoseconds (t_imu = t_cam + time_offset_ns); "
+                       f"{off!r} s would be {round(float(off) * 1e9) if isinstance(off, float) else '?'}")
+    return StereoCalibration(cam0=cam0, cam1=cam1, imu=imu, time_offset_ns=int(off))
 
 
 def load_yaml(path: Path) -> dict:

@@ -17,6 +17,7 @@ import functools
 import logging
 import math
 import os
+import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -761,8 +762,11 @@ class EurocWriter:
         self._png_params = png_write_params(int(png_level))
         self.root = Path(root)
         self.mav0 = self.root / "mav0"
-        if self.mav0.exists() and any(self.mav0.iterdir()) and not overwrite:
-            raise VioError(f"{self.root}: already holds a dataset; refusing to overwrite recorded data")
+        if self.mav0.exists() and any(self.mav0.iterdir()):
+            if not overwrite:
+                raise VioError(f"{self.root}: already holds a dataset; refusing to overwrite recorded data")
+            # the old recording goes whole: its images beside the new CSVs made one dataset of two (a review's)
+            shutil.rmtree(self.mav0)
         for sub in ("cam0/data", "cam1/data", "imu0"):
             (self.mav0 / sub).mkdir(parents=True, exist_ok=True)
         (self.mav0 / "cam0" / "sensor.yaml").write_text(_camera_yaml(calibration.cam0, "cam0"))
