@@ -367,6 +367,12 @@ def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
     assert main(["calib", "time-offset", str(root), "--plot", str(tmp_path / "to.png")]) == 0
     out = capsys.readouterr().out
     assert "t_imu = t_cam + offset" in out and (tmp_path / "to.png").is_file()
+    assert "time_offset_ns: 8" in out  # 8 ms, told from zero: the value to paste
+    root0 = _rotation_only_recording(tmp_path / "rec0", 0.0, duration_s=4.0)
+    assert main(["calib", "time-offset", str(root0)]) == 0
+    out = capsys.readouterr().out
+    # an offset within its own uncertainty of zero is not offered for pasting (-2.5 +- 8.6 ms was: a review's)
+    assert "time_offset_ns:" not in out and "not told from zero" in out
     # the V1_01 excerpt hardly moves: the tool must say the offset is not observable
     assert main(["calib", "time-offset", str(v101_path)]) == 0
     assert "too little rotation" in capsys.readouterr().out

@@ -68,8 +68,13 @@ class OffsetEstimate:
                  f"residual {self.residual_rad_s:.4f} rad/s rms",
                  f"  uncertainty: curvature {self.sigma_curvature_s * 1e3:.2f} ms, "
                  f"bootstrap {self.sigma_bootstrap_s * 1e3:.2f} ms",
-                 f"  gyro bias estimate [{', '.join(f'{b:+.4f}' for b in self.gyro_bias)}] rad/s",
-                 f"  time_offset_ns: {int(round(self.offset_s * 1e9))}"]
+                 f"  gyro bias estimate [{', '.join(f'{b:+.4f}' for b in self.gyro_bias)}] rad/s"]
+        if self.observable and abs(self.offset_s) >= 2 * self.sigma_s:
+            lines.append(f"  time_offset_ns: {int(round(self.offset_s * 1e9))}")
+        elif self.observable:
+            # a value ready to paste, with an uncertainty larger than itself, read as a measurement (a review's)
+            lines.append(f"  not told from zero (under 2 sigma): keep the calibration's time_offset_ns; "
+                         f"|offset| < {2 * self.sigma_s * 1e3:.1f} ms")
         if not self.observable:
             lines.append("  WARNING: too little rotation in this recording; the estimate is not meaningful "
                          "(record with brisk rotations about all axes)")
