@@ -538,7 +538,8 @@ class MavlinkOutput:
             if stopped:
                 self._tracking, self._lost_since_ns, self._land_done, self._pending = False, last, False, None
         if stopped:
-            log.warning("no estimate for %.1f s (camera and IMU both silent, or the estimator stopped)",
+            log.warning("no estimate for %.1f s (the IMU silent, with or without the camera, or the estimator "
+                        "stopped)",
                         (now - last) / 1e9)
             self._on_tracking_change(False)
 

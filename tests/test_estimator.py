@@ -1083,3 +1083,14 @@ def test_a_gyro_in_deg_per_s_never_starts_the_estimator_on_a_real_flight(v101_pa
         r = rp.replay(EurocDataset(tmp_path / "degs"), progress=False)
     assert not r.states, f"{len(r.states)} states"
     assert "deg/s" in caplog.text and "deg/s" in r.sensor_error
+
+
+def test_an_accel_sample_in_milli_g_is_named_as_such():
+    """The daemon only repeated "accel 927 m/s^2 beyond any IMU's range" for a milli-g IMU (replay names the units
+    from the whole file; live samples are refused one by one): each refusal now names the likely unit."""
+    from vio.sanity import imu_sample_problem
+
+    assert "milli-g" in imu_sample_problem(np.zeros(3), np.array([0.0, 0.0, 1000.0]))
+    assert "mm/s^2" in imu_sample_problem(np.zeros(3), np.array([0.0, 0.0, 9810.0]))
+    assert imu_sample_problem(np.zeros(3), np.array([0.0, 0.0, 9.81])) is None
+    assert "m/s^2 beyond" in imu_sample_problem(np.zeros(3), np.array([0.0, 0.0, 300.0]))

@@ -32,7 +32,11 @@ def imu_sample_problem(gyro: np.ndarray, accel: np.ndarray) -> str | None:
     if not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
         return "non-finite value"
     if float(np.max(np.abs(a))) > MAX_ACCEL_M_S2:
-        return f"accel {float(np.max(np.abs(a))):.0f} m/s^2 beyond any IMU's range (+-16 g)"
+        # the units this reading most likely is in (one reading: a hint, the units check decides on many)
+        norm = float(np.linalg.norm(a))
+        hint = "; milli-g instead of m/s^2?" if 500 < norm < 2000 else \
+            "; mm/s^2 instead of m/s^2?" if 5000 < norm < 20000 else ""
+        return f"accel {float(np.max(np.abs(a))):.0f} m/s^2 beyond any IMU's range (+-16 g){hint}"
     if float(np.max(np.abs(g))) > MAX_GYRO_RAD_S:
         return (f"gyro {float(np.max(np.abs(g))):.0f} rad/s beyond any IMU's range (+-2000 deg/s); "
                 "deg/s instead of rad/s?")
