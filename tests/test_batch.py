@@ -117,6 +117,13 @@ def test_flights_of_one_name_are_two_rows_and_data_notes_show(flights, tmp_path)
                       tmp_path / "out2", workers=1, progress=False)
     assert [r["flight"] for r in again["flights"]] == ["f", "f-2", "f-3"]
     assert len(list((tmp_path / "out2" / "traj").glob("*.tum"))) == 3
+    # a second batch into a report folder: refused unless --overwrite, which takes the old trajectories too
+    from vio import VioError
+
+    with pytest.raises(VioError, match="holds a batch report already"):
+        run_batch([str(tmp_path / "day1" / "f")], tmp_path / "out2", workers=1, progress=False)
+    run_batch([str(tmp_path / "day1" / "f")], tmp_path / "out2", workers=1, progress=False, overwrite=True)
+    assert [p.name for p in (tmp_path / "out2" / "traj").glob("*.tum")] == ["f.tum"]
     assert not report["flights"][0]["notes"] and "no right images" in report["flights"][1]["notes"][0]
     md = (tmp_path / "out" / "report.md").read_text()
     assert "no right images" in md and "with data notes 1" in md

@@ -34,6 +34,8 @@ _ROW_FIELDS = ("flight", "path", "ok", "error", "notes", "frames", "poses", "res
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("flights", nargs="+", metavar="FLIGHT", help="EuRoC folders, ROS bags or MCAP files")
     p.add_argument("--output", "-o", required=True, metavar="DIR", help="report folder (created)")
+    p.add_argument("--overwrite", action="store_true", help="replace the report already in --output (its "
+                   "trajectories go too)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local worker processes (default: the number of CPUs)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster: ray://HOST:10001, auto, or local")
@@ -192,9 +194,20 @@ def _run_ray(jobs: list[tuple[str, str, dict]], address: str, workers: int, prog
 
 
 def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = None, ray_address: str | None = None,
-              options: dict | None = None, progress: bool = True) -> dict:
-    """Replay `flights`, write the report files into `out_dir`, return the report."""
+              options: dict | None = None, progress: bool = True, overwrite: bool = False) -> dict:
+    """Replay `flights`, write the report files into `out_dir`, return the report.
+
+    A folder that holds a report already is refused unless `overwrite` (a second run replaced the first's report
+    unsaid and left its trajectories of flights no longer run beside the new ones: a review's finding); with it,
+    the old report and trajectories go before the replays."""
     out = Path(out_dir)
+    if (out / "report.json").exists():
+        if not overwrite:
+            raise VioError(f"--output {out}: holds a batch report already; --overwrite replaces it (compare with it: "
+                           f"--compare {out}, with another --output)")
+        for old in [out / n for n in ("report.json", "report.md", "report.png", "compare.md")] + \
+                sorted((out / "traj").glob("*.tum")):
+            old.unlink(missing_ok=True)
     try:
         (out / "traj").mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -378,7 +391,7 @@ def run(args: argparse.Namespace) -> int:
                "topics": (args.left_topic, args.right_topic, args.imu_topic)}
     old = load_report(args.compare) if args.compare else None  # a bad --compare fails before hours of replay
     report = run_batch(args.flights, args.output, workers=args.workers, ray_address=args.ray, options=options,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, overwrite=args.overwrite)
     print(markdown(report))
     if old is not None:
         text = compare(report, old)
