@@ -45,7 +45,7 @@ def _replay(path: Path, closer, cfg) -> tuple[list, list, list]:
     odo, a, b = [], [], []
 
     def sink(st) -> None:
-        T, version, unc, *segment = loop.correction()
+        T, version, unc, *segment = loop.correction()  # segment, own frame, reset counter
         odo.append(st)
         a.append(with_u.apply(st, T, version, unc, *segment))
         b.append(without.apply(st, T, version, None, *segment))

@@ -45,14 +45,14 @@ log = logging.getLogger(__name__)
 # a field out of its type's range (struct.error), or of the wrong type: the message cannot be packed; raised before
 # anything is written, so it says nothing about the link (a bad origin reconnected it every second: a review's)
 UNPACKABLE = (struct.error, OverflowError, TypeError)
-_unpackable_said: set[str] = set()
 
 
-def unpackable(msg: Any, e: Exception) -> None:
-    """Log once per message type that it could not be packed (and is not sent)."""
+def unpackable(msg: Any, e: Exception, said: set[str]) -> None:
+    """Log once per message type (`said`: the sender's own record) that it could not be packed (and is not
+    sent)."""
     name = msg.get_type() if hasattr(msg, "get_type") else type(msg).__name__
-    if name not in _unpackable_said:
-        _unpackable_said.add(name)
+    if name not in said:
+        said.add(name)
         log.error("%s not sent: a field cannot be packed (%s)", name, e)
 
 OUR_COMPONENT = mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
@@ -126,6 +126,7 @@ class MavlinkLink:
                  open_fn: Callable[[str, int], Any] = open_connection, key: str = "[mavlink] url") -> None:
         check_url(url, key)
         self.url = url
+        self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
         self._source_system = source_system
         self._open_fn = open_fn
         self._conn: Any = None
@@ -198,7 +199,7 @@ class MavlinkLink:
                 if getattr(conn, "portdead", False):  # mavutil's serial write swallows the error
                     raise OSError("serial write failed")
             except UNPACKABLE as e:  # the message, not the link: dropped, the link stays
-                unpackable(msg, e)
+                unpackable(msg, e, self._unpackable_said)
                 return False
             except Exception as e:  # serial unplugged, socket reset: pyserial/socket raise various types
                 self._failed(e, conn)

@@ -202,6 +202,7 @@ class MavlinkOutput:
         self._origin_left = 0
         self._next_origin_ns = 0
         # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
+        self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
         self._counter_file = Path(counter_file) if counter_file else None
         self._counter_saved: int | None = None
         self._reset_offset = self._first_counter()
@@ -457,8 +458,11 @@ class MavlinkOutput:
         return start
 
     def _keep_counter(self, value: int) -> None:
-        """Write the reset_counter sent to `counter_file` when it changes (resets and loop jumps: rare), synced,
-        so that a restart, even after a power loss, starts past it."""
+        """Write the reset_counter about to be sent to `counter_file` when it changes (resets and loop jumps: rare),
+        before the messages carrying it: a process killed between the two still restarts past it. Written and
+        renamed, not synced: a crash or a watchdog restart keeps the page cache, and an fsync on a busy SD card
+        would hold the pose messages for up to seconds at exactly this moment (a power cut restarts the companion,
+        and a counter kept there by then is one of 256 anyway)."""
         p = self._counter_file
         if p is None or value == self._counter_saved:
             return
@@ -466,8 +470,6 @@ class MavlinkOutput:
         try:
             with open(tmp, "w") as f:
                 f.write(f"{value}\n")
-                f.flush()
-                os.fsync(f.fileno())
             os.replace(tmp, p)
             self._counter_saved = value
         except OSError as e:
@@ -489,10 +491,10 @@ class MavlinkOutput:
         self._last_loop_jumps = state.loop_jumps
         if state.tracking and math.isnan(self.stats.first_tilt_deg):
             self._check_mount(state)
+        self._keep_counter((state.reset_counter + self._reset_offset) % 256)
         for msg in self.build_messages(state):
             if not self._send(msg, msg.get_type()):
                 return
-        self._keep_counter((state.reset_counter + self._reset_offset) % 256)
         self._last_sent_t_ns = state.t_ns
         self.stats.states_sent += 1
         self.stats.last_latency_ms = (now - state.t_ns) / 1e6
@@ -699,7 +701,7 @@ class MavlinkOutput:
         try:
             self._conn.mav.send(msg)
         except UNPACKABLE as e:  # the message, not the connection
-            unpackable(msg, e)
+            unpackable(msg, e, self._unpackable_said)
             return False
         except Exception as e:
             self._io_failed(e)

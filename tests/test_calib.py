@@ -491,9 +491,9 @@ def test_check_names_unit_mistakes(tmp_path):
     assert res["stereo baseline"].verdict == "FAIL" and "millimetres" in res["stereo baseline"].detail
     assert res["camera-IMU lever arm"].verdict == "FAIL"
     assert res["camera-IMU time offset"].verdict == "PASS"
-    late = replace(calib, time_offset_ns=5_000_000_000)  # 5 s: another unit, or the wrong clock
+    late = replace(calib, time_offset_ns=500_000_000)  # 0.5 s: another unit, or the wrong clock
     res = {r.name: r for r in check_calibration(data, late, max_frames=2)}
-    assert res["camera-IMU time offset"].verdict == "FAIL" and "5000 ms" in res["camera-IMU time offset"].detail
+    assert res["camera-IMU time offset"].verdict == "FAIL" and "500 ms" in res["camera-IMU time offset"].detail
 
 
 def test_a_time_offset_that_is_not_whole_nanoseconds_is_refused(tmp_path):

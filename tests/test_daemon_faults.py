@@ -425,7 +425,7 @@ def test_a_recreated_estimator_is_a_new_segment_for_the_loop_stage_and_drops_the
 
         def correction(self):
             unc = CorrectionUncertainty(np.eye(4) * 1e-2, np.zeros(3))
-            return make_T(np.eye(3), [5.0, 0, 0]), 3, unc, 1, False
+            return make_T(np.eye(3), [5.0, 0, 0]), 3, unc, 1, False, 0
 
     made: list[FakeEstimator] = []
 

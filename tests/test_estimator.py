@@ -1060,8 +1060,8 @@ def test_the_estimator_refuses_a_calibration_in_millimetres():
 def test_a_gyro_in_deg_per_s_never_starts_the_estimator_on_a_real_flight(v101_path, tmp_path, monkeypatch, caplog):
     """The daemon has no replay's preflight: with the V1_01 excerpt's gyro in deg/s the units check came and went
     (too noisy to look still every window), a moving start took the rotation for a 4 rad/s bias, and poses with
-    quality 100 went out until the first solve reset it (a review's finding). The units error now holds until a
-    window can judge the bias again, and a start whose bias the back end would refuse is not taken."""
+    quality 100 went out until the first solve reset it (a review's finding). A start whose bias the back end
+    would refuse is not taken."""
     import vio.app.replay as rp
     from vio.io.euroc import EurocDataset
 

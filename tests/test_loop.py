@@ -1674,14 +1674,16 @@ def test_a_restarted_output_applies_no_correction_and_takes_none_of_the_old_esti
     s = NavState(0, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
     for mode in ("jump", "blend"):
         out = CorrectedOutput(mode, blend_rate_m_s=1e3, blend_rate_deg_s=1e6)
-        out.apply(s, C, 4, unc, 1, False)
-        out.restart()
-        sent = out.apply(s, C, 5, unc, 1, False)  # a late solve of the old estimator's segment
+        out.apply(s, C, 4, unc, 1, False, 0)
+        out.restart(3)  # the new estimator's keyframes go to the loop stage with counter 3 on
+        sent = out.apply(s, C, 5, unc, 1, False, 0)  # a late solve of the old estimator's segment
         assert np.allclose(sent.T_world_body, np.eye(4)) and sent.cov_pose[3, 3] == pytest.approx(1e-6)
+        # the loop stage still behind: the old estimator's reset segment (2, counter 1), even joined, is not taken
+        assert np.allclose(out.apply(s, C, 6, unc, 2, False, 1).T_world_body, np.eye(4))
         C3 = make_T(np.eye(3), [0.3, 0, 0])
-        out.apply(s, C3, 6, None, 2, True)  # the new estimator's segment, its own frame: taken
+        out.apply(s, C3, 7, None, 3, True, 3)  # the new estimator's segment, its own frame: taken
         later = NavState(10**9, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6)
-        assert out.apply(later, C3, 6, None, 2, True).T_world_body[0, 3] == pytest.approx(0.3)
+        assert out.apply(later, C3, 7, None, 3, True, 3).T_world_body[0, 3] == pytest.approx(0.3)
 
 
 def test_a_blend_walks_no_further_over_a_gap_in_states_than_over_a_quarter_second():

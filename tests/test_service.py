@@ -816,3 +816,19 @@ def test_a_serial_imu_that_cannot_open_is_named_in_the_status(tmp_path: Path, no
     finally:
         _stop_daemon(proc)
         ap.stop.set()
+
+
+def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
+    """The lock fell back to the temp folder when the status folder did not exist yet; the first daemon's status
+    write then made the folder and a second daemon locked another path and ran (a review's finding)."""
+    from vio import VioError
+    from vio.app.daemon.service import single_instance
+    from vio.config import config_from_dict
+
+    cfg = config_from_dict({"run": {"status_file": str(tmp_path / "not-yet" / "status.json")}})
+    first = single_instance(cfg)
+    assert first is not None and (tmp_path / "not-yet" / "status.json.lock").read_text().strip() == str(os.getpid())
+    with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\)"):
+        single_instance(cfg)
+    first.close()  # the first one ends: the next starts
+    single_instance(cfg).close()

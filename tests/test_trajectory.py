@@ -178,7 +178,9 @@ def test_a_tum_file_cut_mid_line_reads_up_to_the_cut(tmp_path, caplog):
     (tmp_path / "cut.tum").write_text(rows + "6.0 6 0 0 0 0")
     with caplog.at_level("WARNING", logger="vio.trajectory"):
         tr = read_tum(tmp_path / "cut.tum")
-    assert len(tr.t_ns) == 5 and "cut.tum:6: last line cut short" in caplog.text
+    assert len(tr.t_ns) == 5 and "cut.tum:6: last line has no newline at the end" in caplog.text
+    (tmp_path / "cut2.tum").write_text(rows + "6.0 6 0 0 0 0 0 0.")  # cut inside qw: still 8 numbers
+    assert len(read_tum(tmp_path / "cut2.tum").t_ns) == 5
     (tmp_path / "bad.tum").write_text(rows + "6.0 6 0 0 0 0\n")
     with pytest.raises(VioError, match="bad.tum:6: expected 8 values"):
         read_tum(tmp_path / "bad.tum")

@@ -285,13 +285,19 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibrat
         raise VioError(f"{where}: imu: {e}") from None
     except (TypeError, ValueError) as e:
         raise VioError(f"{where}: imu: malformed value ({e})") from None
-    off = d.get("time_offset_ns", 0)
-    if isinstance(off, bool) or not isinstance(off, (int, float)) or off != off or (isinstance(off, float)
-                                                                                   and not off.is_integer()):
-        # int() of 0.005 (meant as seconds) was 0, unsaid (a review's finding)
-        raise VioError(f"{where}: time_offset_ns = {off!r}: whole nanoseconds (t_imu = t_cam + time_offset_ns); "
-                       f"{off!r} s would be {round(float(off) * 1e9) if isinstance(off, float) else '?'}")
-    return StereoCalibration(cam0=cam0, cam1=cam1, imu=imu, time_offset_ns=int(off))
+    return StereoCalibration(cam0=cam0, cam1=cam1, imu=imu,
+                             time_offset_ns=time_offset_ns_from(d.get("time_offset_ns", 0), where))
+
+
+def time_offset_ns_from(off: object, where: str) -> int:
+    """A file's time_offset_ns as whole nanoseconds (VioError otherwise): int() of 0.005, meant as seconds, was 0,
+    unsaid (a review's finding)."""
+    if isinstance(off, bool) or not isinstance(off, (int, float)) or off != off or \
+            (isinstance(off, float) and not off.is_integer()):
+        hint = f"; {off!r} s would be {round(off * 1e9)}" if isinstance(off, float) and off == off else ""
+        raise VioError(f"{where}: time_offset_ns = {off!r}: whole nanoseconds (t_imu = t_cam + time_offset_ns)"
+                       f"{hint}")
+    return int(off)
 
 
 def load_yaml(path: Path) -> dict:

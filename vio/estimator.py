@@ -709,7 +709,8 @@ class Estimator:
         """A start whose gyro bias the back end would refuse at its first solve (`_check_plausible`) is not taken:
         a gyro in deg/s is too noisy to look still, so the units check came and went, a moving start took the
         rotation for a 4 rad/s bias, and poses with quality 100 went out until the first solve reset (a review's
-        finding). Said once per spell, like the units check, and it holds initialisation back as that does."""
+        finding). Said once per spell. (The units error is not held across windows that cannot judge it: a reset
+        in a steady turn, which looks still, would then block every start until the vehicle hovers.)"""
         bg = float(np.max(np.abs(init.gyro_bias)))
         if bg <= self.bcfg.max_gyro_bias_rad_s:
             self._start_bias_refused = False
@@ -735,11 +736,6 @@ class Estimator:
         if problem is None:
             images_still = self._usable(ff) and self._flow_px <= self.bcfg.zupt_max_flow_px
             problem = gyro_units_problem(gyro, still or images_still, self.bcfg.max_gyro_bias_rad_s)
-            if problem is None and not (still or images_still) and self.sensor_error and \
-                    self.sensor_error.startswith("gyro reads"):
-                # a window that cannot judge the bias does not clear it: a gyro in deg/s is too noisy to look still
-                # every time, and the check came and went until a moving start took its rotation for a bias
-                problem = self.sensor_error
         if (problem and _reason_key(problem)) != (self.sensor_error and _reason_key(self.sensor_error)):
             if problem:
                 log.error("not initialising: %s", problem)

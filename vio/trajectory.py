@@ -136,10 +136,11 @@ def read_tum(path: str | Path) -> Trajectory:
         if not s or s.startswith("#"):
             continue
         parts = s.replace(",", " ").split()
-        if len(parts) != 8 and i == len(lines) and not text.endswith("\n"):
-            # a write that stopped mid-line (a full disk, a power cut): the poses before it are whole
-            log.warning("%s:%d: last line cut short (no newline at the end): left out, %d poses read before it",
-                        path, i, len(t))
+        if i == len(lines) and not text.endswith("\n"):
+            # a write that stopped mid-line (a full disk, a power cut) may be cut inside a number and still parse
+            # (qw 0.7071 cut to 0.: a pose turned 180 deg): a last line without its newline is left out, said
+            log.warning("%s:%d: last line has no newline at the end (a write cut short?): left out, %d poses "
+                        "read before it", path, i, len(t))
             break
         if len(parts) != 8:
             raise VioError(f"{path}:{i}: expected 8 values 't x y z qx qy qz qw', got {len(parts)}")

@@ -47,6 +47,7 @@ class LoopWorker:
         self._correction = np.eye(4)
         self._uncertainty: CorrectionUncertainty | None = None
         self._segment: tuple[int, bool] = (0, True)  # the correction's odometry segment, and is it its own frame
+        self._counter: int | None = None  # reset_counter of the newest keyframe processed (CorrectedOutput.restart)
         self.closures = 0  # accepted closures so far
         # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
         # graph deferred brought in later), not when only a new odometry segment begins
@@ -80,20 +81,22 @@ class LoopWorker:
             with contextlib.suppress(queue.Full):
                 self._q.put_nowait(_Settled(tuple(settled)))
 
-    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool]:
+    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool, int | None]:
         """(T_world_odom, its version: the pose graph's solves behind it, its uncertainty where the frame came
-        through loop edges, the odometry segment it is for, is that segment in a frame of its own) as of the last
-        keyframe processed; the arguments of CorrectedOutput.apply."""
+        through loop edges, the odometry segment it is for, is that segment in a frame of its own, the reset_counter
+        the newest keyframe came with) as of the last keyframe processed; the arguments of CorrectedOutput.apply."""
         with self._lock:
-            return self._correction.copy(), self._version, self._uncertainty, *self._segment
+            return self._correction.copy(), self._version, self._uncertainty, *self._segment, self._counter
 
-    def _set_correction(self) -> None:
+    def _set_correction(self, counter: int | None = None) -> None:
         """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
         estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
         T, version = self.closer.correction(), self.closer.graph.estimate_version
         unc, seg = self.closer.correction_uncertainty(), self.closer.correction_segment()
         with self._lock:
             self._correction, self._version, self._uncertainty, self._segment = T, version, unc, seg
+            if counter is not None:
+                self._counter = counter
 
     def status(self) -> dict:
         """Counts for the daemon's status file and health line (thread-safe copy)."""
@@ -157,7 +160,7 @@ class LoopWorker:
                     self.dropped += 1
                 elif self.error is None:
                     closed = self.closer.add_keyframe(*item)
-                    self._set_correction()
+                    self._set_correction(int(item[4]))
                     with self._lock:
                         self.closures += int(closed)
                         self._processed += 1

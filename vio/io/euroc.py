@@ -26,7 +26,14 @@ import cv2
 import numpy as np
 
 from vio import VioError
-from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, calibration_units_problem, load_yaml
+from vio.calibration import (
+    CameraCalibration,
+    ImuNoise,
+    StereoCalibration,
+    calibration_units_problem,
+    load_yaml,
+    time_offset_ns_from,
+)
 from vio.geometry import is_se3
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
@@ -531,10 +538,8 @@ class EurocDataset:
         extra = self.mav0 / "kestrel.yaml"  # written by our writer: time offset etc.
         offset = 0
         if extra.is_file():
-            try:
-                offset = int(load_yaml(extra).get("time_offset_ns", 0))
-            except (TypeError, ValueError) as e:
-                raise VioError(f"{extra}: time_offset_ns is not an integer ({e})") from None
+            d = load_yaml(extra)
+            offset = time_offset_ns_from(d.get("time_offset_ns", 0) if isinstance(d, dict) else None, str(extra))
         return StereoCalibration(cam0, cam1, imu, time_offset_ns=offset)
 
     def _check_overlap(self) -> None:

@@ -93,19 +93,18 @@ class CorrectedOutput:
         self._target: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # held correction: translation, yaw
         self._unc: CorrectionUncertainty | None = None  # of the correction held
         # the odometry segment (loop stage session) of the correction held, None until the first; after `restart`
-        # only segments from `_min_segment` on are taken (the new estimator's, not the old one's late solves)
+        # only corrections solved with keyframes of reset_counter >= `_min_counter` are taken (the new estimator's)
         self._segment: int | None = None
-        self._seen_segment = -1
-        self._min_segment = 0
+        self._min_counter: int | None = None
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
 
-    def _takes(self, segment: int | None, own_frame: bool) -> bool:
-        """Is a new version's correction one for the odometry being sent? Not one of the old estimator's segments
-        after `restart`, nor a later segment's own frame (an estimator reset not rejoined yet)."""
+    def _takes(self, segment: int | None, own_frame: bool, counter: int | None) -> bool:
+        """Is a new version's correction one for the odometry being sent? Not one of the old estimator's after
+        `restart`, nor a later segment's own frame (an estimator reset not rejoined yet)."""
+        if self._min_counter is not None and counter is not None and counter < self._min_counter:
+            return False
         if segment is None:
             return True
-        if segment < self._min_segment:
-            return False
         return self._segment is None or segment == self._segment or not own_frame
 
     @classmethod
@@ -113,30 +112,31 @@ class CorrectedOutput:
         """As a vio.config.VioConfig says: [loop] output and blend rates, [backend] quality_sigma_m."""
         return cls(cfg.loop.output, cfg.loop.blend_rate_m_s, cfg.loop.blend_rate_deg_s, cfg.backend.quality_sigma_m)
 
-    def restart(self) -> None:
-        """A new estimator took over (the daemon re-created it): its odometry is in a frame of its own, which no
-        correction held so far maps, so none is applied (the caller moves reset_counter), and a later solve of the
-        old segment's keyframes is not taken either: only one for a segment the loop stage began after this."""
+    def restart(self, first_counter: int) -> None:
+        """A new estimator took over (the daemon re-created it), its keyframes handed to the loop stage with
+        reset_counter >= `first_counter`: its odometry is in a frame of its own, which no correction held so far
+        maps, so none is applied (the caller moves reset_counter), and a solve of the old estimator's keyframes
+        still queued in the loop stage is not taken either (a segment number would not tell: the loop stage can be
+        behind the estimator)."""
         self._t, self._yaw = np.zeros(3), 0.0
         self._target = (np.zeros(3), 0.0)
         self._unc, self._segment = None, None
         self.remaining_m = self.remaining_deg = 0.0
-        self._min_segment = self._seen_segment + 1
+        self._min_counter = first_counter
 
     def apply(self, state: NavState, T_world_odom: np.ndarray, version: int,
               uncertainty: CorrectionUncertainty | None = None, segment: int | None = None,
-              own_frame: bool = False) -> NavState:
+              own_frame: bool = False, counter: int | None = None) -> NavState:
         """`state` with the correction delivered as the mode says. `segment` is the odometry segment (the loop
         stage's session) the correction was solved for, `own_frame` whether that segment is still in a frame of its
-        own (no loop edge joins it to another session): LoopWorker.correction() gives all of them."""
+        own (no loop edge joins it to another session), `counter` the reset_counter its newest keyframe was handed
+        over with: LoopWorker.correction() gives all of them."""
         if self.mode == "off":
             return state
         # a gap in states (a stall) is not time to walk in: at most MAX_BLEND_STEP_S of blend per state
         dt = 0.0 if self._last_t_ns is None else min(max(state.t_ns - self._last_t_ns, 0) * 1e-9, MAX_BLEND_STEP_S)
         self._last_t_ns = state.t_ns
-        if segment is not None:
-            self._seen_segment = max(self._seen_segment, segment)
-        if version != self._version and self._takes(segment, own_frame):
+        if version != self._version and self._takes(segment, own_frame, counter):
             # A new correction comes with a new version (a solve). After an estimator reset the newest segment is in
             # a frame of its own until a closure joins it, and the estimator's reset kept its last pose as the new
             # origin, so the correction held still maps it: both modes keep that correction, and its uncertainty,

@@ -558,43 +558,54 @@ def run(args: argparse.Namespace) -> int:
 
 
 def single_instance(cfg: VioConfig) -> Any:
-    """The open lock file (`[run] status_file` + ".lock", or one in the temp folder named after it when its folder
-    does not exist) this process holds, or None without a status file.
+    """The open lock file (`[run] status_file` + ".lock") this process holds, or None without a status file or
+    where no lock can be had (said: no lock is no reason not to fly).
 
     Two daemons on one configuration (the service, and one started by hand on the bench) both sent to the
     autopilot as component 197, their poses interleaved with time going backwards, and wrote one status and
     trajectory file in turn (a review's finding). The second is refused, naming the first's pid; the lock goes
-    with the process, however it ends."""
+    with the process, however it ends. The status folder is made first (the status writer makes it anyway), so
+    that every daemon locks the same path; a lock file another user made is locked read-only."""
+    import errno
     import fcntl
 
     if not cfg.run.status_file:
         return None
     path = Path(cfg.run.status_file + ".lock")
-    if not path.parent.is_dir():  # the status file's folder is not there (a bench machine): one per status path
-        import hashlib
-        import tempfile
-
-        key = hashlib.sha1(os.path.abspath(cfg.run.status_file).encode()).hexdigest()[:12]
-        path = Path(tempfile.gettempdir()) / f"kestrel-vio-{key}.lock"
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         f = open(path, "a+")
-    except OSError as e:  # no lock is no reason not to fly: said, and the daemon runs
+    except PermissionError:
+        try:
+            f = open(path)  # flock needs no write access: another user's lock file still locks
+        except OSError as e:
+            log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused",
+                        path, e.strerror or e)
+            return None
+    except OSError as e:
         log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused", path,
                     e.strerror or e)
         return None
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except OSError as e:
+        if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            # a file system without locks (some network or overlay mounts): said, and the daemon runs
+            log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused",
+                        path, e.strerror or e)
+            f.close()
+            return None
         f.seek(0)
         pid = f.read().strip() or "?"
         f.close()
         raise VioError(f"another vio run (pid {pid}) is running with this configuration's status file "
                        f"({cfg.run.status_file}): two daemons would send to the autopilot as one; stop it first "
                        "(systemctl stop kestrel-vio)") from None
-    f.seek(0)
-    f.truncate()
-    f.write(f"{os.getpid()}\n")
-    f.flush()
+    if f.writable():
+        f.seek(0)
+        f.truncate()
+        f.write(f"{os.getpid()}\n")
+        f.flush()
     return f
 
 

@@ -338,7 +338,7 @@ class EstimatorWorker(Worker):
         self.estimator = self._make()
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
         if self.loop_output is not None:
-            self.loop_output.restart()  # no loop correction maps the new estimator's frame
+            self.loop_output.restart(self._reset_base)  # no correction held maps the new estimator's frame
         self._last_imu_t = None
         self._arrivals.clear()
 
