@@ -438,6 +438,8 @@ def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, noti
         assert status["mavlink"]["state"] == "up" and status["mavlink"]["autopilot_heartbeats"] == 3
         assert status["mavlink"]["sent"] > 0 and status["estimator"]["tracks"] == 99
         assert status["source"]["driver"]["name"] == "scripted"
+        # as the log counts them, not lagging behind the next pose
+        assert _wait(lambda: json.loads((tmp_path / "status.json").read_text())["estimator"]["resets"] >= 1, 3.0)
     finally:
         t0 = time.monotonic()
         svc.request_stop(signal.SIGTERM)

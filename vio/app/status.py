@@ -99,7 +99,7 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"  estimator {_fmt(r.get('estimator'), ' Hz')}, tracking {_fmt(e.get('tracking'))}"
         f"{'' if e.get('initialized') in (None, True) else ' (not initialised)'}, "
         f"quality {_fmt(e.get('quality'))}, tracks {_fmt(e.get('tracks'))}, "
-        f"resets {_fmt(e.get('reset_counter'))} (daemon-forced {_fmt(e.get('daemon_resets'))}), "
+        f"resets {_fmt(e.get('resets', e.get('reset_counter')))} (daemon-forced {_fmt(e.get('daemon_resets'))}), "
         f"last pose {_fmt(e.get('last_pose_age_s'), ' s ago', 2)}",
         f"  position  {e.get('position_m') or '-'} m (world, z up)   "
         f"latency frame->output p50 {_fmt(lat.get('p50'), ' ms')} max {_fmt(lat.get('max'), ' ms')}",

@@ -405,7 +405,9 @@ class Service:
                 "tracking": tracking,
                 "quality": (state.quality if tracking else 0) if state is not None else None,
                 "initialized": h.initialized if h is not None else None,
-                "reset_counter": state.reset_counter if state is not None else None,
+                "reset_counter": state.reset_counter if state is not None else None,  # as the autopilot got it
+                # estimator resets so far, as the log counts them: the counter above moves with the next pose only
+                "resets": (h.reset_counter + est.reset_base) if h is not None else None,
                 "daemon_resets": est.resets,
                 "errors": est.errors,
                 "tracks": est.tracks,
@@ -448,7 +450,7 @@ class Service:
             s["state"],
             f"cam {r['camera']:.1f} Hz imu {r['imu']:.0f} Hz out {r['output']:.1f} Hz",
             f"tracks {_dash(e['tracks'])} q {_dash(e['quality'])}",
-            f"resets {(e['reset_counter'] or 0) - (lp['loop_jumps'] if lp else 0)}",
+            f"resets {_resets(e, lp)}",
             f"latency {lat['p50']:.0f}/{lat['max']:.0f} ms" if lat else "latency -",
             f"mav {s['mavlink']['state']}",
         ]
@@ -511,6 +513,14 @@ def _blend_to_go(lp: dict) -> str:
     if m < 0.01 and deg < 0.1:
         return ""
     return f", blending {m:.2f} m, {deg:.1f} deg to go"
+
+
+def _resets(e: dict, lp: dict | None) -> int:
+    """Estimator resets for the health line: as the log counts them (the estimator's own count), else from the
+    reset_counter sent, less the loop-correction steps in it."""
+    if e.get("resets") is not None:
+        return int(e["resets"])
+    return (e["reset_counter"] or 0) - (lp["loop_jumps"] if lp else 0)
 
 
 def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCalibration | None],

@@ -272,6 +272,11 @@ class EstimatorWorker(Worker):
         except Exception as e:  # display only: a failing health() must not stop the estimator
             log.debug("estimator health() failed: %s", e)
 
+    @property
+    def reset_base(self) -> int:
+        """What the published reset_counter adds to the estimator's own (a re-created estimator counts from 0)."""
+        return self._reset_base
+
     def _frame_arrival(self, done: list[ProcessedFrame]) -> int:
         """Arrival time of the newest frame finished by this call, or -1 (an IMU-rate state only).
 
@@ -332,6 +337,7 @@ class EstimatorWorker(Worker):
             # keeps the last pose as the new origin and bumps the estimator's reset_counter; not carried
             # forward with the IMU: these resets follow lost IMU samples or an estimator in an unknown state
             self.estimator.reset(why, bridge=False)
+            self._snapshot_health(force=True)  # the status counts the reset now, not at the next snapshot
             return
         except Exception as e:
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
