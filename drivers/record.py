@@ -129,7 +129,7 @@ def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: st
         path = Path(out)
         if path.exists() and not overwrite:
             raise VioError(f"{path}: already exists; refusing to overwrite recorded data")
-        return McapWriter(path, images)
+        return McapWriter(path, images, calibration=calib)
     from vio.io.euroc import EurocWriter
 
     return EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite, png_level=png_level)

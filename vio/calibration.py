@@ -327,8 +327,11 @@ def load_calibration(path: str | Path) -> StereoCalibration:
     return calibration_from_dict(load_yaml(Path(path)), where=str(path))
 
 
+def calibration_yaml(calib: StereoCalibration) -> str:
+    """The project's calibration file as text."""
+    return ("# Kestrel VIO calibration (T_body_cam maps camera points into the body/IMU frame;\n"
+            "# t_imu = t_cam + time_offset_ns)\n" + yaml.safe_dump(calibration_to_dict(calib), sort_keys=False))
+
+
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
-    Path(path).write_text(
-        "# Kestrel VIO calibration (T_body_cam maps camera points into the body/IMU frame;\n"
-        "# t_imu = t_cam + time_offset_ns)\n" + yaml.safe_dump(calibration_to_dict(calib), sort_keys=False)
-    )
+    Path(path).write_text(calibration_yaml(calib))

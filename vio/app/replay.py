@@ -54,8 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "/dev/ttyAMA0:921600, ...); implies --realtime")
     p.add_argument("--config", metavar="FILE", help="TOML configuration (defaults otherwise)")
     p.add_argument("--calibration", metavar="YAML", help="calibration file instead of the dataset's sensor.yaml")
-    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for a bag (a bag has none): our YAML, "
-                   "or the files `vio calib import` reads, with --calib-format")
+    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for a bag (a bag has none; an MCAP file "
+                   "from vio record carries its own): our YAML, or the files `vio calib import` reads, with "
+                   "--calib-format")
     p.add_argument("--calib-format", default="project", help="format of --calib: project (default), kalibr, euroc, "
                    "opencv, depthai")
     p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")

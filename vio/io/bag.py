@@ -27,9 +27,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 from vio import VioError
-from vio.calibration import StereoCalibration, calibration_units_problem
+from vio.calibration import StereoCalibration, calibration_from_dict, calibration_units_problem, calibration_yaml
 from vio.io.euroc import (
     DatasetStats,
     EurocDataset,
@@ -216,7 +217,10 @@ class BagDataset(EurocDataset):
         if not p.exists():
             raise VioError(f"{p}: not found")
         if calibration is None:
-            raise VioError(f"{p}: a bag carries no camera-IMU calibration: give one with --calib")
+            calibration = recorded_calibration(p)
+        if calibration is None:
+            raise VioError(f"{p}: a bag carries no camera-IMU calibration: give one with --calib (an MCAP file "
+                           "recorded by vio record carries its own)")
         self.path = self.root = self.mav0 = p
         self.topics = topics or BagTopics()
         self.stats = DatasetStats()
@@ -511,11 +515,36 @@ def odometry_message(ts, st) -> tuple[str, object]:
         twist=g["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=twist_cov.reshape(-1)))
 
 
+CALIBRATION_ATTACHMENT = "kestrel-calibration.yaml"  # the recorder's calibration inside an MCAP file
+
+
+def recorded_calibration(path: Path) -> StereoCalibration | None:
+    """The calibration `vio record` put into a bare MCAP file (an attachment), or None (another file, a bag)."""
+    if not (path.is_file() and path.suffix == ".mcap"):
+        return None
+    reader = _need("mcap.reader")
+    try:
+        with open(path, "rb") as f:
+            for att in reader.NonSeekingReader(f).iter_attachments():
+                if att.name == CALIBRATION_ATTACHMENT:
+                    d = yaml.safe_load(att.data.decode())
+                    if not isinstance(d, dict):
+                        raise VioError(f"{path}: its recorded calibration is not a YAML mapping")
+                    log.info("%s: the calibration recorded with it is used", path)
+                    return calibration_from_dict(d, where=f"{path} (recorded calibration)")
+    except VioError:
+        raise
+    except Exception:  # a file cut short before the attachment, or not an MCAP at all: the caller says so
+        return None
+    return None
+
+
 class McapWriter:
     """A bare MCAP file on ROS 2 schemas (`ros2msg` + `cdr`, which Foxglove and `vio replay` read as they
     are) plus JSON channels (health). Messages are logged at their sensor stamp."""
 
-    def __init__(self, path: str | Path, compression: str = "png", chunk_size: int = 1 << 20) -> None:
+    def __init__(self, path: str | Path, compression: str = "png", chunk_size: int = 1 << 20,
+                 calibration: StereoCalibration | None = None) -> None:
         writer = _need("mcap.writer")
         self.ts = _typestore()
         self.path = Path(path)
@@ -525,6 +554,11 @@ class McapWriter:
         chunk_compression = writer.CompressionType.ZSTD if compression == "raw" else writer.CompressionType.NONE
         self._w = writer.Writer(self._f, chunk_size=chunk_size, compression=chunk_compression)
         self._w.start(profile="ros2", library="kestrel-vio")
+        if calibration is not None:
+            # first in the file, so that a recording cut short still carries it: an OAK's factory calibration has
+            # no YAML to keep beside the file, and a replay without one could not start (a review's finding)
+            self._w.add_attachment(0, 0, CALIBRATION_ATTACHMENT, "application/yaml",
+                                   calibration_yaml(calibration).encode())
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.bytes_images = 0

@@ -253,7 +253,7 @@ class RecorderWorker(Worker):
 
                 self.root.parent.mkdir(parents=True, exist_ok=True)
                 self.root = self.root.with_suffix(".mcap")
-                self.writer = McapWriter(self.root, self.images)
+                self.writer = McapWriter(self.root, self.images, calibration=calib)
             else:
                 from vio.io.euroc import EurocWriter
 
