@@ -1762,3 +1762,51 @@ def test_one_edge_to_a_loaded_map_is_not_made_consistent_by_an_edge_within_the_f
     assert not cl._consistent(n + 29)
     cl._pending.append(_Candidate(n + 27, 6, eye, eye, 15))
     assert cl._consistent(n + 27) and cl.relocalised
+
+
+def test_a_map_made_with_another_camera_mount_is_placed_by_its_cameras(tmp_path, caplog):
+    """A map stores body poses: flown with the camera re-mounted (or the IMU changed), today's T_body_cam put every
+    map camera elsewhere and a relocalised flight sat 0.3-0.5 m off in the map's frame, unsaid (a review's
+    finding). The map now keeps its mount and its keyframes are placed by their cameras; an older map without it
+    is taken as made with this mount; a mount that is not a rigid transform is a damaged map."""
+    import dataclasses
+    import json
+
+    from vio import VioError
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import load_map, save_map
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    f = KeyframeFeatures(np.zeros((3, 32), np.uint8), np.zeros((3, 2)), np.zeros((3, 3)))
+    T_kf = [make_T(so3_exp(np.r_[0.1, -0.05, 0.3 * k]), [k, 2.0, 1.0]) for k in range(3)]
+    old_mount = make_T(so3_exp(np.radians([0, 0, 10.0])), [0.1, 0, 0]) @ calib.cam0.T_body_cam
+    save_map(tmp_path / "m.npz", [1, 2, 3], T_kf, [f] * 3, Vocabulary.load(),
+             dataclasses.replace(calib.cam0, T_body_cam=old_mount))
+    cl = LoopCloser(calib, VioConfig().loop)
+    with caplog.at_level("WARNING", logger="vio.loop.closer"):
+        cl.load_map(load_map(tmp_path / "m.npz"))
+    assert "camera 10.00 deg and" in caplog.text and cl.map_mount_change[0] == pytest.approx(10.0, abs=0.01)
+    for k in range(3):  # the map's cameras where they were
+        np.testing.assert_allclose(cl.graph.odom[k] @ calib.cam0.T_body_cam, T_kf[k] @ old_mount, atol=1e-9)
+    # the same mount: poses as saved; an older map without the mount: as saved
+    for mount in (calib.cam0.T_body_cam, None):
+        save_map(tmp_path / "s.npz", [1, 2, 3], T_kf, [f] * 3, Vocabulary.load(), calib.cam0)
+        if mount is None:
+            z = dict(np.load(tmp_path / "s.npz"))
+            h = json.loads(str(z["header"]))
+            del h["camera"]["T_body_cam"]
+            np.savez(tmp_path / "s.npz", **{**z, "header": np.array(json.dumps(h))})
+        cl = LoopCloser(calib, VioConfig().loop)
+        cl.load_map(load_map(tmp_path / "s.npz"))
+        assert cl.map_mount_change is None
+        np.testing.assert_allclose(np.array(cl.graph.odom[:3]), np.array(T_kf), atol=1e-12)
+    z = dict(np.load(tmp_path / "m.npz"))
+    h = json.loads(str(z["header"]))
+    h["camera"]["T_body_cam"] = [[2.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    np.savez(tmp_path / "bad.npz", **{**z, "header": np.array(json.dumps(h))})
+    with pytest.raises(VioError, match="damaged map.*T_body_cam"):
+        load_map(tmp_path / "bad.npz")

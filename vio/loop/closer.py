@@ -129,6 +129,7 @@ class LoopCloser:
         self._map_stamp: tuple | None = None  # the loaded map file as read (mapfile.file_stamp)
         self._marginal_warned = False  # correction_uncertainty fell back to the loop sigmas (said once)
         self.map_camera_warning: str | None = None  # a loaded map made with another camera size or focal length
+        self.map_mount_change: tuple[float, float] | None = None  # (deg, mm) the map's camera mount differed by
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
         self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
         self._own_node: dict[int, int] = {}  # this flight's keyframe stamp -> its node (for `settle`)
@@ -376,7 +377,8 @@ class LoopCloser:
         session with a loose prior, so its poses move into the map's frame once it relocalises."""
         if self.keyframes:
             raise ValueError("load the map before the first keyframe")
-        for t, T, f in zip(m.t_ns, m.T_world_body, m.features):
+        poses = self._map_poses_for_this_mount(m)
+        for t, T, f in zip(m.t_ns, poses, m.features):
             self.graph.add_node(T, None, (1e-4, 1e-4))
             self.keyframes.append(Keyframe(int(t), 0, f, 0.0))
             self.index.add(self.vocab.bow(f.desc))
@@ -389,6 +391,31 @@ class LoopCloser:
         self._map_stamp = getattr(m, "stamp", None)
         self.session = 1
         self._last_reset = None
+
+    def _map_poses_for_this_mount(self, m) -> np.ndarray:
+        """The map's keyframe body poses for this flight's camera mount. A map stores body (IMU) poses and what its
+        camera saw; with the camera re-mounted or the IMU changed since, today's T_body_cam applied to them put
+        every map camera elsewhere, and a relocalised flight sat 0.3-0.5 m off in the map's frame, unsaid (a
+        review's finding). The keyframes are placed by their cameras: T_world_body = T_world_body_map @
+        T_body_cam_map @ inv(T_body_cam_now). A map without its mount (made before 2026-12-06) is taken as made
+        with this one."""
+        poses = np.asarray(m.T_world_body, dtype=float)
+        T_map = m.header.get("camera", {}).get("T_body_cam")
+        if T_map is None:
+            log.info("loop closure: the map does not state its camera mount (an older map): this flight's "
+                     "T_body_cam is taken for its keyframes")
+            return poses
+        T_map = np.array(T_map, dtype=float)
+        T_now = np.asarray(self.cam.T_body_cam, dtype=float)
+        D = T_map @ inv_T(T_now)
+        deg = float(np.degrees(np.linalg.norm(so3_log(D[:3, :3]))))
+        mm = float(np.linalg.norm(D[:3, 3])) * 1e3
+        if deg <= 0.01 and mm <= 0.1:
+            return poses
+        self.map_mount_change = (deg, mm)
+        log.warning("loop closure: the map was made with the camera %.2f deg and %.1f mm elsewhere on the body "
+                    "(another mount or calibration): its keyframes are placed by their cameras for this one", deg, mm)
+        return np.einsum("nij,jk->nik", poses, D)
 
     @property
     def relocalised(self) -> bool:

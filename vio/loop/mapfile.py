@@ -69,7 +69,11 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
               "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "vocabulary": {"k": vocabulary.k, "depth": vocabulary.depth, "sha256": vocabulary_digest(vocabulary)},
               "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
-                         "height": cam.height}, "note": note}
+                         "height": cam.height,
+                         # the keyframes' poses are the body's (IMU's): the camera's place on it is what a later
+                         # flight with another mount needs to place them by the camera (LoopCloser.load_map)
+                         "T_body_cam": [[float(x) for x in row] for row in np.asarray(cam.T_body_cam)]},
+              "note": note}
     if parts is not None:
         header["parts"] = parts
 
@@ -133,6 +137,14 @@ def _header_problem(header: dict, n: int) -> str | None:
     if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
                                             and cam[k] > 0 for k in ("width", "height", "fx", "fy")):
         return "its header has no camera size and focal lengths"
+    if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
+        try:
+            T = np.array(cam["T_body_cam"], dtype=float)
+            ok = T.shape == (4, 4) and bool(np.isfinite(T).all()) and is_se3(T, tol=1e-4)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            return "its header's camera T_body_cam is not a rigid transform"
     return None
 
 
