@@ -171,10 +171,11 @@ class MavlinkOutput:
         # ODOMETRY quality while lost: -1 is "failed" in the MAVLink spec, rejected by ArduPilot's VISO_QUAL_MIN and
         # PX4's EKF2_EV_QMIN at their defaults (0); 0 is "unknown", which both fuse unless those are raised
         self._lost_quality = -1 if cfg.lost_output == "failed" else 0
+        self._px4_said = False  # the PX4 EKF2_EV_QMIN advice, once
         if cfg.lost_output == "quality0":
             log.warning("[mavlink] lost_output = 'quality0': a lost pose goes out with quality 0 ('unknown'), which "
                         "ArduPilot (VISO_QUAL_MIN) and PX4 (EKF2_EV_QMIN) fuse at their default 0; 'failed' sends "
-                        "-1, which they reject")
+                        "-1, which ArduPilot rejects at its default (PX4 needs EKF2_EV_QMIN = 1 for either)")
         # None until the mount is known (mount = camera-*: from the calibration, see set_camera_mount)
         self.T_frd_body: np.ndarray | None = None
         if cfg.mount == "rpy":
@@ -649,6 +650,11 @@ class MavlinkOutput:
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
                 self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                if self._lost_as_quality0 and msg.autopilot == mavlink.MAV_AUTOPILOT_PX4 and not self._px4_said:
+                    # PX4 fuses any quality while EKF2_EV_QMIN <= 0 (its default): a lost pose with -1 or 0 too
+                    self._px4_said = True
+                    log.warning("the autopilot is PX4: with lost_output = %r set EKF2_EV_QMIN = 1, or it fuses the "
+                                "poses sent while lost (it takes any quality at its default 0)", self.cfg.lost_output)
                 sysid = msg.get_srcSystem()
                 if sysid != self.target_system or (self.cfg.system_id == 0 and sysid != self.system_id):
                     log.info("autopilot is system %d; sending as %d/%d", sysid,

@@ -258,8 +258,9 @@ class MavlinkConfig:
     mount_rpy_deg: list = opt([0.0, 0.0, 0.0], "with mount = 'rpy': the IMU's orientation in the vehicle FRD frame, "
                               "roll/pitch/yaw [deg] (an IMU mounted z-up, x forward is [180, 0, 0])")
     lost_output: str = opt("none", "while not tracking: 'none' sends no pose; 'failed' keeps sending ODOMETRY "
-                           "with quality -1 (MAVLink's 'failed': ArduPilot VISO_QUAL_MIN and PX4 EKF2_EV_QMIN reject "
-                           "it at their default 0); 'quality0' with quality 0 ('unknown': fused unless they are >= 1)",
+                           "with quality -1 (MAVLink's 'failed': ArduPilot's VISO_QUAL_MIN rejects it at its default "
+                           "0; PX4 fuses any quality unless EKF2_EV_QMIN >= 1); 'quality0' with quality 0 "
+                           "('unknown': fused by both unless their minimum is >= 1)",
                            choices=("none", "failed", "quality0"))
     counter_file: str = opt("/var/lib/kestrel-vio/reset_counter", "where `vio run` keeps the last reset_counter "
                             "sent: a restarted daemon (systemd after a crash or the watchdog) starts at the next "
