@@ -405,7 +405,7 @@ def test_a_recreated_estimator_is_a_new_segment_for_the_loop_stage_and_drops_the
         def __init__(self) -> None:
             self.done: list = []
 
-        def reset(self, reason: str, bridge: bool = True) -> None:
+        def reset(self, reason: str, bridge: bool = True, keep_bias: bool | None = None) -> None:
             raise RuntimeError("smoother in a bad state")
 
         def take_processed(self) -> list:

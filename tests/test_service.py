@@ -324,7 +324,7 @@ class ScriptedEstimator:
         self._done.append(ProcessedFrame(f.t_ns, self.last_features, FrameTimings(), st))
         return st
 
-    def reset(self, reason: str, bridge: bool = True) -> None:
+    def reset(self, reason: str, bridge: bool = True, keep_bias: bool | None = None) -> None:
         self.resets += 1
 
     def health(self) -> Health:

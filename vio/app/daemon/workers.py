@@ -228,13 +228,13 @@ class EstimatorWorker(Worker):
             if self.buf.imu_overflow != self._seen_overflow:
                 lost = self.buf.imu_overflow - self._seen_overflow
                 self._seen_overflow = self.buf.imu_overflow
-                self._reset(f"IMU buffer overflow: {lost} samples lost (estimator too slow)")
+                self._reset(f"IMU buffer overflow: {lost} samples lost (estimator too slow)", keep_bias=True)
             if imu or item:
                 self.last_input = time.monotonic()
             try:
                 for s in imu:
                     if self._last_imu_t is not None and s.t_ns - self._last_imu_t > self.max_gap_ns:
-                        self._reset(f"IMU gap of {(s.t_ns - self._last_imu_t) / 1e9:.2f} s")
+                        self._reset(f"IMU gap of {(s.t_ns - self._last_imu_t) / 1e9:.2f} s", keep_bias=True)
                     self._last_imu_t = s.t_ns
                     self._emit(self.estimator.feed_imu(s))
                 if item is not None:
@@ -329,14 +329,16 @@ class EstimatorWorker(Worker):
                 self.last_state_time = time.monotonic()
             self.out.publish(Output(state, arrival_ns, _now_ns(), odometry))
 
-    def _reset(self, why: str) -> None:
+    def _reset(self, why: str, keep_bias: bool = False) -> None:
+        """`keep_bias`: samples were lost but the estimate was sound (an IMU gap, a full buffer): the restart must
+        agree with its gyro bias; after an exception nothing of the old estimate is trusted."""
         self.resets += 1
         log.warning("daemon-forced estimator reset #%d: %s", self.resets, why)
         last = self.last_state.reset_counter if self.last_state is not None else -1
         try:
             # keeps the last pose as the new origin and bumps the estimator's reset_counter; not carried
             # forward with the IMU: these resets follow lost IMU samples or an estimator in an unknown state
-            self.estimator.reset(why, bridge=False)
+            self.estimator.reset(why, bridge=False, keep_bias=keep_bias)
             self._snapshot_health(force=True)  # the status counts the reset now, not at the next snapshot
             return
         except Exception as e:
