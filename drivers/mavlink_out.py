@@ -447,9 +447,15 @@ class MavlinkOutput:
             last = int(p.read_text().strip())
             if not 0 <= last <= 255:
                 raise ValueError(f"{last} is not 0-255")
-            log.info("reset_counter starts at %d: the last one sent before was %d (%s)", (last + 1) % 256, last, p)
-            self._counter_saved = last
-            return (last + 1) % 256
+            start = (last + 1) % 256
+            # taken only if this start can be kept in its place: a file left behind by a process that could not
+            # write its later counters (a full or read-only disk) is stale, and its next value may be the very one
+            # the autopilot last got (a review's finding)
+            self._keep_counter(start)
+            if self._counter_file is not None:
+                log.info("reset_counter starts at %d: the last one sent before was %d (%s)", start, last, p)
+                return start
+            why = "the file cannot be written, so what it says may be stale"
         except FileNotFoundError:
             why = "none kept yet"
         except (OSError, ValueError) as e:
@@ -474,6 +480,12 @@ class MavlinkOutput:
             os.replace(tmp, p)
             self._counter_saved = value
         except OSError as e:
+            # what is kept there is stale from now on: gone if it can be removed (a full disk), else a restart
+            # finds that it cannot write it back and starts at a random value (_first_counter)
+            with contextlib.suppress(OSError):
+                p.unlink()
+            with contextlib.suppress(OSError):
+                tmp.unlink()
             log.warning("cannot keep the reset_counter in %s (%s): a restart will start at a random one", p,
                         e.strerror or e)
             self._counter_file = None

@@ -453,6 +453,36 @@ def test_a_restarted_output_moves_reset_counter_on_from_the_last_one_sent(ap, tm
     out.close()
 
 
+def test_a_counter_file_that_cannot_be_written_is_never_trusted(ap, tmp_path, monkeypatch, caplog):
+    """A full or read-only disk: the write failed, the old file stayed, and the restart started one past that
+    stale value, the very counter the autopilot last got with a new origin (a review's finding)."""
+    import os
+
+    path = tmp_path / "reset_counter"
+    out = _counted(ap, FakeClock(), path)
+    clock = FakeClock()
+    out._clock = clock
+    out.send_state(state(clock.t))
+    first = ap.of("ODOMETRY", ap.drain())[-1].reset_counter
+    real_replace = os.replace
+
+    def full(*a, **kw):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(os, "replace", full)
+    clock.advance(0.1)
+    out.send_state(state(clock.t, reset_counter=1))  # a reset: the new counter cannot be kept
+    ap.drain()
+    out.close()
+    assert not path.exists()  # the stale value is gone (a full disk still lets a file be removed)
+    monkeypatch.setattr(os, "replace", real_replace)
+    path.write_text(f"{first}\n")  # a read-only disk keeps it: the restart cannot write it back either
+    monkeypatch.setattr(os, "replace", full)
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        out = _counted(ap, FakeClock(), path)
+    assert "a random value" in caplog.text and "may be stale" in caplog.text
+    out.close()
+
+
 def test_flapping_tracking_gives_one_unstable_message_then_the_final_state(ap):
     """Frames in bursts (an overloaded board) flip tracking every 0.2 s: the ground station gets "lost",
     "regained", "lost", then one "unstable", and the state it settled in once it held for 3 s."""
