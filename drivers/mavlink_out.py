@@ -87,6 +87,7 @@ class MavlinkStats:
     states_superseded: int = 0  # replaced by a newer state before their send slot
     states_not_tracking: int = 0
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
+    states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
@@ -158,7 +159,8 @@ class MavlinkOutput:
 
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None,
-                 link: MavlinkLink | None = None, counter_file: str | None = None) -> None:
+                 link: MavlinkLink | None = None, counter_file: str | None = None,
+                 max_state_age_ms: float | None = None) -> None:
         self.cfg = cfg
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
@@ -204,6 +206,10 @@ class MavlinkOutput:
         self._next_origin_ns = 0
         # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
+        # states older than this (t_ns on the host clock, as `vio run` and `vio replay --mavlink` stamp them) are
+        # not sent: None or 0 = no limit (states stamped on another clock: tests, tools)
+        self._max_age_ns = int(max_state_age_ms * 1e6) if max_state_age_ms else None
+        self._too_old_spell = False
         self._counter_file = Path(counter_file) if counter_file else None
         self._counter_saved: int | None = None
         self._reset_offset = self._first_counter()
@@ -271,6 +277,7 @@ class MavlinkOutput:
                 "system_id": self.system_id, "target_system": self.target_system,
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
                 "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
+                "states_too_old": st.states_too_old,
                 "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
@@ -284,6 +291,21 @@ class MavlinkOutput:
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
         goes out) and sends nothing. Returns whether the state was taken for sending."""
         taken = False
+        if self._max_age_ns is not None and state.tracking:
+            age = self._clock() - state.t_ns
+            if age > self._max_age_ns:
+                # flown on as if it were now: never. The estimator is behind its sensors (CPU) or the process was
+                # stalled; poses 0.5-2.9 s old went out at quality 100 (a review's finding)
+                self.stats.states_too_old += 1
+                if not self._too_old_spell:
+                    log.warning("poses %.0f ms old are not sent (beyond [mavlink] max_state_age_ms = %.0f): the "
+                                "estimator is behind its sensors (CPU load?) or was stalled; a loss of tracking "
+                                "until they are fresh", age / 1e6, self._max_age_ns / 1e6)
+                self._too_old_spell = True
+                state = dataclasses.replace(state, tracking=False, quality=0)
+            elif self._too_old_spell:
+                self._too_old_spell = False
+                log.info("poses fresh again (%.0f ms old)", age / 1e6)
         finite = _sendable(state)
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
@@ -308,7 +330,7 @@ class MavlinkOutput:
                     log.warning("no pose sent: the IMU mount is not known yet (mount = %r needs the calibration)",
                                 self.cfg.mount)
                     self._mount_warned = True
-            elif not state.tracking and (not self._lost_as_quality0 or not finite):
+            elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell):
                 self.stats.states_not_tracking += 1
                 self._pending = None
             elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \
@@ -402,6 +424,9 @@ class MavlinkOutput:
             if now >= self._next_send_ns:
                 with self._pending_lock:
                     state, self._pending = self._pending, None
+                if state is not None and self._max_age_ns is not None and now - state.t_ns > self._max_age_ns:
+                    self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
+                    state = None
                 if state is not None:
                     self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
                     self._send_state_messages(state, now)

@@ -910,3 +910,26 @@ def test_land_after_loss_is_off_by_default_and_never_sent_while_disarmed(ap):
         assert not [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_NAV_LAND]
         assert out.stats.land_requests == 0
         out.close()
+
+
+def test_a_pose_older_than_max_state_age_is_not_sent_and_counts_as_lost(ap, caplog):
+    """Nothing limited a pose's age: after a 3 s stall, or under CPU starvation, poses 0.5-2.9 s old went out at
+    quality 100 (a review's finding). Beyond max_state_age_ms a state is not sent and counts as a loss of tracking
+    (STATUSTEXT, land_after_loss_s); fresh ones resume it."""
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                        clock_ns=clock, max_state_age_ms=500)
+    out.send_state(state(clock.t - 50_000_000))  # 50 ms old: sent
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1
+    with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
+        for _ in range(5):
+            clock.advance(0.1)
+            out.send_state(state(clock.t - 900_000_000))  # 0.9 s old
+    got = ap.drain()
+    assert not ap.of("ODOMETRY", got) and [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
+    assert out.health()["states_too_old"] == 5 and caplog.text.count("not sent (beyond") == 1
+    clock.advance(0.1)
+    out.send_state(state(clock.t - 30_000_000))
+    got = ap.drain()
+    assert len(ap.of("ODOMETRY", got)) == 1 and ap.of("STATUSTEXT", got)[0].text == "VIO tracking regained"
+    out.close()

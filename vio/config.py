@@ -273,6 +273,9 @@ class MavlinkConfig:
     origin_alt_m: float = opt(0.0, "SET_GPS_GLOBAL_ORIGIN altitude (AMSL)")
     link_timeout_s: float = opt(3.0, "autopilot heartbeat silence after which the link counts as lost",
                                 min=0.5, max=60)
+    max_state_age_ms: float = opt(500.0, "a pose older than this when it would be sent (its measurement time on the "
+                                  "host clock against now: the estimator behind, a stalled process) is not sent "
+                                  "and counts as a loss of tracking [ms]; 0 = off", min=0, max=5000)
     land_after_loss_s: float = opt(0.0, "once tracking has been lost this long while the autopilot is armed, "
                                    "ask it to LAND (MAV_CMD_NAV_LAND) rather than let it dead-reckon on its IMU "
                                    "until its own EKF failsafe [s]; 0 = off", min=0, max=600)

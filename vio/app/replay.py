@@ -532,7 +532,8 @@ def run(args: argparse.Namespace) -> int:
     if args.mavlink:
         from drivers.mavlink_out import MavlinkOutput, restamp_to_host_clock
 
-        mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam).start()
+        mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam,
+                            max_state_age_ms=cfg.mavlink.max_state_age_ms).start()
         sink = restamp_to_host_clock(mav)
         if loop is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
             sink = corrected_sink(sink, loop, cfg)
