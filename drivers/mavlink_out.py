@@ -366,13 +366,17 @@ class MavlinkOutput:
         return self
 
     def close(self) -> None:
-        """Stop the thread and close the connection; safe to call twice."""
+        """Stop the thread and close the connection; safe to call twice. A link that is up hears it first: the
+        poses stop because VIO stopped, not because vision failed."""
         self._stop.set()
         self._wake()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
         with self._lock:
+            if self._link_up and (self._link is not None or self._conn is not None):
+                with contextlib.suppress(Exception):
+                    self._statustext(mavlink.MAV_SEVERITY_WARNING, "VIO stopped: no more poses")
             if self._link is not None:
                 self._link.unsubscribe(self._on_link_message)
                 self._link.release()
@@ -618,6 +622,7 @@ class MavlinkOutput:
             if self._land_left == 0 and not self.stats.land_accepted:
                 log.warning("autopilot did not acknowledge LAND after %d requests: land it from the ground "
                             "station", LAND_MAX_SENDS)
+                self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO lost, LAND not acked: land it")
 
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")

@@ -150,6 +150,9 @@ def test_status_verdicts() -> None:
     assert evaluate(_status(healthy=False, state="unhealthy"), 1001.0, 3.0) == (EXIT_UNHEALTHY, "UNHEALTHY")
     assert evaluate(_status(), 1010.0, 3.0)[0] == EXIT_NOT_RUNNING  # stale file: daemon dead or hung
     assert evaluate(_status(state="stopped"), 1000.5, 3.0)[0] == EXIT_NOT_RUNNING
+    # written an hour "in the future" (the wall clock stepped back): cannot tell, not HEALTHY (a review's finding)
+    code, verdict = evaluate(_status(written_unix=4600.0), 1000.0, 3.0)
+    assert code == EXIT_NOT_RUNNING and "clock stepped back" in verdict
     # killed (SIGKILL): its last status is fresh for up to stale_s, but its pid is gone
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     code, verdict = evaluate(_status(pid=int(dead.stdout)), 1001.0, 3.0)
@@ -664,6 +667,9 @@ def test_vio_run_end_to_end_with_fake_source(tmp_path: Path, notify_socket) -> N
         second = subprocess.run([sys.executable, "-c", LAUNCHER, "run", "--config", str(tmp_path / "config.toml")],
                                 cwd=REPO, capture_output=True, text=True, timeout=60)
         assert second.returncode == 3 and f"another vio run (pid {proc.pid})" in second.stderr, second.stderr
+        proc.send_signal(signal.SIGHUP)  # no reload: said and ignored (it killed the daemon without a word)
+        assert _wait(lambda: "received SIGHUP: ignored" in log_path.read_text(), 10)
+        assert proc.poll() is None
         text = log_path.read_text()  # the lines docs/first-flight.md tells the operator to look for
         assert "ready after" in text and text.count("first pose after") == 1, text[-3000:]
         # pull the cable for a while: the daemon logs it, keeps running, and poses resume afterwards
@@ -834,3 +840,20 @@ def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(t
         single_instance(cfg)
     first.close()  # the first one ends: the next starts
     single_instance(cfg).close()
+
+
+def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkeypatch) -> None:
+    """A state folder gone read-only made the watchdog's restart exit 3 (configuration error), which systemd never
+    restarts (a review's finding): `vio run` says it and runs without that output; `vio config check` still
+    fails on it."""
+    import vio.app.daemon.service as svc_mod
+    from vio import VioError
+    from vio.config import config_from_dict
+
+    cfg = config_from_dict({"run": {"trajectory_file": str(tmp_path / "t.tum")}})
+    monkeypatch.setattr(svc_mod.os, "access", lambda path, mode: False)
+    said: list[str] = []
+    svc_mod.check_run_config(cfg, warn=said.append)
+    assert said and "is not writable: running without it" in said[0]
+    with pytest.raises(VioError, match="is not writable"):
+        svc_mod.check_run_config(cfg)

@@ -66,6 +66,10 @@ def evaluate(status: dict[str, Any], now_unix: float, stale_s: float,
         return EXIT_NOT_RUNNING, f"NOT RUNNING (pid {status.get('pid')} is gone: killed or crashed)"
     if age > stale_s:
         return EXIT_NOT_RUNNING, f"STALE ({age:.0f} s old: daemon not running or hung)"
+    if age < -stale_s:
+        # written "in the future": the wall clock stepped back since, and its age says nothing (a hung daemon read
+        # HEALTHY, "-3586 s old": a review's finding)
+        return EXIT_NOT_RUNNING, f"STALE (written {-age:.0f} s in the future: the clock stepped back; cannot tell)"
     if status.get("healthy"):
         return EXIT_HEALTHY, "HEALTHY"
     state = str(status.get("state", "unhealthy")).upper()

@@ -547,7 +547,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        map_data = check_run_config(cfg)
+        map_data = check_run_config(cfg, warn=log.warning)
     except VioError as e:
         print(f"vio run: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
@@ -562,6 +562,11 @@ def run(args: argparse.Namespace) -> int:
     service.instance_lock = lock
     signal.signal(signal.SIGTERM, service.request_stop)
     signal.signal(signal.SIGINT, service.request_stop)
+    # SIGHUP killed the daemon without a word, and systemd takes that for a clean exit (no restart): an ssh
+    # session ending under one started by hand, or `systemctl kill -s HUP` (a review's finding). There is no
+    # reload: said, and ignored.
+    signal.signal(signal.SIGHUP, lambda signum, _frame: log.warning(
+        "received SIGHUP: ignored (vio run does not reload its configuration; restart it to apply a new one)"))
     log.info("kestrel-vio starting: source %s, MAVLink %s, recording %s, watchdog %s", cfg.source.kind,
              cfg.mavlink.url or "off", cfg.run.record_dir or "off",
              f"{service.watchdog_s:.1f} s" if service.watchdog_s else "off")
@@ -620,9 +625,11 @@ def single_instance(cfg: VioConfig) -> Any:
     return f
 
 
-def check_run_config(cfg: VioConfig) -> Any:
+def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) -> Any:
     """Problems the daemon cannot recover from by retrying: report them now, with the key to fix. Returns the
-    `[map] load` map it read (None without one), for the service to use rather than read it again."""
+    `[map] load` map it read (None without one), for the service to use rather than read it again. With `warn`
+    (`vio run`), an output folder that cannot be written is said there and the daemon runs without that output;
+    without it (`vio config check`) it is an error."""
     src = cfg.source
     # an extra that is not installed: the source would be retried forever, "degraded", unseen by systemd
     from vio.extras import require
@@ -692,5 +699,10 @@ def check_run_config(cfg: VioConfig) -> Any:
         if existing is not None and not existing.is_dir():
             raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
         if existing is not None and not os.access(existing, os.W_OK):
-            raise VioError(f"[run] {key} = {value!r}: {existing} is not writable")
+            problem = f"[run] {key} = {value!r}: {existing} is not writable"
+            if warn is None:
+                raise VioError(problem)
+            # `vio run` flies without that output rather than not at all: a disk gone read-only or full in flight
+            # made the watchdog's restart exit 3, which systemd never restarts (a review's finding)
+            warn(f"{problem}: running without it")
     return map_data
