@@ -523,11 +523,13 @@ class MavlinkOutput:
         if self._last_reset_counter is not None and state.reset_counter != self._last_reset_counter:
             if state.loop_jumps - self._last_loop_jumps == state.reset_counter - self._last_reset_counter:
                 # [loop] output = jump: the loop-corrected pose stepped, the estimator did not reset
-                log.info("loop correction: position/yaw step, reset_counter %d -> %d", self._last_reset_counter,
-                         state.reset_counter)
+                log.info("loop correction: position/yaw step, reset_counter %d -> %d (sent as %d)",
+                         self._last_reset_counter, state.reset_counter,
+                         (state.reset_counter + self._reset_offset) % 256)
                 self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO loop correction")
             else:
-                log.info("estimator reset: reset_counter %d -> %d", self._last_reset_counter, state.reset_counter)
+                log.info("estimator reset: reset_counter %d -> %d (sent as %d)", self._last_reset_counter,
+                         state.reset_counter, (state.reset_counter + self._reset_offset) % 256)
                 self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
         self._last_reset_counter = state.reset_counter
         self._last_loop_jumps = state.loop_jumps
@@ -582,8 +584,7 @@ class MavlinkOutput:
             if stopped:
                 self._tracking, self._lost_since_ns, self._land_done, self._pending = False, last, False, None
         if stopped:
-            log.warning("no estimate for %.1f s (the IMU silent, with or without the camera, or the estimator "
-                        "stopped)",
+            log.warning("no estimate for %.1f s (the sensors silent, or the estimator stopped or behind)",
                         (now - last) / 1e9)
             self._on_tracking_change(False)
 
@@ -721,8 +722,10 @@ class MavlinkOutput:
                 elif not accepted:
                     log.warning("autopilot refused LAND (COMMAND_ACK result %d)", msg.result)
                 self.stats.land_accepted = self.stats.land_accepted or accepted
-            elif kind == "TIMESYNC" and msg.tc1 == 0:
-                # A request: answer with our clock (the one NavState.t_ns uses) and echo its ts1.
+            elif kind == "TIMESYNC" and msg.tc1 == 0 and (self._last_ap_heartbeat_ns is None
+                                                           or msg.get_srcSystem() == self.target_system):
+                # A request from the autopilot (others' requests are theirs to answer: a second answer from us
+                # would spoil their round trip): answer with our clock (the one NavState.t_ns uses), echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
                 self.stats.timesync_answered += 1
 

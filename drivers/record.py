@@ -136,7 +136,8 @@ def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: st
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("out", help="output folder (EuRoC ASL layout: OUT/mav0/...)")
+    parser.add_argument("out", help="output folder (EuRoC ASL layout: OUT/mav0/...), or with --format mcap the "
+                        "MCAP file")
     parser.add_argument("--source", choices=("oak", "fake", "euroc"), help="overrides [source] kind of the config")
     parser.add_argument("--duration", type=float, metavar="S", help="seconds of data to record (default: until "
                         "Ctrl-C / SIGTERM)")

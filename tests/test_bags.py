@@ -338,3 +338,15 @@ def test_recorded_mcap_is_on_the_schemas_foxglove_reads(tmp_path, images):
         schemas = {s.name for s in make_reader(f).get_summary().schemas.values()}
     camera = "sensor_msgs/msg/Image" if images == "raw" else "sensor_msgs/msg/CompressedImage"
     assert schemas == {camera, "sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry", "vio_health"}
+
+
+def test_a_bag_folder_without_its_metadata_names_the_file_to_give(tmp_path):
+    """`ros2 bag record` cut off leaves the .db3 without metadata.yaml: the message said only "not a EuRoC ASL
+    dataset" (a review's finding); it now names the file inside, which is read alone."""
+    from vio import VioError
+    from vio.io.euroc import find_mav0
+
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "bag_0.db3").write_bytes(b"")
+    with pytest.raises(VioError, match=r"no metadata.yaml: a ROS 2 bag cut short\? give its file alone: vio replay"):
+        find_mav0(tmp_path / "bag")

@@ -67,6 +67,11 @@ def test_compare_names_better_and_worse():
     assert "1 better" in text and "1 worse" in text
     lines = {ln.split("|")[1].strip(): ln for ln in text.splitlines() if ln.startswith("| a") or ln.startswith("| b")}
     assert lines["a"].rstrip().endswith("better |") and "worse" in lines["b"]
+    # matched by name, from another recording: said (day2/f read as day1/f, a review's finding)
+    old, new = rep(0.1, 0.1), rep(0.1, 0.1)
+    old["flights"][0].update(path="/day1/f", frames=601)
+    new["flights"][0].update(path="/day2/f", frames=550)
+    assert "another recording? path /day1/f -> /day2/f; frames 601 -> 550" in compare(new, old)
 
 
 def test_cli_batch_local_with_compare(flights, tmp_path):

@@ -614,6 +614,19 @@ def test_timesync_request_is_answered_with_our_monotonic_clock(ap):
     replies = ap.of("TIMESYNC", ap.drain())
     assert len(replies) == 1 and replies[0].ts1 == 987_654_321
     assert before <= replies[0].tc1 <= time.monotonic_ns()
+    # locked on an autopilot (system 7), another system's request is not ours to answer: a second answer on the
+    # link would spoil its round trip (a review's finding)
+    ap.heartbeat()
+    time.sleep(0.02)
+    out.poll()
+    ap.drain()
+    ap.conn.mav.srcSystem = 9
+    ap.conn.mav.timesync_send(0, 111)
+    ap.conn.mav.srcSystem = 7
+    ap.conn.mav.timesync_send(0, 222)
+    time.sleep(0.02)
+    out.poll()
+    assert [m.ts1 for m in ap.of("TIMESYNC", ap.drain())] == [222]
     out.close()
 
 

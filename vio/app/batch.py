@@ -378,8 +378,13 @@ def compare(new: dict, old: dict, tol: float = 0.05) -> str:
         def pair(key: str, d: int, o=o, r=r) -> str:
             return f"{_fmt(o.get(key), d)} -> {_fmt(r[key], d)}"
 
+        # rows are matched by name: one of another recording (another path, another frame count) is said so, or
+        # day2/f read as day1/f got "worse" with no word (a review's finding)
+        other = [f"{k} {o.get(k)} -> {r.get(k)}" for k in ("path", "frames")
+                 if o and o.get(k) is not None and r.get(k) is not None and o.get(k) != r.get(k)]
+        note = f" (another recording? {'; '.join(other)})" if other else ""
         lines.append(f"| {r['flight']} | {pair('ate_m', 4)} | {pair('rpe_pct', 2)} | {pair('resets', 0)} | "
-                     f"{pair('realtime_factor', 2)} | {verdict}{' (' + r['error'] + ')' if r['error'] else ''} |")
+                     f"{pair('realtime_factor', 2)} | {verdict}{note}{' (' + r['error'] + ')' if r['error'] else ''} |")
     gone = sorted(set(before) - {r["flight"] for r in new["flights"]})
     head = (f"Compared with the earlier report: {tally['better']} better, {tally['worse']} worse, {tally['same']} "
             f"the same, {tally['new']} new" + (f", {len(gone)} no longer run ({', '.join(gone)})" if gone else ""))

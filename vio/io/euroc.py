@@ -452,6 +452,10 @@ def find_mav0(path: str | Path) -> Path:
         return p / "mav0"
     if p.name == "mav0" or (p / "imu0").is_dir():
         return p
+    inside = sorted([*p.glob("*.db3"), *p.glob("*.mcap")])
+    if inside:  # a ROS 2 bag folder whose metadata.yaml is missing (`ros2 bag record` cut off by a power cut)
+        raise VioError(f"{p}: no mav0/ folder and no metadata.yaml: a ROS 2 bag cut short? give its file alone: "
+                       f"vio replay {inside[0]}")
     raise VioError(f"{p}: no mav0/ folder: not a EuRoC ASL dataset")
 
 
