@@ -65,7 +65,8 @@ def evaluate(status: dict[str, Any], now_unix: float, stale_s: float,
     if pid_gone(status.get("pid")):
         return EXIT_NOT_RUNNING, f"NOT RUNNING (pid {status.get('pid')} is gone: killed or crashed)"
     if age > stale_s:
-        return EXIT_NOT_RUNNING, f"STALE ({age:.0f} s old: daemon not running or hung)"
+        return EXIT_NOT_RUNNING, (f"STALE ({age:.0f} s old: daemon not running or hung, or its status file can no "
+                                  "longer be written: a full or read-only disk; its log says which)")
     if age < -stale_s:
         # written "in the future": the wall clock stepped back since, and its age says nothing (a hung daemon read
         # HEALTHY, "-3586 s old": a review's finding)
