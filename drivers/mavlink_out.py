@@ -102,6 +102,7 @@ class MavlinkStats:
     first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
 
 
+ANOTHER_CLOCK_NS = 2_000_000_000  # pose stamps this far ahead of the host clock are on another clock
 MAX_LEVER_ARM_M = 2.0  # [mavlink] mount_offset_m: no drone's IMU sits further from its centre
 
 
@@ -277,7 +278,7 @@ class MavlinkOutput:
                 "system_id": self.system_id, "target_system": self.target_system,
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
                 "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
-                "states_too_old": st.states_too_old,
+                "states_too_old": st.states_too_old, "withholding_old_poses": self._too_old_spell,
                 "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
@@ -291,9 +292,15 @@ class MavlinkOutput:
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
         goes out) and sends nothing. Returns whether the state was taken for sending."""
         taken = False
-        if self._max_age_ns is not None and state.tracking:
+        if self._max_age_ns is not None:
             age = self._clock() - state.t_ns
-            if age > self._max_age_ns:
+            if age < -ANOTHER_CLOCK_NS:
+                # stamped ahead of the host clock by seconds: not on it (a recording's own stamps, replayed as
+                # fast as it goes), so an age says nothing; said once, and the check is off for this output
+                log.warning("pose stamps are %.1f s ahead of this host's clock: not on it; [mavlink] "
+                            "max_state_age_ms cannot be checked and is off", -age / 1e9)
+                self._max_age_ns = None
+            elif age > self._max_age_ns:
                 # flown on as if it were now: never. The estimator is behind its sensors (CPU) or the process was
                 # stalled; poses 0.5-2.9 s old went out at quality 100 (a review's finding)
                 self.stats.states_too_old += 1
@@ -303,7 +310,7 @@ class MavlinkOutput:
                                 "until they are fresh", age / 1e6, self._max_age_ns / 1e6)
                 self._too_old_spell = True
                 state = dataclasses.replace(state, tracking=False, quality=0)
-            elif self._too_old_spell:
+            elif self._too_old_spell:  # a fresh state, tracking or not, ends the spell
                 self._too_old_spell = False
                 log.info("poses fresh again (%.0f ms old)", age / 1e6)
         finite = _sendable(state)
@@ -365,16 +372,16 @@ class MavlinkOutput:
             self._thread.start()
         return self
 
-    def close(self) -> None:
-        """Stop the thread and close the connection; safe to call twice. A link that is up hears it first: the
-        poses stop because VIO stopped, not because vision failed."""
+    def close(self, final: bool = True) -> None:
+        """Stop the thread and close the connection; safe to call twice. With `final` (not a reconnect) a link
+        that is up hears it first: the poses stop because VIO stopped, not because vision failed."""
         self._stop.set()
         self._wake()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
         with self._lock:
-            if self._link_up and (self._link is not None or self._conn is not None):
+            if final and self._link_up and (self._link is not None or self._conn is not None):
                 with contextlib.suppress(Exception):
                     self._statustext(mavlink.MAV_SEVERITY_WARNING, "VIO stopped: no more poses")
             if self._link is not None:

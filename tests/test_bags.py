@@ -350,3 +350,14 @@ def test_a_bag_folder_without_its_metadata_names_the_file_to_give(tmp_path):
     (tmp_path / "bag" / "bag_0.db3").write_bytes(b"")
     with pytest.raises(VioError, match=r"no metadata.yaml: a ROS 2 bag cut short\? give its file alone: vio replay"):
         find_mav0(tmp_path / "bag")
+
+
+def test_an_mcap_file_without_a_recorded_calibration_is_read_no_further_than_its_first_schema(tmp_path):
+    from vio.io.bag import McapWriter, recorded_calibration
+
+    with McapWriter(tmp_path / "other.mcap", "raw") as w:  # someone else's file: no calibration attachment
+        for k in range(200):
+            w.write_imu(ImuSample(10**9 + k * 5_000_000, np.zeros(3), np.array([0, 0, 9.81])))
+    assert recorded_calibration(tmp_path / "other.mcap") is None
+    with pytest.raises(Exception, match="carries no camera-IMU calibration"):
+        BagDataset(tmp_path / "other.mcap", None)

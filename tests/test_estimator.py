@@ -1119,3 +1119,16 @@ def test_a_reset_after_an_imu_gap_keeps_the_gyro_bias_a_restart_must_agree_with(
     _run(est2, duration_s=4.0, still_s=1.0, seed=3)
     est2.reset("estimator failed: RuntimeError", bridge=False)
     assert est2._bias_continuous(start(bias + [0.0, 0.0, 0.08]))  # nothing kept to compare with
+
+
+def test_a_reset_after_vision_loss_keeps_the_gyro_bias():
+    """The estimator's own reset after a vision loss (the last state no longer tracking, bridged) keeps the bias
+    for the restart to agree with, as before the keep_bias change (a review caught it dropping it)."""
+    import dataclasses
+
+    est = Estimator(synthetic_calibration())
+    states, _, _, _ = _run(est, duration_s=4.0, still_s=1.0, seed=3)
+    est._latest = dataclasses.replace(est._latest, tracking=False)  # vision lost for more than vision_timeout_s
+    est.reset("no usable camera frame for 1.00 s")
+    assert est._state.trusted_bias is not None
+    np.testing.assert_allclose(est._state.trusted_bias[1], est._latest.gyro_bias)

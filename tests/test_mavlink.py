@@ -941,8 +941,32 @@ def test_a_pose_older_than_max_state_age_is_not_sent_and_counts_as_lost(ap, capl
     got = ap.drain()
     assert not ap.of("ODOMETRY", got) and [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
     assert out.health()["states_too_old"] == 5 and caplog.text.count("not sent (beyond") == 1
+    assert out.health()["withholding_old_poses"]
+    clock.advance(0.1)
+    out.send_state(state(clock.t - 30_000_000, tracking=False))  # fresh, not tracking: the spell is over
+    assert not out.health()["withholding_old_poses"]
     clock.advance(0.1)
     out.send_state(state(clock.t - 30_000_000))
     got = ap.drain()
     assert len(ap.of("ODOMETRY", got)) == 1 and ap.of("STATUSTEXT", got)[0].text == "VIO tracking regained"
+    out.close(final=False)  # a reconnect: the autopilot is not told VIO stopped
+    assert not ap.of("STATUSTEXT", ap.drain())
+    # a pose that aged waiting for its send slot (this thread stalled) is dropped there
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                        clock_ns=clock, max_state_age_ms=200)
+    out.send_state(state(clock.t))
+    clock.advance(0.01)
+    out.send_state(state(clock.t))  # inside the slot: waits
+    clock.advance(0.3)
+    out.poll()
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1 and out.health()["states_too_old"] == 1
+    out.close()
+    # stamps seconds ahead of the host clock are on another clock: the check is said to be off, poses go out
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                        clock_ns=clock, max_state_age_ms=500)
+    with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
+        out.send_state(state(clock.t + 10**12))
+    assert "ahead of this host's clock" in caplog.text and len(ap.of("ODOMETRY", ap.drain())) == 1
     out.close()

@@ -367,7 +367,7 @@ class RecordingMavlink:
     def poll(self) -> None:
         return None
 
-    def close(self) -> None:
+    def close(self, final: bool = True) -> None:
         self.closed = True
 
 

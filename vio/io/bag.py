@@ -522,16 +522,21 @@ def recorded_calibration(path: Path) -> StereoCalibration | None:
     """The calibration `vio record` put into a bare MCAP file (an attachment), or None (another file, a bag)."""
     if not (path.is_file() and path.suffix == ".mcap"):
         return None
-    reader = _need("mcap.reader")
+    stream = _need("mcap.stream_reader")
+    records = _need("mcap.records")
     try:
         with open(path, "rb") as f:
-            for att in reader.NonSeekingReader(f).iter_attachments():
-                if att.name == CALIBRATION_ATTACHMENT:
-                    d = yaml.safe_load(att.data.decode())
+            # the recorder writes it first, before any schema, channel or data: reading stops at those (a
+            # multi-GB file of someone else's would otherwise be read whole, chunks decompressed, for nothing)
+            for rec in stream.StreamReader(f, emit_chunks=True).records:
+                if isinstance(rec, records.Attachment) and rec.name == CALIBRATION_ATTACHMENT:
+                    d = yaml.safe_load(rec.data.decode())
                     if not isinstance(d, dict):
                         raise VioError(f"{path}: its recorded calibration is not a YAML mapping")
                     log.info("%s: the calibration recorded with it is used", path)
                     return calibration_from_dict(d, where=f"{path} (recorded calibration)")
+                if isinstance(rec, (records.Schema, records.Channel, records.Chunk, records.Message)):
+                    return None
     except VioError:
         raise
     except Exception:  # a file cut short before the attachment, or not an MCAP at all: the caller says so

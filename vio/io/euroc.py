@@ -453,6 +453,9 @@ def find_mav0(path: str | Path) -> Path:
     if p.name == "mav0" or (p / "imu0").is_dir():
         return p
     inside = sorted([*p.glob("*.db3"), *p.glob("*.mcap")])
+    if len(inside) > 1 and all(f.suffix == ".mcap" for f in inside):  # the daemon's record_dir: one per flight
+        raise VioError(f"{p}: a folder of {len(inside)} MCAP recordings, not a dataset: give one, e.g. vio replay "
+                       f"{inside[-1]}")
     if inside:  # a ROS 2 bag folder whose metadata.yaml is missing (`ros2 bag record` cut off by a power cut)
         raise VioError(f"{p}: no mav0/ folder and no metadata.yaml: a ROS 2 bag cut short? give its file alone: "
                        f"vio replay {inside[0]}")

@@ -181,15 +181,15 @@ class OutputWorker(Worker):
     def _mav_failed(self, e: Exception) -> None:
         self.errors += 1
         log.warning("MAVLink error: %s: %s; reopening", type(e).__name__, e)
-        self._close_mav()
+        self._close_mav(final=False)
         self._next_open = time.monotonic() + self._backoff
 
-    def _close_mav(self) -> None:
+    def _close_mav(self, final: bool = True) -> None:
         mav, self.mav = self.mav, None
         if mav is not None:
             self._sent_base += mav.states_sent
             with contextlib.suppress(Exception):
-                mav.close()
+                mav.close(final=final)
 
     @property
     def sent(self) -> int:

@@ -370,6 +370,11 @@ class Service:
         link = out.link()
         if link["state"] in ("down", "closed"):
             warnings.append(f"autopilot link {link['state']}")
+        if link.get("withholding_old_poses"):
+            # the autopilot gets nothing while the status would otherwise read running, quality 100
+            warnings.append("poses withheld: older than [mavlink] max_state_age_ms "
+                            f"({self.cfg.mavlink.max_state_age_ms:.0f} ms; the estimator is behind its sensors)")
+            tracking = False
         recording = self.recorder.status() if self.recorder is not None else None
         if recording is not None and recording["state"] == "failed":
             warnings.append(f"recording failed: {recording['error']}")
@@ -689,7 +694,10 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         try:
             check_outputs({"the map": cfg.map.save})
         except VioError as e:
-            raise VioError(f"[map] save: {e}") from None
+            if warn is None or "not writable" not in str(e):
+                raise VioError(f"[map] save: {e}") from None
+            # a state folder gone read-only: fly without saving rather than not at all (exit 3 is never restarted)
+            warn(f"[map] save: {e}: running, the map will not be saved")
     for key in ("record_dir", "trajectory_file", "status_file"):
         value = getattr(cfg.run, key)
         if not value:

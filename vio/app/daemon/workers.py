@@ -210,6 +210,7 @@ class EstimatorWorker(Worker):
         self.last_input = 0.0
         self._born = time.monotonic()  # for the operator's "first pose after N s" line
         self._reset_base = 0
+        self._resets_before = 0  # estimator resets counted before a re-created estimator (status "resets")
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
         # frame stamp -> its arrival time, for frames fed and not yet processed (they wait for IMU); keyed by the
@@ -234,7 +235,10 @@ class EstimatorWorker(Worker):
             try:
                 for s in imu:
                     if self._last_imu_t is not None and s.t_ns - self._last_imu_t > self.max_gap_ns:
-                        self._reset(f"IMU gap of {(s.t_ns - self._last_imu_t) / 1e9:.2f} s", keep_bias=True)
+                        gap_s = (s.t_ns - self._last_imu_t) / 1e9
+                        # a short gap is the same IMU, powered on: its bias holds. A longer one may be a replug or
+                        # a device reboot with a new power-on bias, which would block every static restart
+                        self._reset(f"IMU gap of {gap_s:.2f} s", keep_bias=gap_s <= KEEP_BIAS_MAX_GAP_S)
                     self._last_imu_t = s.t_ns
                     self._emit(self.estimator.feed_imu(s))
                 if item is not None:
@@ -274,8 +278,9 @@ class EstimatorWorker(Worker):
 
     @property
     def reset_base(self) -> int:
-        """What the published reset_counter adds to the estimator's own (a re-created estimator counts from 0)."""
-        return self._reset_base
+        """Estimator resets before the current estimator was made (a re-created estimator counts from 0): the
+        published counter's base less the loop-correction steps in it."""
+        return self._resets_before
 
     def _frame_arrival(self, done: list[ProcessedFrame]) -> int:
         """Arrival time of the newest frame finished by this call, or -1 (an IMU-rate state only).
@@ -345,6 +350,8 @@ class EstimatorWorker(Worker):
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
         self.estimator = self._make()
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
+        jumps = self.last_state.loop_jumps if self.last_state is not None else 0
+        self._resets_before = max(last + 1 - jumps, 0)
         if self.loop_output is not None:
             self.loop_output.restart(self._reset_base)  # no correction held maps the new estimator's frame
         self._last_imu_t = None
@@ -352,6 +359,7 @@ class EstimatorWorker(Worker):
 
 
 PENDING_FRAMES = 64  # frames fed and not processed yet that are remembered (3 s at 20 Hz)
+KEEP_BIAS_MAX_GAP_S = 3.0  # an IMU gap up to this keeps the gyro bias for the restart to agree with
 
 
 def _remember(pending: dict, t_ns: int, value: Any) -> None:
