@@ -294,12 +294,14 @@ class MavlinkOutput:
         taken = False
         if self._max_age_ns is not None:
             age = self._clock() - state.t_ns
-            if age < -ANOTHER_CLOCK_NS:
-                # stamped ahead of the host clock by seconds: not on it (a recording's own stamps, replayed as
-                # fast as it goes), so an age says nothing; said once, and the check is off for this output
+            if age < -ANOTHER_CLOCK_NS and self.stats.states_in == 0:
+                # the first pose stamped ahead of the host clock by seconds: not on it (a recording's own stamps,
+                # replayed as fast as it goes), so an age says nothing; said once, and the check is off for this
+                # output (decided on the first pose only: one bad stamp later must not switch a safety gate off)
                 log.warning("pose stamps are %.1f s ahead of this host's clock: not on it; [mavlink] "
                             "max_state_age_ms cannot be checked and is off", -age / 1e9)
                 self._max_age_ns = None
+                self._too_old_spell = False
             elif age > self._max_age_ns:
                 # flown on as if it were now: never. The estimator is behind its sensors (CPU) or the process was
                 # stalled; poses 0.5-2.9 s old went out at quality 100 (a review's finding)
@@ -435,7 +437,8 @@ class MavlinkOutput:
             if now >= self._next_send_ns:
                 with self._pending_lock:
                     state, self._pending = self._pending, None
-                if state is not None and self._max_age_ns is not None and now - state.t_ns > self._max_age_ns:
+                max_age = self._max_age_ns  # once: send_state (another thread) may turn it off
+                if state is not None and max_age is not None and now - state.t_ns > max_age:
                     self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
                     state = None
                 if state is not None:

@@ -357,8 +357,10 @@ class RecordingMavlink:
     def states_sent(self) -> int:
         return self.stats.states_sent
 
+    withholding = False  # as MavlinkOutput's "withholding_old_poses"
+
     def health(self) -> dict:
-        return asdict(self.stats)
+        return {**asdict(self.stats), "withholding_old_poses": self.withholding}
 
     def send_state(self, s: NavState) -> None:
         self.states.append(s)
@@ -430,6 +432,12 @@ def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, noti
         assert _wait(lambda: svc.source.connected, 3.0)
         n = len(mavs[0].states)
         assert _wait(lambda: len(mavs[0].states) > n + 3, 3.0)
+        # poses withheld as too old (the estimator behind): degraded, not "waiting for vision", tracking false
+        mavs[0].withholding = True
+        assert _wait(lambda: json.loads((tmp_path / "status.json").read_text())["state"] == "degraded", 3.0)
+        st = json.loads((tmp_path / "status.json").read_text())
+        assert not st["estimator"]["tracking"] and any("poses withheld" in w for w in st["warnings"])
+        mavs[0].withholding = False
         # estimator failure -> reset, poses keep flowing, reset_counter moves on
         explode.append(True)
         assert _wait(lambda: svc.estimator.resets >= 1, 3.0)

@@ -485,7 +485,10 @@ class Estimator:
                 bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
                 w.bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
                                         gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
-        if keep_bias and self._latest is not None and (bridge or self._latest.tracking) and \
+        # re-armed only from a running estimate: a failed restart (`_try_init`'s SmootherFailure) must not bring
+        # back a bias the reset before it chose not to keep
+        if keep_bias and isinstance(self._state, _Running) and self._latest is not None and \
+                (bridge or self._latest.tracking) and \
                 float(np.max(np.abs(self._latest.gyro_bias))) <= self.bcfg.max_gyro_bias_rad_s:
             w.trusted_bias = (self._latest.t_ns, np.asarray(self._latest.gyro_bias, float).copy())
         elif not keep_bias:

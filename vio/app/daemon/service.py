@@ -370,7 +370,8 @@ class Service:
         link = out.link()
         if link["state"] in ("down", "closed"):
             warnings.append(f"autopilot link {link['state']}")
-        if link.get("withholding_old_poses"):
+        withheld = bool(link.get("withholding_old_poses"))
+        if withheld:
             # the autopilot gets nothing while the status would otherwise read running, quality 100
             warnings.append("poses withheld: older than [mavlink] max_state_age_ms "
                             f"({self.cfg.mavlink.max_state_age_ms:.0f} ms; the estimator is behind its sensors)")
@@ -386,7 +387,7 @@ class Service:
             mode = "starting"
         elif not ok:
             mode = "unhealthy"
-        elif not tracking and src.connected and imu_ok:
+        elif not tracking and not withheld and src.connected and imu_ok:
             mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
         elif warnings or not tracking:
             mode = "degraded"

@@ -349,13 +349,15 @@ class EstimatorWorker(Worker):
         except Exception as e:
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
         self.estimator = self._make()
+        # the old estimator's resets, and this one, before the new estimator's own count (loop steps left out)
+        old_resets = self.health.reset_counter if self.health is not None else 0
+        self._resets_before += old_resets + 1
         self._reset_base = last + 1  # a new estimator counts from 0: keep the autopilot's counter moving
-        jumps = self.last_state.loop_jumps if self.last_state is not None else 0
-        self._resets_before = max(last + 1 - jumps, 0)
         if self.loop_output is not None:
             self.loop_output.restart(self._reset_base)  # no correction held maps the new estimator's frame
         self._last_imu_t = None
         self._arrivals.clear()
+        self._snapshot_health(force=True)  # the status sees the new estimator's count, not the old one's twice
 
 
 PENDING_FRAMES = 64  # frames fed and not processed yet that are remembered (3 s at 20 Hz)
