@@ -171,8 +171,8 @@ class MavlinkOutput:
         if link is None and url is not None:
             check_url(url, "MAVLink connection")
         self._lost_as_quality0 = cfg.lost_output in ("quality0", "failed")
-        # ODOMETRY quality while lost: -1 is "failed" in the MAVLink spec, rejected by ArduPilot's VISO_QUAL_MIN and
-        # PX4's EKF2_EV_QMIN at their defaults (0); 0 is "unknown", which both fuse unless those are raised
+        # ODOMETRY quality while lost: -1 is "failed" in the MAVLink spec, rejected by ArduPilot's VISO_QUAL_MIN at
+        # its default 0 (PX4 fuses any quality unless EKF2_EV_QMIN >= 1); 0 is "unknown", fused by both at 0
         self._lost_quality = -1 if cfg.lost_output == "failed" else 0
         self._px4_said = False  # the PX4 EKF2_EV_QMIN advice, once
         if cfg.lost_output == "quality0":
@@ -205,7 +205,6 @@ class MavlinkOutput:
         self._link_up = False
         self._origin_left = 0
         self._next_origin_ns = 0
-        # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
         # states older than this (t_ns on the host clock, as `vio run` and `vio replay --mavlink` stamp them) are
         # not sent: None or 0 = no limit (states stamped on another clock: tests, tools)
@@ -213,6 +212,7 @@ class MavlinkOutput:
         self._too_old_spell = False
         self._counter_file = Path(counter_file) if counter_file else None
         self._counter_saved: int | None = None
+        # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._reset_offset = self._first_counter()
         self._last_reset_counter: int | None = None
         self._last_loop_jumps = 0
@@ -454,7 +454,7 @@ class MavlinkOutput:
         od = to_vehicle_odometry(state.t_ns, state.T_world_body, state.v_world, state.omega_body,
                                  state.cov_pose, state.cov_vel, self.T_frd_body)
         usec = state.t_ns // 1000
-        reset = (state.reset_counter + self._reset_offset) % 256
+        reset = self._sent_counter(state)
         pose_cov = upper_triangle(od.cov_pose_ned)
         out = []
         for name in self.cfg.messages:
@@ -474,6 +474,11 @@ class MavlinkOutput:
                     upper_triangle(vel_cov), reset, mavlink.MAV_ESTIMATOR_TYPE_VIO,
                     int(min(max(state.quality, 1), 100)) if state.tracking else self._lost_quality))
         return out
+
+    def _sent_counter(self, state: NavState) -> int:
+        """The reset_counter `state` goes out with: the estimator's, past where this process started and the resets
+        forced here, mod 256."""
+        return (state.reset_counter + self._reset_offset) % 256
 
     def _first_counter(self) -> int:
         """The reset_counter this process starts at: one past the last one sent before (a restart in flight moves
@@ -535,17 +540,17 @@ class MavlinkOutput:
                 # [loop] output = jump: the loop-corrected pose stepped, the estimator did not reset
                 log.info("loop correction: position/yaw step, reset_counter %d -> %d (sent as %d)",
                          self._last_reset_counter, state.reset_counter,
-                         (state.reset_counter + self._reset_offset) % 256)
+                         self._sent_counter(state))
                 self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO loop correction")
             else:
                 log.info("estimator reset: reset_counter %d -> %d (sent as %d)", self._last_reset_counter,
-                         state.reset_counter, (state.reset_counter + self._reset_offset) % 256)
+                         state.reset_counter, self._sent_counter(state))
                 self._statustext(mavlink.MAV_SEVERITY_INFO, "VIO reset")
         self._last_reset_counter = state.reset_counter
         self._last_loop_jumps = state.loop_jumps
         if state.tracking and math.isnan(self.stats.first_tilt_deg):
             self._check_mount(state)
-        self._keep_counter((state.reset_counter + self._reset_offset) % 256)
+        self._keep_counter(self._sent_counter(state))
         for msg in self.build_messages(state):
             if not self._send(msg, msg.get_type()):
                 return

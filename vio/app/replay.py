@@ -446,6 +446,10 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
+class NotWritable(VioError):
+    """An output's folder exists but cannot be written (check_outputs): `vio run` flies without that output."""
+
+
 def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
                   grows: tuple[str, ...] = ()) -> None:
     """Every output file can be written where it is asked for (its folder exists, it is no folder itself), checked
@@ -473,7 +477,7 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
         if not folder.is_dir():
             raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
-            raise VioError(f"{p}: cannot write {what}: folder {folder} is not writable")
+            raise NotWritable(f"{p}: cannot write {what}: folder {folder} is not writable")
 
 
 def run(args: argparse.Namespace) -> int:

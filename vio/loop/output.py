@@ -69,6 +69,11 @@ def _yaw_rot(yaw: float) -> np.ndarray:
     return so3_exp(np.array([0.0, 0.0, yaw]))
 
 
+def _yaw_diff(a: float, b: float) -> float:
+    """a - b wrapped to (-pi, pi]."""
+    return float(np.angle(np.exp(1j * (a - b))))
+
+
 def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
     """(translation, yaw) of a correction; its roll/pitch part is dropped."""
     return C[:3, 3].copy(), yaw_of(C[:3, :3])
@@ -148,7 +153,7 @@ class CorrectedOutput:
             self._target = _yaw_only(T_world_odom)
             self._unc = uncertainty
             if self.mode == "jump":
-                turned = abs(float(np.angle(np.exp(1j * (self._target[1] - self._yaw))))) > 1e-8
+                turned = abs(_yaw_diff(self._target[1], self._yaw)) > 1e-8
                 if turned or not np.allclose(self._target[0], self._t):
                     self.jumps += 1
                 self._t, self._yaw = self._target
@@ -159,7 +164,7 @@ class CorrectedOutput:
             # alone let a vehicle 20 m out move at 1.75 m/s under a 30 deg yaw correction (a review's finding).
             p = state.T_world_body[:3, 3]
             q_now = _yaw_rot(self._yaw) @ p + self._t  # where the applied correction sends the vehicle now
-            dyaw = float(np.angle(np.exp(1j * (target_yaw - self._yaw))))
+            dyaw = _yaw_diff(target_yaw, self._yaw)
             turn = float(np.clip(dyaw, -self.rate_rad_s * dt, self.rate_rad_s * dt))
             self._yaw += turn
             self.remaining_deg = float(np.degrees(abs(dyaw - turn)))

@@ -413,7 +413,7 @@ class Service:
                 "initialized": h.initialized if h is not None else None,
                 "reset_counter": state.reset_counter if state is not None else None,  # as the autopilot got it
                 # estimator resets so far, as the log counts them: the counter above moves with the next pose only
-                "resets": (h.reset_counter + est.reset_base) if h is not None else None,
+                "resets": (h.reset_counter + est.resets_before) if h is not None else None,
                 "daemon_resets": est.resets,
                 "errors": est.errors,
                 "tracks": est.tracks,
@@ -594,6 +594,11 @@ def single_instance(cfg: VioConfig) -> Any:
     if not cfg.run.status_file:
         return None
     path = Path(cfg.run.status_file + ".lock")
+
+    def no_lock(e: OSError) -> None:
+        log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused", path,
+                    e.strerror or e)
+
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         f = open(path, "a+")
@@ -601,22 +606,16 @@ def single_instance(cfg: VioConfig) -> Any:
         try:
             f = open(path)  # flock needs no write access: another user's lock file still locks
         except OSError as e:
-            log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused",
-                        path, e.strerror or e)
-            return None
+            return no_lock(e)
     except OSError as e:
-        log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused", path,
-                    e.strerror or e)
-        return None
+        return no_lock(e)
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
         if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
             # a file system without locks (some network or overlay mounts): said, and the daemon runs
-            log.warning("no instance lock (%s: %s): a second vio run on this configuration would not be refused",
-                        path, e.strerror or e)
             f.close()
-            return None
+            return no_lock(e)
         f.seek(0)
         pid = f.read().strip() or "?"
         f.close()
@@ -668,11 +667,11 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             raise VioError(f"[source] dataset = {src.dataset!r}: {e}") from None
     if calib is not None and src.kind in ("fake", "sitl", "oak") and \
             (calib.cam0.width, calib.cam0.height) != (src.width, src.height):
-            # every frame would be refused as unusable, and the status would only say "not initialised yet"
-            raise VioError(f"[source] calibration = {src.calibration!r} is for {calib.cam0.width}x{calib.cam0.height} "
-                           f"images, but the camera streams [source] width x height = {src.width}x{src.height}: "
-                           "set width/height to the calibrated size, or import the calibration for the streamed one "
-                           f"(vio calib import depthai FILE --size {src.width}x{src.height} -o CALIB.yaml)")
+        # every frame would be refused as unusable, and the status would only say "not initialised yet"
+        raise VioError(f"[source] calibration = {src.calibration!r} is for {calib.cam0.width}x{calib.cam0.height} "
+                       f"images, but the camera streams [source] width x height = {src.width}x{src.height}: "
+                       "set width/height to the calibrated size, or import the calibration for the streamed one "
+                       f"(vio calib import depthai FILE --size {src.width}x{src.height} -o CALIB.yaml)")
     if src.imu == "mavlink" and src.mavlink_imu_url:
         from drivers.mavlink_link import check_url
 
@@ -690,12 +689,12 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         except VioError as e:
             raise VioError(f"[map] load: {e}") from None
     if cfg.map.save:
-        from vio.app.replay import check_outputs
+        from vio.app.replay import NotWritable, check_outputs
 
         try:
             check_outputs({"the map": cfg.map.save})
         except VioError as e:
-            if warn is None or "not writable" not in str(e):
+            if warn is None or not isinstance(e, NotWritable):
                 raise VioError(f"[map] save: {e}") from None
             # a state folder gone read-only: fly without saving rather than not at all (exit 3 is never restarted)
             warn(f"[map] save: {e}: running, the map will not be saved")

@@ -277,9 +277,9 @@ class EstimatorWorker(Worker):
             log.debug("estimator health() failed: %s", e)
 
     @property
-    def reset_base(self) -> int:
-        """Estimator resets before the current estimator was made (a re-created estimator counts from 0): the
-        published counter's base less the loop-correction steps in it."""
+    def resets_before(self) -> int:
+        """Estimator resets before the current estimator was made (a re-created estimator counts from 0), loop
+        correction steps left out."""
         return self._resets_before
 
     def _frame_arrival(self, done: list[ProcessedFrame]) -> int:
