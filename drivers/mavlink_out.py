@@ -96,11 +96,19 @@ class MavlinkStats:
     land_accepted: bool = False  # the autopilot acknowledged the last loss's LAND request
     timesync_answered: int = 0
     link_losses: int = 0
+    autopilot_restarts: int = 0  # seen in its HEARTBEAT (booting again) or its TIMESYNC clock (gone back)
     reconnects: int = 0
     io_errors: int = 0
     last_latency_ms: float = float("nan")  # send time - state time (meaningful when t_ns is host time)
     first_tilt_deg: float = float("nan")  # vehicle tilt from level at the first pose sent (mount check)
 
+
+# An autopilot that reboots faster than link_timeout_s (ArduCopter SITL: 2.3 s of silent heartbeats; a flight
+# controller's watchdog recovery in flight) keeps the link up but forgets the EKF origin and a LAND request. It
+# shows in its HEARTBEAT (system_status back to BOOT/UNINIT after it had been running) and in its TIMESYNC
+# requests (ts1 is its time since boot: ArduPilot asks every 10 s, PX4 more often).
+BOOTING_STATES = (mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT)
+RESTART_CLOCK_BACK_NS = 500_000_000  # a TIMESYNC ts1 this far behind the last one: its clock restarted
 
 ANOTHER_CLOCK_NS = 2_000_000_000  # pose stamps this far ahead of the host clock are on another clock
 MAX_LEVER_ARM_M = 2.0  # [mavlink] mount_offset_m: no drone's IMU sits further from its centre
@@ -223,6 +231,8 @@ class MavlinkOutput:
         self._land_done = False  # this loss has had its LAND request (one per loss)
         self._next_land_ns = 0
         self._ap_armed = False  # from the autopilot's HEARTBEAT base_mode
+        self._ap_running = False  # its HEARTBEAT has shown it past booting (restart detection)
+        self._ap_ts1: int | None = None  # its last TIMESYNC request's ts1 [ns since its boot]
         self._changes: list[int] = []  # clock times of recent tracking changes (flap detection)
         self._flapping = False
         self._lock = threading.RLock()  # guards the connection and the schedule
@@ -282,6 +292,7 @@ class MavlinkOutput:
                 "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
+                "autopilot_restarts": st.autopilot_restarts,
                 "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms,
                 "land_after_loss_s": self.cfg.land_after_loss_s, "land_requests": st.land_requests,
                 "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed,
@@ -708,6 +719,11 @@ class MavlinkOutput:
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
                 self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                booting = msg.system_status in BOOTING_STATES
+                if booting and self._ap_running and locked:
+                    self._autopilot_restarted(now, "its heartbeat says it is booting")
+                    self._ap_ts1 = None  # its next TIMESYNC starts the new clock, not a second restart
+                self._ap_running = not booting
                 if self._lost_as_quality0 and msg.autopilot == mavlink.MAV_AUTOPILOT_PX4 and not self._px4_said:
                     # PX4 fuses any quality while EKF2_EV_QMIN <= 0 (its default): a lost pose with -1 or 0 too
                     self._px4_said = True
@@ -743,6 +759,24 @@ class MavlinkOutput:
                 # would spoil their round trip): answer with our clock (the one NavState.t_ns uses), echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
                 self.stats.timesync_answered += 1
+                if self._last_ap_heartbeat_ns is not None:
+                    last, self._ap_ts1 = self._ap_ts1, int(msg.ts1)
+                    if last is not None and msg.ts1 < last - RESTART_CLOCK_BACK_NS:
+                        self._autopilot_restarted(now, f"its clock went back from {last / 1e9:.1f} s to "
+                                                       f"{msg.ts1 / 1e9:.1f} s since boot")
+                        self._ap_running = False  # a booting heartbeat after this is the same restart
+
+    def _autopilot_restarted(self, now: int, why: str) -> None:
+        """The autopilot rebooted without the link going down: it has lost the EKF origin we set and any LAND
+        request of this loss, so both are sent again (the origin until it is confirmed, LAND if still due)."""
+        self.stats.autopilot_restarts += 1
+        origin = math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg)
+        log.warning("the autopilot restarted (%s)%s", why, ": setting the EKF origin again" if origin else "")
+        if origin:
+            self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
+            self.stats.origin_confirmed = False
+        with self._pending_lock:
+            self._land_done, self._land_left = False, 0
 
     def _update_link(self, now: int) -> None:
         up = self._last_ap_heartbeat_ns is not None and now - self._last_ap_heartbeat_ns < self._timeout_ns

@@ -168,9 +168,9 @@ class FakeAutopilot:
         self.received += got
         return got
 
-    def heartbeat(self) -> None:
-        self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
-                                     mavlink.MAV_STATE_STANDBY)
+    def heartbeat(self, system_status: int = mavlink.MAV_STATE_STANDBY, base_mode: int = 0) -> None:
+        self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 0,
+                                     system_status)
 
     def of(self, kind: str, msgs: list | None = None) -> list:
         return [m for m in (self.received if msgs is None else msgs) if m.get_type() == kind]
@@ -659,6 +659,59 @@ def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
         clock.advance(0.6)
     assert out.stats.origin_confirmed
     assert len(ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())) <= 1  # at most the one already due
+    out.close()
+
+
+def test_an_autopilot_restart_inside_the_link_timeout_gets_the_origin_again(ap, caplog):
+    """ArduCopter SITL rebooted with 2.3 s of silent heartbeats, inside link_timeout_s (3 s): the link never
+    went down, so the origin it had confirmed was never sent again and the rebooted EKF had none (GUIDED
+    refused; an in-flight watchdog recovery would have lost its position). A booting heartbeat after a running
+    one, or its TIMESYNC clock (time since boot) going back, is a restart: the origin goes out again until
+    confirmed, once per restart."""
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+
+    def step(n: int = 3, status: int = mavlink.MAV_STATE_STANDBY) -> list:
+        """n polls 0.6 s apart, the autopilot's heartbeat in `status` before each"""
+        for _ in range(n):
+            ap.heartbeat(status)
+            time.sleep(0.01)
+            out.poll()
+            clock.advance(0.6)
+        return ap.drain()
+
+    def confirm() -> None:
+        ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
+        step()
+        assert out.stats.origin_confirmed
+        assert not ap.of("SET_GPS_GLOBAL_ORIGIN", step())
+
+    out.poll()
+    ap.drain()  # our first heartbeat tells the fake where we are
+    assert ap.of("SET_GPS_GLOBAL_ORIGIN", step(status=mavlink.MAV_STATE_BOOT))  # first seen booting: no restart
+    ap.conn.mav.timesync_send(0, 20_000_000_000)  # its clock: 20 s since boot
+    confirm()
+    assert out.stats.autopilot_restarts == 0 and out.health()["autopilot_restarts"] == 0
+
+    with caplog.at_level(logging.WARNING, logger="drivers.mavlink_out"):
+        got = step(status=mavlink.MAV_STATE_BOOT)  # rebooted: its heartbeats kept coming within the timeout
+    assert out.stats.autopilot_restarts == 1 and not out.stats.origin_confirmed and out.link_up
+    assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and "the autopilot restarted" in caplog.text
+    ap.conn.mav.timesync_send(0, 1_500_000_000)  # the same restart's clock, seen afterwards: not a second one
+    confirm()
+    assert out.stats.autopilot_restarts == 1 and out.stats.link_losses == 0
+
+    ap.conn.mav.timesync_send(0, 9_000_000_000)
+    step(1)
+    ap.conn.mav.timesync_send(0, 2_000_000_000)  # its clock tells first (PX4 asks every few hundred ms) ...
+    got = step(status=mavlink.MAV_STATE_BOOT)  # ... then its booting heartbeats: one restart
+    assert out.stats.autopilot_restarts == 2 and ap.of("SET_GPS_GLOBAL_ORIGIN", got)
+    ap.conn.mav.timesync_send(0, 5_000_000_000)
+    step(1, mavlink.MAV_STATE_BOOT)
+    ap.conn.mav.timesync_send(0, 4_000_000_000)  # 1 s back is a restart; a late or reordered request is not
+    ap.conn.mav.timesync_send(0, 3_800_000_000)
+    step()
+    assert out.stats.autopilot_restarts == 3
     out.close()
 
 
