@@ -83,7 +83,8 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     from vio.loop.mapfile import load_map
     from vio.trajectory import Trajectory
 
-    cfg = load_config(config).loop if config else VioConfig().loop
+    full = load_config(config) if config else VioConfig()
+    cfg, prune = full.loop, (full.map.prune_m, full.map.prune_deg)  # [map] prune_*: the grown maps' saves
     tag = (f"-aliasing{aliasing}m" if aliasing else "") + ("" if size == (376, 240) else f"-{size[0]}x{size[1]}")
     px = {"width": size[0], "height": size[1]}
     d1 = cache / f"map-{map_profile}-seed2-{map_s:g}s{tag}"
@@ -96,8 +97,9 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     kt1 = np.array([k.t_ns for k in mapper.keyframes])
     ev1 = evaluate(Trajectory.from_poses(kt1, np.array(mapper.graph.estimate)), gt1)
     A = ev1.ate_4dof.T_gtworld_estworld
-    map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}.npz"
-    mapper.save_map(map_path)
+    ptag = f"-prune{prune[0]:g}m{prune[1]:g}deg" if prune[0] > 0 else ""
+    map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}{ptag}.npz"
+    mapper.save_map(map_path, *prune)
     m = load_map(map_path)
     G1 = [_gt_pose(gt1, t) for t in m.t_ns]  # ground truth of each map keyframe (stamps repeat across flights)
     grown = []
@@ -109,20 +111,25 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         cl = LoopCloser(ds1.calibration, cfg)
         cl.load_map(m)
         rec.feed(cl)
-        map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}.npz"
-        h = cl.save_map(map_path)
-        kept = [n for n in cl.map_frame_keyframes() if n >= cl.map_keyframes]
+        map_path = cache / f"map-{map_profile}-{map_s:g}s{tag}-grown{len(grown) + 1}{ptag}.npz"
+        h = cl.save_map(map_path, *prune)
+        kept = [n for n in cl.saved_keyframes if n >= cl.map_keyframes]
         G1 += [_gt_pose(gt, cl.keyframes[n].t_ns) for n in kept]
         err = [np.linalg.norm((A @ cl.graph.estimate[n])[:3, 3] - _gt_pose(gt, cl.keyframes[n].t_ns)[:3, 3])
                for n in kept]
         m = load_map(map_path)
         grown.append({"seed": seed, "keyframes_added": h["keyframes"] - cl.map_keyframes,
+                      "pruned": h["pruned_keyframes"], "map_bytes": map_path.stat().st_size,
                       "left_out": h["left_out_keyframes"], "relocalised_after_s": None if cl.relocalised_t_ns is None
                       else (cl.relocalised_t_ns - rec.items[0][0]) * 1e-9,
                       "keyframe_error_map_frame_m": float(np.sqrt(np.mean(np.square(err)))) if err else None})
         print(f"map grown by flight seed {seed}: +{grown[-1]['keyframes_added']} keyframes "
-              f"({h['left_out_keyframes']} left out), {len(m.features)} in all; their position error in the map's "
-              f"frame {grown[-1]['keyframe_error_map_frame_m']:.4f} m RMS", flush=True)
+              f"({h['left_out_keyframes']} left out, {h['pruned_keyframes']} pruned), {len(m.features)} in all "
+              f"({grown[-1]['map_bytes'] / 1e6:.2f} MB); " + (
+                  "it never relocalised in the map" if cl.relocalised_t_ns is None else
+                  "all of them pruned" if not kept else
+                  f"their position error in the map's frame {grown[-1]['keyframe_error_map_frame_m']:.4f} m RMS"),
+              flush=True)
     def false_edges(cl, G) -> int:
         n = 0
         for e in cl.graph.edges:
@@ -188,7 +195,7 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
     ates = [r["ate_map_frame_m"] for r in rows if r["relocalised"]]
     ratios = [r["ate_ratio_to_odometry"] for r in rows if r["relocalised"]]
     out = {"map_s": map_s, "map_profile": map_profile, "aliasing_m": aliasing, "grown_by": grown,
-           "grow_profile": grow_profile,
+           "grow_profile": grow_profile, "prune_m_deg": list(prune),
             "map_keyframes": len(rec1.items), "map_ate_m": ev1.ate_4dof.trans_m.rmse,
            "map_loop_edges": mapper.stats.accepted, "map_false_edges_active": map_false, "starts": rows,
            "second_seeds": list(second_seeds), "odometry_ate_m": odom_ates[second_seeds[0]],
@@ -231,7 +238,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--size", default="376x240", help="image size WxH of the flights (default 376x240)")
     ap.add_argument("--second-seeds", type=int, nargs="+", default=[12], metavar="SEED",
                     help="second flights (survey, 30 s, scene seed 2), --starts starts each (default: 12)")
-    ap.add_argument("--config", metavar="FILE", help="TOML configuration whose [loop] section the loop stages use")
+    ap.add_argument("--config", metavar="FILE", help="TOML configuration whose [loop] section the loop stages use "
+                    "(and [map] prune_m / prune_deg the grown maps' saves)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     Path(args.cache).mkdir(parents=True, exist_ok=True)

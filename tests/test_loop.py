@@ -379,6 +379,47 @@ def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tm
     assert len(load_map(tmp_path / "m2.npz").features) == 3
 
 
+def test_a_map_grown_by_flights_over_the_same_place_keeps_only_new_views(loop_flight, tmp_path):
+    """A map saved after every flight in one warehouse grew by each flight's whole length (a hover added a
+    keyframe every 2 s at one spot). With [map] prune_m, a keyframe is saved only if no kept one (the loaded
+    map's, or this flight's before it) saw from within prune_m and prune_deg; the loaded map's all stay."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map
+
+    def yaw(deg: float) -> np.ndarray:
+        return so3_exp(np.r_[0.0, 0.0, np.radians(deg)])
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    first = LoopCloser(ds.calibration, LoopConfig())
+    # a hover (four keyframes 2 s apart within 5 cm and 3 deg), a move of 0.5 m, a 30 deg turn on the spot
+    poses = [make_T(yaw(0), [0, 0, 0]), make_T(yaw(3), [0.05, 0, 0]), make_T(yaw(-2), [0, 0.04, 0]),
+             make_T(yaw(1), [0.02, 0.02, 0]), make_T(yaw(0), [0.5, 0, 0]), make_T(yaw(30), [0.5, 0, 0])]
+    for k, T in enumerate(poses):
+        first.add_keyframe(int(2e9 * k), T, img, None)
+    assert first.save_map(tmp_path / "all.npz")["pruned_keyframes"] == 0  # off by default
+    h = first.save_map(tmp_path / "m.npz", prune_m=0.15, prune_deg=10)
+    m = load_map(tmp_path / "m.npz")
+    assert h["pruned_keyframes"] == 3 and list(m.t_ns) == [0, int(8e9), int(10e9)]
+    assert h["keyframes"] == 3 and m.header["parts"] == [{"keyframes": 3, "join_edges": None}]
+
+    again = LoopCloser(ds.calibration, LoopConfig())
+    again.load_map(m)
+    for k, T in enumerate([make_T(yaw(2), [0.03, 0, 0]), make_T(yaw(0), [1.5, 0, 0]),
+                           make_T(yaw(4), [1.52, 0, 0])]):
+        again.add_keyframe(int(20e9 + 2e9 * k), T, img, None)
+    again._join(1, 0)  # as a loop edge would: this flight relocalised in the map
+    h = again.save_map(tmp_path / "m2.npz", prune_m=0.15, prune_deg=10)
+    m2 = load_map(tmp_path / "m2.npz")
+    # the map's three stay; of the flight only the new place (1.5 m) is saved, once
+    assert h["pruned_keyframes"] == 2 and list(m2.t_ns) == [0, int(8e9), int(10e9), int(22e9)]
+    assert [p["keyframes"] for p in m2.header["parts"]] == [3, 1]
+
+
 def test_two_flights_growing_one_map_at_once_keep_both(loop_flight, tmp_path):
     """Two runs load m.npz and save over it: the later save used to drop the earlier one's flight, unsaid. Now a
     save finds the file changed since its run loaded it and writes beside it, keeping both."""

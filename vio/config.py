@@ -480,6 +480,11 @@ class LoopConfig:
 class MapConfig:
     load: str = opt("", "map file to relocalise in at start (docs/loop-closure.md#map-files); empty: none")
     save: str = opt("", "write the map here at the end of the run; empty: not saved")
+    prune_m: float = opt(0.0, "a keyframe of this flight is not saved in the map when one already kept (the "
+                         "loaded map's, or this flight's before it) saw from within this distance and prune_deg: "
+                         "a map grown by every flight in one place stays the size of that place; 0: all saved",
+                         min=0, max=10)
+    prune_deg: float = opt(10.0, "with prune_m: the largest turn between the two cameras", min=0.1, max=180)
 
 
 @dataclass(frozen=True)

@@ -596,8 +596,10 @@ def run(args: argparse.Namespace) -> int:
     if loop is not None:
         loop_dict, draw = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
-            h = loop.closer.save_map(save_map)
+            h = loop.closer.save_map(save_map, cfg.map.prune_m, cfg.map.prune_deg)
             print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {h['path']}"
+                  + (f", {h['pruned_keyframes']} of this flight's not saved (views the map has: [map] prune_m)"
+                     if h["pruned_keyframes"] else "")
                   + (f" ({h['note']})" if h["left_out_keyframes"] else ""))
             if h["conflict"]:
                 print(f"vio replay: {h['conflict']}", file=sys.stderr)

@@ -132,6 +132,7 @@ class LoopCloser:
         self.map_mount_change: tuple[float, float] | None = None  # (deg, mm) the map's camera mount differed by
         self._map_parts: list[dict] = []  # a loaded map's parts (its header's), for the map saved after it
         self.relocalised_t_ns: int | None = None  # first keyframe joined to the loaded map
+        self.saved_keyframes: list[int] = []  # indices of the keyframes the last save_map wrote
         self._own_node: dict[int, int] = {}  # this flight's keyframe stamp -> its node (for `settle`)
 
     # --- the stage --------------------------------------------------------------------------------
@@ -428,12 +429,16 @@ class LoopCloser:
         ref = self._comp(0)
         return [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
 
-    def save_map(self, path) -> dict:
+    def save_map(self, path, prune_m: float = 0.0, prune_deg: float = 0.0) -> dict:
         """Write the keyframes whose poses are in the map's frame: those of the first session (a loaded map's,
         else this flight's start) and of every session a loop edge has joined to it. A segment after an
         estimator reset that never relocalised, or a flight that never relocalised in the loaded map, has
         poses in a frame of its own; saved beside the others it would put a later flight in the wrong place,
-        so it is left out (and counted in the header's `left_out_keyframes`)."""
+        so it is left out (and counted in the header's `left_out_keyframes`).
+
+        With `prune_m` > 0, a keyframe of this flight whose camera is within `prune_m` and `prune_deg` of one
+        already kept (the loaded map's, or an earlier one of this flight) is not saved (`pruned_keyframes`): a
+        map grown by every flight in the same warehouse would otherwise grow by each flight's whole length."""
         from vio.loop.mapfile import file_stamp, save_map
 
         target, conflict = Path(path), ""
@@ -448,6 +453,14 @@ class LoopCloser:
             target = alt
         keep = self.map_frame_keyframes()
         left_out = len(self.keyframes) - len(keep)
+        n_joined = len(keep)
+        if prune_m > 0:
+            keep = self._prune(keep, prune_m, prune_deg)
+        pruned = n_joined - len(keep)
+        self.saved_keyframes = keep
+        if pruned:
+            log.info("map %s: %d of this flight's keyframes not saved: within %.2f m and %.0f deg of a kept one",
+                     path, pruned, prune_m, prune_deg)
         notes = []
         if left_out:
             notes.append(f"{left_out} keyframes left out: their odometry segment was never joined to the map's "
@@ -456,6 +469,8 @@ class LoopCloser:
         parts = list(self._map_parts) if self.map_keyframes else []
         for s in sorted({self.keyframes[k].session for k in keep if k >= self.map_keyframes}):
             n = sum(1 for k in keep if self.keyframes[k].session == s)
+            if not n:  # every keyframe of it pruned: the map has it already
+                continue
             joins = None if not parts else self._join_edges(s)  # the first part is the frame's origin
             parts.append({"keyframes": n, "join_edges": joins})
             if joins is not None and joins < WEAK_JOIN_EDGES:
@@ -467,7 +482,22 @@ class LoopCloser:
                      parts=parts)
         if loaded is not None and not conflict and os.path.realpath(target) == loaded[0]:
             self._map_stamp = file_stamp(target)  # this run's own save is no conflict for its next one
-        return {**h, "left_out_keyframes": left_out, "path": str(target), "conflict": conflict}
+        return {**h, "left_out_keyframes": left_out, "pruned_keyframes": pruned, "path": str(target),
+                "conflict": conflict}
+
+    def _prune(self, keep: list[int], radius_m: float, max_deg: float) -> list[int]:
+        """`keep` without this flight's keyframes whose camera is within radius_m and max_deg (the angle of the
+        relative rotation) of a keyframe kept before it: the loaded map's all stay, this flight's in order."""
+        T = np.einsum("nij,jk->nik", np.array([self.graph.estimate[k] for k in keep]), self.cam.T_body_cam)
+        P, R = T[:, :3, 3], T[:, :3, :3]
+        min_trace = 1.0 + 2.0 * np.cos(np.radians(max_deg))  # trace(Ra^T Rb) = 1 + 2 cos(angle)
+        kept = np.zeros(len(keep), bool)
+        kept[:sum(1 for k in keep if k < self.map_keyframes)] = True  # map keyframes come first, all stay
+        for i in np.flatnonzero(~kept):
+            j = np.flatnonzero(kept[:i])
+            j = j[np.sum((P[j] - P[i]) ** 2, axis=1) <= radius_m ** 2]
+            kept[i] = not (len(j) and (np.einsum("nab,ab->n", R[j], R[i]) >= min_trace).any())
+        return [k for k, ok in zip(keep, kept) if ok]
 
     def _join_edges(self, session: int) -> int:
         """Active loop edges between this session's keyframes and any other session's."""

@@ -251,8 +251,9 @@ class Service:
                 log.error("map not saved: loop closure still busy after the shutdown budget")
             elif self.cfg.map.save:
                 try:
-                    h = self.loop.closer.save_map(self.cfg.map.save)
-                    log.info("map saved to %s: %d keyframes%s", h["path"], h["keyframes"],
+                    h = self.loop.closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg)
+                    log.info("map saved to %s: %d keyframes%s%s", h["path"], h["keyframes"],
+                             f", {h['pruned_keyframes']} of this flight's pruned" if h["pruned_keyframes"] else "",
                              f" ({h['note']})" if h["left_out_keyframes"] else "")
                 except Exception as e:  # noqa: BLE001 - a failed save must not hide the shutdown
                     log.error("map not saved: %s", e)
