@@ -568,6 +568,12 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if m.mount != "rpy" and [float(x) for x in m.mount_rpy_deg] != [0.0, 0.0, 0.0]:
         raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
                        "the calibration; set mount = 'rpy' to use mount_rpy_deg")
+    rpy = [float(x) for x in m.mount_rpy_deg]
+    if any(v and min(abs(abs(v) - k * math.pi / 2) for k in (1, 2, 3, 4)) < 0.01 for v in rpy):
+        # 1.5708 deg is no mounting anyone makes; 1.5708 rad is a quarter turn (its tilt under 45 deg, the
+        # first-pose check would not catch it either)
+        raise VioError(f"{source}: [mavlink] mount_rpy_deg = {m.mount_rpy_deg} looks like radians (a multiple of "
+                       f"pi/2): give degrees, e.g. {[round(math.degrees(v), 1) for v in rpy]}")
     src = cfg.source
     if src.imu == "mavlink" and not (src.mavlink_imu_url or m.url):
         raise VioError(f"{source}: [source] imu = 'mavlink' needs a connection: [mavlink] url (shared with the pose "
