@@ -76,6 +76,7 @@ trajectory_file = "{traj}"
     assert "implausible" not in text, text[-3000:]
     est = read_tum(traj)
     assert len(est) > 200, f"only {len(est)} poses; log:\n{text[-3000:]}"
+    assert traj.read_text().startswith("# kestrel-vio run started ")  # where this run's frame starts in the file
     # the source's flight starts at the first stamp it delivered (t0 = host clock at start)
     src = FakeSource(320, 200, t0_ns=0)
     t_ns = np.arange(0, 15_000_000_001, 5_000_000)

@@ -338,7 +338,8 @@ class RunConfig:
                              "(sensor_msgs/Image)", choices=("png", "jpeg", "raw"))
     record_png_level: int = opt(0, "euroc recordings: PNG zlib level; 0 = stored, unfiltered (a tenth of the CPU of "
                                 "level 1, 1.9x the bytes: 14 MB/s for 752x480 stereo at 20 Hz)", min=0, max=9)
-    trajectory_file: str = opt("", "append the estimated trajectory (TUM) here; empty = off")
+    trajectory_file: str = opt("", "append the estimated trajectory (TUM) here, each run after a '# kestrel-vio run "
+                               "started' line (its own odometry frame); empty = off")
     status_file: str = opt("/run/kestrel-vio/status.json", "health file read by `vio status`")
     queue_frames: int = opt(4, "camera frames buffered before the oldest is dropped", min=1, max=100)
     queue_imu: int = opt(4000, "IMU samples buffered (20 s at 200 Hz); overflow is counted and logged",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import datetime
 import errno
 import logging
 import os
@@ -48,6 +49,11 @@ class TrajectoryLog:
         try:
             Path(self.path).parent.mkdir(parents=True, exist_ok=True)
             self._f = open(self.path, "a", buffering=1)
+            # the file is appended to across runs (no pose is lost), and each run starts a frame of its own at
+            # its first pose: this line (a comment to TUM readers, evo's too) tells where one run ends
+            started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+            self._f.write(f"# kestrel-vio run started {started} (pid {os.getpid()}): the poses below are in this "
+                          "run's odometry frame\n")
         except OSError as e:
             self._failed(e)
 
