@@ -17,6 +17,13 @@ Checks and thresholds (pixels are cam1 pixels; "median" is over all stereo match
   the bias a drifted stereo calibration adds to every disparity, and cam1's fx, fy against cam0's (at the image
   edge), which the epipolar checks cannot see.  PASS under 0.1 px or under 3 sigma of the reading's own
   uncertainty, WARN < 0.3 px, else FAIL.
+- camera-IMU rotation: the camera's rotations between frames (stereo PnP, as `vio calib time-offset` measures
+  them) against the gyro's over the same times (the calibration's time offset applied), fitted by the rotation
+  that maps one onto the other (orthogonal Procrustes, gyro bias solved with it): its angle to the calibration's
+  R_body_cam0. An inverted T_cam_imu, a file with body = cam0, or a mount turned by a few degrees fly on at
+  decimetres to metres of error while every stereo check passes. PASS under 1 deg or under 3 sigma of the
+  reading, WARN under 2.5 deg, else FAIL; with turns about one axis only (a survey's yaw) only where that axis
+  lies in the camera is checked, and with too little rotation it is skipped.
 - units: the IMU recording (accel in g or mm/s^2, gyro in deg/s, an all-zero IMU), the stereo baseline and
   the camera-IMU lever arm (millimetres for metres) with vio/sanity.py's diagnosis, the one `vio replay`
   stops on: FAIL naming the likely mistake, else PASS.
@@ -42,6 +49,9 @@ IN_FRONT_PASS, IN_FRONT_WARN = 0.95, 0.80
 G_PASS, G_WARN = 0.2, 0.5  # m/s^2
 TILT_PASS_DEG, TILT_WARN_DEG = 2.0, 5.0
 DISPARITY_PASS_PX, DISPARITY_WARN_PX = 0.1, 0.3  # 1 % / 3 % of a depth at 5 m (f B ~ 50 px m)
+ROT_PASS_DEG, ROT_WARN_DEG = 1.0, 2.5  # camera-IMU rotation against the gyro
+MIN_AXIS_RATE_RAD_S = 0.05  # rms turn rate about a principal axis for the fit to read the rotation about it
+ROT_MAX_PAIRS = 1200  # frame pairs measured at most (a minute at 20 Hz): the check stays a check, not a replay
 DISPARITY_SIGNIFICANT = 3.0  # sigmas under which a refined bias is not told from zero
 DEFAULT_DEPTH_M = 4.0  # where the right-image search starts
 _KLT = {"winSize": (21, 21), "maxLevel": 4,
@@ -231,6 +241,90 @@ def check_units(dataset) -> list[CheckResult]:
     return out
 
 
+@dataclass(frozen=True)
+class HandEyeRotation:
+    R_body_cam: np.ndarray  # the rotation that maps the camera's turns onto the gyro's
+    gyro_bias: np.ndarray  # rad/s, solved with it
+    axis_rates: np.ndarray  # (3,) rms turn rate about the principal axes of the camera's turns, largest first
+    axes_cam: np.ndarray  # (3, 3) those axes in the camera frame, as rows
+    residual_rad_s: float  # rms rate residual of the fit
+    n_pairs: int
+
+
+def fit_camera_imu_rotation(vis, imu_t_ns: np.ndarray, gyro: np.ndarray, offset_s: float) -> HandEyeRotation:
+    """R_body_cam from frame-to-frame rotations: theta_body_i - b dt_i = R theta_cam_i (rotation vectors of one
+    turn seen in two frames), solved in R by orthogonal Procrustes and in the gyro bias b by least squares, in
+    turn, with pairs beyond 5 robust sigmas (KLT slips, blur) left out."""
+    from vio.backend.offset_solver import OUTLIER_MADS, _gyro_integral
+    from vio.trajectory import interp_columns
+
+    t_ref = int(vis.t0_ns[0])
+    ts, G = _gyro_integral(np.asarray(imu_t_ns, np.int64), np.asarray(gyro, float), t_ref)
+    t0 = (vis.t0_ns - t_ref) / 1e9 + offset_s  # t_imu = t_cam + offset
+    t1 = (vis.t1_ns - t_ref) / 1e9 + offset_s
+    inside = (t0 >= ts[0]) & (t1 <= ts[-1]) & (t1 > t0)
+    if inside.sum() < 10:
+        raise VioError("the IMU does not cover the frames; wrong clocks or files?")
+    dt = (t1 - t0)[inside]
+    c = vis.theta_cam[inside]
+    y0 = interp_columns(t1[inside], ts, G) - interp_columns(t0[inside], ts, G)
+    b, good = np.zeros(3), np.ones(len(dt), bool)
+    for _ in range(8):
+        y = y0 - b * dt[:, None]
+        U, _, Vt = np.linalg.svd(y[good].T @ c[good])
+        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        r = y0 - c @ R.T  # what the bias and the noise must explain
+        b = (r[good] * dt[good, None]).sum(axis=0) / (dt[good] ** 2).sum()
+        rate = np.linalg.norm(r - b * dt[:, None], axis=1) / dt
+        good = rate <= max(OUTLIER_MADS * 1.4826 * np.median(rate), 1e-4)
+    rates = c[good] / dt[good, None]
+    _, sv, axes = np.linalg.svd(rates, full_matrices=False)
+    return HandEyeRotation(R, b, sv / np.sqrt(good.sum()), axes, float(np.sqrt(np.mean(rate[good] ** 2))),
+                           int(good.sum()))
+
+
+def check_camera_imu_rotation(dataset, calib: StereoCalibration) -> CheckResult:
+    """The calibration's camera-IMU rotation against the one the recording's turns show (module doc)."""
+    from calib.time_offset import visual_rotations
+
+    name = "camera-IMU rotation vs gyro"
+    step = max(1, -(-len(dataset) // ROT_MAX_PAIRS))
+    try:
+        vis = visual_rotations(dataset, calib.cam0, step=step)
+        fit = fit_camera_imu_rotation(vis, dataset.imu.t_ns, dataset.imu.gyro, calib.time_offset_ns * 1e-9)
+    except VioError as e:
+        return CheckResult(name, "SKIP", float("nan"), "deg", f"not checked: {e}")
+    R_cal = np.asarray(calib.cam0.T_body_cam)[:3, :3]
+    # 1 sigma of the fitted rotation about an axis across the turns: residual over the rms rate about the
+    # other axes, over sqrt(pairs)
+    turning = fit.axis_rates >= MIN_AXIS_RATE_RAD_S
+    said = (f"from {fit.n_pairs} frame pairs, turn rates {', '.join(f'{r:.2f}' for r in fit.axis_rates)} rad/s "
+            f"rms about the principal axes, residual {fit.residual_rad_s:.3f} rad/s")
+    if not turning.any():
+        return CheckResult(name, "SKIP", float("nan"), "deg", f"not checked: too little rotation ({said})")
+    if turning.sum() >= 2:
+        dR = R_cal.T @ fit.R_body_cam
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[1] * np.sqrt(fit.n_pairs))))
+        what = "the calibration's R_body_cam0 is"
+    else:  # one axis only: where it lies in the body, through the calibration and through the gyro
+        a = fit.axes_cam[0]
+        ang = float(np.degrees(np.arccos(np.clip(abs((R_cal @ a) @ (fit.R_body_cam @ a)), -1, 1))))
+        sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[0] * np.sqrt(fit.n_pairs))))
+        what = "turns about one axis only: where that axis lies in the body is"
+    if ang < 3 * sigma:
+        if 3 * sigma >= ROT_WARN_DEG:
+            return CheckResult(name, "SKIP", ang, "deg", f"not decided by this recording: {what} {ang:.2f} deg from "
+                               f"the gyro's, 3 sigma {3 * sigma:.2f} deg; {said}")
+        return CheckResult(name, "PASS", ang, "deg", f"{what} {ang:.2f} deg from the gyro's, within its "
+                           f"{sigma:.2f} deg (1 sigma) uncertainty; {said}")
+    verdict = _grade(ang, ROT_PASS_DEG, ROT_WARN_DEG)
+    remedy = ("" if verdict == "PASS" else "; check T_cam_imu is not inverted (kalibr's maps IMU points into "
+              "the camera), that the file states the camera-IMU extrinsic at all, and the camera's mount")
+    return CheckResult(name, verdict, ang, "deg", f"{what} {ang:.2f} deg (+- {sigma:.2f}) from the gyro's{remedy}; "
+                       f"{said}")
+
+
 def _still_span(dataset) -> tuple[int, int, str]:
     """The longest still span (ground truth or gyro), else the quietest second of the accelerometer."""
     from calib.allan import find_still_span
@@ -321,7 +415,9 @@ def check_disparity(dataset_path: str | Path, calib: StereoCalibration | None = 
     bias, sigma = check["disparity_px"], check["sigma_px"]
     out = [_reading_row(names[0], bias, sigma, f"{bias:+.2f} +- {sigma:.2f} px (1 sigma) {at}",
                         f"depths {'short' if bias > 0 else 'long'} by {100 * abs(bias) * 5.0 / fB:.1f} % at 5 m",
-                        "`vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out",
+                        "`vio calib refine DATASET -o OUT.yaml --stereo-only` writes the calibration with it taken out "
+                        "(a cam1 turned or shifted sideways); first make sure the baseline's length is the rig's "
+                        "(a wrong length scales every depth, which this reading takes for a bias)",
                         " (one that moves further, past near and far texture, tells more)")]
     if not check.get("focal_px"):
         return out + [CheckResult(names[1], "SKIP", float("nan"), "px", "no reading of cam1's focal lengths")]
@@ -337,6 +433,11 @@ def _reading_row(name: str, value: float, sigma: float, told: str, shown: str, r
     """One stereo-check reading as a row: PASS when the recording cannot tell it from zero, else graded on its
     size in pixels, with `shown` (what it means) and, unless it passes, `remedy`."""
     if not disparity_told_from_zero(value, sigma):
+        if sigma is not None and DISPARITY_SIGNIFICANT * sigma >= DISPARITY_WARN_PX:
+            # under its 3 sigma, but a 3 sigma that would hide what matters: nothing decided, not a pass
+            return CheckResult(name, "SKIP", abs(value), "px", f"{told}: not decided by this recording (3 sigma "
+                               f"{DISPARITY_SIGNIFICANT * sigma:.2f} px, beyond the {DISPARITY_WARN_PX} px that "
+                               f"matters){unseen_hint}")
         return CheckResult(name, "PASS", abs(value), "px", f"{told}: not told from zero by this recording{unseen_hint}")
     verdict = _grade(abs(value), DISPARITY_PASS_PX, DISPARITY_WARN_PX)
     detail = f"{told}: {shown}" + (f"; {remedy}" if verdict != "PASS" else "")
@@ -366,6 +467,7 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
         results += check_disparity(dataset_path, calib, config) if disparity else [CheckResult(
             "stereo disparity bias", "SKIP", float("nan"), "px", "not checked: add --disparity, which replays the "
             "recording; a disparity bias leaves the epipolar lines where they are")]
+        results.append(check_camera_imu_rotation(ds, calib))
     results += check_gravity(ds) + check_units(ds)
     return results
 
@@ -374,5 +476,6 @@ def format_report(results: list[CheckResult]) -> str:
     lines = [f"{r.verdict:4s}  {r.name}: {r.value:.3g} {r.unit}  ({r.detail})" for r in results]
     worst = "FAIL" if any(r.verdict == "FAIL" for r in results) else \
         "WARN" if any(r.verdict == "WARN" for r in results) else "PASS"
-    lines.append(f"overall: {worst}")
+    skipped = [r.name for r in results if r.verdict == "SKIP"]
+    lines.append(f"overall: {worst}" + (f" (not checked or not decided: {', '.join(skipped)})" if skipped else ""))
     return "\n".join(lines)

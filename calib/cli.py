@@ -44,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the disparity bias and the focal lengths, which the epipolar checks cannot see (takes a replay: "
                    "about a quarter of its length)")
     s.add_argument("--config", type=Path, help="TOML configuration for the --disparity replay")
+    s.add_argument("--strict", action="store_true", help="exit 1 on a WARN too (exit 1 is always a FAIL, or a "
+                   "check that could not run, said on stderr)")
 
     s = sub.add_parser("imu-noise", help="IMU noise densities and random walks from Allan deviation")
     s.add_argument("dataset", type=Path, help="EuRoC dataset (or its imu0/data.csv)")
@@ -144,7 +146,8 @@ def _run_check(args: argparse.Namespace) -> int:
     results = check_calibration(args.dataset, calib, max_frames=args.max_frames, disparity=args.disparity,
                                 config=args.config)
     print(format_report(results))
-    return 1 if any(r.verdict == "FAIL" for r in results) else 0
+    bad = ("FAIL", "WARN") if args.strict else ("FAIL",)
+    return 1 if any(r.verdict in bad for r in results) else 0
 
 
 def _reference_noise(dataset: Path):

@@ -545,6 +545,34 @@ def _turning_flight(tmp_path, **sim):
     return data, EurocDataset(data).calibration
 
 
+def test_check_compares_the_camera_imu_rotation_with_the_gyro(tmp_path):
+    """An inverted T_cam_imu, a file that states no camera-IMU extrinsic (body = cam0) or a rig turned by 5 deg
+    leave every stereo check passing, and flew at 0.3-6 m of error with the quality the autopilot fuses (a
+    review's finding). The camera's turns between frames against the gyro's tell the rotation."""
+    import dataclasses
+
+    from calib.check import check_camera_imu_rotation
+    from vio.io.euroc import EurocDataset
+
+    data, stated = _turning_flight(tmp_path)
+
+    def rig(T0: np.ndarray) -> object:
+        """both cameras moved together: the stereo pair as it was"""
+        D = np.linalg.inv(stated.cam0.T_body_cam) @ T0
+        return dataclasses.replace(stated, cam0=stated.cam0.with_T_body_cam(T0),
+                                   cam1=stated.cam1.with_T_body_cam(stated.cam1.T_body_cam @ D))
+
+    def check(calib) -> object:
+        return check_camera_imu_rotation(EurocDataset(data, calibration=calib), calib)
+
+    ok = check(stated)
+    assert ok.verdict == "PASS" and ok.value < 0.5, ok
+    turned = check(rig(stated.cam0.T_body_cam @ make_T(so3_exp(np.radians([5.0, 0, 0])), np.zeros(3))))
+    assert turned.verdict == "FAIL" and 4.5 < turned.value < 5.5 and "inverted" in turned.detail, turned
+    assert check(rig(np.eye(4))).verdict == "FAIL"  # body = cam0
+    assert check(rig(np.linalg.inv(stated.cam0.T_body_cam))).verdict == "FAIL"  # T_cam_imu taken as T_imu_cam
+
+
 def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
     """`vio calib refine --intrinsics` on a turning flight whose sensor.yaml is slightly wrong writes a loadable
     calibration with refined extrinsics and focal lengths (the principal point held) and says how far each moved."""
