@@ -105,8 +105,8 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
     for c in (c0, c1):
         c.setdefault("rate_hz", cam_rate_hz)
         c["T_cam_imu"] = np.asarray(c["T_cam_imu"], dtype=float).tolist()
-    cam0 = camera_from_dict(c0, where0)
-    cam1 = camera_from_dict(c1, where1)
+    cam0 = camera_from_dict(c0, where0, kalibr=True)
+    cam1 = camera_from_dict(c1, where1, kalibr=True)
     shifts = [float(c.get("timeshift_cam_imu", 0.0)) for c in (c0, c1)]
     if abs(shifts[0] - shifts[1]) > 1e-4:
         notes.add(f"{chain_path}: cam0/cam1 timeshift_cam_imu differ ({shifts[0]:.6f} vs {shifts[1]:.6f} s); "

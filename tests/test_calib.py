@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -66,7 +67,11 @@ def test_kalibr_inconsistent_chain_is_reported(tmp_path):
 def test_kalibr_errors_name_file_and_key(tmp_path):
     f = tmp_path / "bad.yaml"
     f.write_text((DATA / "kalibr_camchain_imucam.yaml").read_text().replace("intrinsics:", "intrinsix:"))
-    with pytest.raises(VioError, match=r"bad\.yaml: cam0: missing key 'intrinsics'"):
+    with pytest.raises(VioError, match=r"bad\.yaml: cam0: unknown key 'intrinsix' \(did you mean 'intrinsics'\?\)"):
+        import_calibration("kalibr", [f])
+    # a misspelt distortion key was read as no distortion, unsaid (a review's finding); a missing one too
+    f.write_text((DATA / "kalibr_camchain_imucam.yaml").read_text().replace("distortion_coeffs:", "distortion_coefs:"))
+    with pytest.raises(VioError, match=r"unknown key 'distortion_coefs' \(did you mean 'distortion_coeffs'\?\)"):
         import_calibration("kalibr", [f])
     g = tmp_path / "imu.yaml"
     g.write_text("accelerometer_noise_density: 0.01\nupdate_rate: 100\n")
@@ -372,7 +377,14 @@ def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
     assert main(["calib", "time-offset", str(root0)]) == 0
     out = capsys.readouterr().out
     # an offset within its own uncertainty of zero is not offered for pasting (-2.5 +- 8.6 ms was: a review's)
-    assert "time_offset_ns:" not in out and "not told from zero" in out
+    assert "time_offset_ns:" not in out and "the calibration's +0.00 ms agrees (within 2 sigma)" in out
+    # compared with what the calibration states: a file saying +30 ms was told to keep it (a review's finding)
+    from vio.io.euroc import EurocDataset
+
+    save_calibration(replace(EurocDataset(root0).calibration, time_offset_ns=30_000_000), tmp_path / "late.yaml")
+    assert main(["calib", "time-offset", str(root0), "--calibration", str(tmp_path / "late.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"the calibration's \+30\.00 ms is off by -[23]\d\.\d\d ms .*set time_offset_ns: -?\d+", out), out
     # the V1_01 excerpt hardly moves: the tool must say the offset is not observable
     assert main(["calib", "time-offset", str(v101_path)]) == 0
     assert "too little rotation" in capsys.readouterr().out
@@ -510,6 +522,52 @@ def test_a_time_offset_that_is_not_whole_nanoseconds_is_refused(tmp_path):
         load_calibration(tmp_path / "s.yaml")
     (tmp_path / "f.yaml").write_text(text.replace("time_offset_ns: 0", "time_offset_ns: 5000000.0"))
     assert load_calibration(tmp_path / "f.yaml").time_offset_ns == 5_000_000
+
+
+@pytest.mark.parametrize("edit,says", [
+    (("time_offset_ns: 0", "time_offset_ms: 30"), r"unknown key 'time_offset_ms' \(did you mean 'time_offset_ns'\?\)"),
+    (("gyroscope_noise_density:", "gyroscope_noise_densty:"), r"imu: unknown key 'gyroscope_noise_densty'"),
+    (("distortion_coeffs:", "distortion_coefs:"), r"cam0: unknown key 'distortion_coefs'"),
+    (("imu:", "imu_unused:"), r"unknown key 'imu_unused'"),
+    (("T_body_cam:", "T_cam_imu: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n  T_body_cam:"),
+     "both T_body_cam and T_cam_imu"),
+])
+def test_a_calibration_file_with_a_misspelt_or_doubled_key_is_refused(tmp_path, edit, says):
+    """Each of these loaded and flew on a default (no distortion, the default IMU noise, no time offset), unsaid
+    (a review's finding)."""
+    from vio import VioError
+    from vio.sim import default_calibration
+
+    save_calibration(default_calibration(), tmp_path / "c.yaml")
+    text = (tmp_path / "c.yaml").read_text()
+    assert edit[0] in text
+    (tmp_path / "bad.yaml").write_text(text.replace(edit[0], edit[1], 1))
+    with pytest.raises(VioError, match=says):
+        load_calibration(tmp_path / "bad.yaml")
+
+
+def test_a_calibration_file_without_imu_or_with_nan_distortion_is_refused(tmp_path):
+    import yaml
+
+    from vio import VioError
+    from vio.sim import default_calibration
+
+    save_calibration(default_calibration(), tmp_path / "c.yaml")
+    d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    del d["imu"]
+    (tmp_path / "noimu.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(VioError, match="missing key 'imu'"):
+        load_calibration(tmp_path / "noimu.yaml")
+    d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    d["cam0"]["distortion_coeffs"][0] = float("nan")  # ended a replay in "SVD did not converge"
+    (tmp_path / "nan.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(VioError, match="distortion coefficients must be finite"):
+        load_calibration(tmp_path / "nan.yaml")
+    d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    d["cam1"]["T_body_cam"][0][3] = float("inf")
+    (tmp_path / "inf.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(VioError, match="cam1: T_body_cam is not a rigid transform"):
+        load_calibration(tmp_path / "inf.yaml")
 
 
 def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):

@@ -8,6 +8,7 @@ camera points into the body (= IMU) frame. `time_offset_ns` follows kalibr's tim
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -63,8 +64,11 @@ class CameraCalibration:
 
     def validate(self) -> None:
         """Raise VioError on values no real camera has; catches most typos in calibration files."""
-        if not (self.fx > 0 and self.fy > 0):
-            raise VioError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not (0 < self.fx < math.inf and 0 < self.fy < math.inf):
+            raise VioError(f"focal lengths must be positive and finite, got fx={self.fx}, fy={self.fy}")
+        if not all(math.isfinite(d) for d in self.distortion):
+            # NaN coefficients loaded fine and ended a replay in "SVD did not converge" (a review's finding)
+            raise VioError(f"distortion coefficients must be finite, got {list(self.distortion)}")
         if not (self.width > 0 and self.height > 0):
             raise VioError(f"resolution must be positive, got {self.width}x{self.height}")
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
@@ -74,7 +78,7 @@ class CameraCalibration:
             raise VioError(f"radtan distortion needs 4, 5, 8, 12 or 14 coefficients (OpenCV order), got {n}")
         if self.distortion_model == "equidistant" and n != 4:
             raise VioError(f"equidistant distortion needs 4 coefficients, got {n}")
-        if not is_se3(self.T_body_cam, tol=1e-4):
+        if not (np.isfinite(self.T_body_cam).all() and is_se3(self.T_body_cam, tol=1e-4)):
             raise VioError("T_body_cam is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
 
     @property
@@ -221,24 +225,50 @@ def _need(d: dict, key: str, where: str):
     return d[key]
 
 
-def camera_from_dict(d: dict, where: str) -> CameraCalibration:
-    """Build a camera from our/kalibr-style keys; errors name `where` and the key."""
+CAMERA_KEYS = ("camera_model", "intrinsics", "distortion_model", "distortion_coeffs", "resolution", "rate_hz",
+               "T_body_cam", "T_cam_imu")
+# kalibr's camchain keys that camera_from_dict is handed too: read by the importer, or naming only what was recorded
+KALIBR_CAMERA_KEYS = ("T_cn_cnm1", "timeshift_cam_imu", "cam_overlaps", "rostopic")
+CALIBRATION_KEYS = ("cam0", "cam1", "imu", "time_offset_ns")
+IMU_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+            "accelerometer_random_walk", "update_rate", "rate_hz")
+
+
+def refuse_unknown_keys(d: dict, known: tuple[str, ...], where: str) -> None:
+    """A misspelt key (`distortion_coefs`, `gyroscope_noise_densty`, `time_offset_ms`) was read as absent and its
+    default used, unsaid (a review's finding): refused, with the key meant where one is close."""
+    for key in d:
+        if key not in known:
+            hint = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+            raise VioError(f"{where}: unknown key '{key}'" + (f" (did you mean '{hint[0]}'?)" if hint else
+                                                              f"; known keys: {', '.join(known)}"))
+
+
+def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibration:
+    """Build a camera from our keys (`kalibr`: a kalibr camchain's camera); errors name `where` and the key."""
+    if not isinstance(d, dict):
+        raise VioError(f"{where}: expected a mapping of camera keys")
+    refuse_unknown_keys(d, CAMERA_KEYS + (KALIBR_CAMERA_KEYS if kalibr else ()), where)
     try:
         fx, fy, cx, cy = (float(x) for x in _need(d, "intrinsics", where))
         w, h = (int(x) for x in _need(d, "resolution", where))
         model = str(d.get("camera_model", "pinhole"))
         if model != "pinhole":
             raise VioError(f"{where}: camera_model '{model}' is not supported (only 'pinhole')")
-        if "T_body_cam" in d:
-            T = np.asarray(d["T_body_cam"], dtype=float).reshape(4, 4)
-        elif "T_cam_imu" in d:
-            T = inv_T(np.asarray(d["T_cam_imu"], dtype=float).reshape(4, 4))
-        else:
+        if "T_body_cam" in d and "T_cam_imu" in d:
+            raise VioError(f"{where}: both T_body_cam and T_cam_imu given (one is the other's inverse): keep one")
+        key = "T_body_cam" if "T_body_cam" in d else "T_cam_imu"
+        if key not in d:
             raise VioError(f"{where}: missing key 'T_body_cam' (or kalibr's 'T_cam_imu')")
+        T = np.asarray(d[key], dtype=float).reshape(4, 4)
+        if not (np.isfinite(T).all() and is_se3(T, tol=1e-4)):
+            raise VioError(f"{where}: {key} is not a rigid transform (rotation not orthonormal, last row not 0 0 0 1, "
+                           "or not finite)")
+        T = T if key == "T_body_cam" else inv_T(T)
         return CameraCalibration(
             fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
             distortion_model=str(d.get("distortion_model", "radtan")),
-            distortion=tuple(float(x) for x in d.get("distortion_coeffs", [0, 0, 0, 0])),
+            distortion=tuple(float(x) for x in _need(d, "distortion_coeffs", where)),
             T_body_cam=T, rate_hz=float(d.get("rate_hz", 20.0)),
         )
     except VioError as e:
@@ -268,9 +298,13 @@ def calibration_to_dict(calib: StereoCalibration) -> dict:
 def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibration:
     if not isinstance(d, dict):
         raise VioError(f"{where}: expected a mapping with cam0, cam1, imu")
+    refuse_unknown_keys(d, CALIBRATION_KEYS, where)
     cam0 = camera_from_dict(_need(d, "cam0", where), f"{where}: cam0")
     cam1 = camera_from_dict(_need(d, "cam1", where), f"{where}: cam1")
-    imu_d = d.get("imu", {}) or {}
+    imu_d = _need(d, "imu", where)  # without it the defaults flew as this IMU's noise, unsaid
+    if not isinstance(imu_d, dict):
+        raise VioError(f"{where}: imu: expected a mapping of the IMU's noise")
+    refuse_unknown_keys(imu_d, IMU_KEYS, f"{where}: imu")
     try:
         imu = ImuNoise(
             gyroscope_noise_density=float(imu_d.get("gyroscope_noise_density", ImuNoise.gyroscope_noise_density)),
