@@ -103,7 +103,7 @@ def _run_import(args: argparse.Namespace) -> int:
     from calib.importers import import_calibration
     from calib.show import format_calibration
     from vio import VioError
-    from vio.calibration import save_calibration
+    from vio.calibration import calibration_units_problem, save_calibration
 
     check_output(args.output, args.overwrite)
     kwargs = {"cam_rate_hz": args.cam_rate}
@@ -117,8 +117,12 @@ def _run_import(args: argparse.Namespace) -> int:
             raise VioError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x400")
         kwargs["size"] = (int(w), int(h))
     calib, notes = import_calibration(args.format, args.files, **kwargs)
-    save_calibration(calib, args.output)
     print(format_calibration(calib, title=f"imported {args.format}: {' '.join(map(str, args.files))}"))
+    problem = calibration_units_problem(calib)
+    if problem:  # it wrote such files and exited 0, and replay and run then refused them (a review's finding)
+        raise VioError(f"{problem}; {args.output} not written (vio replay and vio run would refuse it): fix the "
+                       "source file" + (" or --translation-unit" if args.format == "opencv" else ""))
+    save_calibration(calib, args.output)
     if notes.messages:  # each was logged as a warning when it arose
         print(f"{len(notes.messages)} note(s) about assumptions/approximations: see the warnings above")
     print(f"wrote {args.output}")

@@ -11,6 +11,7 @@ notes list what had to be assumed (no IMU extrinsics, dropped distortion terms, 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -108,6 +109,8 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
     cam0 = camera_from_dict(c0, where0, kalibr=True)
     cam1 = camera_from_dict(c1, where1, kalibr=True)
     shifts = [float(c.get("timeshift_cam_imu", 0.0)) for c in (c0, c1)]
+    if not all(math.isfinite(x) for x in shifts):
+        raise VioError(f"{chain_path}: timeshift_cam_imu = {shifts}: seconds, finite")
     if abs(shifts[0] - shifts[1]) > 1e-4:
         notes.add(f"{chain_path}: cam0/cam1 timeshift_cam_imu differ ({shifts[0]:.6f} vs {shifts[1]:.6f} s); "
                   "using cam0's (stereo frames are hardware-synchronised here)")

@@ -236,6 +236,22 @@ def test_cli_import_and_show(tmp_path, capsys):
     assert main(["calib", "show", str(out)]) == 0
     assert "time offset      -5.200 ms" in capsys.readouterr().out
     assert main(["calib", "show", str(tmp_path / "missing.yaml")]) == 1
+    # a file in millimetres was written with exit 0, and replay and run then refused it (a review's finding)
+    import yaml
+
+    mm = tmp_path / "mm.yaml"
+    d = yaml.safe_load((DATA / "kalibr_camchain_imucam.yaml").read_text())
+    for cam in ("cam0", "cam1"):
+        T = np.array(d[cam]["T_cam_imu"], float)
+        T[:3, 3] *= 1000
+        d[cam]["T_cam_imu"] = T.tolist()
+        d[cam].pop("T_cn_cnm1", None)
+    mm.write_text(yaml.safe_dump(d))
+    capsys.readouterr()
+    out = tmp_path / "o.yaml"
+    assert main(["calib", "import", "kalibr", str(mm), str(DATA / "kalibr_imu.yaml"), "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "millimetres" in err and "o.yaml not written" in err and not (tmp_path / "o.yaml").exists()
 
 
 # ------------------------------------------------------------------------------------------------ Allan
