@@ -784,3 +784,22 @@ def test_calib_outputs_never_replace_a_file_unasked_nor_fail_after_the_work(tmp_
         ro.chmod(0o555)
         assert main(["calib", "import", "kalibr", *src, "-o", str(ro / "c.yaml")]) == 1
         assert "cannot write there" in capsys.readouterr().err
+
+
+def test_an_identity_camera_imu_extrinsic_is_warned_about_when_flown(caplog):
+    """An import without camera-IMU extrinsics writes body = cam0; replayed, a real rig flew 4.2 m off with nothing
+    said (a review's finding). The estimator says so at start."""
+    import logging
+
+    from vio.estimator import Estimator
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    with caplog.at_level(logging.WARNING, logger="vio.estimator"):
+        Estimator(calib)
+    assert "T_body_cam0 is the identity" not in caplog.text
+    T1 = calib.cam1.T_body_cam @ np.linalg.inv(calib.cam0.T_body_cam)  # the stereo pair as it was
+    body_cam0 = replace(calib, cam0=calib.cam0.with_T_body_cam(np.eye(4)), cam1=calib.cam1.with_T_body_cam(T1))
+    with caplog.at_level(logging.WARNING, logger="vio.estimator"):
+        Estimator(body_cam0)
+    assert "T_body_cam0 is the identity" in caplog.text and "vio calib check" in caplog.text

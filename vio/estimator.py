@@ -216,6 +216,12 @@ class Estimator:
         problem = calibration_units_problem(calib)
         if problem:
             raise VioError(problem)
+        if np.allclose(calib.cam0.T_body_cam, np.eye(4), atol=1e-9):
+            # what an import without camera-IMU extrinsics writes (kalibr's camchain.yaml, an OAK without IMU
+            # extrinsics); flown, a real rig's rotation turned the gyro's axes: metres of error (a review's finding)
+            log.warning("calibration: T_body_cam0 is the identity (the IMU exactly at cam0, axes aligned), which no "
+                        "real rig has: most likely the camera-IMU extrinsic was never imported; `vio calib check "
+                        "CALIB RECORDING` compares it with the gyro")
         self.calib = calib
         if isinstance(cfg, VioConfig):  # keep only the sections the estimator reads
             cfg = cfg.estimator
