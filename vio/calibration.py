@@ -250,11 +250,14 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
         raise VioError(f"{where}: expected a mapping of camera keys")
     refuse_unknown_keys(d, CAMERA_KEYS + (KALIBR_CAMERA_KEYS if kalibr else ()), where)
     try:
-        fx, fy, cx, cy = (float(x) for x in _need(d, "intrinsics", where))
-        w, h = (int(x) for x in _need(d, "resolution", where))
         model = str(d.get("camera_model", "pinhole"))
-        if model != "pinhole":
+        if model.lower() != "pinhole":  # first: kalibr's omni has 5 intrinsics ("too many values to unpack")
             raise VioError(f"{where}: camera_model '{model}' is not supported (only 'pinhole')")
+        intrinsics = list(_need(d, "intrinsics", where))
+        if len(intrinsics) != 4:
+            raise VioError(f"{where}: intrinsics must be [fx, fy, cx, cy], got {len(intrinsics)} values")
+        fx, fy, cx, cy = (float(x) for x in intrinsics)
+        w, h = (int(x) for x in _need(d, "resolution", where))
         if "T_body_cam" in d and "T_cam_imu" in d:
             raise VioError(f"{where}: both T_body_cam and T_cam_imu given (one is the other's inverse): keep one")
         key = "T_body_cam" if "T_body_cam" in d else "T_cam_imu"
