@@ -49,6 +49,7 @@ IN_FRONT_PASS, IN_FRONT_WARN = 0.95, 0.80
 G_PASS, G_WARN = 0.2, 0.5  # m/s^2
 TILT_PASS_DEG, TILT_WARN_DEG = 2.0, 5.0
 DISPARITY_PASS_PX, DISPARITY_WARN_PX = 0.1, 0.3  # 1 % / 3 % of a depth at 5 m (f B ~ 50 px m)
+NOISE_OVER, NOISE_UNDER = 10.0, 0.01  # stated IMU noise per sample vs the still span's spread
 ROT_PASS_DEG, ROT_WARN_DEG = 1.0, 2.5  # camera-IMU rotation against the gyro
 MIN_AXIS_RATE_RAD_S = 0.05  # rms turn rate about a principal axis for the fit to read the rotation about it
 ROT_MAX_PAIRS = 1200  # frame pairs measured at most (a minute at 20 Hz): the check stays a check, not a replay
@@ -356,6 +357,7 @@ def check_gravity(dataset) -> list[CheckResult]:
                        f"|mean accel| {norm:.3f} vs g {GRAVITY_M_S2}; {span}; accel spread "
                        f"{np.linalg.norm(acc.std(axis=0)):.3f} m/s^2, gyro mean {np.linalg.norm(gyr.mean(axis=0)):.4f} "
                        "rad/s (bias)")]
+    out.append(check_imu_noise(dataset.calibration.imu, acc, gyr, span))
     gt = dataset.groundtruth
     if gt is not None and norm > 0.05:
         traj = gt.trajectory
@@ -371,6 +373,32 @@ def check_gravity(dataset) -> list[CheckResult]:
                                    ang, "deg", "angle between mean accel and world z seen through the GT attitude "
                                    "(tests IMU axes/GT alignment, and the accel bias)"))
     return out
+
+
+def check_imu_noise(imu, acc: np.ndarray, gyr: np.ndarray, span: str) -> CheckResult:
+    """The calibration's IMU noise densities as per-sample sigmas (density * sqrt(rate)) against the spread of the
+    still span. The spread holds the noise and whatever shook the vehicle, so a stated sigma NOISE_OVER times above
+    it cannot be the sensor's (per-sample values taken for densities, another unit), and one NOISE_UNDER times
+    below it is more than vibration explains. Densities in the wrong unit imported and passed every check (a
+    review's finding: x1000 flew, /1000 reset 14 times)."""
+    rate = imu.rate_hz
+    rows = []
+    for what, density, x in (("accel", imu.accelerometer_noise_density, acc), ("gyro", imu.gyroscope_noise_density,
+                                                                               gyr)):
+        spread = float(np.sqrt(np.mean(x.var(axis=0)))) if len(x) > 10 else float("nan")
+        rows.append((what, density * np.sqrt(rate), spread))
+    said = "; ".join(f"{w} stated {st:.3g} per sample vs {sp:.3g} spread" for w, st, sp in rows)
+    bad = [(w, st / sp) for w, st, sp in rows if sp > 0 and not NOISE_UNDER <= st / sp <= NOISE_OVER]
+    if not all(np.isfinite(sp) and sp > 0 for _, _, sp in rows):
+        return CheckResult("IMU noise vs still spread", "SKIP", float("nan"), "", f"no still span to compare ({span})")
+    if not bad:
+        return CheckResult("IMU noise vs still spread", "PASS", max(st / sp for _, st, sp in rows), "x",
+                           f"{said} ({span})")
+    w, r = bad[0]
+    why = ("above what the sensor shows: per-sample (discrete) values given as densities, or another unit (kalibr's "
+           "are per sqrt(Hz))" if r > NOISE_OVER else "below what the sensor shows, beyond vibration: another unit?")
+    return CheckResult("IMU noise vs still spread", "WARN", r, "x", f"the {w} noise density is {r:.3g}x {why}; "
+                       f"{said}; `vio calib imu-noise` measures them")
 
 
 def disparity_told_from_zero(bias_px: float, sigma_px: float | None) -> bool:

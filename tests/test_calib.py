@@ -803,3 +803,19 @@ def test_an_identity_camera_imu_extrinsic_is_warned_about_when_flown(caplog):
     with caplog.at_level(logging.WARNING, logger="vio.estimator"):
         Estimator(body_cam0)
     assert "T_body_cam0 is the identity" in caplog.text and "vio calib check" in caplog.text
+
+
+def test_check_warns_of_imu_noise_densities_in_another_unit(v101_path):
+    """Densities x1000 (or /1000) imported and passed every check (a review's finding): against the spread of the
+    still span they stand out; the dataset's own pass."""
+    from calib.check import check_calibration
+    from vio.io.euroc import EurocDataset
+
+    calib = EurocDataset(v101_path).calibration
+    ok = {r.name: r for r in check_calibration(v101_path, calib, max_frames=2)}["IMU noise vs still spread"]
+    assert ok.verdict == "PASS", ok
+    for k, says in ((1000.0, "above what the sensor shows"), (1e-3, "below what the sensor shows")):
+        imu = replace(calib.imu, accelerometer_noise_density=calib.imu.accelerometer_noise_density * k,
+                      gyroscope_noise_density=calib.imu.gyroscope_noise_density * k)
+        res = {r.name: r for r in check_calibration(v101_path, replace(calib, imu=imu), max_frames=2)}
+        assert res["IMU noise vs still spread"].verdict == "WARN" and says in res["IMU noise vs still spread"].detail
