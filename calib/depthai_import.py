@@ -22,6 +22,9 @@ from vio.geometry import inv_T
 log = logging.getLogger(__name__)
 
 
+OAK_MAX_BASELINE_M = 0.3  # the widest OAK board (OAK-D LR) is 15 cm apart; more is a custom rig or a unit slip
+
+
 def require_depthai():
     """The depthai module, or a VioError naming the [oak] extra."""
     from vio.extras import require
@@ -135,6 +138,11 @@ def stereo_from_depthai(handler, left=None, right=None, *, size: tuple[int, int]
         T_right_left = np.asarray(handler.getCameraExtrinsics(left, right, unit=meter), dtype=float)
     except RuntimeError as e:
         raise VioError(f"depthai: no extrinsics between {left.name} and {right.name} ({e})") from None
+    baseline = float(np.linalg.norm(T_right_left[:3, 3]))
+    if baseline > OAK_MAX_BASELINE_M:
+        # a JSON written in mm where depthai reads cm imported at 0.75 m unsaid (a review's finding)
+        notes.add(f"depthai: stereo baseline {baseline:.3f} m, more than any OAK board's (4-15 cm): right for a "
+                  "custom FFC rig only; else the file's translations are in mm where depthai reads cm")
     try:
         T_body_cam0 = np.asarray(handler.getCameraToImuExtrinsics(left, unit=meter), dtype=float)
     except RuntimeError:
