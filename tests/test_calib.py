@@ -177,6 +177,13 @@ def test_depthai_import_metres_and_frames(tmp_path):
     np.testing.assert_allclose(calib.T_cam1_cam0, T_right_left, atol=1e-6)  # cm -> m and direction
     np.testing.assert_allclose(calib.cam0.T_body_cam, inv_T(T_left_imu), atol=1e-6)
     assert calib.baseline_m == pytest.approx(0.0751, abs=1e-4)
+    assert not any("more than any OAK board's" in m for m in notes.messages)
+    # the same file with its translations written in mm where depthai reads cm: 0.75 m, said (a review's finding)
+    text = path.read_text()
+    for cm in ("-7.51", "3.75", "-7.5"):
+        text = text.replace(cm, str(float(cm) * 10))
+    path.write_text(text)
+    assert any("0.751 m, more than any OAK board's" in m for m in import_calibration("depthai", [path])[1].messages)
     # the full rational model survives (k4..k6 of an OAK lens are large; dropping them moves pixels by tens)
     assert calib.cam0.distortion[:5] == pytest.approx((-4.21, 12.3, 0.0011, -0.0007, 4.6), abs=1e-6)
     assert len(calib.cam0.distortion) == 8 and calib.cam0.distortion[5] == pytest.approx(-4.1, abs=1e-6)
