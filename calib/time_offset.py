@@ -46,7 +46,7 @@ def stereo_pnp_rotation(calib: StereoCalibration, img0_left: np.ndarray, img0_ri
 
     Metric 3D points remove the rotation/translation ambiguity that an essential matrix has with a
     narrow field of view (a sideways step looks much like a pan)."""
-    from calib.check import _expected_shift_px, match_stereo, triangulate
+    from calib.stereo_match import _expected_shift_px, match_stereo, triangulate
     from vio.frontend.stereo import klt_fb
 
     uv0, uv0r = match_stereo(img0_left, img0_right, _expected_shift_px(calib), max_corners)
@@ -74,7 +74,7 @@ def visual_rotations(dataset, cam: CameraCalibration, step: int = 1, max_corners
                      t_start_ns: int | None = None, t_end_ns: int | None = None) -> VisualRotations:
     """Rotations of cam0 between frames k and k+step of a EurocDataset: stereo PnP when the right image is
     there, else from the left images alone (essential matrix or pure rotation)."""
-    from calib.check import normalise_contrast
+    from calib.stereo_match import normalise_contrast
     from vio.frontend.stereo import klt_fb
     from vio.types import StereoFrame
 
