@@ -466,6 +466,18 @@ class LoopConfig:
                                  "reloc_min_consistent agreeing edges; it corrects metres, not millimetres)",
                                  min=0.001, max=10)
     reloc_two_way_deg: float = opt(1.0, "as two_way_deg, for an edge to another session", min=0.01, max=90)
+    reloc_confirm_edges: int = opt(10, "a session joined to another (a loaded map) by fewer active loop edges than "
+                                   "this is still searched with the relocalisation rules (reloc_candidates, reloc_* "
+                                   "gates, reloc_min_consistent, no matching guided by its placement), so that a wrong "
+                                   "first join can be out-voted by GNC; 0 = off", min=0, max=1000)
+    output_join_edges: int = opt(8, "the corrected output ([loop] output) takes a flight's place in another frame (a "
+                                 "loaded map, the flight before a reset) only once this many active loop edges hold "
+                                 "it: a first join can be a look-alike place; 0 = at the first join", min=0, max=1000)
+    reloc_contest_ratio: float = opt(3.0, "two sessions whose loop edges GNC split (at least reloc_min_consistent "
+                                     "switched off: a repeated room's look-alikes placing it elsewhere) stay joined "
+                                     "only while the active ones outnumber the switched-off ones this many times; "
+                                     "else the placement is contested and not reported in the other's frame; 0 = off",
+                                     min=0, max=100)
     sigma_inliers: int = opt(60, "a loop edge within one flight has its sigmas scaled by sqrt(this / inliers), "
                              "between 0.5x and 2x (a PnP pose's error goes as 1 / sqrt(inliers)); 0 = off",
                              min=0, max=10000)

@@ -58,7 +58,8 @@ class LoopWorker:
         self._snapshot: LoopSnapshot | None = None
         self._processed = 0
         # the closer's counts as of the last keyframe processed, for `status` (read from other threads)
-        self._counts = {"loop_edges": 0, "switched_off": 0, "relocalised": False if closer.map_keyframes else None}
+        self._counts = {"loop_edges": 0, "switched_off": 0, "relocalised": False if closer.map_keyframes else None,
+                        "confirmed": False if closer.map_keyframes else None}
         if closer.map_keyframes:
             log.info("loop closure: map of %d keyframes loaded; poses are in this flight's own frame until it "
                      "relocalises", closer.map_keyframes)
@@ -91,6 +92,13 @@ class LoopWorker:
     def _set_correction(self, counter: int | None = None) -> None:
         """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
         estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
+        if self.closer.placement_unconfirmed():
+            # joined to another frame by too few edges to rule out a look-alike place: the output keeps the
+            # correction it has (this segment's own frame) until the join is confirmed
+            with self._lock:
+                if counter is not None:
+                    self._counter = counter
+            return
         T, version = self.closer.correction(), self.closer.graph.estimate_version
         unc, seg = self.closer.correction_uncertainty(), self.closer.correction_segment()
         with self._lock:
@@ -112,13 +120,16 @@ class LoopWorker:
         loop edges switched off after the fact. (Every closure would be several lines a second in a lap.)"""
         c = self.closer
         new = {"loop_edges": c.stats.accepted, "switched_off": c.stats.switched_off,
-               "relocalised": bool(c.relocalised) if c.map_keyframes else None}
+               "relocalised": bool(c.relocalised) if c.map_keyframes else None,
+               "confirmed": bool(c.relocalised) and not c.placement_unconfirmed() if c.map_keyframes else None}
         old = self._counts
         if closed and self.closures == 1:
             log.info("loop closure: first closure at keyframe %d (%d loop edges)", self._processed, new["loop_edges"])
         if new["relocalised"] and not old["relocalised"]:
-            log.info("loop closure: relocalised in the map (%d keyframes): corrected poses are in the map's frame",
-                     c.map_keyframes)
+            log.info("loop closure: relocalised in the map (%d keyframes); corrected poses go out in the map's frame "
+                     "once %d loop edges confirm the place", c.map_keyframes, c.cfg.output_join_edges)
+        if new["confirmed"] and not old.get("confirmed"):
+            log.info("loop closure: placement in the map confirmed: corrected poses are in the map's frame")
         if old["relocalised"] and new["relocalised"] is False:
             log.warning("loop closure: no longer placed in the map (an estimator reset, or the edges that placed it "
                         "switched off): poses are in a frame of their own until it relocalises again")

@@ -243,13 +243,18 @@ class LoopCloser:
         ok = self._allowed(i)
         cands = self.index.query(bow, ok, c.candidates)
         mine = self._comp(self.keyframes[i].session)
-        if c.reloc_candidates and self._relocalising(self.keyframes[i].session):
+        reloc = self._relocalising(self.keyframes[i].session)
+        confirming = not reloc and self._confirming(self.keyframes[i].session)
+        if c.reloc_candidates and (reloc or confirming):
             # not joined to a map / the flight before a reset yet: their best ones too, or this flight's own
             # keyframes crowd them out of the top `candidates`
             seen = {j for j, _ in cands}
-            cands += [(j, s) for j, s in self.index.query(
-                bow, lambda j: ok(j) and self._comp(self.keyframes[j].session) != mine, c.reloc_candidates)
-                if j not in seen]
+            if reloc:
+                other_frame = lambda j: self._comp(self.keyframes[j].session) != mine  # noqa: E731
+            else:  # joined, not confirmed yet: the sessions it is joined to (a map's views) as well
+                other_frame = lambda j: self.keyframes[j].session != self.keyframes[i].session  # noqa: E731
+            cands += [(j, s) for j, s in self.index.query(bow, lambda j: ok(j) and other_frame(j), c.reloc_candidates)
+                      if j not in seen]
         cands = [(j, s) for j, s in cands if s >= c.min_score]
         self.stats.queried += 1
         if not cands:
@@ -260,7 +265,9 @@ class LoopCloser:
         reason = "pnp"
         for j, _score in cands:
             old = self.keyframes[j]
-            other = self._comp(old.session) != self._comp(kf.session)
+            # another frame, or the frame of a join not confirmed yet: the relocalisation rules (its own gates, no
+            # matching guided by the placement under test)
+            other = self._comp(old.session) != self._comp(kf.session) or (confirming and old.session != kf.session)
             min_inl = c.reloc_min_inliers if other else c.min_inliers
             kw = dict(max_hamming=c.max_hamming, reproj_px=c.reproj_threshold_px, min_inliers=min_inl,
                       guided_px=c.guided_radius_px)
@@ -304,6 +311,22 @@ class LoopCloser:
         self.stats.refused[reason] += 1
         return False
 
+    def placement_unconfirmed(self) -> bool:
+        """The newest keyframe's session is joined to another frame (a loaded map, the flight before a reset) by
+        fewer than output_join_edges active loop edges: a first join can be a look-alike place (a repeated room: 25
+        of 100 second flights were output 0.5 m or more off for a while at the first join, 3 from the second
+        consistent set of edges, none from 8 edges), so its frame is not handed to the output yet."""
+        n = self.cfg.output_join_edges
+        if not (n and self.keyframes):
+            return False
+        s = self.keyframes[-1].session
+        return not self.correction_segment()[1] and s > 0 and self._join_edges(s) < n
+
+    def _confirming(self, session: int) -> bool:
+        """This session is joined to another one by fewer than reloc_confirm_edges active loop edges."""
+        n = self.cfg.reloc_confirm_edges
+        return bool(n) and session > 0 and self._join_edges(session) < n
+
     def _consistent(self, i: int) -> bool:
         c = self.cfg
         newest = self._pending[-1]
@@ -311,8 +334,12 @@ class LoopCloser:
             d_yaw = yaw_of(p.correction[:3, :3] @ newest.correction[:3, :3].T)
             return bool(np.linalg.norm(p.correction[:3, 3] - newest.correction[:3, 3]) <= c.consistency_m
                         and abs(np.degrees(d_yaw)) <= c.consistency_deg)
+        confirming = self._confirming(self.keyframes[newest.i].session)
         def frames(p: _Candidate) -> tuple[int, int]:
-            return self._comp(self.keyframes[p.i].session), self._comp(self.keyframes[p.j].session)
+            a, b = self.keyframes[p.i].session, self.keyframes[p.j].session
+            if confirming and a != b:  # a join not confirmed yet: edges across it count as relocalisation
+                return a, b
+            return self._comp(a), self._comp(b)
 
         # only candidates of the newest one's kind count: within one frame, or between the same two frames (one
         # edge to a loaded map with one agreeing edge within the flight passed min_consistent, not
@@ -363,9 +390,17 @@ class LoopCloser:
         a frame of its own again: it is not reported in the map, its pose carries no map placement, and it looks
         for the map with the relocalisation rules again (reloc candidates, inliers, consistency)."""
         self._component = {s: s for s in self._component}
+        count: dict[tuple[int, int], list[int]] = {}  # session pair -> [active, switched off] loop edges
         for e in self.graph.edges:
-            if e.kind == "loop" and e.weight >= 0.5 and e.i != e.j:
-                self._join(self.keyframes[e.i].session, self.keyframes[e.j].session)
+            if e.kind == "loop" and e.i != e.j:
+                a, b = self.keyframes[e.i].session, self.keyframes[e.j].session
+                if a != b:
+                    count.setdefault((min(a, b), max(a, b)), [0, 0])[e.weight < 0.5] += 1
+        r = self.cfg.reloc_contest_ratio
+        for (a, b), (on, off) in count.items():
+            contested = r > 0 and off >= self.cfg.reloc_min_consistent and on < r * off
+            if on and not contested:
+                self._join(a, b)
 
     def _join(self, a: int, b: int) -> None:
         ra, rb = self._comp(a), self._comp(b)

@@ -463,6 +463,8 @@ class Service:
         ]
         if lp:
             where = {None: "", True: ", in the map", False: ", not in the map yet"}[lp["relocalised"]]
+            if lp["relocalised"] and lp.get("confirmed") is False:
+                where += " (confirming: not sent in its frame yet)"
             if lp.get("placement_sigma_m") is not None:
                 where += f" +-{lp['placement_sigma_m'] * 100:.1f} cm"
             parts.insert(4, f"loop {lp['loop_edges']} edges{where}"
