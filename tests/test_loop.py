@@ -620,6 +620,34 @@ def test_wrong_closure_accepted_first_is_switched_off_when_true_ones_arrive():
     assert np.linalg.norm(g.estimate[85][:3, 3] - (g.estimate[5] @ false)[:3, 3]) > 0.5
 
 
+class _StubCloser:
+    """What LoopWorker reads of a LoopCloser, for tests of the worker: no map, the correction `corr` (identity),
+    in its own frame, never unconfirmed; tests override what they script."""
+
+    map_keyframes, relocalised = 0, False
+
+    def __init__(self):
+        from vio.loop.closer import LoopStats
+
+        self.graph = type("G", (), {"estimate_version": 0})()
+        self.stats, self.corr = LoopStats(), np.eye(4)
+
+    def correction(self):
+        return self.corr
+
+    def correction_uncertainty(self):
+        return None
+
+    def correction_segment(self):
+        return 0, True
+
+    def placement_unconfirmed(self):
+        return False
+
+    def finish(self):
+        self.finished = True
+
+
 def test_loop_worker_drains_its_queue_before_it_stops():
     """What is queued at close belongs in the map: close(wait) processes it, and says when the thread has
     stopped; out of time, the rest is dropped and counted, and the keyframe in hand is finished."""
@@ -627,35 +655,15 @@ def test_loop_worker_drains_its_queue_before_it_stops():
 
     from vio.app.loop_worker import LoopWorker
 
-    class Slow:
-        map_keyframes, relocalised = 0, False
-
+    class Slow(_StubCloser):
         def __init__(self, s):
-            from vio.loop.closer import LoopStats
-
+            super().__init__()
             self.s, self.done = s, 0
-            self.graph = type("G", (), {"estimate_version": 0})()
-            self.stats = LoopStats()
 
         def add_keyframe(self, *item):
             time.sleep(self.s)
             self.done += 1
             return False
-
-        def correction(self):
-            return np.eye(4)
-
-        def correction_uncertainty(self):
-            return None
-
-        def correction_segment(self):
-            return 0, True
-
-        def placement_unconfirmed(self):
-            return False
-
-        def finish(self):
-            self.finished = True
 
     w = LoopWorker(Slow(0.02), max_queue=100)
     for k in range(10):
@@ -682,34 +690,20 @@ def test_a_join_not_confirmed_yet_is_not_handed_to_the_output():
     keeps the correction it handed over, its version too; then it hands the new one over."""
     from vio.app.loop_worker import LoopWorker
     from vio.config import LoopConfig
-    from vio.loop.closer import LoopStats
 
-    class Closer:
-        map_keyframes, relocalised, cfg = 5, True, LoopConfig()
-
-        def __init__(self):
-            self.graph = type("G", (), {"estimate_version": 0})()
-            self.stats, self.corr, self.unconfirmed = LoopStats(), np.eye(4), True
+    class Closer(_StubCloser):
+        map_keyframes, relocalised, cfg, unconfirmed = 5, True, LoopConfig(), True
 
         def add_keyframe(self, *item):
             self.graph.estimate_version += 1
             self.corr = make_T(np.eye(3), [1.5, 0.0, 0.0])  # the join's frame
             return True
 
-        def correction(self):
-            return self.corr
-
-        def correction_uncertainty(self):
-            return None
-
         def correction_segment(self):
             return 1, False
 
         def placement_unconfirmed(self):
             return self.unconfirmed
-
-        def finish(self):
-            pass
 
     c = Closer()
     w = LoopWorker(c, max_queue=10)
@@ -732,35 +726,15 @@ def test_the_correction_gets_a_new_version_when_it_moves_without_a_closure():
     from vio.app.loop_worker import LoopWorker
     from vio.geometry import make_T
 
-    class Closer:
-        map_keyframes, relocalised = 0, False
-
+    class Closer(_StubCloser):
         def __init__(self):  # (closure accepted, graph re-solved, correction x)
-            from vio.loop.closer import LoopStats
-
+            super().__init__()
             self.script = iter([(False, 0, 0.0), (True, 1, 0.1), (False, 1, 0.1), (False, 2, 0.12), (False, 2, 0.0)])
-            self.corr, self.graph = np.eye(4), type("G", (), {"estimate_version": 0})()
-            self.stats = LoopStats()
 
         def add_keyframe(self, *item):
             closed, self.graph.estimate_version, x = next(self.script)
             self.corr = make_T(np.eye(3), np.array([x, 0.0, 0.0]))
             return closed
-
-        def correction(self):
-            return self.corr
-
-        def correction_uncertainty(self):
-            return None
-
-        def correction_segment(self):
-            return 0, True
-
-        def placement_unconfirmed(self):
-            return False
-
-        def finish(self):
-            pass
 
     w = LoopWorker(Closer(), max_queue=10)
     versions = []
