@@ -104,10 +104,11 @@ class MavlinkStats:
 
 
 # An autopilot that reboots faster than link_timeout_s (ArduCopter SITL: 2.3 s of silent heartbeats; a flight
-# controller's watchdog recovery in flight) keeps the link up but forgets the EKF origin and a LAND request. It
-# shows in its HEARTBEAT (system_status back to BOOT/UNINIT after it had been running) and in its TIMESYNC
-# requests (ts1 is its time since boot: ArduPilot asks every 10 s, PX4 more often).
-BOOTING_STATES = (mavlink.MAV_STATE_UNINIT, mavlink.MAV_STATE_BOOT)
+# controller's watchdog recovery in flight) keeps the link up but forgets the EKF origin. It shows in its HEARTBEAT
+# (system_status back to BOOT after it had been running; not UNINIT, which PX4 sends for states it does not map,
+# such as a failed preflight check) and in its own TIMESYNC requests (component 1: ts1 is its time since boot;
+# ArduPilot asks every 10 s, PX4 more often; a companion program's requests on the same system carry wall time).
+BOOTING_STATES = (mavlink.MAV_STATE_BOOT,)
 RESTART_CLOCK_BACK_NS = 500_000_000  # a TIMESYNC ts1 this far behind the last one: its clock restarted
 
 ANOTHER_CLOCK_NS = 2_000_000_000  # pose stamps this far ahead of the host clock are on another clock
@@ -753,8 +754,9 @@ class MavlinkOutput:
                 elif not accepted:
                     log.warning("autopilot refused LAND (COMMAND_ACK result %d)", msg.result)
                 self.stats.land_accepted = self.stats.land_accepted or accepted
-            elif kind == "TIMESYNC" and msg.tc1 == 0 and (self._last_ap_heartbeat_ns is None
-                                                           or msg.get_srcSystem() == self.target_system):
+            elif kind == "TIMESYNC" and msg.tc1 == 0 and (self._last_ap_heartbeat_ns is None or (
+                    msg.get_srcSystem() == self.target_system
+                    and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1)):
                 # A request from the autopilot (others' requests are theirs to answer: a second answer from us
                 # would spoil their round trip): answer with our clock (the one NavState.t_ns uses), echo its ts1.
                 self._send(mavlink.MAVLink_timesync_message(time.monotonic_ns(), msg.ts1), "TIMESYNC")
@@ -767,16 +769,16 @@ class MavlinkOutput:
                         self._ap_running = False  # a booting heartbeat after this is the same restart
 
     def _autopilot_restarted(self, now: int, why: str) -> None:
-        """The autopilot rebooted without the link going down: it has lost the EKF origin we set and any LAND
-        request of this loss, so both are sent again (the origin until it is confirmed, LAND if still due)."""
+        """The autopilot rebooted without the link going down: it has lost the EKF origin we set, which is sent
+        again until confirmed. A LAND request is not repeated: a rebooted autopilot comes back disarmed, and one that
+        recovered armed in flight has a pilot or a failsafe of its own (a LAND re-sent on a false restart would
+        override a pilot who took over)."""
         self.stats.autopilot_restarts += 1
         origin = math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg)
         log.warning("the autopilot restarted (%s)%s", why, ": setting the EKF origin again" if origin else "")
         if origin:
             self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
             self.stats.origin_confirmed = False
-        with self._pending_lock:
-            self._land_done, self._land_left = False, 0
 
     def _update_link(self, now: int) -> None:
         up = self._last_ap_heartbeat_ns is not None and now - self._last_ap_heartbeat_ns < self._timeout_ns

@@ -701,8 +701,19 @@ def test_an_autopilot_restart_inside_the_link_timeout_gets_the_origin_again(ap, 
     confirm()
     assert out.stats.autopilot_restarts == 1 and out.stats.link_losses == 0
 
+    # a companion program on the same system (MAVROS, MAVSDK through a router) asks with wall-clock ts1 between
+    # the autopilot's requests: not a restart each time the autopilot's small ts1 follows (a review's finding:
+    # each false restart re-sent LAND), and not ours to answer
+    ap.conn.mav.srcComponent = 191
+    ap.conn.mav.timesync_send(0, 1_700_000_000_000_000_000)
+    ap.conn.mav.srcComponent = 1
+    got = step(1)
+    assert not [m for m in ap.of("TIMESYNC", got) if m.ts1 == 1_700_000_000_000_000_000]
     ap.conn.mav.timesync_send(0, 9_000_000_000)
     step(1)
+    assert out.stats.autopilot_restarts == 1
+    step(1, mavlink.MAV_STATE_UNINIT)  # PX4 sends UNINIT for states it does not map (a failed preflight check)
+    assert out.stats.autopilot_restarts == 1
     ap.conn.mav.timesync_send(0, 2_000_000_000)  # its clock tells first (PX4 asks every few hundred ms) ...
     got = step(status=mavlink.MAV_STATE_BOOT)  # ... then its booting heartbeats: one restart
     assert out.stats.autopilot_restarts == 2 and ap.of("SET_GPS_GLOBAL_ORIGIN", got)
