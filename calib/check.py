@@ -265,7 +265,8 @@ def check_camera_imu_rotation(dataset, calib: StereoCalibration) -> CheckResult:
         what = "the calibration's R_body_cam0 is"
     else:  # one axis only: where it lies in the body, through the calibration and through the gyro
         a = fit.axes_cam[0]
-        ang = float(np.degrees(np.arccos(np.clip(abs((R_cal @ a) @ (fit.R_body_cam @ a)), -1, 1))))
+        # signed: a turn about +a stays one about +a (a camera mounted upside down flips it: abs() hid that)
+        ang = float(np.degrees(np.arccos(np.clip((R_cal @ a) @ (fit.R_body_cam @ a), -1, 1))))
         sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[0] * np.sqrt(fit.n_pairs))))
         what = "turns about one axis only: where that axis lies in the body is"
     if ang < 3 * sigma:
@@ -276,7 +277,8 @@ def check_camera_imu_rotation(dataset, calib: StereoCalibration) -> CheckResult:
                            f"{sigma:.2f} deg (1 sigma) uncertainty; {said}")
     verdict = _grade(ang, ROT_PASS_DEG, ROT_WARN_DEG)
     remedy = ("" if verdict == "PASS" else "; check T_cam_imu is not inverted (kalibr's maps IMU points into "
-              "the camera), that the file states the camera-IMU extrinsic at all, and the camera's mount")
+              "the camera), that the file states the camera-IMU extrinsic at all, and the camera's mount; a few "
+              "degrees can also be a wrong time_offset_ns on a wobbling flight (`vio calib time-offset` measures it)")
     return CheckResult(name, verdict, ang, "deg", f"{what} {ang:.2f} deg (+- {sigma:.2f}) from the gyro's{remedy}; "
                        f"{said}")
 

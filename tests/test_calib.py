@@ -826,3 +826,41 @@ def test_check_warns_of_imu_noise_densities_in_another_unit(v101_path):
                       gyroscope_noise_density=calib.imu.gyroscope_noise_density * k)
         res = {r.name: r for r in check_calibration(v101_path, replace(calib, imu=imu), max_frames=2)}
         assert res["IMU noise vs still spread"].verdict == "WARN" and says in res["IMU noise vs still spread"].detail
+
+
+def test_the_rotation_check_on_turns_about_one_axis_keeps_the_axis_sign(monkeypatch):
+    """A survey turns about the vertical only: the check compares where that axis lies in the body. A camera
+    mounted upside down (180 deg about its optical axis) flips the axis, and an unsigned comparison passed it (a
+    review's finding). Synthetic yaw-only flight, the camera's turns handed in as the tool would measure them."""
+    from types import SimpleNamespace as NS
+
+    import calib.time_offset as time_offset
+    from calib.check import check_camera_imu_rotation
+
+    rng = np.random.default_rng(0)
+    R_bc = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # camera looking forward on a level drone
+    t_imu = np.arange(0, 60.0, 1 / 200)
+
+    def w_cam(t):  # yaw about body z is a turn about the camera's -y
+        return (0.6 * np.sin(2 * np.pi * 0.2 * t))[:, None] * np.array([0, -1.0, 0])
+
+    gyro = w_cam(t_imu) @ R_bc.T + rng.normal(0, 1e-3, (len(t_imu), 3))
+    tc = np.arange(1.0, 59.0, 1 / 20)
+    theta = np.array([np.trapezoid(w_cam(np.linspace(a, b, 21)), np.linspace(a, b, 21), axis=0)
+                      for a, b in zip(tc[:-1], tc[1:])])
+    vis = NS(t0_ns=(tc[:-1] * 1e9).astype(np.int64), t1_ns=(tc[1:] * 1e9).astype(np.int64), theta_cam=theta)
+    monkeypatch.setattr(time_offset, "visual_rotations", lambda ds, cam, step=1: vis)
+
+    class Dataset(NS):
+        def __len__(self):
+            return len(tc)
+
+    ds = Dataset(imu=NS(t_ns=(t_imu * 1e9).astype(np.int64), gyro=gyro))
+
+    def check(R):
+        return check_camera_imu_rotation(ds, NS(cam0=NS(T_body_cam=make_T(R, np.zeros(3))), time_offset_ns=0))
+
+    ok = check(R_bc)
+    assert ok.verdict == "PASS" and "one axis only" in ok.detail, ok
+    assert check(R_bc @ so3_exp(np.array([0, 0, np.pi]))).verdict == "FAIL"  # upside down
+    assert check(so3_exp(np.array([0, np.radians(5), 0])) @ R_bc).verdict == "FAIL"  # the vertical tilted 5 deg

@@ -122,6 +122,7 @@ def test_missing_and_binary_files(tmp_path):
      r"looks like radians .* \[0\.0, 90\.0, 0\.0\]"),
     ("[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [3.14159, 0.0, -1.5708]\n", "looks like radians"),
     ("[backend]\nvision_timeout_s = 2.0\nlost_timeout_s = 1.0\n", "must not exceed lost_timeout_s"),
+    ("[loop]\nreloc_confirm_edges = 0\n", "needs reloc_confirm_edges >= it"),
     ("[frontend]\nmax_depth_m = 10.0\n", "must lie inside the front end"),
     ("[backend]\nimu_noise_adaptive = true\nimu_noise_scale = 8.0\nimu_noise_max_scale = 4.0\n",
      "below imu_noise_scale"),

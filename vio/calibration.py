@@ -248,6 +248,10 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
     """Build a camera from our keys (`kalibr`: a kalibr camchain's camera); errors name `where` and the key."""
     if not isinstance(d, dict):
         raise VioError(f"{where}: expected a mapping of camera keys")
+    if not kalibr and (kal := [k for k in d if k in KALIBR_CAMERA_KEYS]):
+        raise VioError(f"{where}: kalibr's '{kal[0]}' in a project calibration file: convert the camchain with "
+                       "`vio calib import kalibr CAMCHAIN.yaml IMU.yaml -o OUT.yaml` (it reads T_cn_cnm1 and "
+                       "timeshift_cam_imu, which this file format would ignore)")
     refuse_unknown_keys(d, CAMERA_KEYS + (KALIBR_CAMERA_KEYS if kalibr else ()), where)
     try:
         model = str(d.get("camera_model", "pinhole"))
@@ -271,7 +275,8 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
         return CameraCalibration(
             fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
             distortion_model=str(d.get("distortion_model", "radtan")),
-            distortion=tuple(float(x) for x in _need(d, "distortion_coeffs", where)),
+            distortion=tuple(float(x) for x in (d.get("distortion_coeffs", []) if str(d.get("distortion_model"))
+                                                == "none" else _need(d, "distortion_coeffs", where))),
             T_body_cam=T, rate_hz=float(d.get("rate_hz", 20.0)),
         )
     except VioError as e:

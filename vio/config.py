@@ -473,11 +473,6 @@ class LoopConfig:
     output_join_edges: int = opt(8, "the corrected output ([loop] output) takes a flight's place in another frame (a "
                                  "loaded map, the flight before a reset) only once this many active loop edges hold "
                                  "it: a first join can be a look-alike place; 0 = at the first join", min=0, max=1000)
-    reloc_contest_ratio: float = opt(3.0, "two sessions whose loop edges GNC split (at least reloc_min_consistent "
-                                     "switched off: a repeated room's look-alikes placing it elsewhere) stay joined "
-                                     "only while the active ones outnumber the switched-off ones this many times; "
-                                     "else the placement is contested and not reported in the other's frame; 0 = off",
-                                     min=0, max=100)
     sigma_inliers: int = opt(60, "a loop edge within one flight has its sigmas scaled by sqrt(this / inliers), "
                              "between 0.5x and 2x (a PnP pose's error goes as 1 / sqrt(inliers)); 0 = off",
                              min=0, max=10000)
@@ -606,6 +601,12 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
         raise VioError(f"{source}: [loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] "
                        "enabled = true (it would be ignored)")
+    lp = cfg.loop
+    if lp.output_join_edges and not (0 < lp.output_join_edges <= lp.reloc_confirm_edges):
+        # a joined flight searched with the ordinary rules finds few more edges to the map: the output could wait
+        raise VioError(f"{source}: [loop] output_join_edges = {lp.output_join_edges} needs reloc_confirm_edges >= it "
+                       f"(now {lp.reloc_confirm_edges}): a join is searched for the edges that confirm it only that "
+                       "long")
     b, f = cfg.backend, cfg.frontend
     if b.imu_noise_adaptive and b.imu_noise_max_scale < b.imu_noise_scale:
         raise VioError(f"{source}: [backend] imu_noise_max_scale = {b.imu_noise_max_scale} is below imu_noise_scale "

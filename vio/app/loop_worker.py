@@ -126,8 +126,9 @@ class LoopWorker:
         if closed and self.closures == 1:
             log.info("loop closure: first closure at keyframe %d (%d loop edges)", self._processed, new["loop_edges"])
         if new["relocalised"] and not old["relocalised"]:
-            log.info("loop closure: relocalised in the map (%d keyframes); corrected poses go out in the map's frame "
-                     "once %d loop edges confirm the place", c.map_keyframes, c.cfg.output_join_edges)
+            n = c.cfg.output_join_edges
+            log.info("loop closure: relocalised in the map (%d keyframes)%s", c.map_keyframes,
+                     f"; corrected poses are in the map's frame once {n} loop edges confirm the place" if n else "")
         if new["confirmed"] and not old.get("confirmed"):
             log.info("loop closure: placement in the map confirmed: corrected poses are in the map's frame")
         if old["relocalised"] and new["relocalised"] is False:

@@ -390,17 +390,9 @@ class LoopCloser:
         a frame of its own again: it is not reported in the map, its pose carries no map placement, and it looks
         for the map with the relocalisation rules again (reloc candidates, inliers, consistency)."""
         self._component = {s: s for s in self._component}
-        count: dict[tuple[int, int], list[int]] = {}  # session pair -> [active, switched off] loop edges
         for e in self.graph.edges:
-            if e.kind == "loop" and e.i != e.j:
-                a, b = self.keyframes[e.i].session, self.keyframes[e.j].session
-                if a != b:
-                    count.setdefault((min(a, b), max(a, b)), [0, 0])[e.weight < 0.5] += 1
-        r = self.cfg.reloc_contest_ratio
-        for (a, b), (on, off) in count.items():
-            contested = r > 0 and off >= self.cfg.reloc_min_consistent and on < r * off
-            if on and not contested:
-                self._join(a, b)
+            if e.kind == "loop" and e.weight >= 0.5 and e.i != e.j:
+                self._join(self.keyframes[e.i].session, self.keyframes[e.j].session)
 
     def _join(self, a: int, b: int) -> None:
         ra, rb = self._comp(a), self._comp(b)
