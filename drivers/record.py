@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.base import SensorSource
+from drivers.signals import stop_on_signal
 from vio import VioError
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
@@ -167,11 +168,11 @@ def run(args: argparse.Namespace) -> int:
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: Any) -> None:
+    def on_signal(signum: int) -> None:  # in a thread of its own (drivers.signals: a handler must not set stop)
         log.info("%s received: finishing the recording", signal.Signals(signum).name)
         stop.set()
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    old = {s: signal.signal(s, stop_on_signal(on_signal)) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         log.info("recording %s source to %s%s", src_cfg.kind, args.out,
                  f" for {args.duration:g} s" if args.duration else " until SIGINT/SIGTERM")

@@ -867,3 +867,19 @@ def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkey
     assert said and "is not writable: running without it" in said[0]
     with pytest.raises(VioError, match="is not writable"):
         svc_mod.check_run_config(cfg)
+
+
+def test_a_stop_signal_never_waits_for_the_lock_the_main_loop_holds() -> None:
+    """`vio run` hung for 10 s after SIGTERM once (killed, no status written): the handler, running in the main thread,
+    called stop.set() while that thread was inside stop.wait() holding the Event's lock. The handler now hands the
+    stop to a thread of its own; here it is called with the lock held, as the signal would find it."""
+    from drivers.signals import stop_on_signal
+
+    stop = threading.Event()
+    got = []
+    handler = stop_on_signal(lambda signum: (got.append(signum), stop.set()))
+    done = threading.Event()
+    with stop._cond:  # what stop.wait() holds around its wait
+        threading.Thread(target=lambda: (handler(signal.SIGTERM, None), done.set()), daemon=True).start()
+        assert done.wait(2.0), "the handler blocked on the Event's lock"
+    assert stop.wait(2.0) and got == [signal.SIGTERM]

@@ -569,8 +569,11 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger().setLevel(cfg.run.log_level)
     service = Service(cfg, map_data=map_data)
     service.instance_lock = lock
-    signal.signal(signal.SIGTERM, service.request_stop)
-    signal.signal(signal.SIGINT, service.request_stop)
+    from drivers.signals import stop_on_signal
+
+    # not service.request_stop itself: Event.set() in a handler can deadlock the main loop's stop.wait()
+    signal.signal(signal.SIGTERM, stop_on_signal(service.request_stop))
+    signal.signal(signal.SIGINT, stop_on_signal(service.request_stop))
     # SIGHUP killed the daemon without a word, and systemd takes that for a clean exit (no restart): an ssh
     # session ending under one started by hand, or `systemctl kill -s HUP` (a review's finding). There is no
     # reload: said, and ignored.
