@@ -344,10 +344,10 @@ def check_imu_noise(imu, acc: np.ndarray, gyr: np.ndarray, span: str) -> CheckRe
                                                                                gyr)):
         spread = float(np.sqrt(np.mean(x.var(axis=0)))) if len(x) > 10 else float("nan")
         rows.append((what, density * np.sqrt(rate), spread))
-    said = "; ".join(f"{w} stated {st:.3g} per sample vs {sp:.3g} spread" for w, st, sp in rows)
-    bad = [(w, st / sp) for w, st, sp in rows if sp > 0 and not NOISE_UNDER <= st / sp <= NOISE_OVER]
     if not all(np.isfinite(sp) and sp > 0 for _, _, sp in rows):
         return CheckResult("IMU noise vs still spread", "SKIP", float("nan"), "", f"no still span to compare ({span})")
+    said = "; ".join(f"{w} stated {st:.3g} per sample vs {sp:.3g} spread" for w, st, sp in rows)
+    bad = [(w, st / sp) for w, st, sp in rows if not NOISE_UNDER <= st / sp <= NOISE_OVER]
     if not bad:
         return CheckResult("IMU noise vs still spread", "PASS", max(st / sp for _, st, sp in rows), "x",
                            f"{said} ({span})")

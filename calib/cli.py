@@ -185,7 +185,7 @@ def _run_time_offset(args: argparse.Namespace) -> int:
     from calib.time_offset import estimate_time_offset_dataset
 
     est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
-    print(est.summary(est.calibration_offset_s))
+    print(est.summary())
     if args.plot:
         from calib.time_offset import plot_time_offset
 

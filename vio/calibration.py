@@ -8,7 +8,6 @@ camera points into the body (= IMU) frame. `time_offset_ns` follows kalibr's tim
 
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 import yaml
 
 from vio import VioError
+from vio.config import refuse_unknown_keys
 from vio.geometry import inv_T, is_se3
 
 DISTORTION_MODELS = ("radtan", "equidistant", "none")
@@ -232,16 +232,6 @@ KALIBR_CAMERA_KEYS = ("T_cn_cnm1", "timeshift_cam_imu", "cam_overlaps", "rostopi
 CALIBRATION_KEYS = ("cam0", "cam1", "imu", "time_offset_ns")
 IMU_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
             "accelerometer_random_walk", "update_rate", "rate_hz")
-
-
-def refuse_unknown_keys(d: dict, known: tuple[str, ...], where: str) -> None:
-    """A misspelt key (`distortion_coefs`, `gyroscope_noise_densty`, `time_offset_ms`) was read as absent and its
-    default used, unsaid (a review's finding): refused, with the key meant where one is close."""
-    for key in d:
-        if key not in known:
-            hint = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
-            raise VioError(f"{where}: unknown key '{key}'" + (f" (did you mean '{hint[0]}'?)" if hint else
-                                                              f"; known keys: {', '.join(known)}"))
 
 
 def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibration:

@@ -23,6 +23,17 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
+def refuse_unknown_keys(d: dict, known: tuple[str, ...] | list[str], where: str) -> None:
+    """A misspelt key (`max_featurs` here; `distortion_coefs`, `time_offset_ms` in a calibration file, which were
+    read as absent and their defaults used, unsaid: a review's finding) is refused, with the key meant where one is
+    close."""
+    for key in d:
+        if key not in known:
+            hint = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+            raise VioError(f"{where}: unknown key '{key}'" + (f" (did you mean '{hint[0]}'?)" if hint else
+                                                              f"; known keys: {', '.join(known)}"))
+
+
 def opt(default: Any, help: str, *, min: float | None = None, max: float | None = None,
         choices: tuple | None = None) -> Any:
     """A config field with its documentation and validation bounds."""
@@ -546,11 +557,8 @@ def _build_section(cls: type, data: Any, where: str) -> Any:
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
+    refuse_unknown_keys(data, list(fields), where)
     for key, value in data.items():
-        if key not in fields:
-            hint = difflib.get_close_matches(key, list(fields), n=1)
-            more = f" (did you mean '{hint[0]}'?)" if hint else f"; known keys: {', '.join(fields)}"
-            raise VioError(f"{where}: unknown key '{key}'{more}")
         kwargs[key] = _check_value(where, key, fields[key], hints[key], value)
     return cls(**kwargs)
 

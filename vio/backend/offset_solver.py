@@ -62,8 +62,9 @@ class OffsetEstimate:
     observable: bool
     calibration_offset_s: float = 0.0  # the offset the calibration states (set by the caller that knows it)
 
-    def summary(self, calibration_offset_s: float = 0.0) -> str:
+    def summary(self) -> str:
         """The estimate, and whether it tells the calibration's own offset (`calibration_offset_s`) wrong."""
+        calibration_offset_s = self.calibration_offset_s
         lines = [f"camera-IMU time offset: {self.offset_s * 1e3:+.2f} ms +- {self.sigma_s * 1e3:.2f} ms (1 sigma; "
                  f"t_imu = t_cam + offset)",
                  f"  from {self.n_pairs} frame pairs, rotation rate std {self.rate_std_rad_s:.3f} rad/s, "

@@ -316,15 +316,16 @@ class LoopCloser:
         fewer than output_join_edges active loop edges: a first join can be a look-alike place (a repeated room: 25
         of 100 second flights were output 0.5 m or more off for a while at the first join, 3 from the second
         consistent set of edges, none from 8 edges), so its frame is not handed to the output yet."""
-        n = self.cfg.output_join_edges
-        if not (n and self.keyframes):
-            return False
-        s = self.keyframes[-1].session
-        return not self.correction_segment()[1] and s > 0 and self._join_edges(s) < n
+        return bool(self.keyframes) and not self.correction_segment()[1] and \
+            self._few_join_edges(self.keyframes[-1].session, self.cfg.output_join_edges)
 
     def _confirming(self, session: int) -> bool:
         """This session is joined to another one by fewer than reloc_confirm_edges active loop edges."""
-        n = self.cfg.reloc_confirm_edges
+        return self._few_join_edges(session, self.cfg.reloc_confirm_edges)
+
+    def _few_join_edges(self, session: int, n: int) -> bool:
+        """A later session (not the first: the map's, or the flight's start) held by fewer than n > 0 active loop
+        edges to the others."""
         return bool(n) and session > 0 and self._join_edges(session) < n
 
     def _consistent(self, i: int) -> bool:
