@@ -53,6 +53,45 @@ def test_pose_graph_closes_loops_and_switches_off_20_false_edges(seed):
         assert np.degrees(np.arccos(np.clip((e[:3, :3].T @ [0, 0, 1]) @ (o[:3, :3].T @ [0, 0, 1]), -1, 1))) < 1.0
 
 
+def test_join_edge_counts_follow_every_add_take_back_and_switch_off():
+    """The loop stage counts each session's active edges to other sessions from a cache (asked up to four times a
+    keyframe while placed in a map): it must see an edge added, edges taken back after a failed solve, and GNC
+    switching edges off, exactly as counting every edge again does."""
+    from types import SimpleNamespace as NS
+
+    from vio.config import LoopConfig
+    from vio.loop.closer import LoopCloser
+
+    rng = np.random.default_rng(3)
+    g, truth = _circle(121, rng)
+    me = NS(graph=g, keyframes=[NS(session=0 if k < 60 else 1) for k in range(121)], cfg=LoopConfig(),
+            _join_counts=((-1, -1), {}))
+
+    def counted(session):
+        return LoopCloser._join_edges(me, session)
+
+    def recount(session):
+        return sum((me.keyframes[e.i].session == session) != (me.keyframes[e.j].session == session)
+                   for e in g.edges if e.kind == "loop" and e.weight >= 0.5)
+
+    assert counted(1) == 0
+    for k in (80, 100, 120):  # session 1's views of session 0's start: true edges
+        g.add_loop(0, k, np.linalg.inv(truth[0]) @ truth[k])
+    g.add_loop(40, 70, np.linalg.inv(truth[40]) @ truth[70])
+    assert counted(1) == counted(0) == recount(1) == 4
+    g.optimize()
+    first = len(g.edges)
+    g.add_loop(10, 110, np.eye(4))
+    assert counted(1) == 5
+    assert g.drop_loops_from(first) == 1 and counted(1) == 4
+    for _ in range(20):  # wrong edges across the join: GNC switches them off after they were counted
+        a, b = int(rng.integers(0, 60)), int(rng.integers(60, 121))
+        g.add_loop(a, b, make_T(so3_exp(rng.normal(size=3) * 0.3), rng.normal(size=3)))
+    assert counted(1) == 24
+    g.optimize()
+    assert counted(1) == recount(1) == counted(0) == 4
+
+
 def test_edges_held_tight_by_their_inliers_are_decided_at_the_graphs_sigmas():
     """An edge with many inliers is held at half the graph's sigmas in the estimate, but GNC decides at the graph's
     sigmas: with three true edges and three strong false ones, all held tight, TLS in the tight sigmas switched

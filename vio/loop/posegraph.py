@@ -104,6 +104,7 @@ class PoseGraph:
         self.last_decision_nodes = 0  # size of the last decision graph
         self.decisions = 0  # GNC decisions run (the slow path)
         self.quick_fits = 0  # closures whose new edges already fitted the estimate (no fit check)
+        self.loop_version = 0  # +1 whenever a loop edge is added, taken back or re-weighted (callers' caches)
         self._segment: list[int] = []  # first node of each node's odometry segment
         # sum over the segment's edges up to the node of Ad(T_w_k) Sigma_k Ad(T_w_k)^T: the covariance of
         # the odometry composed from node a to node b is Ad(T_w_b^-1) (C_b - C_a) Ad(T_w_b^-1)^T
@@ -208,6 +209,7 @@ class PoseGraph:
             log.warning("loop edge from keyframe %d to itself ignored: it constrains nothing", i)
             e.weight = 0.0
         self.edges.append(e)
+        self.loop_version += 1
 
     def _loops(self) -> list[int]:
         """Indices of the loop edges a solve can use (all but self-edges)."""
@@ -220,6 +222,7 @@ class PoseGraph:
         if any(e.kind != "loop" for e in tail) or any(k in self._in_isam for k in range(first, len(self.edges))):
             raise ValueError("only loop edges not yet solved can be taken back")
         del self.edges[first:]
+        self.loop_version += 1
         return len(tail)
 
     def _odom_sigmas(self, T: np.ndarray) -> np.ndarray:
@@ -408,6 +411,7 @@ class PoseGraph:
                     for k, w in zip(loops, weights):
                         self.edges[k].weight = w
                     self.decisions += 1
+                    self.loop_version += 1
             except RuntimeError as e:  # gtsam's solver errors (an indeterminate system that QR could not solve)
                 raise DecisionError(f"{type(e).__name__}: {e}") from e
         self._sync(loops)
