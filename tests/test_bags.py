@@ -1,6 +1,6 @@
 """Bag and MCAP replay (issue 18): a short simulated flight written as a ROS 1 bag, ROS 2 bags (sqlite3 and
 MCAP storage, with rosbags) and a bare MCAP file (with the mcap library) replays to the same TUM bytes as the
-EuRoC folder it came from; wrong topics, out-of-order stamps and unsynchronised cameras are said or handled
+EuRoC folder it came from; wrong topics, late messages, clock jumps and unsynchronised cameras are said or handled
 as the EuRoC reader does."""
 
 from __future__ import annotations
@@ -73,15 +73,54 @@ class _Events:
         return iter(self._events)
 
 
-def test_out_of_order_imu_stamp_is_an_error_naming_topic_and_message(flight):
+def test_messages_that_came_late_are_put_in_their_place_and_replay_as_the_euroc_flight(flight):
+    """A recorder stores messages as they arrive: two IMU samples swapped, and a stereo frame written after the
+    three that follow it (0.15 s late) were a whole bag refused; they are put in their place by stamp, said in a
+    note, and the replay writes the EuRoC folder's trajectory to the byte."""
     d = EurocDataset(flight / "sim")
     ev = list(d.events())
     imu_idx = [k for k, e in enumerate(ev) if isinstance(e, ImuSample)]
     a, b = imu_idx[50], imu_idx[51]
     ev[a], ev[b] = ev[b], ev[a]
+    frames = [k for k, e in enumerate(ev) if isinstance(e, StereoFrame)]
+    late = ev.pop(frames[30])
+    ev.insert(frames[33], late)  # after the next three frames (the pop moved them one place up)
     export_bag(_Events(ev), flight / "o.mcap", "mcap")
-    with pytest.raises(VioError, match=r"topic /imu0: message 52: out-of-order time stamp"):
-        BagDataset(flight / "o.mcap", d.calibration)
+    bag = BagDataset(flight / "o.mcap", d.calibration)
+    notes = " ".join(bag.stats.notes)
+    assert "topic /imu0: 1 messages came after a newer one" in notes
+    assert "topic /cam0/image_raw: 1 images came after a newer one" in notes
+    assert "topic /cam1/image_raw: 1 images came after a newer one" in notes
+    r = _vio("replay", "o.mcap", "--calib", "calib.yaml", "-o", "o.tum", "--no-progress", cwd=flight)
+    assert r.returncode == 0, r.stderr
+    assert (flight / "o.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
+
+
+@pytest.mark.parametrize("case", ["imu_clock_jump", "image_clock_jump", "imu_same_stamp", "image_same_stamp"])
+def test_a_clock_jump_or_a_stamp_given_twice_is_an_error_naming_topic_and_message(flight, case):
+    d = EurocDataset(flight / "sim")
+    ev = list(d.events())
+    imu_idx = [k for k, e in enumerate(ev) if isinstance(e, ImuSample)]
+    frames = [k for k, e in enumerate(ev) if isinstance(e, StereoFrame)]
+    if case == "imu_clock_jump":  # a sample 0.6 s older than the one before: more than MAX_LATE_S
+        k = imu_idx[400]
+        ev[k] = ImuSample(ev[k].t_ns - 600_000_000, ev[k].gyro, ev[k].accel)
+        expected = r"topic /imu0: message 401: out-of-order time stamp \d+, 0\.595 s before"
+    elif case == "image_clock_jump":
+        k = frames[40]
+        ev[k] = StereoFrame(ev[k].t_ns - 700_000_000, ev[k].left, ev[k].right, seq=ev[k].seq)
+        expected = r"topic /cam0/image_raw: message 41: out-of-order time stamp \d+, 0\.650 s before"
+    elif case == "imu_same_stamp":  # two samples claim one instant with other values
+        k = imu_idx[300]
+        ev[k] = ImuSample(ev[imu_idx[299]].t_ns, ev[k].gyro, ev[k].accel)
+        expected = r"topic /imu0: message 301: duplicate time stamp with other values than message 300"
+    else:
+        k = frames[40]
+        ev[k] = StereoFrame(ev[frames[39]].t_ns, ev[k].left, ev[k].right, seq=ev[k].seq)
+        expected = r"topic /cam0/image_raw: message 41: duplicate time stamp with another image than message 40"
+    export_bag(_Events(ev), flight / f"{case}.mcap", "mcap")
+    with pytest.raises(VioError, match=expected):
+        BagDataset(flight / f"{case}.mcap", d.calibration)
 
 
 def test_exact_repeat_dropped_and_unsynchronised_right_camera_unpaired(flight):

@@ -3,10 +3,12 @@
 Read: a ROS 1 `.bag`, a ROS 2 bag folder (sqlite3 or MCAP storage) through `rosbags` (no ROS install), or a
 bare `.mcap` file (ours, or any with ROS 2 `cdr` channels) through `mcap`; sensor_msgs/Image (mono8/16,
 bgr8/rgb8/bgra8/rgba8) and sensor_msgs/CompressedImage for the cameras, sensor_msgs/Imu for the IMU. Header
-stamps are used, never the bag's receive stamps. The stamps are checked as the EuRoC reader checks its csv
-files: per topic they must increase strictly (an out-of-order or a repeated stamp with other data is a
-VioError naming the topic and message; an exact repeat is dropped and noted), and left and right images
-are paired by equal stamp (1 us) with left-only frames kept (`EurocDataset._pair`).
+stamps are used, never the bag's receive stamps. A recorder stores messages as they arrive, so a message
+can come after a newer one on its topic (a driver thread, a busy recorder): one up to `MAX_LATE_S` older than
+the newest before it is put in its place by stamp (all of them counted in a note); one later than that is a
+clock jump, a VioError naming the topic and message, as is a repeated stamp with other data (an exact repeat
+is dropped and noted). Left and right images are paired by equal stamp (1 us) with left-only frames kept
+(`EurocDataset._pair`).
 
 `BagDataset` is an `EurocDataset` for the replay loop: the IMU and all stamps are read when it is opened,
 images are decoded while streaming (a second pass over the camera topics; the right image lazily).
@@ -47,6 +49,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 IMU = "sensor_msgs/msg/Imu"
 ODOMETRY = "nav_msgs/msg/Odometry"
+MAX_LATE_S = 0.5  # a message at most this much older than the newest before it on its topic is put in its place
 
 
 @dataclass(frozen=True)
@@ -170,6 +173,26 @@ class _BagFile:
         return reader.deserialize(raw, msgtype)
 
 
+def _check_late(name: str, k: int, t: int, newest: int | None) -> None:
+    """A message older than the newest before it on its topic by more than MAX_LATE_S: a clock that jumped back,
+    not a late message (sorting it in would mix two clocks)."""
+    if newest is not None and newest - t > MAX_LATE_S * 1e9:
+        raise VioError(f"{name}: message {k + 1}: out-of-order time stamp {t}, {(newest - t) * 1e-9:.3f} s before "
+                       f"the newest before it ({newest}): more than {MAX_LATE_S:g} s late, did the clock jump back?")
+
+
+def _stamp_order(stamps: list[int], name: str, what: str, notes: list[str]) -> np.ndarray | None:
+    """The stable order that sorts the stamps, or None when they are in order already; how many came late goes
+    into `notes`."""
+    t = np.asarray(stamps, dtype=np.int64)
+    if len(t) < 2 or bool(np.all(np.diff(t) >= 0)):
+        return None
+    late = int(np.count_nonzero(t < np.maximum.accumulate(t)))
+    note = f"{name}: {late} {what} came after a newer one (at most {MAX_LATE_S:g} s late): put in their place by stamp"
+    notes.append(note)
+    return np.argsort(t, kind="stable")
+
+
 def _stamp(msg) -> int:
     s = msg.header.stamp
     return int(s.sec) * 1_000_000_000 + int(s.nanosec)
@@ -287,26 +310,32 @@ class BagDataset(EurocDataset):
 
     def _read_imu(self) -> ImuData:
         rows: list[tuple[int, float, float, float, float, float, float]] = []
-        prev = None
-        repeats = 0
+        ordinals: list[int] = []
+        newest = None
         name = self.where("imu")
         for k, (_, ty, raw, r) in enumerate(self._bag.messages([self.topics.imu])):
             m = self._bag.deserialize(raw, ty, r)
             w, a = m.angular_velocity, m.linear_acceleration
             row = (_stamp(m), float(w.x), float(w.y), float(w.z), float(a.x), float(a.y), float(a.z))
-            if prev is not None and row[0] <= prev[0]:
-                if row == prev:
-                    repeats += 1
-                    continue
-                what = "duplicate time stamp with other values than the message before" if row[0] == prev[0] \
-                    else "out-of-order time stamp"
-                raise VioError(f"{name}: message {k + 1}: {what} {row[0]} (previous {prev[0]})")
             if row[0] <= 0:
                 raise VioError(f"{name}: message {k + 1}: time stamp {row[0]} is not positive")
+            _check_late(name, k, row[0], newest)
+            newest = row[0] if newest is None else max(newest, row[0])
             rows.append(row)
-            prev = row
-        if repeats:
-            self.stats.notes.append(f"{name}: {repeats} exact repeats of the message before dropped")
+            ordinals.append(k)
+        order = _stamp_order([r[0] for r in rows], name, "messages", self.stats.notes)
+        if order is not None:
+            rows, ordinals = [rows[i] for i in order], [ordinals[i] for i in order]
+        keep = [0] if rows else []
+        for i in range(1, len(rows)):
+            if rows[i][0] != rows[i - 1][0]:
+                keep.append(i)
+            elif rows[i] != rows[i - 1]:
+                raise VioError(f"{name}: message {ordinals[i] + 1}: duplicate time stamp with other values than "
+                               f"message {ordinals[i - 1] + 1} {rows[i][0]}")
+        if len(keep) < len(rows):
+            self.stats.notes.append(f"{name}: {len(rows) - len(keep)} exact repeats of the message before dropped")
+            rows = [rows[i] for i in keep]
         vals = np.array(rows, dtype=float).reshape(-1, 7)
         t = np.array([r[0] for r in rows], dtype=np.int64)
         bad = ~np.all(np.isfinite(vals[:, 1:]), axis=1)
@@ -325,34 +354,47 @@ class BagDataset(EurocDataset):
         return ImuData(t, vals[:, 1:4].copy(), vals[:, 4:7].copy())
 
     def _read_cam_stamps(self):
+        """Per camera topic: the stamps in stamp order and the bag ordinals of the exact repeats dropped; a
+        message that came late (`MAX_LATE_S`) gets its place through `self._rank` (bag ordinal after the drops ->
+        place in stamp order), which the streaming pass follows."""
         out = {}
         last: dict[str, tuple[int, bytes]] = {}
+        newest: dict[str, int] = {}
         for topic in (self.topics.left, self.topics.right):
-            out[topic] = ([], set())
+            out[topic] = ([], set(), [])
         ordinal = {self.topics.left: 0, self.topics.right: 0}
         for topic, ty, raw, r in self._bag.messages([self.topics.left, self.topics.right]):
             k = ordinal[topic]
             ordinal[topic] += 1
             t = _stamp(self._bag.deserialize(raw, ty, r))
-            stamps, dropped = out[topic]
-            if topic in last and t <= last[topic][0]:
-                name = f"{self.path} topic {topic}"
-                if t == last[topic][0] and bytes(raw) == last[topic][1]:
-                    dropped.add(k)
-                    continue
-                what = "duplicate time stamp with another image than the message before" if t == last[topic][0] \
-                    else "out-of-order time stamp"
-                raise VioError(f"{name}: message {k + 1}: {what} {t} (previous {last[topic][0]})")
+            stamps, dropped, ks = out[topic]
+            name = f"{self.path} topic {topic}"
+            if topic in last and t == last[topic][0] and bytes(raw) == last[topic][1]:
+                dropped.add(k)
+                continue
+            _check_late(name, k, t, newest.get(topic))
+            newest[topic] = max(newest.get(topic, t), t)
             last[topic] = (t, bytes(raw))
             stamps.append(t)
+            ks.append(k)
         res = []
+        self._rank = {}
         for topic in (self.topics.left, self.topics.right):
-            stamps, dropped = out[topic]
+            stamps, dropped, ks = out[topic]
+            name = f"{self.path} topic {topic}"
             if dropped:
-                self.stats.notes.append(f"{self.path} topic {topic}: {len(dropped)} exact repeats of the message "
-                                        "before dropped")
+                self.stats.notes.append(f"{name}: {len(dropped)} exact repeats of the message before dropped")
+            order = _stamp_order(stamps, name, "images", self.stats.notes)
             t = np.array(stamps, dtype=np.int64)
-            problem = _step_problem(f"{self.path} topic {topic}", t, "camera")
+            if order is not None:
+                t, ks = t[order], [ks[i] for i in order]
+                self._rank[topic] = np.argsort(order)
+            same = np.flatnonzero(np.diff(t) == 0)
+            if len(same):
+                i = int(same[0])
+                raise VioError(f"{name}: message {ks[i + 1] + 1}: duplicate time stamp with another image than "
+                               f"message {ks[i] + 1} {int(t[i])}")
+            problem = _step_problem(name, t, "camera")
             if problem:
                 raise VioError(problem)
             res.append((t, dropped))
@@ -385,6 +427,8 @@ class BagDataset(EurocDataset):
                 continue
             idx = c[1]
             c[1] += 1
+            if topic in self._rank:  # a message that came late: its place in stamp order
+                idx = int(self._rank[topic][idx])
             (pending_l if topic == left_t else pending_r)[idx] = (raw, ty, r)
             while nxt < n and nxt in pending_l and (right_of[nxt] is None or right_of[nxt] in pending_r):
                 j = right_of[nxt]
