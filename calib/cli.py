@@ -44,8 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the disparity bias and the focal lengths, which the epipolar checks cannot see (takes a replay: "
                    "about a quarter of its length)")
     s.add_argument("--config", type=Path, help="TOML configuration for the --disparity replay")
-    s.add_argument("--strict", action="store_true", help="exit 1 on a WARN too (exit 1 is always a FAIL, or a "
-                   "check that could not run, said on stderr)")
+    s.add_argument("--strict", action="store_true", help="exit 1 on a WARN too (exit 1 is a FAIL; exit 4: the check "
+                   "could not run, said on stderr)")
 
     s = sub.add_parser("imu-noise", help="IMU noise densities and random walks from Allan deviation")
     s.add_argument("dataset", type=Path, help="EuRoC dataset (or its imu0/data.csv)")
@@ -137,8 +137,12 @@ def _run_show(args: argparse.Namespace) -> int:
     return 0
 
 
+EXIT_NOT_CHECKED = 4  # `calib check` could not run (exit 1 is a check that FAILed): as `vio status` tells them apart
+
+
 def _run_check(args: argparse.Namespace) -> int:
     from calib.check import check_calibration, format_report
+    from vio import VioError
     from vio.calibration import load_calibration
 
     if args.disparity:  # a replay whose verdict must not depend on what else the machine was doing
@@ -146,9 +150,13 @@ def _run_check(args: argparse.Namespace) -> int:
 
         set_opencv_threads(1)
 
-    calib = None if str(args.calibration) == "-" else load_calibration(args.calibration)
-    results = check_calibration(args.dataset, calib, max_frames=args.max_frames, disparity=args.disparity,
-                                config=args.config)
+    try:
+        calib = None if str(args.calibration) == "-" else load_calibration(args.calibration)
+        results = check_calibration(args.dataset, calib, max_frames=args.max_frames, disparity=args.disparity,
+                                    config=args.config)
+    except (VioError, OSError) as e:  # said on stderr by the CLI, with this exit code: a script tells it from a FAIL
+        e.exit_code = EXIT_NOT_CHECKED
+        raise
     print(format_report(results))
     bad = ("FAIL", "WARN") if args.strict else ("FAIL",)
     return 1 if any(r.verdict in bad for r in results) else 0

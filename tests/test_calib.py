@@ -864,3 +864,28 @@ def test_the_rotation_check_on_turns_about_one_axis_keeps_the_axis_sign(monkeypa
     assert ok.verdict == "PASS" and "one axis only" in ok.detail, ok
     assert check(R_bc @ so3_exp(np.array([0, 0, np.pi]))).verdict == "FAIL"  # upside down
     assert check(so3_exp(np.array([0, np.radians(5), 0])) @ R_bc).verdict == "FAIL"  # the vertical tilted 5 deg
+
+
+def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_path, capsys):
+    """Exit 1 was both "a check FAILed" and "the check could not run" (a review's finding): a fleet script could
+    not tell a wrong calibration from a missing recording. Could not run is now 4, said on stderr, no report."""
+    from vio.app.cli import main
+    from vio.io.euroc import EurocDataset
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "short"
+    simulate(data, SimConfig(duration_s=2.0, width=320, height=200, variant="clean", still_start_s=1.0),
+             progress=False)
+    stated = EurocDataset(data).calibration
+    assert main(["calib", "check", "-", str(data), "--max-frames", "5"]) == 0
+    capsys.readouterr()
+    other = tmp_path / "other_size.yaml"  # a calibration of another camera mode: the images do not fit it
+    save_calibration(replace(stated, cam0=replace(stated.cam0, width=640, height=400),
+                             cam1=replace(stated.cam1, width=640, height=400)), other)
+    bad = tmp_path / "refused.yaml"
+    bad.write_text(other.read_text() + "\nnot_a_key: 1\n")
+    for argv in (["-", str(tmp_path / "missing")], [str(tmp_path / "missing.yaml"), str(data)], [str(other), str(data)],
+                 [str(bad), str(data)]):
+        assert main(["calib", "check", *argv, "--max-frames", "5"]) == 4, argv
+        said = capsys.readouterr()
+        assert "vio calib: error: " in said.err and "overall:" not in said.out, (argv, said)

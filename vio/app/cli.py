@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(importlib.import_module(args._module).run(args) or 0)
     except VioError as e:
         print(f"vio {command}: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_FAILURE
+        return getattr(e, "exit_code", EXIT_FAILURE)  # a command may give its own (`calib check`: 4, not checked)
     except KeyboardInterrupt:
         print(f"vio {command}: interrupted", file=sys.stderr)
         return 130
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             # a place the user gave that cannot be written (read-only, full, no permission): their fix, not a bug
             where = f"{e.filename}: " if e.filename else ""
             print(f"vio {command}: error: {where}{e.strerror or e}", file=sys.stderr)
-            return EXIT_FAILURE
+            return getattr(e, "exit_code", EXIT_FAILURE)
         if verbose:
             import traceback
 
