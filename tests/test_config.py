@@ -136,6 +136,22 @@ def test_contradicting_settings_are_refused(tmp_path, text, match):
         load_config(f)
 
 
+@pytest.mark.parametrize("tilt", [3.14, -1.57, 3.135, 4.7124])
+def test_a_tilt_in_degrees_that_reads_as_radians_is_told_how_to_get_through(tmp_path, tilt):
+    """A 3.14 deg tilt cannot be told from pi typed in radians: refused (safe), and the message gives a value
+    0.02 deg away that passes, instead of a dead end."""
+    import re
+
+    f = tmp_path / "c.toml"
+    f.write_text(f"[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [{tilt}, 0.0, 0.0]\n")
+    with pytest.raises(VioError, match="looks like radians") as e:
+        load_config(f)
+    away = float(re.search(r"write (-?[0-9.]+), 0\.02 deg", str(e.value)).group(1))
+    assert abs(away - tilt) <= 0.03
+    f.write_text(f"[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [{away}, 0.0, 0.0]\n")
+    assert load_config(f).mavlink.mount_rpy_deg == [away, 0.0, 0.0]
+
+
 def test_the_estimator_gets_only_its_sections():
     from vio.config import EstimatorConfig, VioConfig
     from vio.estimator import Estimator
