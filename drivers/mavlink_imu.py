@@ -252,6 +252,8 @@ class MavlinkImuSource(ThreadedSource):
         if msg.ts1 < self._timesync_after_ns:
             return  # asked before the autopilot restarted: its answer is on the old clock
         rtt = t_arrival_ns - msg.ts1
+        if rtt < 0:  # answered before it was asked: an arrival stamp taken too early, which no fit may use
+            return
         with self._lock:
             self._rtt_ns.append(rtt)
             self.timesync.add(int(msg.tc1), (msg.ts1 + t_arrival_ns) // 2, rtt // 2)

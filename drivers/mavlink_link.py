@@ -229,13 +229,18 @@ class MavlinkLink:
                     select.select([fd], [], [], 0.05)
                 else:
                     time.sleep(0.002)
-            t_arrival = time.monotonic_ns()
             for _ in range(1000):  # bounded, so that stop is seen under a flood
                 try:
                     msg = conn.recv_match(blocking=False)
                 except Exception as e:  # noqa: BLE001 - any transport error means reconnect
                     self._failed(e, conn)
                     break
+                # stamped as read, never before: recv_match reads the socket again whenever its buffer runs out,
+                # so a loop behind a backlog also takes messages that came in after it began. One stamp for the
+                # whole loop (until 2026-12) put those up to 0.4 s before they arrived: TIMESYNC answers came out
+                # with a negative round trip that the clock fit took as its tightest, and the MAVLink IMU's time
+                # base ran 0.5 % off for the fit's 20 s window (up to -5 % at first) after a start under load.
+                t_arrival = time.monotonic_ns()
                 if msg is None:
                     break
                 if msg.get_type() == "BAD_DATA":

@@ -165,6 +165,114 @@ def test_roundtrip_clocksync_tracks_drift_and_offset_with_asymmetric_delays(seed
     assert abs(cs.estimate.drift_ppm - (1 / (1 + 50e-6) - 1) * 1e6) < 10
 
 
+def test_roundtrip_clocksync_is_not_bent_by_a_reader_that_stalled_for_over_a_block() -> None:
+    """30 s of TIMESYNC at 10 Hz on a steady clock (device 5 s ahead, one-way delays 0.1 ms + exp(0.3 ms)); 3 s in,
+    the reader stalls for 2.5 s (a daemon starting on a loaded computer) and the answers of that time are read
+    afterwards, a whole block's round trips late. The line stays on the clock: drift within 100 ppm and every
+    stamp within 1 ms from then on (unweighted, the stalled block put the drift at +8 % and then -1 % for the
+    fit's 20 s window: the IMU's time base off while a SITL flight took off, and the stereo check let go of an
+    exact calibration)."""
+    rng = np.random.default_rng(0)
+    cs = ClockSync(roundtrip=True)
+    stall = (4_000_000_000, 6_500_000_000)  # host ns
+    drift, errs = [], []
+    for i in range(300):
+        ts1 = 1_000_000_000 + i * 100_000_000
+        out, back = (int(x) for x in 1e5 + rng.exponential(3e5, 2))
+        t_recv = ts1 + out + back
+        if stall[0] <= t_recv < stall[1]:
+            t_recv = stall[1] + i * 10_000  # read one after another once the reader runs again
+        cs.add(ts1 + out + 5_000_000_000, (ts1 + t_recv) // 2, (t_recv - ts1) // 2)
+        if ts1 >= stall[1] and cs.estimate is not None:
+            drift.append(cs.estimate.drift_ppm)
+            errs.append(cs.to_host(ts1 + 5_000_000_000) - ts1)
+    assert np.max(np.abs(drift)) < 100, np.max(np.abs(drift))
+    assert np.max(np.abs(errs)) < 1_000_000, np.max(np.abs(errs))
+
+
+def test_each_message_is_stamped_when_read_never_before_it_arrived() -> None:
+    """The reader drains a backlog in one loop, and recv_match reads the socket again as its buffer runs out: a
+    message that came in 40 ms after the loop began is stamped then, not at the loop's start (one stamp per loop
+    gave TIMESYNC answers negative round trips, which the clock fit took as its tightest: the MAVLink IMU's time
+    base ran 0.5 % off for 20 s, and a SITL flight's stereo check read that as a disparity bias and let go of an
+    exact calibration)."""
+    encoder = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    class Conn:
+        fd = None
+        mav = encoder
+        came_in: list[int] = []
+
+        def __init__(self) -> None:
+            self.k = 0
+
+        def recv_match(self, blocking: bool = False):
+            self.k += 1
+            if self.k in (1, 2):
+                if self.k == 2:
+                    time.sleep(0.04)  # the second message arrives while the first is being handled
+                Conn.came_in.append(time.monotonic_ns())
+                return mavlink.MAVLink_timesync_message(self.k, 0)
+            time.sleep(0.01)
+            return None
+
+    got: list[tuple[int, int]] = []
+    link = MavlinkLink("udpout:127.0.0.1:9", open_fn=lambda url, sysid: Conn())
+    link.subscribe({"TIMESYNC"}, lambda msg, t: got.append((msg.tc1, t)))
+    link.acquire()
+    try:
+        deadline = time.monotonic() + 2.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        link.release()
+    assert [k for k, _ in got[:2]] == [1, 2]
+    assert all(t >= came for (_, t), came in zip(got, Conn.came_in)), (got, Conn.came_in)
+
+
+def test_a_timesync_answer_stamped_before_its_request_is_not_used() -> None:
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"), owns_link=False)
+    src._pending_ts.append(5_000_000_000)
+    src._on_timesync(mavlink.MAVLink_timesync_message(7_000_000_000, 5_000_000_000), 4_800_000_000)
+    assert src.timesync_used == 0 and src.timesync.estimate is None
+    src._on_timesync(mavlink.MAVLink_timesync_message(7_000_000_000, 5_000_000_000), 5_000_400_000)
+    assert src.timesync_used == 1
+
+
+def test_a_stalled_reader_leaves_the_imu_time_base_alone() -> None:
+    """A 200 Hz FC on a steady clock; 1.5 s in, the link's reader is held up 0.4 s inside a handler (a daemon
+    starting on a loaded computer) and then drains the backlog. Every IMU stamp from 1 s after the stall on stays
+    within 2 ms of when the sample was made. (With one arrival stamp per read loop, the answers drained after
+    the stall had negative round trips, the fit ran up to 5 % off for 20 s and the stamps up to 0.38 s: a SITL
+    flight taking off then had IMU and images disagreeing on the scale of the motion, and the stereo check read a
+    disparity bias of +0.27 px at 320x200 and let go of an exact calibration.)"""
+    fc_clock = lambda h: h + 5_000_000_000  # noqa: E731
+    fc = FakeFC(stream(fc_clock, 1800), fc_clock)
+    fc.start()
+    src = MavlinkImuSource(MavlinkLink(f"udpout:127.0.0.1:{fc.port}"), owns_link=True)
+    handler, state = src.on_message, {"t0": None, "stalled": False}
+
+    def stalling(msg, t_arrival_ns: int) -> None:
+        state["t0"] = state["t0"] or time.monotonic_ns()
+        if not state["stalled"] and time.monotonic_ns() - state["t0"] > 1_500_000_000:
+            state["stalled"] = True
+            time.sleep(0.4)
+        handler(msg, t_arrival_ns)
+
+    src.on_message = stalling  # subscribed by start()
+    src.start()
+    try:
+        samples = collect(src, 9.5)
+    finally:
+        src.stop()
+        fc.close()
+    assert state["stalled"]
+    ks = np.array([int(round(s.gyro[0] * 1e3)) for s in samples])
+    err = np.array([s.t_ns - (fc.start_ns + k * PERIOD_NS) for s, k in zip(samples, ks)]) / 1e6
+    late = ks * PERIOD_NS * 1e-9 > 3.0
+    assert late.sum() > 1000 and np.max(np.abs(err[late])) < 2.0, np.max(np.abs(err[late]))
+
+
 # ------------------------------------------------------------------------------------------- over UDP
 
 def test_stream_rate_request_and_drifting_fc_clock_mapped_onto_the_host() -> None:
