@@ -139,12 +139,14 @@ class FeatureExtractor:
     def extract(self, image: np.ndarray, ff: FeatureFrame | None) -> KeyframeFeatures:
         uv_all, octave = self.corners(image)
         p3 = np.full((len(uv_all), 3), np.nan)
+        uv0 = np.zeros((0, 2))  # the stereo points' undistorted pixels, as the front end gave them
         if ff is not None and len(ff.ids):
             ok = np.isfinite(ff.depth_m)
             z = ff.depth_m[ok]
             xyz = np.column_stack([(ff.uv0[ok, 0] - self.cam.cx) / self.cam.fx * z,
                                    (ff.uv0[ok, 1] - self.cam.cy) / self.cam.fy * z, z])
-            uv_st = distort_px(self.cam, ff.uv0[ok]).astype(np.float32)
+            uv0 = ff.uv0[ok]
+            uv_st = distort_px(self.cam, uv0).astype(np.float32)
             if len(uv_st) and len(uv_all):
                 # a corner on a stereo point would be its twin descriptor and fail every match's ratio test
                 apart = ~(same_pixel(uv_all, uv_st, image.shape[:2]) & (octave == 0))
@@ -156,8 +158,14 @@ class FeatureExtractor:
         if described is None:
             return KeyframeFeatures(np.zeros((0, 32), np.uint8), np.zeros((0, 2)), np.zeros((0, 3)))
         desc, keep = described
-        uv_raw = uv_all[keep].astype(np.float64)
-        return KeyframeFeatures(desc, undistort_px(self.cam, uv_raw), p3[keep].reshape(-1, 3))
+        # corners undistorted here; a stereo point keeps the front end's own undistorted pixel (undistorting
+        # the pixel it was distorted to for the description gives it back within 1e-9 px, at a cost)
+        n_corners = len(uv_all) - len(uv0)
+        corner = keep < n_corners
+        uv = np.empty((len(keep), 2))
+        uv[corner] = undistort_px(self.cam, uv_all[keep[corner]].astype(np.float64))
+        uv[~corner] = uv0[keep[~corner] - n_corners]
+        return KeyframeFeatures(desc, uv, p3[keep].reshape(-1, 3))
 
     def _describe(self, image: np.ndarray, uv: np.ndarray, octave: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Upright descriptors of the points, and the rows they belong to (compute() drops points too near the
