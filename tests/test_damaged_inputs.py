@@ -352,3 +352,32 @@ def test_swapped_cameras_are_said_and_a_right_calibration_is_not(flight, tmp_pat
     r = _vio(*_replay_args(good)[1:])
     assert r.returncode == 0 and "no stereo match" not in r.stderr
     assert json.loads((good / "stats.json").read_text())["estimator"]["stereo_warning"] is None
+
+
+@pytest.mark.parametrize("still_s", [0.0, 1.5])
+def test_right_camera_out_at_the_start_says_whether_anything_is_estimated(tmp_path, still_s):
+    """Right camera out for the first seconds: a flight that starts moving cannot start without stereo depth, and
+    the warning said "running on the IMU and the left camera alone" while no pose went out for 9 s (a QA run).
+    Now it says the start waits for stereo; a flight that starts at rest starts on one camera and says so."""
+    import json
+
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "f"
+    simulate(data, SimConfig(profile="aggressive", duration_s=6.0, width=320, height=200, variant="clean", seed=3,
+                             still_start_s=still_s, right_dropouts=((0.0, 3.0),)), progress=False)
+    r = _vio(*_replay_args(data))
+    _ran(r, data)
+    stats = json.loads((data / "stats.json").read_text())
+    warned = [ln for ln in r.stderr.splitlines() if "stereo: no stereo match" in ln]
+    assert len(warned) == 1, r.stderr[-3000:]
+    if still_s:  # warned before the start (then not started), then started at rest on one camera: said
+        assert "stereo: still none at the start: running on the IMU and the left camera alone" in r.stderr
+        assert stats["estimator"]["stereo_warning"] is None  # matched again at 3 s, cleared
+    else:
+        assert "not started: a start in motion waits for stereo depth" in warned[0]
+        assert "running on the IMU" not in r.stderr
+        first = next(float(ln.split()[0]) for ln in (data / "traj.tum").read_text().splitlines()
+                     if ln and not ln.startswith("#"))
+        t0 = int((data / "mav0" / "cam0" / "data.csv").read_text().splitlines()[1].split(",")[0]) * 1e-9
+        assert first - t0 >= 2.9, first - t0  # no pose before the right camera is back

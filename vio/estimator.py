@@ -292,6 +292,7 @@ class Estimator:
         self._start_bias_refused = False  # the last start found was refused for its gyro bias (said once)
         self._no_stereo = 0  # frames in a row that looked for stereo among many tracks and found none
         self.stereo_warning: str | None = None
+        self._stereo_loss = ""  # what the stereo warning found, without what the estimator does about it
 
     # -- public API ------------------------------------------------------------------------------------
     @property
@@ -504,6 +505,8 @@ class Estimator:
             self._advance_bridge(self._last_frame_t)
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
         self.last_reset_reason = reason
+        if self.stereo_warning is not None:  # the restart, unless at rest, waits for stereo
+            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
         self._pending.clear()
         self._tracking = False
         self.moving_init.clear()
@@ -608,11 +611,21 @@ class Estimator:
             return
         self._no_stereo += 1
         if self._no_stereo == STEREO_LOSS_FRAMES:
-            self.stereo_warning = (f"no stereo match in the last {STEREO_LOSS_FRAMES} frames that looked for one "
-                                   f"({len(ff.ids)} points tracked): the right camera is dark, covered or "
-                                   "disconnected, or cam0 and cam1 are swapped in the calibration (vio calib check "
-                                   "CALIB); running on the IMU and the left camera alone")
+            self._stereo_loss = (f"no stereo match in the last {STEREO_LOSS_FRAMES} frames that looked for one "
+                                 f"({len(ff.ids)} points tracked): the right camera is dark, covered or disconnected, "
+                                 "or cam0 and cam1 are swapped in the calibration (vio calib check CALIB)")
+            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
             log.warning("stereo: %s", self.stereo_warning)
+
+    def _without_stereo(self) -> str:
+        """What the estimator does without stereo: a start in motion needs stereo depth (the moving initialiser
+        triangulates its landmarks from it), so before the start nothing is estimated; a QA run (right camera out
+        for the first 8 s of an aggressive flight that starts moving) said "running on the IMU and the left camera
+        alone" for the 9 s it sent no pose."""
+        if self.initialized:
+            return "running on the IMU and the left camera alone"
+        return ("not started: a start in motion waits for stereo depth, so no pose is sent until the right camera "
+                "matches again (a start at rest does not need it)")
 
     def _needs_stereo(self, t: int, preview: FeatureFrame) -> bool:
         """Stereo is used by the initialisers, the time-offset estimator (PnP on stereo points) and keyframes
@@ -813,6 +826,9 @@ class Estimator:
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
         log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
                  *T[2, :3])
+        if self.stereo_warning is not None:  # started at rest with the right camera still out: say what runs now
+            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
+            log.warning("stereo: still none at the start: %s", self._without_stereo())
         return self._after_keyframe(init.t_ns, est, ff)
 
     def _after_keyframe(self, t: int, est, ff: FeatureFrame, deferred: bool = False) -> NavState:
