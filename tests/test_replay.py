@@ -175,3 +175,30 @@ def test_frames_processed_late_are_counted_in_the_stats(tmp_path):
     assert len(res.frame_stats) >= res.frames - 1  # every processed frame (the last may wait for flush)
     d = res.stats_dict()
     assert d["keyframes"] >= 4
+
+
+def test_a_wrong_time_offset_on_a_slow_flight_is_said_not_applied(tmp_path):
+    """A slow mapping flight whose calibration says 0 ms against a true +30 ms: every solve read about +31 ms,
+    each dropped at DEBUG because the turns were too slow to apply it, and the flight ran at 4.8x the error of the
+    right calibration with nothing said (a QA run). Now five solves in a row that stand out on the same side give one
+    warning and the status's calibration_warning; the offset applied is still the calibration's (the trajectory is
+    as before), and the same flight with the right calibration says nothing."""
+    import re
+
+    sim = pytest.importorskip("vio.sim.generate")
+    from vio.app.replay import replay
+    from vio.io.euroc import EurocDataset
+
+    data = tmp_path / "flight"
+    sim.simulate(data, sim.SimConfig(profile="mapping", duration_s=12.0, seed=121, width=752, height=480,
+                                     time_offset_ms=30.0), progress=False)
+    right = replay(EurocDataset(data), progress=False)
+    assert right.extra["estimator"]["calibration_warning"] is None
+    yaml = data / "mav0" / "kestrel.yaml"
+    yaml.write_text(re.sub(r"time_offset_ns: *-?\d+", "time_offset_ns: 0", yaml.read_text()))
+    wrong = replay(EurocDataset(data), progress=False)
+    said = wrong.extra["estimator"]["calibration_warning"]
+    m = re.search(r"camera-IMU time offset: 5 solves read ([-+0-9.]+) ms .* against the calibration's \+0\.0 ms, on "
+                  r"turns too slow to apply it .*vio calib time-offset", said or "")
+    assert m and 25 < float(m.group(1)) < 40, said
+    assert wrong.extra["time_offset_ms"]["final"] == 0.0  # said, not applied

@@ -393,11 +393,14 @@ class Estimator:
                                self._calibration_warning(), self.stereo_warning)
 
     def _calibration_warning(self) -> str | None:
-        if not self._stereo_released:
-            return None
-        f = self._stereo_released[-1]
-        return (f"the right camera disagrees with the stereo calibration ({f.describe()}, found in flight): cam1 "
-                "refined in flight since; fix the stereo calibration")
+        said = []
+        if self._stereo_released:
+            f = self._stereo_released[-1]
+            said.append(f"the right camera disagrees with the stereo calibration ({f.describe()}, found in flight): "
+                        "cam1 refined in flight since; fix the stereo calibration")
+        if self.offset_estimator is not None and self.offset_estimator.slow_warning:
+            said.append(self.offset_estimator.slow_warning)
+        return "; ".join(said) or None
 
     def _tracking_at(self, t: int) -> bool:
         """Tracking means vision: a usable frame reached the back end within vision_timeout_s of t."""
