@@ -384,3 +384,22 @@ def test_camera_yaml_errors_name_file_and_key(v101_path, tmp_path, old, new, exp
     with pytest.raises(VioError) as e:
         EurocDataset(root)
     assert str(e.value).startswith(f"{y}: ") and expected in str(e.value)
+
+
+def test_right_images_missing_are_told_from_unsynchronised_cameras(v101_path, tmp_path):
+    """Three right images missing from a dataset whose cameras are triggered together: the note asked "are the two
+    cameras triggered together, and stamped alike?" for 3 of 677 frames on every hard simulated flight (a QA run).
+    When every right image pairs with a left one, it says the right camera dropped frames; shifted right stamps
+    still ask about the trigger."""
+    dropped = _copy(v101_path, tmp_path / "dropped")
+    cam1 = dropped / "mav0" / "cam1" / "data.csv"
+    for lineno in (31, 21, 11):  # three right images' csv lines, removed from the last
+        _edit_line(cam1, lineno, None)
+    ds = EurocDataset(dropped)
+    assert ds.stats.unpaired_frames == 3
+    note = next(n for n in ds.stats.notes if "have no right image" in n)
+    assert f"3 of {N_FRAMES} left frames (3.2 %)" in note and "the right camera dropped or lost frames" in note
+    shifted = _copy(v101_path, tmp_path / "shifted")
+    _restamp(shifted / "mav0" / "cam1" / "data.csv", lambda t: t + 3_000_000)
+    note = next(n for n in EurocDataset(shifted).stats.notes if "have no right image" in n)
+    assert "are the two cameras triggered together" in note

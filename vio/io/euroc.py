@@ -633,9 +633,13 @@ class EurocDataset:
             note = f"{self.where('cam1')}: no right images: the replay runs on the left camera alone, no stereo depth"
         elif self.stats.unpaired_frames:
             n = self.stats.unpaired_frames
-            note = (f"{self.where('cam1')}: {n} of {len(self.cam0_t)} left frames ({100 * n / len(self.cam0_t):.0f} %) "
-                    "have no right image within 1 us of their stamp and run without stereo depth: are the two "
-                    "cameras triggered together, and stamped alike?")
+            share = f"{n} of {len(self.cam0_t)} left frames ({100 * n / len(self.cam0_t):.1f} %)"
+            if len(self.cam0_t) - n >= len(self.cam1_t):  # every right image has its left one: the right dropped some
+                note = (f"{self.where('cam1')}: {share} have no right image (every right image pairs with a left "
+                        "one: the right camera dropped or lost frames) and run without stereo depth")
+            else:
+                note = (f"{self.where('cam1')}: {share} have no right image within 1 us of their stamp and run "
+                        "without stereo depth: are the two cameras triggered together, and stamped alike?")
         if note:
             self.stats.notes.append(note)
             log.warning("%s", note)
