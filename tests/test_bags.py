@@ -96,7 +96,8 @@ def test_messages_that_came_late_are_put_in_their_place_and_replay_as_the_euroc_
     assert (flight / "o.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
 
 
-@pytest.mark.parametrize("case", ["imu_clock_jump", "image_clock_jump", "imu_same_stamp", "image_same_stamp"])
+@pytest.mark.parametrize("case", ["imu_clock_jump", "image_clock_jump", "imu_same_stamp", "image_same_stamp",
+                                  "imu_small_clock_jump"])
 def test_a_clock_jump_or_a_stamp_given_twice_is_an_error_naming_topic_and_message(flight, case):
     d = EurocDataset(flight / "sim")
     ev = list(d.events())
@@ -110,6 +111,10 @@ def test_a_clock_jump_or_a_stamp_given_twice_is_an_error_naming_topic_and_messag
         k = frames[40]
         ev[k] = StereoFrame(ev[k].t_ns - 700_000_000, ev[k].left, ev[k].right, seq=ev[k].seq)
         expected = r"topic /cam0/image_raw: message 41: out-of-order time stamp \d+, 0\.650 s before"
+    elif case == "imu_small_clock_jump":  # every sample from 300 on 0.2023 s back: two clocks, not late messages
+        for k in imu_idx[300:]:
+            ev[k] = ImuSample(ev[k].t_ns - 202_300_000, ev[k].gyro, ev[k].accel)
+        expected = r"topic /imu0: message \d+: out-of-order time stamp .* lands between messages already there"
     elif case == "imu_same_stamp":  # two samples claim one instant with other values
         k = imu_idx[300]
         ev[k] = ImuSample(ev[imu_idx[299]].t_ns, ev[k].gyro, ev[k].accel)
@@ -121,6 +126,19 @@ def test_a_clock_jump_or_a_stamp_given_twice_is_an_error_naming_topic_and_messag
     export_bag(_Events(ev), flight / f"{case}.mcap", "mcap")
     with pytest.raises(VioError, match=expected):
         BagDataset(flight / f"{case}.mcap", d.calibration)
+
+
+def test_an_image_repeated_a_few_messages_later_is_dropped_as_a_repeat(flight):
+    """The same image (stamp and bytes) written again three frames later was refused as "another image" with
+    that stamp: only a repeat right after its original was recognised."""
+    d = EurocDataset(flight / "sim")
+    ev = list(d.events())
+    frames = [k for k, e in enumerate(ev) if isinstance(e, StereoFrame)]
+    ev.insert(frames[23], ev[frames[20]])
+    export_bag(_Events(ev), flight / "rep.mcap", "mcap")
+    bag = BagDataset(flight / "rep.mcap", d.calibration)
+    assert len(bag) == len(d)
+    assert any("topic /cam0/image_raw: 1 exact repeats" in n for n in bag.stats.notes)
 
 
 def test_exact_repeat_dropped_and_unsynchronised_right_camera_unpaired(flight):
