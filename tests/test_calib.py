@@ -866,7 +866,7 @@ def test_the_rotation_check_on_turns_about_one_axis_keeps_the_axis_sign(monkeypa
     assert check(so3_exp(np.array([0, np.radians(5), 0])) @ R_bc).verdict == "FAIL"  # the vertical tilted 5 deg
 
 
-def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_path, capsys):
+def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_path, capsys, monkeypatch):
     """Exit 1 was both "a check FAILed" and "the check could not run" (a review's finding): a fleet script could
     not tell a wrong calibration from a missing recording. Could not run is now 4, said on stderr, no report."""
     from vio.app.cli import main
@@ -889,3 +889,14 @@ def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_
         assert main(["calib", "check", *argv, "--max-frames", "5"]) == 4, argv
         said = capsys.readouterr()
         assert "vio calib: error: " in said.err and "overall:" not in said.out, (argv, said)
+    import errno
+
+    import calib.check
+
+    for err in (OSError(errno.EIO, "I/O error"), RuntimeError("solver failed")):  # a review: these exited 1
+        def broken(*a, err=err, **k):
+            raise err
+        monkeypatch.setattr(calib.check, "check_calibration", broken)
+        for verbose in ([], ["-v"]):
+            assert main([*verbose, "calib", "check", "-", str(data)]) == 4, (err, verbose)
+            assert "overall:" not in capsys.readouterr().out

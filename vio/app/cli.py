@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         hint = "" if verbose else f" (`vio -v {command} ...` shows the traceback)"
         print(f"vio {command}: internal error: {type(e).__name__}: {_one_line(e)}{hint}", file=sys.stderr)
-        return EXIT_FAILURE
+        return getattr(e, "exit_code", EXIT_FAILURE)
 
 
 if __name__ == "__main__":
