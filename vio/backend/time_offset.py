@@ -112,7 +112,7 @@ class OnlineTimeOffset:
         self._t_first: int | None = None
         self.offset_ns: int | None = None  # last accepted estimate
         self.applied_ns = self.base_ns  # offset the frames use: the calibration's until an estimate replaces it
-        self.slow_readings: list[tuple[float, float]] = []  # (offset, sigma) [s] read on turns too slow to apply
+        self.slow_readings: list[tuple[float, float, float]] = []  # (offset, sigma, window mid) [s], slow turns
         self.slow_warning: str | None = None  # said once when they agree on an offset off the calibration's
         self.sigma_s = float("inf")
         self.done = False
@@ -124,6 +124,7 @@ class OnlineTimeOffset:
             maxlen=max(int(round(window_s * cam.rate_hz)), MIN_PAIRS))
         self._new_pairs = 0
         self._postponed = 0  # pairs added while a due solve waited for a quiet frame
+        self.window_s = window_s
         self.keep_samples = int((window_s + 4 * max_offset_s + 2.0) * 1000)  # the window at up to 1 kHz
         self.continuous = continuous
         self.coarse_only = coarse_only and not continuous
@@ -295,10 +296,13 @@ class OnlineTimeOffset:
             if abs(target - self.applied_ns) >= max(CHANGE_NS, SIGNIFICANT_SIGMAS * est.sigma_s * 1e9
                                                     if target != self.base_ns else 0):
                 changed = self.applied_ns = target
+            self.slow_readings.clear()  # an applied estimate breaks a run of slow ones
         elif est is not None:
             log.debug("time offset solve %d: %+.1f ms +- %.1f ms, rotation std %.2f rad/s: not used", self.solves,
                       self.base_ns * 1e-6 + est.offset_s * 1e3, est.sigma_s * 1e3, est.rate_std_rad_s)
             self._slow_reading(est)
+        else:
+            self.slow_readings.clear()  # so does a solve with no estimate
         if self.solves >= self.max_solves:
             self.done = True
         if self.continuous and self.offset_ns is not None:  # tracking from the first estimate on: waiting
@@ -317,20 +321,24 @@ class OnlineTimeOffset:
         # the solver calls a reading under 0.1 rad/s of rotation std unobservable, and it is not applied; a run of
         # them well inside the searched span, each several sigma off the calibration on the same side, still says
         # the calibration's offset is off (the QA run's: 29 solves at +30.6 .. +43 ms +- 3-7 ms, truth +30)
-        if est.sigma_s > SLOW_MAX_SIGMA_S or abs(est.offset_s) > 0.8 * self.max_offset_s or \
-                self.slow_warning is not None:
+        if self.slow_warning is not None:
             return
-        if abs(est.offset_s) < SLOW_SIGNIFICANT_SIGMAS * float(np.hypot(est.sigma_s, SYSTEMATIC_SIGMA_S)):
-            self.slow_readings.clear()  # the run of readings off the calibration is broken
+        # a reading refused on a fast turn (its sigma), one too uncertain or at the edge of the search, or one
+        # that agrees with the calibration breaks the run: only consecutive slow readings off it count
+        if est.rate_std_rad_s >= MIN_APPLY_RATE_STD_RAD_S or est.sigma_s > SLOW_MAX_SIGMA_S or \
+                abs(est.offset_s) > 0.8 * self.max_offset_s or \
+                abs(est.offset_s) < SLOW_SIGNIFICANT_SIGMAS * float(np.hypot(est.sigma_s, SYSTEMATIC_SIGMA_S)):
+            self.slow_readings.clear()
             return
-        self.slow_readings.append((est.offset_s, est.sigma_s))
-        if len({np.sign(o) for o, _ in self.slow_readings[-SLOW_READINGS_TO_WARN:]}) > 1:
+        self.slow_readings.append((est.offset_s, est.sigma_s, float(np.max(est.t_mid_s))))  # newest pair
+        if len({np.sign(r[0]) for r in self.slow_readings[-SLOW_READINGS_TO_WARN:]}) > 1:
             self.slow_readings = self.slow_readings[-1:]  # sides changed: a new run starts here
-        if len(self.slow_readings) < SLOW_READINGS_TO_WARN:
-            return
         last = self.slow_readings[-SLOW_READINGS_TO_WARN:]
-        read_ms = (self.base_ns * 1e-9 + float(np.median([o for o, _ in last]))) * 1e3
-        sigma_ms = max(sg for _, sg in last) * 1e3
+        # consecutive solves share most of their window: the run must also cover half a window of new pairs
+        if len(last) < SLOW_READINGS_TO_WARN or last[-1][2] - last[0][2] < 0.5 * self.window_s:
+            return
+        read_ms = (self.base_ns * 1e-9 + float(np.median([r[0] for r in last]))) * 1e3
+        sigma_ms = max(r[1] for r in last) * 1e3
         self.slow_warning = (
             f"camera-IMU time offset: {SLOW_READINGS_TO_WARN} solves read {read_ms:+.1f} ms (+- {sigma_ms:.1f} ms) "
             f"against the calibration's {self.base_ns * 1e-6:+.1f} ms, on turns too slow to apply it (rotation std "
