@@ -146,7 +146,7 @@ def test_a_tilt_in_degrees_that_reads_as_radians_is_told_how_to_get_through(tmp_
     f.write_text(f"[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [{tilt}, 0.0, 0.0]\n")
     with pytest.raises(VioError, match="looks like radians") as e:
         load_config(f)
-    away = float(re.search(r"write (-?[0-9.]+), 0\.02 deg", str(e.value)).group(1))
+    away = float(re.search(r"write (-?[0-9.]+): 0\.02 deg", str(e.value)).group(1))
     assert abs(away - tilt) <= 0.03
     f.write_text(f"[mavlink]\nmount = \"rpy\"\nmount_rpy_deg = [{away}, 0.0, 0.0]\n")
     assert load_config(f).mavlink.mount_rpy_deg == [away, 0.0, 0.0]

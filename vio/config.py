@@ -592,8 +592,9 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
         turn = math.copysign(min((k * math.pi / 2 for k in (1, 2, 3, 4)), key=lambda q: abs(abs(near) - q)), near)
         away = round(turn + math.copysign(0.02, (near - turn) or near), 2)  # the side of it near is on
         raise VioError(f"{source}: [mavlink] mount_rpy_deg = {m.mount_rpy_deg} looks like radians (a multiple of "
-                       f"pi/2): give degrees, e.g. {[round(math.degrees(v), 1) for v in rpy]} (a tilt of {near:g} "
-                       f"degrees cannot be told from radians here: write {away:g}, 0.02 deg makes no difference)")
+                       f"pi/2): give degrees, e.g. {[round(math.degrees(v), 1) for v in rpy]}; only if you measured "
+                       f"a tilt of {near:g} degrees (it cannot be told from radians here), write {away:g}: 0.02 deg "
+                       "makes no difference")
     src = cfg.source
     if src.imu == "mavlink" and not (src.mavlink_imu_url or m.url):
         raise VioError(f"{source}: [source] imu = 'mavlink' needs a connection: [mavlink] url (shared with the pose "

@@ -627,6 +627,8 @@ class Estimator:
         alone" for the 9 s it sent no pose."""
         if self.initialized:
             return "running on the IMU and the left camera alone"
+        if not self.cfg.init.allow_moving_start:
+            return "not started: waiting for the vehicle to be at rest (a start at rest does not need stereo)"
         return ("not started: a start in motion waits for stereo depth, so no pose is sent until the right camera "
                 "matches again (a start at rest does not need it)")
 
