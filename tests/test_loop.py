@@ -65,7 +65,7 @@ def test_join_edge_counts_follow_every_add_take_back_and_switch_off():
     rng = np.random.default_rng(3)
     g, truth = _circle(121, rng)
     me = NS(graph=g, keyframes=[NS(session=0 if k < 60 else 1) for k in range(121)], cfg=LoopConfig(),
-            _join_counts=((-1, -1), {}))
+            _join_counts=(-1, {}))
 
     def counted(session):
         return LoopCloser._join_edges(me, session)
