@@ -182,6 +182,24 @@ def _check_late(name: str, k: int, t: int, newest: int | None) -> None:
                        f"the newest before it ({newest}): more than {MAX_LATE_S:g} s late, did the clock jump back?")
 
 
+def _exact_repeats(stamps: list[int], data: list, ordinals: list[int], name: str, other: str,
+                   notes: list[str]) -> set[int]:
+    """Positions of the messages that repeat an earlier one exactly (same stamp, same data: `data` holds what is
+    compared), wherever it came in the bag, said in `notes`; the same stamp with other data is a VioError
+    naming both messages (`other`: what differs, e.g. "other values")."""
+    by_stamp = sorted(range(len(stamps)), key=lambda i: (stamps[i], i))  # by stamp, then as they came
+    repeat: set[int] = set()
+    for a, b in zip(by_stamp, by_stamp[1:]):
+        if stamps[b] == stamps[a]:
+            if data[b] != data[a]:
+                raise VioError(f"{name}: message {ordinals[b] + 1}: duplicate time stamp with {other} than "
+                               f"message {ordinals[a] + 1} {stamps[b]}")
+            repeat.add(b)
+    if repeat:
+        notes.append(f"{name}: {len(repeat)} exact repeats (same stamp, same data) dropped")
+    return repeat
+
+
 def _stamp_order(stamps: list[int], ordinals: list[int], name: str, what: str, notes: list[str]) -> np.ndarray | None:
     """The stable order that sorts the stamps, or None when they are in order already; how many came late goes
     into `notes`.
@@ -342,17 +360,9 @@ class BagDataset(EurocDataset):
             newest = row[0] if newest is None else max(newest, row[0])
             rows.append(row)
             ordinals.append(k)
-        # exact repeats (same stamp, same values, wherever they came) dropped before the order is checked
-        by_stamp = sorted(range(len(rows)), key=lambda i: (rows[i][0], i))
-        repeat = set()
-        for a, b in zip(by_stamp, by_stamp[1:]):
-            if rows[b][0] == rows[a][0]:
-                if rows[b] != rows[a]:
-                    raise VioError(f"{name}: message {ordinals[b] + 1}: duplicate time stamp with other values than "
-                                   f"message {ordinals[a] + 1} {rows[b][0]}")
-                repeat.add(b)
+        # exact repeats dropped before the order is checked
+        repeat = _exact_repeats([r[0] for r in rows], rows, ordinals, name, "other values", self.stats.notes)
         if repeat:
-            self.stats.notes.append(f"{name}: {len(repeat)} exact repeats (same stamp, same data) dropped")
             rows = [r for i, r in enumerate(rows) if i not in repeat]
             ordinals = [k for i, k in enumerate(ordinals) if i not in repeat]
         order = _stamp_order([r[0] for r in rows], ordinals, name, "messages", self.stats.notes)
@@ -394,18 +404,11 @@ class BagDataset(EurocDataset):
         self._rank = {}
         for topic in (self.topics.left, self.topics.right):
             name = f"{self.path} topic {topic}"
-            msgs = sorted(out[topic], key=lambda m: (m[0], m[1]))  # by stamp, then as they came
-            dropped: set[int] = set()
-            for prev, m in zip(msgs, msgs[1:]):
-                if m[0] != prev[0]:
-                    continue
-                if m[2] != prev[2]:
-                    raise VioError(f"{name}: message {m[1] + 1}: duplicate time stamp with another image than "
-                                   f"message {prev[1] + 1} {m[0]}")
-                dropped.add(m[1])
-            if dropped:
-                self.stats.notes.append(f"{name}: {len(dropped)} exact repeats (same stamp, same data) dropped")
-            kept = [m for m in out[topic] if m[1] not in dropped]  # bag order
+            msgs = out[topic]
+            repeat = _exact_repeats([m[0] for m in msgs], [m[2] for m in msgs], [m[1] for m in msgs], name,
+                                    "another image", self.stats.notes)
+            dropped = {msgs[i][1] for i in repeat}
+            kept = [m for i, m in enumerate(msgs) if i not in repeat]  # bag order
             stamps, ks = [m[0] for m in kept], [m[1] for m in kept]
             order = _stamp_order(stamps, ks, name, "images", self.stats.notes)
             t = np.array(stamps, dtype=np.int64)
