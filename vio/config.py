@@ -585,10 +585,10 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
         raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
                        "the calibration; set mount = 'rpy' to use mount_rpy_deg")
     rpy = [float(x) for x in m.mount_rpy_deg]
-    if any(v and min(abs(abs(v) - k * math.pi / 2) for k in (1, 2, 3, 4)) < 0.01 for v in rpy):
+    near = next((v for v in rpy if v and min(abs(abs(v) - k * math.pi / 2) for k in (1, 2, 3, 4)) < 0.01), None)
+    if near is not None:
         # 1.5708 deg is no mounting anyone makes; 1.5708 rad is a quarter turn (its tilt under 45 deg, the
         # first-pose check would not catch it either)
-        near = next(v for v in rpy if v and min(abs(abs(v) - k * math.pi / 2) for k in (1, 2, 3, 4)) < 0.01)
         turn = math.copysign(min((k * math.pi / 2 for k in (1, 2, 3, 4)), key=lambda q: abs(abs(near) - q)), near)
         away = round(turn + math.copysign(0.02, (near - turn) or near), 2)  # the side of it near is on
         raise VioError(f"{source}: [mavlink] mount_rpy_deg = {m.mount_rpy_deg} looks like radians (a multiple of "

@@ -291,8 +291,7 @@ class Estimator:
         self.sensor_error: str | None = None
         self._start_bias_refused = False  # the last start found was refused for its gyro bias (said once)
         self._no_stereo = 0  # frames in a row that looked for stereo among many tracks and found none
-        self.stereo_warning: str | None = None
-        self._stereo_loss = ""  # what the stereo warning found, without what the estimator does about it
+        self._stereo_loss: str | None = None  # what the stereo warning found (None: stereo fine)
 
     # -- public API ------------------------------------------------------------------------------------
     @property
@@ -508,8 +507,6 @@ class Estimator:
             self._advance_bridge(self._last_frame_t)
         log.warning("estimator reset #%d: %s", self.reset_counter, reason)
         self.last_reset_reason = reason
-        if self.stereo_warning is not None:  # the restart, unless at rest, waits for stereo
-            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
         self._pending.clear()
         self._tracking = False
         self.moving_init.clear()
@@ -608,17 +605,22 @@ class Estimator:
         if len(ff.ids) < STEREO_LOSS_MIN_TRACKS:
             return
         if ff.n_stereo > 0:
-            if self.stereo_warning is not None:
+            if self._stereo_loss is not None:
                 log.info("stereo: matches again (%d of %d tracked points)", ff.n_stereo, len(ff.ids))
-            self._no_stereo, self.stereo_warning = 0, None
+            self._no_stereo, self._stereo_loss = 0, None
             return
         self._no_stereo += 1
         if self._no_stereo == STEREO_LOSS_FRAMES:
             self._stereo_loss = (f"no stereo match in the last {STEREO_LOSS_FRAMES} frames that looked for one "
                                  f"({len(ff.ids)} points tracked): the right camera is dark, covered or disconnected, "
                                  "or cam0 and cam1 are swapped in the calibration (vio calib check CALIB)")
-            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
             log.warning("stereo: %s", self.stereo_warning)
+
+    @property
+    def stereo_warning(self) -> str | None:
+        """What the stereo loss found and what the estimator does about it now (before the start, running, after a
+        reset); None while stereo is fine."""
+        return None if self._stereo_loss is None else f"{self._stereo_loss}; {self._without_stereo()}"
 
     def _without_stereo(self) -> str:
         """What the estimator does without stereo: a start in motion needs stereo depth (the moving initialiser
@@ -831,8 +833,7 @@ class Estimator:
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
         log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
                  *T[2, :3])
-        if self.stereo_warning is not None:  # started at rest with the right camera still out: say what runs now
-            self.stereo_warning = f"{self._stereo_loss}; {self._without_stereo()}"
+        if self._stereo_loss is not None:  # started at rest with the right camera still out: say what runs now
             log.warning("stereo: still none at the start: %s", self._without_stereo())
         return self._after_keyframe(init.t_ns, est, ff)
 
