@@ -537,12 +537,11 @@ class LoopCloser:
         version = self.graph.loop_version  # odometry edges (one a keyframe) change no count
         if self._join_counts[0] != version:
             counts: dict[int, int] = {}
-            for e in self.graph.edges:
-                if e.kind == "loop" and e.weight >= 0.5:
-                    a, b = self.keyframes[e.i].session, self.keyframes[e.j].session
-                    if a != b:
-                        counts[a] = counts.get(a, 0) + 1
-                        counts[b] = counts.get(b, 0) + 1
+            for e in self.graph.active_loops():
+                a, b = self.keyframes[e.i].session, self.keyframes[e.j].session
+                if a != b:
+                    counts[a] = counts.get(a, 0) + 1
+                    counts[b] = counts.get(b, 0) + 1
             self._join_counts = (version, counts)
         return self._join_counts[1].get(session, 0)
 
