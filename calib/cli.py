@@ -79,15 +79,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "([backend] refine_intrinsics; cx, cy only with refine_principal_point; default: held)")
 
 
-def check_output(path: Path, overwrite: bool) -> None:
+def check_output(path: Path, overwrite: bool, dataset: Path | None = None) -> None:
     """Refuse, before any work, an output that would destroy a file or cannot be written (VioError, one line).
 
     `calib imu-noise -o` wrote its seven IMU lines over a whole calibration, and a read-only folder ended in an
-    "internal error" after the work was done (a review's findings)."""
+    "internal error" after the work was done (a review's findings). Into the recording read (`dataset`): never, not
+    even with --overwrite (a project calibration over a EuRoC sensor.yaml leaves a recording nothing reads)."""
     import os
 
     from vio import VioError
+    from vio.io.outputs import check_outputs, recording_of
 
+    if dataset is not None:
+        check_outputs({}, recordings=(recording_of(dataset),), folders={"the output": str(path)})
     if path.is_dir():
         raise VioError(f"{path}: is a folder; give the file to write")
     if path.exists() and not overwrite:
@@ -173,7 +177,9 @@ def _run_imu_noise(args: argparse.Namespace) -> int:
     from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
 
     if args.output:
-        check_output(args.output, args.overwrite)
+        check_output(args.output, args.overwrite, args.dataset)
+    if args.plot:
+        check_output(args.plot, True, args.dataset)
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
     print(format_noise(result, source, _reference_noise(args.dataset)))
@@ -191,6 +197,8 @@ def _run_imu_noise(args: argparse.Namespace) -> int:
 def _run_time_offset(args: argparse.Namespace) -> int:
     from calib.time_offset import estimate_time_offset_dataset
 
+    if args.plot:
+        check_output(args.plot, True, args.dataset)
     est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
     print(est.summary())
     if args.plot:
@@ -212,7 +220,7 @@ def _run_refine(args: argparse.Namespace) -> int:
     from vio.estimator import stereo_check_line
     from vio.frontend.runner import set_opencv_threads
 
-    check_output(args.output, args.overwrite)
+    check_output(args.output, args.overwrite, args.dataset)
     set_opencv_threads(1)  # the calibration written must not depend on what else the machine was doing
     cfg = load_config(args.config)
     if args.stereo_only and (args.stereo or args.intrinsics):

@@ -381,3 +381,39 @@ def test_right_camera_out_at_the_start_says_whether_anything_is_estimated(tmp_pa
                      if ln and not ln.startswith("#"))
         t0 = int((data / "mav0" / "cam0" / "data.csv").read_text().splitlines()[1].split(",")[0]) * 1e-9
         assert first - t0 >= 2.9, first - t0  # no pose before the right camera is back
+
+
+def test_no_output_is_written_into_the_recording_it_reads(flight, tmp_path, capsys):
+    """`-o .../state_groundtruth_estimate0/data.csv` replaced the ground truth with the estimate and printed its
+    accuracy, `--show-tracks mav0/cam0/data` replaced the images, `eval --json` the estimate it read (a QA sweep's
+    findings): every such output is refused before any work, even with --overwrite, and nothing is touched."""
+    from vio.app.cli import main
+
+    mav0 = flight / "mav0"
+    before = {p: p.read_bytes() for p in sorted(mav0.rglob("*.csv")) + sorted(mav0.rglob("*.yaml"))}
+    gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    est = tmp_path / "est.tum"
+    est.write_text("# an estimate\n")
+    cases = (["replay", str(flight), "-o", str(gt), "--no-progress"],
+             ["replay", str(flight), "-o", str(mav0 / "imu0" / "new.tum"), "--no-progress"],
+             ["replay", str(flight), "-o", str(tmp_path / "x.tum"), "--show-tracks", str(mav0 / "cam0" / "data")],
+             ["replay", str(flight), "-o", str(tmp_path / "x.tum"), "--stats", str(flight / "simulation.yaml")],
+             ["eval", str(est), str(flight), "--json", str(mav0 / "imu0" / "data.csv")],
+             ["eval", str(est), str(gt), "--plot", str(mav0 / "cam0" / "data" / "plot.png")],
+             ["calib", "refine", str(flight), "-o", str(mav0 / "cam0" / "sensor.yaml"), "--overwrite"],
+             ["calib", "imu-noise", str(mav0 / "imu0" / "data.csv"), "-o", str(mav0 / "imu0" / "sensor.yaml"),
+              "--overwrite"])
+    for args in cases:
+        assert main(args) == 1, args
+        assert "would be written into the recording" in capsys.readouterr().err, args
+    assert main(["eval", str(est), str(flight), "--json", str(est)]) == 1
+    assert "the JSON would be written over the estimate" in capsys.readouterr().err
+    assert est.read_text() == "# an estimate\n"
+    assert {p: p.read_bytes() for p in before} == before
+    assert not (mav0 / "imu0" / "new.tum").exists() and not (tmp_path / "x.tum").exists()
+    assert len(list((mav0 / "cam0" / "data").iterdir())) == len(list((mav0 / "cam1" / "data").iterdir()))
+    # beside the recording, in its own folder, is where users keep their runs: still written
+    assert main(["-q", "replay", str(flight), "-o", str(flight / "est.tum"), "--no-progress", "--max-frames",
+                 "10"]) == 0
+    assert (flight / "est.tum").is_file()
+    (flight / "est.tum").unlink()

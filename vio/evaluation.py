@@ -479,6 +479,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if not args.max_dt_ms > 0:
         raise VioError(f"--max-dt-ms must be positive, got {args.max_dt_ms}")
+    from vio.io.outputs import check_outputs, recording_of
+
+    check_outputs({"the JSON": args.json, "the plot": args.plot},
+                  reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
     est = load_trajectory(args.est)
     gt = load_trajectory(args.gt)
     result = evaluate(est, gt, max_dt_ms=args.max_dt_ms, interpolate=args.interpolate,

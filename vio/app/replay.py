@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import re
 import sys
 import time
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
+from vio.io.outputs import check_outputs
 from vio.types import NavState
 
 log = logging.getLogger(__name__)
@@ -446,40 +446,6 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
-class NotWritable(VioError):
-    """An output's folder exists but cannot be written (check_outputs): `vio run` flies without that output."""
-
-
-def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
-                  grows: tuple[str, ...] = ()) -> None:
-    """Every output file can be written where it is asked for (its folder exists, it is no folder itself), checked
-    before a replay that may take an hour rather than after it, when a typo would lose the run's other outputs.
-    No two outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in
-    `grows` (a map saved over the map it loaded)."""
-    seen: dict[str, str] = {}
-    for what, p in paths.items():
-        if p:
-            key = os.path.realpath(p)
-            if key in seen:
-                raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
-            seen[key] = what
-    for what, p in (reads or {}).items():
-        writer = seen.get(os.path.realpath(p)) if p else None
-        if writer not in (None, *grows):
-            raise VioError(f"{p}: {writer} would be written over {what}")
-    for what, p in paths.items():
-        if not p:
-            continue
-        path = Path(p)
-        if path.is_dir():
-            raise VioError(f"{p}: is a folder; {what} needs a file name")
-        folder = path.parent if str(path.parent) else Path(".")
-        if not folder.is_dir():
-            raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
-        if not os.access(folder, os.W_OK):
-            raise NotWritable(f"{p}: cannot write {what}: folder {folder} is not writable")
-
-
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
@@ -503,7 +469,7 @@ def run(args: argparse.Namespace) -> int:
                    "the live view recording": view_file},
                   reads={"the map it loads": load_map, "the calibration": args.calibration,
                          "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []}},
-                  grows=("the map",))
+                  grows=("the map",), recordings=(args.dataset,), folders={"the track images": args.show_tracks})
     if args.loop_plot:  # the [tools] extra, asked for now rather than after the replay
         from vio.extras import pyplot
 

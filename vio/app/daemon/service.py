@@ -695,7 +695,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         except VioError as e:
             raise VioError(f"[map] load: {e}") from None
     if cfg.map.save:
-        from vio.app.replay import NotWritable, check_outputs
+        from vio.io.outputs import NotWritable, check_outputs
 
         try:
             check_outputs({"the map": cfg.map.save})

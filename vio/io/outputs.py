@@ -1,0 +1,72 @@
+"""Checks on the files a command is about to write, made before the work that produces them (a replay may take an
+hour; a typo found after it would lose the run's other outputs, and an output written into the recording it reads
+would lose the recording)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from vio import VioError
+
+# files of a recording's folder besides its sensor data (mav0/): what the simulator knew (vio.sim.generate)
+RECORDING_ROOT_FILES = ("simulation.yaml", "calibration_truth.yaml")
+
+
+class NotWritable(VioError):
+    """An output's folder exists but cannot be written (check_outputs): `vio run` flies without that output."""
+
+
+def in_recording(path: str | Path, recording: str | Path) -> bool:
+    """Would writing `path` touch the EuRoC recording in folder `recording`: its sensor data and ground truth (all of
+    mav0/, files there now or not: a new file among the images is read as a frame) or the simulator's files beside
+    them? Other files in the recording's folder (a trajectory written next to it on an earlier run) are fair game."""
+    rec = Path(os.path.realpath(recording))
+    if not rec.is_dir():
+        return False
+    p = Path(os.path.realpath(path))
+    return p == rec / "mav0" or (rec / "mav0") in p.parents or p in {rec / n for n in RECORDING_ROOT_FILES}
+
+
+def recording_of(path: str | Path) -> str | None:
+    """The recording folder `path` is, or lies in (a ground-truth csv inside its mav0/); None for other files."""
+    p = Path(os.path.realpath(path))
+    if p.is_dir():
+        return str(p)
+    return next((str(a.parent) for a in p.parents if a.name == "mav0"), None)
+
+
+def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
+                  grows: tuple[str, ...] = (), recordings: tuple[str | None, ...] = (),
+                  folders: dict[str, str | None] | None = None) -> None:
+    """Every output file can be written where it is asked for (its folder exists, it is no folder itself). No two
+    outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in `grows` (a
+    map saved over the map it loaded), nor any output (files in `paths`, output folders in `folders`) lie in the
+    sensor data of a recording folder the run reads (`recordings`)."""
+    seen: dict[str, str] = {}
+    for what, p in paths.items():
+        if p:
+            key = os.path.realpath(p)
+            if key in seen:
+                raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
+            seen[key] = what
+    for what, p in (reads or {}).items():
+        writer = seen.get(os.path.realpath(p)) if p else None
+        if writer not in (None, *grows):
+            raise VioError(f"{p}: {writer} would be written over {what}")
+    for rec in recordings:
+        for what, p in {**paths, **(folders or {})}.items():
+            if rec and p and in_recording(p, rec):
+                raise VioError(f"{p}: {what} would be written into the recording {rec} (its sensor data, "
+                               "ground truth and simulator files are never written over): write it elsewhere")
+    for what, p in paths.items():
+        if not p:
+            continue
+        path = Path(p)
+        if path.is_dir():
+            raise VioError(f"{p}: is a folder; {what} needs a file name")
+        folder = path.parent if str(path.parent) else Path(".")
+        if not folder.is_dir():
+            raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK):
+            raise NotWritable(f"{p}: cannot write {what}: folder {folder} is not writable")
