@@ -441,18 +441,20 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
     problem = ds.first_image_size_problem()
     if problem:
         raise VioError(problem)
-    if len(ds):
-        m, frames = collect_matches(ds, calib, max_frames)
-        if len(m.uv0) < 20:
-            results.append(CheckResult("stereo matching", "FAIL", len(m.uv0), "matches",
-                                       "too few left-right matches to check the stereo calibration"))
-        else:
-            results += [check_epipolar(calib, m), check_rectified_rows(calib, ds, frames),
-                        check_reprojection(calib, m)]
-        results += check_disparity(dataset_path, calib, config) if disparity else [CheckResult(
-            "stereo disparity bias", "SKIP", float("nan"), "px", "not checked: add --disparity, which replays the "
-            "recording; a disparity bias leaves the epipolar lines where they are")]
-        results.append(check_camera_imu_rotation(ds, calib))
+    if not len(ds):  # the camera checks would vanish from the report and leave the IMU's to say PASS
+        raise VioError(f"{dataset_path}: the recording has no camera frames (cam0/data.csv lists none): the stereo "
+                       "and camera-IMU checks need images")
+    m, frames = collect_matches(ds, calib, max_frames)
+    if len(m.uv0) < 20:
+        results.append(CheckResult("stereo matching", "FAIL", len(m.uv0), "matches",
+                                   "too few left-right matches to check the stereo calibration"))
+    else:
+        results += [check_epipolar(calib, m), check_rectified_rows(calib, ds, frames),
+                    check_reprojection(calib, m)]
+    results += check_disparity(dataset_path, calib, config) if disparity else [CheckResult(
+        "stereo disparity bias", "SKIP", float("nan"), "px", "not checked: add --disparity, which replays the "
+        "recording; a disparity bias leaves the epipolar lines where they are")]
+    results.append(check_camera_imu_rotation(ds, calib))
     results += check_gravity(ds) + check_units(ds)
     return results
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -884,8 +885,12 @@ def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_
                              cam1=replace(stated.cam1, width=640, height=400)), other)
     bad = tmp_path / "refused.yaml"
     bad.write_text(other.read_text() + "\nnot_a_key: 1\n")
+    no_frames = tmp_path / "no_frames"  # cam0/data.csv with its header only: the IMU's checks alone said PASS
+    shutil.copytree(data, no_frames)
+    csv = no_frames / "mav0" / "cam0" / "data.csv"
+    csv.write_text(csv.read_text().splitlines()[0] + "\n")
     for argv in (["-", str(tmp_path / "missing")], [str(tmp_path / "missing.yaml"), str(data)], [str(other), str(data)],
-                 [str(bad), str(data)]):
+                 [str(bad), str(data)], ["-", str(no_frames)]):
         assert main(["calib", "check", *argv, "--max-frames", "5"]) == 4, argv
         said = capsys.readouterr()
         assert "vio calib: error: " in said.err and "overall:" not in said.out, (argv, said)
