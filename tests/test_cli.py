@@ -80,6 +80,8 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['VISION_POSITION_ESTIMATE']\nlost_output = 'quality0'\n",
      "needs messages = ['ODOMETRY']"),
     ("[source]\nkind = 'fake'\ncalibration = '/nonexistent/calib.yaml'\n", "calib.yaml"),
+    # the daemon started, the estimator thread died on it, unhealthy with no exit (a QA sweep)
+    ("[loop]\nenabled = true\nvocabulary = '/nonexistent/vocab.npz'\n", "[loop] vocabulary: /nonexistent/vocab.npz"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

@@ -694,6 +694,15 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             map_data = load_map(cfg.map.load)
         except VioError as e:
             raise VioError(f"[map] load: {e}") from None
+    if (cfg.loop.enabled or cfg.map.load or cfg.map.save) and cfg.loop.vocabulary:
+        # as [map] load: a vocabulary that cannot be read would only kill the estimator thread once the sensors
+        # are up, and leave the daemon unhealthy (restarted for ever under systemd) instead of saying why at start
+        from vio.loop.vocabulary import Vocabulary
+
+        try:
+            Vocabulary.load(cfg.loop.vocabulary)
+        except VioError as e:
+            raise VioError(f"[loop] vocabulary: {e}") from None
     if cfg.map.save:
         from vio.io.outputs import NotWritable, check_outputs
 
