@@ -297,3 +297,40 @@ def test_hovering_flight_aligns_its_rotation_on_orientations():
     assert "rotation aligned on orientations" in res.summary()
     moving = _flight(20.0)
     assert evaluate(moving, moving).ate_se3.rotation_from == "positions"
+
+
+def test_a_file_vio_run_appended_several_runs_to_is_read_one_run_at_a_time(tmp_path, gt, capsys, caplog):
+    """The daemon appends each run to its trajectory file, each in its own odometry frame, after a marker line;
+    `vio eval` on such a file took both runs as one trajectory (ATE 1.67 m, exit 0, no word: a QA sweep)."""
+    import logging
+
+    from vio.geometry import make_T
+    from vio.trajectory import RUN_MARKER
+
+    write_tum(gt, tmp_path / "gt.txt")
+    write_tum(_noisy_moved(gt, 4), tmp_path / "one.txt")
+    other = Trajectory.from_poses(gt.t_ns, np.array([make_T(np.eye(3), np.array([5.0, 0, 0])) @ T
+                                                      for T in gt.poses()]))  # a second run: another frame
+    write_tum(other, tmp_path / "two.txt")
+    half = len(gt) // 2
+    runs = tmp_path / "runs.tum"
+    body = [p.read_text().splitlines() for p in (tmp_path / "one.txt", tmp_path / "two.txt")]
+    body = [[ln for ln in b if not ln.startswith("#")] for b in body]
+    runs.write_text("\n".join([f"{RUN_MARKER} 2026-12-06T10:00:00+00:00 (pid 1): the poses below ...", *body[0][:half],
+                               f"{RUN_MARKER} 2026-12-06T10:05:00+00:00 (pid 2): the poses below ...",
+                               *body[1][half:]]) + "\n")
+    with caplog.at_level(logging.WARNING):
+        last = load_trajectory(runs)
+    assert np.array_equal(last.t_ns, gt.t_ns[half:]) and "holds 2 runs" in caplog.text and "pid 2" in caplog.text
+    assert np.array_equal(load_trajectory(runs, 1).t_ns, gt.t_ns[:half])
+    assert main(["-q", "eval", str(runs), str(tmp_path / "gt.txt"), "--run", "1", "--json", str(tmp_path / "e.json")
+                 ]) == 0
+    assert json.loads((tmp_path / "e.json").read_text())["ate_4dof"]["trans_m"]["rmse"] < 0.5  # the 5 m jump: metres
+    assert main(["-q", "eval", str(runs), str(tmp_path / "gt.txt"), "--run", "3"]) == 1
+    assert "holds 2 run(s) with poses, not run 3" in capsys.readouterr().err
+    # one run with its marker, as the daemon's first run writes it: read as it is, nothing said
+    caplog.clear()
+    (tmp_path / "single.tum").write_text(f"{RUN_MARKER} x (pid 1): ...\n" + "\n".join(body[0]) + "\n")
+    with caplog.at_level(logging.WARNING):
+        assert np.array_equal(load_trajectory(tmp_path / "single.tum").t_ns, gt.t_ns)
+    assert "runs" not in caplog.text

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
+from vio.argtypes import positive_int
 from vio.geometry import closest_yaw, inv_T, make_T
 from vio.trajectory import Trajectory, read_tum
 
@@ -152,11 +153,12 @@ def _json_safe(x):
 
 # ------------------------------------------------------------------------------------------------ loading
 
-def load_trajectory(path: str | Path) -> Trajectory:
+def load_trajectory(path: str | Path, run: int | None = None) -> Trajectory:
     """A TUM file, a EuRoC ground-truth csv, or a EuRoC dataset folder (its state_groundtruth_estimate0).
 
     A csv whose first data row starts with an integer stamp and has 8+ comma-separated values is EuRoC
-    (ns, p, q_wxyz); anything else is read as TUM (seconds, p, q_xyzw).
+    (ns, p, q_wxyz); anything else is read as TUM (seconds, p, q_xyzw): of a file `vio run` appended several runs
+    to, run number `run` (default: the last; `read_tum`).
     """
     from vio.io.euroc import find_mav0, read_groundtruth_csv
 
@@ -167,7 +169,7 @@ def load_trajectory(path: str | Path) -> Trajectory:
         return read_groundtruth_csv(find_mav0(path) / "state_groundtruth_estimate0" / "data.csv").trajectory
     if _looks_like_euroc_csv(path):
         return read_groundtruth_csv(path).trajectory
-    return read_tum(path)
+    return read_tum(path, run)
 
 
 def _looks_like_euroc_csv(path: Path) -> bool:
@@ -472,6 +474,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"RPE segment lengths in metres (default {','.join(f'{x:g}' for x in DEFAULT_RPE_LENGTHS_M)})")
     p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
                    help="time between estimates above which it counts as a gap (default %(default)s)")
+    p.add_argument("--run", type=positive_int, metavar="N", help="of an estimate file `vio run` appended several "
+                   "runs to (a '# kestrel-vio run started' line before each, each in its own frame): evaluate run N "
+                   "(1 = the first; default: the last, said)")
     p.add_argument("--crop-gt", action="store_true",
                    help="cut the ground truth to the estimate's time span (coverage then ignores the rest)")
 
@@ -483,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs({"the JSON": args.json, "the plot": args.plot},
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
-    est = load_trajectory(args.est)
+    est = load_trajectory(args.est, args.run)
     gt = load_trajectory(args.gt)
     result = evaluate(est, gt, max_dt_ms=args.max_dt_ms, interpolate=args.interpolate,
                       rpe_lengths_m=args.rpe_lengths, max_gap_s=args.max_gap_s, crop_gt=args.crop_gt)

@@ -120,8 +120,33 @@ def _seconds_to_ns(text: str) -> int:
     return -ns if neg else ns
 
 
-def read_tum(path: str | Path) -> Trajectory:
-    """Read a TUM trajectory; errors name the file and line."""
+RUN_MARKER = "# kestrel-vio run started"  # `vio run` appends each run to its trajectory file after this line
+
+
+def _one_run(path: Path, runs: list[tuple[str | None, list, list, list]], run: int | None
+             ) -> tuple[list, list, list]:
+    """(t, p, q) of run number `run` (1 = the first; None: the last) of the runs that hold poses."""
+    if not runs:
+        return [], [], []
+    if run is None and len(runs) == 1:
+        return runs[0][1:]
+    if run is not None and not 1 <= run <= len(runs):
+        raise VioError(f"{path}: holds {len(runs)} run(s) with poses, not run {run}")
+    k = len(runs) if run is None else run
+    marker, t, p, q = runs[k - 1]
+    if run is None:
+        which = marker[len(RUN_MARKER) - len("started"):].split(": the poses")[0] if marker else "before any marker"
+        log.warning("%s holds %d runs of `vio run`, each in its own odometry frame: the last one read (%s, %d poses); "
+                    "--run N picks another", path, len(runs), which, len(t))
+    return t, p, q
+
+
+def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
+    """Read a TUM trajectory; errors name the file and line.
+
+    A file `vio run` appended several runs to (a RUN_MARKER line before each; every run has an odometry frame of its
+    own, so their poses together are no trajectory) gives one run: `run` (1 = the first), by default the last, said
+    in the log when there are more."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -131,8 +156,13 @@ def read_tum(path: str | Path) -> Trajectory:
         raise VioError(f"{path}: not a text file") from None
     lines = text.splitlines()
     t, p, q = [], [], []
+    runs: list[tuple[str | None, list, list, list]] = [(None, t, p, q)]  # (its marker line, t, p, q) of each run
     for i, line in enumerate(lines, start=1):
         s = line.strip()
+        if s.startswith(RUN_MARKER):
+            t, p, q = [], [], []
+            runs.append((s, t, p, q))
+            continue
         if not s or s.startswith("#"):
             continue
         parts = s.replace(",", " ").split()
@@ -160,6 +190,7 @@ def read_tum(path: str | Path) -> Trajectory:
         q.append([vals[6], vals[3], vals[4], vals[5]])
         if len(t) > 1 and t[-1] <= t[-2]:
             raise VioError(f"{path}:{i}: time stamp not increasing")
+    t, p, q = _one_run(path, [r for r in runs if r[1]], run)
     if not t:
         raise VioError(f"{path}: no poses")
     return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(q))

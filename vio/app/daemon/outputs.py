@@ -20,7 +20,7 @@ from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
 from vio.app.daemon.status import _mavlink_health
 from vio.app.daemon.workers import Worker
 from vio.geometry import rot_to_quat_wxyz
-from vio.trajectory import format_tum_line
+from vio.trajectory import RUN_MARKER, format_tum_line
 from vio.types import ImuSample, NavState, StereoFrame
 
 if TYPE_CHECKING:
@@ -52,8 +52,8 @@ class TrajectoryLog:
             # the file is appended to across runs (no pose is lost), and each run starts a frame of its own at
             # its first pose: this line (a comment to TUM readers, evo's too) tells where one run ends
             started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-            self._f.write(f"# kestrel-vio run started {started} (pid {os.getpid()}): the poses below are in this "
-                          "run's odometry frame\n")
+            self._f.write(f"{RUN_MARKER} {started} (pid {os.getpid()}): the poses below are in this run's odometry "
+                          "frame\n")
         except OSError as e:
             self._failed(e)
 

@@ -1,0 +1,24 @@
+"""argparse types for the commands' numeric options: a value out of range is a usage error naming the option
+(exit 2, one line) before any work, not an internal error part-way through it."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An integer >= low."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {v}")
+        return v
+    parse.__name__ = f"integer >= {low}"  # what argparse names in its "invalid ... value" message
+    return parse
+
+
+positive_int = int_at_least(1)
