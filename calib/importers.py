@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -203,8 +204,13 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
     path = _single_file(files, "opencv", "stereo calibration file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise VioError(f"{path}: not an OpenCV FileStorage file ({e.msg.strip() if hasattr(e, 'msg') else e})") \
+    except (cv2.error, SystemError) as e:  # a YAML that is not FileStorage's: SystemError from the binding
+        err = e if isinstance(e, cv2.error) else e.__cause__
+        # OpenCV's parser puts "FILE(LINE): what" where the function's name goes
+        m = re.search(r"\((\d+)\): (.+)$", str(getattr(err, "func", "") or ""))
+        why = f"line {m[1]}: {m[2]}" if m else "its parser refused it"
+        raise VioError(f"{path}: not an OpenCV FileStorage file ({why}); `vio calib import opencv` reads the YAML/XML "
+                       "of cv2.FileStorage with K1 D1 K2 D2 R T (a Kalibr camchain: `vio calib import kalibr`)") \
             from None
     if not fs.isOpened():
         raise VioError(f"{path}: cannot open as an OpenCV FileStorage file")

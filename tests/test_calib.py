@@ -143,6 +143,21 @@ def test_opencv_missing_key(tmp_path):
         import_calibration("opencv", [f])
 
 
+def test_opencv_import_of_another_tool_s_file_says_what_it_reads(tmp_path, capsys):
+    """A Kalibr camchain, a JSON or an empty file given to the OpenCV importer ended in "internal error:
+    SystemError: <class 'cv2.FileStorage'> returned a result with an exception set" (a QA sweep)."""
+    from vio.app.cli import main
+
+    cases = {"camchain.yaml": "cam0:\n  camera_model: pinhole\n   intrinsics: [1, 2, 3, 4]\n",
+             "calib.json": "not json {", "empty.yaml": ""}
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        assert main(["calib", "import", "opencv", str(tmp_path / name), "-o", str(tmp_path / "out.yaml")]) == 1
+        err = capsys.readouterr().err
+        assert f"{name}: not an OpenCV FileStorage file" in err and "internal error" not in err, err
+        assert "vio calib import kalibr" in err and not (tmp_path / "out.yaml").exists()
+
+
 def _depthai_json(tmp_path, with_imu: bool = True, fisheye: bool = False) -> tuple[Path, np.ndarray, np.ndarray]:
     """A realistic OAK-D style calibration written by depthai itself (translations in cm)."""
     dai = pytest.importorskip("depthai")
