@@ -1921,3 +1921,28 @@ def test_a_map_made_with_another_camera_mount_is_placed_by_its_cameras(tmp_path,
     np.savez(tmp_path / "bad.npz", **{**z, "header": np.array(json.dumps(h))})
     with pytest.raises(VioError, match="damaged map.*T_body_cam"):
         load_map(tmp_path / "bad.npz")
+
+
+def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_path, capsys):
+    """`-o voc.map` wrote voc.map.npz and printed voc.map; an existing file was replaced without asking; depth 0
+    trained a one-word vocabulary (exit 0), branching 1 and every 0 ended in internal errors (a QA sweep)."""
+    from vio.app.cli import main
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=3.0, width=376, height=240, variant="clean"), progress=False)
+    out = tmp_path / "voc.map"
+    assert main(["-q", "loop", "train-vocab", str(data), "-o", str(out), "--every", "4", "--depth", "2"]) == 0
+    assert str(out) in capsys.readouterr().out and out.is_file() and not (tmp_path / "voc.map.npz").exists()
+    voc = Vocabulary.load(out)
+    assert (voc.k, voc.depth) == (8, 2)
+    before = out.read_bytes()
+    assert main(["-q", "loop", "train-vocab", str(data), "-o", str(out), "--every", "4"]) == 1
+    assert "exists: not replaced" in capsys.readouterr().err and out.read_bytes() == before
+    for bad in (["--depth", "0"], ["--branching", "1"], ["--every", "0"], ["--features", "-3"]):
+        with pytest.raises(SystemExit) as e:
+            main(["loop", "train-vocab", str(data), "-o", str(tmp_path / "v2.npz"), *bad])
+        assert e.value.code == 2 and "must be at least" in capsys.readouterr().err, bad
+    assert main(["-q", "loop", "train-vocab", str(data), "-o", str(data / "mav0" / "voc.npz")]) == 1
+    assert "into the recording" in capsys.readouterr().err

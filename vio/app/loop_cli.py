@@ -1,22 +1,31 @@
-"""`vio loop train-vocab DATASET... -o FILE`: build the place-recognition vocabulary from recorded images;
-`vio loop test-vocab DATASET`: retrieval on images the vocabulary was not trained on (docs/loop-closure.md)."""
+"""`vio loop train-vocab DATASET... -o FILE`: build the place-recognition vocabulary from recorded images (how it
+retrieves on images it was not trained on: `tests/test_loop.py::test_vocabulary_retrieves_the_same_place_in_unseen_
+images`, docs/loop-closure.md)."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 
 import numpy as np
+
+from vio.argtypes import int_at_least, positive_int
+
+log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="loop_command", metavar="ACTION", required=True)
     t = sub.add_parser("train-vocab", help="train the vocabulary tree (k-majority) on EuRoC datasets' cam0 images")
     t.add_argument("datasets", nargs="+", metavar="DATASET")
-    t.add_argument("-o", "--output", required=True, metavar="NPZ")
-    t.add_argument("--every", type=int, default=10, help="use every Nth image (default: 10)")
-    t.add_argument("--branching", type=int, default=8)
-    t.add_argument("--depth", type=int, default=4)
-    t.add_argument("--features", type=int, default=300, help="ORB corners per image")
+    t.add_argument("-o", "--output", required=True, metavar="NPZ",
+                   help="vocabulary file to write ([loop] vocabulary); written under exactly this name")
+    t.add_argument("--overwrite", action="store_true", help="replace --output if it exists")
+    t.add_argument("--every", type=positive_int, default=10, help="use every Nth image (default: 10)")
+    t.add_argument("--branching", type=int_at_least(2), default=8, help="children per node (default: 8)")
+    t.add_argument("--depth", type=positive_int, default=4,
+                   help="levels below the root: branching^depth words (default: 4)")
+    t.add_argument("--features", type=positive_int, default=300, help="ORB corners per image")
 
 
 def _descriptors(dataset: str, every: int, n_features: int) -> list[np.ndarray]:
@@ -38,15 +47,26 @@ def _descriptors(dataset: str, every: int, n_features: int) -> list[np.ndarray]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from vio import VioError
+    from vio.io.outputs import check_outputs
     from vio.loop.vocabulary import train
 
     if args.loop_command == "train-vocab":
+        out = Path(args.output)
+        check_outputs({"the vocabulary": args.output}, recordings=tuple(args.datasets))
+        if out.exists() and not args.overwrite:
+            raise VioError(f"{out} exists: not replaced (--overwrite replaces it)")
         desc = [d for ds in args.datasets for d in _descriptors(ds, args.every, args.features)]
         if len(desc) < 2:
             raise VioError("too few images to train a vocabulary")
+        n_desc = sum(len(d) for d in desc)
         voc = train(desc, args.branching, args.depth)
-        voc.save(args.output)
+        if voc.n_words > n_desc:  # most words never hold a descriptor: retrieval by a handful of sparse words
+            log.warning("%d words from %d descriptors: most words are empty and retrieval poor; use fewer levels "
+                        "(--depth) or more images", voc.n_words, n_desc)
+        voc.save(out)
         print(f"vocabulary: {voc.n_words} words (k={voc.k}, depth {voc.depth}) from {len(desc)} images, "
-              f"{sum(len(d) for d in desc)} descriptors -> {args.output}")
+              f"{n_desc} descriptors -> {out}")
     return 0

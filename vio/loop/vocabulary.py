@@ -107,8 +107,11 @@ class Vocabulary:
         return BowVector(ids[keep].astype(np.int64), v[keep] / s)
 
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(path, format_version=np.int64(FORMAT_VERSION), k=np.int64(self.k),
-                            depth=np.int64(self.depth), centres=self.centres, idf=self.idf)
+        """Written under exactly `path` (numpy's savez given a name adds .npz to one without: the file written
+        was not the one the command named)."""
+        with open(path, "wb") as f:
+            np.savez_compressed(f, format_version=np.int64(FORMAT_VERSION), k=np.int64(self.k),
+                                depth=np.int64(self.depth), centres=self.centres, idf=self.idf)
 
     @staticmethod
     def load(path: str | Path | None = None) -> Vocabulary:
