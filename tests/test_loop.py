@@ -587,6 +587,24 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
     np.savez(tmp_path / "y.npz", header=np.array('{"format": "kestrel-vio-map", "version": 99}'))
     with pytest.raises(VioError, match="newer"):
         load_map(tmp_path / "y.npz")
+    # a QA sweep's: a .npy array (TypeError), stamps running back within one flight ("7 keyframes over -7.2 s"),
+    # and a header without the informative created_utc / vocabulary (map info's KeyError, TypeError)
+    np.save(tmp_path / "arr.npy", np.zeros(3))
+    for path, says in ((tmp_path / "arr.npy", "a .npy array"),):
+        assert main(["map", "info", str(path)]) == 1
+        err = capsys.readouterr().err
+        assert says in err and "internal error" not in err, err
+    np.savez(tmp_path / "back.npz", **{**good, "kf_t_ns": np.array([2, 1])})
+    with pytest.raises(VioError, match="stamps do not increase within flight 1"):
+        load_map(tmp_path / "back.npz")
+    two = '"parts": [{"keyframes": 1, "join_edges": null}, {"keyframes": 1, "join_edges": 4}], '
+    np.savez(tmp_path / "grown.npz", **{**good, "kf_t_ns": np.array([9, 1]),  # two flights, two clocks: fine
+                                        "header": np.array('{"format": "kestrel-vio-map", "version": 1, ' + two + cam
+                                                           + ', "vocabulary": "v1"}')})
+    assert len(load_map(tmp_path / "grown.npz").features) == 2
+    assert main(["map", "info", str(tmp_path / "grown.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "created at an unknown time" in out and "vocabulary: not stated" in out and "2 keyframes" in out, out
 
 
 def test_autopilot_output_modes():

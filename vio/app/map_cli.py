@@ -29,20 +29,27 @@ def run(args: argparse.Namespace) -> int:
         parts = [{"keyframes": len(m.t_ns), "join_edges": None}]
     ends = np.cumsum([0] + [int(q["keyframes"]) for q in parts])
     spans = [float((m.t_ns[b - 1] - m.t_ns[a]) * 1e-9) if b - a > 1 else 0.0 for a, b in zip(ends[:-1], ends[1:])]
-    info = {**m.header, "landmarks_3d": int(n3),
+    # the counts from the keyframes themselves (the header's are what the saver wrote; a hand-edited or foreign
+    # header may lack them, as it may lack the informative created_utc and vocabulary: said, not a traceback)
+    info = {**m.header, "keyframes": len(m.t_ns), "descriptors": int(sum(len(f.desc) for f in m.features)),
+            "landmarks_3d": int(n3),
             "extent_m": {"min": p.min(0).round(3).tolist(), "max": p.max(0).round(3).tolist()} if len(p) else None,
             "span_s": round(sum(spans), 3), "part_spans_s": [round(x, 3) for x in spans]}
     if args.json:
         print(json.dumps(info, indent=1))
         return 0
-    print(f"{args.file}: {info['format']} version {info['version']}, created {info['created_utc']}")
+    print(f"{args.file}: {info['format']} version {info.get('version', 0)}, created "
+          f"{info.get('created_utc') or 'at an unknown time'}")
     flown = f"{info['span_s']:.1f} s" + (f" of flight in {len(spans)} parts" if len(spans) > 1 else "")
     print(f"  {info['keyframes']} keyframes over {flown}, {info['descriptors']} descriptors, {n3} with stereo 3D "
           "points")
     if info["extent_m"]:
         print(f"  extent [m]: {info['extent_m']['min']} .. {info['extent_m']['max']}")
-    v = info["vocabulary"]
-    print(f"  vocabulary k={v['k']} depth {v['depth']} sha256 {v['sha256'][:16]}...")
+    v = info.get("vocabulary")
+    if isinstance(v, dict) and all(isinstance(v.get(k), t) for k, t in (("k", int), ("depth", int), ("sha256", str))):
+        print(f"  vocabulary k={v['k']} depth {v['depth']} sha256 {v['sha256'][:16]}...")
+    else:
+        print("  vocabulary: not stated in the header")
     c = info["camera"]
     print(f"  camera {c['width']}x{c['height']} fx {c['fx']:.1f} fy {c['fy']:.1f}")
     for k, part in enumerate(info.get("parts") or []):

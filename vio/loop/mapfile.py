@@ -148,10 +148,24 @@ def _header_problem(header: dict, n: int) -> str | None:
     return None
 
 
+def _stamps_problem(header: dict, t_ns: np.ndarray) -> str | None:
+    """Keyframe stamps that go back within one flight of the map (a damaged or hand-made file), or None. Across
+    the parts of a grown map they may: each flight has its own clock."""
+    sizes = [q["keyframes"] for q in header.get("parts") or []] or [len(t_ns)]
+    ends = np.cumsum([0, *sizes])
+    for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])):
+        if np.any(np.diff(t_ns[a:b]) <= 0):
+            return f"keyframe stamps do not increase within flight {k + 1} of the map"
+    return None
+
+
 def load_map(path: str | Path) -> MapData:
     stamp = file_stamp(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a single .npy array
+            raise VioError(f"{path}: not a Kestrel VIO map (a .npy array, not an .npz archive)")
+        with z:
             header = json.loads(str(z["header"]))
             if not isinstance(header, dict) or header.get("format") != FORMAT:
                 got = header.get("format") if isinstance(header, dict) else type(header).__name__
@@ -165,7 +179,8 @@ def load_map(path: str | Path) -> MapData:
             off = z["kf_offsets"]
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
             t_ns, T = z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64)
-            problem = _inconsistency(off, desc, uv, p, t_ns, T) or _header_problem(header, len(t_ns))
+            problem = _inconsistency(off, desc, uv, p, t_ns, T) or _header_problem(header, len(t_ns)) or \
+                _stamps_problem(header, t_ns)
             if problem:
                 raise VioError(f"{path}: damaged map ({problem})")
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
