@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -282,6 +283,22 @@ def test_writer_reader_round_trip(tmp_path):
     gt = ds.groundtruth
     assert gt is not None and np.array_equal(gt.trajectory.t_ns, [t0, t0 + 10**8])
     assert gt.trajectory.p[1] == pytest.approx([1.5, 2.0, 3.0]) and gt.v_world[1] == pytest.approx([1, 1, 1])
+
+
+def test_kestrel_yaml_refuses_a_key_it_does_not_know(tmp_path):
+    """`time_offset_ms: 5` in mav0/kestrel.yaml replayed with no offset, exit 0, unsaid (a QA sweep)."""
+    from vio import VioError
+
+    with EurocWriter(tmp_path / "rec", _calibration()) as w:
+        for k in range(3):
+            w.write_imu(ImuSample(1_000_000 + k * 5_000_000, np.zeros(3), np.array([0, 0, 9.81])))
+    yaml = tmp_path / "rec" / "mav0" / "kestrel.yaml"
+    assert EurocDataset(tmp_path / "rec").calibration.time_offset_ns == _calibration().time_offset_ns
+    for text, says in (("time_offset_ms: 5\n", "unknown key 'time_offset_ms' (did you mean 'time_offset_ns'?)"),
+                       ("- 5\n", "mapping")):
+        yaml.write_text(text)
+        with pytest.raises(VioError, match=re.escape(says)):
+            _ = EurocDataset(tmp_path / "rec").calibration
 
 
 @pytest.mark.parametrize("level", [0, 1, 6])

@@ -34,6 +34,7 @@ from vio.calibration import (
     load_yaml,
     time_offset_ns_from,
 )
+from vio.config import refuse_unknown_keys
 from vio.geometry import is_se3
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
@@ -546,7 +547,10 @@ class EurocDataset:
         offset = 0
         if extra.is_file():
             d = load_yaml(extra)
-            offset = time_offset_ns_from(d.get("time_offset_ns", 0) if isinstance(d, dict) else None, str(extra))
+            # `time_offset_ms: 5` here flew with no offset, unsaid (a QA sweep): as in the calibration file, a key
+            # this reader does not know is refused, with the one it probably meant
+            refuse_unknown_keys(d, ("time_offset_ns",), str(extra))
+            offset = time_offset_ns_from(d.get("time_offset_ns", 0), str(extra))
         return StereoCalibration(cam0, cam1, imu, time_offset_ns=offset)
 
     def _check_overlap(self) -> None:
