@@ -137,3 +137,21 @@ def test_flights_of_one_name_are_two_rows_and_data_notes_show(flights, tmp_path)
 
     with pytest.raises(VioError, match="cannot make the report folder"):
         run_batch([str(flights[0])], tmp_path / "afile", workers=1, progress=False)
+
+
+def test_frames_skipped_on_the_way_are_a_data_note(flights, tmp_path, capsys):
+    """A missing, empty or wrong-size image left a row with no note while `vio replay` said '1 of N frames
+    unusable' (a QA sweep); and a report folder inside a flight's mav0/ is refused before any replay."""
+    import shutil
+
+    from vio.app.cli import main
+
+    shutil.copytree(flights[0], tmp_path / "f")
+    first = sorted((tmp_path / "f" / "mav0" / "cam0" / "data").iterdir())[5]
+    first.write_bytes(b"")
+    report = run_batch([str(tmp_path / "f")], tmp_path / "out", workers=1, progress=False)
+    row = report["flights"][0]
+    assert row["ok"] and any("1 of" in n and "frames unusable: 1 image unreadable" in n for n in row["notes"]), row
+    assert main(["batch", str(tmp_path / "f"), "-o", str(tmp_path / "f" / "mav0" / "report")]) == 1
+    assert "into the recording" in capsys.readouterr().err
+    assert not (tmp_path / "f" / "mav0" / "report").exists()

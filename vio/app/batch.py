@@ -95,6 +95,9 @@ def _replay_into(row: dict, path: str, out_tum: Path, options: dict) -> None:
             tum.close()
         row.update(frames=res.frames, poses=len(res.states), resets=res.resets, data_s=round(res.data_s, 3),
                    wall_s=round(res.wall_s, 3), realtime_factor=round(res.realtime_factor, 3))
+        unusable = res.unusable_summary()  # frames skipped on the way (missing, unreadable, wrong-size images)
+        if unusable:
+            row["notes"].append(unusable)
         problem = res.vision_problem()
         if problem:
             raise VioError(problem)
@@ -392,9 +395,12 @@ def compare(new: dict, old: dict, tol: float = 0.05) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vio.io.outputs import check_outputs
+
     options = {"config": args.config, "calib": args.calib, "calib_format": args.calib_format,
                "topics": (args.left_topic, args.right_topic, args.imu_topic)}
     old = load_report(args.compare) if args.compare else None  # a bad --compare fails before hours of replay
+    check_outputs({}, recordings=tuple(args.flights), folders={"the batch report": args.output})
     report = run_batch(args.flights, args.output, workers=args.workers, ray_address=args.ray, options=options,
                        progress=not args.no_progress, overwrite=args.overwrite)
     print(markdown(report))
