@@ -334,3 +334,20 @@ def test_a_file_vio_run_appended_several_runs_to_is_read_one_run_at_a_time(tmp_p
     with caplog.at_level(logging.WARNING):
         assert np.array_equal(load_trajectory(tmp_path / "single.tum").t_ns, gt.t_ns)
     assert "runs" not in caplog.text
+
+
+def test_max_gap_below_the_pose_spacing_is_refused_and_sparse_poses_are_not_all_gaps(tmp_path, gt, capsys):
+    """--max-gap-s under the pose spacing printed "coverage 0.0 %" and "path shorter than every segment length" for a
+    whole flight (a QA sweep); keyframe poses (further apart than the default 0.5 s) read the same by default."""
+    write_tum(gt, tmp_path / "gt.txt")
+    write_tum(gt, tmp_path / "est.txt")
+    step = float(np.median(np.diff(gt.t_ns))) * 1e-9
+    for bad, says in ((f"{step / 2:g}", "below the estimate's median pose spacing"), ("0", "must be positive")):
+        assert main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--max-gap-s", bad]) == 1
+        assert says in capsys.readouterr().err
+    sparse = gt.subset(np.arange(0, len(gt), int(round(0.6 / step))))  # a pose every 0.6 s, as keyframes come
+    write_tum(sparse, tmp_path / "kf.txt")
+    assert main(["-q", "eval", str(tmp_path / "kf.txt"), str(tmp_path / "gt.txt"), "--json", str(tmp_path / "e.json")
+                 ]) == 0
+    d = json.loads((tmp_path / "e.json").read_text())
+    assert d["coverage"] > 0.8 and d["rpe"], d

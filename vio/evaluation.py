@@ -472,8 +472,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interpolate", action="store_true", help="interpolate GT at the estimate stamps")
     p.add_argument("--rpe-lengths", type=_lengths, default=DEFAULT_RPE_LENGTHS_M, metavar="M,M,...",
                    help=f"RPE segment lengths in metres (default {','.join(f'{x:g}' for x in DEFAULT_RPE_LENGTHS_M)})")
-    p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
-                   help="time between estimates above which it counts as a gap (default %(default)s)")
+    p.add_argument("--max-gap-s", type=float, default=None,
+                   help=f"time between estimates above which it counts as a gap (default {DEFAULT_MAX_GAP_S:g}, or "
+                   "2.5 steps of an estimate whose poses come further apart)")
     p.add_argument("--run", type=positive_int, metavar="N", help="of an estimate file `vio run` appended several "
                    "runs to (a '# kestrel-vio run started' line before each, each in its own frame): evaluate run N "
                    "(1 = the first; default: the last, said)")
@@ -488,10 +489,22 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs({"the JSON": args.json, "the plot": args.plot},
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
+    if args.max_gap_s is not None and not args.max_gap_s > 0:
+        raise VioError(f"--max-gap-s must be positive, got {args.max_gap_s}")
     est = load_trajectory(args.est, args.run)
+    spacing = float(np.median(np.diff(est.t_ns))) * 1e-9 if len(est) > 1 else 0.0
+    max_gap_s = args.max_gap_s
+    if max_gap_s is None:
+        max_gap_s = DEFAULT_MAX_GAP_S
+        if spacing > max_gap_s:  # keyframe poses, say: gaps are what is longer than a few of their steps
+            max_gap_s = 2.5 * spacing
+            log.info("eval: poses every %.3g s (median): a gap is a step over %.3g s", spacing, max_gap_s)
+    elif max_gap_s < spacing:  # every step a gap: "coverage 0.0 %" and no RPE segment, on a whole flight
+        raise VioError(f"--max-gap-s {max_gap_s:g} s is below the estimate's median pose spacing {spacing:.3g} s: "
+                       "every step would count as a gap")
     gt = load_trajectory(args.gt)
     result = evaluate(est, gt, max_dt_ms=args.max_dt_ms, interpolate=args.interpolate,
-                      rpe_lengths_m=args.rpe_lengths, max_gap_s=args.max_gap_s, crop_gt=args.crop_gt)
+                      rpe_lengths_m=args.rpe_lengths, max_gap_s=max_gap_s, crop_gt=args.crop_gt)
     print(f"estimate: {args.est}\nground truth: {args.gt}")
     print(result.summary())
     if args.json:
