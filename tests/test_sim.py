@@ -219,6 +219,11 @@ def test_refuses_to_overwrite_without_flag(tmp_path):
         simulate(tmp_path / "d", cfg)
     simulate(tmp_path / "d", dataclasses.replace(cfg, duration_s=0.1), overwrite=True)
     assert len(list((tmp_path / "d" / "mav0" / "cam0" / "data").iterdir())) == 3
+    # a real recording (no simulation.yaml beside its mav0/): --overwrite replaced it (a QA sweep); never
+    (tmp_path / "d" / "simulation.yaml").unlink()
+    with pytest.raises(VioError, match="not a simulated flight"):
+        simulate(tmp_path / "d", cfg, overwrite=True)
+    assert len(list((tmp_path / "d" / "mav0" / "cam0" / "data").iterdir())) == 3
 
 
 def test_bad_config_values_are_named():

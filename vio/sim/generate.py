@@ -214,6 +214,9 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
     if mav0.exists() and any(mav0.iterdir()):
         if not overwrite:
             raise VioError(f"{out}: already holds a dataset; pass --overwrite to replace it")
+        if not (out / "simulation.yaml").is_file():  # a real recording: --overwrite replaced it (a QA sweep)
+            raise VioError(f"{out}: holds a recording that is not a simulated flight (no simulation.yaml): not "
+                           "replaced, even with --overwrite; give another folder or delete it yourself")
         shutil.rmtree(mav0)  # stale images of the old run would otherwise stay listed nowhere but on disk
     out.mkdir(parents=True, exist_ok=True)
 
