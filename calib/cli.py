@@ -10,6 +10,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from vio.argtypes import positive_float, positive_int
+
 log = logging.getLogger(__name__)
 
 FORMATS = ("kalibr", "euroc", "depthai", "opencv")
@@ -38,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s = sub.add_parser("check", help="check a calibration against a EuRoC recording (PASS/WARN/FAIL)")
     s.add_argument("calibration", type=Path, help="project calibration YAML ('-' = the dataset's own)")
     s.add_argument("dataset", type=Path)
-    s.add_argument("--max-frames", type=int, default=40, help="stereo pairs to use (evenly spread)")
+    s.add_argument("--max-frames", type=positive_int, default=40, help="stereo pairs to use (evenly spread)")
     s.add_argument("--disparity", action="store_true",
                    help="also replay the recording and check cam1 against cam0 with the estimator's stereo check: "
                    "the disparity bias and the focal lengths, which the epipolar checks cannot see (takes a replay: "
@@ -58,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s = sub.add_parser("time-offset", help="estimate the camera-IMU time offset (t_imu = t_cam + offset)")
     s.add_argument("dataset", type=Path)
     s.add_argument("--calibration", type=Path, help="project calibration YAML (default: the dataset's)")
-    s.add_argument("--max-offset-ms", type=float, default=100.0, help="search range +-")
+    s.add_argument("--max-offset-ms", type=positive_float, default=100.0, help="search range +-")
     s.add_argument("--plot", type=Path, help="write the rate curves and correlation (PNG)")
 
     s = sub.add_parser("refine", help="refine the camera-IMU extrinsics (and time offset) by replaying a recording",

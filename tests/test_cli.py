@@ -54,6 +54,14 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
             main(argv)
         assert e.value.code == EXIT_USAGE
         assert "usage:" in capsys.readouterr().err
+    # numeric options out of range: a usage error naming the option, not an internal error part-way (a QA sweep)
+    for argv, says in ((["replay", "d", "-o", "t.tum", "--max-frames", "0"], "--max-frames: must be at least 1"),
+                       (["calib", "check", "-", "d", "--max-frames", "-3"], "--max-frames: must be at least 1"),
+                       (["calib", "time-offset", "d", "--max-offset-ms", "-5"], "must be a positive number"),
+                       (["eval", "e.tum", "g", "--run", "0"], "--run: must be at least 1")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv
 
 
 def test_config_check_good_file(tmp_path, capsys):
@@ -82,6 +90,8 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[source]\nkind = 'fake'\ncalibration = '/nonexistent/calib.yaml'\n", "calib.yaml"),
     # the daemon started, the estimator thread died on it, unhealthy with no exit (a QA sweep)
     ("[loop]\nenabled = true\nvocabulary = '/nonexistent/vocab.npz'\n", "[loop] vocabulary: /nonexistent/vocab.npz"),
+    ("[frontend]\nklt_window_px = 20\n", "must be odd"),  # ran as 21, unsaid
+    ("[backend]\nkeyframe_min_interval_s = 1.0\nkeyframe_max_interval_s = 0.4\n", "must not exceed"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

@@ -391,6 +391,7 @@ def test_cut_last_lines_repeats_and_nan_rows_are_repaired_and_noted(v101_path, t
     ("distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]",
      "distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359]", "radtan distortion needs 4, 5, 8"),
     ("rate_hz: 20", "rate_hz: fast", "rate_hz: value 'fast' is not a number"),
+    ("rate_hz: 20", "rate_hz: -20", "camera rate_hz must be a positive number"),  # a QA sweep: accepted
     ("T_BS:", "T_XX:", "missing key 'T_BS'"),
 ])
 def test_camera_yaml_errors_name_file_and_key(v101_path, tmp_path, old, new, expected):

@@ -71,6 +71,9 @@ class CameraCalibration:
             raise VioError(f"distortion coefficients must be finite, got {list(self.distortion)}")
         if not (self.width > 0 and self.height > 0):
             raise VioError(f"resolution must be positive, got {self.width}x{self.height}")
+        if not (isinstance(self.rate_hz, (int, float)) and 0 < self.rate_hz < math.inf):
+            # the time-offset code divides by it; the IMU's was refused already, the camera's passed (a QA sweep)
+            raise VioError(f"camera rate_hz must be a positive number, got {self.rate_hz!r}")
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
             raise VioError(f"principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image")
         n = len(self.distortion)

@@ -627,6 +627,12 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if b.max_depth_m > f.max_depth_m or b.min_depth_m < f.min_depth_m:
         raise VioError(f"{source}: [backend] depth range {b.min_depth_m}..{b.max_depth_m} m must lie inside the "
                        f"front end's {f.min_depth_m}..{f.max_depth_m} m (points outside it are never matched)")
+    if b.keyframe_min_interval_s > b.keyframe_max_interval_s:
+        raise VioError(f"{source}: [backend] keyframe_min_interval_s ({b.keyframe_min_interval_s}) must not exceed "
+                       f"keyframe_max_interval_s ({b.keyframe_max_interval_s}): no keyframe interval meets both")
+    if f.klt_window_px % 2 == 0:  # it was made odd unsaid (20 ran as 21)
+        raise VioError(f"{source}: [frontend] klt_window_px = {f.klt_window_px} must be odd (a window centred on its "
+                       f"pixel): {f.klt_window_px - 1} or {f.klt_window_px + 1}")
     if b.vision_timeout_s > b.lost_timeout_s:
         raise VioError(f"{source}: [backend] vision_timeout_s ({b.vision_timeout_s}) must not exceed lost_timeout_s "
                        f"({b.lost_timeout_s}): output would continue after the estimator gave up")

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
+from vio.argtypes import positive_int
 from vio.io.outputs import check_outputs
 from vio.types import NavState
 
@@ -65,7 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--view", nargs="?", const="serve", metavar="FILE.rrd|serve",
                    help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
     p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
-    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N camera frames")
+    p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N camera frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--threads", type=_threads, default=1, metavar="N",
                    help="OpenCV worker threads (default 1: the same trajectory on every run; with OpenCV's pool a "
