@@ -21,7 +21,7 @@ import numpy as np
 from calib.depthai_import import ImportNotes, opencv_to_radtan, stereo_from_depthai
 from vio import VioError
 from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, camera_from_dict, load_yaml
-from vio.geometry import inv_T, rotation_angle_deg
+from vio.geometry import inv_T, is_se3, rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -44,13 +44,17 @@ def _single_file(files: Sequence[Path], fmt: str, what: str) -> Path:
 
 
 def _matrix(d: dict, key: str, where: str) -> np.ndarray:
+    """d[key] as a rigid 4x4 transform (checked here: a bad one was first compared with the others, which warned
+    of a '110 mm' disagreement before the real error, a QA sweep's finding)."""
     try:
-        T = np.asarray(d[key], dtype=float)
-        return T.reshape(4, 4)
+        T = np.asarray(d[key], dtype=float).reshape(4, 4)
     except KeyError:
         raise VioError(f"{where}: missing key '{key}'") from None
     except (TypeError, ValueError):
         raise VioError(f"{where}: key '{key}' is not a 4x4 matrix") from None
+    if not is_se3(T, tol=1e-4):
+        raise VioError(f"{where}: {key} is not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
+    return T
 
 
 # ---------------------------------------------------------------------------------------------- kalibr
@@ -87,6 +91,13 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
         raise VioError(f"{chain_path}: missing key 'cam1' (a stereo camera chain is needed)")
     c0, c1 = dict(chain["cam0"]), dict(chain["cam1"])
     where0, where1 = f"{chain_path}: cam0", f"{chain_path}: cam1"
+    more = sorted(k for k in chain if k.startswith("cam") and k not in ("cam0", "cam1"))
+    if more:
+        notes.add(f"{chain_path}: {', '.join(more)} left out: Kestrel uses the stereo pair cam0 / cam1")
+    for c, where in ((c0, where0), (c1, where1)):
+        if "T_imu_cam" in c and "T_cam_imu" not in c:  # the inverse, under another tool's name
+            raise VioError(f"{where}: T_imu_cam is not a Kalibr camchain key: Kalibr writes T_cam_imu (IMU points into "
+                           "the camera frame); write the inverse of this matrix as T_cam_imu")
     if "T_cam_imu" not in c0:
         notes.add(f"{where0}: no T_cam_imu (camchain.yaml without IMU); body frame set to cam0")
         c0["T_cam_imu"] = np.eye(4)

@@ -74,6 +74,22 @@ def test_kalibr_errors_name_file_and_key(tmp_path):
     f.write_text((DATA / "kalibr_camchain_imucam.yaml").read_text().replace("distortion_coeffs:", "distortion_coefs:"))
     with pytest.raises(VioError, match=r"unknown key 'distortion_coefs' \(did you mean 'distortion_coeffs'\?\)"):
         import_calibration("kalibr", [f])
+    # a QA sweep's: T_imu_cam (another tool's name, the inverse) gave two misleading warnings; a T_cam_imu whose last
+    # row is wrong warned of a disagreement first; a third camera was left out unsaid
+    f.write_text((DATA / "kalibr_camchain_imucam.yaml").read_text().replace("T_cam_imu:", "T_imu_cam:", 1))
+    with pytest.raises(VioError, match=r"cam0: T_imu_cam is not a Kalibr camchain key"):
+        import_calibration("kalibr", [f])
+    lines = (DATA / "kalibr_camchain_imucam.yaml").read_text().splitlines()
+    last = next(i for i, ln in enumerate(lines) if ln.strip() == "- [0, 0, 0, 1]")
+    lines[last] = lines[last].replace("1]", "2]")
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(VioError, match=r"T_cam_imu is not a rigid transform"):
+        import_calibration("kalibr", [f])
+    text = (DATA / "kalibr_camchain_imucam.yaml").read_text()
+    cam1 = text[text.index("cam1:"):]
+    f.write_text(text + "\n" + cam1.replace("cam1:", "cam2:", 1))
+    _, notes = import_calibration("kalibr", [f])
+    assert any("cam2 left out" in m for m in notes.messages)
     g = tmp_path / "imu.yaml"
     g.write_text("accelerometer_noise_density: 0.01\nupdate_rate: 100\n")
     with pytest.raises(VioError, match=r"imu\.yaml: missing key 'gyroscope_noise_density'"):
