@@ -121,16 +121,25 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
     return stats
 
 
+def refuse_recorded(out: str | Path, fmt: str, overwrite: bool) -> None:
+    """VioError when OUT already holds recorded data (an MCAP file, a EuRoC folder's mav0/) and --overwrite is not
+    given: said before the source is opened (an OAK takes seconds to start), as the writer would say after it."""
+    path = Path(out)
+    mav0 = path / "mav0"
+    held = path.exists() if fmt == "mcap" else mav0.is_dir() and any(mav0.iterdir())
+    if held and not overwrite:
+        what = "exists" if fmt == "mcap" else "holds a dataset"
+        raise VioError(f"{path}: already {what}; refusing to overwrite recorded data")
+
+
 def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: str, overwrite: bool,
                  png_level: int = 0):
     """EurocWriter (a folder) or McapWriter (one file; sensors on ROS 2 schemas, `images` png/jpeg/raw)."""
     if fmt == "mcap":
         from vio.io.bag import McapWriter
 
-        path = Path(out)
-        if path.exists() and not overwrite:
-            raise VioError(f"{path}: already exists; refusing to overwrite recorded data")
-        return McapWriter(path, images, calibration=calib)
+        refuse_recorded(out, fmt, overwrite)
+        return McapWriter(Path(out), images, calibration=calib)
     from vio.io.euroc import EurocWriter
 
     return EurocWriter(out, calib, flush_interval_s=FLUSH_INTERVAL_S, overwrite=overwrite, png_level=png_level)
@@ -165,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
     calibration = load_calibration(src_cfg.calibration) if src_cfg.calibration else None
     if (args.format or cfg.run.record_format) == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
         raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")
+    refuse_recorded(args.out, args.format or cfg.run.record_format, args.overwrite)
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 

@@ -169,3 +169,23 @@ def test_duration_counts_from_the_later_stream_and_an_empty_stream_fails_the_com
     assert (tmp_path / "noimu" / "mav0" / "cam0" / "data.csv").exists()
     (tmp_path / "afile").write_text("x")
     assert main(["record", str(tmp_path / "afile"), "--duration", "1", "--config", str(cfg)]) == 1
+
+
+def test_an_existing_recording_is_refused_before_the_source_opens(tmp_path: Path, monkeypatch, capsys) -> None:
+    """`vio record` opened the source (an OAK takes seconds) before the writer refused an existing OUT (a QA sweep):
+    now said first, for both formats, and the old data is untouched."""
+    import drivers.source
+    from vio.app.cli import main
+
+    (tmp_path / "old" / "mav0" / "imu0").mkdir(parents=True)
+    (tmp_path / "old" / "mav0" / "imu0" / "data.csv").write_text("kept\n")
+    (tmp_path / "old.mcap").write_bytes(b"kept")
+    opened = []
+    monkeypatch.setattr(drivers.source, "open_source", lambda cfg: opened.append(cfg))
+    for argv in (["record", str(tmp_path / "old"), "--source", "fake"],
+                 ["record", str(tmp_path / "old.mcap"), "--source", "fake", "--format", "mcap"]):
+        assert main([*argv, "--duration", "1"]) == 1
+        assert "refusing to overwrite recorded data" in capsys.readouterr().err
+    assert not opened
+    assert (tmp_path / "old" / "mav0" / "imu0" / "data.csv").read_text() == "kept\n"
+    assert (tmp_path / "old.mcap").read_bytes() == b"kept"
