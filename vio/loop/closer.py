@@ -392,8 +392,8 @@ class LoopCloser:
         a frame of its own again: it is not reported in the map, its pose carries no map placement, and it looks
         for the map with the relocalisation rules again (reloc candidates, inliers, consistency)."""
         self._component = {s: s for s in self._component}
-        for e in self.graph.edges:
-            if e.kind == "loop" and e.weight >= 0.5 and e.i != e.j:
+        for e in self.graph.active_loops():
+            if e.i != e.j:
                 self._join(self.keyframes[e.i].session, self.keyframes[e.j].session)
 
     def _join(self, a: int, b: int) -> None:
