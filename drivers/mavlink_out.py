@@ -170,7 +170,7 @@ class MavlinkOutput:
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None,
                  link: MavlinkLink | None = None, counter_file: str | None = None,
-                 max_state_age_ms: float | None = None) -> None:
+                 max_state_age_ms: float | None = None, random_first_counter: bool = False) -> None:
         self.cfg = cfg
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
@@ -220,6 +220,7 @@ class MavlinkOutput:
         self._max_age_ns = int(max_state_age_ms * 1e6) if max_state_age_ms else None
         self._too_old_spell = False
         self._counter_file = Path(counter_file) if counter_file else None
+        self._random_first_counter = random_first_counter  # `vio run` with no counter_file; a replay starts at 0
         self._counter_saved: int | None = None
         # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._reset_offset = self._first_counter()
@@ -497,8 +498,12 @@ class MavlinkOutput:
         to a new origin, and an unchanged counter would have the autopilot fuse the jump as a measurement), or a
         random one when none is known (a fresh state folder; the autopilot may still hold our last one)."""
         p = self._counter_file
-        if p is None:
+        if p is None and not self._random_first_counter:
             return 0
+        if p is None:  # `counter_file = ""`: started at 0 on every start, so a restart in flight re-sent the last
+            start = secrets.randbelow(256)  # run's counter (a QA sweep); the config's help says a random start
+            log.info("reset_counter starts at %d, a random value ([mavlink] counter_file is empty)", start)
+            return start
         try:
             last = int(p.read_text().strip())
             if not 0 <= last <= 255:

@@ -424,7 +424,7 @@ def _counted(ap: FakeAutopilot, clock, path) -> MavlinkOutput:
                          clock_ns=clock, counter_file=str(path))
 
 
-def test_a_restarted_output_moves_reset_counter_on_from_the_last_one_sent(ap, tmp_path, caplog):
+def test_a_restarted_output_moves_reset_counter_on_from_the_last_one_sent(ap, tmp_path, caplog, monkeypatch):
     """A daemon restarted in flight (systemd after a crash or the watchdog) starts a new origin; with the counter
     at 0 again, as the flight before had sent, the autopilot fused the jump as a measurement (a review's finding).
     The counter sent is kept in [mavlink] counter_file and the next process starts one past it; with none kept,
@@ -451,6 +451,20 @@ def test_a_restarted_output_moves_reset_counter_on_from_the_last_one_sent(ap, tm
         ap.drain()
     assert "cannot keep the reset_counter" in caplog.text
     out.close()
+    # `counter_file = ""` in `vio run`: every start sent 0, so a restart in flight re-sent the last run's counter (a
+    # QA sweep); the daemon's output starts at a random value, said, and a replay's (no counter kept) still at 0
+    import secrets
+
+    monkeypatch.setattr(secrets, "randbelow", lambda n: 173)
+    for random_first, first in ((True, 173), (False, 0)):
+        caplog.clear()
+        with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+            out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                                clock_ns=FakeClock(), counter_file="", random_first_counter=random_first)
+            out.send_state(state(1_000_000_000))
+        assert ap.of("ODOMETRY", ap.drain())[-1].reset_counter == first
+        assert ("counter_file is empty" in caplog.text) == random_first
+        out.close()
 
 
 def test_a_counter_file_that_cannot_be_written_is_never_trusted(ap, tmp_path, monkeypatch, caplog):

@@ -540,7 +540,7 @@ def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCal
         calib = calibration()  # the camera mount comes from it; unknown yet: Service._set_mount later
         # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips)
         return MavlinkOutput(cfg.mavlink, cfg.mavlink.url, link=link, counter_file=cfg.mavlink.counter_file,
-                             max_state_age_ms=cfg.mavlink.max_state_age_ms,
+                             max_state_age_ms=cfg.mavlink.max_state_age_ms, random_first_counter=True,
                              T_body_cam0=calib.cam0.T_body_cam if calib is not None else None).start()
     return make
 
