@@ -883,3 +883,19 @@ def test_a_stop_signal_never_waits_for_the_lock_the_main_loop_holds() -> None:
         threading.Thread(target=lambda: (handler(signal.SIGTERM, None), done.set()), daemon=True).start()
         assert done.wait(2.0), "the handler blocked on the Event's lock"
     assert stop.wait(2.0) and got == [signal.SIGTERM]
+
+
+def test_a_recording_name_taken_by_an_earlier_mcap_is_not_reused(tmp_path: Path, monkeypatch) -> None:
+    """A board without a real-time clock restarts at the same UTC second after a power cut: the new MCAP replaced
+    the last flight's <time>.mcap, because only a folder of that name was looked for (a QA sweep)."""
+    import time as _time
+
+    from vio.app.daemon.outputs import _fresh_record_dir
+
+    monkeypatch.setattr(_time, "gmtime", lambda *a: _time.struct_time((2026, 12, 6, 14, 7, 45, 6, 340, 0)))
+    first = _fresh_record_dir(str(tmp_path))
+    first.with_suffix(".mcap").write_bytes(b"an earlier flight")
+    second = _fresh_record_dir(str(tmp_path))
+    assert second != first and not second.with_suffix(".mcap").exists() and not second.exists()
+    first.mkdir()  # a EuRoC folder of that name: the same rule
+    assert _fresh_record_dir(str(tmp_path)) == second

@@ -376,10 +376,12 @@ def _trim_partial_rows(mav0: Path) -> dict[str, int]:
 
 
 def _fresh_record_dir(base: str) -> Path:
-    """One dataset per daemon start: <record_dir>/<UTC time>, so a restart never overwrites a flight."""
+    """One dataset per daemon start: <record_dir>/<UTC time>, so a restart never overwrites a flight. Free as a
+    folder and as an MCAP file (<name>.mcap): a board without a real-time clock comes back at the same time after
+    a power cut, and the MCAP of the flight before was written over (a QA sweep)."""
     root = Path(base) / time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     k = 1
-    while root.exists():
+    while root.exists() or root.with_suffix(".mcap").exists():
         root = Path(base) / f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}_{k}"
         k += 1
     return root
