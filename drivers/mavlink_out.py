@@ -130,6 +130,9 @@ def check_mavlink_config(cfg: MavlinkConfig) -> None:
     bad = [m for m in cfg.messages if m not in SUPPORTED_MESSAGES]
     if bad or not cfg.messages:
         raise VioError(f"[mavlink] messages: unknown {bad or 'none given'}; supported: {list(SUPPORTED_MESSAGES)}")
+    twice = sorted({m for m in cfg.messages if list(cfg.messages).count(m) > 1})
+    if twice:  # every state went out twice, and the autopilot fused each one twice (a QA sweep)
+        raise VioError(f"[mavlink] messages = {list(cfg.messages)}: {', '.join(twice)} named twice")
     for key in ("mount_rpy_deg", "mount_offset_m"):
         v = getattr(cfg, key)
         if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):

@@ -91,6 +91,10 @@ def test_config_check_good_file(tmp_path, capsys):
     # the daemon started, the estimator thread died on it, unhealthy with no exit (a QA sweep)
     ("[loop]\nenabled = true\nvocabulary = '/nonexistent/vocab.npz'\n", "[loop] vocabulary: /nonexistent/vocab.npz"),
     ("[frontend]\nklt_window_px = 20\n", "must be odd"),  # ran as 21, unsaid
+    # a QA sweep of the daemon: every state sent (and fused) twice; the pose log and the status in one file
+    ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['ODOMETRY', 'ODOMETRY']\n", "ODOMETRY named twice"),
+    ("[source]\nkind = 'fake'\n[run]\nstatus_file = '/tmp/kv.json'\ntrajectory_file = '/tmp/kv.json'\n",
+     "[run] status_file = '/tmp/kv.json' is [run] trajectory_file too"),
     ("[backend]\nkeyframe_min_interval_s = 1.0\nkeyframe_max_interval_s = 0.4\n", "must not exceed"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
