@@ -23,6 +23,7 @@ when the bytes were read, before parsing.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import select
@@ -112,7 +113,28 @@ def open_connection(url: str, source_system: int) -> mavutil.mavfile:
     if url.startswith(_NETWORK_PREFIXES):
         return mavutil.mavlink_connection(url, **kw)
     device, _, baud = url.partition(":")
-    return mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
+    conn = mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
+    _lock_serial(conn, device)
+    return conn
+
+
+def _lock_serial(conn: mavutil.mavfile, device: str) -> None:
+    """Hold the serial device exclusively (flock, released when the process ends however it ends): two daemons on
+    one flight controller's UART both opened it, interleaved their poses and reset counters (time_usec going back)
+    and split the autopilot's bytes between them, unsaid (a QA sweep). The second one now cannot open it."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: a COM port is exclusive already
+        return
+    port = getattr(conn, "port", None)
+    if port is None or not hasattr(port, "fileno"):
+        return
+    try:
+        fcntl.flock(port.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        conn.close()
+        raise OSError(errno.EBUSY, f"{device} is in use by another process (another `vio run`?): two senders on "
+                      "one autopilot link would interleave their poses") from None
 
 
 def _peer_closed() -> None:

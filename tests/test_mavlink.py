@@ -1048,3 +1048,28 @@ def test_a_pose_older_than_max_state_age_is_not_sent_and_counts_as_lost(ap, capl
         out.send_state(state(clock.t + 10**12))
     assert "ahead of this host's clock" in caplog.text and len(ap.of("ODOMETRY", ap.drain())) == 1
     out.close()
+
+
+def test_a_serial_link_is_held_exclusively(caplog):
+    """Two daemons on one flight controller's UART both opened it and interleaved their poses and reset counters
+    (a QA sweep): the device is held with flock, and the second output cannot open it, says why and retries."""
+    import errno
+    import os
+    import pty
+
+    from drivers.mavlink_link import open_connection
+
+    master, slave = pty.openpty()
+    dev = os.ttyname(slave)
+    first = open_connection(f"{dev}:115200", 1)
+    with pytest.raises(OSError) as e:
+        open_connection(f"{dev}:115200", 2)
+    assert e.value.errno == errno.EBUSY and "in use by another process" in str(e.value)
+    with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
+        out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"{dev}:115200", clock_ns=FakeClock())
+    assert "in use by another process" in caplog.text
+    out.close()
+    first.close()  # released: the next process (a restart) gets it
+    open_connection(f"{dev}:115200", 2).close()
+    os.close(master)
+    os.close(slave)

@@ -682,6 +682,12 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         from drivers.mavlink_link import check_url
 
         check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
+        dev = [u.partition(":")[0] for u in (src.mavlink_imu_url, cfg.mavlink.url) if u and u.startswith("/dev/")]
+        if len(dev) == 2 and os.path.realpath(dev[0]) == os.path.realpath(dev[1]) and \
+                src.mavlink_imu_url != cfg.mavlink.url:
+            # two links on one serial device: the second cannot open it (held exclusively), and was retried for ever
+            raise VioError(f"[source] mavlink_imu_url = {src.mavlink_imu_url!r} and [mavlink] url = "
+                           f"{cfg.mavlink.url!r} are one serial device: leave mavlink_imu_url empty to share the link")
     if cfg.mavlink.url:  # a connection string that can never open would be retried forever, unseen by systemd
         from drivers.mavlink_out import check_mavlink_config
 
