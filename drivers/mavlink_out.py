@@ -228,6 +228,10 @@ class MavlinkOutput:
         # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._reset_offset = self._first_counter()
         self._last_reset_counter: int | None = None
+        # (estimator reset_counter, this process's offset) of the newest tracked state: a lost pose goes out as
+        # lost_output's -1/0 only in a frame that was once tracked (an estimator started from the IMU alone, its
+        # cameras black from boot, sent its prior's 1 mm covariance with quality -1: a QA sweep)
+        self._tracked_frame: tuple[int, int] | None = None
         self._last_loop_jumps = 0
         self._tracking: bool | None = None
         self._lost_since_ns: int | None = None  # clock time tracking was lost (None while tracking)
@@ -349,13 +353,17 @@ class MavlinkOutput:
                 self._land_done = self._land_done and not state.tracking
                 if state.tracking:
                     self._land_left = 0
+            if state.tracking and finite:
+                self._tracked_frame = (state.reset_counter, self._reset_offset)
+            never_tracked = self._tracked_frame != (state.reset_counter, self._reset_offset)
             if self.T_frd_body is None:
                 self._pending = None
                 if not self._mount_warned:
                     log.warning("no pose sent: the IMU mount is not known yet (mount = %r needs the calibration)",
                                 self.cfg.mount)
                     self._mount_warned = True
-            elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell):
+            elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell
+                                         or never_tracked):
                 self.stats.states_not_tracking += 1
                 self._pending = None
             elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \

@@ -525,11 +525,20 @@ def test_lost_output_quality0_sends_odometry_marked_invalid(ap, lost_output, sen
     with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
         out = make_out(ap, clock, messages=["ODOMETRY"], lost_output=lost_output)
     assert ("fuse at their default 0" in caplog.text) == (lost_output == "quality0")
+    # an estimator that never tracked (started from the IMU alone, cameras black from boot), and one reset into a
+    # new frame: nothing, not lost_output's pose with its prior's 1 mm covariance (a QA sweep)
+    out.send_state(state(900_000_000, tracking=False, quality=0))
+    clock.advance(0.05)
+    assert not ap.of("ODOMETRY", ap.drain())
     out.send_state(state(1_000_000_000, quality=80))
     clock.advance(0.05)
     out.send_state(state(clock.t, tracking=False, quality=0))
     got = ap.of("ODOMETRY", ap.drain())
     assert [m.quality for m in got] == [80, sent]
+    clock.advance(0.05)
+    out.send_state(state(clock.t, tracking=False, quality=0, reset_counter=1))
+    clock.advance(0.05)
+    assert not ap.of("ODOMETRY", ap.drain())
     out.close()
     with pytest.raises(VioError, match="quality0"):
         MavlinkOutput(MavlinkConfig(mount="rpy", lost_output="quality0", messages=["VISION_POSITION_ESTIMATE"]),
