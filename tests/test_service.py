@@ -172,6 +172,19 @@ def test_status_json_of_a_daemon_that_is_gone_says_so(tmp_path, capsys) -> None:
     out = json.loads(capsys.readouterr().out)
     assert out["state"] == "not running" and out["estimator"]["tracking"] is False and not out["healthy"]
     assert out["last_written_state"] == "degraded" and out["verdict"].startswith("NOT RUNNING (pid")
+    # the text said "tracking True, last pose 0.00 s ago" for the same dead daemon (a QA sweep)
+    assert main(["status", "--file", str(path)]) == EXIT_NOT_RUNNING
+    text = capsys.readouterr().out
+    assert "tracking False" in text and "not running: the figures above are the last ones it wrote" in text
+    # a NaN written_unix read HEALTHY (every comparison with it false), a null section ended in an internal error
+    for bad in ({"written_unix": float("nan")}, {"written_unix": "1796566198"}):
+        path.write_text(json.dumps(_status(pid=os.getpid(), **bad)))
+        assert main(["status", "--file", str(path)]) == EXIT_NOT_RUNNING
+        assert "UNKNOWN (its written_unix" in capsys.readouterr().out
+    path.write_text(json.dumps({**_status(pid=os.getpid(), written_unix=time.time()), "rates_hz": None,
+                                "estimator": None, "mavlink": [1]}))
+    assert main(["status", "--file", str(path)]) == EXIT_HEALTHY
+    assert "camera -" in capsys.readouterr().out
 
 
 def test_status_text_names_what_a_person_needs() -> None:

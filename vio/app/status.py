@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -59,7 +60,11 @@ def _pid_gone(pid: Any) -> bool:
 def evaluate(status: dict[str, Any], now_unix: float, stale_s: float,
              pid_gone: Callable[[Any], bool] = _pid_gone) -> tuple[int, str]:
     """Exit code and a one-word verdict for a parsed status."""
-    age = now_unix - float(status.get("written_unix", 0))
+    written = status.get("written_unix")
+    if isinstance(written, bool) or not isinstance(written, (int, float)) or not math.isfinite(written):
+        # NaN read HEALTHY: every comparison with it is false (a QA sweep)
+        return EXIT_NOT_RUNNING, f"UNKNOWN (its written_unix {written!r} is no time: not a status this daemon wrote)"
+    age = now_unix - float(written)
     if status.get("state") == "stopped":
         return EXIT_NOT_RUNNING, "STOPPED"
     if pid_gone(status.get("pid")):
@@ -87,16 +92,18 @@ def _fmt(v: Any, unit: str = "", nd: int = 1) -> str:
 
 def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
     """Readable multi-line report; every field tolerates absence (an older daemon, a starting one)."""
-    r = s.get("rates_hz", {})
-    e = s.get("estimator", {})
-    src = s.get("source", {})
-    mav = s.get("mavlink", {})
-    lat = s.get("latency_ms") or {}
-    up = float(s.get("uptime_s", 0))
+    def section(key: str) -> dict:  # absent, null or of another type: an older, starting or foreign daemon
+        v = s.get(key)
+        return v if isinstance(v, dict) else {}
+
+    r, e, src, mav, lat = (section(k) for k in ("rates_hz", "estimator", "source", "mavlink", "latency_ms"))
+    up = float(s.get("uptime_s") or 0)
+    written = s.get("written_unix")
+    written = written if isinstance(written, (int, float)) and math.isfinite(written) else now_unix
     lines = [
         f"kestrel-vio: {verdict}   state {s.get('state')}   pid {s.get('pid')}   "
         f"up {int(up // 3600)}h{int(up % 3600 // 60):02d}m{int(up % 60):02d}s   "
-        f"(status {now_unix - float(s.get('written_unix', now_unix)):.1f} s old)",
+        f"(status {now_unix - float(written):.1f} s old)",
         f"  sensors   {src.get('kind', '-')}: {'connected' if src.get('connected') else 'NOT DELIVERING'}, "
         f"camera {_fmt(r.get('camera'), ' Hz')}, IMU {_fmt(r.get('imu'), ' Hz', 0)}, "
         f"disconnects {_fmt(src.get('disconnects'))}, frames dropped {_fmt(src.get('frames_dropped'))}, "
@@ -153,6 +160,9 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         lines.append(f"  WARNING   {w}")
     if s.get("state") == "stopped":
         lines.append("  (stopped: the figures above are the last ones before the stop, not the vehicle's now)")
+    elif s.get("state") == "not running":
+        lines.append(f"  (not running: the figures above are the last ones it wrote, in state "
+                     f"{s.get('last_written_state')!r}, not the vehicle's now)")
     return "\n".join(lines)
 
 
@@ -179,14 +189,24 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_NOT_RUNNING
     now = time.time()
     code, verdict = evaluate(status, now, args.stale_s)
+    gone = code == EXIT_NOT_RUNNING and status.get("state") != "stopped"
     if args.json:
-        if code == EXIT_NOT_RUNNING and status.get("state") != "stopped":
-            # the daemon's last word, from a process that is gone or hung: its "tracking" and state are no longer
-            # true (a review's finding: --json said degraded and tracking after a kill -9); the rest is kept
-            status = {**status, "state": "not running", "healthy": False, "verdict": verdict,
-                      "last_written_state": status.get("state"),
-                      "estimator": {**(status.get("estimator") or {}), "tracking": False}}
-        print(json.dumps(status, indent=1))
+        print(json.dumps(_not_running(status, verdict) if gone else status, indent=1))
     else:
-        print(format_status(status, verdict, now))
+        try:
+            text = format_status(_not_running(status, verdict) if gone else status, verdict, now)
+        except (TypeError, ValueError, AttributeError) as e:  # a field of another type: a file not ours
+            print(f"kestrel-vio: UNKNOWN ({path}: cannot read status: {type(e).__name__}: {e})", file=sys.stderr)
+            return EXIT_NOT_RUNNING
+        print(text)
     return code
+
+
+def _not_running(status: dict[str, Any], verdict: str) -> dict[str, Any]:
+    """The daemon's last word, from a process that is gone or hung: its "tracking" and state are no longer true (a
+    review's finding: --json said degraded and tracking after a kill -9, and the text said so too: a QA sweep);
+    the rest is kept."""
+    return {**status, "state": "not running", "healthy": False, "verdict": verdict,
+            "last_written_state": status.get("state"),
+            "estimator": {**(status.get("estimator") if isinstance(status.get("estimator"), dict) else {}),
+                          "tracking": False}}
