@@ -309,7 +309,9 @@ class RecorderWorker(Worker):
 
     def _failed(self, e: Exception) -> None:
         self.state = "failed"
-        self.error = _os_error_text(e) + _storage_diagnosis(self.root)
+        # a writer that never opened never had its folder: "the recording folder was removed" said of a folder a
+        # read-only disk never let it make (a QA sweep)
+        self.error = _os_error_text(e) + _storage_diagnosis(self.root if self.writer is not None else None)
         self.buf.close()
         if self.fmt == "mcap":  # an MCAP file without its summary is read up to its last complete chunk
             with contextlib.suppress(Exception):
