@@ -668,6 +668,22 @@ class MavlinkOutput:
                             "station", LAND_MAX_SENDS)
                 self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO lost, LAND not acked: land it")
 
+    def _armed_before_any_pose(self, now: int) -> None:
+        """The autopilot is armed when this process first hears it, and no pose has gone out yet: started (or
+        restarted by systemd) in flight. If the vehicle was flying on our poses, vision is lost from its side, and
+        a loss that begins before the first pose never started the loss clock: no STATUSTEXT, and
+        land_after_loss_s never fired while the autopilot dead-reckoned (a QA sweep). It counts from now; the
+        first tracked pose ends it. A vehicle armed later (on the ground, or flown without vision) is not this
+        case."""
+        with self._pending_lock:
+            if self._tracked_frame is not None or self._lost_since_ns is not None:
+                return
+            self._tracking, self._lost_since_ns, self._land_done = False, now, False
+        land = f"; LAND after {self.cfg.land_after_loss_s:g} s without one" if self.cfg.land_after_loss_s > 0 else ""
+        log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in flight): "
+                    "counted as lost vision from now%s", land)
+        self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
+
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")
 
@@ -736,6 +752,8 @@ class MavlinkOutput:
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
                 self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                if self._ap_armed and self.stats.autopilot_heartbeats == 1:
+                    self._armed_before_any_pose(now)
                 booting = msg.system_status in BOOTING_STATES
                 if booting and self._ap_running and locked:
                     self._autopilot_restarted(now, "its heartbeat says it is booting")

@@ -965,6 +965,33 @@ def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
     out.close()
 
 
+def test_a_process_started_in_flight_that_never_tracks_counts_as_a_loss(ap):
+    """A daemon restarted by systemd in flight that cannot initialise sent nothing: the loss clock only started on a
+    change from tracking to lost, so neither the STATUSTEXT nor land_after_loss_s's LAND came while the autopilot
+    dead-reckoned (a QA sweep). An autopilot armed when first heard, before any pose, is such a loss."""
+    clock = FakeClock()
+    out = make_out(ap, clock, land_after_loss_s=2.0)
+
+    def step(tracking: bool | None) -> list:
+        clock.advance(0.25)
+        ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+        time.sleep(0.02)
+        if tracking is None:
+            out.poll()
+        else:
+            out.send_state(state(clock.t, tracking=tracking, quality=80 if tracking else 0))
+        return ap.drain(0.01)
+
+    got = sum((step(None if k < 3 else False) for k in range(10)), [])  # 2.5 s: no estimate, then never tracking
+    texts = [m.text for m in ap.of("STATUSTEXT", got)]
+    lands = [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_NAV_LAND]
+    assert "VIO not tracking (restarted?)" in texts and "VIO lost: LAND requested" in texts and len(lands) == 1
+    assert not ap.of("ODOMETRY", got)
+    assert "VIO tracking regained" in [m.text for m in ap.of("STATUSTEXT", step(True))]
+    out.close()
+
+
 def test_no_land_request_once_tracking_is_back_and_the_next_loss_gets_its_own(ap):
     """A LAND not acknowledged (the command or its ACK lost on the radio) was sent again and again after vision came
     back, beside good poses; and the LAND decision raced tracking's return (a loss marked done while tracking,
