@@ -113,28 +113,50 @@ def open_connection(url: str, source_system: int) -> mavutil.mavfile:
     if url.startswith(_NETWORK_PREFIXES):
         return mavutil.mavlink_connection(url, **kw)
     device, _, baud = url.partition(":")
-    conn = mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
-    _lock_serial(conn, device)
+    hold = _hold_serial(device)  # before mavutil opens it: its open sets the line's speed
+    try:
+        conn = mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
+    except BaseException:
+        _release(hold)
+        raise
+    if hold is not None:
+        close = conn.close
+
+        def close_and_release() -> None:
+            try:
+                close()
+            finally:
+                _release(hold)
+        conn.close = close_and_release
     return conn
 
 
-def _lock_serial(conn: mavutil.mavfile, device: str) -> None:
-    """Hold the serial device exclusively (flock, released when the process ends however it ends): two daemons on
-    one flight controller's UART both opened it, interleaved their poses and reset counters (time_usec going back)
-    and split the autopilot's bytes between them, unsaid (a QA sweep). The second one now cannot open it."""
+def _hold_serial(device: str) -> int | None:
+    """A descriptor of the serial device holding it exclusively (flock, released when it is closed or the process
+    ends however it ends), taken before the port is opened and configured: two daemons on one flight controller's
+    UART both opened it, interleaved their poses and reset counters and split the autopilot's bytes between them,
+    unsaid (a QA sweep); and a lock taken after mavutil's open would let the refused one set the flying link's
+    speed first (a review's finding). None where flock does not exist (Windows: a COM port is exclusive)."""
     try:
         import fcntl
-    except ImportError:  # Windows: a COM port is exclusive already
-        return
-    port = getattr(conn, "port", None)
-    if port is None or not hasattr(port, "fileno"):
-        return
+    except ImportError:
+        return None
     try:
-        fcntl.flock(port.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fd = os.open(device, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)  # reads nothing, changes no setting
+    except OSError:
+        return None  # missing, or no permission: mavutil's own open says which
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        conn.close()
-        raise OSError(errno.EBUSY, f"{device} is in use by another process (another `vio run`?): two senders on "
+        os.close(fd)
+        raise OSError(errno.EBUSY, f"{device} is held by another connection (another `vio run`?): two senders on "
                       "one autopilot link would interleave their poses") from None
+    return fd
+
+
+def _release(fd: int | None) -> None:
+    if fd is not None:
+        os.close(fd)
 
 
 def _peer_closed() -> None:

@@ -1092,18 +1092,23 @@ def test_a_serial_link_is_held_exclusively(caplog):
     import errno
     import os
     import pty
+    import termios
 
     from drivers.mavlink_link import open_connection
 
     master, slave = pty.openpty()
     dev = os.ttyname(slave)
     first = open_connection(f"{dev}:115200", 1)
+    speed = termios.tcgetattr(slave)[4:6]
     with pytest.raises(OSError) as e:
-        open_connection(f"{dev}:115200", 2)
-    assert e.value.errno == errno.EBUSY and "in use by another process" in str(e.value)
+        open_connection(f"{dev}:57600", 2)
+    assert e.value.errno == errno.EBUSY and "held by another connection" in str(e.value)
+    # refused before it was opened: the flying link's speed is as it was (a lock taken after mavutil's open let
+    # the refused one set it first: a review's finding)
+    assert termios.tcgetattr(slave)[4:6] == speed
     with caplog.at_level("WARNING", logger="drivers.mavlink_out"):
         out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"{dev}:115200", clock_ns=FakeClock())
-    assert "in use by another process" in caplog.text
+    assert "held by another connection" in caplog.text
     out.close()
     first.close()  # released: the next process (a restart) gets it
     open_connection(f"{dev}:115200", 2).close()
