@@ -24,8 +24,14 @@ def in_recording(path: str | Path, recording: str | Path) -> bool:
     rec = Path(os.path.realpath(recording))
     if not rec.is_dir():
         return False
+    from vio.io.euroc import find_mav0
+
+    try:  # the dataset given as the folder holding mav0/ or as mav0/ itself, which readers take too (a review's)
+        mav0 = Path(os.path.realpath(find_mav0(rec)))
+    except VioError:  # not a EuRoC folder (a bag's): nothing of it is a mav0/
+        mav0 = rec / "mav0"
     p = Path(os.path.realpath(path))
-    return p == rec / "mav0" or (rec / "mav0") in p.parents or p in {rec / n for n in RECORDING_ROOT_FILES}
+    return p == mav0 or mav0 in p.parents or p in {mav0.parent / n for n in RECORDING_ROOT_FILES}
 
 
 def recording_of(path: str | Path) -> str | None:
