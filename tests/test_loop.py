@@ -594,9 +594,17 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
         assert main(["map", "info", str(path)]) == 1
         err = capsys.readouterr().err
         assert says in err and "internal error" not in err, err
-    np.savez(tmp_path / "back.npz", **{**good, "kf_t_ns": np.array([2, 1])})
+    one = '"parts": [{"keyframes": 2, "join_edges": null}], '
+    np.savez(tmp_path / "back.npz", **{**good, "kf_t_ns": np.array([2, 1]), "header": np.array(
+        '{"format": "kestrel-vio-map", "version": 1, ' + one + cam + '}')})
     with pytest.raises(VioError, match="stamps do not increase within flight 1"):
         load_map(tmp_path / "back.npz")
+    # without parts (optional in version 1; maps grown before they existed): several flights' clocks, loaded, and
+    # map info says it cannot tell the time flown instead of a negative one (a review's finding)
+    np.savez(tmp_path / "old.npz", **{**good, "kf_t_ns": np.array([2, 1])})
+    assert len(load_map(tmp_path / "old.npz").features) == 2
+    assert main(["map", "info", str(tmp_path / "old.npz")]) == 0
+    assert "over an unknown time (stamps of several flights" in capsys.readouterr().out
     two = '"parts": [{"keyframes": 1, "join_edges": null}, {"keyframes": 1, "join_edges": 4}], '
     np.savez(tmp_path / "grown.npz", **{**good, "kf_t_ns": np.array([9, 1]),  # two flights, two clocks: fine
                                         "header": np.array('{"format": "kestrel-vio-map", "version": 1, ' + two + cam

@@ -28,19 +28,25 @@ def run(args: argparse.Namespace) -> int:
     if sum(int(q["keyframes"]) for q in parts) != len(m.t_ns):  # no parts (or not these keyframes'): one flight
         parts = [{"keyframes": len(m.t_ns), "join_edges": None}]
     ends = np.cumsum([0] + [int(q["keyframes"]) for q in parts])
+    # a map without parts may hold several flights on clocks of their own: stamps that run back say so
     spans = [float((m.t_ns[b - 1] - m.t_ns[a]) * 1e-9) if b - a > 1 else 0.0 for a, b in zip(ends[:-1], ends[1:])]
+    mixed = not (m.header.get("parts") or []) and bool(np.any(np.diff(m.t_ns) <= 0))
     # the counts from the keyframes themselves (the header's are what the saver wrote; a hand-edited or foreign
     # header may lack them, as it may lack the informative created_utc and vocabulary: said, not a traceback)
     info = {**m.header, "keyframes": len(m.t_ns), "descriptors": int(sum(len(f.desc) for f in m.features)),
             "landmarks_3d": int(n3),
             "extent_m": {"min": p.min(0).round(3).tolist(), "max": p.max(0).round(3).tolist()} if len(p) else None,
-            "span_s": round(sum(spans), 3), "part_spans_s": [round(x, 3) for x in spans]}
+            "span_s": None if mixed else round(sum(spans), 3),
+            "part_spans_s": None if mixed else [round(x, 3) for x in spans]}
     if args.json:
         print(json.dumps(info, indent=1))
         return 0
     print(f"{args.file}: {info['format']} version {info.get('version', 0)}, created "
           f"{info.get('created_utc') or 'at an unknown time'}")
-    flown = f"{info['span_s']:.1f} s" + (f" of flight in {len(spans)} parts" if len(spans) > 1 else "")
+    if mixed:
+        flown = "an unknown time (stamps of several flights, and no parts in the header to split them)"
+    else:
+        flown = f"{info['span_s']:.1f} s" + (f" of flight in {len(spans)} parts" if len(spans) > 1 else "")
     print(f"  {info['keyframes']} keyframes over {flown}, {info['descriptors']} descriptors, {n3} with stereo 3D "
           "points")
     if info["extent_m"]:
