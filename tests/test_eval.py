@@ -327,7 +327,16 @@ def test_a_file_vio_run_appended_several_runs_to_is_read_one_run_at_a_time(tmp_p
                  ]) == 0
     assert json.loads((tmp_path / "e.json").read_text())["ate_4dof"]["trans_m"]["rmse"] < 0.5  # the 5 m jump: metres
     assert main(["-q", "eval", str(runs), str(tmp_path / "gt.txt"), "--run", "3"]) == 1
-    assert "holds 2 run(s) with poses, not run 3" in capsys.readouterr().err
+    assert "holds 2 runs, not run 3" in capsys.readouterr().err
+    # a start that never tracked wrote its marker and no pose: it is a run as the file shows it (a review's finding:
+    # --run 2 read the third marker's poses), said when asked for, and the default is still the last with poses
+    lines = runs.read_text().splitlines()
+    lines.insert(half + 1, f"{RUN_MARKER} 2026-12-06T10:03:00+00:00 (pid 9): the poses below ...")
+    runs.write_text("\n".join(lines) + "\n")
+    assert main(["-q", "eval", str(runs), str(tmp_path / "gt.txt"), "--run", "2"]) == 1
+    assert "run 2 of 3 (started 2026-12-06T10:03:00+00:00 (pid 9)) holds no pose" in capsys.readouterr().err
+    assert np.array_equal(load_trajectory(runs, 3).t_ns, gt.t_ns[half:])
+    assert np.array_equal(load_trajectory(runs).t_ns, gt.t_ns[half:])
     # one run with its marker, as the daemon's first run writes it: read as it is, nothing said
     caplog.clear()
     (tmp_path / "single.tum").write_text(f"{RUN_MARKER} x (pid 1): ...\n" + "\n".join(body[0]) + "\n")

@@ -125,19 +125,25 @@ RUN_MARKER = "# kestrel-vio run started"  # `vio run` appends each run to its tr
 
 def _one_run(path: Path, runs: list[tuple[str | None, list, list, list]], run: int | None
              ) -> tuple[list, list, list]:
-    """(t, p, q) of run number `run` (1 = the first; None: the last) of the runs that hold poses."""
+    """(t, p, q) of run number `run` of a file's runs (1 = the first RUN_MARKER line's, or the poses before any
+    marker when there are some; every marker counts, a run that wrote no pose too, as the file shows them), by
+    default the last one with poses; which one is said when the file holds more than one."""
+    if not runs[0][1]:
+        runs = runs[1:]  # no poses before the first marker: the runs are the markers'
     if not runs:
         return [], [], []
     if run is None and len(runs) == 1:
         return runs[0][1:]
     if run is not None and not 1 <= run <= len(runs):
-        raise VioError(f"{path}: holds {len(runs)} run(s) with poses, not run {run}")
-    k = len(runs) if run is None else run
+        raise VioError(f"{path}: holds {len(runs)} runs, not run {run}")
+    k = run if run is not None else max((n for n, r in enumerate(runs, 1) if r[1]), default=len(runs))
     marker, t, p, q = runs[k - 1]
-    if run is None:
-        which = marker[len(RUN_MARKER) - len("started"):].split(": the poses")[0] if marker else "before any marker"
-        log.warning("%s holds %d runs of `vio run`, each in its own odometry frame: the last one read (%s, %d poses); "
-                    "--run N picks another", path, len(runs), which, len(t))
+    which = marker[len(RUN_MARKER) - len("started"):].split(": the poses")[0] if marker else "before any marker"
+    if not t:
+        raise VioError(f"{path}: run {k} of {len(runs)} ({which}) holds no pose (a start that never tracked?)")
+    if len(runs) > 1:
+        log.warning("%s holds %d runs of `vio run`, each in its own odometry frame: run %d read (%s, %d poses)%s",
+                    path, len(runs), k, which, len(t), "; --run N picks another" if run is None else "")
     return t, p, q
 
 
@@ -190,7 +196,7 @@ def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
         q.append([vals[6], vals[3], vals[4], vals[5]])
         if len(t) > 1 and t[-1] <= t[-2]:
             raise VioError(f"{path}:{i}: time stamp not increasing")
-    t, p, q = _one_run(path, [r for r in runs if r[1]], run)
+    t, p, q = _one_run(path, runs, run)
     if not t:
         raise VioError(f"{path}: no poses")
     return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(q))
