@@ -670,18 +670,18 @@ class MavlinkOutput:
 
     def _armed_before_any_pose(self, now: int) -> None:
         """The autopilot is armed when this process first hears it, and no pose has gone out yet: started (or
-        restarted by systemd) in flight. If the vehicle was flying on our poses, vision is lost from its side, and
-        a loss that begins before the first pose never started the loss clock: no STATUSTEXT, and
-        land_after_loss_s never fired while the autopilot dead-reckoned (a QA sweep). It counts from now; the
-        first tracked pose ends it. A vehicle armed later (on the ground, or flown without vision) is not this
-        case."""
+        restarted by systemd) in flight, or a companion that came up after take-off. A loss that began before the
+        first pose never started the loss clock: no word to the ground station while the autopilot dead-reckoned
+        (a QA sweep). It is said now (STATUSTEXT, log) and counts as lost until the first tracked pose; no LAND is
+        asked for it: nothing here tells a vehicle that was flying on our poses from one flown without them (on
+        GPS, by hand), which a LAND would take from its pilot (a review's finding). The autopilot's own failsafe
+        acts on its side; a loss after this process has tracked gets land_after_loss_s as ever."""
         with self._pending_lock:
             if self._tracked_frame is not None or self._lost_since_ns is not None:
                 return
-            self._tracking, self._lost_since_ns, self._land_done = False, now, False
-        land = f"; LAND after {self.cfg.land_after_loss_s:g} s without one" if self.cfg.land_after_loss_s > 0 else ""
-        log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in flight): "
-                    "counted as lost vision from now%s", land)
+            self._tracking, self._lost_since_ns, self._land_done = False, now, True
+        log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in "
+                    "flight?): not tracking; no LAND is asked for it")
         self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
 
     def _statustext(self, severity: int, text: str) -> None:

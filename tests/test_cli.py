@@ -94,7 +94,7 @@ def test_config_check_good_file(tmp_path, capsys):
     # a QA sweep of the daemon: every state sent (and fused) twice; the pose log and the status in one file
     ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['ODOMETRY', 'ODOMETRY']\n", "ODOMETRY named twice"),
     ("[source]\nkind = 'fake'\n[run]\nstatus_file = '/tmp/kv.json'\ntrajectory_file = '/tmp/kv.json'\n",
-     "[run] status_file = '/tmp/kv.json' is [run] trajectory_file too"),
+     "[run] trajectory_file and [run] status_file would be written to the same file"),
     ("[source]\nkind = 'fake'\nimu = 'mavlink'\nmavlink_imu_url = '/dev/ttyS0:921600'\n[mavlink]\nurl = '/dev/ttyS0'\n",
      "are one serial device"),
     ("[backend]\nkeyframe_min_interval_s = 1.0\nkeyframe_max_interval_s = 0.4\n", "must not exceed"),

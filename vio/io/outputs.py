@@ -42,13 +42,8 @@ def recording_of(path: str | Path) -> str | None:
     return next((str(a.parent) for a in p.parents if a.name == "mav0"), None)
 
 
-def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
-                  grows: tuple[str, ...] = (), recordings: tuple[str | None, ...] = (),
-                  folders: dict[str, str | None] | None = None) -> None:
-    """Every output file can be written where it is asked for (its folder exists, it is no folder itself). No two
-    outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in `grows` (a
-    map saved over the map it loaded), nor any output (files in `paths`, output folders in `folders`) lie in the
-    sensor data of a recording folder the run reads (`recordings`)."""
+def distinct_files(paths: dict[str, str | None]) -> dict[str, str]:
+    """{real path: what} of the outputs named (empty ones left out); VioError when two are one file."""
     seen: dict[str, str] = {}
     for what, p in paths.items():
         if p:
@@ -56,6 +51,17 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             if key in seen:
                 raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
             seen[key] = what
+    return seen
+
+
+def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
+                  grows: tuple[str, ...] = (), recordings: tuple[str | None, ...] = (),
+                  folders: dict[str, str | None] | None = None) -> None:
+    """Every output file can be written where it is asked for (its folder exists, it is no folder itself). No two
+    outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in `grows` (a
+    map saved over the map it loaded), nor any output (files in `paths`, output folders in `folders`) lie in the
+    sensor data of a recording folder the run reads (`recordings`)."""
+    seen = distinct_files(paths)
     for what, p in (reads or {}).items():
         writer = seen.get(os.path.realpath(p)) if p else None
         if writer not in (None, *grows):

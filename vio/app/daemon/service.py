@@ -719,14 +719,11 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
                 raise VioError(f"[map] save: {e}") from None
             # a state folder gone read-only: fly without saving rather than not at all (exit 3 is never restarted)
             warn(f"[map] save: {e}: running, the map will not be saved")
+    from vio.io.outputs import distinct_files
+
     files = {f"[run] {k}": getattr(cfg.run, k) for k in ("trajectory_file", "status_file")}
     files["[map] save"], files["[mavlink] counter_file"] = cfg.map.save, cfg.mavlink.counter_file
-    seen: dict[str, str] = {}
-    for key, value in files.items():  # one file for two outputs: each wrote over the other (the pose log died)
-        if value and os.path.realpath(value) in seen:
-            raise VioError(f"{key} = {value!r} is {seen[os.path.realpath(value)]} too: give each its own file")
-        if value:
-            seen[os.path.realpath(value)] = key
+    distinct_files(files)  # one file for two outputs: each wrote over the other (the pose log died)
     for key in ("record_dir", "trajectory_file", "status_file"):
         value = getattr(cfg.run, key)
         if not value:
