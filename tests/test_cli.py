@@ -194,3 +194,13 @@ def test_config_check_reads_a_euroc_source_as_vio_replay_would(tmp_path, capsys,
         assert "[source] dataset = " in err and says in err and "Traceback" not in err, err
     cfg.write_text(f"[source]\nkind = 'euroc'\ndataset = '{v101_path}'\n")
     assert main(["-q", "config", "check", str(cfg)]) == EXIT_OK
+
+
+def test_quiet_means_no_progress_bar_either(tmp_path):
+    """`-q` is "warnings and errors only", but simulate / replay drew their progress bars into logs and CI output
+    unless --no-progress was given too."""
+    flight = tmp_path / "f"
+    r = _vio("-q", "simulate", str(flight), "--duration", "1", "--size", "188x120")
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    r = _vio("-q", "replay", str(flight), "-o", str(tmp_path / "t.tum"))
+    assert "frame/s" not in r.stderr and "%|" not in r.stderr, r.stderr

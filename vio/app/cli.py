@@ -91,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
         command, verbose = getattr(args, "command", None) or command, bool(args.verbose)
         level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+        if args.quiet and hasattr(args, "no_progress"):  # -q: warnings and errors only, no progress bar either
+            args.no_progress = True
         logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
         if getattr(args, "command", None) and not hasattr(args, "_module"):
             print(f"vio {args.command}: this command is unavailable in this installation", file=sys.stderr)
