@@ -100,8 +100,17 @@ class SerialImuSource(ThreadedSource):
         """Parse bytes that arrived at `t_arrival_ns` (host clock) and queue the samples. Public so that
         tests and tools can drive the parser and clock sync without a port."""
         raws = self.parser.feed(data)
-        # add the whole chunk before converting: the chunk's last frame has the least latency, and early on
-        # (before the first fit) converting frame by frame would collapse a burst onto one arrival stamp
+        # a device clock that runs back within the chunk (the MCU rebooted between two of its frames) splits it:
+        # the frames before the reboot are placed with the clock fit they were made under; placed with the fit
+        # restarted after it they were stamped seconds in the future, and every sample after them was then
+        # dropped as out of order for as long as the device had been up (a QA sweep)
+        cuts = [k for k in range(1, len(raws)) if raws[k].t_us < raws[k - 1].t_us]
+        for a, b in zip([0, *cuts], [*cuts, len(raws)]):
+            self._place(raws[a:b], t_arrival_ns)
+
+    def _place(self, raws: list, t_arrival_ns: int) -> None:
+        # add the whole run before converting: its last frame has the least latency, and early on (before the
+        # first fit) converting frame by frame would collapse a burst onto one arrival stamp
         for raw in raws:
             self.clock.add(raw.t_us * 1000, t_arrival_ns)
         if self.clock.problem:  # stamps the clock sync cannot place: none at all is safer than wrong ones

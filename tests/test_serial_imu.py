@@ -149,6 +149,42 @@ def test_clock_sync_restarts_on_device_reset() -> None:
     assert cs.to_host(0) == 2_000_000_000
 
 
+@pytest.mark.parametrize("one_read", [False, True])
+def test_a_reboot_inside_one_read_places_each_frame_with_its_own_clock(one_read) -> None:
+    """An MCU reboot whose last frames before and first after arrived in one read(): all of them were placed with
+    the fit restarted after the reboot, the old frames 9 s in the future, and every sample after them dropped as
+    out of order for as long as the device had been up (a QA sweep). One read or two: the same samples, in time."""
+    src = SerialImuSource("/dev/null")
+    g, a = np.zeros(3), np.array([0.0, 0.0, 9.81])
+    host0, lat = 1_000_000_000_000, 2_000_000
+    seq, t_us = 0, 1_000_000
+    for _ in range(1000):  # 10 s at 400 Hz, four frames a read
+        chunk = b""
+        for _ in range(4):
+            chunk += encode_imu(seq, t_us, g, a)
+            seq, t_us = seq + 1, t_us + 2500
+        src.feed(chunk, host0 + (t_us - 1_000_000) * 1000 + lat)
+    host_now = host0 + (t_us - 1_000_000) * 1000
+    before = encode_imu(seq, t_us, g, a) + encode_imu(seq + 1, t_us + 2500, g, a)
+    after = encode_imu(0, 1000, g, a) + encode_imu(1, 3500, g, a)  # rebooted: its clock restarts near 0
+    if one_read:
+        src.feed(before + after, host_now + 5_000_000 + lat)
+    else:
+        src.feed(before, host_now + 5_000_000 + lat)
+        src.feed(after, host_now + 5_000_000 + lat)
+    r, h = 6000, host_now + 5_000_000 + lat
+    for k in range(200):  # 2 s after the reboot
+        chunk = b""
+        for _ in range(4):
+            chunk += encode_imu(2 + k * 4, r, g, a)
+            r += 2500
+        h += 10_000_000
+        src.feed(chunk, h)
+    t = np.array([m.t_ns for m in src.poll()])
+    assert t.max() <= h and np.all(np.diff(t) > 0)
+    assert len(t) >= 4000 and src.health()["stream"]["non_monotonic"] <= 2
+
+
 def test_stream_monitor_counts_gaps_jumps_and_reversals() -> None:
     m = StreamMonitor("imu", 200.0)
     stamps = [0, 5, 10, 30, 35, 35, 34, 2000, 2005]
