@@ -186,9 +186,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         log.info("recording %s source to %s%s", src_cfg.kind, args.out,
                  f" for {args.duration:g} s" if args.duration else " until SIGINT/SIGTERM")
-        stats = record(source, args.out, duration_s=args.duration, stop=stop, calibration=calibration,
-                       overwrite=args.overwrite, fmt=args.format or cfg.run.record_format,
-                       images=args.images or cfg.run.record_images, png_level=cfg.run.record_png_level)
+        try:
+            stats = record(source, args.out, duration_s=args.duration, stop=stop, calibration=calibration,
+                           overwrite=args.overwrite, fmt=args.format or cfg.run.record_format,
+                           images=args.images or cfg.run.record_images, png_level=cfg.run.record_png_level)
+        except OSError as e:  # a full disk or a file size limit in the MCAP writer: an "internal error" before
+            raise VioError(f"{args.out}: cannot write the recording ({e.strerror or e}): stopped; what was written "
+                           "before stays readable") from None
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -189,3 +189,25 @@ def test_an_existing_recording_is_refused_before_the_source_opens(tmp_path: Path
     assert not opened
     assert (tmp_path / "old" / "mav0" / "imu0" / "data.csv").read_text() == "kept\n"
     assert (tmp_path / "old.mcap").read_bytes() == b"kept"
+
+
+def test_a_full_disk_while_recording_mcap_is_one_line_not_an_internal_error(tmp_path: Path) -> None:
+    """A file size limit (or a full disk) during an MCAP recording ended in "internal error: OSError: [Errno 27]
+    File too large" (a QA sweep); the EuRoC writer named its file. Now one line, exit 1, and the part written
+    before stays readable."""
+    import resource
+
+    pytest.importorskip("mcap")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "fake"\nwidth = 160\nheight = 100\nrealtime = false\n')
+    out = tmp_path / "r.mcap"
+    limit = 400_000
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "-q", "record", str(out), "--config", str(cfg),
+                        "--format", "mcap", "--duration", "20"], capture_output=True, text=True, timeout=120,
+                       preexec_fn=small_files)
+    assert r.returncode == 1 and "cannot write the recording (File too large)" in r.stderr, r.stderr
+    assert "internal error" not in r.stderr and 0 < out.stat().st_size <= limit
