@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import os
 import sys
 import time
@@ -94,10 +95,12 @@ def stream_realtime(fd: int, rate_hz: float, seconds: float, faults: LinkFaults 
     n = int(seconds * rate_hz)
     t_start = time.monotonic()
     t0_us = int(t_start * 1e6)
-    frames = list(imu_frames(n, rate_hz, t0_us=t0_us))
+    # made as they are sent: building the default hour's 1.44 M frames first took longer than the stamps
+    # allowed, sent nothing for seconds and then a burst of late frames (a QA sweep)
+    frames = imu_frames(n, rate_hz, t0_us=t0_us)
     sent = 0
     for j in range(0, n, chunk_frames):
-        chunk = frames[j:j + chunk_frames]
+        chunk = list(itertools.islice(frames, chunk_frames))
         due = t_start + (j + len(chunk)) / rate_hz
         delay = due - time.monotonic()
         if delay > 0:
