@@ -292,8 +292,19 @@ def import_depthai(files: Sequence[Path], cam_rate_hz: float = 20.0,
     except RuntimeError as e:
         raise VioError(f"{path}: depthai cannot read this calibration ({e})") from None
     notes = ImportNotes()
+    # the sockets Kestrel's OAK driver streams as cam0 / cam1 (drivers/depthai_camera.py), whatever stereo pair the
+    # file names: a file naming CAM_C as its stereo left imported CAM_C's intrinsics as cam0's, swapped against
+    # the images the driver records (a QA sweep)
+    left, right = dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C
     try:
-        calib = stereo_from_depthai(handler, cam_rate_hz=cam_rate_hz, notes=notes, size=size)
+        named = (handler.getStereoLeftCameraId(), handler.getStereoRightCameraId())
+    except RuntimeError:
+        named = (left, right)
+    if named != (left, right):
+        notes.add(f"{path}: its stereo pair is {named[0].name} / {named[1].name}; Kestrel's OAK driver streams "
+                  f"{left.name} as cam0 and {right.name} as cam1, so those are imported")
+    try:
+        calib = stereo_from_depthai(handler, left, right, cam_rate_hz=cam_rate_hz, notes=notes, size=size)
     except VioError as e:
         raise VioError(f"{path}: {e}") from None
     except RuntimeError as e:  # depthai's own complaints about the file's contents (no intrinsics, ...)

@@ -222,6 +222,23 @@ def test_depthai_import_metres_and_frames(tmp_path):
     _roundtrip(calib, tmp_path)
 
 
+def test_depthai_import_takes_the_sockets_the_oak_driver_streams(tmp_path):
+    """A file naming CAM_C as its stereo left imported CAM_C's intrinsics as cam0's, while the OAK driver records
+    CAM_B as cam0: a calibration swapped against the images, exit 0, unsaid (a QA sweep)."""
+    import json
+
+    path, _, _ = _depthai_json(tmp_path)
+    d = json.loads(path.read_text())
+    srd = d["stereoRectificationData"]
+    srd["leftCameraSocket"], srd["rightCameraSocket"] = srd["rightCameraSocket"], srd["leftCameraSocket"]
+    swapped = tmp_path / "swapped.json"
+    swapped.write_text(json.dumps(d))
+    calib, notes = import_calibration("depthai", [swapped])
+    assert calib.cam0.fx == pytest.approx(798.1, abs=1e-3) and calib.cam1.fx == pytest.approx(797.4, abs=1e-3)
+    assert any("streams CAM_B as cam0 and CAM_C as cam1" in m for m in notes.messages)
+    assert not any("streams CAM_B" in m for m in import_calibration("depthai", [path])[1].messages)
+
+
 def test_depthai_without_imu_and_fisheye(tmp_path):
     path, T_right_left, _ = _depthai_json(tmp_path, with_imu=False, fisheye=True)
     calib, notes = import_calibration("depthai", [path])
