@@ -268,11 +268,12 @@ def test_vision_that_never_worked_fails_the_replay(flight, tmp_path):
 def test_ctrl_c_is_a_short_message_and_130(flight, tmp_path):
     # a shell without job control starts background jobs with SIGINT ignored, and children inherit that (this
     # test failed under `nohup bash -c ... &`): the replay gets the default disposition, as from a terminal
-    p = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "-q", "replay", str(flight), "--output",
+    # not -q: that turns the progress bar off too, and its first byte is how this test knows the replay runs
+    p = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "replay", str(flight), "--output",
                           str(tmp_path / "t.tum"), "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
-        p.stderr.read(1)  # the progress bar starts: the replay is running (3 s at sensor rate)
+        p.stderr.read(1)  # the log or the progress bar starts: the replay is running (3 s at sensor rate)
         time.sleep(0.5)
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=60)
