@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 
 from vio.argtypes import positive_float, positive_int
+from vio.io.outputs import check_new_file as check_output
 
 log = logging.getLogger(__name__)
 
@@ -79,30 +80,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "off by a fraction of a pixel biases every depth); any recording that moves, no turns needed")
     s.add_argument("--intrinsics", action="store_true", help="refine the focal lengths of both cameras too "
                    "([backend] refine_intrinsics; cx, cy only with refine_principal_point; default: held)")
-
-
-def check_output(path: Path, overwrite: bool, dataset: Path | None = None) -> None:
-    """Refuse, before any work, an output that would destroy a file or cannot be written (VioError, one line).
-
-    `calib imu-noise -o` wrote its seven IMU lines over a whole calibration, and a read-only folder ended in an
-    "internal error" after the work was done (a review's findings). Into the recording read (`dataset`): never, not
-    even with --overwrite (a project calibration over a EuRoC sensor.yaml leaves a recording nothing reads)."""
-    import os
-
-    from vio import VioError
-    from vio.io.outputs import check_outputs, recording_of
-
-    if dataset is not None:
-        check_outputs({}, recordings=(recording_of(dataset),), folders={"the output": str(path)})
-    if path.is_dir():
-        raise VioError(f"{path}: is a folder; give the file to write")
-    if path.exists() and not overwrite:
-        raise VioError(f"{path} exists: not replaced (--overwrite replaces it)")
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise VioError(f"{path}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise VioError(f"{path}: cannot write there (read-only or no permission)")
 
 
 def _run_import(args: argparse.Namespace) -> int:

@@ -50,14 +50,12 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from vio import VioError
-    from vio.io.outputs import check_outputs
+    from vio.io.outputs import check_new_file
     from vio.loop.vocabulary import train
 
     if args.loop_command == "train-vocab":
         out = Path(args.output)
-        check_outputs({"the vocabulary": args.output}, recordings=tuple(args.datasets))
-        if out.exists() and not args.overwrite:
-            raise VioError(f"{out} exists: not replaced (--overwrite replaces it)")
+        check_new_file(out, args.overwrite, *args.datasets)
         desc = [d for ds in args.datasets for d in _descriptors(ds, args.every, args.features)]
         if len(desc) < 2:
             raise VioError("too few images to train a vocabulary")

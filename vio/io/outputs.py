@@ -82,3 +82,25 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
             raise NotWritable(f"{p}: cannot write {what}: folder {folder} is not writable")
+
+
+def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | None) -> None:
+    """Refuse, before any work, a single output file that would destroy a file or cannot be written (VioError,
+    one line): an existing one unless `overwrite`, and one in a recording the command reads (`recordings`: a
+    folder, or a file inside its mav0/) even with it.
+
+    `calib imu-noise -o` wrote its seven IMU lines over a whole calibration, and a read-only folder ended in an
+    "internal error" after the work was done (a review's findings); a project calibration over a EuRoC
+    sensor.yaml leaves a recording nothing reads."""
+    path = Path(path)
+    check_outputs({}, recordings=tuple(recording_of(r) for r in recordings if r is not None),
+                  folders={"the output": str(path)})
+    if path.is_dir():
+        raise VioError(f"{path}: is a folder; give the file to write")
+    if path.exists() and not overwrite:
+        raise VioError(f"{path} exists: not replaced (--overwrite replaces it)")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise VioError(f"{path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise VioError(f"{path}: cannot write there (read-only or no permission)")
