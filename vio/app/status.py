@@ -57,14 +57,22 @@ def _pid_gone(pid: Any) -> bool:
     return False
 
 
+def _written_unix(status: dict[str, Any]) -> float | None:
+    """When the status was written [unix s], or None when its written_unix is no finite number."""
+    w = status.get("written_unix")
+    if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
+        return None
+    return float(w)
+
+
 def evaluate(status: dict[str, Any], now_unix: float, stale_s: float,
              pid_gone: Callable[[Any], bool] = _pid_gone) -> tuple[int, str]:
     """Exit code and a one-word verdict for a parsed status."""
-    written = status.get("written_unix")
-    if isinstance(written, bool) or not isinstance(written, (int, float)) or not math.isfinite(written):
-        # NaN read HEALTHY: every comparison with it is false (a QA sweep)
-        return EXIT_NOT_RUNNING, f"UNKNOWN (its written_unix {written!r} is no time: not a status this daemon wrote)"
-    age = now_unix - float(written)
+    written = _written_unix(status)
+    if written is None:  # NaN read HEALTHY: every comparison with it is false (a QA sweep)
+        return EXIT_NOT_RUNNING, (f"UNKNOWN (its written_unix {status.get('written_unix')!r} is no time: not a status "
+                                  "this daemon wrote)")
+    age = now_unix - written
     if status.get("state") == "stopped":
         return EXIT_NOT_RUNNING, "STOPPED"
     if pid_gone(status.get("pid")):
@@ -98,8 +106,8 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
 
     r, e, src, mav, lat = (section(k) for k in ("rates_hz", "estimator", "source", "mavlink", "latency_ms"))
     up = float(s.get("uptime_s") or 0)
-    written = s.get("written_unix")
-    written = written if isinstance(written, (int, float)) and math.isfinite(written) else now_unix
+    written = _written_unix(s)
+    written = now_unix if written is None else written
     lines = [
         f"kestrel-vio: {verdict}   state {s.get('state')}   pid {s.get('pid')}   "
         f"up {int(up // 3600)}h{int(up % 3600 // 60):02d}m{int(up % 60):02d}s   "
