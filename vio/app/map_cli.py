@@ -17,19 +17,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vio.loop.closer import WEAK_JOIN_EDGES
-    from vio.loop.mapfile import load_map
+    from vio.loop.mapfile import load_map, part_ranges
 
     m = load_map(args.file)
     p = m.T_world_body[:, :3, 3] if len(m.T_world_body) else np.zeros((0, 3))
     n3 = sum(f.n_3d for f in m.features)
     # a grown map's parts are flights on clocks of their own (the host's monotonic clock since each boot): the
     # time flown is summed part by part, never taken from the first stamp to the last
-    parts = m.header.get("parts") or []
-    if sum(int(q["keyframes"]) for q in parts) != len(m.t_ns):  # no parts (or not these keyframes'): one flight
-        parts = [{"keyframes": len(m.t_ns), "join_edges": None}]
-    ends = np.cumsum([0] + [int(q["keyframes"]) for q in parts])
+    spans = [float((m.t_ns[b - 1] - m.t_ns[a]) * 1e-9) if b - a > 1 else 0.0
+             for a, b in part_ranges(m.header, len(m.t_ns))]
     # a map without parts may hold several flights on clocks of their own: stamps that run back say so
-    spans = [float((m.t_ns[b - 1] - m.t_ns[a]) * 1e-9) if b - a > 1 else 0.0 for a, b in zip(ends[:-1], ends[1:])]
     mixed = not (m.header.get("parts") or []) and bool(np.any(np.diff(m.t_ns) <= 0))
     # the counts from the keyframes themselves (the header's are what the saver wrote; a hand-edited or foreign
     # header may lack them, as it may lack the informative created_utc and vocabulary: said, not a traceback)

@@ -148,15 +148,20 @@ def _header_problem(header: dict, n: int) -> str | None:
     return None
 
 
+def part_ranges(header: dict, n: int) -> list[tuple[int, int]]:
+    """(first, end) keyframe index of each flight a map's header names in `parts` (checked by load_map to split
+    its n keyframes); the whole map for one without parts."""
+    ends = np.cumsum([0, *([int(q["keyframes"]) for q in header.get("parts") or []] or [n])])
+    return [(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])]
+
+
 def _stamps_problem(header: dict, t_ns: np.ndarray) -> str | None:
     """Keyframe stamps that go back within one flight of the map (a damaged or hand-made file), or None. Across
     the parts of a grown map they may: each flight has its own clock. A map without `parts` (optional in
     version 1; maps grown before 2026-12-03 have none) may hold several flights: not checked (a review's)."""
-    parts = header.get("parts")
-    if not parts:
+    if not header.get("parts"):
         return None
-    ends = np.cumsum([0, *(q["keyframes"] for q in parts)])
-    for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])):
+    for k, (a, b) in enumerate(part_ranges(header, len(t_ns))):
         if np.any(np.diff(t_ns[a:b]) <= 0):
             return f"keyframe stamps do not increase within flight {k + 1} of the map"
     return None
