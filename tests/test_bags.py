@@ -418,3 +418,41 @@ def test_an_mcap_file_without_a_recorded_calibration_is_read_no_further_than_its
     assert recorded_calibration(tmp_path / "other.mcap") is None
     with pytest.raises(Exception, match="carries no camera-IMU calibration"):
         BagDataset(tmp_path / "other.mcap", None)
+
+
+def test_12bit_images_replay_to_the_euroc_trajectory(flight):
+    """A camera that writes 12-bit values (0..4095) in 16-bit images: >> 8 made them near-black and the replay
+    failed "image too dark". The scale is decided once from the first image (>> 4 here), and the bag replays
+    to the 8-bit EuRoC folder's trajectory to the byte."""
+    d = EurocDataset(flight / "sim")
+
+    def to12(img):
+        return None if img is None else img.astype(np.uint16) << 4 | img >> 4
+
+    ev = [e if isinstance(e, ImuSample) else StereoFrame(e.t_ns, to12(e.left), to12(e.right_image()), seq=e.seq)
+          for e in d.events()]
+    export_bag(_Events(ev), flight / "d12.mcap", "mcap", "png")  # 16-bit PNGs in CompressedImage messages
+    r = _vio("replay", "d12.mcap", "--calib", "calib.yaml", "-o", "d12.tum", "--no-progress", cwd=flight)
+    assert r.returncode == 0, r.stderr
+    assert (flight / "d12.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
+
+
+@pytest.mark.parametrize("bigendian", [0, 1])
+def test_mono16_messages_share_one_scale_decided_on_the_first(bigendian):
+    """mono16 Image messages go through the same per-recording scale as 16-bit PNGs: a 10-bit first image
+    decides >> 2, and a darker later one keeps it."""
+    from types import SimpleNamespace
+
+    from vio.io.bag import IMAGE, decode_image
+    from vio.io.images import Uint16To8
+
+    def mono16(v: np.ndarray) -> SimpleNamespace:
+        data = v.astype(">u2" if bigendian else "<u2").tobytes()
+        return SimpleNamespace(encoding="mono16", height=v.shape[0], width=v.shape[1], step=2 * v.shape[1],
+                               is_bigendian=bigendian, data=np.frombuffer(data, np.uint8))
+
+    to8 = Uint16To8("test")
+    bright = np.arange(1024, dtype=np.uint16).reshape(16, 64)
+    dark = bright // 4
+    assert np.array_equal(decode_image(mono16(bright), IMAGE, to8), bright >> 2)
+    assert np.array_equal(decode_image(mono16(dark), IMAGE, to8), dark >> 2) and to8.shift == 2

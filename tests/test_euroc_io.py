@@ -421,3 +421,64 @@ def test_right_images_missing_are_told_from_unsynchronised_cameras(v101_path, tm
     _restamp(shifted / "mav0" / "cam1" / "data.csv", lambda t: t + 3_000_000)
     note = next(n for n in EurocDataset(shifted).stats.notes if "have no right image" in n)
     assert "are the two cameras triggered together" in note
+
+
+# 16-bit images: v8 written at another depth so that the right shift gives v8 back exactly (the low bits
+# repeat the high ones, as a sensor's noise sets them)
+DEPTHS = {
+    "10-bit": lambda v: v.astype(np.uint16) << 2 | v >> 6,
+    "12-bit": lambda v: v.astype(np.uint16) << 4 | v >> 4,
+    "14-bit": lambda v: v.astype(np.uint16) << 6 | v >> 2,
+    "16-bit": lambda v: v.astype(np.uint16) * 257,
+    "12-bit MSB-aligned": lambda v: (v.astype(np.uint16) << 4 | v >> 4) << 4,
+}
+
+
+def _write_16bit(root: Path, images: list[np.ndarray]) -> EurocDataset:
+    """A dataset of the given 16-bit stereo frames (left = right) and 0.3 s of IMU."""
+    t0 = 1_600_000_000_000_000_000
+    with EurocWriter(root, _calibration()) as w:
+        for k in range(60):
+            w.write_imu(ImuSample(t0 + k * 5_000_000, np.zeros(3), np.array([0.0, 0.0, 9.81])))
+        for k, img in enumerate(images):
+            w.write_frame(StereoFrame(t0 + 10_000_000 + k * 50_000_000, img, img))
+    return EurocDataset(root)
+
+
+@pytest.mark.parametrize("depth", list(DEPTHS))
+def test_16bit_pngs_of_any_depth_decode_as_their_8bit_values(tmp_path, depth, caplog):
+    """12-bit values in 16-bit PNGs came out >> 8: near-black images that every frame refused as "too dark". The
+    shift is decided once, from the recording's first image, whichever frame is loaded first: a dark later frame
+    (max 100 of 255) loaded first keeps the scale of the bright first one, and says which in one log line."""
+    rng = np.random.default_rng(3)
+    v8 = [rng.integers(0, 256, (40, 64), dtype=np.uint8), rng.integers(0, 100, (40, 64), dtype=np.uint8)]
+    caplog.set_level(logging.INFO, logger="vio.io.images")
+    ds = _write_16bit(tmp_path / "rec", [DEPTHS[depth](v) for v in v8])
+    for k in (1, 0):
+        f = ds.frame(k)
+        assert f.left.dtype == np.uint8 and np.array_equal(f.left, v8[k]) and np.array_equal(f.right, v8[k])
+    said = [r.getMessage() for r in caplog.records if "16-bit images" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(f"{ds.mav0}: 16-bit images with ")
+    assert ("MSB-aligned" in said[0]) == ("MSB" in depth)
+
+
+def test_16bit_frame_brighter_than_the_first_is_clipped_not_wrapped_and_said_once(tmp_path, caplog):
+    """A 12-bit recording whose later frames hold values above 4095: clipped to white (a wrap made the brightest
+    parts black), with one warning for the recording."""
+    first = np.full((40, 64), 4095, np.uint16)
+    brighter = np.full((40, 64), 2000, np.uint16)
+    brighter[:, :8] = 9000  # 13 bits: 9000 >> 4 = 562, which wrapped to a dark 50 in 8 bits
+    ds = _write_16bit(tmp_path / "rec", [first, brighter, brighter])
+    with caplog.at_level(logging.WARNING):
+        a, b = ds.frame(1).left, ds.frame(2).left
+    assert np.array_equal(a, b) and np.all(a[:, :8] == 255) and np.all(a[:, 8:] == 2000 >> 4)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "values up to 9000, above the 12-bit range" in warned[0]
+    assert len(ds.stats.warnings) == 1
+
+
+def test_8bit_pngs_decode_byte_identical_and_decide_no_scale(v101):
+    """The EuRoC 8-bit PNGs go through no 16-bit scale: the images the estimator sees are the files' bytes."""
+    f = v101.frame(0)
+    path = v101.cam0_files[0]
+    assert np.array_equal(f.left, cv2.imread(str(path), cv2.IMREAD_UNCHANGED)) and v101._to8.shift is None

@@ -42,6 +42,7 @@ from vio.io.euroc import (
     image_size_problem,
     imu_units_problem,
 )
+from vio.io.images import Uint16To8
 from vio.types import ImuSample, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -235,8 +236,17 @@ def _stamp(msg) -> int:
     return int(s.sec) * 1_000_000_000 + int(s.nanosec)
 
 
-def decode_image(msg, msgtype: str) -> np.ndarray | None:
-    """An Image or CompressedImage message as 8-bit grey (as the EuRoC reader loads a PNG); None if broken."""
+def decode_image(msg, msgtype: str, to8: Uint16To8 | None = None) -> np.ndarray | None:
+    """An Image or CompressedImage message as 8-bit grey (as the EuRoC reader loads a PNG); None if broken.
+    A 16-bit image is scaled by `to8`, the recording's one scale (without it: by this image alone)."""
+    img = decode_grey(msg, msgtype)
+    if img is not None and img.dtype == np.uint16:
+        img = (to8 or Uint16To8("image")).convert(img)
+    return img
+
+
+def decode_grey(msg, msgtype: str) -> np.ndarray | None:
+    """An Image or CompressedImage message as grey at its own depth (8 or 16 bits); None if broken."""
     if msgtype.endswith("CompressedImage"):
         img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
@@ -263,8 +273,6 @@ def decode_image(msg, msgtype: str) -> np.ndarray | None:
         img = np.ascontiguousarray(img)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
     return img
 
 
@@ -284,6 +292,8 @@ class BagDataset(EurocDataset):
         self.path = self.root = self.mav0 = p
         self.topics = topics or BagTopics()
         self.stats = DatasetStats()
+        self._first_left: tuple[object, str] | None = None  # (message, type): a 16-bit scale is decided on it
+        self._to8 = Uint16To8(str(p), self._first_image, self._warn)
         self._bag = _BagFile(p)
         if self._bag.truncated:
             self.stats.notes.append(f"{p}: no MCAP summary (the recorder stopped mid-write?): read up to the "
@@ -396,7 +406,10 @@ class BagDataset(EurocDataset):
         for topic, ty, raw, r in self._bag.messages([self.topics.left, self.topics.right]):
             k = ordinal[topic]
             ordinal[topic] += 1
-            t = _stamp(self._bag.deserialize(raw, ty, r))
+            msg = self._bag.deserialize(raw, ty, r)
+            if self._first_left is None and topic == self.topics.left:
+                self._first_left = (msg, ty)
+            t = _stamp(msg)
             _check_late(f"{self.path} topic {topic}", k, t, newest.get(topic))
             newest[topic] = max(newest.get(topic, t), t)
             out[topic].append((t, k, hashlib.blake2b(bytes(raw), digest_size=16).digest()))
@@ -422,9 +435,14 @@ class BagDataset(EurocDataset):
         return res
 
     # -- streaming -----------------------------------------------------------------------------------------
+    def _first_image(self) -> np.ndarray | None:
+        """The bag's first left image, kept from the stamp pass, from which a 16-bit depth is decided."""
+        first, self._first_left = self._first_left, None
+        return None if first is None else decode_grey(*first)
+
     def _decode(self, item) -> np.ndarray | None:
         raw, ty, r = item
-        img = decode_image(self._bag.deserialize(raw, ty, r), ty)
+        img = decode_image(self._bag.deserialize(raw, ty, r), ty, self._to8)
         if img is None:
             self.stats.unreadable_images += 1
             self._warn(f"{self.path}: unreadable image; skipped")
