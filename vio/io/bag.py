@@ -24,6 +24,7 @@ import functools
 import hashlib
 import json
 import logging
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -629,11 +630,18 @@ def recorded_calibration(path: Path) -> StereoCalibration | None:
 
 class McapWriter:
     """A bare MCAP file on ROS 2 schemas (`ros2msg` + `cdr`, which Foxglove and `vio replay` read as they
-    are) plus JSON channels (health). Messages are logged at their sensor stamp."""
+    are) plus JSON channels (health). Messages are logged at their sensor stamp.
+
+    As the EuRoC writer, it flushes at least every `flush_interval_s` of sensor data time: the chunk being
+    built (in memory until it reaches `chunk_size`) is finished, written and fsynced, so a killed recorder or a
+    power cut loses at most that much plus what came since (a file cut there is read up to it)."""
 
     def __init__(self, path: str | Path, compression: str = "png", chunk_size: int = 1 << 20,
-                 calibration: StereoCalibration | None = None) -> None:
+                 calibration: StereoCalibration | None = None, flush_interval_s: float = 0.5) -> None:
         writer = _need("mcap.writer")
+        if not hasattr(writer.Writer, "flush"):  # mcap < 1.5 cannot finish a chunk before it is full
+            raise VioError("writing MCAP needs mcap 1.5 or newer (Writer.flush, which the periodic fsync needs): "
+                           "pip install -U 'kestrel-vio[bags]'")
         self.ts = _typestore()
         self.path = Path(path)
         self.compression = compression
@@ -650,6 +658,16 @@ class McapWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.bytes_images = 0
+        self._flush_ns = int(flush_interval_s * 1e9)
+        self._last_flush_t: int | None = None
+
+    def _maybe_flush(self, t_ns: int) -> None:
+        """Flush every `flush_interval_s` of sensor data time (EurocWriter's pacing)."""
+        if self._last_flush_t is None:
+            self._last_flush_t = t_ns
+        elif t_ns - self._last_flush_t >= self._flush_ns:
+            self.flush()
+            self._last_flush_t = t_ns
 
     def _channel(self, topic: str, msgtype: str) -> int:
         if topic not in self._channels:
@@ -669,10 +687,12 @@ class McapWriter:
             if img is not None:
                 ty, msg = image_message(self.ts, frame.t_ns, img, fid, self.compression)
                 self.write(topic, frame.t_ns, ty, msg)
+        self._maybe_flush(frame.t_ns)
 
     def write_imu(self, s: ImuSample, topic: str = "/imu0") -> None:
         ty, msg = imu_message(self.ts, s)
         self.write(topic, s.t_ns, ty, msg)
+        self._maybe_flush(s.t_ns)
 
     def write_state(self, st, topic: str = "/vio/odometry") -> None:
         ty, msg = odometry_message(self.ts, st)
@@ -687,7 +707,9 @@ class McapWriter:
                             data=json.dumps(obj, default=str).encode())
 
     def flush(self) -> None:
-        self._f.flush()
+        """Finish the chunk in progress and fsync: what was written so far survives a power cut."""
+        self._w.flush()  # writes the open chunk and its message index, flushes the file object
+        os.fsync(self._f.fileno())
 
     def close(self) -> None:
         if self._f.closed:
