@@ -232,6 +232,39 @@ def test_status_cli_exit_codes(tmp_path: Path) -> None:
     assert main(["status", "--file", str(path)]) == EXIT_NOT_RUNNING
 
 
+def test_status_says_why_the_status_file_is_missing(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A daemon running with a state folder it cannot write never writes its status, and `vio status` said "does
+    not exist; is the service started?" of a running service. Three cases, each its own line (exit 4): the folder
+    is missing; it is not writable (the daemon cannot write its status there: its log says why); it is fine and
+    no file yet (service not started)."""
+    from vio.app.cli import main
+
+    def verdict(path: Path) -> str:
+        assert main(["status", "--file", str(path)]) == EXIT_NOT_RUNNING
+        out = capsys.readouterr()
+        assert out.out == "" and len(out.err.strip().splitlines()) == 1, out
+        return out.err.strip()
+
+    gone = tmp_path / "gone" / "status.json"
+    assert verdict(gone) == (f"kestrel-vio: NOT RUNNING ({gone.parent} does not exist, so no status file "
+                             "status.json; is the service started? try: systemctl status kestrel-vio)")
+    fine = tmp_path / "status.json"
+    assert verdict(fine) == (f"kestrel-vio: NOT RUNNING ({fine} does not exist; is the service started? try: "
+                             "systemctl status kestrel-vio)")
+    locked = tmp_path / "ro"
+    locked.mkdir()
+    locked.chmod(0o555)
+    if os.geteuid() == 0:  # root writes anywhere: os.access answers as a service user would
+        real = os.access
+        monkeypatch.setattr(os, "access", lambda p, mode, **kw: not (Path(p) == locked and mode & os.W_OK)
+                            and real(p, mode, **kw))
+    text = verdict(locked / "status.json")
+    assert text.startswith(f"kestrel-vio: UNKNOWN ({locked / 'status.json'} does not exist and {locked} is not "
+                           "writable by user "), text
+    assert text.endswith("a daemon running as that user cannot write its status there; check its log: journalctl "
+                         "-u kestrel-vio)"), text
+
+
 # ---------------------------------------------------------------- in-process service with stand-ins
 
 class ScriptedSource:

@@ -184,13 +184,36 @@ def _status_path(args: argparse.Namespace) -> Path:
     return Path(DEFAULT_STATUS_FILE)
 
 
+def _user() -> str:
+    """This process's user name (the one os.access checked for), or its uid."""
+    try:
+        import pwd
+
+        return pwd.getpwuid(os.geteuid()).pw_name
+    except (ImportError, KeyError):
+        return str(os.geteuid())
+
+
+def missing_file_text(path: Path) -> str:
+    """The verdict line for a missing status file: its folder is missing (service not started), or cannot be
+    written (a running daemon never writes its status there: "is the service started?" sent people looking at a
+    service that was running), or the service has not written it yet."""
+    folder = path.parent
+    if not folder.is_dir():
+        return (f"NOT RUNNING ({folder} does not exist, so no status file {path.name}; is the service started? "
+                "try: systemctl status kestrel-vio)")
+    if not os.access(folder, os.W_OK):
+        return (f"UNKNOWN ({path} does not exist and {folder} is not writable by user {_user()}: a daemon running "
+                "as that user cannot write its status there; check its log: journalctl -u kestrel-vio)")
+    return f"NOT RUNNING ({path} does not exist; is the service started? try: systemctl status kestrel-vio)"
+
+
 def run(args: argparse.Namespace) -> int:
     path = _status_path(args)
     try:
         status = read_status(path)
     except FileNotFoundError:
-        print(f"kestrel-vio: NOT RUNNING ({path} does not exist; is the service started? "
-              "try: systemctl status kestrel-vio)", file=sys.stderr)
+        print(f"kestrel-vio: {missing_file_text(path)}", file=sys.stderr)
         return EXIT_NOT_RUNNING
     except (OSError, ValueError) as e:
         print(f"kestrel-vio: UNKNOWN ({path}: cannot read status: {e})", file=sys.stderr)
