@@ -915,6 +915,43 @@ def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkey
         svc_mod.check_run_config(cfg)
 
 
+def test_vio_run_reads_the_loop_vocabulary_once(tmp_path, monkeypatch) -> None:
+    """`vio run` read a [loop] vocabulary file twice at start: in its configuration check, and again when the loop
+    stage started. The check's vocabulary is now the one the loop stage uses."""
+    import shutil
+
+    import vio.app.daemon.service as svc_mod
+    from drivers.fake import FakeSource
+    from vio.app.cli import main
+    from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
+
+    voc = tmp_path / "voc.npz"
+    shutil.copyfile(DEFAULT_PATH, voc)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\n[run]\nstatus_file = ""\n[mavlink]\nurl = ""\n'
+                   f'[loop]\nenabled = true\nvocabulary = "{voc}"\n')
+    loaded: list = []
+    real_load = Vocabulary.load
+
+    def load(path=None):
+        loaded.append(real_load(path))
+        return loaded[-1]
+
+    used: list = []
+
+    def run(self) -> int:  # the daemon's start, up to the loop stage (which starts with the calibration)
+        self._start_loop(FakeSource(width=96, height=64).calibration())
+        used.append(self.loop.closer.vocab)
+        self.loop.close()
+        return 0
+
+    monkeypatch.setattr(Vocabulary, "load", staticmethod(load))
+    monkeypatch.setattr(svc_mod.Service, "run", run)
+    monkeypatch.setattr(svc_mod.signal, "signal", lambda *a: None)  # run() installs handlers: not in pytest
+    assert main(["run", "--config", str(cfg)]) == 0
+    assert len(loaded) == 1 and used == [loaded[0]] and used[0] is loaded[0]
+
+
 def test_a_stop_signal_never_waits_for_the_lock_the_main_loop_holds() -> None:
     """`vio run` hung for 10 s after SIGTERM once (killed, no status written): the handler, running in the main thread,
     called stop.set() while that thread was inside stop.wait() holding the Event's lock. The handler now hands the

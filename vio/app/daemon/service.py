@@ -40,6 +40,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -96,11 +97,13 @@ class Service:
     def __init__(self, cfg: VioConfig, *, source_factory: Callable[[], Source] | None = None,
                  estimator_factory: Callable[[StereoCalibration], EstimatorApi] | None = None,
                  mavlink_factory: Callable[[], PoseOutput] | None = None, notifier: SdNotifier | None = None,
-                 map_data: Any = None) -> None:
-        """`map_data`: `[map] load` as `vio run` already read and checked it at start (read here when None)."""
+                 map_data: Any = None, vocabulary: Any = None) -> None:
+        """`map_data`, `vocabulary`: `[map] load` and `[loop] vocabulary` as `vio run` already read and checked
+        them at start (`CheckedInputs`; read here when None)."""
         self.cfg = cfg
         self.instance_lock: Any = None  # the open lock file (single_instance), held for the life of the process
         self._map_data = map_data
+        self._vocabulary = vocabulary
         self.stop = threading.Event()
         self.notifier = notifier or SdNotifier()
         rc = cfg.run
@@ -192,7 +195,7 @@ class Service:
         from vio.app.loop_worker import LoopWorker
         from vio.loop.closer import LoopCloser
 
-        closer = LoopCloser(calib, self.cfg.loop)
+        closer = LoopCloser(calib, self.cfg.loop, self._vocabulary)
         if self.cfg.map.load:
             if self._map_data is None:
                 from vio.loop.mapfile import load_map
@@ -556,7 +559,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_config(args.config)
-        map_data = check_run_config(cfg, warn=log.warning)
+        checked = check_run_config(cfg, warn=log.warning)
     except VioError as e:
         print(f"vio run: configuration error: {e}", file=sys.stderr)
         return EXIT_CONFIG
@@ -567,7 +570,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
         logging.getLogger().setLevel(cfg.run.log_level)
-    service = Service(cfg, map_data=map_data)
+    service = Service(cfg, map_data=checked.map_data, vocabulary=checked.vocabulary)
     service.instance_lock = lock
     from drivers.signals import stop_on_signal
 
@@ -636,9 +639,18 @@ def single_instance(cfg: VioConfig) -> Any:
     return f
 
 
-def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) -> Any:
+@dataclass(frozen=True)
+class CheckedInputs:
+    """Files check_run_config read to check them, for the service to use rather than read again (None: not read)."""
+
+    map_data: Any = None  # [map] load
+    vocabulary: Any = None  # [loop] vocabulary (a custom one; the packaged default is read by the loop stage)
+
+
+def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) -> CheckedInputs:
     """Problems the daemon cannot recover from by retrying: report them now, with the key to fix. Returns the
-    `[map] load` map it read (None without one), for the service to use rather than read it again. With `warn`
+    `[map] load` map and `[loop] vocabulary` it read (`CheckedInputs`), for the service to use rather than read
+    them again. With `warn`
     (`vio run`), an output folder that cannot be written is said there and the daemon runs without that output;
     without it (`vio config check`) it is an error."""
     src = cfg.source
@@ -692,7 +704,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         from drivers.mavlink_out import check_mavlink_config
 
         check_mavlink_config(cfg.mavlink)
-    map_data = None
+    map_data = vocabulary = None
     if cfg.map.load:  # a map that cannot be read would only kill the estimator thread once the sensors are up
         from vio.loop.mapfile import load_map
 
@@ -706,7 +718,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         from vio.loop.vocabulary import Vocabulary
 
         try:
-            Vocabulary.load(cfg.loop.vocabulary)
+            vocabulary = Vocabulary.load(cfg.loop.vocabulary)
         except VioError as e:
             raise VioError(f"[loop] vocabulary: {e}") from None
     if cfg.map.save:
@@ -739,4 +751,4 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             # `vio run` flies without that output rather than not at all: a disk gone read-only or full in flight
             # made the watchdog's restart exit 3, which systemd never restarts (a review's finding)
             warn(f"{problem}: running without it")
-    return map_data
+    return CheckedInputs(map_data, vocabulary)
