@@ -169,3 +169,44 @@ def test_config_check_and_run_refuse_a_source_whose_extra_is_missing(tmp_path, s
         r = _vio_without((module,), "-q", *args, timeout=60)
         assert r.returncode == 3, r.stdout + r.stderr
         assert f"needs the [{extra}] extra" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_noisy_native_import_is_quiet_and_logged(tmp_path, monkeypatch, capfd, caplog):
+    """A module whose native code prints on import, to descriptors 1 and 2 (not through Python): both are sent to
+    a temporary file for the import and restored after it, also when it fails; its known line is logged at
+    DEBUG, anything else at WARNING."""
+    import logging
+
+    import vio.extras as extras
+
+    for name, body in (("kv_noisy_ok", ""), ("kv_noisy_broken", "raise ImportError('no libfoo.so')\n")):
+        (tmp_path / f"{name}.py").write_text(
+            "import os\n"
+            "os.write(1, b'[dai] [warning] USB protocol not available - in a container\\n')\n"
+            "os.write(2, b'libfoo: something else\\n')\n" + body)
+        monkeypatch.setitem(extras.NOISY_IMPORTS, name, "USB protocol not available")
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    caplog.set_level(logging.DEBUG, logger="vio.extras")
+    assert extras.require("kv_noisy_ok", "oak", "a test").__name__ == "kv_noisy_ok"
+    with pytest.raises(MissingExtra):
+        extras.require("kv_noisy_broken", "oak", "a test")
+    os.write(1, b"fd 1 is back\n")
+    os.write(2, b"fd 2 is back\n")
+    out, err = capfd.readouterr()
+    assert (out, err) == ("fd 1 is back\n", "fd 2 is back\n")
+    said = [(r.levelname, r.getMessage()) for r in caplog.records]
+    for name in ("kv_noisy_ok", "kv_noisy_broken"):
+        assert ("DEBUG", f"{name} (on import): [dai] [warning] USB protocol not available - in a container") in said
+        assert ("WARNING", f"{name} (on import): libfoo: something else") in said
+
+
+def test_config_check_of_an_oak_config_prints_only_its_verdict(tmp_path):
+    """depthai's native logger printed "USB protocol not available ..." on stdout when imported (wherever USB is
+    not mapped in: a container), before `vio config check`'s own "FILE: OK"."""
+    pytest.importorskip("depthai")
+    cfg = tmp_path / "oak.toml"
+    cfg.write_text('[source]\nkind = "oak"\n')
+    r = _vio_without((), "config", "check", str(cfg))
+    assert r.returncode == 0, r.stderr
+    assert (r.stdout, r.stderr) == (f"{cfg}: OK\n", "")

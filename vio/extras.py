@@ -16,13 +16,24 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import logging
+import os
+import sys
+import tempfile
 from types import ModuleType
 
 from vio import VioError
 
+log = logging.getLogger(__name__)
+
 EXTRAS = {"depthai": "oak", "serial": "serial", "allantools": "tools", "matplotlib": "tools", "rosbags": "bags",
           "mcap": "bags", "rerun": "view", "ray": "fleet"}
+# modules whose native library prints on import, straight to the process's stdout/stderr (not through Python),
+# and the line it always prints there: depthai's logger says "USB protocol not available" on stdout wherever USB
+# is not mapped in (a container, a CI runner), which landed in `vio config check`'s "FILE: OK" output
+NOISY_IMPORTS = {"depthai": "USB protocol not available"}
 
 
 class MissingExtra(VioError):
@@ -36,9 +47,42 @@ class MissingExtra(VioError):
 def require(module: str, extra: str, what: str) -> ModuleType:
     """Import `module` (from the `extra`) for `what` (the feature, as the user names it)."""
     try:
+        if module in NOISY_IMPORTS and module not in sys.modules:
+            return _quiet_import(module, NOISY_IMPORTS[module])
         return importlib.import_module(module)
     except ImportError:
         raise MissingExtra(what, extra) from None
+
+
+def _flush_python_streams() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(AttributeError, OSError, ValueError):  # None, closed, or a stand-in
+            stream.flush()
+
+
+def _quiet_import(module: str, harmless: str) -> ModuleType:
+    """Import `module` with file descriptors 1 and 2 sent to a temporary file, then restored (also when the import
+    fails), and log what its native code printed there: its known `harmless` line at DEBUG, anything else at
+    WARNING. Python's own streams are flushed on both sides, so its text lands where it was meant to."""
+    _flush_python_streams()
+    saved: list[tuple[int, int]] = []  # (descriptor, its copy)
+    with tempfile.TemporaryFile() as sink:
+        try:
+            with contextlib.suppress(OSError):  # a descriptor that is closed (a daemon without stdout): left so
+                for fd in (1, 2):
+                    saved.append((fd, os.dup(fd)))
+                    os.dup2(sink.fileno(), fd)
+            return importlib.import_module(module)
+        finally:
+            _flush_python_streams()
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+            sink.seek(0)
+            for line in sink.read().decode(errors="replace").splitlines():
+                if line.strip():
+                    log.log(logging.DEBUG if harmless in line else logging.WARNING, "%s (on import): %s", module,
+                            line.strip())
 
 
 def pyplot(what: str) -> ModuleType:
