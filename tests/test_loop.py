@@ -3,6 +3,8 @@ simulated loop flight replayed with and without loop closure."""
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -1973,3 +1975,47 @@ def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_p
         assert e.value.code == 2 and "must be at least" in capsys.readouterr().err, bad
     assert main(["-q", "loop", "train-vocab", str(data), "-o", str(data / "mav0" / "voc.npz")]) == 1
     assert "into the recording" in capsys.readouterr().err
+
+
+def test_train_vocab_reads_16_bit_images_as_the_replay_does(tmp_path, capsys):
+    """12-bit values in 16-bit PNGs were read with OpenCV's >> 8 (near-black images, few corners): the vocabulary
+    trained on them differed from the one the same images give at 8 bits. Now both give the same file."""
+    import cv2
+
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=2.0, width=376, height=240, variant="clean"), progress=False)
+    deep = tmp_path / "deep"
+    shutil.copytree(data, deep)
+    for f in sorted((deep / "mav0" / "cam0" / "data").glob("*.png")):
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        noise = np.random.default_rng(len(f.name)).integers(0, 16, img.shape, dtype=np.uint16)
+        cv2.imwrite(str(f), img.astype(np.uint16) << 4 | noise)  # the same picture as 12-bit values
+    outs = []
+    for src in (data, deep):
+        outs.append(tmp_path / f"{src.name}.npz")
+        assert main(["-q", "loop", "train-vocab", str(src), "-o", str(outs[-1]), "--every", "4", "--depth", "2"]) == 0
+    capsys.readouterr()
+    a, b = np.load(outs[0]), np.load(outs[1])
+    assert sorted(a.files) == sorted(b.files)
+    for k in a.files:
+        assert np.array_equal(a[k], b[k]), k
+
+
+def test_train_vocab_on_images_without_corners_says_so(tmp_path, capsys):
+    """All-black images gave no descriptors and an internal error (numpy's "need at least one array")."""
+    import cv2
+
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    for f in (data / "mav0" / "cam0" / "data").glob("*.png"):
+        cv2.imwrite(str(f), np.zeros((240, 376), np.uint8))
+    assert main(["-q", "loop", "train-vocab", str(data), "-o", str(tmp_path / "v.npz"), "--every", "2"]) == 1
+    err = capsys.readouterr().err
+    assert "no ORB corners" in err and "internal error" not in err
+    assert not (tmp_path / "v.npz").exists()

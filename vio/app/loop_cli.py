@@ -29,20 +29,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _descriptors(dataset: str, every: int, n_features: int) -> list[np.ndarray]:
-    import cv2
-
+    """ORB descriptors of every Nth left image, decoded as the replay decodes them (16-bit images with the
+    recording's one scale: OpenCV's own grey conversion shifted 12-bit images into near-black, and a vocabulary
+    trained on those never matches what the replay sees)."""
     from vio.io.euroc import EurocDataset
     from vio.loop.features import FeatureExtractor
 
     ds = EurocDataset(dataset)
     ex = FeatureExtractor(ds.calibration.cam0, n_features)
     out = []
-    for f in ds.cam0_files[::every]:
-        if f is None:
-            continue
-        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-        if img is not None:
-            out.append(ex.extract(img, None).desc)
+    for i in range(0, len(ds), every):
+        frame = ds.frame(i, lazy_right=True)
+        if frame is not None:
+            out.append(ex.extract(frame.left, None).desc)
     return out
 
 
@@ -60,6 +59,9 @@ def run(args: argparse.Namespace) -> int:
         if len(desc) < 2:
             raise VioError("too few images to train a vocabulary")
         n_desc = sum(len(d) for d in desc)
+        if n_desc < 2 * args.branching:
+            raise VioError(f"no ORB corners to speak of in the {len(desc)} images read ({n_desc} descriptors): "
+                           "are they dark, blank or out of focus?")
         voc = train(desc, args.branching, args.depth)
         if voc.n_words > n_desc:  # most words never hold a descriptor: retrieval by a handful of sparse words
             log.warning("%d words from %d descriptors: most words are empty and retrieval poor; use fewer levels "
