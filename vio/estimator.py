@@ -238,7 +238,8 @@ class Estimator:
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
                                                  track_window_s=b.time_offset_track_window_s,
-                                                 recheck_s=b.time_offset_recheck_s) \
+                                                 recheck_s=b.time_offset_recheck_s,
+                                                 max_gyro_bias_rad_s=b.max_gyro_bias_rad_s) \
             if b.estimate_time_offset else None
         # the smoother's time offset state: on from the start, or switched on by the in-flight estimate (auto)
         self._time_state = bool(b.time_offset_state)
@@ -289,6 +290,7 @@ class Estimator:
         self.frames_dropped = 0
         self.last_reset_reason = ""
         self.sensor_error: str | None = None
+        self._gyro_scale_error: str | None = None  # the gyro against the camera: final for the run
         self._start_bias_refused = False  # the last start found was refused for its gyro bias (said once)
         self._no_stereo = 0  # frames in a row that looked for stereo among many tracks and found none
         self._stereo_loss: str | None = None  # what the stereo warning found (None: stereo fine)
@@ -684,6 +686,9 @@ class Estimator:
                                                       or run.smoother.marginalize_due or run.just_solved)
         solves = self.offset_estimator.solves
         new = self.offset_estimator.add_frame(ff, solve=quiet)
+        if self.offset_estimator.gyro_scale.problem is not None and self._gyro_scale_error is None:
+            self._gyro_scale_wrong(self.offset_estimator.gyro_scale.problem)
+            return False
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
             self.time_offset_ns = new
@@ -694,6 +699,16 @@ class Estimator:
             if self.bcfg.time_offset_state_auto and not self._time_state:
                 self._start_time_state()
         return self.offset_estimator.solves > solves
+
+    def _gyro_scale_wrong(self, problem: str) -> None:
+        """The gyro measured against the camera is in the wrong units (or dead): nothing it feeds can be trusted,
+        and no start can fix it, so the estimator stops and stays stopped for this run, and says why (status,
+        log, replay summary). A deg/s gyro with a small bias at rest had passed the checks at rest and flown 9 m
+        off before a speed check reset it (a QA finding)."""
+        self._gyro_scale_error = self.sensor_error = problem
+        log.error("IMU: %s; no pose is estimated for the rest of this run: fix the IMU's units or scale", problem)
+        if self.initialized:
+            self.reset(f"IMU units: {problem}", bridge=False, keep_bias=False)
 
     def _hand_offset_to_state(self) -> None:
         """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the
@@ -719,6 +734,8 @@ class Estimator:
         log.info("time offset: the smoother follows it as a state from the next keyframe on")
 
     def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
+        if self._gyro_scale_error is not None:  # final for the run (_gyro_scale_wrong): no start to attempt
+            return None
         icfg = self.cfg.init
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
         plausible = self._sensors_plausible(ts, gyro, accel, ff)
@@ -762,6 +779,8 @@ class Estimator:
 
         A unit mistake (g for m/s^2, deg/s for rad/s) or a dead IMU would otherwise initialise and drift by
         metres while reporting itself healthy."""
+        if self._gyro_scale_error is not None:
+            return False
         if len(ts) < 4:
             return self.sensor_error is None
         icfg = self.cfg.init

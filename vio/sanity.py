@@ -87,6 +87,71 @@ def gyro_units_problem(gyro: np.ndarray, still: bool, max_bias_rad_s: float = 0.
     return None
 
 
+# Gyro against the camera (GyroScaleCheck). A right gyro's angle over a frame pair is the camera's give or take the
+# bias's angle over the pair (the bias is unknown here, but its components never beyond [backend]
+# max_gyro_bias_rad_s, so its norm never beyond sqrt(3) times that); a deg/s gyro reads 57x the camera, a dead one 0.
+SCALE_FACTOR = 4.0  # "too much": beyond 4x the camera plus twice the bias's angle; "too little": under a quarter
+SCALE_MIN_RAD = 0.03  # of what the camera turned beyond the bias's angle, which must be at least this much
+SCALE_PAIRS = 12  # pairs that can tell, before a verdict ...
+SCALE_AGREE = 0.75  # ... of which this share (of up to the last 3 x SCALE_PAIRS) must agree
+
+
+class GyroScaleCheck:
+    """The gyro's rotation over frame pairs against the rotation the camera sees (PnP or essential matrix).
+
+    Why: a gyro in deg/s whose bias at rest is small passes every check at rest (its mean is the bias, under the
+    plausible 0.3 rad/s), starts the estimator, and from the first turn on reads 57x the motion: a survey replay
+    went 9 m off with poses going out for 6 s until a speed check reset it; a gyro that reads nothing (dead, or
+    scaled as if it were deg/s) went 1.7 m off on an aggressive flight and never said so. The camera measures the
+    same rotation in radians. Each pair is judged against the largest plausible bias, so that no right gyro can
+    read "too much" or "too little" however biased; a pair where neither side can show (the camera barely turned,
+    the gyro no more than a bias explains) is not counted. The verdict is final for the run (units do not
+    change in flight)."""
+
+    def __init__(self, max_bias_rad_s: float = 0.3) -> None:
+        self.max_bias_rad_s = float(max_bias_rad_s) * math.sqrt(3.0)  # the norm of a bias at the limit on each axis
+        # pairs that can show a gyro reading too much / too little: (it did, camera angle, gyro angle)
+        self.high: list[tuple[bool, float, float]] = []
+        self.low: list[tuple[bool, float, float]] = []
+        self.problem: str | None = None
+
+    def add(self, camera_rad: float, gyro_rad: float, span_s: float) -> str | None:
+        """One frame pair: its rotation angle from the camera and from the gyro integral over its `span_s`; returns
+        the problem once decided."""
+        c, g = float(camera_rad), float(gyro_rad)
+        if self.problem is not None or not (np.isfinite(c) and np.isfinite(g)):
+            return self.problem
+        bias = self.max_bias_rad_s * max(float(span_s), 0.0)
+        if c >= SCALE_MIN_RAD or g > 2 * bias:
+            self.high.append((g > SCALE_FACTOR * c + 2 * bias, c, g))
+            self.problem = self._verdict(self.high, "high")
+        if self.problem is None and c - bias >= SCALE_MIN_RAD:
+            self.low.append((g < (c - bias) / SCALE_FACTOR, c, g))
+            self.problem = self._verdict(self.low, "low")
+        return self.problem
+
+    @staticmethod
+    def _verdict(pairs: list[tuple[bool, float, float]], side: str) -> str | None:
+        recent = pairs[-3 * SCALE_PAIRS:]
+        off = [(c, g) for wrong, c, g in recent if wrong]
+        if len(recent) < SCALE_PAIRS or len(off) < SCALE_AGREE * len(recent):
+            return None
+        said = f"({len(off)} of the last {len(recent)} frame pairs that could tell)"
+        turning = [g / c for c, g in off if c >= SCALE_MIN_RAD]
+        if side == "low":
+            med = float(np.median([g / c for c, g in off]))
+            return f"the gyro turns {med:.2g}x what the camera sees {said}: a dead gyro, or a scale error in the IMU " \
+                   "driver (rad/s taken for deg/s?)"
+        if len(turning) < 3:  # the camera barely turned: the gyro's angle is its bias, not a scale
+            g, c = (float(np.median(x)) for x in zip(*[(g, c) for c, g in off]))
+            return (f"the gyro turns {g:.2f} rad where the camera turned {c:.3f} rad {said}: more than any bias "
+                    "explains: deg/s instead of rad/s, or a scale error in the IMU driver")
+        med = float(np.median(turning))
+        hint = "deg/s instead of rad/s (57.3x)?" if 30 < med < 110 else \
+            "a scale error in the IMU driver or its configuration (raw counts?)"
+        return f"the gyro turns {med:.2g}x what the camera sees {said}: {hint}"
+
+
 def baseline_units_problem(baseline_m: float) -> str | None:
     """Stereo baseline |t_cam1_cam0|: drone stereo heads have 2 cm..60 cm (OAK-D 7.5 cm, EuRoC 11 cm)."""
     b = float(baseline_m)

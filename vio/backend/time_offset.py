@@ -52,6 +52,7 @@ from vio.calibration import StereoCalibration
 from vio.geometry import so3_log
 from vio.imu_buffer import ImuBuffer
 from vio.relative_pose import points_from_depth, relative_rotation, solve_pnp
+from vio.sanity import GyroScaleCheck
 from vio.types import FeatureFrame, ImuSample
 
 log = logging.getLogger(__name__)
@@ -90,11 +91,12 @@ class OnlineTimeOffset:
                  accept_sigma_s: float = 0.002, final_sigma_s: float = 0.0005, max_solves: int = 30,
                  span_frames: int = 4, max_collect_s: float = 120.0, imu: ImuBuffer | None = None,
                  continuous: bool = False, track_window_s: float = 4.0, coarse_only: bool = False,
-                 recheck_s: float = 0.0) -> None:
+                 recheck_s: float = 0.0, max_gyro_bias_rad_s: float = 0.3) -> None:
         """`imu`: a buffer someone else fills (the estimator's one buffer), which must then keep at least
         `keep_samples` samples while `done` is False; without one the solver keeps its own (`add_imu`).
         `coarse_only`: stop at the first accepted estimate (the smoother's time offset state refines and
-        follows the offset from there, so collecting on costs a PnP per frame for nothing)."""
+        follows the offset from there, so collecting on costs a PnP per frame for nothing).
+        `max_gyro_bias_rad_s`: the largest plausible gyro bias, which the gyro-against-camera check allows for."""
         cam = calib.cam0
         self.f_px = cam.fx
         self.c = np.array([cam.cx, cam.cy])
@@ -140,6 +142,8 @@ class OnlineTimeOffset:
         self._t_last: int | None = None
         self._owned = imu is None
         self.imu = ImuBuffer() if imu is None else imu
+        # its pairs are these pairs: a gyro in the wrong units shows here first
+        self.gyro_scale = GyroScaleCheck(max_gyro_bias_rad_s)
 
     def add_imu(self, s: ImuSample) -> None:
         """Feed a sample to the solver's own buffer (not needed, and not allowed, with a shared one)."""
@@ -188,9 +192,12 @@ class OnlineTimeOffset:
         if res is None:
             return None
         theta = so3_log(res[0])
+        b = self.base_ns
+        if self.gyro_scale.problem is None:  # before the rotation filter: a camera that barely turns says most
+            self.gyro_scale.add(float(np.linalg.norm(theta)), self._gyro_angle(int(prev.t_ns) + b, int(ff.t_ns) + b),
+                                (int(ff.t_ns) - int(prev.t_ns)) * 1e-9)
         if np.linalg.norm(theta) < MIN_PAIR_ROTATION_RAD:
             return None
-        b = self.base_ns
         self._pairs.append((int(prev.t_ns) + b, int(ff.t_ns) + b, theta, int(res[1]), res[2]))
         self._new_pairs += 1
         if len(self._pairs) < MIN_PAIRS or self._new_pairs < SOLVE_EVERY:
@@ -199,6 +206,14 @@ class OnlineTimeOffset:
             self._postponed += 1
             return None
         return self._solve()
+
+    def _gyro_angle(self, t0_ns: int, t1_ns: int) -> float:
+        """|integral of the gyro| over [t0, t1] (IMU clock) [rad]: the pair's rotation as the gyro has it."""
+        t, gyro, _ = self.imu.window(t0_ns, t1_ns)
+        if len(t) < 2:
+            return float("nan")
+        dt = np.diff(t) * 1e-9
+        return float(np.linalg.norm(((gyro[1:] + gyro[:-1]) * 0.5 * dt[:, None]).sum(axis=0)))
 
     def _window_ns(self) -> int:
         return int(self._pairs.maxlen / self.cam_rate_hz * 1e9)
