@@ -136,20 +136,18 @@ class GyroScaleCheck:
         off = [(c, g) for wrong, c, g in recent if wrong]
         if len(recent) < SCALE_PAIRS or len(off) < SCALE_AGREE * len(recent):
             return None
-        said = f"({len(off)} of the last {len(recent)} frame pairs that could tell)"
-        turning = [g / c for c, g in off if c >= SCALE_MIN_RAD]
+        g, c = (float(np.median(x)) for x in zip(*[(g, c) for c, g in off]))
+        ratio = float(np.median([g / max(c, 1e-9) for c, g in off]))
         if side == "low":
-            med = float(np.median([g / c for c, g in off]))
-            return f"the gyro turns {med:.2g}x what the camera sees {said}: a dead gyro, or a scale error in the IMU " \
-                   "driver (rad/s taken for deg/s?)"
-        if len(turning) < 3:  # the camera barely turned: the gyro's angle is its bias, not a scale
-            g, c = (float(np.median(x)) for x in zip(*[(g, c) for c, g in off]))
-            return (f"the gyro turns {g:.2f} rad where the camera turned {c:.3f} rad {said}: more than any bias "
-                    "explains: deg/s instead of rad/s, or a scale error in the IMU driver")
-        med = float(np.median(turning))
-        hint = "deg/s instead of rad/s (57.3x)?" if 30 < med < 110 else \
-            "a scale error in the IMU driver or its configuration (raw counts?)"
-        return f"the gyro turns {med:.2g}x what the camera sees {said}: {hint}"
+            hint = "a dead gyro, or a scale error in the IMU driver (rad/s taken for deg/s?)"
+        elif 30 < ratio < 110:
+            hint = "deg/s instead of rad/s (57.3x)?"
+        elif c < SCALE_MIN_RAD:  # the camera barely turned: the gyro's angle may be mostly a bias in the wrong units
+            hint = "more than any bias explains: deg/s instead of rad/s, or a scale error in the IMU driver"
+        else:
+            hint = "a scale error in the IMU driver or its configuration (raw counts?)"
+        return (f"the gyro turns {ratio:.2g}x what the camera sees ({g:.3g} rad against {c:.3g} rad, the median of "
+                f"{len(off)} of the last {len(recent)} frame pairs that could tell): {hint}")
 
 
 def baseline_units_problem(baseline_m: float) -> str | None:
