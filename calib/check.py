@@ -40,6 +40,7 @@ import numpy as np
 
 from calib.stereo_match import DEFAULT_DEPTH_M, _expected_shift_px, match_stereo, normalise_contrast, triangulate
 from vio import VioError
+from vio.backend.offset_solver import fit_camera_imu_rotation, rotation_disagreement
 from vio.calibration import StereoCalibration
 from vio.geometry import GRAVITY_M_S2, skew
 
@@ -52,7 +53,6 @@ TILT_PASS_DEG, TILT_WARN_DEG = 2.0, 5.0
 DISPARITY_PASS_PX, DISPARITY_WARN_PX = 0.1, 0.3  # 1 % / 3 % of a depth at 5 m (f B ~ 50 px m)
 NOISE_OVER, NOISE_UNDER = 10.0, 0.01  # stated IMU noise per sample vs the still span's spread
 ROT_PASS_DEG, ROT_WARN_DEG = 1.0, 2.5  # camera-IMU rotation against the gyro
-MIN_AXIS_RATE_RAD_S = 0.05  # rms turn rate about a principal axis for the fit to read the rotation about it
 ROT_MAX_PAIRS = 1200  # frame pairs measured at most (a minute at 20 Hz): the check stays a check, not a replay
 DISPARITY_SIGNIFICANT = 3.0  # sigmas under which a refined bias is not told from zero
 @dataclass
@@ -197,48 +197,6 @@ def check_units(dataset) -> list[CheckResult]:
     return out
 
 
-@dataclass(frozen=True)
-class HandEyeRotation:
-    R_body_cam: np.ndarray  # the rotation that maps the camera's turns onto the gyro's
-    gyro_bias: np.ndarray  # rad/s, solved with it
-    axis_rates: np.ndarray  # (3,) rms turn rate about the principal axes of the camera's turns, largest first
-    axes_cam: np.ndarray  # (3, 3) those axes in the camera frame, as rows
-    residual_rad_s: float  # rms rate residual of the fit
-    n_pairs: int
-
-
-def fit_camera_imu_rotation(vis, imu_t_ns: np.ndarray, gyro: np.ndarray, offset_s: float) -> HandEyeRotation:
-    """R_body_cam from frame-to-frame rotations: theta_body_i - b dt_i = R theta_cam_i (rotation vectors of one
-    turn seen in two frames), solved in R by orthogonal Procrustes and in the gyro bias b by least squares, in
-    turn, with pairs beyond 5 robust sigmas (KLT slips, blur) left out."""
-    from vio.backend.offset_solver import OUTLIER_MADS, _gyro_integral
-    from vio.trajectory import interp_columns
-
-    t_ref = int(vis.t0_ns[0])
-    ts, G = _gyro_integral(np.asarray(imu_t_ns, np.int64), np.asarray(gyro, float), t_ref)
-    t0 = (vis.t0_ns - t_ref) / 1e9 + offset_s  # t_imu = t_cam + offset
-    t1 = (vis.t1_ns - t_ref) / 1e9 + offset_s
-    inside = (t0 >= ts[0]) & (t1 <= ts[-1]) & (t1 > t0)
-    if inside.sum() < 10:
-        raise VioError("the IMU does not cover the frames; wrong clocks or files?")
-    dt = (t1 - t0)[inside]
-    c = vis.theta_cam[inside]
-    y0 = interp_columns(t1[inside], ts, G) - interp_columns(t0[inside], ts, G)
-    b, good = np.zeros(3), np.ones(len(dt), bool)
-    for _ in range(8):
-        y = y0 - b * dt[:, None]
-        U, _, Vt = np.linalg.svd(y[good].T @ c[good])
-        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-        r = y0 - c @ R.T  # what the bias and the noise must explain
-        b = (r[good] * dt[good, None]).sum(axis=0) / (dt[good] ** 2).sum()
-        rate = np.linalg.norm(r - b * dt[:, None], axis=1) / dt
-        good = rate <= max(OUTLIER_MADS * 1.4826 * np.median(rate), 1e-4)
-    rates = c[good] / dt[good, None]
-    _, sv, axes = np.linalg.svd(rates, full_matrices=False)
-    return HandEyeRotation(R, b, sv / np.sqrt(good.sum()), axes, float(np.sqrt(np.mean(rate[good] ** 2))),
-                           int(good.sum()))
-
-
 def check_camera_imu_rotation(dataset, calib: StereoCalibration) -> CheckResult:
     """The calibration's camera-IMU rotation against the one the recording's turns show (module doc)."""
     from calib.time_offset import visual_rotations
@@ -250,25 +208,12 @@ def check_camera_imu_rotation(dataset, calib: StereoCalibration) -> CheckResult:
         fit = fit_camera_imu_rotation(vis, dataset.imu.t_ns, dataset.imu.gyro, calib.time_offset_ns * 1e-9)
     except VioError as e:
         return CheckResult(name, "SKIP", float("nan"), "deg", f"not checked: {e}")
-    R_cal = np.asarray(calib.cam0.T_body_cam)[:3, :3]
-    # 1 sigma of the fitted rotation about an axis across the turns: residual over the rms rate about the
-    # other axes, over sqrt(pairs)
-    turning = fit.axis_rates >= MIN_AXIS_RATE_RAD_S
     said = (f"from {fit.n_pairs} frame pairs, turn rates {', '.join(f'{r:.2f}' for r in fit.axis_rates)} rad/s "
             f"rms about the principal axes, residual {fit.residual_rad_s:.3f} rad/s")
-    if not turning.any():
+    disagreement = rotation_disagreement(fit, calib.cam0.T_body_cam)
+    if disagreement is None:
         return CheckResult(name, "SKIP", float("nan"), "deg", f"not checked: too little rotation ({said})")
-    if turning.sum() >= 2:
-        dR = R_cal.T @ fit.R_body_cam
-        ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
-        sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[1] * np.sqrt(fit.n_pairs))))
-        what = "the calibration's R_body_cam0 is"
-    else:  # one axis only: where it lies in the body, through the calibration and through the gyro
-        a = fit.axes_cam[0]
-        # signed: a turn about +a stays one about +a (a camera mounted upside down flips it: abs() hid that)
-        ang = float(np.degrees(np.arccos(np.clip((R_cal @ a) @ (fit.R_body_cam @ a), -1, 1))))
-        sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[0] * np.sqrt(fit.n_pairs))))
-        what = "turns about one axis only: where that axis lies in the body is"
+    ang, sigma, what = disagreement
     if ang < 3 * sigma:
         if 3 * sigma >= ROT_WARN_DEG:
             return CheckResult(name, "SKIP", ang, "deg", f"not decided by this recording: {what} {ang:.2f} deg from "

@@ -1118,32 +1118,56 @@ def test_a_right_gyro_never_reads_wrong_however_biased():
         assert chk.add(c * float(rng.uniform(0.97, 1.03)), g, 0.2) is None, (c, g)
 
 
-def test_a_gyro_in_deg_per_s_with_a_small_bias_stops_a_survey_replay_at_its_first_turns(tmp_path):
-    """A deg/s gyro whose bias at rest is small passes every check at rest, and the replay's look at the whole
-    file (no rate beyond a drone's on a survey): the estimator started and went 9 m off on a 15 s survey, poses
-    out for 6 s, exit 0. Now the gyro against the camera stops it at the first turns, and the replay fails
-    saying so, with the trajectory up to there."""
+def _flight_with_imu_rewritten(tmp_path, rewrite, **sim) -> tuple:
+    """A short simulated flight whose IMU rows (gyro, accel) go through `rewrite`, replayed by the CLI as a user
+    runs it: (the completed process, the trajectory's pose lines)."""
     import subprocess
     import sys
 
     from vio.sim.generate import SimConfig, simulate
 
-    data = tmp_path / "survey"
-    simulate(data, SimConfig(profile="survey", duration_s=6.0, seed=3, width=376, height=240, gyro_bias=0.001),
-             progress=False)
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(width=376, height=240, **sim), progress=False)
     imu = data / "mav0" / "imu0" / "data.csv"
     rows = imu.read_text().splitlines()
-    imu.write_text("\n".join(rows[:1] + [",".join([v[0]] + [repr(float(x) * 180 / np.pi) for x in v[1:4]] + v[4:])
-                                          for v in (r.split(",") for r in rows[1:])]) + "\n")
+    out_rows = rows[:1]
+    for v in (r.split(",") for r in rows[1:]):
+        g, a = rewrite(np.array([float(x) for x in v[1:4]]), np.array([float(x) for x in v[4:7]]))
+        out_rows.append(",".join([v[0]] + [repr(float(x)) for x in (*g, *a)] + v[7:]))
+    imu.write_text("\n".join(out_rows) + "\n")
     out = tmp_path / "traj.tum"
     r = subprocess.run([sys.executable, "-m", "vio.app.cli", "-q", "replay", str(data), "-o", str(out),
                         "--no-progress"], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 1, r.stderr
     assert "Traceback" not in r.stderr
+    return r, [line for line in out.read_text().splitlines() if not line.startswith("#")]
+
+
+def test_a_gyro_in_deg_per_s_with_a_small_bias_stops_a_survey_replay_at_its_first_turns(tmp_path):
+    """A deg/s gyro whose bias at rest is small passes every check at rest, and the replay's look at the whole
+    file (no rate beyond a drone's on a survey): the estimator started and went 9 m off on a 15 s survey, poses
+    out for 6 s, exit 0. Now the gyro against the camera stops it at the first turns, and the replay fails
+    saying so, with the trajectory up to there."""
+    r, poses = _flight_with_imu_rewritten(tmp_path, lambda g, a: (g * 180 / np.pi, a), profile="survey",
+                                          duration_s=6.0, seed=3, gyro_bias=0.001)
+    assert r.returncode == 1, r.stderr
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("vio replay: error: the estimator stopped") and "deg/s instead of rad/s" in last, last
-    poses = [line for line in out.read_text().splitlines() if not line.startswith("#")]
     assert len(poses) > 0 and float(poses[-1].split()[0]) - 1600000000 < 4.0  # stopped within 2 s of moving
+
+
+def test_an_imu_turned_90_deg_from_what_the_calibration_says_stops_the_replay(tmp_path):
+    """An IMU whose axes are turned 90 deg about z from the calibration's (a mount or axes mistake) flew an
+    aggressive flight 0.34 m off (a survey's 1.1 m about x) with only the stereo check blaming the right camera,
+    exit 0. The rotation its turns show against the camera's (the hand-eye fit of `vio calib check`) names it."""
+    from vio.geometry import so3_exp
+
+    R = so3_exp(np.array([0.0, 0.0, np.pi / 2]))
+    r, poses = _flight_with_imu_rewritten(tmp_path, lambda g, a: (R @ g, R @ a), profile="aggressive",
+                                          duration_s=10.0, seed=5)
+    assert r.returncode == 1, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert "other axes than the calibration says" in last and "90 deg" in last and "T_body_cam0" in last, last
+    assert len(poses) > 0 and float(poses[-1].split()[0]) - 1600000000 < 8.0
 
 
 def test_an_accel_sample_in_milli_g_is_named_as_such():

@@ -290,7 +290,7 @@ class Estimator:
         self.frames_dropped = 0
         self.last_reset_reason = ""
         self.sensor_error: str | None = None
-        self._gyro_scale_error: str | None = None  # the gyro against the camera: final for the run
+        self._imu_camera_error: str | None = None  # the gyro against the camera: final for the run
         self._start_bias_refused = False  # the last start found was refused for its gyro bias (said once)
         self._no_stereo = 0  # frames in a row that looked for stereo among many tracks and found none
         self._stereo_loss: str | None = None  # what the stereo warning found (None: stereo fine)
@@ -686,8 +686,8 @@ class Estimator:
                                                       or run.smoother.marginalize_due or run.just_solved)
         solves = self.offset_estimator.solves
         new = self.offset_estimator.add_frame(ff, solve=quiet)
-        if self.offset_estimator.gyro_scale.problem is not None and self._gyro_scale_error is None:
-            self._gyro_scale_wrong(self.offset_estimator.gyro_scale.problem)
+        if self.offset_estimator.imu_problem is not None and self._imu_camera_error is None:
+            self._imu_disagrees(self.offset_estimator.imu_problem)
             return False
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
@@ -700,12 +700,13 @@ class Estimator:
                 self._start_time_state()
         return self.offset_estimator.solves > solves
 
-    def _gyro_scale_wrong(self, problem: str) -> None:
-        """The gyro measured against the camera is in the wrong units (or dead): nothing it feeds can be trusted,
-        and no start can fix it, so the estimator stops and stays stopped for this run, and says why (status,
-        log, replay summary). A deg/s gyro with a small bias at rest had passed the checks at rest and flown 9 m
-        off before a speed check reset it (a QA finding)."""
-        self._gyro_scale_error = self.sensor_error = problem
+    def _imu_disagrees(self, problem: str) -> None:
+        """The gyro measured against the camera is in the wrong units (or dead), or turns about other axes than the
+        calibration says: nothing it feeds can be trusted, and no start can fix it, so the estimator stops and
+        stays stopped for this run, and says why (status, log, replay summary). A deg/s gyro with a small bias at
+        rest had passed the checks at rest and flown 9 m off before a speed check reset it; an IMU whose axes were
+        turned 90 deg from the calibration's flew 1.1 m off blaming the right camera."""
+        self._imu_camera_error = self.sensor_error = problem
         log.error("IMU: %s; no pose is estimated for the rest of this run: fix the IMU's units or scale", problem)
         if self.initialized:
             self.reset(f"IMU units: {problem}", bridge=False, keep_bias=False)
@@ -734,7 +735,7 @@ class Estimator:
         log.info("time offset: the smoother follows it as a state from the next keyframe on")
 
     def _try_init(self, t: int, ff: FeatureFrame) -> NavState | None:
-        if self._gyro_scale_error is not None:  # final for the run (_gyro_scale_wrong): no start to attempt
+        if self._imu_camera_error is not None:  # final for the run (_imu_disagrees): no start to attempt
             return None
         icfg = self.cfg.init
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
@@ -779,7 +780,7 @@ class Estimator:
 
         A unit mistake (g for m/s^2, deg/s for rad/s) or a dead IMU would otherwise initialise and drift by
         metres while reporting itself healthy."""
-        if self._gyro_scale_error is not None:
+        if self._imu_camera_error is not None:
             return False
         if len(ts) < 4:
             return self.sensor_error is None

@@ -30,6 +30,7 @@ from vio.trajectory import interp_columns
 log = logging.getLogger(__name__)
 
 MIN_RATE_STD_RAD_S = 0.1  # less rotation excitation than this: the offset is not observable
+MIN_AXIS_RATE_RAD_S = 0.05  # rms turn rate about a principal axis for a rotation fit to read the rotation about it
 OUTLIER_MADS = 5.0  # frame pairs whose residual exceeds this many robust sigmas are dropped
 
 
@@ -42,6 +43,65 @@ class VisualRotations:
     theta_cam: np.ndarray  # (N, 3) rad
     n_tracks: np.ndarray
     info_cam: np.ndarray  # (N, 3, 3) information (inverse covariance) of theta_cam, unit image noise
+
+
+@dataclass(frozen=True)
+class HandEyeRotation:
+    R_body_cam: np.ndarray  # the rotation that maps the camera's turns onto the gyro's
+    gyro_bias: np.ndarray  # rad/s, solved with it
+    axis_rates: np.ndarray  # (3,) rms turn rate about the principal axes of the camera's turns, largest first
+    axes_cam: np.ndarray  # (3, 3) those axes in the camera frame, as rows
+    residual_rad_s: float  # rms rate residual of the fit
+    n_pairs: int
+
+
+def fit_camera_imu_rotation(vis, imu_t_ns: np.ndarray, gyro: np.ndarray, offset_s: float) -> HandEyeRotation:
+    """R_body_cam from frame-to-frame rotations: theta_body_i - b dt_i = R theta_cam_i (rotation vectors of one
+    turn seen in two frames), solved in R by orthogonal Procrustes and in the gyro bias b by least squares, in
+    turn, with pairs beyond 5 robust sigmas (KLT slips, blur) left out."""
+    t_ref = int(vis.t0_ns[0])
+    ts, G = _gyro_integral(np.asarray(imu_t_ns, np.int64), np.asarray(gyro, float), t_ref)
+    t0 = (vis.t0_ns - t_ref) / 1e9 + offset_s  # t_imu = t_cam + offset
+    t1 = (vis.t1_ns - t_ref) / 1e9 + offset_s
+    inside = (t0 >= ts[0]) & (t1 <= ts[-1]) & (t1 > t0)
+    if inside.sum() < 10:
+        raise VioError("the IMU does not cover the frames; wrong clocks or files?")
+    dt = (t1 - t0)[inside]
+    c = vis.theta_cam[inside]
+    y0 = interp_columns(t1[inside], ts, G) - interp_columns(t0[inside], ts, G)
+    b, good = np.zeros(3), np.ones(len(dt), bool)
+    for _ in range(8):
+        y = y0 - b * dt[:, None]
+        U, _, Vt = np.linalg.svd(y[good].T @ c[good])
+        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        r = y0 - c @ R.T  # what the bias and the noise must explain
+        b = (r[good] * dt[good, None]).sum(axis=0) / (dt[good] ** 2).sum()
+        rate = np.linalg.norm(r - b * dt[:, None], axis=1) / dt
+        good = rate <= max(OUTLIER_MADS * 1.4826 * np.median(rate), 1e-4)
+    rates = c[good] / dt[good, None]
+    _, sv, axes = np.linalg.svd(rates, full_matrices=False)
+    return HandEyeRotation(R, b, sv / np.sqrt(good.sum()), axes, float(np.sqrt(np.mean(rate[good] ** 2))),
+                           int(good.sum()))
+
+
+def rotation_disagreement(fit: HandEyeRotation, R_body_cam: np.ndarray) -> tuple[float, float, str] | None:
+    """How far a calibration's camera-IMU rotation is from the one the turns show: (angle, 1 sigma [deg], what was
+    compared), None without enough rotation. With turns about two axes or more the whole rotation; about one axis
+    only, where that axis lies in the body (signed: a camera mounted upside down flips it). The sigma is the fit's
+    rate residual over the rms rate about the other axes (the one axis), over sqrt(pairs)."""
+    turning = fit.axis_rates >= MIN_AXIS_RATE_RAD_S
+    R_cal = np.asarray(R_body_cam, float)[:3, :3]
+    if not turning.any():
+        return None
+    if turning.sum() >= 2:
+        dR = R_cal.T @ fit.R_body_cam
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[1] * np.sqrt(fit.n_pairs))))
+        return ang, sigma, "the calibration's R_body_cam0 is"
+    a = fit.axes_cam[0]
+    ang = float(np.degrees(np.arccos(np.clip((R_cal @ a) @ (fit.R_body_cam @ a), -1, 1))))
+    sigma = float(np.degrees(fit.residual_rad_s / (fit.axis_rates[0] * np.sqrt(fit.n_pairs))))
+    return ang, sigma, "turns about one axis only: where that axis lies in the body is"
 
 
 @dataclass

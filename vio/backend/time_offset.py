@@ -47,7 +47,13 @@ from collections import deque
 import numpy as np
 
 from vio import VioError
-from vio.backend.offset_solver import VisualRotations, estimate_time_offset
+from vio.backend.offset_solver import (
+    MIN_AXIS_RATE_RAD_S,
+    VisualRotations,
+    estimate_time_offset,
+    fit_camera_imu_rotation,
+    rotation_disagreement,
+)
 from vio.calibration import StereoCalibration
 from vio.geometry import so3_log
 from vio.imu_buffer import ImuBuffer
@@ -73,6 +79,16 @@ SLOW_MAX_SIGMA_S = 0.010  # ... each at most this uncertain (slow turns give 3-7
 # follow the motion; the front end's tracks show no lag). Added in quadrature to sigma when an estimate is
 # weighed against the calibration. 0.5 ms also kept EuRoC V1_01's real -1.0 ms from being applied (ATE 1.17x).
 SYSTEMATIC_SIGMA_S = 0.3e-3
+# A camera-IMU rotation this far from the calibration's (and beyond MOUNT_SIGMAS of the fit's uncertainty) is a mount
+# or axes mistake (an IMU turned 90 deg, upside down, T_cam_imu inverted), not a calibration error: those are tenths
+# of a degree, the extrinsic refinement's. A replay with the IMU's axes turned 90 deg went 1.1 m off, saying only that
+# the right camera disagreed with the calibration.
+MOUNT_MAX_DEG = 3.0
+MOUNT_SIGMAS = 3.0
+# Turns about one axis only (a survey's yaw) show only where that axis lies in the body, and the fit read it 5.5 deg
+# (+- 0.25) off on the simulated hall surveys with an exact calibration: there only gross mistakes are named.
+MOUNT_MAX_DEG_ONE_AXIS = 30.0
+MOUNT_OFFSET_STEP_S = 0.005  # offsets searched again for a fit beyond them (half a step: a tenth of a degree or so)
 TRACK_CHANGE_NS = 200_000  # while tracking, smaller changes of the predicted offset are not applied
 TRACK_STEP_NS = 50_000  # between solves the offset follows the fitted drift in steps of this size
 TRACK_HISTORY_WINDOWS = 1.5  # estimates of this many tracking windows back make the drift line
@@ -142,8 +158,9 @@ class OnlineTimeOffset:
         self._t_last: int | None = None
         self._owned = imu is None
         self.imu = ImuBuffer() if imu is None else imu
-        # its pairs are these pairs: a gyro in the wrong units shows here first
+        # its pairs are these pairs: a gyro in the wrong units, or turning about other axes, shows here first
         self.gyro_scale = GyroScaleCheck(max_gyro_bias_rad_s)
+        self.mount_problem: str | None = None
 
     def add_imu(self, s: ImuSample) -> None:
         """Feed a sample to the solver's own buffer (not needed, and not allowed, with a shared one)."""
@@ -215,6 +232,54 @@ class OnlineTimeOffset:
         dt = np.diff(t) * 1e-9
         return float(np.linalg.norm(((gyro[1:] + gyro[:-1]) * 0.5 * dt[:, None]).sum(axis=0)))
 
+    @property
+    def imu_problem(self) -> str | None:
+        """What the pairs found wrong with the IMU against the camera (units or scale, or axes), None if nothing."""
+        return self.gyro_scale.problem or self.mount_problem
+
+    def _check_mount(self, vis: VisualRotations, imu_t: np.ndarray, gyro: np.ndarray) -> None:
+        """The camera-IMU rotation the window's turns show (the hand-eye fit `vio calib check` makes) against the
+        calibration's: a mount or axes mistake is named (`mount_problem`). One fit (a few 3x3 SVDs over the
+        window's pairs) at the offset's solves; a fit beyond the limits is made again over the offsets searched, at
+        the one that explains the turns best, before anything is said: an offset the calibration gets 45 ms wrong
+        tilted the fit by 5 deg (+- 1.1) on an aggressive flight, and the applied offset is the calibration's until
+        the first estimate replaces it."""
+        if self.mount_problem is not None:
+            return
+        applied_s = (self.applied_ns - self.base_ns) * 1e-9  # the pairs are stamped at the calibration's offset
+        fit = self._mount_fit(vis, imu_t, gyro, applied_s)
+        if fit is None or not self._mount_wrong(fit):
+            return
+        grid = np.arange(-self.max_offset_s, self.max_offset_s + 1e-9, MOUNT_OFFSET_STEP_S)
+        fits = [f for f in (self._mount_fit(vis, imu_t, gyro, float(o)) for o in grid) if f is not None]
+        best = min(fits, key=lambda f: f.residual_rad_s, default=fit)
+        problem = self._mount_wrong(best)
+        if problem:
+            self.mount_problem = problem
+
+    @staticmethod
+    def _mount_fit(vis: VisualRotations, imu_t: np.ndarray, gyro: np.ndarray, offset_s: float):
+        try:
+            return fit_camera_imu_rotation(vis, imu_t, gyro, offset_s)
+        except (VioError, np.linalg.LinAlgError):
+            return None
+
+    def _mount_wrong(self, fit) -> str | None:
+        """What a fit says is wrong with the calibration's camera-IMU rotation, None if nothing (or too little
+        rotation to tell)."""
+        seen = rotation_disagreement(fit, self.R_body_cam)
+        if seen is None:
+            return None
+        ang, sigma, what = seen
+        limit = MOUNT_MAX_DEG if fit.axis_rates[1] >= MIN_AXIS_RATE_RAD_S else MOUNT_MAX_DEG_ONE_AXIS
+        if ang <= limit or ang <= MOUNT_SIGMAS * sigma:
+            return None
+        why = ("the IMU's mount or axes in the calibration (T_body_cam0) are wrong, or T_cam_imu is inverted"
+               if ang >= MOUNT_MAX_DEG_ONE_AXIS else "the camera or the IMU sits differently on the airframe from "
+               "when the calibration was made, or the calibration is another rig's")
+        return (f"the camera turns about other axes than the calibration says: {what} {ang:.0f} deg (+- {sigma:.1f}) "
+                f"from the gyro's, over {fit.n_pairs} frame pairs: {why} (vio calib check CALIB DATASET measures it)")
+
     def _window_ns(self) -> int:
         return int(self._pairs.maxlen / self.cam_rate_hz * 1e9)
 
@@ -279,8 +344,9 @@ class OnlineTimeOffset:
         self.solves += 1
         t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
         vis = VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info)
+        imu_t, gyro = self.imu.tail(self.keep_samples)
+        self._check_mount(vis, imu_t, gyro)
         try:
-            imu_t, gyro = self.imu.tail(self.keep_samples)
             est = estimate_time_offset(vis, imu_t, gyro, self.R_body_cam, max_offset_s=self.max_offset_s, n_boot=30)
         except (VioError, np.linalg.LinAlgError) as e:
             log.debug("time offset solve %d: no estimate (%s)", self.solves, e)
