@@ -1718,6 +1718,58 @@ def test_a_map_made_with_another_camera_is_said_to_rarely_place_the_flight(tmp_p
         assert bool(cl.map_camera_warning) == warned and ("made with a 376x240 camera" in caplog.text) == warned
 
 
+def test_a_map_made_with_another_calibration_of_the_camera_is_verified_in_this_ones_pixels(tmp_path):
+    """A map's undistorted pixels are in the pinhole of the calibration it was made with. Loaded for a flight whose
+    calibration differs by less than the size/focal warning (focal 0.8 %, principal point 3 px), verification
+    projected into the map's images with this flight's K: the back PnP came out biased, and a relocalised flight
+    sat twice as far off in the map's frame (14 -> 30 mm), unsaid. The loader now re-expresses the map's pixels
+    in this camera's, so the same view verifies as the same pose; a header without the principal point is
+    refused as damaged."""
+    import dataclasses
+
+    import cv2
+
+    from vio import VioError
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import load_map, save_map
+    from vio.loop.verify import pnp_from
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    c = calib.cam0
+    map_cam = dataclasses.replace(c, fx=c.fx * 1.008, fy=c.fy * 1.008, cx=c.cx + 3.0, cy=c.cy + 2.0)
+    rng = np.random.default_rng(3)
+    n = 80
+    p = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.2, 1.2, n), rng.uniform(2, 6, n)])
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+    def seen_by(cam) -> KeyframeFeatures:
+        uv = cv2.projectPoints(p, np.zeros(3), np.zeros(3), cam.K, None)[0].reshape(-1, 2)
+        return KeyframeFeatures(desc, uv, p)
+
+    save_map(tmp_path / "m.npz", [1], [np.eye(4)], [seen_by(map_cam)], Vocabulary.load(), map_cam)
+    cl = LoopCloser(calib, VioConfig().loop)
+    cl.load_map(load_map(tmp_path / "m.npz"))
+    old = cl.keyframes[0].feats
+    assert np.abs(old.uv - seen_by(c).uv).max() < 1e-3  # where this camera sees the map's points
+    # the same view from the same place: the back PnP (this flight's landmarks into the map's image) is identity
+    res = pnp_from(seen_by(c), old, c.K, c.T_body_cam, np.eye(4), max_hamming=50, reproj_px=2.0, min_inliers=20,
+                   guided_px=8.0)
+    assert res is not None
+    R = res.T_old_new[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.01
+    assert np.linalg.norm(res.T_old_new[:3, 3]) < 1e-3
+
+    z = dict(np.load(tmp_path / "m.npz"))
+    z["header"] = np.array(str(z["header"]).replace('"cx"', '"cx_"'))
+    np.savez(tmp_path / "nocx.npz", **z)
+    with pytest.raises(VioError, match="damaged map.*principal point"):
+        load_map(tmp_path / "nocx.npz")
+
+
 def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, monkeypatch):
     """A map grown in place ([map] load and save the same file): a full disk half-way through the write must not
     cost the old map (it was truncated first), and leaves no partial file behind."""

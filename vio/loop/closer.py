@@ -408,7 +408,7 @@ class LoopCloser:
         if self.keyframes:
             raise ValueError("load the map before the first keyframe")
         poses = self._map_poses_for_this_mount(m)
-        for t, T, f in zip(m.t_ns, poses, m.features):
+        for t, T, f in zip(m.t_ns, poses, self._map_features_for_this_camera(m)):
             self.graph.add_node(T, None, (1e-4, 1e-4))
             self.keyframes.append(Keyframe(int(t), 0, f, 0.0))
             self.index.add(self.vocab.bow(f.desc))
@@ -421,6 +421,26 @@ class LoopCloser:
         self._map_stamp = getattr(m, "stamp", None)
         self.session = 1
         self._last_reset = None
+
+    def _map_features_for_this_camera(self, m) -> list[KeyframeFeatures]:
+        """The map's keyframe features with their undistorted pixels re-expressed in this flight's pinhole
+        (uv_now = K_now K_map^-1 uv_map). Verification projects into an old keyframe's image with this camera's
+        K; a map made with another calibration of the camera (a focal length 0.8 % and a principal point 3 px
+        off: under the size/focal warning) had its back-projection PnP biased and a relocalised flight sat twice
+        as far off in the map's frame, unsaid (this test's finding). Pixel rays are what a map's uv mean; the
+        stereo points are metric and stay."""
+        c = m.header.get("camera", {})
+        cam = self.cam
+        fx, fy = float(c.get("fx", cam.fx)), float(c.get("fy", cam.fy))
+        cx, cy = float(c.get("cx", cam.cx)), float(c.get("cy", cam.cy))
+        if (fx, fy, cx, cy) == (cam.fx, cam.fy, cam.cx, cam.cy):
+            return list(m.features)
+        log.info("loop closure: the map's pixels (fx %.1f fy %.1f cx %.1f cy %.1f) are re-expressed in this "
+                 "camera's (fx %.1f fy %.1f cx %.1f cy %.1f)", fx, fy, cx, cy, cam.fx, cam.fy, cam.cx, cam.cy)
+        scale = np.array([cam.fx / fx, cam.fy / fy])
+        shift = np.array([cam.cx, cam.cy]) - np.array([cx, cy]) * scale
+        return [dataclasses.replace(f, uv=(np.asarray(f.uv, np.float64) * scale + shift).astype(f.uv.dtype))
+                for f in m.features]
 
     def _map_poses_for_this_mount(self, m) -> np.ndarray:
         """The map's keyframe body poses for this flight's camera mount. A map stores body (IMU) poses and what its

@@ -135,8 +135,9 @@ def _header_problem(header: dict, n: int) -> str | None:
             return f"its header's parts do not split its {n} keyframes"
     cam = header.get("camera")
     if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
-                                            and cam[k] > 0 for k in ("width", "height", "fx", "fy")):
-        return "its header has no camera size and focal lengths"
+                                            and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")):
+        # the principal point too: the loader re-expresses the map's pixels in the flight's camera with it
+        return "its header has no camera size, focal lengths and principal point"
     if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
         try:
             T = np.array(cam["T_body_cam"], dtype=float)
