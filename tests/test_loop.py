@@ -2004,6 +2004,27 @@ def test_a_map_made_with_another_camera_mount_is_placed_by_its_cameras(tmp_path,
         load_map(tmp_path / "bad.npz")
 
 
+def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
+    """A [loop] vocabulary cut short, empty, or with a flipped byte ended `vio replay` / `vio config check` in an
+    "internal error" (BadZipFile, EOFError, zlib.error): now the one-line error that says what to do."""
+    from vio import VioError
+    from vio.app.cli import main
+    from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
+
+    good = DEFAULT_PATH.read_bytes()
+    flipped = bytearray(good)
+    flipped[4876] ^= 0xFF  # inside a compressed member: zlib's "invalid distance too far back"
+    for name, data in (("cut.npz", good[: len(good) // 2]), ("empty.npz", b""), ("flip.npz", bytes(flipped))):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(VioError, match="cannot read the vocabulary.*train-vocab"):
+            Vocabulary.load(tmp_path / name)
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f"[loop]\nenabled = true\nvocabulary = '{tmp_path / name}'\n")
+        assert main(["-q", "config", "check", str(cfg)]) == 3
+        err = capsys.readouterr().err
+        assert "[loop] vocabulary:" in err and "internal error" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_path, capsys):
     """`-o voc.map` wrote voc.map.npz and printed voc.map; an existing file was replaced without asking; depth 0
     trained a one-word vocabulary (exit 0), branching 1 and every 0 ended in internal errors (a QA sweep)."""

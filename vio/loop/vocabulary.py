@@ -7,6 +7,8 @@ document frequencies over the training images. The file is a plain npz (`save`/`
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -124,6 +126,11 @@ class Vocabulary:
                                   z["idf"].astype(np.float32))
         except (OSError, KeyError, ValueError) as e:
             raise VioError(f"{path}: cannot read the vocabulary ({e})") from None
+        except (zipfile.BadZipFile, EOFError, zlib.error):
+            # a file cut short or damaged on disk: one line (it ended in "internal error" from vio replay/run)
+            raise VioError(f"{path}: cannot read the vocabulary (not a complete .npz archive: a truncated or "
+                           "damaged file; train it again with `vio loop train-vocab`, or leave [loop] vocabulary "
+                           "empty for the packaged one)") from None
 
 
 def train(images_desc: list[np.ndarray], k: int = 8, depth: int = 4, seed: int = 0,
