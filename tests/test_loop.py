@@ -2025,6 +2025,29 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
         assert "[loop] vocabulary:" in err and "internal error" not in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_vocabulary_that_does_not_fit_orb_descriptors_is_refused_at_load(tmp_path):
+    """A vocabulary of another descriptor (512-bit, or float centres) loaded and retrieved nothing, silently (every
+    keyframe "no candidate"); a k or idf that did not fit its centres stopped the loop stage mid-flight
+    (IndexError, ZeroDivisionError) with the replay going on without loop closure. Refused at load, in one line."""
+    from vio import VioError
+    from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
+
+    z = dict(np.load(DEFAULT_PATH))
+    n = len(z["centres"])
+    for change, says in ((dict(centres=np.zeros((n, 64), np.uint8)), r"\(4681, 64\) uint8"),
+                         (dict(centres=np.zeros((n, 128), np.float32)), "float32"),
+                         (dict(k=np.int64(4)), r"needs \(341, 32\)"),
+                         (dict(k=np.int64(1)), "branching >= 2"),
+                         (dict(depth=np.int64(0)), "depth >= 1"),
+                         (dict(idf=z["idf"][:10]), "4096 finite weights"),
+                         (dict(idf=np.full(4096, np.nan, np.float32)), "4096 finite weights")):
+        np.savez(tmp_path / "v.npz", **{**z, **change})
+        with pytest.raises(VioError, match=f"not a vocabulary of ORB descriptors.*{says}.*train-vocab"):
+            Vocabulary.load(tmp_path / "v.npz")
+    np.savez(tmp_path / "v.npz", **z)
+    assert Vocabulary.load(tmp_path / "v.npz").n_words == 4096
+
+
 def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_path, capsys):
     """`-o voc.map` wrote voc.map.npz and printed voc.map; an existing file was replaced without asking; depth 0
     trained a one-word vocabulary (exit 0), branching 1 and every 0 ended in internal errors (a QA sweep)."""

@@ -122,8 +122,13 @@ class Vocabulary:
             with np.load(path, allow_pickle=False) as z:
                 if int(z["format_version"]) != FORMAT_VERSION:
                     raise VioError(f"{path}: vocabulary format {int(z['format_version'])}, expected {FORMAT_VERSION}")
-                return Vocabulary(int(z["k"]), int(z["depth"]), z["centres"].astype(np.uint8),
-                                  z["idf"].astype(np.float32))
+                k, depth, centres, idf = int(z["k"]), int(z["depth"]), z["centres"], z["idf"]
+                problem = _arrays_problem(k, depth, centres, idf)
+                if problem:
+                    raise VioError(f"{path}: not a vocabulary of ORB descriptors this program can use ({problem}); "
+                                   "train one with `vio loop train-vocab`, or leave [loop] vocabulary empty for the "
+                                   "packaged one")
+                return Vocabulary(k, depth, centres.astype(np.uint8), idf.astype(np.float32))
         except (OSError, KeyError, ValueError) as e:
             raise VioError(f"{path}: cannot read the vocabulary ({e})") from None
         except (zipfile.BadZipFile, EOFError, zlib.error):
@@ -131,6 +136,23 @@ class Vocabulary:
             raise VioError(f"{path}: cannot read the vocabulary (not a complete .npz archive: a truncated or "
                            "damaged file; train it again with `vio loop train-vocab`, or leave [loop] vocabulary "
                            "empty for the packaged one)") from None
+
+
+def _arrays_problem(k: int, depth: int, centres: np.ndarray, idf: np.ndarray) -> str | None:
+    """What in a vocabulary file's arrays does not fit a k-branch, depth-level tree over 256-bit ORB descriptors, or
+    None. Unchecked, a tree of 512-bit or float descriptors (another feature's vocabulary) loaded and retrieved
+    nothing, silently, and a k or idf that did not fit the centres stopped the loop stage mid-flight on an
+    IndexError or ZeroDivisionError, leaving the flight without loop closure."""
+    if k < 2 or depth < 1 or k ** depth > 1 << 24:
+        return f"branching {k}, depth {depth}: a tree needs branching >= 2 and depth >= 1"
+    n_nodes = (k ** (depth + 1) - 1) // (k - 1)
+    if centres.dtype != np.uint8 or centres.shape != (n_nodes, 32):
+        return (f"node centres {centres.shape} {centres.dtype}, a tree of branching {k} and depth {depth} over "
+                f"ORB descriptors needs ({n_nodes}, 32) uint8")
+    if idf.shape != (k ** depth,) or not np.issubdtype(idf.dtype, np.floating) or not np.isfinite(idf).all() \
+            or (idf < 0).any():
+        return f"word weights {idf.shape} {idf.dtype}: {k ** depth} finite weights >= 0 needed"
+    return None
 
 
 def train(images_desc: list[np.ndarray], k: int = 8, depth: int = 4, seed: int = 0,
