@@ -1770,6 +1770,55 @@ def test_a_map_made_with_another_calibration_of_the_camera_is_verified_in_this_o
         load_map(tmp_path / "nocx.npz")
 
 
+def test_a_map_damaged_inside_a_compressed_array_or_with_float_offsets_is_a_one_line_error(tmp_path, capsys):
+    """A byte flipped inside a map's compressed array (a damaged card) raised zlib.error, in an array's header
+    tokenize.TokenError, in the archive's directory NotImplementedError, and kf_offsets stored as floats a TypeError
+    on slicing: `vio map info`, `vio replay --load-map` and `vio run`'s [map] load check ended in "internal
+    error". All are now refused as a damaged map, in one line."""
+    import contextlib
+    import zipfile
+
+    from vio import VioError
+    from vio.app.cli import main
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import load_map, save_map
+    from vio.loop.vocabulary import Vocabulary
+    from vio.sim import default_calibration
+
+    rng = np.random.default_rng(0)
+    feats = [KeyframeFeatures(np.tile(rng.integers(0, 256, (40, 32), dtype=np.uint8), (10, 1)),
+                              rng.uniform(0, 300, (400, 2)), rng.uniform(1, 5, (400, 3))) for _ in range(3)]
+    good = tmp_path / "m.npz"
+    save_map(good, [1, 2, 3], [make_T(np.eye(3), [k, 0, 0]) for k in range(3)], feats, Vocabulary.load(),
+             default_calibration().cam0)
+    data = good.read_bytes()
+    with zipfile.ZipFile(good) as zf:  # each array's first bytes (its .npy header) and the archive's directory
+        spots = [i.header_offset + 30 + len(i.filename) + len(i.extra) + k for i in zf.infolist() for k in range(64)]
+        spots += range(zf.start_dir, len(data))
+    for at in spots:
+        flipped = bytearray(data)
+        flipped[at] ^= 0xFF
+        (tmp_path / "bad.npz").write_bytes(bytes(flipped))
+        with contextlib.suppress(VioError):  # a flip in a field nothing checks (a date) loads; else a refusal
+            load_map(tmp_path / "bad.npz")
+    flipped = bytearray(data)
+    flipped[spots[64 * 4 + 30]] ^= 0xFF  # inside desc.npy's compressed data
+    (tmp_path / "bad.npz").write_bytes(bytes(flipped))
+    assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1
+    err = capsys.readouterr().err
+    assert "truncated or damaged" in err and "internal error" not in err and len(err.strip().splitlines()) == 1, err
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[source]\nkind = 'fake'\n[map]\nload = '{tmp_path / 'bad.npz'}'\n")
+    assert main(["-q", "config", "check", str(cfg)]) == 3
+    err = capsys.readouterr().err
+    assert "[map] load:" in err and "internal error" not in err, err
+
+    z = dict(np.load(good))
+    np.savez(tmp_path / "f.npz", **{**z, "kf_offsets": z["kf_offsets"].astype(np.float64)})
+    with pytest.raises(VioError, match="damaged map.*offsets"):
+        load_map(tmp_path / "f.npz")
+
+
 def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, monkeypatch):
     """A map grown in place ([map] load and save the same file): a full disk half-way through the write must not
     cost the old map (it was truncated first), and leaves no partial file behind."""
@@ -2006,7 +2055,11 @@ def test_a_map_made_with_another_camera_mount_is_placed_by_its_cameras(tmp_path,
 
 def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
     """A [loop] vocabulary cut short, empty, or with a flipped byte ended `vio replay` / `vio config check` in an
-    "internal error" (BadZipFile, EOFError, zlib.error): now the one-line error that says what to do."""
+    "internal error" (BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError): now the one-line
+    error that says what to do."""
+    import contextlib
+    import zipfile
+
     from vio import VioError
     from vio.app.cli import main
     from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
@@ -2023,6 +2076,16 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
         assert main(["-q", "config", "check", str(cfg)]) == 3
         err = capsys.readouterr().err
         assert "[loop] vocabulary:" in err and "internal error" not in err and len(err.strip().splitlines()) == 1
+    # a flip in an array's .npy header (numpy's TokenError) or in the archive's directory (NotImplementedError)
+    with zipfile.ZipFile(DEFAULT_PATH) as zf:
+        spots = [i.header_offset + 30 + len(i.filename) + k for i in zf.infolist() for k in range(80)]
+        spots += range(zf.start_dir, len(good))
+    for at in spots:
+        flipped = bytearray(good)
+        flipped[at] ^= 0xFF
+        (tmp_path / "flip.npz").write_bytes(bytes(flipped))
+        with contextlib.suppress(VioError):  # a flip in a field nothing checks (a date) loads; else a refusal
+            Vocabulary.load(tmp_path / "flip.npz")
 
 
 def test_a_vocabulary_that_does_not_fit_orb_descriptors_is_refused_at_load(tmp_path):

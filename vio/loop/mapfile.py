@@ -26,7 +26,9 @@ import hashlib
 import json
 import math
 import os
+import tokenize
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,7 +114,8 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         return f"keyframe poses: shape {T.shape} or non-finite values for {n} keyframes"
     if not all(is_se3(Tk, tol=1e-4) for Tk in T):
         return "keyframe poses are not rigid transforms"
-    if off.ndim != 1 or len(off) != n + 1 or off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != len(desc):
+    if off.ndim != 1 or not np.issubdtype(off.dtype, np.integer) or len(off) != n + 1 or off[0] != 0 \
+            or np.any(np.diff(off) < 0) or off[-1] != len(desc):  # float offsets cannot slice
         return f"keyframe offsets do not split the {len(desc)} descriptors into {n} keyframes"
     if desc.ndim != 2 or desc.shape[1] != 32 or desc.dtype != np.uint8:
         return f"descriptors {desc.shape} {desc.dtype}, ORB needs (N, 32) uint8"
@@ -200,8 +203,11 @@ def load_map(path: str | Path) -> MapData:
         raise VioError(f"{path}: no such map file") from None
     except OSError as e:
         raise VioError(f"{path}: cannot read the map ({e.strerror or e})") from None
-    except (zipfile.BadZipFile, EOFError):
-        raise VioError(f"{path}: not a Kestrel VIO map, or a truncated one (not a complete .npz archive)") from None
+    except (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError):
+        # a byte flipped inside a compressed array (zlib), an array's header (numpy's header parser: TokenError)
+        # or the archive's directory (zipfile: "zip file version 21.0"): a damaged file, as one cut short
+        raise VioError(f"{path}: not a Kestrel VIO map, or a truncated or damaged one (not a complete .npz "
+                       "archive)") from None
     except (KeyError, ValueError, json.JSONDecodeError) as e:
         # numpy takes what is neither .npy nor .npz for a pickle, and suggests loading it unsafely: never
         why = "not an .npz archive" if "pickle" in str(e) else str(e)

@@ -7,6 +7,7 @@ document frequencies over the training images. The file is a plain npz (`save`/`
 
 from __future__ import annotations
 
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -131,7 +132,7 @@ class Vocabulary:
                 return Vocabulary(k, depth, centres.astype(np.uint8), idf.astype(np.float32))
         except (OSError, KeyError, ValueError) as e:
             raise VioError(f"{path}: cannot read the vocabulary ({e})") from None
-        except (zipfile.BadZipFile, EOFError, zlib.error):
+        except (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError):
             # a file cut short or damaged on disk: one line (it ended in "internal error" from vio replay/run)
             raise VioError(f"{path}: cannot read the vocabulary (not a complete .npz archive: a truncated or "
                            "damaged file; train it again with `vio loop train-vocab`, or leave [loop] vocabulary "
