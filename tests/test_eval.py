@@ -252,6 +252,23 @@ def test_cli_writes_summary_json_and_plot(tmp_path, gt, capsys):
     assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_cli_plot_goes_to_the_file_named_and_an_unknown_format_is_refused_first(tmp_path, gt, capsys):
+    """`--plot e` (no suffix) printed nothing wrong but matplotlib wrote e.png, over whatever was there; `--plot
+    e.txt` (and replay's `--loop-plot run.txt`) ended in an internal error after the whole evaluation or replay."""
+    write_tum(gt, tmp_path / "gt.txt")
+    write_tum(_noisy_moved(gt, 4), tmp_path / "est.txt")
+    (tmp_path / "e.png").write_bytes(b"an older plot")
+    assert main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--plot", str(tmp_path / "e")]) == 0
+    assert (tmp_path / "e").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "e.png").read_bytes() == b"an older plot"
+    capsys.readouterr()
+    assert main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--plot",
+                 str(tmp_path / "e.txt"), "--json", str(tmp_path / "e.json")]) == 1
+    out = capsys.readouterr()
+    assert "a plot cannot be written as .txt" in out.err and "internal error" not in out.err
+    assert "ATE" not in out.out and not (tmp_path / "e.json").exists()  # refused before the evaluation
+
+
 @pytest.mark.parametrize("case, message", [
     ("missing", "missing.txt: file not found"),
     ("malformed", "bad.txt:3: expected 8 values"),

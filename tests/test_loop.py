@@ -393,6 +393,21 @@ def test_replay_checks_every_output_path_before_it_replays(laps_flight, tmp_path
         assert not (tmp_path / "same").exists() and (tmp_path / "old.npz").read_bytes() == b"a map"
 
 
+def test_replay_refuses_a_loop_plot_format_it_cannot_write_before_it_replays(tmp_path, capsys):
+    """`--loop-plot run.txt` ran the whole replay, wrote the map and stats, then ended in "internal error:
+    ValueError: Format 'txt' is not supported". Now refused first, in one line."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    assert main(["replay", str(data), "--loop-plot", str(tmp_path / "run.txt"), "--save-map",
+                 str(tmp_path / "m.npz"), "--no-progress"]) == 1
+    out = capsys.readouterr()
+    assert "a plot cannot be written as .txt" in out.err and "internal error" not in out.err
+    assert "replay:" not in out.out and not (tmp_path / "m.npz").exists()
+
+
 def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
     """An estimator reset starts an odometry segment in a frame of its own; until a loop edge joins it to the
     first one its poses mean nothing in the map's frame, so the map must not hold them."""

@@ -432,11 +432,29 @@ def plot(result: EvalResult, path: str | Path, title: str = "") -> None:
     save_figure(plt, fig, path)
 
 
+def plot_format(path: str | Path) -> str:
+    """The image format a plot file is written in, from its suffix (none: PNG), or a one-line VioError for a suffix
+    matplotlib cannot write. Checked before the work: `--loop-plot run.txt` ended a whole replay in an internal
+    error. The format is also passed to savefig, which otherwise appends '.png' to a name without a suffix: the
+    plot went to another file than the one asked for (and printed), over whatever was there."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if not suffix:
+        return "png"
+    known = FigureCanvasBase.get_supported_filetypes()
+    if suffix not in known:
+        raise VioError(f"{path}: a plot cannot be written as .{suffix}; name it .png, .svg or .pdf "
+                       f"(or one of {', '.join(sorted(known))})")
+    return suffix
+
+
 def save_figure(plt, fig, path: str | Path) -> None:
-    """Lay out, write (an unwritable path is a one-line VioError) and close a matplotlib figure."""
+    """Lay out, write (an unwritable path is a one-line VioError) and close a matplotlib figure, under exactly
+    `path`."""
     fig.tight_layout()
     try:
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=110, format=plot_format(path))
     except OSError as e:
         raise VioError(f"{path}: cannot write plot ({e.strerror})") from None
     finally:
@@ -491,6 +509,11 @@ def run(args: argparse.Namespace) -> int:
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
     if args.max_gap_s is not None and not args.max_gap_s > 0:
         raise VioError(f"--max-gap-s must be positive, got {args.max_gap_s}")
+    if args.plot:  # the [tools] extra and the plot's format, asked for before the evaluation
+        from vio.extras import pyplot
+
+        pyplot("plots (--plot)")
+        plot_format(args.plot)
     est = load_trajectory(args.est, args.run)
     spacing = float(np.median(np.diff(est.t_ns))) * 1e-9 if len(est) > 1 else 0.0
     max_gap_s = args.max_gap_s

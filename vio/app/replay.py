@@ -476,10 +476,12 @@ def run(args: argparse.Namespace) -> int:
                   reads={"the map it loads": load_map, "the calibration": args.calibration,
                          "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []}},
                   grows=("the map",), recordings=(args.dataset,), folders={"the track images": args.show_tracks})
-    if args.loop_plot:  # the [tools] extra, asked for now rather than after the replay
+    if args.loop_plot:  # the [tools] extra and the plot's format, asked for now rather than after the replay
+        from vio.evaluation import plot_format
         from vio.extras import pyplot
 
         pyplot("loop-closure plot (--loop-plot)")
+        plot_format(args.loop_plot)
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
