@@ -408,6 +408,35 @@ def test_replay_refuses_a_loop_plot_format_it_cannot_write_before_it_replays(tmp
     assert "replay:" not in out.out and not (tmp_path / "m.npz").exists()
 
 
+def test_a_flight_without_keyframes_does_not_save_an_empty_map_over_the_one_there(tmp_path, capsys):
+    """A flight that made no keyframe (never initialised; a daemon stopped before its sensors came up) saved a map
+    of 0 keyframes, which load_map refuses as damaged, over the map file there: `[map] save` lost the room's map
+    on a restart at boot. Now nothing is written, the old map is kept and said to be."""
+    from vio import VioError
+    from vio.app.cli import main
+    from vio.config import VioConfig
+    from vio.loop.closer import LoopCloser
+    from vio.sim import default_calibration
+    from vio.sim.generate import SimConfig, simulate
+
+    room = tmp_path / "room.npz"
+    room.write_bytes(b"the room's map")
+    cl = LoopCloser(default_calibration(), VioConfig().loop)
+    with pytest.raises(VioError, match="map not saved: this flight made no keyframe.*the map that was there is kept"):
+        cl.save_map(room)
+    assert room.read_bytes() == b"the room's map"
+    with pytest.raises(VioError, match="nothing written"):
+        cl.save_map(tmp_path / "new.npz")
+    assert not (tmp_path / "new.npz").exists()
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    assert main(["replay", str(data), "--save-map", str(room), "--max-frames", "5", "--stats",
+                 str(tmp_path / "s.json"), "--no-progress"]) == 1
+    assert "map that was there is kept" in capsys.readouterr().err
+    assert room.read_bytes() == b"the room's map" and (tmp_path / "s.json").exists()
+
+
 def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
     """An estimator reset starts an odometry segment in a frame of its own; until a loop edge joins it to the
     first one its poses mean nothing in the map's frame, so the map must not hold them."""

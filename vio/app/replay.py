@@ -566,17 +566,21 @@ def run(args: argparse.Namespace) -> int:
             eval_dict = ev.to_dict()
         except VioError as e:
             print(f"replay: no accuracy figures: {e}")
-    loop_dict, draw = None, None
+    loop_dict, draw, map_problem = None, None, None
     if loop is not None:
         loop_dict, draw = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
         if save_map:
-            h = loop.closer.save_map(save_map, cfg.map.prune_m, cfg.map.prune_deg)
-            print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {h['path']}"
-                  + (f", {h['pruned_keyframes']} of this flight's not saved (views the map has: [map] prune_m)"
-                     if h["pruned_keyframes"] else "")
-                  + (f" ({h['note']})" if h["left_out_keyframes"] else ""))
-            if h["conflict"]:
-                print(f"vio replay: {h['conflict']}", file=sys.stderr)
+            try:
+                h = loop.closer.save_map(save_map, cfg.map.prune_m, cfg.map.prune_deg)
+            except VioError as e:  # the stats and plot are still written; the exit status says it
+                map_problem = str(e)
+            else:
+                print(f"map: {h['keyframes']} keyframes, {h['descriptors']} descriptors -> {h['path']}"
+                      + (f", {h['pruned_keyframes']} of this flight's not saved (views the map has: [map] prune_m)"
+                         if h["pruned_keyframes"] else "")
+                      + (f" ({h['note']})" if h["left_out_keyframes"] else ""))
+                if h["conflict"]:
+                    print(f"vio replay: {h['conflict']}", file=sys.stderr)
     if args.stats:
         d = res.stats_dict()
         if loop_dict is not None:
@@ -590,6 +594,8 @@ def run(args: argparse.Namespace) -> int:
     if draw is not None:  # last: the map and the stats are written whatever the plot does
         draw()
     problem = res.vision_problem()
-    if problem:
-        raise VioError(problem)
+    if problem and map_problem:
+        print(f"vio replay: error: {map_problem}", file=sys.stderr)
+    if problem or map_problem:
+        raise VioError(problem or map_problem)
     return 0

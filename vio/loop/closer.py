@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vio import VioError
 from vio.calibration import StereoCalibration
 from vio.config import LoopConfig
 from vio.geometry import inv_T, make_T, so3_exp, so3_log, yaw_of
@@ -491,6 +492,11 @@ class LoopCloser:
         from vio.loop.mapfile import file_stamp, save_map
 
         target, conflict = Path(path), ""
+        if not self.map_frame_keyframes():
+            # a flight that made no keyframe (never initialised, stopped at once: a daemon restarted before its
+            # sensors came up) wrote a map of 0 keyframes, which load_map refuses as damaged, over the map there
+            raise VioError(f"{path}: map not saved: this flight made no keyframe (it never initialised or was too "
+                           "short); " + ("the map that was there is kept" if target.exists() else "nothing written"))
         loaded = self._map_stamp
         now = file_stamp(target)
         if loaded is not None and os.path.realpath(target) == loaded[0] and now is not None and now != loaded:
