@@ -495,8 +495,9 @@ class LoopCloser:
         if not self.map_frame_keyframes():
             # a flight that made no keyframe (never initialised, stopped at once: a daemon restarted before its
             # sensors came up) wrote a map of 0 keyframes, which load_map refuses as damaged, over the map there
-            raise VioError(f"{path}: map not saved: this flight made no keyframe (it never initialised or was too "
-                           "short); " + ("the map that was there is kept" if target.exists() else "nothing written"))
+            raise VioError(f"{path}: this flight made no keyframe (it never initialised or was too short), so there "
+                           "is no map to save; " + ("the map that was there is kept" if target.exists()
+                                                     else "nothing written"))
         loaded = self._map_stamp
         now = file_stamp(target)
         if loaded is not None and os.path.realpath(target) == loaded[0] and now is not None and now != loaded:
