@@ -437,6 +437,42 @@ def test_a_flight_without_keyframes_does_not_save_an_empty_map_over_the_one_ther
     assert room.read_bytes() == b"the room's map" and (tmp_path / "s.json").exists()
 
 
+def test_a_map_is_never_saved_over_a_file_the_run_reads_but_the_map_it_grows(tmp_path, capsys):
+    """`vio replay --calibration rig.yaml --save-map rig.yaml` wrote the map over the calibration: the map was allowed
+    over any file the run read, as it is over the map it loads. `vio run` checked `[map] save` against nothing it
+    reads: over `[source] calibration`, `[loop] vocabulary` or into the EuRoC recording it replays, `vio config
+    check` said OK and the daemon wrote the map there at shutdown."""
+    from vio.app.cli import main
+    from vio.calibration import save_calibration
+    from vio.io.euroc import EurocDataset
+    from vio.loop.vocabulary import DEFAULT_PATH
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    rig = tmp_path / "rig.yaml"
+    save_calibration(EurocDataset(data).calibration, rig)
+    before = rig.read_bytes()
+    assert main(["replay", str(data), "--calibration", str(rig), "--save-map", str(rig), "--no-progress"]) == 1
+    out = capsys.readouterr()
+    assert "the map would be written over the calibration" in out.err and "replay:" not in out.out
+    assert rig.read_bytes() == before
+
+    voc = tmp_path / "voc.npz"
+    voc.write_bytes(DEFAULT_PATH.read_bytes())
+    src = f"[source]\nkind = 'euroc'\ndataset = '{data}'\n"
+    for text, says in ((f"{src}calibration = '{rig}'\n[map]\nsave = '{rig}'\n", "over [source] calibration"),
+                       (f"{src}[loop]\nenabled = true\nvocabulary = '{voc}'\n[map]\nsave = '{voc}'\n",
+                        "over [loop] vocabulary"),
+                       (f"{src}[map]\nsave = '{data / 'mav0' / 'imu0' / 'data.csv'}'\n", "into the recording")):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(text)
+        assert main(["config", "check", str(cfg)]) == 3, text
+        assert says in capsys.readouterr().err, text
+    cfg.write_text(f"{src}[map]\nsave = '{data / 'room.npz'}'\n")  # beside the recording's mav0/: allowed
+    assert main(["-q", "config", "check", str(cfg)]) == 0
+
+
 def test_saved_map_leaves_out_segments_never_joined_to_its_frame(loop_flight, tmp_path):
     """An estimator reset starts an odometry segment in a frame of its own; until a loop edge joins it to the
     first one its poses mean nothing in the map's frame, so the map must not hold them."""

@@ -474,8 +474,10 @@ def run(args: argparse.Namespace) -> int:
                    "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot,
                    "the live view recording": view_file},
                   reads={"the map it loads": load_map, "the calibration": args.calibration,
-                         "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []}},
-                  grows=("the map",), recordings=(args.dataset,), folders={"the track images": args.show_tracks})
+                         "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []},
+                         "the vocabulary": cfg.loop.vocabulary, "the configuration": args.config},
+                  grows={"the map": "the map it loads"}, recordings=(args.dataset,),
+                  folders={"the track images": args.show_tracks})
     if args.loop_plot:  # the [tools] extra and the plot's format, asked for now rather than after the replay
         from vio.evaluation import plot_format
         from vio.extras import pyplot

@@ -55,16 +55,17 @@ def distinct_files(paths: dict[str, str | None]) -> dict[str, str]:
 
 
 def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
-                  grows: tuple[str, ...] = (), recordings: tuple[str | None, ...] = (),
+                  grows: dict[str, str] | None = None, recordings: tuple[str | None, ...] = (),
                   folders: dict[str, str | None] | None = None) -> None:
     """Every output file can be written where it is asked for (its folder exists, it is no folder itself). No two
-    outputs may be one file, nor an output a file the run reads (`reads`), except the outputs named in `grows` (a
-    map saved over the map it loaded), nor any output (files in `paths`, output folders in `folders`) lie in the
-    sensor data of a recording folder the run reads (`recordings`)."""
+    outputs may be one file, nor an output a file the run reads (`reads`), except an output over the one read it
+    grows (`grows`: {output: read}, a map saved over the map it loaded; only that one: `--save-map` over the
+    `--calibration` file wrote the map over the calibration), nor any output (files in `paths`, output folders in
+    `folders`) lie in the sensor data of a recording folder the run reads (`recordings`)."""
     seen = distinct_files(paths)
     for what, p in (reads or {}).items():
         writer = seen.get(os.path.realpath(p)) if p else None
-        if writer not in (None, *grows):
+        if writer is not None and (grows or {}).get(writer) != what:
             raise VioError(f"{p}: {writer} would be written over {what}")
     for rec in recordings:
         for what, p in {**paths, **(folders or {})}.items():

@@ -724,8 +724,12 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
     if cfg.map.save:
         from vio.io.outputs import NotWritable, check_outputs
 
-        try:
-            check_outputs({"the map": cfg.map.save})
+        try:  # never over what the daemon reads (it was written over the calibration at shutdown), bar the map
+            check_outputs({"the map": cfg.map.save},
+                          reads={"[source] calibration": src.calibration, "[loop] vocabulary": cfg.loop.vocabulary,
+                                 "[map] load": cfg.map.load, "[source] dataset": src.dataset if src.kind == "euroc"
+                                 else None},
+                          grows={"the map": "[map] load"}, recordings=(src.dataset if src.kind == "euroc" else None,))
         except VioError as e:
             if warn is None or not isinstance(e, NotWritable):
                 raise VioError(f"[map] save: {e}") from None
