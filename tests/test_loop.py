@@ -2191,6 +2191,21 @@ def test_a_vocabulary_that_does_not_fit_orb_descriptors_is_refused_at_load(tmp_p
     assert Vocabulary.load(tmp_path / "v.npz").n_words == 4096
 
 
+def test_train_vocab_on_unreadable_images_says_how_many_it_could_read(tmp_path, capsys):
+    """A recording whose images are all missing or unreadable ended in "too few images to train a vocabulary", which
+    did not say that the images were there but could not be read, nor how many were tried."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    for f in (data / "mav0" / "cam0" / "data").glob("*.png"):
+        f.write_bytes(b"not a png")
+    assert main(["loop", "train-vocab", str(data), "-o", str(tmp_path / "v.npz"), "--every", "4"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "0 of the 6 left images taken (--every 4) could be read" in err and "missing or unreadable" in err, err
+
+
 def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_path, capsys):
     """`-o voc.map` wrote voc.map.npz and printed voc.map; an existing file was replaced without asking; depth 0
     trained a one-word vocabulary (exit 0), branching 1 and every 0 ended in internal errors (a QA sweep)."""

@@ -28,21 +28,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--features", type=positive_int, default=300, help="ORB corners per image")
 
 
-def _descriptors(dataset: str, every: int, n_features: int) -> list[np.ndarray]:
-    """ORB descriptors of every Nth left image, decoded as the replay decodes them (16-bit images with the
-    recording's one scale: OpenCV's own grey conversion shifted 12-bit images into near-black, and a vocabulary
-    trained on those never matches what the replay sees)."""
+def _descriptors(dataset: str, every: int, n_features: int) -> tuple[list[np.ndarray], int]:
+    """ORB descriptors of every Nth left image, read as the replay reads them: a 16-bit recording scaled to 8 bits
+    by the shift decided on its first image. cv2.imread's own 16 -> 8 bit conversion (>> 8) made 12-bit images
+    near-black, and a vocabulary trained on them held 1 descriptor from 21 images. Also returns how many images
+    were tried (the ones missing or unreadable are not in the list)."""
     from vio.io.euroc import EurocDataset
     from vio.loop.features import FeatureExtractor
 
     ds = EurocDataset(dataset)
     ex = FeatureExtractor(ds.calibration.cam0, n_features)
     out = []
-    for i in range(0, len(ds), every):
-        frame = ds.frame(i, lazy_right=True)
+    tried = range(0, len(ds), every)
+    for i in tried:
+        frame = ds.frame(i, lazy_right=True)  # None: the left image missing or unreadable (warned)
         if frame is not None:
             out.append(ex.extract(frame.left, None).desc)
-    return out
+    return out, len(tried)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,9 +57,15 @@ def run(args: argparse.Namespace) -> int:
     if args.loop_command == "train-vocab":
         out = Path(args.output)
         check_new_file(out, args.overwrite, *args.datasets)
-        desc = [d for ds in args.datasets for d in _descriptors(ds, args.every, args.features)]
-        if len(desc) < 2:
-            raise VioError("too few images to train a vocabulary")
+        desc, tried = [], 0
+        for ds in args.datasets:
+            d, n = _descriptors(ds, args.every, args.features)
+            desc, tried = desc + d, tried + n
+        if len(desc) < 2:  # said with the counts: "too few images" over a folder of unreadable ones told nothing
+            raise VioError(f"too few images to train a vocabulary: {len(desc)} of the {tried} left images taken "
+                           f"(--every {args.every}) could be read, 2 or more needed"
+                           + ("; the others are missing or unreadable (warned above)" if tried > len(desc) else
+                              "; give more images or a smaller --every"))
         n_desc = sum(len(d) for d in desc)
         if n_desc < 2 * args.branching:
             raise VioError(f"no ORB corners to speak of in the {len(desc)} images read ({n_desc} descriptors): "
