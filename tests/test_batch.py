@@ -155,3 +155,27 @@ def test_frames_skipped_on_the_way_are_a_data_note(flights, tmp_path, capsys):
     assert main(["batch", str(tmp_path / "f"), "-o", str(tmp_path / "f" / "mav0" / "report")]) == 1
     assert "into the recording" in capsys.readouterr().err
     assert not (tmp_path / "f" / "mav0" / "report").exists()
+
+
+@pytest.mark.parametrize("with_tools", [True, False])
+def test_it_prints_the_files_it_wrote(flights, tmp_path, monkeypatch, capsys, with_tools):
+    """Without the [tools] extra (no matplotlib) it logged "no plot" and then printed "wrote DIR/report.md,
+    report.json, report.png" though there was no report.png (a docs sweep); compare.md, which --compare writes,
+    went unsaid."""
+    from vio.app.cli import main
+
+    if with_tools:
+        pytest.importorskip("matplotlib")
+    else:
+        monkeypatch.setitem(sys.modules, "matplotlib", None)  # as on a core install: import matplotlib fails
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "report.json").write_text(json.dumps({"flights": []}))
+    out = tmp_path / "new"
+    main(["-q", "batch", str(flights[0]), "-o", str(out), "--workers", "1", "--compare", str(old), "--no-progress"])
+    said = capsys.readouterr().out.splitlines()[-1]
+    png = ", report.png" if with_tools else ""
+    assert said == f"wrote {out / 'report.md'}, report.json{png}, compare.md"
+    assert (out / "report.png").is_file() == with_tools and (out / "compare.md").is_file()
+    assert json.loads((out / "report.json").read_text())["files"] == ["report.md", "report.json"] + \
+        (["report.png"] if with_tools else [])

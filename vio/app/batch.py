@@ -2,10 +2,11 @@
 
 Replays many recordings (EuRoC folders, bags, MCAP files) in parallel and writes one report to DIR:
 `report.md` (a table: ATE, RPE, resets, real-time factor per flight, and a summary), `report.json` (the same
-and more, the input of `--compare`), `report.png` (ATE and real-time factor per flight) and each flight's
-trajectory in `traj/`. Local worker processes (concurrent.futures) by default; `--ray ADDRESS` hands the
-flights to a Ray cluster as remote tasks (`--ray local` starts a local Ray instance with --workers CPUs,
-`--ray auto` joins the cluster this machine belongs to). A flight that fails is a row with its error.
+and more, the input of `--compare`), `report.png` (ATE and real-time factor per flight; only with the [tools]
+extra) and each flight's trajectory in `traj/`. Local worker processes (concurrent.futures) by default;
+`--ray ADDRESS` hands the flights to a Ray cluster as remote tasks (`--ray local` starts a local Ray instance
+with --workers CPUs, `--ray auto` joins the cluster this machine belongs to). A flight that fails is a row with
+its error.
 
 Every replay runs single-threaded (one BLAS/OpenCV thread per worker), so one flight's result is the same
 whichever engine ran it and however many ran beside it.
@@ -315,12 +316,18 @@ def markdown(report: dict) -> str:
 
 
 def write_report(report: dict, out: Path) -> None:
-    (out / "report.json").write_text(json.dumps(report, indent=1))
+    """Write report.md, report.png (only with the [tools] extra) and report.json into `out`, the JSON last so that
+    `report["files"]` (there and in `report`) names the files written: `vio batch` prints them, and it said
+    report.png where none was written."""
     (out / "report.md").write_text(markdown(report))
+    files = ["report.md", "report.json"]
     try:
         plot(report, out / "report.png")
+        files.append("report.png")
     except VioError as e:  # no matplotlib: the table and JSON are the report
         log.warning("no plot: %s", e)
+    report["files"] = files
+    (out / "report.json").write_text(json.dumps(report, indent=1))
 
 
 def plot(report: dict, path: Path) -> None:
@@ -404,9 +411,11 @@ def run(args: argparse.Namespace) -> int:
     report = run_batch(args.flights, args.output, workers=args.workers, ray_address=args.ray, options=options,
                        progress=not args.no_progress, overwrite=args.overwrite)
     print(markdown(report))
+    files = list(report["files"])
     if old is not None:
         text = compare(report, old)
         (Path(args.output) / "compare.md").write_text(text)
+        files.append("compare.md")
         print(text)
-    print(f"wrote {Path(args.output) / 'report.md'}, report.json, report.png")
+    print(f"wrote {Path(args.output) / files[0]}, {', '.join(files[1:])}")
     return 0 if report["summary"]["failed"] == 0 else 1
