@@ -171,6 +171,19 @@ def test_config_check_and_run_refuse_a_source_whose_extra_is_missing(tmp_path, s
         assert f"needs the [{extra}] extra" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_config_check_and_run_refuse_the_live_view_without_its_extra(tmp_path):
+    """`[view] enabled = true` without rerun: config check said OK and `vio run` stopped building its Service
+    with exit 1, which systemd restarts for ever (it leaves only exit 3 alone)."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\n[run]\nstatus_file = "{tmp_path / "status.json"}"\n'
+                   "[view]\nenabled = true\n")
+    for args in (("config", "check", str(cfg)), ("run", "--config", str(cfg))):
+        r = _vio_without(("rerun",), "-q", *args, timeout=60)
+        assert r.returncode == 3, r.stdout + r.stderr
+        _one_line_naming(r.stderr, "view")
+        assert "[view] enabled = true" in r.stderr and "Traceback" not in r.stderr
+
+
 def test_a_noisy_native_import_is_quiet_and_logged(tmp_path, monkeypatch, capfd, caplog):
     """A module whose native code prints on import, to descriptors 1 and 2 (not through Python): both are sent to
     a temporary file for the import and restored after it, also when it fails; its known line is logged at

@@ -661,6 +661,8 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         require("depthai", "oak", '[source] kind = "oak"')
     if src.imu == "serial":
         require("serial", "serial", '[source] imu = "serial"')
+    if cfg.view.enabled:  # the Service would stop in its constructor: exit 1, which systemd restarts for ever
+        require("rerun", "view", "[view] enabled = true")
     if src.kind == "euroc" and not src.dataset:
         raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
     if src.kind == "euroc" and not Path(src.dataset).exists():
