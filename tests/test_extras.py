@@ -184,6 +184,24 @@ def test_config_check_and_run_refuse_the_live_view_without_its_extra(tmp_path):
         assert "[view] enabled = true" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("module", ["mcap", "rosbags"])
+def test_config_check_and_run_refuse_an_mcap_recording_without_its_extra(tmp_path, module):
+    """`[run] record_format = "mcap"` without the [bags] extra: config check said OK, and `vio run` started and
+    its recorder failed at once. Refused at start now, only where a recording is made (a `record_dir`)."""
+    cfg = tmp_path / "c.toml"
+    head = f'[source]\nkind = "fake"\n[run]\nstatus_file = "{tmp_path / "status.json"}"\nrecord_format = "mcap"\n'
+    cfg.write_text(head)
+    r = _vio_without((module,), "-q", "config", "check", str(cfg), timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr  # no record_dir: nothing is recorded, nothing needed
+    cfg.write_text(head + f'record_dir = "{tmp_path / "rec"}"\n')
+    for args in (("config", "check", str(cfg)), ("run", "--config", str(cfg))):
+        r = _vio_without((module,), "-q", *args, timeout=60)
+        assert r.returncode == 3, r.stdout + r.stderr
+        _one_line_naming(r.stderr, "bags")
+        assert '[run] record_format = "mcap"' in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "rec").exists()
+
+
 def test_a_noisy_native_import_is_quiet_and_logged(tmp_path, monkeypatch, capfd, caplog):
     """A module whose native code prints on import, to descriptors 1 and 2 (not through Python): both are sent to
     a temporary file for the import and restored after it, also when it fails; its known line is logged at

@@ -28,6 +28,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -628,6 +629,20 @@ def recorded_calibration(path: Path) -> StereoCalibration | None:
     return None
 
 
+def require_mcap_writer(what: str = "reading and writing bags / MCAP") -> ModuleType:
+    """mcap's writer module (1.5 or newer), with rosbags' type store that McapWriter serialises with: a
+    recording command checks them before it opens a source or starts a daemon (`what`: the option, as the user
+    wrote it), rather than failing once the recording begins."""
+    from vio.extras import require
+
+    writer = require("mcap.writer", "bags", what)
+    require("rosbags.typesys", "bags", what)
+    if not hasattr(writer.Writer, "flush"):  # mcap < 1.5 cannot finish a chunk before it is full
+        raise VioError("writing MCAP needs mcap 1.5 or newer (Writer.flush, which the periodic fsync needs): "
+                       "pip install -U 'kestrel-vio[bags]'")
+    return writer
+
+
 class McapWriter:
     """A bare MCAP file on ROS 2 schemas (`ros2msg` + `cdr`, which Foxglove and `vio replay` read as they
     are) plus JSON channels (health). Messages are logged at their sensor stamp.
@@ -638,10 +653,7 @@ class McapWriter:
 
     def __init__(self, path: str | Path, compression: str = "png", chunk_size: int = 1 << 20,
                  calibration: StereoCalibration | None = None, flush_interval_s: float = 0.5) -> None:
-        writer = _need("mcap.writer")
-        if not hasattr(writer.Writer, "flush"):  # mcap < 1.5 cannot finish a chunk before it is full
-            raise VioError("writing MCAP needs mcap 1.5 or newer (Writer.flush, which the periodic fsync needs): "
-                           "pip install -U 'kestrel-vio[bags]'")
+        writer = require_mcap_writer()
         self.ts = _typestore()
         self.path = Path(path)
         self.compression = compression

@@ -663,6 +663,11 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         require("serial", "serial", '[source] imu = "serial"')
     if cfg.view.enabled:  # the Service would stop in its constructor: exit 1, which systemd restarts for ever
         require("rerun", "view", "[view] enabled = true")
+    if cfg.run.record_dir and cfg.run.record_format == "mcap":  # no record_dir: no recording, nothing needed
+        # the recorder thread would fail at once, leaving a daemon that flies without the recording it was told to make
+        from vio.io.bag import require_mcap_writer
+
+        require_mcap_writer('[run] record_format = "mcap"')
     if src.kind == "euroc" and not src.dataset:
         raise VioError("[source] kind = 'euroc' needs 'dataset' (path of a EuRoC folder)")
     if src.kind == "euroc" and not Path(src.dataset).exists():
