@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -267,6 +268,21 @@ def test_cli_plot_goes_to_the_file_named_and_an_unknown_format_is_refused_first(
     out = capsys.readouterr()
     assert "a plot cannot be written as .txt" in out.err and "internal error" not in out.err
     assert "ATE" not in out.out and not (tmp_path / "e.json").exists()  # refused before the evaluation
+
+
+def test_cli_plot_without_the_tools_extra_is_refused_before_any_work(tmp_path, gt, capsys, monkeypatch):
+    """--plot without matplotlib: the numbers were computed and printed and --json written, and only then "plots
+    (--plot) needs the [tools] extra", exit 1. Asked for first now, as `vio replay --loop-plot` does."""
+    write_tum(gt, tmp_path / "gt.txt")
+    write_tum(_noisy_moved(gt, 4), tmp_path / "est.txt")
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as on a core install: import matplotlib fails
+    rc = main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--plot", str(tmp_path / "e.png"),
+               "--json", str(tmp_path / "e.json")])
+    assert rc == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err.strip().splitlines() == [
+        "vio eval: error: plots (--plot) needs the [tools] extra: pip install 'kestrel-vio[tools]'"]
+    assert not (tmp_path / "e.json").exists() and not (tmp_path / "e.png").exists()
 
 
 @pytest.mark.parametrize("case, message", [

@@ -507,6 +507,10 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs({"the JSON": args.json, "the plot": args.plot},
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
+    if args.plot:  # the [tools] extra, asked for now (as `vio replay --loop-plot`), not after printing and --json
+        from vio.extras import pyplot
+
+        pyplot("plots (--plot)")
     if args.max_gap_s is not None and not args.max_gap_s > 0:
         raise VioError(f"--max-gap-s must be positive, got {args.max_gap_s}")
     if args.plot:  # the [tools] extra and the plot's format, asked for before the evaluation
