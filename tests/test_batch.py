@@ -179,3 +179,22 @@ def test_it_prints_the_files_it_wrote(flights, tmp_path, monkeypatch, capsys, wi
     assert (out / "report.png").is_file() == with_tools and (out / "compare.md").is_file()
     assert json.loads((out / "report.json").read_text())["files"] == ["report.md", "report.json"] + \
         (["report.png"] if with_tools else [])
+
+
+def test_ray_without_the_fleet_extra_is_refused_before_the_old_report_goes(flights, tmp_path, monkeypatch, capsys):
+    """`--ray ... --overwrite` without ray removed the old report and trajectories, and only then said "vio batch
+    --ray needs the [fleet] extra"; without --overwrite it made the report folder for nothing."""
+    from vio.app.cli import main
+
+    old = tmp_path / "old"
+    (old / "traj").mkdir(parents=True)
+    for name, text in (("report.json", '{"flights": []}'), ("report.md", "kept"), ("traj/f0.tum", "kept")):
+        (old / name).write_text(text)
+    monkeypatch.setitem(sys.modules, "ray", None)  # as on an install without [fleet]: import ray fails
+    for out, more in ((old, ["--overwrite"]), (tmp_path / "new", [])):
+        assert main(["-q", "batch", str(flights[0]), "-o", str(out), "--ray", "local", "--no-progress", *more]) == 1
+        assert capsys.readouterr().err.strip().splitlines() == [
+            "vio batch: error: vio batch --ray needs the [fleet] extra: pip install 'kestrel-vio[fleet]'"]
+    assert [(old / n).read_text() for n in ("report.json", "report.md", "traj/f0.tum")] == ['{"flights": []}', "kept",
+                                                                                            "kept"]
+    assert not (tmp_path / "new").exists()

@@ -205,6 +205,10 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
     unsaid and left its trajectories of flights no longer run beside the new ones: a review's finding); with it,
     the old report and trajectories go before the replays."""
     out = Path(out_dir)
+    if ray_address:  # the [fleet] extra, asked for before --overwrite removes the old report or a folder is made
+        from vio.extras import require
+
+        require("ray", "fleet", "vio batch --ray")
     if (out / "report.json").exists():
         if not overwrite:
             raise VioError(f"--output {out}: holds a batch report already; --overwrite replaces it (compare with it: "
