@@ -152,6 +152,14 @@ def _reference_noise(dataset: Path):
     return read_imu_yaml(yaml_path) if yaml_path.is_file() else None
 
 
+def _require_plots(what: str) -> None:
+    """The [tools] extra (matplotlib) for --plot, asked for before the analysis, as `vio replay --loop-plot` does:
+    without it the numbers were printed, and -o left unwritten, before the plot failed with exit 1."""
+    from vio.extras import pyplot
+
+    pyplot(what)
+
+
 def _run_imu_noise(args: argparse.Namespace) -> int:
     from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
 
@@ -159,6 +167,7 @@ def _run_imu_noise(args: argparse.Namespace) -> int:
         check_output(args.output, args.overwrite, args.dataset)
     if args.plot:
         check_output(args.plot, True, args.dataset)
+        _require_plots("the Allan deviation plot")
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
     print(format_noise(result, source, _reference_noise(args.dataset)))
@@ -178,6 +187,7 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 
     if args.plot:
         check_output(args.plot, True, args.dataset)
+        _require_plots("the time-offset plot")
     est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
     print(est.summary())
     if args.plot:

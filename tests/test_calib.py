@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -460,6 +461,28 @@ def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
     # the V1_01 excerpt hardly moves: the tool must say the offset is not observable
     assert main(["calib", "time-offset", str(v101_path)]) == 0
     assert "too little rotation" in capsys.readouterr().out
+
+
+def test_calib_plots_without_the_tools_extra_are_refused_before_the_analysis(tmp_path, capsys, monkeypatch):
+    """`vio calib time-offset --plot` / `imu-noise --plot` without matplotlib estimated and printed, (imu-noise)
+    left -o unwritten, and only then failed "needs the [tools] extra": now said first, nothing printed."""
+    from vio.app.cli import main
+
+    root = _rotation_only_recording(tmp_path / "rec", 0.008, duration_s=4.0)
+    csv = tmp_path / "imu.csv"  # 30 s at rest at 200 Hz: enough for an Allan analysis
+    t = 10**18 + np.arange(6000) * 5_000_000
+    rng = np.random.default_rng(0)
+    np.savetxt(csv, np.column_stack([t, 1e-3 * rng.standard_normal((6000, 3)),
+                                     [0, 0, 9.81] + 1e-2 * rng.standard_normal((6000, 3))]),
+               delimiter=",", fmt=["%d"] + ["%.9f"] * 6, header="timestamp,wx,wy,wz,ax,ay,az")
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as on a core install: import matplotlib fails
+    for argv, what in ((["time-offset", str(root)], "the time-offset plot"),
+                       (["imu-noise", str(csv), "-o", str(tmp_path / "imu.yaml")], "the Allan deviation plot")):
+        assert main(["calib", *argv, "--plot", str(tmp_path / "p.png")]) == 1
+        out, err = capsys.readouterr()
+        assert out == "" and err.strip().splitlines() == [
+            f"vio calib: error: {what} needs the [tools] extra: pip install 'kestrel-vio[tools]'"]
+    assert not (tmp_path / "p.png").exists() and not (tmp_path / "imu.yaml").exists()
 
 
 # ------------------------------------------------------------------------------------------------ check
