@@ -982,3 +982,34 @@ def test_a_recording_name_taken_by_an_earlier_mcap_is_not_reused(tmp_path: Path,
     assert second != first and not second.with_suffix(".mcap").exists() and not second.exists()
     first.mkdir()  # a EuRoC folder of that name: the same rule
     assert _fresh_record_dir(str(tmp_path)) == second
+
+
+def test_config_check_refuses_daemon_outputs_over_what_it_reads_or_into_the_recording(tmp_path, capsys):
+    """`[run] trajectory_file` over `[source] calibration`, or inside the EuRoC recording the daemon replays (a
+    csv of its mav0/), passed `vio config check`: the pose log would have replaced the calibration or the
+    recording's data (a QA sweep's finding). The same for the status file, the reset counter file and the
+    recording folder."""
+    from vio.app.cli import main
+    from vio.calibration import save_calibration
+    from vio.io.euroc import EurocDataset
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
+    rig = tmp_path / "rig.yaml"
+    save_calibration(EurocDataset(data).calibration, rig)
+    src = f"[source]\nkind = 'euroc'\ndataset = '{data}'\ncalibration = '{rig}'\n"
+    cam_csv = data / "mav0" / "cam0" / "data.csv"
+    over_rig = "[run] trajectory_file would be written over [source] calibration"
+    for run, says in ((f"trajectory_file = '{rig}'", over_rig),
+                      (f"trajectory_file = '{cam_csv}'", "[run] trajectory_file would be written into the recording"),
+                      (f"status_file = '{data / 'mav0' / 'status.json'}'", "into the recording"),
+                      (f"record_dir = '{data / 'mav0' / 'rec'}'", "[run] record_dir would be written into")):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f"{src}[run]\n{run}\n")
+        assert main(["config", "check", str(cfg)]) == 3, run
+        assert says in capsys.readouterr().err, run
+    before = (rig.read_bytes(), cam_csv.read_bytes())
+    cfg.write_text(f"{src}[run]\ntrajectory_file = '{tmp_path / 'poses.tum'}'\nstatus_file = '{tmp_path / 's.json'}'\n")
+    assert main(["-q", "config", "check", str(cfg)]) == 0, capsys.readouterr().err
+    assert (rig.read_bytes(), cam_csv.read_bytes()) == before

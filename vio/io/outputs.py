@@ -54,6 +54,17 @@ def distinct_files(paths: dict[str, str | None]) -> dict[str, str]:
     return seen
 
 
+def check_not_reads(outputs: dict[str, str | None], reads: dict[str, str | None] | None,
+                    grows: dict[str, str] | None = None) -> None:
+    """No two outputs one file, and no output a file the run reads (`reads`), except an output over the one read
+    it grows (`grows`: {output: read})."""
+    seen = distinct_files(outputs)
+    for what, p in (reads or {}).items():
+        writer = seen.get(os.path.realpath(p)) if p else None
+        if writer is not None and (grows or {}).get(writer) != what:
+            raise VioError(f"{p}: {writer} would be written over {what}")
+
+
 def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
                   grows: dict[str, str] | None = None, recordings: tuple[str | None, ...] = (),
                   folders: dict[str, str | None] | None = None) -> None:
@@ -62,11 +73,7 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
     grows (`grows`: {output: read}, a map saved over the map it loaded; only that one: `--save-map` over the
     `--calibration` file wrote the map over the calibration), nor any output (files in `paths`, output folders in
     `folders`) lie in the sensor data of a recording folder the run reads (`recordings`)."""
-    seen = distinct_files(paths)
-    for what, p in (reads or {}).items():
-        writer = seen.get(os.path.realpath(p)) if p else None
-        if writer is not None and (grows or {}).get(writer) != what:
-            raise VioError(f"{p}: {writer} would be written over {what}")
+    check_not_reads(paths, reads, grows)
     for rec in recordings:
         for what, p in {**paths, **(folders or {})}.items():
             if rec and p and in_recording(p, rec):

@@ -728,25 +728,26 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             vocabulary = Vocabulary.load(cfg.loop.vocabulary)
         except VioError as e:
             raise VioError(f"[loop] vocabulary: {e}") from None
-    if cfg.map.save:
-        from vio.io.outputs import NotWritable, check_outputs
+    from vio.io.outputs import NotWritable, check_not_reads, check_outputs
 
+    recording = src.dataset if src.kind == "euroc" else None
+    reads = {"[source] calibration": src.calibration, "[loop] vocabulary": cfg.loop.vocabulary,
+             "[map] load": cfg.map.load, "[source] dataset": recording}
+    if cfg.map.save:
         try:  # never over what the daemon reads (it was written over the calibration at shutdown), bar the map
-            check_outputs({"the map": cfg.map.save},
-                          reads={"[source] calibration": src.calibration, "[loop] vocabulary": cfg.loop.vocabulary,
-                                 "[map] load": cfg.map.load, "[source] dataset": src.dataset if src.kind == "euroc"
-                                 else None},
-                          grows={"the map": "[map] load"}, recordings=(src.dataset if src.kind == "euroc" else None,))
+            check_outputs({"the map": cfg.map.save}, reads=reads, grows={"the map": "[map] load"},
+                          recordings=(recording,))
         except VioError as e:
             if warn is None or not isinstance(e, NotWritable):
                 raise VioError(f"[map] save: {e}") from None
             # a state folder gone read-only: fly without saving rather than not at all (exit 3 is never restarted)
             warn(f"[map] save: {e}: running, the map will not be saved")
-    from vio.io.outputs import distinct_files
-
     files = {f"[run] {k}": getattr(cfg.run, k) for k in ("trajectory_file", "status_file")}
     files["[map] save"], files["[mavlink] counter_file"] = cfg.map.save, cfg.mavlink.counter_file
-    distinct_files(files)  # one file for two outputs: each wrote over the other (the pose log died)
+    # one file for two outputs: each wrote over the other (the pose log died); the pose log over the calibration,
+    # or into the recording replayed, passed the check (a QA sweep's finding)
+    check_not_reads(files, reads, grows={"[map] save": "[map] load"})
+    check_outputs({}, recordings=(recording,), folders={**files, "[run] record_dir": cfg.run.record_dir})
     for key in ("record_dir", "trajectory_file", "status_file"):
         value = getattr(cfg.run, key)
         if not value:
