@@ -424,3 +424,52 @@ def test_first_pose_prior_holds_yaw_about_world_z_whatever_the_mount(R_body):
     assert whitened(np.array([0.02, 0.0, 0.0])) == pytest.approx(1.0, rel=1e-3)  # 1 sigma of tilt
     assert whitened(np.array([0.0, 0.02, 0.0])) == pytest.approx(1.0, rel=1e-3)
     assert whitened(np.zeros(3), (0.0, 0.01, 0.0)) == pytest.approx(1.0, rel=1e-3)
+
+
+def _turning_pairs(bias, steady_yaw, wobble, R_body_cam, seconds=8.0, seed=0):
+    """Frame pairs 4 frames apart (20 Hz) of a body turning at a steady yaw rate with sinusoidal wobbles
+    {axis: rms rate}, and its 200 Hz gyro with a constant `bias`: (VisualRotations, imu t_ns, gyro)."""
+    from scipy.spatial.transform import Rotation
+
+    from vio.backend.offset_solver import VisualRotations
+    from vio.geometry import so3_log
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds + 1.0, 1 / 200)
+    w = np.zeros((len(t), 3))
+    w[:, 2] = steady_yaw
+    for k, (axis, rms) in enumerate(wobble.items()):
+        w[:, axis] += rms * np.sqrt(2) * np.sin(2 * np.pi * (0.6 + 0.37 * k) * t + k)
+    R = [np.eye(3)]
+    for k in range(1, len(t)):
+        R.append(R[-1] @ Rotation.from_rotvec(0.5 * (w[k] + w[k - 1]) / 200).as_matrix())
+    gyro = w + np.asarray(bias, float) + 0.01 * rng.standard_normal(w.shape)
+    tc = np.arange(0.2, seconds, 1 / 20)
+    idx = np.searchsorted(t, tc)
+    theta = np.array([so3_log(R_body_cam.T @ R[a].T @ R[b] @ R_body_cam) + 0.002 * rng.standard_normal(3)
+                      for a, b in zip(idx[:-4], idx[4:])])
+    ns = np.round(tc * 1e9).astype(np.int64)
+    n = len(theta)
+    return (VisualRotations(ns[:-4], ns[4:], theta, np.full(n, 50), np.tile(50 * np.eye(3), (n, 1, 1))),
+            np.round(t * 1e9).astype(np.int64), gyro)
+
+
+def test_the_mount_fit_is_not_tilted_by_a_bias_during_a_steady_turn():
+    """A steady turn is a constant rate, as a bias is: fitting the rotation and the bias in turn on raw rotations let
+    a right gyro's 0.03-0.08 rad/s bias tilt the fit by 11-17 deg on an orbit with a light wobble, and the in-flight
+    mount check (10 deg) stopped such a flight (a review's finding). Fitted on the rates' variation, it stays within
+    a degree or two, and the gross mistake it is there for is still found."""
+    from vio.backend.offset_solver import fit_camera_imu_rotation, rotation_disagreement
+    from vio.geometry import so3_exp
+
+    R_bc = so3_exp(np.radians([0.0, 0.0, 90.0])) @ so3_exp(np.radians([90.0, 0.0, 0.0]))
+    for bias, yaw, wobble in (((0.08, 0.0, 0.0), 0.3, {0: 0.3, 1: 0.2}), ((0.03, 0.01, 0.0), 0.1, {1: 0.06}),
+                              ((0.0, 0.08, 0.02), 0.5, {0: 0.1, 1: 0.1})):
+        vis, t, gyro = _turning_pairs(bias, yaw, wobble, R_bc)
+        fit = fit_camera_imu_rotation(vis, t, gyro, 0.0)
+        ang, sigma, _ = rotation_disagreement(fit, R_bc)
+        assert ang < 2.0, (bias, yaw, wobble, ang, sigma)
+    vis, t, gyro = _turning_pairs((0.08, 0.0, 0.0), 0.3, {0: 0.3, 1: 0.2}, R_bc)
+    wrong = so3_exp(np.radians([0.0, 0.0, 90.0])) @ R_bc  # the IMU turned 90 deg about z from what is stated
+    ang, sigma, _ = rotation_disagreement(fit_camera_imu_rotation(vis, t, gyro, 0.0), wrong)
+    assert abs(ang - 90.0) < 2.0 and ang > 3 * sigma

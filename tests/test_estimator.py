@@ -1155,6 +1155,31 @@ def test_a_gyro_in_deg_per_s_with_a_small_bias_stops_a_survey_replay_at_its_firs
     assert len(poses) > 0 and float(poses[-1].split()[0]) - 1600000000 < 4.0  # stopped within 2 s of moving
 
 
+def test_the_imu_checks_go_on_after_the_offset_estimate_has_stopped(tmp_path, monkeypatch):
+    """The checks read the time-offset estimate's frame pairs, whose collection stops `max_collect_s` after the first
+    frame (or at its first estimate): a daemon started at boot that waits on the ground longer than that flew a
+    deg/s gyro unchecked (a review's finding). Here collection stops after 1 s, before the first turn."""
+    import functools
+
+    import vio.backend.time_offset as to
+    from vio.app.replay import replay
+    from vio.io.euroc import EurocDataset
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(profile="survey", duration_s=6.0, seed=3, width=376, height=240, gyro_bias=0.001),
+             progress=False)
+    imu = data / "mav0" / "imu0" / "data.csv"
+    rows = imu.read_text().splitlines()
+    imu.write_text("\n".join(rows[:1] + [",".join([v[0]] + [repr(float(x) * 180 / np.pi) for x in v[1:4]] + v[4:])
+                                          for v in (r.split(",") for r in rows[1:])]) + "\n")
+    monkeypatch.setattr(to.OnlineTimeOffset, "__init__",
+                        functools.partialmethod(to.OnlineTimeOffset.__init__, max_collect_s=1.0))
+    monkeypatch.setattr("vio.app.replay.preflight", lambda dataset: None)  # as live data
+    r = replay(EurocDataset(data), progress=False)
+    assert r.ended_blocked and "deg/s instead of rad/s" in r.sensor_error, r.sensor_error
+
+
 def test_an_imu_turned_90_deg_from_what_the_calibration_says_stops_the_replay(tmp_path):
     """An IMU whose axes are turned 90 deg about z from the calibration's (a mount or axes mistake) flew an
     aggressive flight 0.34 m off (a survey's 1.1 m about x) with only the stereo check blaming the right camera,

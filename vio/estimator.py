@@ -151,6 +151,7 @@ class EstimatorHealth:
     sensor_error: str | None  # a diagnosed sensor problem (unit mistake, dead IMU) that blocks initialisation
     calibration_warning: str | None = None  # the flight showed the calibration wrong (the stereo check let go)
     stereo_warning: str | None = None  # frames that asked for stereo found none for a while (right camera, calib)
+    stopped_for_run: str | None = None  # why the estimator stopped for the rest of the run (the IMU against the camera)
 
 
 @dataclass(frozen=True)
@@ -346,7 +347,7 @@ class Estimator:
             st.bridge = None
         # one buffer for all readers: pre-integration, initialisers, gyro prior, and the offset solver's window
         off = self.offset_estimator
-        self.imu.trim_before(s.t_ns - IMU_KEEP_NS, off.keep_samples if off is not None and not off.done else 0)
+        self.imu.trim_before(s.t_ns - IMU_KEEP_NS, off.keep_samples if off is not None and off.keeps_imu else 0)
         self._drain(final=False)
         run = self._state
         if not isinstance(run, _Running):
@@ -391,7 +392,7 @@ class Estimator:
                                self.reset_counter, self.frames_processed, self.frames_unusable,
                                dict(self.unusable_reasons), self.imu_rejected, dict(self.imu_rejected_reasons),
                                self.frames_dropped, age, self.last_reset_reason, self.sensor_error,
-                               self._calibration_warning(), self.stereo_warning)
+                               self._calibration_warning(), self.stereo_warning, self._imu_camera_error)
 
     def _calibration_warning(self) -> str | None:
         said = []
@@ -687,7 +688,10 @@ class Estimator:
         solves = self.offset_estimator.solves
         new = self.offset_estimator.add_frame(ff, solve=quiet)
         if self.offset_estimator.imu_problem is not None and self._imu_camera_error is None:
-            self._imu_disagrees(self.offset_estimator.imu_problem)
+            units = self.offset_estimator.gyro_scale.problem is not None
+            self._imu_disagrees(self.offset_estimator.imu_problem, "IMU units" if units else "IMU mount",
+                                "fix the IMU's units or scale" if units else
+                                "fix the calibration's camera-IMU rotation (vio calib check CALIB DATASET)")
             return False
         if new is not None and new != self.time_offset_ns and self.offset_estimator.tracking:
             log.debug("camera-IMU time offset tracked: %.2f ms", new * 1e-6)
@@ -700,16 +704,16 @@ class Estimator:
                 self._start_time_state()
         return self.offset_estimator.solves > solves
 
-    def _imu_disagrees(self, problem: str) -> None:
+    def _imu_disagrees(self, problem: str, what: str, fix: str) -> None:
         """The gyro measured against the camera is in the wrong units (or dead), or turns about other axes than the
         calibration says: nothing it feeds can be trusted, and no start can fix it, so the estimator stops and
         stays stopped for this run, and says why (status, log, replay summary). A deg/s gyro with a small bias at
         rest had passed the checks at rest and flown 9 m off before a speed check reset it; an IMU whose axes were
         turned 90 deg from the calibration's flew 1.1 m off blaming the right camera."""
         self._imu_camera_error = self.sensor_error = problem
-        log.error("IMU: %s; no pose is estimated for the rest of this run: fix the IMU's units or scale", problem)
+        log.error("%s: %s; no pose is estimated for the rest of this run: %s", what, problem, fix)
         if self.initialized:
-            self.reset(f"IMU units: {problem}", bridge=False, keep_bias=False)
+            self.reset(f"{what}: {problem}", bridge=False, keep_bias=False)
 
     def _hand_offset_to_state(self) -> None:
         """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the

@@ -120,7 +120,7 @@ class ReplayResult:
     frames_listed: int = 0  # camera rows in the replayed span, loadable or not
     unusable_reasons: dict[str, int] = field(default_factory=dict)  # frames without vision, by reason
     sensor_error: str | None = None  # the estimator's diagnosis of a sensor problem that blocked initialisation
-    ended_blocked: bool = False  # the run ended with the estimator stopped by that problem (no restart)
+    ended_blocked: bool = False  # the estimator stopped for the rest of the run (EstimatorHealth.stopped_for_run)
 
     @property
     def frames_unusable(self) -> int:
@@ -145,7 +145,7 @@ class ReplayResult:
             return "the estimator never initialised: no trajectory" + (f" ({self.sensor_error})" if self.sensor_error
                                                                        else "")
         if self.ended_blocked:
-            return (f"the estimator stopped and did not start again ({self.sensor_error}): the trajectory ends "
+            return (f"the estimator stopped for the rest of the run ({self.sensor_error}): the trajectory ends "
                     f"{(self.states[-1].t_ns - self.states[0].t_ns) * 1e-9:.1f} s after its start")
         return None
 
@@ -316,7 +316,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                               "calibration_refined": est.refinement_stats(),
                               "stereo_check": est.stereo_check_stats()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error,
-                       ended_blocked=bool(states) and not h.initialized and h.sensor_error is not None)
+                       ended_blocked=bool(states) and h.stopped_for_run is not None)
     summary = res.unusable_summary()
     if summary:
         log.warning(summary)

@@ -163,6 +163,7 @@ class OnlineTimeOffset:
         self.gyro_scale = GyroScaleCheck(max_gyro_bias_rad_s)
         self.mount_problem: str | None = None
         self._mount_seen = 0  # solves in a row whose fit found the mount wrong
+        self.mount_judged = False  # a fit over turns about two axes found the mount right
 
     def add_imu(self, s: ImuSample) -> None:
         """Feed a sample to the solver's own buffer (not needed, and not allowed, with a shared one)."""
@@ -186,14 +187,16 @@ class OnlineTimeOffset:
         return new
 
     def _collect(self, ff: FeatureFrame, solve: bool) -> int | None:
-        if self.done:
+        checks_only = self.done  # the offset is settled; the IMU checks still want pairs (checks_pending)
+        if checks_only and not self.checks_pending:
             return None
-        self._t_first = ff.t_ns if self._t_first is None else self._t_first
-        self._t_last = int(ff.t_ns)
-        limit = 2 * self._window_ns() if self.rechecking else self.max_collect_ns
-        if ff.t_ns - self._t_first > limit and not self.tracking:  # hover: stop paying for it
-            self._finish()
-            return None
+        if not checks_only:
+            self._t_first = ff.t_ns if self._t_first is None else self._t_first
+            self._t_last = int(ff.t_ns)
+            limit = 2 * self._window_ns() if self.rechecking else self.max_collect_ns
+            if ff.t_ns - self._t_first > limit and not self.tracking:  # hover: stop paying for it
+                self._finish()
+                return None
         if not ff.tracking_ok:
             self._recent.clear()
             return None
@@ -213,13 +216,20 @@ class OnlineTimeOffset:
         theta = so3_log(res[0])
         b = self.base_ns
         if self.gyro_scale.problem is None:  # before the rotation filter: a camera that barely turns says most
-            self.gyro_scale.add(float(np.linalg.norm(theta)), self._gyro_angle(int(prev.t_ns) + b, int(ff.t_ns) + b),
+            a = self.applied_ns  # the gyro over the pair as the frames are stamped now
+            self.gyro_scale.add(float(np.linalg.norm(theta)), self._gyro_angle(int(prev.t_ns) + a, int(ff.t_ns) + a),
                                 (int(ff.t_ns) - int(prev.t_ns)) * 1e-9)
         if np.linalg.norm(theta) < MIN_PAIR_ROTATION_RAD:
             return None
         self._pairs.append((int(prev.t_ns) + b, int(ff.t_ns) + b, theta, int(res[1]), res[2]))
         self._new_pairs += 1
         if len(self._pairs) < MIN_PAIRS or self._new_pairs < SOLVE_EVERY:
+            return None
+        if checks_only:  # the mount fit at the pace the solves had, no offset solve
+            self._new_pairs = 0
+            t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
+            imu_t, gyro = self.imu.tail(self.keep_samples)
+            self._check_mount(VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info), imu_t, gyro)
             return None
         if not solve and self._postponed < SOLVE_EVERY:
             self._postponed += 1
@@ -233,6 +243,20 @@ class OnlineTimeOffset:
             return float("nan")
         dt = np.diff(t) * 1e-9
         return float(np.linalg.norm(((gyro[1:] + gyro[:-1]) * 0.5 * dt[:, None]).sum(axis=0)))
+
+    @property
+    def checks_pending(self) -> bool:
+        """Whether the IMU-against-camera checks still want frame pairs after the offset is settled: no verdict yet,
+        and not yet judged on enough turns (the scale on 3 x SCALE_PAIRS pairs that could tell, the mount on a fit
+        over turns about two axes). A daemon started at boot can sit on the ground for minutes, beyond the offset
+        estimate's `max_collect_s`, and a gyro in the wrong units must still be caught at the first turns; until
+        they are judged this costs what collecting did (a PnP per frame), no stereo is asked for."""
+        return self.imu_problem is None and not (self.gyro_scale.judged and self.mount_judged)
+
+    @property
+    def keeps_imu(self) -> bool:
+        """Whether the shared IMU buffer must hold `keep_samples` (collecting, or the checks still running)."""
+        return not self.done or self.checks_pending
 
     @property
     def imu_problem(self) -> str | None:
@@ -258,6 +282,8 @@ class OnlineTimeOffset:
         self._mount_seen = self._mount_seen + 1 if problem else 0
         if problem and self._mount_seen >= MOUNT_CONFIRM:
             self.mount_problem = problem
+        elif not problem and fit is not None and fit.axis_rates[1] >= MIN_AXIS_RATE_RAD_S:
+            self.mount_judged = True
 
     @staticmethod
     def _mount_fit(vis: VisualRotations, imu_t: np.ndarray, gyro: np.ndarray, offset_s: float):
@@ -292,7 +318,7 @@ class OnlineTimeOffset:
         if not self.done:
             return True
         if self._next_check_ns is None or t_ns < self._next_check_ns:
-            return False
+            return self.checks_pending
         self.done, self.rechecking = False, True
         self.rechecks += 1
         self._next_check_ns = None
@@ -364,8 +390,9 @@ class OnlineTimeOffset:
             self.offset_ns, self.sigma_s = new, est.sigma_s
             log.info("camera-IMU time offset %+.1f ms +- %.1f ms from %d frame pairs (solve %d, rotation std "
                      "%.2f rad/s)", new * 1e-6, est.sigma_s * 1e3, est.n_pairs, self.solves, est.rate_std_rad_s)
-            self.done = self.coarse_only or (est.sigma_s <= self.final_sigma_s
-                                             and len(self._pairs) == self._pairs.maxlen)
+            self.done = (self.coarse_only or (est.sigma_s <= self.final_sigma_s
+                                              and len(self._pairs) == self._pairs.maxlen)) \
+                and self._mount_seen == 0  # a mount found wrong once is looked at again before collection stops
             # Only an estimate significantly off the calibration's value replaces it, and one that is not (any
             # more) puts the calibration's back: on the aggressive flights 0.5 ms of error costs ~2 cm of ATE,
             # estimates 1-2 sigma off a correct calibration replaced it with a worse value, and a 2.5-sigma
