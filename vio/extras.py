@@ -61,15 +61,17 @@ def _flush_python_streams() -> None:
 
 
 def _quiet_import(module: str, harmless: str) -> ModuleType:
-    """Import `module` with file descriptors 1 and 2 sent to a temporary file, then restored (also when the import
-    fails), and log what its native code printed there: its known `harmless` line at DEBUG, anything else at
-    WARNING. Python's own streams are flushed on both sides, so its text lands where it was meant to."""
+    """Import `module` with file descriptor 1 (stdout, where depthai's logger prints) sent to a temporary file, then
+    restored (also when the import fails), and log what its native code printed there: its known `harmless` line at
+    DEBUG, anything else at WARNING. Python's own streams are flushed on both sides, so its text lands where it was
+    meant to. Descriptor 2 is left alone: a native abort's last words go there, and a temporary file would take them
+    with it when the process dies (a review's finding: a silent exit in a systemd restart loop)."""
     _flush_python_streams()
     saved: list[tuple[int, int]] = []  # (descriptor, its copy)
     with tempfile.TemporaryFile() as sink:
         try:
             with contextlib.suppress(OSError):  # a descriptor that is closed (a daemon without stdout): left so
-                for fd in (1, 2):
+                for fd in (1,):
                     saved.append((fd, os.dup(fd)))
                     os.dup2(sink.fileno(), fd)
             return importlib.import_module(module)
