@@ -267,6 +267,6 @@ def plot_allan(result: AllanResult, path: str | Path) -> None:
         ax.grid(True, which="both", lw=0.3)
         ax.legend()
     fig.suptitle(f"{result.duration_s:.0f} s at {result.rate_hz:.0f} Hz")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    from vio.evaluation import save_figure
+
+    save_figure(plt, fig, path)  # under exactly the name given

@@ -152,12 +152,15 @@ def _reference_noise(dataset: Path):
     return read_imu_yaml(yaml_path) if yaml_path.is_file() else None
 
 
-def _require_plots(what: str) -> None:
-    """The [tools] extra (matplotlib) for --plot, asked for before the analysis, as `vio replay --loop-plot` does:
-    without it the numbers were printed, and -o left unwritten, before the plot failed with exit 1."""
+def _require_plots(what: str, path: str) -> None:
+    """The [tools] extra (matplotlib) and a format it can write for --plot, asked for before the analysis, as `vio
+    replay --loop-plot` does: without the extra the numbers were printed, and -o left unwritten, before the plot
+    failed with exit 1; `--plot out.txt` ended the analysis in an internal error, `--plot out` wrote out.png."""
+    from vio.evaluation import plot_format
     from vio.extras import pyplot
 
     pyplot(what)
+    plot_format(path)
 
 
 def _run_imu_noise(args: argparse.Namespace) -> int:
@@ -167,7 +170,7 @@ def _run_imu_noise(args: argparse.Namespace) -> int:
         check_output(args.output, args.overwrite, args.dataset)
     if args.plot:
         check_output(args.plot, True, args.dataset)
-        _require_plots("the Allan deviation plot")
+        _require_plots("the Allan deviation plot", args.plot)
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
     print(format_noise(result, source, _reference_noise(args.dataset)))
@@ -187,7 +190,7 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 
     if args.plot:
         check_output(args.plot, True, args.dataset)
-        _require_plots("the time-offset plot")
+        _require_plots("the time-offset plot", args.plot)
     est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
     print(est.summary())
     if args.plot:

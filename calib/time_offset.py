@@ -149,6 +149,6 @@ def plot_time_offset(est: OffsetEstimate, path: str | Path) -> None:
     b.set_xlabel("offset [ms] (t_imu = t_cam + offset)")
     b.set_ylabel("cost J [rad^2]")
     b.grid(True, lw=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    from vio.evaluation import save_figure
+
+    save_figure(plt, fig, path)  # under exactly the name given

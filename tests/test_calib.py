@@ -485,6 +485,26 @@ def test_calib_plots_without_the_tools_extra_are_refused_before_the_analysis(tmp
     assert not (tmp_path / "p.png").exists() and not (tmp_path / "imu.yaml").exists()
 
 
+def test_calib_plots_go_to_the_file_named_and_an_unknown_format_is_refused_first(tmp_path, capsys):
+    """`calib imu-noise --plot p` wrote p.png (a file nothing checked), `--plot p.txt` ended the analysis in an
+    internal error (a review's finding): now the plot goes to exactly the name given and a format matplotlib cannot
+    write is refused before the analysis, as for `vio eval --plot`."""
+    from vio.app.cli import main
+
+    csv = tmp_path / "imu.csv"  # 30 s at rest at 200 Hz: enough for an Allan analysis
+    t = 10**18 + np.arange(6000) * 5_000_000
+    rng = np.random.default_rng(0)
+    np.savetxt(csv, np.column_stack([t, 1e-3 * rng.standard_normal((6000, 3)),
+                                     [0, 0, 9.81] + 1e-2 * rng.standard_normal((6000, 3))]),
+               delimiter=",", fmt=["%d"] + ["%.9f"] * 6, header="timestamp,wx,wy,wz,ax,ay,az")
+    assert main(["calib", "imu-noise", str(csv), "--plot", str(tmp_path / "p.txt")]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and "a plot cannot be written as .txt" in err and "internal error" not in err
+    assert main(["-q", "calib", "imu-noise", str(csv), "--plot", str(tmp_path / "p")]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "p").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (tmp_path / "p.png").exists()
+
+
 # ------------------------------------------------------------------------------------------------ check
 
 def _perturbed(calib, rotvec_cam1):
