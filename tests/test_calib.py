@@ -463,18 +463,23 @@ def test_time_offset_cli_and_static_warning(tmp_path, capsys, v101_path):
     assert "too little rotation" in capsys.readouterr().out
 
 
+def _still_imu_csv(csv):
+    """30 s of a still IMU at 200 Hz as a plain csv: enough for an Allan analysis."""
+    t = 10**18 + np.arange(6000) * 5_000_000
+    rng = np.random.default_rng(0)
+    np.savetxt(csv, np.column_stack([t, 1e-3 * rng.standard_normal((6000, 3)),
+                                     [0, 0, 9.81] + 1e-2 * rng.standard_normal((6000, 3))]),
+               delimiter=",", fmt=["%d"] + ["%.9f"] * 6, header="timestamp,wx,wy,wz,ax,ay,az")
+    return csv
+
+
 def test_calib_plots_without_the_tools_extra_are_refused_before_the_analysis(tmp_path, capsys, monkeypatch):
     """`vio calib time-offset --plot` / `imu-noise --plot` without matplotlib estimated and printed, (imu-noise)
     left -o unwritten, and only then failed "needs the [tools] extra": now said first, nothing printed."""
     from vio.app.cli import main
 
     root = _rotation_only_recording(tmp_path / "rec", 0.008, duration_s=4.0)
-    csv = tmp_path / "imu.csv"  # 30 s at rest at 200 Hz: enough for an Allan analysis
-    t = 10**18 + np.arange(6000) * 5_000_000
-    rng = np.random.default_rng(0)
-    np.savetxt(csv, np.column_stack([t, 1e-3 * rng.standard_normal((6000, 3)),
-                                     [0, 0, 9.81] + 1e-2 * rng.standard_normal((6000, 3))]),
-               delimiter=",", fmt=["%d"] + ["%.9f"] * 6, header="timestamp,wx,wy,wz,ax,ay,az")
+    csv = _still_imu_csv(tmp_path / "imu.csv")
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # as on a core install: import matplotlib fails
     for argv, what in ((["time-offset", str(root)], "the time-offset plot"),
                        (["imu-noise", str(csv), "-o", str(tmp_path / "imu.yaml")], "the Allan deviation plot")):
@@ -491,12 +496,7 @@ def test_calib_plots_go_to_the_file_named_and_an_unknown_format_is_refused_first
     write is refused before the analysis, as for `vio eval --plot`."""
     from vio.app.cli import main
 
-    csv = tmp_path / "imu.csv"  # 30 s at rest at 200 Hz: enough for an Allan analysis
-    t = 10**18 + np.arange(6000) * 5_000_000
-    rng = np.random.default_rng(0)
-    np.savetxt(csv, np.column_stack([t, 1e-3 * rng.standard_normal((6000, 3)),
-                                     [0, 0, 9.81] + 1e-2 * rng.standard_normal((6000, 3))]),
-               delimiter=",", fmt=["%d"] + ["%.9f"] * 6, header="timestamp,wx,wy,wz,ax,ay,az")
+    csv = _still_imu_csv(tmp_path / "imu.csv")
     assert main(["calib", "imu-noise", str(csv), "--plot", str(tmp_path / "p.txt")]) == 1
     out, err = capsys.readouterr()
     assert out == "" and "a plot cannot be written as .txt" in err and "internal error" not in err
