@@ -118,6 +118,30 @@ def test_removed_output_folders_stop_those_outputs_only(tmp_path: Path, caplog) 
     assert not svc.rec_buf._frames and svc.rec_buf.closed  # nothing piles up behind a failed recorder
 
 
+def test_an_estimator_stopped_for_the_run_reads_degraded_not_waiting_for_vision(tmp_path: Path) -> None:
+    """The IMU against the camera (a deg/s gyro, an IMU mounted 90 deg off) stops the estimator for the run: the
+    daemon said "waiting for vision", as if the camera only had to see something; it is degraded, saying why."""
+    import dataclasses
+
+    class Stopped(ScriptedEstimator):
+        def health(self):
+            why = "the gyro turns 56x what the camera sees (...): deg/s instead of rad/s (57.3x)?"
+            return dataclasses.replace(super().health(), initialized=False, tracking=False, sensor_error=why,
+                                       stopped_for_run=why)
+
+    blind = threading.Event()
+    blind.set()
+    svc, mavs = _service(tmp_path, estimator=lambda c: Stopped("calib", [], blind))
+    runner = _run(svc)
+    try:
+        assert _wait(lambda: svc.ready, 3)
+        assert _wait(lambda: svc.snapshot()["state"] == "degraded", 3), svc.snapshot()["state"]
+        assert any("sensor error: the gyro turns 56x" in w for w in svc.snapshot()["warnings"])
+        assert _tracked(mavs) == 0
+    finally:
+        _stop(svc, runner)
+
+
 def test_blind_camera_is_ready_waiting_for_vision_and_keeps_the_watchdog(tmp_path: Path, notify_socket,
                                                                           monkeypatch, caplog) -> None:
     """Lens cap on at boot: READY once the sensors deliver, state 'waiting for vision', watchdog fed, one

@@ -327,6 +327,7 @@ class Health:
     sensor_error: str | None = None
     calibration_warning: str | None = None
     stereo_warning: str | None = None
+    stopped_for_run: str | None = None
 
 
 class ScriptedEstimator:

@@ -391,7 +391,7 @@ class Service:
             mode = "starting"
         elif not ok:
             mode = "unhealthy"
-        elif not tracking and not withheld and src.connected and imu_ok:
+        elif not tracking and not withheld and src.connected and imu_ok and not getattr(h, "stopped_for_run", None):
             mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
         elif warnings or not tracking:
             mode = "degraded"
