@@ -463,18 +463,37 @@ def test_16bit_pngs_of_any_depth_decode_as_their_8bit_values(tmp_path, depth, ca
 
 
 def test_16bit_frame_brighter_than_the_first_is_clipped_not_wrapped_and_said_once(tmp_path, caplog):
-    """A 12-bit recording whose later frames hold values above 4095: clipped to white (a wrap made the brightest
-    parts black), with one warning for the recording."""
-    first = np.full((40, 64), 4095, np.uint16)
+    """A 12-bit recording with a frame holding values above 4095 that the scale's samples (the first frame and
+    four spread over the recording) did not see: clipped to white (a wrap made the brightest parts black), with
+    one warning for the recording."""
+    usual = np.full((40, 64), 4095, np.uint16)
     brighter = np.full((40, 64), 2000, np.uint16)
     brighter[:, :8] = 9000  # 13 bits: 9000 >> 4 = 562, which wrapped to a dark 50 in 8 bits
-    ds = _write_16bit(tmp_path / "rec", [first, brighter, brighter])
+    ds = _write_16bit(tmp_path / "rec", [usual, usual, usual, brighter, usual, usual])  # frame 3 is not sampled
     with caplog.at_level(logging.WARNING):
-        a, b = ds.frame(1).left, ds.frame(2).left
+        ds.frame(0)  # decides (the image converted first counts too)
+        a, b = ds.frame(3).left, ds.frame(3).left
+    assert ds._to8.shift == 4
     assert np.array_equal(a, b) and np.all(a[:, :8] == 255) and np.all(a[:, 8:] == 2000 >> 4)
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1 and "values up to 9000, above the 12-bit range" in warned[0]
     assert len(ds.stats.warnings) == 1
+
+
+def test_16bit_scale_is_decided_on_frames_spread_over_the_recording_not_a_dark_first_one(tmp_path):
+    """A 16-bit camera whose first frame is nearly black (auto-exposure settling, a lens cap): decided on it alone,
+    the scale was none at all and every later frame clipped to white (a review's finding). The first frame and
+    four spread over the recording decide; a near-black frame's few small values do not make it "MSB-aligned"."""
+    dark = np.zeros((40, 64), np.uint16)
+    dark[5:7, 5:7] = (4, 8, 12, 8)[:2]  # a few small values whose low 2 bits are 0
+    lit = np.random.default_rng(0).integers(1000, 40000, (40, 64)).astype(np.uint16)
+    ds = _write_16bit(tmp_path / "rec", [dark] + [lit] * 8)
+    img = ds.frame(0).left
+    assert ds._to8.shift == 8 and img.max() == 0
+    assert np.array_equal(ds.frame(4).left, (lit >> 8).astype(np.uint8))
+    from vio.io.images import uint16_shift
+
+    assert uint16_shift(dark) == (0, "8-bit values (max 8)")  # alone: no light to call it MSB-aligned
 
 
 def test_8bit_pngs_decode_byte_identical_and_decide_no_scale(v101):

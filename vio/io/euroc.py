@@ -665,13 +665,14 @@ class EurocDataset:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
         return img
 
-    def _first_image(self) -> np.ndarray | None:
-        """The recording's first readable left image (of the first 5), from which a 16-bit depth is decided."""
-        for path in [f for f in self.cam0_files if f is not None][:5]:
-            img = self._read_grey(path)
-            if img is not None:
-                return img
-        return None
+    def _first_image(self) -> list[np.ndarray]:
+        """Left images from which a 16-bit depth is decided: the first readable one and four spread over the
+        recording (a dark first frame alone gave too small a scale for the rest)."""
+        files = [f for f in self.cam0_files if f is not None]
+        picks = [files[round(k * (len(files) - 1) / 4)] for k in range(1, 5)] if files else []
+        out = [img for img in map(self._read_grey, picks) if img is not None]
+        first = next((img for img in map(self._read_grey, files[:5]) if img is not None), None)
+        return out if first is None else [first, *out]
 
     def _load(self, path: Path | None) -> np.ndarray | None:
         if path is None:

@@ -3,32 +3,39 @@
 A 16-bit PNG or mono16 message may hold 16-bit values, or 10/12/14-bit values in the low bits (many machine
 vision cameras), or such values shifted up into the high bits (MSB-aligned, the low bits always 0). A fixed
 `>> 8` turned 12-bit values (0..4095) into a near-black image that every frame refused as too dark. The shift
-is decided once, from the recording's first image: a shift chosen per frame would change the brightness from
-frame to frame and break the KLT tracking, which assumes a constant brightness. A later frame brighter than the
-range decided is clipped to white (never wrapped to black), with one warning.
+is decided once per recording, on its first image and four spread over it where the reader can (EuRoC; a bag's
+first image only): a shift chosen per frame would change the brightness from frame to frame and break the KLT
+tracking, which assumes a constant brightness. A frame brighter than the range decided is clipped to white (never
+wrapped to black), with one warning.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 log = logging.getLogger(__name__)
 
 BIT_DEPTHS = (8, 10, 12, 14, 16)  # the depths cameras write; the range decided is the smallest that holds the peak
+MSB_MIN_PEAK = 1 << 10  # a peak under this (4 % of 16 bits) cannot tell MSB-aligned data
 
 
-def uint16_shift(img: np.ndarray) -> tuple[int, str] | None:
-    """The right shift that makes a 16-bit image's values 8-bit, and why (for the log); None for an all-zero
-    image, which says nothing about the depth (and is 0 under any shift)."""
-    peak = int(img.max())
+def uint16_shift(images: np.ndarray | Sequence[np.ndarray]) -> tuple[int, str] | None:
+    """The right shift that makes a recording's 16-bit images 8-bit, judged on one image or several, and why (for
+    the log); None when all are zero, which says nothing about the depth (and is 0 under any shift)."""
+    imgs = [images] if isinstance(images, np.ndarray) else list(images)
+    peak = max((int(i.max()) for i in imgs), default=0)
     if peak == 0:
         return None
-    used = int(np.bitwise_or.reduce(img, axis=None))
+    used = 0
+    for i in imgs:
+        used |= int(np.bitwise_or.reduce(i, axis=None))
     low_zero = (used & -used).bit_length() - 1  # low bits that no pixel sets
-    if low_zero >= 2:  # MSB-aligned 10/12/14-bit values (noise sets the low bits of data aligned otherwise)
+    # MSB-aligned 10/12/14-bit values (noise sets the low bits of data aligned otherwise); a near-black image's few
+    # small values (0, 4, 8) say nothing about alignment, so it takes some light to call it
+    if low_zero >= 2 and peak >= MSB_MIN_PEAK:
         return 8, f"MSB-aligned values (the low {low_zero} bits always 0, max {peak})"
     bits = next(b for b in BIT_DEPTHS if peak < 1 << b)
     return bits - 8, f"{bits}-bit values (max {peak})"
@@ -37,11 +44,13 @@ def uint16_shift(img: np.ndarray) -> tuple[int, str] | None:
 class Uint16To8:
     """Converts a recording's 16-bit images to 8 bits with one shift, decided on the first image converted.
 
-    `first` returns the recording's first image (or None), so that the shift does not depend on which frame a
-    caller happens to load first (a replay's --start, a calibration check's sample); `warn` records the one
-    clipping warning (a reader's counted warnings)."""
+    `first` returns images the recording opens with or spreads over (a list, one image, or None), so that the shift
+    does not depend on which frame a caller happens to load first (a replay's --start, a calibration check's
+    sample), nor on a dark first frame alone (auto-exposure settling, a lens cap: a 16-bit camera whose first
+    image peaked at 200 was given no shift and later frames clipped to white, a review's finding); `warn` records
+    the one clipping warning (a reader's counted warnings)."""
 
-    def __init__(self, where: str, first: Callable[[], np.ndarray | None] | None = None,
+    def __init__(self, where: str, first: Callable[[], np.ndarray | Sequence[np.ndarray] | None] | None = None,
                  warn: Callable[[str], None] = log.warning) -> None:
         self.where = where
         self.shift: int | None = None
@@ -51,9 +60,11 @@ class Uint16To8:
 
     def _decide(self, img: np.ndarray) -> None:
         first = self._first() if self._first is not None else None
-        self._first = None  # asked once: an unreadable or all-zero first image leaves the decision to `img`
-        for sample in (first, img):
-            decided = uint16_shift(sample) if sample is not None and sample.dtype == np.uint16 else None
+        self._first = None  # asked once: unreadable or all-zero samples leave the decision to `img`
+        samples = [] if first is None else [first] if isinstance(first, np.ndarray) else list(first)
+        samples = [i for i in samples if i is not None and i.dtype == np.uint16]
+        for sample in (samples + [img], [img]):
+            decided = uint16_shift(sample) if all(i.dtype == np.uint16 for i in sample) else None
             if decided is not None:
                 self.shift, why = decided
                 log.info("%s: 16-bit images with %s: scaled to 8 bits by >> %d for the whole recording",
@@ -76,6 +87,6 @@ class Uint16To8:
             if not self._clip_warned:
                 self._clip_warned = True
                 self._warn(f"{self.where}: an image has values up to {peak}, above the {self.shift + 8}-bit range "
-                           "decided from the recording's first image: its brightest parts are clipped to white "
-                           "(said once)")
+                           "decided on the recording's first and spread-out images: its brightest parts are clipped "
+                           "to white (said once)")
         return out.astype(np.uint8)
