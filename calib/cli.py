@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 
 from vio.argtypes import positive_float, positive_int
+from vio.evaluation import require_plot
 from vio.io.outputs import check_new_file as check_output
 
 log = logging.getLogger(__name__)
@@ -152,17 +153,6 @@ def _reference_noise(dataset: Path):
     return read_imu_yaml(yaml_path) if yaml_path.is_file() else None
 
 
-def _require_plots(what: str, path: str) -> None:
-    """The [tools] extra (matplotlib) and a format it can write for --plot, asked for before the analysis, as `vio
-    replay --loop-plot` does: without the extra the numbers were printed, and -o left unwritten, before the plot
-    failed with exit 1; `--plot out.txt` ended the analysis in an internal error, `--plot out` wrote out.png."""
-    from vio.evaluation import plot_format
-    from vio.extras import pyplot
-
-    pyplot(what)
-    plot_format(path)
-
-
 def _run_imu_noise(args: argparse.Namespace) -> int:
     from calib.allan import analyse_imu, format_noise, load_imu_for_allan, write_imu_yaml
 
@@ -170,7 +160,7 @@ def _run_imu_noise(args: argparse.Namespace) -> int:
         check_output(args.output, args.overwrite, args.dataset)
     if args.plot:
         check_output(args.plot, True, args.dataset)
-        _require_plots("the Allan deviation plot", args.plot)
+        require_plot(args.plot, "the Allan deviation plot")  # before the analysis, not after its printout
     imu, source = load_imu_for_allan(args.dataset, args.start, args.end)
     result = analyse_imu(imu)
     print(format_noise(result, source, _reference_noise(args.dataset)))
@@ -190,7 +180,7 @@ def _run_time_offset(args: argparse.Namespace) -> int:
 
     if args.plot:
         check_output(args.plot, True, args.dataset)
-        _require_plots("the time-offset plot", args.plot)
+        require_plot(args.plot, "the time-offset plot")
     est = estimate_time_offset_dataset(args.dataset, args.calibration, max_offset_s=args.max_offset_ms / 1e3)
     print(est.summary())
     if args.plot:

@@ -449,6 +449,15 @@ def plot_format(path: str | Path) -> str:
     return suffix
 
 
+def require_plot(path: str | Path, what: str) -> None:
+    """What a plot to `path` needs, asked for before the work that leads to it (a replay, an evaluation, an
+    analysis): the [tools] extra (`what`: the option, as the user names it) and a format matplotlib can write."""
+    from vio.extras import pyplot
+
+    pyplot(what)
+    plot_format(path)
+
+
 def save_figure(plt, fig, path: str | Path) -> None:
     """Lay out, write (an unwritable path is a one-line VioError) and close a matplotlib figure, under exactly
     `path`."""
@@ -507,17 +516,10 @@ def run(args: argparse.Namespace) -> int:
 
     check_outputs({"the JSON": args.json, "the plot": args.plot},
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
-    if args.plot:  # the [tools] extra, asked for now (as `vio replay --loop-plot`), not after printing and --json
-        from vio.extras import pyplot
-
-        pyplot("plots (--plot)")
+    if args.plot:  # the [tools] extra and the plot's format, asked for now, not after printing and --json
+        require_plot(args.plot, "plots (--plot)")
     if args.max_gap_s is not None and not args.max_gap_s > 0:
         raise VioError(f"--max-gap-s must be positive, got {args.max_gap_s}")
-    if args.plot:  # the [tools] extra and the plot's format, asked for before the evaluation
-        from vio.extras import pyplot
-
-        pyplot("plots (--plot)")
-        plot_format(args.plot)
     est = load_trajectory(args.est, args.run)
     spacing = float(np.median(np.diff(est.t_ns))) * 1e-9 if len(est) > 1 else 0.0
     max_gap_s = args.max_gap_s

@@ -479,11 +479,9 @@ def run(args: argparse.Namespace) -> int:
                   grows={"the map": "the map it loads"}, recordings=(args.dataset,),
                   folders={"the track images": args.show_tracks})
     if args.loop_plot:  # the [tools] extra and the plot's format, asked for now rather than after the replay
-        from vio.evaluation import plot_format
-        from vio.extras import pyplot
+        from vio.evaluation import require_plot
 
-        pyplot("loop-closure plot (--loop-plot)")
-        plot_format(args.loop_plot)
+        require_plot(args.loop_plot, "loop-closure plot (--loop-plot)")
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
