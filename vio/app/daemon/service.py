@@ -734,9 +734,8 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
     reads = {"[source] calibration": src.calibration, "[loop] vocabulary": cfg.loop.vocabulary,
              "[map] load": cfg.map.load, "[source] dataset": recording}
     if cfg.map.save:
-        try:  # never over what the daemon reads (it was written over the calibration at shutdown), bar the map
-            check_outputs({"the map": cfg.map.save}, reads=reads, grows={"the map": "[map] load"},
-                          recordings=(recording,))
+        try:  # its folder (over what the daemon reads, or into the recording: with the other outputs, below)
+            check_outputs({"the map": cfg.map.save})
         except VioError as e:
             if warn is None or not isinstance(e, NotWritable):
                 raise VioError(f"[map] save: {e}") from None
@@ -745,7 +744,8 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
     files = {f"[run] {k}": getattr(cfg.run, k) for k in ("trajectory_file", "status_file")}
     files["[map] save"], files["[mavlink] counter_file"] = cfg.map.save, cfg.mavlink.counter_file
     # one file for two outputs: each wrote over the other (the pose log died); the pose log over the calibration,
-    # or into the recording replayed, passed the check (a QA sweep's finding)
+    # or into the recording replayed, passed the check (a QA sweep's finding); the map was written over the
+    # calibration at shutdown: never over what the daemon reads, bar the map it grows
     check_not_reads(files, reads, grows={"[map] save": "[map] load"})
     check_outputs({}, recordings=(recording,), folders={**files, "[run] record_dir": cfg.run.record_dir})
     for key in ("record_dir", "trajectory_file", "status_file"):
