@@ -26,9 +26,6 @@ import hashlib
 import json
 import math
 import os
-import tokenize
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +34,7 @@ import numpy as np
 from vio import VioError
 from vio.geometry import is_se3
 from vio.loop.features import KeyframeFeatures
+from vio.loop.vocabulary import NPZ_DAMAGED
 
 FORMAT = "kestrel-vio-map"
 VERSION = 1
@@ -203,9 +201,7 @@ def load_map(path: str | Path) -> MapData:
         raise VioError(f"{path}: no such map file") from None
     except OSError as e:
         raise VioError(f"{path}: cannot read the map ({e.strerror or e})") from None
-    except (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError):
-        # a byte flipped inside a compressed array (zlib), an array's header (numpy's header parser: TokenError)
-        # or the archive's directory (zipfile: "zip file version 21.0"): a damaged file, as one cut short
+    except NPZ_DAMAGED:  # a damaged file, as one cut short
         raise VioError(f"{path}: not a Kestrel VIO map, or a truncated or damaged one (not a complete .npz "
                        "archive)") from None
     except (KeyError, ValueError, json.JSONDecodeError) as e:

@@ -19,6 +19,11 @@ import numpy as np
 from vio import VioError
 from vio.loop.database import BowVector
 
+# what numpy and zipfile raise for an .npz archive cut short or damaged on disk: a byte flipped inside a compressed
+# array (zlib), in an array's header (numpy's header parser: TokenError) or in the archive's directory (zipfile:
+# "zip file version 21.0"); maps (vio.loop.mapfile) are .npz archives too
+NPZ_DAMAGED = (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError)
+
 FORMAT_VERSION = 1
 DEFAULT_PATH = Path(__file__).with_name("data") / "vocabulary.npz"
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
@@ -132,8 +137,7 @@ class Vocabulary:
                 return Vocabulary(k, depth, centres.astype(np.uint8), idf.astype(np.float32))
         except (OSError, KeyError, ValueError) as e:
             raise VioError(f"{path}: cannot read the vocabulary ({e})") from None
-        except (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError):
-            # a file cut short or damaged on disk: one line (it ended in "internal error" from vio replay/run)
+        except NPZ_DAMAGED:  # one line (it ended in "internal error" from vio replay/run)
             raise VioError(f"{path}: cannot read the vocabulary (not a complete .npz archive: a truncated or "
                            "damaged file; train it again with `vio loop train-vocab`, or leave [loop] vocabulary "
                            "empty for the packaged one)") from None
