@@ -39,6 +39,7 @@ from vio.calibration import StereoCalibration, calibration_from_dict, calibratio
 from vio.io.euroc import (
     DatasetStats,
     EurocDataset,
+    FlushPacer,
     ImuData,
     _step_problem,
     image_size_problem,
@@ -670,16 +671,7 @@ class McapWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.bytes_images = 0
-        self._flush_ns = int(flush_interval_s * 1e9)
-        self._last_flush_t: int | None = None
-
-    def _maybe_flush(self, t_ns: int) -> None:
-        """Flush every `flush_interval_s` of sensor data time (EurocWriter's pacing)."""
-        if self._last_flush_t is None:
-            self._last_flush_t = t_ns
-        elif t_ns - self._last_flush_t >= self._flush_ns:
-            self.flush()
-            self._last_flush_t = t_ns
+        self._flush_pacer = FlushPacer(flush_interval_s)  # EurocWriter's pacing
 
     def _channel(self, topic: str, msgtype: str) -> int:
         if topic not in self._channels:
@@ -699,12 +691,12 @@ class McapWriter:
             if img is not None:
                 ty, msg = image_message(self.ts, frame.t_ns, img, fid, self.compression)
                 self.write(topic, frame.t_ns, ty, msg)
-        self._maybe_flush(frame.t_ns)
+        self._flush_pacer(frame.t_ns, self.flush)
 
     def write_imu(self, s: ImuSample, topic: str = "/imu0") -> None:
         ty, msg = imu_message(self.ts, s)
         self.write(topic, s.t_ns, ty, msg)
-        self._maybe_flush(s.t_ns)
+        self._flush_pacer(s.t_ns, self.flush)
 
     def write_state(self, st, topic: str = "/vio/odometry") -> None:
         ty, msg = odometry_message(self.ts, st)

@@ -18,7 +18,7 @@ import logging
 import math
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -780,6 +780,24 @@ def png_write_params(level: int) -> list[int]:
     return [cv2.IMWRITE_PNG_COMPRESSION, level]
 
 
+class FlushPacer:
+    """When a recording writer flushes: at least every `interval_s` of sensor-data time (a source replayed or
+    simulated faster than real time is paced by its data too), so a killed recorder loses at most that much. The
+    EuRoC and MCAP writers share it."""
+
+    def __init__(self, interval_s: float) -> None:
+        self._interval_ns = int(interval_s * 1e9)
+        self._last_t: int | None = None
+
+    def __call__(self, t_ns: int, flush: Callable[[], None]) -> None:
+        """Call `flush` if `interval_s` of data time has passed since the last flush (or the first sample)."""
+        if self._last_t is None:
+            self._last_t = t_ns
+        elif t_ns - self._last_t >= self._interval_ns:
+            flush()
+            self._last_t = t_ns
+
+
 class EurocWriter:
     """Writes a EuRoC ASL dataset incrementally (recording, simulation, tests).
 
@@ -814,8 +832,7 @@ class EurocWriter:
         self._cam = [self._open(self.mav0 / c / "data.csv", CAM_HEADER) for c in ("cam0", "cam1")]
         self._imu = self._open(self.mav0 / "imu0" / "data.csv", IMU_HEADER)
         self._gt = None
-        self._flush_ns = int(flush_interval_s * 1e9)
-        self._last_flush_t: int | None = None
+        self._flush_pacer = FlushPacer(flush_interval_s)
         self.frames_written = 0
         self.imu_written = 0
 
@@ -824,13 +841,6 @@ class EurocWriter:
         f = open(path, "w", buffering=1 << 16)
         f.write(header + "\n")
         return f
-
-    def _maybe_flush(self, t_ns: int) -> None:
-        if self._last_flush_t is None:
-            self._last_flush_t = t_ns
-        elif t_ns - self._last_flush_t >= self._flush_ns:
-            self.flush()
-            self._last_flush_t = t_ns
 
     def write_frame(self, frame: StereoFrame) -> None:
         name = f"{frame.t_ns}.png"
@@ -843,13 +853,13 @@ class EurocWriter:
                 raise VioError(f"{path}: cannot write image")
             self._cam[k].write(f"{frame.t_ns},{name}\n")
         self.frames_written += 1
-        self._maybe_flush(frame.t_ns)
+        self._flush_pacer(frame.t_ns, self.flush)
 
     def write_imu(self, s: ImuSample) -> None:
         g, a = s.gyro, s.accel
         self._imu.write(f"{s.t_ns},{g[0]:.17g},{g[1]:.17g},{g[2]:.17g},{a[0]:.17g},{a[1]:.17g},{a[2]:.17g}\n")
         self.imu_written += 1
-        self._maybe_flush(s.t_ns)
+        self._flush_pacer(s.t_ns, self.flush)
 
     def write_groundtruth(self, t_ns: int, p: np.ndarray, q_wxyz: np.ndarray, v: np.ndarray,
                           gyro_bias: np.ndarray, accel_bias: np.ndarray) -> None:
