@@ -45,7 +45,7 @@ from vio.io.euroc import (
     image_size_problem,
     imu_units_problem,
 )
-from vio.io.images import Uint16To8
+from vio.io.images import Uint16To8, grey
 from vio.types import ImuSample, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -274,9 +274,7 @@ def decode_grey(msg, msgtype: str) -> np.ndarray | None:
         else:
             raise VioError(f"image encoding {msg.encoding!r} is not supported (mono8, mono16, bgr8, rgb8, ...)")
         img = np.ascontiguousarray(img)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    return img
+    return grey(img)
 
 
 class BagDataset(EurocDataset):
@@ -296,7 +294,7 @@ class BagDataset(EurocDataset):
         self.topics = topics or BagTopics()
         self.stats = DatasetStats()
         self._first_left: tuple[object, str] | None = None  # (message, type): a 16-bit scale is decided on it
-        self._to8 = Uint16To8(str(p), self._first_image, self._warn)
+        self._to8 = Uint16To8(str(p), self._scale_samples, self._warn)
         self._bag = _BagFile(p)
         if self._bag.truncated:
             self.stats.notes.append(f"{p}: no MCAP summary (the recorder stopped mid-write?): read up to the "
@@ -438,7 +436,7 @@ class BagDataset(EurocDataset):
         return res
 
     # -- streaming -----------------------------------------------------------------------------------------
-    def _first_image(self) -> np.ndarray | None:
+    def _scale_samples(self) -> np.ndarray | None:
         """The bag's first left image, kept from the stamp pass, from which a 16-bit depth is decided."""
         first, self._first_left = self._first_left, None
         return None if first is None else decode_grey(*first)

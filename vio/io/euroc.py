@@ -36,7 +36,7 @@ from vio.calibration import (
 )
 from vio.config import refuse_unknown_keys
 from vio.geometry import is_se3
-from vio.io.images import Uint16To8
+from vio.io.images import Uint16To8, grey
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
 
@@ -476,8 +476,8 @@ class EurocDataset:
         self.mav0 = find_mav0(path)
         self.root = self.mav0.parent
         self.stats = DatasetStats()
-        # 16-bit images: one scale for the whole recording, decided on its first image (vio.io.images)
-        self._to8 = Uint16To8(str(self.mav0), self._first_image, self._warn)
+        # 16-bit images: one scale for the whole recording, decided on images it opens with and spreads over
+        self._to8 = Uint16To8(str(self.mav0), self._scale_samples, self._warn)
         for sub in ("cam0", "imu0") + (("cam1",) if require_cam1 else ()):
             if not (self.mav0 / sub).is_dir():
                 raise VioError(f"{self.mav0 / sub}: folder missing (EuRoC needs mav0/cam0, cam1, imu0)")
@@ -661,11 +661,9 @@ class EurocDataset:
         # IMREAD_UNCHANGED skips the colour-conversion path: 2.5 vs 2.7 ms per 752x480 PNG on one core;
         # a colour file is converted afterwards as IMREAD_GRAYSCALE would
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is not None and img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-        return img
+        return None if img is None else grey(img)
 
-    def _first_image(self) -> list[np.ndarray]:
+    def _scale_samples(self) -> list[np.ndarray]:
         """Left images from which a 16-bit depth is decided: the first readable one and four spread over the
         recording (a dark first frame alone gave too small a scale for the rest)."""
         files = [f for f in self.cam0_files if f is not None]

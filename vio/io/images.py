@@ -14,12 +14,21 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 
+import cv2
 import numpy as np
 
 log = logging.getLogger(__name__)
 
 BIT_DEPTHS = (8, 10, 12, 14, 16)  # the depths cameras write; the range decided is the smallest that holds the peak
 MSB_MIN_PEAK = 1 << 10  # a peak under this (4 % of 16 bits) cannot tell MSB-aligned data
+
+
+def grey(img: np.ndarray) -> np.ndarray:
+    """An image as decoded with IMREAD_UNCHANGED (a file's or a message's own channels and depth) as one grey channel
+    at its own depth: colour and colour with alpha converted as IMREAD_GRAYSCALE would."""
+    if img.ndim == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return img
 
 
 def uint16_shift(images: np.ndarray | Sequence[np.ndarray]) -> tuple[int, str] | None:
@@ -60,16 +69,13 @@ class Uint16To8:
 
     def _decide(self, img: np.ndarray) -> None:
         first = self._first() if self._first is not None else None
-        self._first = None  # asked once: unreadable or all-zero samples leave the decision to `img`
+        self._first = None  # asked once: unreadable or all-zero samples leave the decision to the images converted
         samples = [] if first is None else [first] if isinstance(first, np.ndarray) else list(first)
-        samples = [i for i in samples if i is not None and i.dtype == np.uint16]
-        for sample in (samples + [img], [img]):
-            decided = uint16_shift(sample) if all(i.dtype == np.uint16 for i in sample) else None
-            if decided is not None:
-                self.shift, why = decided
-                log.info("%s: 16-bit images with %s: scaled to 8 bits by >> %d for the whole recording",
-                         self.where, why, self.shift)
-                return
+        decided = uint16_shift([i for i in samples if i is not None and i.dtype == np.uint16] + [img])
+        if decided is not None:
+            self.shift, why = decided
+            log.info("%s: 16-bit images with %s: scaled to 8 bits by >> %d for the whole recording", self.where,
+                     why, self.shift)
 
     def convert(self, img: np.ndarray) -> np.ndarray:
         """A 16-bit image as 8 bits; values above the decided range are clipped to 255."""
