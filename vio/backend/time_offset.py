@@ -229,14 +229,18 @@ class OnlineTimeOffset:
             return None
         if checks_only:  # the mount fit at the pace the solves had, no offset solve
             self._new_pairs = 0
-            t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
-            imu_t, gyro = self.imu.tail(self.keep_samples)
-            self._check_mount(VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info), imu_t, gyro)
+            self._check_mount(*self._window())
             return None
         if not solve and self._postponed < SOLVE_EVERY:
             self._postponed += 1
             return None
         return self._solve()
+
+    def _window(self) -> tuple[VisualRotations, np.ndarray, np.ndarray]:
+        """The window's frame pairs and the IMU history that covers them (t_ns, gyro)."""
+        t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
+        imu_t, gyro = self.imu.tail(self.keep_samples)
+        return VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info), imu_t, gyro
 
     def _gyro_angle(self, t0_ns: int, t1_ns: int) -> float:
         """|integral of the gyro| over [t0, t1] (IMU clock) [rad]: the pair's rotation as the gyro has it."""
@@ -373,9 +377,7 @@ class OnlineTimeOffset:
         self._new_pairs = 0
         self._postponed = 0
         self.solves += 1
-        t0, t1, th, n, info = (np.array(x) for x in zip(*self._pairs))
-        vis = VisualRotations(t0.astype(np.int64), t1.astype(np.int64), th, n, info)
-        imu_t, gyro = self.imu.tail(self.keep_samples)
+        vis, imu_t, gyro = self._window()
         self._check_mount(vis, imu_t, gyro)
         try:
             est = estimate_time_offset(vis, imu_t, gyro, self.R_body_cam, max_offset_s=self.max_offset_s, n_boot=30)
@@ -384,7 +386,7 @@ class OnlineTimeOffset:
             est = None
         changed = None
         if self.tracking:
-            return self._track(est, t0, t1)
+            return self._track(est, vis.t0_ns, vis.t1_ns)
         if self.rechecking:
             return self._recheck(est)
         if self._applicable(est, min(self.accept_sigma_s, self.sigma_s * 1.5)):
