@@ -3,6 +3,7 @@ simulated loop flight replayed with and without loop closure."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 
 import numpy as np
@@ -1850,12 +1851,29 @@ def test_a_map_made_with_another_calibration_of_the_camera_is_verified_in_this_o
         load_map(tmp_path / "nocx.npz")
 
 
+def _flipped(data: bytes, at: int) -> bytes:
+    """`data` with every bit of its byte `at` flipped (a byte damaged on disk)."""
+    out = bytearray(data)
+    out[at] ^= 0xFF
+    return bytes(out)
+
+
+def _load_each_byte_flipped(data: bytes, spots, path, load) -> None:
+    """Write `data` to `path` with each byte in `spots` flipped in turn and `load` it: a flip in a field nothing
+    checks (a date) loads, anything else must be a VioError (one line), never another exception."""
+    from vio import VioError
+
+    for at in spots:
+        path.write_bytes(_flipped(data, at))
+        with contextlib.suppress(VioError):
+            load(path)
+
+
 def test_a_map_damaged_inside_a_compressed_array_or_with_float_offsets_is_a_one_line_error(tmp_path, capsys):
     """A byte flipped inside a map's compressed array (a damaged card) raised zlib.error, in an array's header
     tokenize.TokenError, in the archive's directory NotImplementedError, and kf_offsets stored as floats a TypeError
     on slicing: `vio map info`, `vio replay --load-map` and `vio run`'s [map] load check ended in "internal
     error". All are now refused as a damaged map, in one line."""
-    import contextlib
     import zipfile
 
     from vio import VioError
@@ -1875,15 +1893,8 @@ def test_a_map_damaged_inside_a_compressed_array_or_with_float_offsets_is_a_one_
     with zipfile.ZipFile(good) as zf:  # each array's first bytes (its .npy header) and the archive's directory
         spots = [i.header_offset + 30 + len(i.filename) + len(i.extra) + k for i in zf.infolist() for k in range(64)]
         spots += range(zf.start_dir, len(data))
-    for at in spots:
-        flipped = bytearray(data)
-        flipped[at] ^= 0xFF
-        (tmp_path / "bad.npz").write_bytes(bytes(flipped))
-        with contextlib.suppress(VioError):  # a flip in a field nothing checks (a date) loads; else a refusal
-            load_map(tmp_path / "bad.npz")
-    flipped = bytearray(data)
-    flipped[spots[64 * 4 + 30]] ^= 0xFF  # inside desc.npy's compressed data
-    (tmp_path / "bad.npz").write_bytes(bytes(flipped))
+    _load_each_byte_flipped(data, spots, tmp_path / "bad.npz", load_map)
+    (tmp_path / "bad.npz").write_bytes(_flipped(data, spots[64 * 4 + 30]))  # inside desc.npy's compressed data
     assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1
     err = capsys.readouterr().err
     assert "truncated or damaged" in err and "internal error" not in err and len(err.strip().splitlines()) == 1, err
@@ -2137,7 +2148,6 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
     """A [loop] vocabulary cut short, empty, or with a flipped byte ended `vio replay` / `vio config check` in an
     "internal error" (BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError): now the one-line
     error that says what to do."""
-    import contextlib
     import zipfile
 
     from vio import VioError
@@ -2145,9 +2155,8 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
     from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
 
     good = DEFAULT_PATH.read_bytes()
-    flipped = bytearray(good)
-    flipped[4876] ^= 0xFF  # inside a compressed member: zlib's "invalid distance too far back"
-    for name, data in (("cut.npz", good[: len(good) // 2]), ("empty.npz", b""), ("flip.npz", bytes(flipped))):
+    flipped = _flipped(good, 4876)  # inside a compressed member: zlib's "invalid distance too far back"
+    for name, data in (("cut.npz", good[: len(good) // 2]), ("empty.npz", b""), ("flip.npz", flipped)):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(VioError, match="cannot read the vocabulary.*train-vocab"):
             Vocabulary.load(tmp_path / name)
@@ -2160,12 +2169,7 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
     with zipfile.ZipFile(DEFAULT_PATH) as zf:
         spots = [i.header_offset + 30 + len(i.filename) + k for i in zf.infolist() for k in range(80)]
         spots += range(zf.start_dir, len(good))
-    for at in spots:
-        flipped = bytearray(good)
-        flipped[at] ^= 0xFF
-        (tmp_path / "flip.npz").write_bytes(bytes(flipped))
-        with contextlib.suppress(VioError):  # a flip in a field nothing checks (a date) loads; else a refusal
-            Vocabulary.load(tmp_path / "flip.npz")
+    _load_each_byte_flipped(good, spots, tmp_path / "flip.npz", Vocabulary.load)
 
 
 def test_a_vocabulary_that_does_not_fit_orb_descriptors_is_refused_at_load(tmp_path):
