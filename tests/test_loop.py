@@ -1851,7 +1851,7 @@ def test_a_map_made_with_another_calibration_of_the_camera_is_verified_in_this_o
         load_map(tmp_path / "nocx.npz")
 
 
-def _flipped(data: bytes, at: int) -> bytes:
+def _byte_flipped(data: bytes, at: int) -> bytes:
     """`data` with every bit of its byte `at` flipped (a byte damaged on disk)."""
     out = bytearray(data)
     out[at] ^= 0xFF
@@ -1864,7 +1864,7 @@ def _load_each_byte_flipped(data: bytes, spots, path, load) -> None:
     from vio import VioError
 
     for at in spots:
-        path.write_bytes(_flipped(data, at))
+        path.write_bytes(_byte_flipped(data, at))
         with contextlib.suppress(VioError):
             load(path)
 
@@ -1894,7 +1894,7 @@ def test_a_map_damaged_inside_a_compressed_array_or_with_float_offsets_is_a_one_
         spots = [i.header_offset + 30 + len(i.filename) + len(i.extra) + k for i in zf.infolist() for k in range(64)]
         spots += range(zf.start_dir, len(data))
     _load_each_byte_flipped(data, spots, tmp_path / "bad.npz", load_map)
-    (tmp_path / "bad.npz").write_bytes(_flipped(data, spots[64 * 4 + 30]))  # inside desc.npy's compressed data
+    (tmp_path / "bad.npz").write_bytes(_byte_flipped(data, spots[64 * 4 + 30]))  # inside desc.npy's compressed data
     assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1
     err = capsys.readouterr().err
     assert "truncated or damaged" in err and "internal error" not in err and len(err.strip().splitlines()) == 1, err
@@ -2155,7 +2155,7 @@ def test_a_damaged_vocabulary_file_is_one_line_error(tmp_path, capsys):
     from vio.loop.vocabulary import DEFAULT_PATH, Vocabulary
 
     good = DEFAULT_PATH.read_bytes()
-    flipped = _flipped(good, 4876)  # inside a compressed member: zlib's "invalid distance too far back"
+    flipped = _byte_flipped(good, 4876)  # inside a compressed member: zlib's "invalid distance too far back"
     for name, data in (("cut.npz", good[: len(good) // 2]), ("empty.npz", b""), ("flip.npz", flipped)):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(VioError, match="cannot read the vocabulary.*train-vocab"):
