@@ -373,6 +373,18 @@ def test_unit_mistakes_and_a_dead_imu_block_initialisation_with_the_cause(kw, wo
     assert sum(words in r.message for r in caplog.records) == 1  # said once, not per frame
 
 
+def test_a_still_gyro_bias_is_judged_by_its_largest_component_as_the_back_end_judges_it():
+    """`[backend] max_gyro_bias_rad_s` bounds each axis everywhere: the back end's plausibility check, the start's
+    bias check and the gyro-against-camera check read the largest component; the units check at rest read the
+    norm, so a bias just inside the limit on all three axes was refused at rest as "beyond" it."""
+    from vio.sanity import gyro_units_problem
+
+    rest = np.tile([0.25, -0.25, 0.25], (200, 1))  # each axis inside 0.3, the norm 0.43 beyond it
+    assert gyro_units_problem(rest, still=True, max_bias_rad_s=0.3) is None
+    problem = gyro_units_problem(rest * [1.0, 1.4, 1.0], still=True, max_bias_rad_s=0.3)
+    assert problem and "0.350 rad/s about one axis" in problem
+
+
 def test_non_finite_imu_samples_are_rejected_and_counted():
     est = Estimator(synthetic_calibration())
     states = _still_run(est, nan_every=25)

@@ -106,7 +106,8 @@ class BackendConfig:
     huber_k: float = opt(1.345, "Huber threshold (in sigmas) of the robust visual loss", min=0.1, max=100)
     min_tracks_ok: int = opt(15, "tracked features below which tracking is lost", min=3, max=1000)
     max_speed_m_s: float = opt(30.0, "velocity above which the estimate is implausible (reset)", min=1, max=1000)
-    max_gyro_bias_rad_s: float = opt(0.3, "gyro bias above which the estimate is implausible", min=0.01, max=10)
+    max_gyro_bias_rad_s: float = opt(0.3, "gyro bias (its largest component) above which the estimate, or a "
+                                 "still start, is implausible", min=0.01, max=10)
     max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
     imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities (with imu_noise_adaptive: "
                                  "the least the white noise is scaled by)", min=0.1, max=100)

@@ -67,7 +67,9 @@ def accel_units_problem(mean_accel_norm: float) -> str | None:
 def gyro_units_problem(gyro: np.ndarray, still: bool, max_bias_rad_s: float = 0.3) -> str | None:
     """Gyro samples (N, 3) over a span: None when plausible for rad/s, else the likely mistake.
 
-    Still: the mean is the bias, which no MEMS gyro has above `max_bias_rad_s`. Moving or not: sustained
+    Still: the mean is the bias, which no MEMS gyro has above `max_bias_rad_s` on any axis (the largest component,
+    as the back end's plausibility check and the start's bias check read it, so a start this passes is one they
+    take). Moving or not: sustained
     rates above 20 rad/s (1150 deg/s) are not a drone's. The spread is not compared with the noise
     density: motors running on the ground make a gyro spread 20-100x its datasheet noise, which would read
     as deg/s and block the start."""
@@ -80,10 +82,10 @@ def gyro_units_problem(gyro: np.ndarray, still: bool, max_bias_rad_s: float = 0.
                 "fast; the data look like deg/s, not rad/s")
     if not still:
         return None
-    bias = float(np.linalg.norm(g.mean(axis=0)))
+    bias = float(np.max(np.abs(g.mean(axis=0))))
     if bias > max_bias_rad_s:
         hint = "; the data look like deg/s, not rad/s" if bias / DEG < max_bias_rad_s else ""
-        return f"gyro reads {bias:.3f} rad/s while still (a bias beyond {max_bias_rad_s} rad/s){hint}"
+        return f"gyro reads {bias:.3f} rad/s about one axis while still (a bias beyond {max_bias_rad_s} rad/s){hint}"
     return None
 
 
