@@ -698,6 +698,28 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
     assert "created at an unknown time" in out and "vocabulary: not stated" in out and "2 keyframes" in out, out
 
 
+
+def test_a_map_whose_version_is_missing_zero_or_negative_is_refused_as_damaged(tmp_path, capsys):
+    """Every map ever written says version 1 or more; a header with version 0, a negative one, or none at all was
+    loaded as if it said 1 (and `vio map info` printed "version 0"). Refused now, one line, like other damage."""
+    from vio.app.cli import main
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    arrays = dict(kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                  p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    for name, version, says in (("zero", '"version": 0, ', "version 0 is not a map format version"),
+                                ("negative", '"version": -3, ', "version -3 is not a map format version"),
+                                ("none", "", "states no format version")):
+        path = tmp_path / f"{name}.npz"
+        np.savez(path, header=np.array('{"format": "kestrel-vio-map", ' + version + cam + '}'), **arrays)
+        assert main(["map", "info", str(path)]) == 1
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and f"{path}: damaged map" in err and says in err, err
+    np.savez(tmp_path / "one.npz", header=np.array('{"format": "kestrel-vio-map", "version": 1, ' + cam + '}'),
+             **arrays)
+    assert main(["map", "info", str(tmp_path / "one.npz")]) == 0
+    assert "version 1" in capsys.readouterr().out
+
 def test_autopilot_output_modes():
     from vio.loop.output import CorrectedOutput
     from vio.types import NavState

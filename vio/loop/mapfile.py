@@ -15,8 +15,9 @@ One `.npz` (numpy arrays, read with allow_pickle=False) holding a JSON header an
     uv              (M, 2) f32    undistorted pixels in cam0
     p_cam           (M, 3) f32    stereo points in cam0 [m], NaN without depth
 
-A reader refuses another format name or a newer version. Bag-of-words vectors are not stored: they are
-recomputed with the loading side's vocabulary, so a map survives a vocabulary update."""
+A reader refuses another format name, a newer version, and a header without a version or with one below 1 (a
+damaged map). Bag-of-words vectors are not stored: they are recomputed with the loading side's vocabulary, so a map
+survives a vocabulary update."""
 
 from __future__ import annotations
 
@@ -180,9 +181,14 @@ def load_map(path: str | Path) -> MapData:
             if not isinstance(header, dict) or header.get("format") != FORMAT:
                 got = header.get("format") if isinstance(header, dict) else type(header).__name__
                 raise VioError(f"{path}: not a Kestrel VIO map (format {got!r})")
-            version = header.get("version", 0)
+            if "version" not in header:
+                raise VioError(f"{path}: damaged map (its header states no format version)")
+            version = header["version"]
             if type(version) is not int:
                 raise VioError(f"{path}: damaged map (its header's version {version!r} is not a whole number)")
+            if version < 1:  # every map ever written says 1 or more: 0 or below was accepted as if it were 1
+                raise VioError(f"{path}: damaged map (its header's version {version} is not a map format version; "
+                               "the first is 1)")
             if version > VERSION:
                 raise VioError(f"{path}: map format version {header['version']} is newer than this program's "
                                f"({VERSION})")
