@@ -432,10 +432,62 @@ def test_a_flight_without_keyframes_does_not_save_an_empty_map_over_the_one_ther
 
     data = tmp_path / "flight"
     simulate(data, SimConfig(duration_s=1.0, width=376, height=240, variant="clean"), progress=False)
-    assert main(["replay", str(data), "--save-map", str(room), "--max-frames", "5", "--stats",
+    assert main(["replay", str(data), "--save-map", str(room), "--overwrite-map", "--max-frames", "5", "--stats",
                  str(tmp_path / "s.json"), "--no-progress"]) == 1
     assert "map that was there is kept" in capsys.readouterr().err
     assert room.read_bytes() == b"the room's map" and (tmp_path / "s.json").exists()
+
+
+def test_save_map_refuses_a_map_it_did_not_load_and_writes_through_a_link(tmp_path, capsys):
+    """`vio replay --save-map room.npz` without `--load-map room.npz` replaced the room's map (the work of every
+    flight that grew it) with this flight's alone, unsaid. Now refused before any work, one line, unless
+    --overwrite-map; loading and saving the same file (by any name) grows it as before. And a map saved over a
+    link replaced the link with a file, leaving the map it named (the one loaded through it) as it was: the save
+    now goes through the link."""
+    from vio.app.cli import main
+    from vio.loop.mapfile import load_map
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=3.0, width=320, height=200, variant="clean", still_start_s=1.0),
+             progress=False)
+    room, tum = tmp_path / "room.npz", tmp_path / "old.tum"
+    assert main(["replay", str(data), "--save-map", str(room), "--no-progress"]) == 0
+    first = room.read_bytes()
+    n_first = len(load_map(room).features)
+    capsys.readouterr()
+    tum.write_text("# an earlier flight\n")
+    for cfg in (None, tmp_path / "save.toml"):  # the option, and [map] save in the configuration
+        args = ["--save-map", str(room)] if cfg is None else ["--config", str(cfg)]
+        if cfg is not None:
+            cfg.write_text(f'[map]\nsave = "{room}"\n')
+        assert main(["replay", str(data), *args, "-o", str(tum), "--no-progress"]) == 1
+        out, err = capsys.readouterr()
+        assert len(err.strip().splitlines()) == 1 and "a file is there already and this replay does not load it: " \
+            "not replaced" in err and "--overwrite-map" in err, err
+        assert "replay:" not in out and room.read_bytes() == first and tum.read_text() == "# an earlier flight\n"
+    # grown: the map it loads, by another name too
+    alias = tmp_path / "alias.npz"
+    alias.symlink_to(room)
+    assert main(["replay", str(data), "--load-map", str(alias), "--save-map", str(room), "--no-progress"]) == 0
+    assert len(load_map(room).features) > n_first
+    # through a link: the link stays a link, and the map it names is the one grown
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    (maps / "room.npz").write_bytes(first)
+    link = tmp_path / "link.npz"
+    link.symlink_to(maps / "room.npz")
+    assert main(["replay", str(data), "--load-map", str(link), "--save-map", str(link), "--no-progress"]) == 0
+    assert link.is_symlink() and link.resolve() == (maps / "room.npz").resolve()
+    assert len(load_map(maps / "room.npz").features) > n_first
+    assert sorted(p.name for p in maps.iterdir()) == ["room.npz"]  # no temporary file left beside it
+    # --overwrite-map replaces a map it did not load, through a link too
+    assert main(["replay", str(data), "--save-map", str(link), "--overwrite-map", "--max-frames", "30",
+                 "--no-progress"]) == 0
+    assert link.is_symlink() and len(load_map(maps / "room.npz").features) < n_first
+    assert main(["replay", str(data), "--save-map", str(room), "--overwrite-map", "--max-frames", "30",
+                 "--no-progress"]) == 0
+    assert len(load_map(room).features) < n_first
 
 
 def test_a_map_is_never_saved_over_a_file_the_run_reads_but_the_map_it_grows(tmp_path, capsys):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import re
 import sys
 import time
@@ -78,6 +79,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-map", metavar="FILE", help="write the loop-closure map here (implies --loop)")
     p.add_argument("--load-map", metavar="FILE", help="relocalise in this map (implies --loop; poses in "
                    "--loop-output come out in the map's frame)")
+    p.add_argument("--overwrite-map", action="store_true", help="let --save-map (or [map] save) replace a file "
+                   "there that this replay does not load (without it such a file is refused: a map grows only "
+                   "through --load-map FILE --save-map FILE)")
     p.add_argument("--loop-plot", metavar="PNG", help="top view of odometry, loop-corrected trajectory, ground "
                    "truth and the loop edges (implies --loop)")
 
@@ -452,6 +456,16 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
     return EurocDataset(path, calibration)
 
 
+def check_map_not_replaced(save: str, load: str | None, key: str) -> None:
+    """Refuse (VioError, one line) to save a map over a file this run did not load: a map is the work of every
+    flight that grew it, and `--save-map room.npz` without `--load-map room.npz` replaced it with this flight's
+    alone, unsaid. Growing it (the same file loaded, by any name or link) is fine; --overwrite-map allows the rest."""
+    if not os.path.exists(save) or (load and os.path.realpath(load) == os.path.realpath(save)):
+        return
+    raise VioError(f"{key}: a file is there already and this replay does not load it: not replaced "
+                   f"(--load-map {save} grows that map, --overwrite-map replaces it)")
+
+
 def run(args: argparse.Namespace) -> int:
     from vio.calibration import load_calibration
     from vio.config import load_config
@@ -478,6 +492,9 @@ def run(args: argparse.Namespace) -> int:
                          "the vocabulary": cfg.loop.vocabulary, "the configuration": args.config},
                   grows={"the map": "the map it loads"}, recordings=(args.dataset,),
                   folders={"the track images": args.show_tracks})
+    if save_map and not args.overwrite_map:
+        check_map_not_replaced(save_map, load_map, f"--save-map {save_map}" if args.save_map
+                               else f"[map] save = {save_map!r}")
     if args.loop_plot:  # the [tools] extra and the plot's format, asked for now rather than after the replay
         from vio.evaluation import require_plot
 

@@ -83,8 +83,11 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
         return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
     # Written beside the target and renamed over it only when complete: a map grown in place (`[map] load` and
     # `save` the same file) must not lose the old one to a full disk or a kill half-way through the write.
+    # A link is written through, to the file it names: renamed over, the link itself became the new map and the
+    # file it named (the map a flight loaded through it) was left as it was.
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    real = Path(os.path.realpath(path))
+    tmp = real.with_name(f".{real.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, header=np.array(json.dumps(header)), kf_t_ns=np.asarray(t_ns, np.int64),
@@ -93,7 +96,7 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
                                 uv=cat("uv", (0, 2), np.float32), p_cam=cat("p_cam", (0, 3), np.float32))
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, real)
     except OSError as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
