@@ -159,6 +159,22 @@ def test_replay_view_without_rerun_names_the_view_extra_and_keeps_an_old_traject
     assert old.read_text() == "1.0 0 0 0 0 0 0 1\n"
 
 
+def test_replay_view_without_rerun_is_refused_before_the_recording_is_opened(blocked, tmp_path, monkeypatch, capsys):
+    """`vio replay --view` opened and read the recording (a bag: all its IMU and stamps), and loaded the map, before
+    it asked for the [view] extra; now asked first, as --loop-plot asks for the [tools] extra."""
+    import vio.app.replay as replay_mod
+    from vio.app.cli import main
+
+    def never(*a, **k):
+        raise AssertionError("the recording was opened before the view was checked")
+
+    monkeypatch.setattr(replay_mod, "open_dataset", never)
+    blocked("rerun")
+    for view in ([], [str(tmp_path / "x.rrd")]):  # serve, and a recording
+        assert main(["-q", "replay", str(tmp_path / "flight"), "--view", *view, "--no-progress"]) == 1
+        _one_line_naming(capsys.readouterr().err, "view")
+
+
 @pytest.mark.parametrize("section, module, extra", [('kind = "oak"', "depthai", "oak"),
                                                     ('kind = "fake"\nimu = "serial"', "serial", "serial")])
 def test_config_check_and_run_refuse_a_source_whose_extra_is_missing(tmp_path, section, module, extra):

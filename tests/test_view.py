@@ -134,6 +134,34 @@ def test_loop_edges_and_corrected_keyframes_are_entities_of_their_own(tmp_path):
     assert "/world/loop/keyframes" in ents and "/health/loop_closures" in ents
 
 
+def test_replay_view_refuses_a_port_in_use_before_it_opens_the_recording(flight, tmp_path, monkeypatch, capsys):
+    """`vio replay --view` (serve) with the web port held by another program opened and read the recording, then
+    ended in "internal error: RuntimeError: Failed to create server: Address already in use". Now said first, in
+    one line, before the recording is opened or any output file is written."""
+    import socket
+
+    import vio.app.replay as replay_mod
+    from vio.app.cli import main
+
+    def never(*a, **k):
+        raise AssertionError("the recording was opened before the view was checked")
+
+    monkeypatch.setattr(replay_mod, "open_dataset", never)
+    old = tmp_path / "old.tum"
+    old.write_text("# an earlier flight\n")
+    with socket.socket() as held:
+        held.bind(("0.0.0.0", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        cfg = tmp_path / "view.toml"
+        cfg.write_text(f"[view]\nweb_port = {port}\n")
+        assert main(["replay", str(flight / "sim"), "--view", "--config", str(cfg), "-o", str(old),
+                     "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f"port {port} ([view] web_port) is in use" in err, err
+    assert "internal error" not in err and old.read_text() == "# an earlier flight\n"
+
+
 def test_daemon_view_section_is_off_by_default():
     from vio.config import VioConfig, config_from_dict
 

@@ -499,6 +499,10 @@ def run(args: argparse.Namespace) -> int:
         from vio.evaluation import require_plot
 
         require_plot(args.loop_plot, "loop-closure plot (--loop-plot)")
+    if args.view:  # the [view] extra and the ports to serve on, asked for before the recording is opened and read
+        from vio.app.view import check_view
+
+        check_view(args.view, cfg.view, "the live view (--view)")
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
@@ -515,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
             closer.load_map(read_map(load_map))
         loop = LoopWorker(closer, max_queue=100000)  # replay: keep every keyframe
     view = None
-    if args.view:  # before any output file is opened: a missing [view] extra must not empty an old trajectory
+    if args.view:  # before any output file is opened (checked above, a port may have been taken since)
         from vio.app.view import LiveView
 
         view = LiveView(args.view, dataset.calibration, cfg.view, loop=loop)

@@ -45,6 +45,7 @@ import time
 import cv2
 import numpy as np
 
+from vio import VioError
 from vio.config import ViewConfig
 from vio.extras import require
 
@@ -53,6 +54,31 @@ log = logging.getLogger(__name__)
 _STEREO, _MONO = (60, 220, 60), (255, 150, 0)
 _SLOW_S = 1.0  # path, keyframes, covariance, counters and loop closure: at most this often
 _MAX_POINTS = 20_000  # path / keyframe points kept before every second one goes (bounded memory and log cost)
+GRPC_PORT = 9876  # the gRPC port 'serve' opens (Rerun's default, given explicitly so that check_view probes it)
+
+
+def check_view(target: str, settings: ViewConfig | None = None, what: str = "the live view") -> None:
+    """What a live view to `target` needs, asked for before any work (as vio.evaluation.require_plot for a plot):
+    the [view] extra, and for 'serve' its web and gRPC ports free on this computer. A port another program (or a
+    second replay with --view) held ended the replay in "internal error: RuntimeError: Failed to create server:
+    Address already in use", after the recording was opened and read (a review's finding). VioError, one line."""
+    import errno
+    import socket
+
+    require("rerun", "view", what)
+    if target != "serve":
+        return
+    s = settings or ViewConfig()
+    for port, key, fix in ((s.web_port, "[view] web_port", "set another [view] web_port"),
+                           (GRPC_PORT, "Rerun's gRPC port", "a second live view?")):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a server binds: TIME_WAIT is no use
+            try:
+                probe.bind(("0.0.0.0", port))
+            except OSError as e:
+                why = "in use by another program" if e.errno == errno.EADDRINUSE else (e.strerror or str(e))
+                raise VioError(f"{what}: port {port} ({key}) is {why}: stop what holds it ({fix}), or save "
+                               "to FILE.rrd instead of serving") from None
 
 
 class LiveView:
@@ -71,8 +97,11 @@ class LiveView:
         self.rec = rr.RecordingStream("kestrel-vio")
         self.url = None
         if target == "serve":
-            self.url = self.rec.serve_grpc(server_memory_limit=f"{s.serve_memory_mb}MB")
-            rr.serve_web_viewer(web_port=s.web_port, open_browser=False, connect_to=self.url)
+            try:  # a port taken since check_view (or not checked: the daemon) is one line, not an internal error
+                self.url = self.rec.serve_grpc(grpc_port=GRPC_PORT, server_memory_limit=f"{s.serve_memory_mb}MB")
+                rr.serve_web_viewer(web_port=s.web_port, open_browser=False, connect_to=self.url)
+            except RuntimeError as e:
+                raise VioError(f"the live view cannot serve: {e}") from None
             log.info("live view: open the web viewer (port %s), connected to %s", s.web_port, self.url)
         else:
             self.rec.save(target)
