@@ -198,3 +198,43 @@ def test_ray_without_the_fleet_extra_is_refused_before_the_old_report_goes(fligh
     assert [(old / n).read_text() for n in ("report.json", "report.md", "traj/f0.tum")] == ['{"flights": []}', "kept",
                                                                                             "kept"]
     assert not (tmp_path / "new").exists()
+
+
+def test_bags_no_worker_could_replay_are_refused_before_any_work(flights, tmp_path, monkeypatch, capsys):
+    """Bags and MCAP files without --calib (or without the [bags] extra) were each replayed, failed and reported one
+    by one, after the report folder was made (or, with --overwrite, the old report removed). Refused first now, in
+    one line naming them; an MCAP file `vio record` made carries its calibration and is not refused."""
+    from vio.app.cli import main
+    from vio.io.bag import McapWriter, export_bag
+    from vio.io.euroc import EurocDataset
+    from vio.types import ImuSample
+
+    ds = EurocDataset(flights[0])
+    export_bag(ds, tmp_path / "a.bag", "ros1")
+    export_bag(ds, tmp_path / "b.mcap", "mcap")
+    with McapWriter(tmp_path / "recorded.mcap", calibration=ds.calibration) as w:
+        for ev in ds.events():
+            w.write_imu(ev) if isinstance(ev, ImuSample) else w.write_frame(ev)
+    old = tmp_path / "old"
+    (old / "traj").mkdir(parents=True)
+    for name, text in (("report.json", '{"flights": []}'), ("traj/f0.tum", "kept")):
+        (old / name).write_text(text)
+    bags = [str(tmp_path / n) for n in ("a.bag", "b.mcap", "recorded.mcap")]
+    for out, more in ((old, ["--overwrite"]), (tmp_path / "new", [])):
+        assert main(["-q", "batch", str(flights[0]), *bags, "-o", str(out), "--no-progress", *more]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "a bag carries no camera-IMU calibration: give one with --calib" in err[0], err
+        assert "a.bag, " in err[0] and "b.mcap:" in err[0] and "recorded.mcap" not in err[0], err
+    for module in ("rosbags", "mcap"):  # as on an install without [bags] (its modules read here are blocked too)
+        with monkeypatch.context() as m:
+            for name in [n for n in sys.modules if n == module or n.startswith(f"{module}.")]:
+                m.setitem(sys.modules, name, None)
+            assert main(["-q", "batch", str(flights[0]), bags[2], "-o", str(old), "--no-progress",
+                         "--overwrite"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "needs the [bags] extra: pip install 'kestrel-vio[bags]'" in err[0], err
+    assert [(old / n).read_text() for n in ("report.json", "traj/f0.tum")] == ['{"flights": []}', "kept"]
+    assert not (tmp_path / "new").exists()
+    from vio.app.batch import check_bag_flights
+
+    check_bag_flights([bags[2]], {})  # its own calibration: replayable

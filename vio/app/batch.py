@@ -209,6 +209,7 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
         from vio.extras import require
 
         require("ray", "fleet", "vio batch --ray")
+    check_bag_flights(flights, options or {})
     if (out / "report.json").exists():
         if not overwrite:
             raise VioError(f"--output {out}: holds a batch report already; --overwrite replaces it (compare with it: "
@@ -259,6 +260,50 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
               "wall_s": round(time.perf_counter() - wall0, 3), "flights": rows, "summary": summarise(rows)}
     write_report(report, out)
     return report
+
+
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+
+def check_bag_flights(flights: list[str], options: dict) -> None:
+    """Refuse, before any work (VioError, one line naming the flights), bags and MCAP files that no worker could
+    replay: without the [bags] extra, or without a calibration (no --calib, and not an MCAP file `vio record`
+    made, which carries its own). Each such flight was replayed, failed and reported one by one, after the
+    report folder was made or the old report removed. A flight this machine cannot see (a Ray client's driver)
+    is left to its worker."""
+    from vio.io.bag import is_bag, recorded_calibration
+
+    bags = [f for f in flights if Path(f).suffix in BAG_SUFFIXES or is_bag(f)]
+    if not bags:
+        return
+    from vio.extras import require
+
+    what = f"vio batch on bags and MCAP files ({_names(bags)})"
+    require("rosbags.typesys", "bags", what)
+    require("mcap.reader", "bags", what)
+    if options.get("calibration") is not None or options.get("calib"):
+        return
+    missing = []
+    for f in bags:
+        p = Path(f)
+        if p.suffix == ".mcap" and p.is_file():
+            try:
+                if recorded_calibration(p) is not None:
+                    continue
+            except VioError:  # a recorded calibration that does not read: the flight's row says so
+                continue
+        elif p.suffix == ".mcap" or not p.exists():
+            continue  # not seen here, or an MCAP file only its worker sees
+        missing.append(f)
+    if missing:
+        raise VioError(f"{_names(missing)}: a bag carries no camera-IMU calibration: give one with --calib (an MCAP "
+                       "file recorded by vio record carries its own); nothing replayed")
+
+
+def _names(paths: list[str], most: int = 3) -> str:
+    """'a.bag, b.mcap and 4 more'."""
+    more = f" and {len(paths) - most} more" if len(paths) > most else ""
+    return ", ".join(paths[:most]) + more
 
 
 def _load_inputs(options: dict) -> dict:
