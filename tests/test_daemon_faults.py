@@ -501,3 +501,48 @@ def test_frames_never_processed_neither_pile_up_nor_shift_the_latency_of_later_o
     for k in range(1000):  # the IMU silent: frames fed, none processed
         _remember(pending, k, np.zeros((400, 640), np.uint8))
     assert len(pending) == PENDING_FRAMES and min(pending) == 1000 - PENDING_FRAMES
+
+
+def test_a_recreated_estimator_keeps_the_runs_verdict_on_the_imu(tmp_path: Path) -> None:
+    """The IMU measured against the camera (a deg/s gyro, an IMU mounted 90 deg off) stops the estimator for the run
+    (`stopped_for_run`). When the daemon then had to re-create its estimator (reset() raised), the new one knew
+    nothing of it: it started again on the same wrong IMU, and the status went back from "degraded". The verdict
+    is carried over now: the new estimator stays stopped, saying the same."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.workers import EstimatorWorker
+    from vio.config import VioConfig
+    from vio.estimator import Estimator
+    from vio.sim.generate import SimConfig, simulate
+    from vio.types import ImuSample
+
+    simulate(tmp_path / "f", SimConfig(duration_s=3.0, width=320, height=200, variant="clean", still_start_s=1.0),
+             progress=False)
+    ds = EurocDataset(tmp_path / "f")
+    made: list[Estimator] = []
+
+    def make() -> Estimator:
+        made.append(Estimator(ds.calibration, VioConfig().estimator))
+        return made[-1]
+
+    w = EstimatorWorker(threading.Event(), make, None, LatestState(), 0.5)
+    w.estimator = make()
+    why = "the gyro turns 56x what the camera sees (...): deg/s instead of rad/s (57.3x)?"
+    w.estimator._imu_disagrees(why, "IMU units", "fix the IMU's units or scale")
+
+    def broken(*a, **k) -> None:
+        raise RuntimeError("smoother in a bad state")
+
+    w.estimator.reset = broken
+    w._reset("estimator failed: RuntimeError: smoother in a bad state")
+    assert len(made) == 2 and w.estimator is made[1]
+    h = w.estimator.health()
+    assert h.stopped_for_run == why and h.sensor_error == why
+    states = []
+    for ev in ds.events():  # the flight a fresh estimator starts on (below): this one does not
+        r = w.estimator.feed_imu(ev) if isinstance(ev, ImuSample) else w.estimator.feed_frame(ev)
+        states += [r] if r is not None else []
+    assert not w.estimator.health().initialized and not any(s.tracking for s in states)
+    fresh = Estimator(ds.calibration, VioConfig().estimator)
+    for ev in ds.events():
+        fresh.feed_imu(ev) if isinstance(ev, ImuSample) else fresh.feed_frame(ev)
+    assert fresh.health().initialized

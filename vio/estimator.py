@@ -715,6 +715,12 @@ class Estimator:
         if self.initialized:
             self.reset(f"{what}: {problem}", bridge=False, keep_bias=False)
 
+    def stop_for_run(self, problem: str) -> None:
+        """Take over the run-final verdict on the IMU (`_imu_disagrees`, `EstimatorHealth.stopped_for_run`) of an
+        estimator this one replaces: the daemon makes a new one when reset() raises, and the sensor is still as
+        wrong as it was. This one stays stopped for the run too, saying the same."""
+        self._imu_camera_error = self.sensor_error = problem
+
     def _hand_offset_to_state(self) -> None:
         """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the
         offset from here on: the gyro-based estimate stops at its next accepted solve (collecting on costs a PnP

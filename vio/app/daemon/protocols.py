@@ -48,6 +48,8 @@ class EstimatorApi(Protocol):
 
     def take_processed(self) -> list[ProcessedFrame]: ...  # frames finished since the last call
 
+    def stop_for_run(self, problem: str) -> None: ...  # a replaced estimator's verdict on the IMU, kept
+
 
 class PoseOutput(Protocol):
     """The MAVLink output (drivers.mavlink_out.MavlinkOutput)."""

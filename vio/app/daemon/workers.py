@@ -253,6 +253,15 @@ class EstimatorWorker(Worker):
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
 
+    def _stopped_for_run(self) -> str | None:
+        """The current estimator's run-final verdict (EstimatorHealth.stopped_for_run): asked of it, or, where its
+        health() fails too, taken from the last snapshot."""
+        try:
+            return self.estimator.health().stopped_for_run
+        except Exception as e:  # an estimator whose reset() raised may fail here too
+            log.debug("estimator health() failed: %s", e)
+            return self.health.stopped_for_run if self.health is not None else None
+
     def _to_view(self, pf: ProcessedFrame) -> None:
         """Hand a processed frame (image, features, state) to the live view."""
         t = pf.t_ns
@@ -348,7 +357,11 @@ class EstimatorWorker(Worker):
             return
         except Exception as e:
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
+        verdict = self._stopped_for_run()
         self.estimator = self._make()
+        if verdict and self.estimator is not None:  # the sensor is as wrong as it was: a new start must not fly on it
+            self.estimator.stop_for_run(verdict)
+            log.error("the new estimator stays stopped for the rest of this run, as the old one was: %s", verdict)
         # the old estimator's resets, and this one, before the new estimator's own count (loop steps left out)
         old_resets = self.health.reset_counter if self.health is not None else 0
         self._resets_before += old_resets + 1
