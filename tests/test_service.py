@@ -899,6 +899,55 @@ def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(t
     single_instance(cfg).close()
 
 
+def test_a_second_daemon_sending_to_the_same_mavlink_endpoint_is_refused(tmp_path) -> None:
+    """Two `vio run` with their own configurations and status files (the status-file lock cannot see them) but one
+    [mavlink] url both sent to the autopilot as component 197, their poses interleaved. The second is refused at
+    start (exit 3, one line naming the first's pid), also when it names the endpoint otherwise (localhost); another
+    port is another endpoint; the endpoint is free again once the first ends."""
+    from vio import VioError
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nothing else here is told to use
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def config(name: str, host: str, p: int) -> Path:
+        path = tmp_path / f"{name}.toml"
+        path.write_text(f'[source]\nkind = "fake"\n[mavlink]\nurl = "udpout:{host}:{p}"\n[run]\nstatus_file = '
+                        f'"{tmp_path / name / "status.json"}"\n')
+        return path
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    log_path = tmp_path / "first.log"
+    with open(log_path, "w") as log_file:
+        first = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config",
+                                  str(config("first", "127.0.0.1", port))], cwd=REPO, env=env, stdout=log_file,
+                                 stderr=subprocess.STDOUT)
+    try:
+        assert _wait(lambda: "kestrel-vio starting" in log_path.read_text(), 60), log_path.read_text()
+        second = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config",
+                                 str(config("second", "localhost", port))], cwd=REPO, env=env, capture_output=True,
+                                text=True, timeout=30)  # refused at once; without the lock it ran on
+        assert second.returncode == 3, second.stdout + second.stderr
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and f"another vio run (pid {first.pid}) sends to the autopilot at udpout:127.0.0.1:" \
+            f"{port}" in lines[0], second.stderr
+        assert not (tmp_path / "second" / "status.json").exists()
+        from vio.app.daemon.service import output_endpoint_key, output_endpoint_lock
+
+        other = output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:127.0.0.1:{port + 1}"}}))
+        assert other is not None  # another port: another endpoint
+        other.close()
+    finally:
+        _stop_daemon(first)
+    lock = output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:127.0.0.1:{port}"}}))
+    assert lock is not None  # the first one ended: the endpoint is free
+    with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\)"):
+        output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:localhost:{port}"}}))
+    lock.close()
+    assert output_endpoint_key(f"udp:0.0.0.0:{port}") == f"udpin:0.0.0.0:{port}"  # mavutil's udp: is udpin:
+    assert output_endpoint_key("/dev/ttyAMA0:921600") is None  # a serial device is held by its own flock
+
+
 def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkeypatch) -> None:
     """A state folder gone read-only made the watchdog's restart exit 3 (configuration error), which systemd never
     restarts (a review's finding): `vio run` says it and runs without that output; `vio config check` still

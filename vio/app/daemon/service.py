@@ -102,6 +102,7 @@ class Service:
         them at start (`CheckedInputs`; read here when None)."""
         self.cfg = cfg
         self.instance_lock: Any = None  # the open lock file (single_instance), held for the life of the process
+        self.output_lock: Any = None  # the MAVLink output's endpoint (output_endpoint_lock), held likewise
         self._map_data = map_data
         self._vocabulary = vocabulary
         self.stop = threading.Event()
@@ -565,13 +566,14 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     try:
         lock = single_instance(cfg)  # held (open) for the life of the process
+        output_lock = output_endpoint_lock(cfg)  # likewise
     except VioError as e:
         print(f"vio run: {e}", file=sys.stderr)
         return EXIT_CONFIG
     if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
         logging.getLogger().setLevel(cfg.run.log_level)
     service = Service(cfg, map_data=checked.map_data, vocabulary=checked.vocabulary)
-    service.instance_lock = lock
+    service.instance_lock, service.output_lock = lock, output_lock
     from drivers.signals import stop_on_signal
 
     # not service.request_stop itself: Event.set() in a handler can deadlock the main loop's stop.wait()
@@ -586,6 +588,75 @@ def run(args: argparse.Namespace) -> int:
              cfg.mavlink.url or "off", cfg.run.record_dir or "off",
              f"{service.watchdog_s:.1f} s" if service.watchdog_s else "off")
     return service.run()
+
+
+def output_endpoint_key(url: str) -> str | None:
+    """What two network MAVLink URLs that reach one autopilot endpoint have in common ('udpout:127.0.0.1:14550' for
+    udpout:localhost:14550 too; mavutil's udp: is udpin:), or None for a serial device (its flock does this:
+    drivers.mavlink_link._hold_serial) or a URL that is not one."""
+    import ipaddress
+
+    from drivers.mavlink_link import _NETWORK_PREFIXES
+
+    if not url.startswith(_NETWORK_PREFIXES):
+        return None
+    kind, _, where = url.partition(":")
+    host, _, port = where.rpartition(":")
+    host = host.strip("[]").lower()
+    try:
+        host = str(ipaddress.ip_address(host))
+    except ValueError:
+        host = "127.0.0.1" if host == "localhost" else host
+    kind = "udpin" if kind == "udp" else kind
+    return f"{kind}:{host}:{port}"
+
+
+def output_endpoint_lock(cfg: VioConfig) -> Any:
+    """A socket held for the life of the process in Linux's abstract socket namespace, named after the [mavlink]
+    url's endpoint (output_endpoint_key), or None (no network output, not Linux, no lock to be had: said).
+
+    Two daemons with their own configurations and status files (the service, and one started by hand from another
+    folder) but one output endpoint both sent to the autopilot as component 197, their poses interleaved, and
+    single_instance, which locks the status file, could not see it: a udpout sender binds no port of its own and
+    mavutil's udpin binds with SO_REUSEADDR, so the network says nothing either. The second is refused, naming the
+    first's pid (SO_PEERCRED of a connection to its socket). The abstract namespace has no files and no
+    permissions: every user's daemon meets the same name (systemd's PrivateTmp would hide a lock file in /tmp), and
+    the kernel releases it however the process ends."""
+    import errno
+    import hashlib
+    import socket
+    import struct
+
+    key = output_endpoint_key(cfg.mavlink.url) if cfg.mavlink.url else None
+    if key is None or not sys.platform.startswith("linux"):
+        return None
+    name = f"kestrel-vio/mavlink/{key}"
+    if len(name) > 100:  # the abstract name's room (108 bytes less the leading NUL): a long host name is hashed
+        name = f"kestrel-vio/mavlink/{hashlib.sha256(key.encode()).hexdigest()}"
+    address = b"\0" + name.encode()
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.bind(address)
+        s.listen(1)
+        return s
+    except OSError as e:
+        s.close()
+        if e.errno != errno.EADDRINUSE:
+            log.warning("no MAVLink output lock (%s): a second vio run sending to %s would not be refused",
+                        e.strerror or e, key)
+            return None
+    pid = "?"
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            probe.settimeout(1.0)
+            probe.connect(address)
+            pid = str(struct.unpack("3i", probe.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                           struct.calcsize("3i")))[0])
+    except OSError:  # the other one ended meanwhile, or will not say: refused all the same (a restart tries again)
+        pass
+    raise VioError(f"another vio run (pid {pid}) sends to the autopilot at {key} ([mavlink] url = "
+                   f"{cfg.mavlink.url!r}): two daemons would send to it as one, their poses interleaved; stop it "
+                   "first (systemctl stop kestrel-vio), or give this one another [mavlink] url")
 
 
 def single_instance(cfg: VioConfig) -> Any:
