@@ -47,13 +47,28 @@ def spread_corners(uv: np.ndarray, response: np.ndarray, shape: tuple[int, int],
         np.minimum((uv[:, 0] * cx / w).astype(np.int64), cx - 1)
     # by cell, strongest first within it, ties in input order: one stable sort on a key that holds both (a
     # FAST response is an integer threshold below 256; any response below 2**20 keeps the cells apart)
-    order = np.argsort(cell * float(1 << 20) - response, kind="stable")
+    weak = _weakness(response) if cx * cy <= 256 else None
+    if weak is not None:  # FAST's: the same order from a 16-bit key, which numpy sorts by radix (half the time)
+        order = np.argsort((cell.astype(np.uint16) << 8) | weak, kind="stable")
+    else:
+        order = np.argsort(cell * float(1 << 20) - response, kind="stable")
     cell = cell[order]
     rank = np.arange(len(order)) - np.searchsorted(cell, cell)  # position within its cell, strongest first
     per = max(1, n // (cx * cy))
     first, rest = order[rank < per], order[rank >= per]
-    rest = rest[np.argsort(-response[rest], kind="stable")][:max(0, n - len(first))]
+    rest = rest[np.argsort(-response[rest] if weak is None else weak[rest], kind="stable")][:max(0, n - len(first))]
     return np.concatenate([first, rest])[:n]
+
+
+def _weakness(response: np.ndarray) -> np.ndarray | None:
+    """255 - response as uint16 when every response is an integer in [0, 255] (FAST's are), else None: sorting it
+    ascending, stably, is sorting -response (cells below 256 fit beside it in one 16-bit key)."""
+    if not len(response) or response.min() < 0 or response.max() > 255:
+        return None
+    r = response.astype(np.uint16)
+    if not np.array_equal(r, response):
+        return None
+    return 255 - r
 
 
 def same_pixel(uv: np.ndarray, ref: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
