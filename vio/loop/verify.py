@@ -12,6 +12,8 @@ from vio.geometry import inv_T
 from vio.loop.features import KeyframeFeatures
 from vio.loop.vocabulary import popcount_u64
 
+_TRUE = np.ones(1, bool)
+
 
 @dataclass(frozen=True)
 class PnpResult:
@@ -67,8 +69,10 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     cnt = np.searchsorted(xs, uv[:, 0] + radius_px, side="right") - lo
     rows = np.repeat(np.arange(len(uv)), cnt)
     start = np.cumsum(cnt) - cnt
-    n = by_x[np.repeat(lo, cnt) + np.arange(int(cnt.sum())) - np.repeat(start, cnt)]
-    near = np.sum((new.uv[n] - uv[rows]) ** 2, axis=1) <= radius_px ** 2
+    n = by_x[np.repeat(lo - start, cnt) + np.arange(len(rows))]
+    d = new.uv[n] - uv[rows]
+    d *= d
+    near = d[:, 0] + d[:, 1] <= radius_px ** 2
     o, n = has3[rows[near]], n[near]
     if not len(o):
         return np.zeros((0, 2), np.int64)
@@ -80,11 +84,11 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     o, n, ham = o[keep], n[keep], ham[keep]
     order = np.lexsort((ham, o))  # per old point its best candidate first ...
     o, n, ham = o[order], n[order], ham[order]
-    first = np.r_[True, o[1:] != o[:-1]]
+    first = np.concatenate((_TRUE, o[1:] != o[:-1]))
     o, n, ham = o[first], n[first], ham[first]
     order = np.lexsort((ham, n))  # ... then per new feature its best old point
     o, n = o[order], n[order]
-    first = np.r_[True, n[1:] != n[:-1]]
+    first = np.concatenate((_TRUE, n[1:] != n[:-1]))
     return np.column_stack([o[first], n[first]]).reshape(-1, 2)
 
 
