@@ -37,22 +37,30 @@ class BowIndex:
         self._img = np.zeros(0, np.int64)
         self._w = np.zeros(0)
         self._sorted = 0
+        # the tail's postings (word, image, weight) in image order, appended as images come: a query reads them
+        # as they are instead of concatenating the tail's vectors again
+        self._tail = (np.zeros(64, np.int64), np.zeros(64, np.int64), np.zeros(64))
+        self._tail_n = 0
 
     def __len__(self) -> int:
         return len(self.vectors)
 
     def add(self, v: BowVector) -> int:
         self.vectors.append(v)
+        n, k = self._tail_n, len(v)
+        if n + k > len(self._tail[0]):
+            self._tail = tuple(np.resize(a, max(2 * len(a), n + k)) for a in self._tail)
+        words, img, w = self._tail
+        words[n:n + k], img[n:n + k], w[n:n + k] = v.words, len(self.vectors) - 1, v.weights
+        self._tail_n = n + k
         if len(self.vectors) - self._sorted >= TAIL:
             self._merge()
         return len(self.vectors) - 1
 
     def _tail_postings(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The unsorted images' postings as flat (word, image, weight) arrays, in image order."""
-        tail = self.vectors[self._sorted:]
-        return (np.concatenate([v.words for v in tail]),
-                np.repeat(np.arange(self._sorted, len(self.vectors)), [len(v) for v in tail]),
-                np.concatenate([v.weights for v in tail]))
+        n = self._tail_n
+        return self._tail[0][:n], self._tail[1][:n], self._tail[2][:n]
 
     def _merge(self) -> None:
         """Move the tail into the sorted postings: each word's new images go after its old ones."""
@@ -74,6 +82,7 @@ class BowIndex:
         pos_new = start[words] + old_count[words] + (np.arange(len(words)) - first)
         new_img[pos_new], new_w[pos_new] = img, w
         self._start, self._img, self._w, self._sorted = start, new_img, new_w, len(self.vectors)
+        self._tail_n = 0
 
     def query(self, v: BowVector, allowed, top: int) -> list[tuple[int, float]]:
         """Best `top` entries (index, score) among those with allowed(index) true."""
