@@ -37,7 +37,10 @@ def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio:
         return np.zeros((0, 2), np.int64)
     t = idx[q, 0].astype(np.int64)
     # mutual best: only the new features that passed are matched back (the same answer as matching all of them)
-    tu, inv = np.unique(t, return_inverse=True)
+    seen = np.zeros(len(new.desc), bool)  # np.unique(t, return_inverse=True) by a table over the new features
+    seen[t] = True
+    tu = np.flatnonzero(seen)
+    inv = np.cumsum(seen)[t] - 1
     back = cv2.batchDistance(new.desc[tu], old.desc[has3], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1][:, 0]
     keep = back[inv] == q
     return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
