@@ -490,6 +490,35 @@ def test_save_map_refuses_a_map_it_did_not_load_and_writes_through_a_link(tmp_pa
     assert len(load_map(room).features) < n_first
 
 
+def test_a_map_saved_through_a_link_is_checked_where_the_link_points_before_any_work(tmp_path, monkeypatch,
+                                                                                     capsys):
+    """A map is written through a link, beside the file it names; the folder checked before the replay was the
+    link's own. A link into a folder that is not there (or not writable) passed, the whole flight was replayed,
+    and the save failed at its end ("cannot write the map (No such file or directory)"). Refused first now, in
+    one line, by `vio replay` and by `vio run`'s configuration check."""
+    import vio.app.replay as replay_mod
+    from vio import VioError
+    from vio.app.cli import main
+    from vio.app.daemon.service import check_run_config
+    from vio.config import config_from_dict
+
+    def never(*a, **k):
+        raise AssertionError("the recording was opened before the map's folder was checked")
+
+    monkeypatch.setattr(replay_mod, "open_dataset", never)
+    (tmp_path / "flight").mkdir()
+    link = tmp_path / "link.npz"
+    link.symlink_to(tmp_path / "gone" / "room.npz")
+    assert main(["replay", str(tmp_path / "flight"), "--save-map", str(link), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{link}: cannot write the map (a link to {tmp_path / 'gone' / 'room.npz'}): folder " \
+        f"{tmp_path / 'gone'} does not exist" in err[0], err
+    cfg = config_from_dict({"source": {"kind": "fake"}, "map": {"save": str(link)}})
+    with pytest.raises(VioError, match=r"\[map\] save: .*link\.npz: cannot write the map \(a link to .*folder .*gone "
+                       "does not exist"):
+        check_run_config(cfg, warn=lambda m: None)
+
+
 def test_a_map_is_never_saved_over_a_file_the_run_reads_but_the_map_it_grows(tmp_path, capsys):
     """`vio replay --calibration rig.yaml --save-map rig.yaml` wrote the map over the calibration: the map was allowed
     over any file the run read, as it is over the map it loads. `vio run` checked `[map] save` against nothing it

@@ -85,11 +85,15 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
         path = Path(p)
         if path.is_dir():
             raise VioError(f"{p}: is a folder; {what} needs a file name")
-        folder = path.parent if str(path.parent) else Path(".")
+        # a link is written through (a map: save_map writes beside the file it names and renames over that file):
+        # the folder that matters is the named file's, which the link's own folder said nothing of
+        real = Path(os.path.realpath(path)) if path.is_symlink() else path
+        via = f" (a link to {real})" if real is not path else ""
+        folder = real.parent if str(real.parent) else Path(".")
         if not folder.is_dir():
-            raise VioError(f"{p}: cannot write {what}: folder {folder} does not exist")
+            raise VioError(f"{p}: cannot write {what}{via}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
-            raise NotWritable(f"{p}: cannot write {what}: folder {folder} is not writable")
+            raise NotWritable(f"{p}: cannot write {what}{via}: folder {folder} is not writable")
 
 
 def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | None) -> None:
