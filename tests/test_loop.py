@@ -1187,6 +1187,40 @@ def test_pyramid_levels_match_a_view_from_further_off(loop_flight):
     assert two >= 2 * max(one, 10)
 
 
+def test_spread_corners_orders_fast_integer_responses_as_the_float_key_does():
+    """FAST's responses (integers 0..255) are sorted by a 16-bit key (cell << 8 | 255 - response) instead of the float
+    key cell * 2**20 - response: the same picks in the same order, ties (kept in input order) and the responses 0
+    and 255 included; responses that are not such integers take the float key. The other test here feeds uniform
+    float responses only, which never reach the 16-bit key."""
+    from vio.loop.features import GRID, _weakness, spread_corners
+
+    def reference(uv, response, shape, n):  # the float key for every response (the code before the 16-bit key)
+        h, w = shape
+        cx, cy = GRID
+        cell = np.minimum((uv[:, 1] * cy / h).astype(np.int64), cy - 1) * cx + \
+            np.minimum((uv[:, 0] * cx / w).astype(np.int64), cx - 1)
+        order = np.argsort(cell * float(1 << 20) - response, kind="stable")
+        cell = cell[order]
+        rank = np.arange(len(order)) - np.searchsorted(cell, cell)
+        per = max(1, n // (cx * cy))
+        first, rest = order[rank < per], order[rank >= per]
+        rest = rest[np.argsort(-response[rest], kind="stable")][:max(0, n - len(first))]
+        return np.concatenate([first, rest])[:n]
+
+    rng = np.random.default_rng(5)
+    fast = 0
+    for k in range(400):
+        m = int(rng.integers(0, 600))
+        uv = (rng.random((m, 2)) * [752, 480]).astype(np.float32)
+        response = [rng.integers(0, 256, m), rng.choice([0, 255, 16, 17], m), rng.random(m) * 300,
+                    rng.integers(0, 3, m) * 127.5][k % 4].astype(np.float64)
+        n = int(rng.integers(0, 700))
+        fast += _weakness(response) is not None
+        np.testing.assert_array_equal(spread_corners(uv, response, (480, 752), n),
+                                      reference(uv, response, (480, 752), n), err_msg=f"set {k}")
+    assert fast >= 190  # the integer sets took the 16-bit key
+
+
 def test_corners_spread_over_the_image_and_survive_a_dim_one(loop_flight):
     """FAST corners: every grid cell with texture gets its share before the strongest rest (a bright patch
     cannot take them all), a dim copy of the image is searched again at half the threshold and still gives
