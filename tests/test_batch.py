@@ -238,3 +238,33 @@ def test_bags_no_worker_could_replay_are_refused_before_any_work(flights, tmp_pa
     from vio.app.batch import check_bag_flights
 
     check_bag_flights([bags[2]], {})  # its own calibration: replayable
+
+
+def test_a_ray_driver_without_the_bags_extra_hands_bags_to_its_workers(tmp_path, monkeypatch):
+    """A Ray cluster's workers read the bags, with their own installs; the driver (a Ray client on a laptop, which
+    may not even see the files) needs no [bags] extra, and the up-front check refused such a batch for the driver's
+    missing extra. The check stands where the workers run on this machine (local processes, --ray local)."""
+    pytest.importorskip("ray")
+    import vio.app.batch as batch
+    from vio import VioError
+
+    calib = tmp_path / "calib.yaml"
+    calib.write_text("")  # read by _load_inputs only: stubbed below
+    monkeypatch.setattr(batch, "_load_inputs", lambda options: options)
+    submitted: list[list[str]] = []
+
+    def fake_ray(jobs, address, workers, progress):
+        submitted.append([path for path, _tum, _opts in jobs])
+        return [batch._failed_row(path, "not run here", tum) for path, tum, _opts in jobs]
+
+    monkeypatch.setattr(batch, "_run_ray", fake_ray)
+    for name in [n for n in sys.modules if n.split(".")[0] in ("rosbags", "mcap")] + ["rosbags", "mcap"]:
+        monkeypatch.setitem(sys.modules, name, None)
+    flights = ["/on/the/cluster/a.bag", "/on/the/cluster/b.mcap"]
+    batch.run_batch(flights, tmp_path / "remote", ray_address="ray://head:10001", progress=False,
+                    options={"calib": [str(calib)]})
+    assert submitted == [flights]
+    with pytest.raises(VioError, match=r"needs the \[bags\] extra"):
+        batch.run_batch(flights, tmp_path / "here", ray_address="local", progress=False,
+                        options={"calib": [str(calib)]})
+    assert submitted == [flights] and not (tmp_path / "here").exists()

@@ -209,7 +209,8 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
         from vio.extras import require
 
         require("ray", "fleet", "vio batch --ray")
-    check_bag_flights(flights, options or {})
+    # the extras this machine has are the workers' only where they run here (local processes, a local Ray)
+    check_bag_flights(flights, options or {}, workers_here=ray_address in (None, "local"))
     if (out / "report.json").exists():
         if not overwrite:
             raise VioError(f"--output {out}: holds a batch report already; --overwrite replaces it (compare with it: "
@@ -265,12 +266,13 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 
 
-def check_bag_flights(flights: list[str], options: dict) -> None:
+def check_bag_flights(flights: list[str], options: dict, workers_here: bool = True) -> None:
     """Refuse, before any work (VioError, one line naming the flights), bags and MCAP files that no worker could
     replay: without the [bags] extra, or without a calibration (no --calib, and not an MCAP file `vio record`
     made, which carries its own). Each such flight was replayed, failed and reported one by one, after the
     report folder was made or the old report removed. A flight this machine cannot see (a Ray client's driver)
-    is left to its worker."""
+    is left to its worker, and so is the extra where the workers run elsewhere (`workers_here` False: a Ray
+    cluster's workers have their own installs; a driver that submits bags to them need not read any)."""
     from vio.io.bag import is_bag, recorded_calibration
 
     bags = [f for f in flights if Path(f).suffix in BAG_SUFFIXES or is_bag(f)]
@@ -278,9 +280,10 @@ def check_bag_flights(flights: list[str], options: dict) -> None:
         return
     from vio.extras import require
 
-    what = f"vio batch on bags and MCAP files ({_names(bags)})"
-    require("rosbags.typesys", "bags", what)
-    require("mcap.reader", "bags", what)
+    if workers_here:
+        what = f"vio batch on bags and MCAP files ({_names(bags)})"
+        require("rosbags.typesys", "bags", what)
+        require("mcap.reader", "bags", what)
     if options.get("calibration") is not None or options.get("calib"):
         return
     missing = []
