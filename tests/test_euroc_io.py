@@ -423,6 +423,23 @@ def test_right_images_missing_are_told_from_unsynchronised_cameras(v101_path, tm
     assert "are the two cameras triggered together" in note
 
 
+def test_images_dropped_on_both_cameras_are_not_taken_for_unsynchronised_cameras(v101_path, tmp_path):
+    """Three right images and two left ones lost, the cameras triggered together (the hard simulated variant loses
+    left, right or both images): the two right images whose left was lost pair with nothing, and the note asked
+    whether the cameras were triggered together and stamped alike, on every hard flight (a QA run). A lone right image
+    a whole frame from every left one is a dropped left image."""
+    root = _copy(v101_path, tmp_path / "both")
+    for lineno in (31, 21, 11):
+        _edit_line(root / "mav0" / "cam1" / "data.csv", lineno, None)
+    for lineno in (41, 16):  # two left images whose right ones are there
+        _edit_line(root / "mav0" / "cam0" / "data.csv", lineno, None)
+    ds = EurocDataset(root)
+    assert ds.stats.unpaired_frames == 3
+    note = next(n for n in ds.stats.notes if "have no right image" in n)
+    assert f"3 of {N_FRAMES - 2} left frames" in note and "2 right images no left one" in note
+    assert "dropped or lost frames" in note and "triggered together" not in note
+
+
 # 16-bit images: v8 written at another depth so that the right shift gives v8 back exactly (the low bits
 # repeat the high ones, as a sensor's noise sets them)
 DEPTHS = {

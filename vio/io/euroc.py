@@ -641,15 +641,38 @@ class EurocDataset:
         elif self.stats.unpaired_frames:
             n = self.stats.unpaired_frames
             share = f"{n} of {len(self.cam0_t)} left frames ({100 * n / len(self.cam0_t):.1f} %)"
+            lone_right = self._lone_right_images()
             if len(self.cam0_t) - n >= len(self.cam1_t):  # every right image has its left one: the right dropped some
                 note = (f"{self.where('cam1')}: {share} have no right image (every right image pairs with a left "
                         "one: the right camera dropped or lost frames) and run without stereo depth")
+            elif lone_right is not None:  # both cameras dropped some: a lone right image is a whole frame off
+                note = (f"{self.where('cam1')}: {share} have no right image and {lone_right} right images no left "
+                        "one, each a frame apart from every left image (the cameras dropped or lost frames, on "
+                        "both sides): those frames run without stereo depth")
             else:
                 note = (f"{self.where('cam1')}: {share} have no right image within 1 us of their stamp and run "
                         "without stereo depth: are the two cameras triggered together, and stamped alike?")
         if note:
             self.stats.notes.append(note)
             log.warning("%s", note)
+
+    def _lone_right_images(self) -> int | None:
+        """How many right images pair with no left one, when each of them is far (a quarter of the frame period or
+        more) from every left stamp: images the left camera dropped, the cameras triggered together. None when one
+        is near a left stamp but not on it (the cameras stamp or trigger apart), or the period is unknown. The hard
+        simulated flights lose left, right or both images: the note asked whether the cameras were triggered
+        together for the right images whose left one was lost (a QA run)."""
+        left = np.asarray(self.cam0_t, np.int64)
+        right = np.asarray(self.cam1_t, np.int64)
+        if len(left) < 2 or not len(right):
+            return None
+        period = float(np.median(np.diff(left)))
+        i = np.clip(np.searchsorted(left, right), 1, len(left) - 1)
+        gap = np.minimum(np.abs(right - left[i - 1]), np.abs(right - left[i]))
+        lone = gap > 1000
+        if period <= 0 or np.any(gap[lone] < 0.25 * period):
+            return None
+        return int(np.count_nonzero(lone))
 
     # -- streaming -------------------------------------------------------------------------------------
     def __len__(self) -> int:
