@@ -275,6 +275,31 @@ def test_online_time_offset_is_not_applied_while_the_vehicle_barely_turns(monkey
         assert (None if got is None else round(got * 1e-6, 1)) == applied
 
 
+def test_online_time_offset_says_when_slow_turns_keep_reading_it_off_the_calibration(monkeypatch):
+    """Estimates on turns too slow to apply them that stand out from the calibration on one side, five solves in a
+    row over half a window of pairs, are said (`slow_warning`). The estimate's pair times count from its window's first
+    pair: with a full window sliding, every solve's newest pair sat about a window from it, the run never covered
+    half a window, and a survey whose calibration said 0 ms read +21..+26 ms at 4-6 sigma for 20 s with nothing said
+    (a QA run)."""
+    import types
+
+    import vio.backend.time_offset as bto
+    from vio.backend.time_offset import SLOW_READINGS_TO_WARN, OnlineTimeOffset
+
+    est = OnlineTimeOffset(synthetic_calibration(), max_solves=100)
+    monkeypatch.setattr(bto, "estimate_time_offset", lambda *a, **k: types.SimpleNamespace(
+        offset_s=22e-3, sigma_s=4e-3, observable=True, n_pairs=160, rate_std_rad_s=0.08,
+        t_mid_s=np.linspace(0.0, 8.0, 160)))  # a full window's pairs, from its first one
+    said = None
+    for k in range(1, 10):  # a solve every 1.2 s of flight (20 new pairs)
+        est._pairs.extend([(int(1.2e9 * k) - 200_000_000, int(1.2e9 * k), np.zeros(3), 20, np.eye(3))] * 20)
+        assert est._solve() is None  # never applied on slow turns
+        if said is None and est.slow_warning is not None:
+            said = k
+    assert said == SLOW_READINGS_TO_WARN  # 4.8 s from the first reading's newest pair to the fifth's
+    assert "+22.0 ms" in est.slow_warning and "the calibration's +0.0 ms" in est.slow_warning
+
+
 def test_online_time_offset_solves_wait_for_a_quiet_frame():
     """The estimator keeps the solves (tens of ms) off keyframe frames; one postponed too long runs anyway."""
     solved: list = []

@@ -133,7 +133,7 @@ class OnlineTimeOffset:
         self._t_first: int | None = None
         self.offset_ns: int | None = None  # last accepted estimate
         self.applied_ns = self.base_ns  # offset the frames use: the calibration's until an estimate replaces it
-        self.slow_readings: list[tuple[float, float, float]] = []  # (offset, sigma, window mid) [s], slow turns
+        self.slow_readings: list[tuple[float, float, float]] = []  # (offset, sigma, newest pair end) [s], slow turns
         self.slow_warning: str | None = None  # said once when they agree on an offset off the calibration's
         self.sigma_s = float("inf")
         self.done = False
@@ -415,7 +415,7 @@ class OnlineTimeOffset:
         elif est is not None:
             log.debug("time offset solve %d: %+.1f ms +- %.1f ms, rotation std %.2f rad/s: not used", self.solves,
                       self.base_ns * 1e-6 + est.offset_s * 1e3, est.sigma_s * 1e3, est.rate_std_rad_s)
-            self._slow_reading(est)
+            self._slow_reading(est, int(vis.t1_ns.max()))
         else:
             self.slow_readings.clear()  # so does a solve with no estimate
         if self.solves >= self.max_solves:
@@ -427,7 +427,7 @@ class OnlineTimeOffset:
             self._finish()
         return changed
 
-    def _slow_reading(self, est) -> None:
+    def _slow_reading(self, est, t_newest_ns: int) -> None:
         """An estimate not applied only because the vehicle turned too slowly: when SLOW_READINGS_TO_WARN in a row
         stand out from the calibration's offset on the same side, say so once (a warning and `slow_warning`, which
         the status shows). Not applied: on slow turns the method's errors are not known well enough (see _solve),
@@ -445,7 +445,11 @@ class OnlineTimeOffset:
                 abs(est.offset_s) < SLOW_SIGNIFICANT_SIGMAS * float(np.hypot(est.sigma_s, SYSTEMATIC_SIGMA_S)):
             self.slow_readings.clear()
             return
-        self.slow_readings.append((est.offset_s, est.sigma_s, float(np.max(est.t_mid_s))))  # newest pair
+        # the newest pair's end, on the flight's clock: the estimate's own pair times count from its window's first
+        # pair, which slides with the window, so that once the window was full consecutive readings stood as far
+        # apart as their windows' newest pairs from their oldest (about the same: the run never covered half a
+        # window, and no warning came; a QA run read +21..+26 ms at 4-6 sigma for 20 s against a calibration's 0)
+        self.slow_readings.append((est.offset_s, est.sigma_s, t_newest_ns * 1e-9))
         if len({np.sign(r[0]) for r in self.slow_readings[-SLOW_READINGS_TO_WARN:]}) > 1:
             self.slow_readings = self.slow_readings[-1:]  # sides changed: a new run starts here
         last = self.slow_readings[-SLOW_READINGS_TO_WARN:]
