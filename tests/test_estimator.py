@@ -385,6 +385,30 @@ def test_a_still_gyro_bias_is_judged_by_its_largest_component_as_the_back_end_ju
     assert problem and "0.350 rad/s about one axis" in problem
 
 
+def test_a_steady_turn_before_the_start_is_not_taken_for_a_gyro_in_deg_per_s(caplog):
+    """A constant-rate turn looks still to the IMU, and its rate read as a bias said "the data look like deg/s" (an
+    ERROR, and the health's sensor error) for a right gyro on a moving start (a QA run: 0.477 rad/s). The images
+    that show the turn overrule the IMU; at rest (a test above) the units check still speaks."""
+    from vio.geometry import so3_exp
+
+    class Spin(Motion):
+        def _raw(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+            return np.zeros(3), so3_exp(np.array([0.0, 0.0, 0.5 * t]))
+
+    est = Estimator(synthetic_calibration())
+    calib = est.calib
+    mot = Spin(seed=3)
+    scene = SyntheticScene(calib, seed=3)
+    rng = np.random.default_rng(3)
+    with caplog.at_level(logging.INFO, logger="vio.estimator"):
+        for s in imu_samples(mot, 0.0, 3.0, noise=calib.imu, rng=rng):
+            est.feed_imu(s)
+            if s.t_ns % 50_000_000 == 0:
+                est.feed_features(scene.observe(s.t_ns, mot.pose(s.t_ns * 1e-9), pixel_sigma=0.2, rng=rng))
+    assert est.frames_processed > 50
+    assert est.health().sensor_error is None and "deg/s" not in caplog.text, caplog.text
+
+
 def test_non_finite_imu_samples_are_rejected_and_counted():
     est = Estimator(synthetic_calibration())
     states = _still_run(est, nan_every=25)
