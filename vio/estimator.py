@@ -952,7 +952,7 @@ class Estimator:
             log.info("IMU white noise reads %.1fx the calibration's density (gyro %s, accel %s: vibration): "
                      "pre-integration noise follows it", level, np.round(k[:3], 1), np.round(k[3:], 1))
             if isinstance(self._state, _Running):  # what the quieter factors said about cam1 is overconfident
-                self._state.smoother.imu_noise_raised(t)
+                self._state.smoother.imu_noise_raised()
         self.white_scale = scale
         self._use_params(combined_params(self.calib.imu, b.imu_noise_scale, white_scale=scale))
         return self._params_now
