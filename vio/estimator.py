@@ -614,9 +614,17 @@ class Estimator:
             return
         self._no_stereo += 1
         if self._no_stereo == STEREO_LOSS_FRAMES:
+            # the front end's note says when there was no right image to match, or none it could use: then the
+            # calibration is not in question (a right camera out for seconds was told to check for swapped cameras)
+            if ff.reason.startswith("no right image"):
+                why = "no right image arrived: the right camera is disconnected or not delivering"
+            elif ff.reason.startswith("right image unusable"):
+                why = f"{ff.reason.removesuffix(': mono only')}: the right camera is dark, covered or failing"
+            else:
+                why = ("the right camera is dark, covered or disconnected, or cam0 and cam1 are swapped in the "
+                       "calibration (vio calib check CALIB)")
             self._stereo_loss = (f"no stereo match in the last {STEREO_LOSS_FRAMES} frames that looked for one "
-                                 f"({len(ff.ids)} points tracked): the right camera is dark, covered or disconnected, "
-                                 "or cam0 and cam1 are swapped in the calibration (vio calib check CALIB)")
+                                 f"({len(ff.ids)} points tracked): {why}")
             log.warning("stereo: %s", self.stereo_warning)
 
     @property
