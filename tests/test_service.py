@@ -931,6 +931,7 @@ def test_a_second_daemon_sending_to_the_same_mavlink_endpoint_is_refused(tmp_pat
         lines = second.stderr.strip().splitlines()
         assert len(lines) == 1 and f"another vio run (pid {first.pid}) sends to the autopilot at udpout:127.0.0.1:" \
             f"{port}" in lines[0], second.stderr
+        assert f"one started by hand: kill {first.pid}" in lines[0]  # not only the service's systemctl
         assert not (tmp_path / "second" / "status.json").exists()
         from vio.app.daemon.service import output_endpoint_key, output_endpoint_lock
 

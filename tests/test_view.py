@@ -162,6 +162,28 @@ def test_replay_view_refuses_a_port_in_use_before_it_opens_the_recording(flight,
     assert "internal error" not in err and old.read_text() == "# an earlier flight\n"
 
 
+def test_serving_on_the_grpc_port_or_a_privileged_port_is_said_as_what_it_is(monkeypatch):
+    """A web port equal to the gRPC port passed the check (each probed alone is free) and failed when the servers
+    started; a port this user may not open read "Permission denied: stop what holds it", though nothing held it."""
+    import errno
+    import socket
+
+    from vio.app.view import GRPC_PORT, check_view
+    from vio.config import ViewConfig
+
+    with pytest.raises(VioError, match=f"web_port = {GRPC_PORT} is the port the live view's gRPC server takes"):
+        check_view("serve", ViewConfig(web_port=GRPC_PORT))
+
+    def refused(self, address):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(socket.socket, "bind", refused)
+    with pytest.raises(VioError) as e:
+        check_view("serve", ViewConfig(web_port=80))
+    assert "port 80 ([view] web_port) may not be opened by this user" in str(e.value)
+    assert "stop what holds it" not in str(e.value)
+
+
 def test_daemon_view_section_is_off_by_default():
     from vio.config import VioConfig, config_from_dict
 

@@ -69,6 +69,9 @@ def check_view(target: str, settings: ViewConfig | None = None, what: str = "the
     if target != "serve":
         return
     s = settings or ViewConfig()
+    if s.web_port == GRPC_PORT:  # each port alone is free, and then the two servers collide
+        raise VioError(f"{what}: [view] web_port = {GRPC_PORT} is the port the live view's gRPC server takes: set "
+                       "another [view] web_port (e.g. 9090)")
     for port, key, fix in ((s.web_port, "[view] web_port", "set another [view] web_port"),
                            (GRPC_PORT, "Rerun's gRPC port", "a second live view?")):
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
@@ -76,6 +79,9 @@ def check_view(target: str, settings: ViewConfig | None = None, what: str = "the
             try:
                 probe.bind(("0.0.0.0", port))
             except OSError as e:
+                if e.errno in (errno.EACCES, errno.EPERM):  # nothing holds it: ports below 1024 need privileges
+                    raise VioError(f"{what}: port {port} ({key}) may not be opened by this user (ports below 1024 "
+                                   f"need privileges): {fix}, or save to FILE.rrd instead of serving") from None
                 why = "in use by another program" if e.errno == errno.EADDRINUSE else (e.strerror or str(e))
                 raise VioError(f"{what}: port {port} ({key}) is {why}: stop what holds it ({fix}), or save "
                                "to FILE.rrd instead of serving") from None

@@ -656,7 +656,8 @@ def output_endpoint_lock(cfg: VioConfig) -> Any:
         pass
     raise VioError(f"another vio run (pid {pid}) sends to the autopilot at {key} ([mavlink] url = "
                    f"{cfg.mavlink.url!r}): two daemons would send to it as one, their poses interleaved; stop it "
-                   "first (systemctl stop kestrel-vio), or give this one another [mavlink] url")
+                   f"first (the service: systemctl stop kestrel-vio; one started by hand: kill {pid}), or give this "
+                   "one another [mavlink] url")
 
 
 def single_instance(cfg: VioConfig) -> Any:
@@ -701,7 +702,7 @@ def single_instance(cfg: VioConfig) -> Any:
         f.close()
         raise VioError(f"another vio run (pid {pid}) is running with this configuration's status file "
                        f"({cfg.run.status_file}): two daemons would send to the autopilot as one; stop it first "
-                       "(systemctl stop kestrel-vio)") from None
+                       f"(the service: systemctl stop kestrel-vio; one started by hand: kill {pid})") from None
     if f.writable():
         f.seek(0)
         f.truncate()
