@@ -808,14 +808,13 @@ class Estimator:
         # still: the norm must be g; in flight only a reading far below g (units of g) is sure to be wrong
         problem = accel_units_problem(a_norm) if still or a_norm < 0.3 * 9.81 else None
         if problem is None:
-            images_still = self._usable(ff) and self._flow_px <= self.bcfg.zupt_max_flow_px
-            # a steady turn looks still to the IMU (a constant rate), and its rate is no bias: images that show the
-            # vehicle turning overrule the IMU. A moving start in a 0.48 rad/s turn logged "not initialising: gyro
-            # reads 0.477 rad/s while still ...; the data look like deg/s" as an ERROR on a right gyro (a QA run)
-            images_moving = self._usable(ff) and np.isfinite(self._flow_px) and \
-                self._flow_px > self.bcfg.zupt_max_flow_px
-            problem = gyro_units_problem(gyro, (still and not images_moving) or images_still,
-                                         self.bcfg.max_gyro_bias_rad_s)
+            # usable images decide whether the vehicle is still, the IMU only where they cannot tell: a steady turn
+            # looks still to the IMU (a constant rate), and its rate is no bias. A moving start in a 0.48 rad/s turn
+            # logged "not initialising: gyro reads 0.477 rad/s while still ...; the data look like deg/s" as an ERROR
+            # on a right gyro (a QA run)
+            images_tell = self._usable(ff) and np.isfinite(self._flow_px)
+            at_rest = self._flow_px <= self.bcfg.zupt_max_flow_px if images_tell else still
+            problem = gyro_units_problem(gyro, at_rest, self.bcfg.max_gyro_bias_rad_s)
         if (problem and _reason_key(problem)) != (self.sensor_error and _reason_key(self.sensor_error)):
             if problem:
                 log.error("not initialising: %s", problem)
