@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 IMU_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
               "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
 CAM_HEADER = "#timestamp [ns],filename"
+PAIR_TOLERANCE_NS = 1000  # a left and a right image within this of each other are one stereo frame
 GT_HEADER = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], "
              "q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
              "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
@@ -627,7 +628,7 @@ class EurocDataset:
         for t, i in zip(self.cam0_t, idx):
             best = None
             for j in (i - 1, i):
-                if 0 <= j < len(self.cam1_t) and abs(int(self.cam1_t[j]) - int(t)) <= 1000:
+                if 0 <= j < len(self.cam1_t) and abs(int(self.cam1_t[j]) - int(t)) <= PAIR_TOLERANCE_NS:
                     best = self.cam1_files[j]
             if best is None and len(self.cam1_t):
                 self.stats.unpaired_frames += 1
@@ -669,7 +670,7 @@ class EurocDataset:
         period = float(np.median(np.diff(left)))
         i = np.clip(np.searchsorted(left, right), 1, len(left) - 1)
         gap = np.minimum(np.abs(right - left[i - 1]), np.abs(right - left[i]))
-        lone = gap > 1000
+        lone = gap > PAIR_TOLERANCE_NS
         if period <= 0 or np.any(gap[lone] < 0.25 * period):
             return None
         return int(np.count_nonzero(lone))
