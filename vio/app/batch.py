@@ -263,9 +263,6 @@ def run_batch(flights: list[str], out_dir: str | Path, *, workers: int | None = 
     return report
 
 
-BAG_SUFFIXES = (".bag", ".mcap", ".db3")
-
-
 def check_bag_flights(flights: list[str], options: dict, workers_here: bool = True) -> None:
     """Refuse, before any work (VioError, one line naming the flights), bags and MCAP files that no worker could
     replay: without the [bags] extra, or without a calibration (no --calib, and not an MCAP file `vio record`
@@ -273,7 +270,7 @@ def check_bag_flights(flights: list[str], options: dict, workers_here: bool = Tr
     report folder was made or the old report removed. A flight this machine cannot see (a Ray client's driver)
     is left to its worker, and so is the extra where the workers run elsewhere (`workers_here` False: a Ray
     cluster's workers have their own installs; a driver that submits bags to them need not read any)."""
-    from vio.io.bag import is_bag, recorded_calibration
+    from vio.io.bag import BAG_SUFFIXES, is_bag, recorded_calibration
 
     bags = [f for f in flights if Path(f).suffix in BAG_SUFFIXES or is_bag(f)]
     if not bags:

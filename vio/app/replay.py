@@ -443,9 +443,9 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
                  bag=None):
     """A EuRoC folder, or a bag / MCAP file (vio.io.bag): `bag` is the [bag] config section (None: its
     defaults, EuRoC's names), and the (left, right, imu) `topics` given on the command line win over it."""
-    from vio.io.bag import BagDataset, BagTopics, is_bag
+    from vio.io.bag import BAG_SUFFIXES, BagDataset, BagTopics, is_bag
 
-    if Path(path).suffix in (".mcap", ".bag", ".db3") and not Path(path).exists():
+    if Path(path).suffix in BAG_SUFFIXES and not Path(path).exists():
         raise VioError(f"{path}: file not found")
     if is_bag(path):
         from vio.config import BagConfig

@@ -81,10 +81,13 @@ def _need(module: str):
     return require(module, "bags", "reading and writing bags / MCAP")
 
 
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")  # ROS 1 bags, MCAP files, ROS 2 sqlite bags
+
+
 def is_bag(path: str | Path) -> bool:
     p = Path(path)
     if p.is_file():
-        return p.suffix in (".bag", ".mcap", ".db3")
+        return p.suffix in BAG_SUFFIXES
     return p.is_dir() and (p / "metadata.yaml").is_file()
 
 
