@@ -510,7 +510,7 @@ def test_16bit_scale_is_decided_on_frames_spread_over_the_recording_not_a_dark_f
     assert np.array_equal(ds.frame(4).left, (lit >> 8).astype(np.uint8))
     from vio.io.images import uint16_shift
 
-    assert uint16_shift(dark) == (0, "8-bit values (max 8)")  # alone: no light to call it MSB-aligned
+    assert uint16_shift([dark]) == (0, "8-bit values (max 8)")  # alone: no light to call it MSB-aligned
 
 
 def test_8bit_pngs_decode_byte_identical_and_decide_no_scale(v101):

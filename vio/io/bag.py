@@ -439,10 +439,12 @@ class BagDataset(EurocDataset):
         return res
 
     # -- streaming -----------------------------------------------------------------------------------------
-    def _scale_samples(self) -> np.ndarray | None:
-        """The bag's first left image, kept from the stamp pass, from which a 16-bit depth is decided."""
+    def _scale_samples(self) -> list[np.ndarray]:
+        """The bag's first left image, kept from the stamp pass, from which a 16-bit depth is decided (none when
+        it is gone or does not decode)."""
         first, self._first_left = self._first_left, None
-        return None if first is None else decode_grey(*first)
+        img = None if first is None else decode_grey(*first)
+        return [] if img is None else [img]
 
     def _decode(self, item) -> np.ndarray | None:
         raw, ty, r = item

@@ -31,15 +31,14 @@ def grey(img: np.ndarray) -> np.ndarray:
     return img
 
 
-def uint16_shift(images: np.ndarray | Sequence[np.ndarray]) -> tuple[int, str] | None:
-    """The right shift that makes a recording's 16-bit images 8-bit, judged on one image or several, and why (for
-    the log); None when all are zero, which says nothing about the depth (and is 0 under any shift)."""
-    imgs = [images] if isinstance(images, np.ndarray) else list(images)
-    peak = max((int(i.max()) for i in imgs), default=0)
+def uint16_shift(images: Sequence[np.ndarray]) -> tuple[int, str] | None:
+    """The right shift that makes a recording's 16-bit images 8-bit, judged on the images given, and why (for the
+    log); None when all are zero, which says nothing about the depth (and is 0 under any shift)."""
+    peak = max((int(i.max()) for i in images), default=0)
     if peak == 0:
         return None
     used = 0
-    for i in imgs:
+    for i in images:
         used |= int(np.bitwise_or.reduce(i, axis=None))
     low_zero = (used & -used).bit_length() - 1  # low bits that no pixel sets
     # MSB-aligned 10/12/14-bit values (noise sets the low bits of data aligned otherwise); a near-black image's few
@@ -53,13 +52,13 @@ def uint16_shift(images: np.ndarray | Sequence[np.ndarray]) -> tuple[int, str] |
 class Uint16To8:
     """Converts a recording's 16-bit images to 8 bits with one shift, decided on the first image converted.
 
-    `first` returns images the recording opens with or spreads over (a list, one image, or None), so that the shift
+    `first` returns images the recording opens with or spreads over (a list, maybe empty), so that the shift
     does not depend on which frame a caller happens to load first (a replay's --start, a calibration check's
     sample), nor on a dark first frame alone (auto-exposure settling, a lens cap: a 16-bit camera whose first
     image peaked at 200 was given no shift and later frames clipped to white, a review's finding); `warn` records
     the one clipping warning (a reader's counted warnings)."""
 
-    def __init__(self, where: str, first: Callable[[], np.ndarray | Sequence[np.ndarray] | None] | None = None,
+    def __init__(self, where: str, first: Callable[[], Sequence[np.ndarray]] | None = None,
                  warn: Callable[[str], None] = log.warning) -> None:
         self.where = where
         self.shift: int | None = None
@@ -68,10 +67,9 @@ class Uint16To8:
         self._clip_warned = False
 
     def _decide(self, img: np.ndarray) -> None:
-        first = self._first() if self._first is not None else None
+        samples = self._first() if self._first is not None else []
         self._first = None  # asked once: unreadable or all-zero samples leave the decision to the images converted
-        samples = [] if first is None else [first] if isinstance(first, np.ndarray) else list(first)
-        decided = uint16_shift([i for i in samples if i is not None and i.dtype == np.uint16] + [img])
+        decided = uint16_shift([i for i in samples if i.dtype == np.uint16] + [img])
         if decided is not None:
             self.shift, why = decided
             log.info("%s: 16-bit images with %s: scaled to 8 bits by >> %d for the whole recording", self.where,
