@@ -479,6 +479,30 @@ def test_12bit_images_replay_to_the_euroc_trajectory(flight):
     assert (flight / "d12.tum").read_bytes() == (flight / "euroc.tum").read_bytes()
 
 
+def test_a_16bit_bag_that_opens_dark_is_scaled_by_images_spread_over_it(flight, caplog):
+    """A 12-bit camera whose first frames are dark (auto-exposure settling, a lens cap) peaks under 256 there: the
+    scale was decided on the bag's first image alone (no shift), and every later frame was clipped to white. Left
+    images kept at power-of-two ordinals over the bag now decide >> 4, as a EuRoC folder's spread files do."""
+    import logging
+
+    d = EurocDataset(flight / "sim")
+
+    def to12(img, dark):
+        return None if img is None else (img.astype(np.uint16) << 4 | img >> 4) >> (4 if dark else 0)
+
+    dark_until = d.cam0_t[0] + 250_000_000  # the first five frames
+    ev = [e if isinstance(e, ImuSample) else StereoFrame(e.t_ns, to12(e.left, e.t_ns < dark_until),
+                                                         to12(e.right_image(), e.t_ns < dark_until), seq=e.seq)
+          for e in d.events()]
+    export_bag(_Events(ev), flight / "dark12.mcap", "mcap", "png")
+    b = BagDataset(flight / "dark12.mcap", d.calibration)
+    with caplog.at_level(logging.WARNING):
+        frames = [e for e in b.events() if isinstance(e, StereoFrame)]
+    assert b._to8.shift == 4, b._to8.shift
+    assert not [r for r in caplog.records if "clipped" in r.getMessage()]
+    assert frames[-1].left.max() < 255 and frames[-1].left.max() > 200  # the scene's own white, not clipped
+
+
 @pytest.mark.parametrize("bigendian", [0, 1])
 def test_mono16_messages_share_one_scale_decided_on_the_first(bigendian):
     """mono16 Image messages go through the same per-recording scale as 16-bit PNGs: a 10-bit first image

@@ -54,6 +54,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 IMU = "sensor_msgs/msg/Imu"
 ODOMETRY = "nav_msgs/msg/Odometry"
+SCALE_SPREAD = 4  # left images besides the first, spread over a bag, on which a 16-bit scale is decided
 MAX_LATE_S = 0.5  # a message at most this much older than the newest before it on its topic is put in its place
 
 
@@ -296,7 +297,8 @@ class BagDataset(EurocDataset):
         self.path = self.root = self.mav0 = p
         self.topics = topics or BagTopics()
         self.stats = DatasetStats()
-        self._first_left: tuple[object, str] | None = None  # (message, type): a 16-bit scale is decided on it
+        # (message, type) of left images spread over the bag, from the stamp pass: a 16-bit scale is decided on them
+        self._scale_left: list[tuple[object, str]] = []
         self._to8 = Uint16To8(str(p), self._scale_samples, self._warn)
         self._bag = _BagFile(p)
         if self._bag.truncated:
@@ -411,8 +413,8 @@ class BagDataset(EurocDataset):
             k = ordinal[topic]
             ordinal[topic] += 1
             msg = self._bag.deserialize(raw, ty, r)
-            if self._first_left is None and topic == self.topics.left:
-                self._first_left = (msg, ty)
+            if topic == self.topics.left and k & (k - 1) == 0:  # the first and ordinals 1, 2, 4, 8, ...
+                self._scale_left = [*self._scale_left[:1], *self._scale_left[1:][-(SCALE_SPREAD - 1):], (msg, ty)]
             t = _stamp(msg)
             _check_late(f"{self.path} topic {topic}", k, t, newest.get(topic))
             newest[topic] = max(newest.get(topic, t), t)
@@ -440,11 +442,12 @@ class BagDataset(EurocDataset):
 
     # -- streaming -----------------------------------------------------------------------------------------
     def _scale_samples(self) -> list[np.ndarray]:
-        """The bag's first left image, kept from the stamp pass, from which a 16-bit depth is decided (none when
-        it is gone or does not decode)."""
-        first, self._first_left = self._first_left, None
-        img = None if first is None else decode_grey(*first)
-        return [] if img is None else [img]
+        """Left images kept from the stamp pass, from which a 16-bit depth is decided: the first and the last
+        SCALE_SPREAD at power-of-two ordinals, which spread over the bag (the last in its second half) without
+        knowing its length beforehand. The first alone gave a bag opening dark (auto-exposure settling, a lens
+        cap) too small a scale, and every later frame was clipped to white. Those that do not decode are left out."""
+        kept, self._scale_left = self._scale_left, []
+        return [img for img in (decode_grey(*m) for m in kept) if img is not None]
 
     def _decode(self, item) -> np.ndarray | None:
         raw, ty, r = item

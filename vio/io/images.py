@@ -3,10 +3,10 @@
 A 16-bit PNG or mono16 message may hold 16-bit values, or 10/12/14-bit values in the low bits (many machine
 vision cameras), or such values shifted up into the high bits (MSB-aligned, the low bits always 0). A fixed
 `>> 8` turned 12-bit values (0..4095) into a near-black image that every frame refused as too dark. The shift
-is decided once per recording, on its first image and four spread over it where the reader can (EuRoC; a bag's
-first image only): a shift chosen per frame would change the brightness from frame to frame and break the KLT
-tracking, which assumes a constant brightness. A frame brighter than the range decided is clipped to white (never
-wrapped to black), with one warning.
+is decided once per recording, on its first image and four spread over it (a EuRoC folder's by file, a bag's
+at power-of-two message ordinals): a shift chosen per frame would change the brightness from frame to frame and
+break the KLT tracking, which assumes a constant brightness. A frame brighter than the range decided is clipped to
+white (never wrapped to black), with one warning.
 """
 
 from __future__ import annotations
