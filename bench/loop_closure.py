@@ -45,9 +45,9 @@ class _Recorder:
         if settled:
             self.settles.append((len(self.items), tuple(settled)))
 
-    def feed(self, closer, start: int = 0) -> None:
+    def feed(self, closer, start: int = 0, each=None) -> None:
         """The recorded keyframes from `start` on and the settled poses in between into `closer`, in the order
-        the worker would have had them, then its end of flight (`finish`)."""
+        the worker would have had them, then its end of flight (`finish`); `each(closer)` after every keyframe."""
         s = 0
         for n in range(start, len(self.items) + 1):
             while s < len(self.settles) and self.settles[s][0] <= n:
@@ -56,6 +56,8 @@ class _Recorder:
                 s += 1
             if n < len(self.items):
                 closer.add_keyframe(*self.items[n])
+                if each is not None:
+                    each(closer)
         closer.finish()
 
     def close(self) -> None:

@@ -10,7 +10,10 @@ simulated once into --cache and replayed once each; their keyframes (image, feat
 map is the first flight's loop-corrected keyframes, saved and loaded through the map file. Each start feeds a fresh
 loop stage, the map loaded, with the second flight's keyframes from start k on (starts spread evenly over its first
 60 %: each start's first keyframe is a moving one). Reported per start: the delay from its first keyframe to the
-keyframe that joined the map, edges with an error against ground truth > 0.2 m or 3 deg (false), and the ATE of the
+keyframe that joined the map, and to the first keyframe at which it is joined by true edges with no false one active
+("placed right": in a repeated room a first join can be three consistent look-alikes 1.5 m off, which GNC takes out
+later and the first delay counts as relocalised), edges with an error against ground truth > 0.2 m or 3 deg (false)
+at the end, and the ATE of the
 relocalised keyframes in the map's frame (flight 1's ground-truth alignment applied, no alignment of their own)
 against the second flight's odometry ATE (its own 4-DoF alignment). The odometry of a start is the one run's
 odometry from that keyframe on (the estimator is not restarted per start: its pose at the start is already in its
@@ -138,6 +141,17 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
                 n += bool(np.linalg.norm(err[:3, 3]) > 0.2 or np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) > 3)
         return n
 
+    def join_edges(cl, G) -> tuple[int, int]:
+        """(true, false) active loop edges between the map and this flight: a join held by look-alikes alone
+        (a repeated room) is a relocalisation in the wrong place, which the first join's time does not tell."""
+        t = f = 0
+        for e in cl.graph.edges:
+            if e.kind == "loop" and e.weight >= 0.5 and (e.i < cl.map_keyframes) != (e.j < cl.map_keyframes):
+                err = inv_T(inv_T(G[e.i]) @ G[e.j]) @ e.T_i_j
+                bad = bool(np.linalg.norm(err[:3, 3]) > 0.2 or np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) > 3)
+                t, f = t + (not bad), f + bad
+        return t, f
+
     map_false = false_edges(mapper, [_gt_pose(gt1, t) for t in kt1])
     print(f"map: {len(kt1)} keyframes, {mapper.stats.accepted} loop edges ({map_false} false active), keyframe ATE "
           f"{ev1.ate_4dof.trans_m.rmse:.4f} m", flush=True)
@@ -169,13 +183,25 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
         for s in np.linspace(0, 0.6 * len(items2), starts).astype(int):
             cl = LoopCloser(ds2.calibration, cfg)
             cl.load_map(m)
-            rec2.feed(cl, start=s)
+            placed: dict = {}
+
+            def each(cl_, placed=placed, gt2=gt2) -> None:  # first joined, and first placed right (no look-alike)
+                if "right_ns" in placed or not cl_.relocalised:
+                    return
+                Gn = G1 + [_gt_pose(gt2, k.t_ns) for k in cl_.keyframes[cl_.map_keyframes:]]
+                n_true, n_false = join_edges(cl_, Gn)
+                placed.setdefault("first_join_false", n_false > 0)
+                if n_true and not n_false:
+                    placed["right_ns"] = cl_.keyframes[-1].t_ns
+
+            rec2.feed(cl, start=s, each=each)
             own = cl.keyframes[cl.map_keyframes:]
             G = G1 + [_gt_pose(gt2, k.t_ns) for k in own]
             false = false_edges(cl, G)
             row = {"second_seed": seed, "start_keyframe": int(s), "start_s": (own[0].t_ns - items2[0][0]) * 1e-9,
                    "relocalised": cl.relocalised_t_ns is not None, "delay_s": None, "ate_map_frame_m": None,
-                   "false_edges_active": false,
+                   "false_edges_active": false, "first_join_on_lookalike": placed.get("first_join_false", False),
+                   "placed_right_delay_s": (placed["right_ns"] - own[0].t_ns) * 1e-9 if "right_ns" in placed else None,
                    "nearest_map_view_deg": min(nearest_view_deg(k.t_ns) for k in own if k.t_ns <= own[0].t_ns + 2e9)}
             if cl.relocalised_t_ns is not None:
                 row["delay_s"] = (cl.relocalised_t_ns - own[0].t_ns) * 1e-9
@@ -188,6 +214,9 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
             print(f"start at {row['start_s']:5.1f} s: " + (
                 f"relocalised after {row['delay_s']:.2f} s, ATE in the map's frame {row['ate_map_frame_m']:.4f} m "
                 f"({row['ate_ratio_to_odometry']:.2f}x)" if row["relocalised"] else "not relocalised")
+                  + (" (first joined on look-alikes)" if row["first_join_on_lookalike"] else "")
+                  + ("" if not row["relocalised"] else ", never placed right" if row["placed_right_delay_s"] is None
+                     else f", placed right after {row['placed_right_delay_s']:.2f} s")
                   + f", false edges {false}; nearest map view in its first 2 s {row['nearest_map_view_deg']:.0f} deg",
                   flush=True)
     delays = [r["delay_s"] if r["relocalised"] else np.inf for r in rows]
@@ -206,11 +235,17 @@ def multi_start(starts: int, cache: Path, aliasing: float | None = None, map_s: 
            "ate_map_frame_median_m": float(np.median(ates)) if ates else None,
            "ate_map_frame_max_m": float(max(ates)) if ates else None,
            "false_edges_active": int(sum(r["false_edges_active"] for r in rows)),
+           "placed_right_within_2s": int(sum(r["placed_right_delay_s"] is not None and r["placed_right_delay_s"] <= 2.0
+                                             for r in rows)),
+           "placed_right": int(sum(r["placed_right_delay_s"] is not None for r in rows)),
+           "first_join_on_lookalike": int(sum(r["first_join_on_lookalike"] for r in rows)),
            "covered_starts": len(covered), "covered_within_2s": int(sum(d <= 2.0 for d in covered))}
     print(f"{out['within_2s']}/{len(rows)} starts relocalised within 2 s ({out['relocalised']} at all, median delay "
           f"{out['median_delay_s']:.2f} s); ATE in the map's frame median {out['ate_map_frame_median_m']} m, max "
           f"{out['ate_map_frame_max_m']} m; against each flight's odometry ATE median {out['ate_ratio_median']:.2f}x, "
           f"{out['within_2x_odometry']} within 2x; false edges {out['false_edges_active']}")
+    print(f"placed right (joined, no look-alike edge held) within 2 s: {out['placed_right_within_2s']}/{len(rows)} "
+          f"({out['placed_right']} at all); first joined on look-alikes: {out['first_join_on_lookalike']}")
     print(f"starts whose first 2 s look within {COVERED_DEG:g} deg of a map view (camera within 1 m): "
           f"{out['covered_within_2s']}/{out['covered_starts']} relocalised within 2 s")
     return out
