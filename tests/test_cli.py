@@ -204,3 +204,18 @@ def test_quiet_means_no_progress_bar_either(tmp_path):
     assert r.returncode == 0 and r.stderr == "", r.stderr
     r = _vio("-q", "replay", str(flight), "-o", str(tmp_path / "t.tum"))
     assert "frame/s" not in r.stderr and "%|" not in r.stderr, r.stderr
+
+
+def test_overwrite_map_without_a_map_to_write_is_a_usage_error(tmp_path, capsys):
+    """`--overwrite-map` without `--save-map` (or [map] save) was accepted and did nothing (a QA walk-through):
+    one line, exit 2, before the recording is read; with [map] save it is the flag it documents."""
+    missing = str(tmp_path / "no_such_flight")
+    assert main(["replay", missing, "-o", str(tmp_path / "t.tum"), "--overwrite-map"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.strip() == ("vio replay: error: --overwrite-map: there is no map to write; give --save-map FILE "
+                           "(or [map] save)")
+    assert not (tmp_path / "t.tum").exists()
+    cfg = tmp_path / "map.toml"
+    cfg.write_text(f"[map]\nsave = '{tmp_path / 'room.npz'}'\n")
+    assert main(["replay", missing, "--config", str(cfg), "--overwrite-map"]) == EXIT_FAILURE  # the missing data
+    assert "--overwrite-map" not in capsys.readouterr().err

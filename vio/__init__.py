@@ -14,3 +14,10 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 class VioError(Exception):
     """The one exception type users see: its message says what is wrong and where (file, line, key)."""
+
+
+class UsageError(VioError):
+    """Options that contradict each other or do nothing as given: refused before any work with exit 2, the code
+    argparse gives its own usage errors (a flag that silently did nothing let a user think it had acted)."""
+
+    exit_code = 2

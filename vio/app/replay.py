@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vio import VioError
+from vio import UsageError, VioError
 from vio.argtypes import positive_int
 from vio.io.outputs import check_outputs
 from vio.types import NavState
@@ -477,6 +477,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
+    if args.overwrite_map and not save_map:  # it was accepted and did nothing: the user thought a map was written
+        raise UsageError("--overwrite-map: there is no map to write; give --save-map FILE (or [map] save)")
     if args.mavlink:  # a connection string that can never open: said before any output file is opened
         from drivers.mavlink_link import check_url
 
