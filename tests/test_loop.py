@@ -4,6 +4,7 @@ simulated loop flight replayed with and without loop closure."""
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 
 import numpy as np
@@ -2414,3 +2415,31 @@ def test_train_vocab_on_images_without_corners_says_so(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no ORB corners" in err and "internal error" not in err
     assert not (tmp_path / "v.npz").exists()
+
+
+def test_a_hard_link_to_the_loaded_map_is_the_map_it_grows(tmp_path):
+    """The map-replacement check and the output-over-input check compared real paths, which a hard link does not
+    share with its file: `--load-map room.npz --save-map alias.npz` (one file, two names) was refused as a map this
+    replay does not load, and `-o` onto a hard link of the calibration would have emptied the calibration. Files
+    are one when they are one inode (st_dev, st_ino); files not there yet by their real path."""
+    from vio import VioError
+    from vio.app.replay import check_map_not_replaced
+    from vio.io.outputs import check_outputs, same_file
+
+    room, alias, other = tmp_path / "room.npz", tmp_path / "alias.npz", tmp_path / "other.npz"
+    room.write_bytes(b"the room's map")
+    os.link(room, alias)
+    other.write_bytes(b"another map")
+    check_map_not_replaced(str(alias), str(room), "--save-map")  # grows the map it loads
+    with pytest.raises(VioError, match="this replay does not load it"):
+        check_map_not_replaced(str(other), str(room), "--save-map")
+    assert same_file(room, alias) and not same_file(room, other)
+    assert same_file(tmp_path / "new.tum", tmp_path / "." / "new.tum") and not same_file(room, tmp_path / "new")
+    calib = tmp_path / "sensor.yaml"
+    calib.write_text("the calibration")
+    os.link(calib, tmp_path / "t.tum")
+    with pytest.raises(VioError, match="the trajectory would be written over the calibration"):
+        check_outputs({"the trajectory": str(tmp_path / "t.tum")}, reads={"the calibration": str(calib)})
+    with pytest.raises(VioError, match="the trajectory and the stats would be written to the same file"):
+        check_outputs({"the trajectory": str(calib), "the stats": str(tmp_path / "t.tum")})
+    check_outputs({"the map": str(alias)}, reads={"the map it loads": str(room)}, grows={"the map": "the map it loads"})

@@ -459,8 +459,11 @@ def open_dataset(path: str, calibration=None, topics: tuple[str | None, str | No
 def check_map_not_replaced(save: str, load: str | None, key: str) -> None:
     """Refuse (VioError, one line) to save a map over a file this run did not load: a map is the work of every
     flight that grew it, and `--save-map room.npz` without `--load-map room.npz` replaced it with this flight's
-    alone, unsaid. Growing it (the same file loaded, by any name or link) is fine; --overwrite-map allows the rest."""
-    if not os.path.exists(save) or (load and os.path.realpath(load) == os.path.realpath(save)):
+    alone, unsaid. Growing it (the same file loaded, by any name, link or hard link) is fine; --overwrite-map allows
+    the rest."""
+    from vio.io.outputs import same_file
+
+    if not os.path.exists(save) or (load and same_file(load, save)):
         return
     raise VioError(f"{key}: a file is there already and this replay does not load it: not replaced "
                    f"(--load-map {save} grows that map, --overwrite-map replaces it)")

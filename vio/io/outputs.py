@@ -42,12 +42,27 @@ def recording_of(path: str | Path) -> str | None:
     return next((str(a.parent) for a in p.parents if a.name == "mav0"), None)
 
 
-def distinct_files(paths: dict[str, str | None]) -> dict[str, str]:
-    """{real path: what} of the outputs named (empty ones left out); VioError when two are one file."""
-    seen: dict[str, str] = {}
+def file_key(path: str | Path) -> tuple:
+    """What names one file whatever path reaches it: (device, inode) where it exists (a hard link has another real
+    path but is the same file: written through, it is the file read), else its real path (not written yet)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return ("path", os.path.realpath(path))
+    return ("inode", st.st_dev, st.st_ino)
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Do `a` and `b` name one file (by a link, a hard link or another spelling; or are both one path not there)?"""
+    return file_key(a) == file_key(b)
+
+
+def distinct_files(paths: dict[str, str | None]) -> dict[tuple, str]:
+    """{file_key: what} of the outputs named (empty ones left out); VioError when two are one file."""
+    seen: dict[tuple, str] = {}
     for what, p in paths.items():
         if p:
-            key = os.path.realpath(p)
+            key = file_key(p)
             if key in seen:
                 raise VioError(f"{p}: {seen[key]} and {what} would be written to the same file")
             seen[key] = what
@@ -60,7 +75,7 @@ def check_not_reads(outputs: dict[str, str | None], reads: dict[str, str | None]
     it grows (`grows`: {output: read})."""
     seen = distinct_files(outputs)
     for what, p in (reads or {}).items():
-        writer = seen.get(os.path.realpath(p)) if p else None
+        writer = seen.get(file_key(p)) if p else None
         if writer is not None and (grows or {}).get(writer) != what:
             raise VioError(f"{p}: {writer} would be written over {what}")
 
