@@ -945,8 +945,41 @@ def test_a_second_daemon_sending_to_the_same_mavlink_endpoint_is_refused(tmp_pat
     with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\)"):
         output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:localhost:{port}"}}))
     lock.close()
-    assert output_endpoint_key(f"udp:0.0.0.0:{port}") == f"udpin:0.0.0.0:{port}"  # mavutil's udp: is udpin:
-    assert output_endpoint_key("/dev/ttyAMA0:921600") is None  # a serial device is held by its own flock
+    assert output_endpoint_key(f"udp:0.0.0.0:{port}") == f"udpin:*:{port}"  # mavutil's udp: is udpin:
+
+
+def test_output_endpoint_key_is_what_two_daemons_would_share(tmp_path) -> None:
+    """The lock keyed listening URLs on their address, so udpin:0.0.0.0:14550 and udpin:127.0.0.1:14550 (both bind:
+    mavutil sets SO_REUSEADDR) ran side by side, each getting some of the autopilot's packets and sending as
+    component 197 (a QA walk-through). A listener is its protocol and port; a sender its peer; a serial device its
+    real path, whatever the baud rate or the link that names it."""
+    from vio import VioError
+    from vio.app.daemon.service import output_endpoint_key as key
+    from vio.config import config_from_dict
+
+    assert key("udpin:0.0.0.0:14550") == key("udpin:127.0.0.1:14550") == key("udp:192.168.1.5:14550")
+    assert key("tcpin:0.0.0.0:5760") == key("tcpin:127.0.0.1:5760") != key("tcpin:0.0.0.0:5761")
+    assert key("udpin:0.0.0.0:14550") != key("tcpin:0.0.0.0:14550")  # another protocol, another port
+    assert key("udpout:localhost:14550") == key("udpout:127.0.0.1:14550") == "udpout:127.0.0.1:14550"
+    assert key("udpout:10.0.0.2:14550") != key("udpout:10.0.0.3:14550")  # two autopilots
+    assert key("udpout:127.0.0.1:14550") not in (key("tcp:127.0.0.1:14550"), key("udpbcast:127.0.0.1:14550"),
+                                                 key("udpin:127.0.0.1:14550"))
+    assert key("tcp:[::1]:5760") == key("tcp:0:0:0:0:0:0:0:1:5760")
+    dev = tmp_path / "ttyACM0"
+    dev.write_text("")
+    (tmp_path / "by-id").symlink_to(dev)
+    assert key(f"/dev/../{dev}:921600") == key(f"/dev/../{tmp_path}/by-id:57600") == f"serial:{dev}"
+    assert key("/dev/ttyAMA0") == "serial:/dev/ttyAMA0" != key("/dev/ttyAMA1:921600")
+    if sys.platform.startswith("linux"):
+        from vio.app.daemon.service import output_endpoint_lock
+
+        first = output_endpoint_lock(config_from_dict({"mavlink": {"url": "udpin:0.0.0.0:14555"}}))
+        try:
+            with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\) sends to the autopilot at "
+                               "udpin:\\*:14555"):
+                output_endpoint_lock(config_from_dict({"mavlink": {"url": "udpin:127.0.0.1:14555"}}))
+        finally:
+            first.close()
 
 
 def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkeypatch) -> None:

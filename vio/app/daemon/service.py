@@ -591,29 +591,40 @@ def run(args: argparse.Namespace) -> int:
 
 
 def output_endpoint_key(url: str) -> str | None:
-    """What two network MAVLink URLs that reach one autopilot endpoint have in common ('udpout:127.0.0.1:14550' for
-    udpout:localhost:14550 too; mavutil's udp: is udpin:), or None for a serial device (its flock does this:
-    drivers.mavlink_link._hold_serial) or a URL that is not one."""
+    """What two MAVLink URLs that take one autopilot endpoint have in common, or None for a URL that is not one.
+
+    A listening socket (udpin:, mavutil's udp:, tcpin:) takes its protocol's port on every address at once as far
+    as the autopilot is concerned (mavutil's udpin binds with SO_REUSEADDR, so udpin:0.0.0.0:14550 and
+    udpin:127.0.0.1:14550 both bind, and the autopilot's packets go to one of them): 'udpin:*:14550'. An outbound
+    one (udpout:, tcp:, udpbcast:) is its peer, the host spelled one way ('udpout:127.0.0.1:14550' for
+    udpout:localhost:14550 too); other peers are other endpoints. A serial device is its real path, the baud rate
+    left out ('serial:/dev/ttyACM0' for /dev/serial/by-id/usb-...:115200 too; its flock,
+    drivers.mavlink_link._hold_serial, holds it as well, but only once opened, and without naming the holder)."""
     import ipaddress
 
     from drivers.mavlink_link import _NETWORK_PREFIXES
 
     if not url.startswith(_NETWORK_PREFIXES):
-        return None
+        device = url.partition(":")[0]
+        if device.startswith("/dev/"):
+            return f"serial:{os.path.realpath(device)}"
+        return f"serial:{device.upper()}" if device.upper().startswith("COM") else None
     kind, _, where = url.partition(":")
     host, _, port = where.rpartition(":")
+    kind = "udpin" if kind == "udp" else kind
+    if kind in ("udpin", "tcpin"):
+        return f"{kind}:*:{port}"
     host = host.strip("[]").lower()
     try:
         host = str(ipaddress.ip_address(host))
     except ValueError:
         host = "127.0.0.1" if host == "localhost" else host
-    kind = "udpin" if kind == "udp" else kind
     return f"{kind}:{host}:{port}"
 
 
 def output_endpoint_lock(cfg: VioConfig) -> Any:
     """A socket held for the life of the process in Linux's abstract socket namespace, named after the [mavlink]
-    url's endpoint (output_endpoint_key), or None (no network output, not Linux, no lock to be had: said).
+    url's endpoint (output_endpoint_key), or None (no [mavlink] url, not Linux, no lock to be had: said).
 
     Two daemons with their own configurations and status files (the service, and one started by hand from another
     folder) but one output endpoint both sent to the autopilot as component 197, their poses interleaved, and
