@@ -98,6 +98,10 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[source]\nkind = 'fake'\nimu = 'mavlink'\nmavlink_imu_url = '/dev/ttyS0:921600'\n[mavlink]\nurl = '/dev/ttyS0'\n",
      "are one serial device"),
     ("[backend]\nkeyframe_min_interval_s = 1.0\nkeyframe_max_interval_s = 0.4\n", "must not exceed"),
+    # a QA walk-through: an internal error (ValueError from float('a')), and a bool taken as 1 degree
+    ("[mavlink]\nmount = 'rpy'\nmount_rpy_deg = ['a', 0, 0]\n", "[mavlink] mount_rpy_deg must be 3 finite numbers"),
+    ("[mavlink]\nmount = 'rpy'\nmount_rpy_deg = [true, 0, 0]\n", "[mavlink] mount_rpy_deg must be 3 finite numbers"),
+    ("[mavlink]\nmount_offset_m = [0.1, nan, 0]\n", "[mavlink] mount_offset_m must be 3 finite numbers"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

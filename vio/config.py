@@ -582,6 +582,11 @@ def config_from_dict(data: dict, source: str = "config") -> VioConfig:
 def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     """Settings that are valid alone but contradict each other."""
     m = cfg.mavlink
+    for key in ("mount_rpy_deg", "mount_offset_m"):  # ['a', 0, 0] ended in an internal error (float('a') below)
+        v = getattr(m, key)
+        if len(v) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                                  for x in v):
+            raise VioError(f"{source}: [mavlink] {key} must be 3 finite numbers, got {v!r}")
     if m.mount != "rpy" and [float(x) for x in m.mount_rpy_deg] != [0.0, 0.0, 0.0]:
         raise VioError(f"{source}: [mavlink] mount_rpy_deg is set but mount = {m.mount!r} derives the mounting from "
                        "the calibration; set mount = 'rpy' to use mount_rpy_deg")
