@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -202,3 +203,22 @@ def test_a_wrong_time_offset_on_a_slow_flight_is_said_not_applied(tmp_path):
                   r"turns too slow to apply it .*vio calib time-offset", said or "")
     assert m and 25 < float(m.group(1)) < 40, said
     assert wrong.extra["time_offset_ms"]["final"] == 0.0  # said, not applied
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a disk that is always full)")
+def test_a_full_disk_names_the_trajectory_file():
+    """`vio replay -o` on a full disk ended in "vio replay: error: No space left on device", the file unnamed (a QA
+    walk-through): the write (buffer flushed mid-replay) or the close at the end now says which file."""
+    from vio import VioError
+    from vio.app.replay import TumSink
+    from vio.types import NavState
+
+    tum = TumSink("/dev/full")
+    with pytest.raises(VioError, match=r"^/dev/full: cannot write the trajectory \(No space left on device\)$"):
+        for k in range(10000):
+            tum(NavState(k, np.eye(4), np.zeros(3)))
+    tum.close()  # closed already: nothing more to say
+    tum = TumSink("/dev/full")
+    tum(NavState(1, np.eye(4), np.zeros(3)))
+    with pytest.raises(VioError, match=r"^/dev/full: cannot write the trajectory \(No space left on device\)$"):
+        tum.close()

@@ -9,6 +9,7 @@ ATE/RPE are printed at the end.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -97,17 +98,33 @@ class TumSink:
             self._f = open(path, "w")
         except OSError as e:
             raise VioError(f"{path}: cannot write the trajectory ({e.strerror})") from None
+        self._path = path
         self._f.write("# timestamp[s] x y z qx qy qz qw  (T_world_body)\n")
         self.count = 0
 
     def __call__(self, st: NavState) -> None:
         from vio.geometry import rot_to_quat_wxyz
 
-        self._f.write(self._fmt(st.t_ns, st.T_world_body[:3, 3], rot_to_quat_wxyz(st.T_world_body[:3, :3])))
+        try:
+            self._f.write(self._fmt(st.t_ns, st.T_world_body[:3, 3], rot_to_quat_wxyz(st.T_world_body[:3, :3])))
+        except OSError as e:
+            self._failed(e)
         self.count += 1
 
     def close(self) -> None:
-        self._f.close()
+        """Flush and close; a write error (disk full) names the file: it ended as a bare "No space left on
+        device", the trajectory unnamed."""
+        if self._f.closed:
+            return
+        try:
+            self._f.close()
+        except OSError as e:
+            self._failed(e)
+
+    def _failed(self, e: OSError) -> None:
+        with contextlib.suppress(OSError):
+            self._f.close()  # the buffer fails again; the file is closed all the same
+        raise VioError(f"{self._path}: cannot write the trajectory ({e.strerror or e})") from None
 
 
 @dataclass
