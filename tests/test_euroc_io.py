@@ -518,3 +518,15 @@ def test_8bit_pngs_decode_byte_identical_and_decide_no_scale(v101):
     f = v101.frame(0)
     path = v101.cam0_files[0]
     assert np.array_equal(f.left, cv2.imread(str(path), cv2.IMREAD_UNCHANGED)) and v101._to8.shift is None
+
+
+def test_a_time_offset_that_moves_the_camera_off_the_imu_is_named(v101_path):
+    """A calibration's time_offset_ns of 1000 s (milliseconds written as nanoseconds, times 1e6) ended in "cam0
+    stamps 1403715523.9..1403715528.6 s and IMU stamps 1403715523.9..1403715528.6 s do not overlap": the same
+    span twice, the offset that moved them apart unnamed (a QA walk-through)."""
+    import dataclasses
+
+    calib = EurocDataset(v101_path).calibration
+    with pytest.raises(VioError, match=r"the calibration's time_offset_ns = 1000000000000 \(\+1000\.000 s, t_imu = "
+                       r"t_cam \+ offset\) moves every cam0 stamp outside the IMU's .* \(an offset in another unit"):
+        EurocDataset(v101_path, dataclasses.replace(calib, time_offset_ns=10**12))

@@ -565,6 +565,13 @@ class EurocDataset:
         t_imu = t + self.calibration.time_offset_ns
         inside = (t_imu >= imu[0]) & (t_imu <= imu[-1])
         if not inside.any():
+            off = self.calibration.time_offset_ns
+            if off and ((t >= imu[0]) & (t <= imu[-1])).any():
+                # the stamps overlap, the offset moves them apart: "1600000000..1600000006 s and 1600000000..
+                # 1600000006 s do not overlap" told the operator nothing (a QA walk-through)
+                raise VioError(f"{self.mav0}: the calibration's time_offset_ns = {off} ({off * 1e-9:+.3f} s, t_imu = "
+                               f"t_cam + offset) moves every cam0 stamp outside the IMU's {imu[0] * 1e-9:.3f}.."
+                               f"{imu[-1] * 1e-9:.3f} s (an offset in another unit?)")
             raise VioError(f"{self.mav0}: cam0 stamps {t[0] * 1e-9:.3f}..{t[-1] * 1e-9:.3f} s and IMU stamps "
                            f"{imu[0] * 1e-9:.3f}..{imu[-1] * 1e-9:.3f} s do not overlap (different clocks, or one "
                            "stream stamped in other units?)")
