@@ -2443,3 +2443,28 @@ def test_a_hard_link_to_the_loaded_map_is_the_map_it_grows(tmp_path):
     with pytest.raises(VioError, match="the trajectory and the stats would be written to the same file"):
         check_outputs({"the trajectory": str(calib), "the stats": str(tmp_path / "t.tum")})
     check_outputs({"the map": str(alias)}, reads={"the map it loads": str(room)}, grows={"the map": "the map it loads"})
+
+
+def test_a_map_is_never_renamed_over_a_device_or_pipe(tmp_path, capsys):
+    """`vio replay --save-map /dev/full --overwrite-map`, run as root, renamed the map over the device node (a QA
+    walk-through: /dev/full became a 16 kB regular file). An existing target that is not a regular file is refused
+    before the replay (vio replay, vio run's check) and by save_map itself. A pipe stands in for the device here."""
+    from types import SimpleNamespace
+
+    from vio import VioError
+    from vio.app.cli import main
+    from vio.io.outputs import check_outputs
+    from vio.loop.mapfile import save_map
+
+    fifo = tmp_path / "pipe.npz"
+    os.mkfifo(fifo)
+    with pytest.raises(VioError, match="is not a regular file"):
+        check_outputs({"the map": str(fifo)}, renamed=("the map",))
+    check_outputs({"the trajectory": str(fifo)}, renamed=("the map",))  # written into, not renamed over: fine
+    assert main(["replay", str(tmp_path / "no_flight"), "--save-map", str(fifo), "--overwrite-map"]) == 1
+    assert f"{fifo}: is not a regular file" in capsys.readouterr().err
+    voc = SimpleNamespace(k=2, depth=1, centres=np.zeros((2, 32), np.uint8), idf=np.ones(2))
+    cam = SimpleNamespace(fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=2, height=2, T_body_cam=np.eye(4))
+    with pytest.raises(VioError, match="is not a regular file"):
+        save_map(fifo, [], np.zeros((0, 4, 4)), [], voc, cam)
+    assert fifo.is_fifo() and sorted(p.name for p in tmp_path.iterdir()) == ["pipe.npz"]

@@ -513,7 +513,7 @@ def run(args: argparse.Namespace) -> int:
                          "the recording it replays": args.dataset, **{f"--calib {c}": c for c in args.calib or []},
                          "the vocabulary": cfg.loop.vocabulary, "the configuration": args.config},
                   grows={"the map": "the map it loads"}, recordings=(args.dataset,),
-                  folders={"the track images": args.show_tracks})
+                  folders={"the track images": args.show_tracks}, renamed=("the map",))
     if save_map and not args.overwrite_map:
         check_map_not_replaced(save_map, load_map, f"--save-map {save_map}" if args.save_map
                                else f"[map] save = {save_map!r}")

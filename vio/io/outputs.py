@@ -82,12 +82,13 @@ def check_not_reads(outputs: dict[str, str | None], reads: dict[str, str | None]
 
 def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | None = None,
                   grows: dict[str, str] | None = None, recordings: tuple[str | None, ...] = (),
-                  folders: dict[str, str | None] | None = None) -> None:
+                  folders: dict[str, str | None] | None = None, renamed: tuple[str, ...] = ()) -> None:
     """Every output file can be written where it is asked for (its folder exists, it is no folder itself). No two
     outputs may be one file, nor an output a file the run reads (`reads`), except an output over the one read it
     grows (`grows`: {output: read}, a map saved over the map it loaded; only that one: `--save-map` over the
     `--calibration` file wrote the map over the calibration), nor any output (files in `paths`, output folders in
-    `folders`) lie in the sensor data of a recording folder the run reads (`recordings`)."""
+    `folders`) lie in the sensor data of a recording folder the run reads (`recordings`). An output in `renamed`
+    (written beside its path and renamed over it: the map) must not be a device, pipe or socket there now."""
     check_not_reads(paths, reads, grows)
     for rec in recordings:
         for what, p in {**paths, **(folders or {})}.items():
@@ -104,6 +105,10 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
         # the folder that matters is the named file's, which the link's own folder said nothing of
         real = Path(os.path.realpath(path)) if path.is_symlink() else path
         via = f" (a link to {real})" if real is not path else ""
+        if what in renamed and real.exists() and not real.is_file():
+            # `--save-map /dev/full` (as root) renamed a regular file over the device node: /dev/full was gone
+            raise VioError(f"{p}: is not a regular file (a device, pipe or socket); {what} is written beside it and "
+                           "renamed over it: give a file path")
         folder = real.parent if str(real.parent) else Path(".")
         if not folder.is_dir():
             raise VioError(f"{p}: cannot write {what}{via}: folder {folder} does not exist")

@@ -87,6 +87,8 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
     # file it named (the map a flight loaded through it) was left as it was.
     path = Path(path)
     real = Path(os.path.realpath(path))
+    if real.exists() and not real.is_file():  # renamed over, a device node (/dev/null as root) would be replaced
+        raise VioError(f"{path}: is not a regular file (a device, pipe or socket): the map is not written there")
     tmp = real.with_name(f".{real.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:

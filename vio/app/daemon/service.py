@@ -818,7 +818,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
              "[map] load": cfg.map.load, "[source] dataset": recording}
     if cfg.map.save:
         try:  # its folder (over what the daemon reads, or into the recording: with the other outputs, below)
-            check_outputs({"the map": cfg.map.save})
+            check_outputs({"the map": cfg.map.save}, renamed=("the map",))
         except VioError as e:
             if warn is None or not isinstance(e, NotWritable):
                 raise VioError(f"[map] save: {e}") from None
