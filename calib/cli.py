@@ -86,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _run_import(args: argparse.Namespace) -> int:
     from calib.importers import import_calibration
     from calib.show import format_calibration
-    from vio import VioError
+    from vio import UsageError, VioError
     from vio.calibration import calibration_units_problem, save_calibration
 
     check_output(args.output, args.overwrite)
@@ -95,10 +95,10 @@ def _run_import(args: argparse.Namespace) -> int:
         kwargs["translation_unit"] = args.translation_unit
     if args.size:
         if args.format != "depthai":
-            raise VioError("--size: only a depthai calibration is rescaled on import (the others state their size)")
+            raise UsageError("--size: only a depthai calibration is rescaled on import (the others state their size)")
         w, _, h = args.size.lower().partition("x")
         if not (w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
-            raise VioError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x400")
+            raise UsageError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x400")
         kwargs["size"] = (int(w), int(h))
     calib, notes = import_calibration(args.format, args.files, **kwargs)
     print(format_calibration(calib, title=f"imported {args.format}: {' '.join(map(str, args.files))}"))
@@ -195,18 +195,19 @@ def _run_refine(args: argparse.Namespace) -> int:
     import dataclasses
 
     from calib.check import DISPARITY_SIGNIFICANT, disparity_told_from_zero
-    from vio import VioError
+    from vio import UsageError, VioError
     from vio.calibration import load_calibration, save_calibration
     from vio.config import load_config
     from vio.consistency import replay_states
     from vio.estimator import stereo_check_line
     from vio.frontend.runner import set_opencv_threads
 
+    if args.stereo_only and (args.stereo or args.intrinsics):
+        raise UsageError("--stereo-only refines cam1's rotation alone: leave out --stereo and --intrinsics")
+
     check_output(args.output, args.overwrite, args.dataset)
     set_opencv_threads(1)  # the calibration written must not depend on what else the machine was doing
     cfg = load_config(args.config)
-    if args.stereo_only and (args.stereo or args.intrinsics):
-        raise VioError("--stereo-only refines cam1's rotation alone: leave out --stereo and --intrinsics")
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine_extrinsics=not args.stereo_only,
                                                                refine_stereo_extrinsic=args.stereo,
                                                                refine_stereo_rotation=args.stereo_only,

@@ -22,6 +22,7 @@ from typing import Any
 from drivers.base import SensorSource
 from drivers.signals import stop_on_signal
 from vio import VioError
+from vio.argtypes import positive_float
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
 
@@ -149,8 +150,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", help="output folder (EuRoC ASL layout: OUT/mav0/...), or with --format mcap the "
                         "MCAP file")
     parser.add_argument("--source", choices=("oak", "fake", "euroc"), help="overrides [source] kind of the config")
-    parser.add_argument("--duration", type=float, metavar="S", help="seconds of data to record (default: until "
-                        "Ctrl-C / SIGTERM)")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="seconds of data to record (default: "
+                        "until Ctrl-C / SIGTERM)")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration ([source] section)")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in OUT")
     parser.add_argument("--format", choices=("euroc", "mcap"), default=None,
@@ -169,8 +170,6 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     src_cfg = cfg.source if args.source is None else dataclasses.replace(cfg.source, kind=args.source)
-    if args.duration is not None and args.duration <= 0:
-        raise VioError(f"--duration must be positive, got {args.duration}")
     calibration = load_calibration(src_cfg.calibration) if src_cfg.calibration else None
     if (args.format or cfg.run.record_format) == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
         raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")

@@ -591,7 +591,7 @@ def test_cli_depthai_import_to_the_streamed_size(tmp_path, capsys):
     c = load_calibration(out)
     assert (c.cam0.width, c.cam0.height) == (640, 400) and c.cam0.fx == pytest.approx(798.1 / 2, abs=1e-3)
     for bad, says in ((["--size", "640"], "expected WIDTHxHEIGHT"),):
-        assert main(["calib", "import", "depthai", str(path), *bad, "-o", str(tmp_path / "x.yaml")]) == 1
+        assert main(["calib", "import", "depthai", str(path), *bad, "-o", str(tmp_path / "x.yaml")]) == 2  # usage
         assert says in capsys.readouterr().err and not (tmp_path / "x.yaml").exists()
 
 
@@ -785,7 +785,7 @@ def test_calib_refine_stereo_only_turns_cam1_back_and_holds_the_rest(tmp_path, c
     assert not np.allclose(refined.cam1.T_body_cam[:3, :3], stated.cam1.T_body_cam[:3, :3], atol=1e-4)
     np.testing.assert_allclose(refined.cam1.T_body_cam[:3, 3], stated.cam1.T_body_cam[:3, 3], atol=1e-4)
     assert main(["calib", "refine", str(data), "--output", str(tmp_path / "x.yaml"), "--stereo-only",
-                 "--stereo"]) == 1
+                 "--stereo"]) == 2
     assert "--stereo-only refines cam1's rotation alone" in capsys.readouterr().err
 
 

@@ -223,3 +223,31 @@ def test_overwrite_map_without_a_map_to_write_is_a_usage_error(tmp_path, capsys)
     cfg.write_text(f"[map]\nsave = '{tmp_path / 'room.npz'}'\n")
     assert main(["replay", missing, "--config", str(cfg), "--overwrite-map"]) == EXIT_FAILURE  # the missing data
     assert "--overwrite-map" not in capsys.readouterr().err
+
+
+def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
+    """An option value out of range or options that contradict each other exit 2 (argparse's usage-error code),
+    in one line, before any work. A QA walk-through found them exiting 1 like a data problem (--workers 0 even ran
+    on every CPU, --profile bogus simulated nothing after saying it would, --calibration with --calib ignored
+    --calib)."""
+    for argv, says in ((["batch", "f", "-o", str(tmp_path / "r"), "--workers", "0"], "--workers: must be at least 1"),
+                       (["eval", "e.tum", "g", "--max-dt-ms", "0"], "--max-dt-ms: must be a positive number"),
+                       (["eval", "e.tum", "g", "--max-gap-s", "-1"], "--max-gap-s: must be a positive number"),
+                       (["record", str(tmp_path / "o"), "--duration", "0"], "--duration: must be a positive number"),
+                       (["demo", "--profile", "bogus"], "invalid choice: 'bogus'")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv
+    calib = tmp_path / "c.yaml"
+    calib.write_text("cam0: {}\n")
+    for argv, says in ((["demo", "--duration", "1"], "--duration 1.0: at least 5 s"),
+                       (["replay", str(tmp_path), "--calibration", str(calib), "--calib", str(calib)],
+                        "--calibration and --calib both give the calibration: give one"),
+                       (["replay", str(tmp_path), "--calib", str(calib), str(calib)],
+                        "--calib: our calibration is one"),
+                       (["replay", str(tmp_path), "--view", str(tmp_path / "v.png")], "is an .rrd file"),
+                       (["calib", "import", "euroc", str(tmp_path), "-o", str(tmp_path / "o.yaml"), "--size", "64x40"],
+                        "--size: only a depthai calibration is rescaled")):
+        assert main(argv) == EXIT_USAGE, argv
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, (argv, err)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.argtypes import positive_int
+from vio.argtypes import positive_float, positive_int
 from vio.geometry import closest_yaw, inv_T, make_T
 from vio.trajectory import Trajectory, read_tum
 
@@ -494,12 +494,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("gt", help="ground truth: TUM file, EuRoC ground-truth csv or EuRoC dataset folder")
     p.add_argument("--plot", metavar="PNG", help="write a top view and error-over-time plot")
     p.add_argument("--json", metavar="FILE", help="write all numbers as JSON")
-    p.add_argument("--max-dt-ms", type=float, default=DEFAULT_MAX_DT_MS,
+    p.add_argument("--max-dt-ms", type=positive_float, default=DEFAULT_MAX_DT_MS,
                    help="largest time difference for an estimate/GT pair (default %(default)s)")
     p.add_argument("--interpolate", action="store_true", help="interpolate GT at the estimate stamps")
     p.add_argument("--rpe-lengths", type=_lengths, default=DEFAULT_RPE_LENGTHS_M, metavar="M,M,...",
                    help=f"RPE segment lengths in metres (default {','.join(f'{x:g}' for x in DEFAULT_RPE_LENGTHS_M)})")
-    p.add_argument("--max-gap-s", type=float, default=None,
+    p.add_argument("--max-gap-s", type=positive_float, default=None,
                    help=f"time between estimates above which it counts as a gap (default {DEFAULT_MAX_GAP_S:g}, or "
                    "2.5 steps of an estimate whose poses come further apart)")
     p.add_argument("--run", type=positive_int, metavar="N", help="of an estimate file `vio run` appended several "
@@ -510,16 +510,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.max_dt_ms > 0:
-        raise VioError(f"--max-dt-ms must be positive, got {args.max_dt_ms}")
     from vio.io.outputs import check_outputs, recording_of
 
     check_outputs({"the JSON": args.json, "the plot": args.plot},
                   reads={"the estimate": args.est, "the ground truth": args.gt}, recordings=(recording_of(args.gt),))
     if args.plot:  # the [tools] extra and the plot's format, asked for now, not after printing and --json
         require_plot(args.plot, "plots (--plot)")
-    if args.max_gap_s is not None and not args.max_gap_s > 0:
-        raise VioError(f"--max-gap-s must be positive, got {args.max_gap_s}")
     est = load_trajectory(args.est, args.run)
     spacing = float(np.median(np.diff(est.t_ns))) * 1e-9 if len(est) > 1 else 0.0
     max_gap_s = args.max_gap_s

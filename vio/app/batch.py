@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from vio import VioError
+from vio.argtypes import positive_int
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", "-o", required=True, metavar="DIR", help="report folder (created)")
     p.add_argument("--overwrite", action="store_true", help="replace the report already in --output (its "
                    "trajectories go too)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="local worker processes (default: the number of CPUs)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster: ray://HOST:10001, auto, or local")
     p.add_argument("--config", metavar="FILE", help="TOML configuration for every replay")

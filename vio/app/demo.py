@@ -9,23 +9,25 @@ import argparse
 import tempfile
 from pathlib import Path
 
+from vio.sim.motion import PROFILES
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=20.0, help="flight length in seconds (default 20)")
-    p.add_argument("--profile", default="survey", help="simulated motion profile (default survey)")
+    p.add_argument("--profile", choices=PROFILES, default="survey", help="simulated motion profile (default survey)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the flight")
     p.add_argument("--keep", metavar="DIR", help="write the dataset and trajectory here instead of a temp folder")
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio import VioError
+    from vio import UsageError
     from vio.app.replay import TumSink, replay
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
     from vio.sim.generate import SimConfig, simulate
 
     if args.duration < 5:
-        raise VioError(f"--duration {args.duration}: at least 5 s (the flight starts with 2 s standing still)")
+        raise UsageError(f"--duration {args.duration}: at least 5 s (the flight starts with 2 s standing still)")
     with tempfile.TemporaryDirectory(prefix="kestrel-demo-") as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
         data = root / "flight"

@@ -449,7 +449,7 @@ def load_calib_args(files: list[str] | None, fmt: str = "project"):
         from vio.calibration import load_calibration
 
         if len(files) != 1:
-            raise VioError("--calib: our calibration is one YAML file; give --calib-format for other formats")
+            raise UsageError("--calib: our calibration is one YAML file; give --calib-format for other formats")
         return load_calibration(files[0])
     from calib.importers import import_calibration
 
@@ -497,6 +497,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     save_map = args.save_map or cfg.map.save
     load_map = args.load_map or cfg.map.load
+    if args.calibration and args.calib:  # --calib was ignored, unsaid: the replay ran on --calibration alone
+        raise UsageError("--calibration and --calib both give the calibration: give one")
     if args.overwrite_map and not save_map:  # it was accepted and did nothing: the user thought a map was written
         raise UsageError("--overwrite-map: there is no map to write; give --save-map FILE (or [map] save)")
     if args.mavlink:  # a connection string that can never open: said before any output file is opened
@@ -505,7 +507,7 @@ def run(args: argparse.Namespace) -> int:
         check_url(args.mavlink, "--mavlink")
     view_file = args.view if args.view and args.view != "serve" else None
     if view_file and not view_file.endswith(".rrd"):  # it is written over: never a recording or a calibration
-        raise VioError(f"--view {view_file}: a live view recording is an .rrd file (or 'serve' for a web viewer)")
+        raise UsageError(f"--view {view_file}: a live view recording is an .rrd file (or 'serve' for a web viewer)")
     check_outputs({"the trajectory": args.output, "the loop-corrected trajectory": args.loop_output,
                    "the map": save_map, "the stats": args.stats, "the loop plot": args.loop_plot,
                    "the live view recording": view_file},
