@@ -234,7 +234,9 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
                        (["eval", "e.tum", "g", "--max-dt-ms", "0"], "--max-dt-ms: must be a positive number"),
                        (["eval", "e.tum", "g", "--max-gap-s", "-1"], "--max-gap-s: must be a positive number"),
                        (["record", str(tmp_path / "o"), "--duration", "0"], "--duration: must be a positive number"),
-                       (["demo", "--profile", "bogus"], "invalid choice: 'bogus'")):
+                       (["demo", "--profile", "bogus"], "invalid choice: 'bogus'"),
+                       (["status", "--stale-s", "nan"], "--stale-s: must be a positive number"),
+                       (["status", "--stale-s", "inf"], "--stale-s: must be a positive number")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv

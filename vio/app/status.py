@@ -23,6 +23,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from vio.argtypes import positive_float
+
 EXIT_HEALTHY = 0
 EXIT_UNHEALTHY = 1
 EXIT_NOT_RUNNING = 4
@@ -32,7 +34,9 @@ DEFAULT_STATUS_FILE = "/run/kestrel-vio/status.json"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--file", help=f"status file (default: [run] status_file of --config, else {DEFAULT_STATUS_FILE})")
     p.add_argument("--config", help="take the status file path from this TOML config")
-    p.add_argument("--stale-s", type=float, default=3.0, help="older than this = daemon not running (default 3)")
+    # a number > 0: with nan or inf a hung daemon's last status never went stale and read HEALTHY (a QA walk-through)
+    p.add_argument("--stale-s", type=positive_float, default=3.0,
+                   help="older than this = daemon not running (default 3)")
     p.add_argument("--json", action="store_true", help="print the raw status JSON")
 
 
