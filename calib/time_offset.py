@@ -128,7 +128,8 @@ def estimate_time_offset_dataset(path: str | Path, calibration_path: str | Path 
     vis = visual_rotations(ds, cam)
     est = estimate_time_offset(vis, ds.imu.t_ns, ds.imu.gyro, cam.T_body_cam, max_offset_s=max_offset_s)
     est.calibration_offset_s = ds.calibration.time_offset_ns * 1e-9  # what the summary compares it with
-    log.info("time offset %+.2f ms +- %.2f ms from %d pairs", est.offset_s * 1e3, est.sigma_s * 1e3, est.n_pairs)
+    log.info("time offset %+.2f ms +- %.2f ms from %d pairs (%d more rejected as outliers)", est.offset_s * 1e3,
+             est.sigma_s * 1e3, est.n_pairs, est.n_outliers)
     return est
 
 

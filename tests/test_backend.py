@@ -498,3 +498,21 @@ def test_the_mount_fit_is_not_tilted_by_a_bias_during_a_steady_turn():
     wrong = so3_exp(np.radians([0.0, 0.0, 90.0])) @ R_bc  # the IMU turned 90 deg about z from what is stated
     ang, sigma, _ = rotation_disagreement(fit_camera_imu_rotation(vis, t, gyro, 0.0), wrong)
     assert abs(ang - 90.0) < 2.0 and ang > 3 * sigma
+
+
+def test_the_offset_solver_counts_outliers_without_an_info_line_per_solve(caplog):
+    """`vio run` logged "time offset: 1 of 158 frame pairs rejected as outliers" at INFO on every solve, about once a
+    second (a QA walk-through of the daemon's journal). The count is in the estimate (n_outliers; `vio calib
+    time-offset` says it once); the per-solve line is debug."""
+    import logging
+
+    from vio.backend.offset_solver import VisualRotations, estimate_time_offset
+
+    vis, t, gyro = _turning_pairs((0.0, 0.0, 0.0), 0.3, {0: 0.3, 1: 0.2}, np.eye(3))
+    theta = vis.theta_cam.copy()
+    theta[[5, 40]] += 0.5  # two pairs KLT got wrong
+    vis = VisualRotations(vis.t0_ns, vis.t1_ns, theta, vis.n_tracks, vis.info_cam)
+    with caplog.at_level(logging.INFO, logger="vio.backend.offset_solver"):
+        est = estimate_time_offset(vis, t, gyro, np.eye(4), n_boot=5)
+    assert est.n_outliers == 2 and est.n_pairs == len(theta) - 2
+    assert not caplog.records
