@@ -91,8 +91,8 @@ def check_url(url: str, key: str = "[mavlink] url") -> None:
         return
     if url.startswith("/dev/") or url.upper().startswith("COM"):
         baud = url.partition(":")[2]
-        if baud and not baud.isdigit():
-            raise VioError(f"{key} {url!r}: baud rate {baud!r} is not a number")
+        if baud and not (baud.isdigit() and int(baud) > 0):  # ':0' opened the port at 0 baud, retried for ever
+            raise VioError(f"{key} {url!r}: baud rate {baud!r} is not a positive whole number (e.g. 921600)")
         return
     raise VioError(f"{key} {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
                    "or a serial device such as /dev/ttyAMA0:921600")

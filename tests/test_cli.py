@@ -84,6 +84,7 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[mavlink]\nurl = 'udpout:127.0.0.1'\n", "with a port 1-65535"),
     ("[mavlink]\nurl = 'udpout:127.0.0.1:146800'\n", "with a port 1-65535"),
     ("[mavlink]\nurl = '/dev/ttyAMA0:9216OO'\n", "baud rate"),
+    ("[mavlink]\nurl = '/dev/ttyAMA0:0'\n", "baud rate '0' is not a positive whole number"),  # a QA walk-through
     ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['ODOMETRY2']\n", "unknown ['ODOMETRY2']"),
     ("[mavlink]\nurl = 'udpout:127.0.0.1:14550'\nmessages = ['VISION_POSITION_ESTIMATE']\nlost_output = 'quality0'\n",
      "needs messages = ['ODOMETRY']"),
