@@ -550,3 +550,18 @@ def test_a_recreated_estimator_keeps_the_runs_verdict_on_the_imu(tmp_path: Path)
     for ev in ds.events():
         fresh.feed_imu(ev) if isinstance(ev, ImuSample) else fresh.feed_frame(ev)
     assert fresh.health().initialized
+
+
+def test_an_output_failure_reads_as_a_sentence_not_a_python_type():
+    """`vio status` and the journal said "recording failed: VioError: ...png: cannot write image (disk full ...)" (a
+    QA walk-through on a 3 MB tmpfs): a VioError's message is the sentence; an OSError its strerror and errno name;
+    anything else (a bug) keeps its type."""
+    import errno
+
+    from vio import VioError
+    from vio.app.daemon.outputs import _os_error_text
+
+    assert _os_error_text(VioError("x.png: cannot write image (disk full: 56 KiB left)")) == \
+        "x.png: cannot write image (disk full: 56 KiB left)"
+    assert _os_error_text(OSError(errno.ENOSPC, "No space left on device")) == "No space left on device (ENOSPC)"
+    assert _os_error_text(KeyError("k")) == "KeyError: 'k'"

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from vio import VioError
 from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
 from vio.app.daemon.status import _mavlink_health
 from vio.app.daemon.workers import Worker
@@ -91,8 +92,13 @@ class TrajectoryLog:
 
 
 def _os_error_text(e: BaseException) -> str:
+    """What an output's failure says in the log and `vio status`: a VioError is a sentence already (the status read
+    "recording failed: VioError: /var/lib/.../x.png: cannot write image (disk full ...)"); anything else is a bug
+    and keeps its type."""
     if isinstance(e, OSError) and e.strerror:
         return f"{e.strerror} ({errno.errorcode.get(e.errno or 0, e.errno)})"
+    if isinstance(e, VioError):
+        return str(e)
     return f"{type(e).__name__}: {e}"
 
 
