@@ -250,7 +250,11 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
                         "--calib: our calibration is one"),
                        (["replay", str(tmp_path), "--view", str(tmp_path / "v.png")], "is an .rrd file"),
                        (["calib", "import", "euroc", str(tmp_path), "-o", str(tmp_path / "o.yaml"), "--size", "64x40"],
-                        "--size: only a depthai calibration is rescaled")):
+                        "--size: only a depthai calibration is rescaled"),
+                       # named by the option, not SimConfig's field ("duration_s = -3.0 is outside"), and exit 2
+                       (["simulate", str(tmp_path / "s"), "--duration", "-3"], "--duration -3.0 is outside [0.1, 3600"),
+                       (["simulate", str(tmp_path / "s"), "--size", "10x10"], "--size width 10 is outside"),
+                       (["simulate", str(tmp_path / "s"), "--right-dropout", "1:x"], "expected START:LENGTH")):
         assert main(argv) == EXIT_USAGE, argv
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, (argv, err)

@@ -253,7 +253,7 @@ def test_cli_writes_dataset_and_reports(tmp_path, capsys):
     assert EurocDataset(out).calibration.time_offset_ns == -2_000_000
     assert main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--no-progress"]) == 1
     assert "overwrite" in capsys.readouterr().err
-    assert main(["simulate", str(tmp_path / "x"), "--size", "big"]) == 1
+    assert main(["simulate", str(tmp_path / "x"), "--size", "big"]) == 2  # an option's value: a usage error
     assert "--size" in capsys.readouterr().err
 
 
@@ -364,7 +364,7 @@ def test_cli_variant_options(tmp_path, capsys):
                  "--scene", "hall", "--calib-error", "--right-dropout", "0.1:0.2", "--time-offset-drift-ms", "2"]) == 0
     assert "dropped left/right images 0/4" in capsys.readouterr().out
     assert (out / "calibration_truth.yaml").exists() and (out / "time_offset_truth.csv").exists()
-    assert main(["simulate", str(tmp_path / "x"), "--right-dropout", "soon"]) == 1
+    assert main(["simulate", str(tmp_path / "x"), "--right-dropout", "soon"]) == 2  # usage
     assert "--right-dropout" in capsys.readouterr().err
 
 

@@ -57,7 +57,7 @@ def test_recorded_flight_refuses_what_it_cannot_do(source, tmp_path, capsys):
         return rc, capsys.readouterr().err
 
     rc, err = run("--imu-from", str(source), "--vibration", "1")
-    assert rc == 1 and "--vibration" in err and "recording's" in err and "Traceback" not in err
+    assert rc == 2 and "--vibration" in err and "recording's" in err and "Traceback" not in err  # options: usage
     rc, err = run("--imu-from", str(source), "--recorded-start", "3.5")
     assert rc == 1 and "leaves less than 1 s" in err
     no_gt = tmp_path / "no_gt"

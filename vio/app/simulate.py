@@ -71,28 +71,39 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+# SimConfig's fields as the options that set them: its range errors named the field ("duration_s = -3.0 is outside
+# [0.1, 3600]"), which no option is called
+_OPTION_OF = {"duration_s": "--duration", "rate_hz": "--rate", "imu_rate_hz": "--imu-rate",
+              "still_start_s": "--still-start", "time_offset_ms": "--time-offset-ms", "width": "--size width",
+              "height": "--size height", "gyro_bias": "--gyro-bias", "accel_bias": "--accel-bias",
+              "vibration": "--vibration", "plain_fraction": "--plain", "exposure_ms": "--blur-ms",
+              "image_noise": "--image-noise", "drop_frames": "--drop-frames", "calib_error": "--calib-error",
+              "stereo_error_px": "--stereo-error", "time_offset_drift_ms": "--time-offset-drift-ms",
+              "time_offset_period_s": "--drift-period", "recorded_start_s": "--recorded-start"}
+
+
 def _size(text: str) -> tuple[int, int]:
-    from vio import VioError
+    from vio import UsageError
 
     try:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
-        raise VioError(f"--size: expected WxH such as 752x480, got {text!r}") from None
+        raise UsageError(f"--size: expected WxH such as 752x480, got {text!r}") from None
     return w, h
 
 
 def _window(text: str) -> tuple[float, float]:
-    from vio import VioError
+    from vio import UsageError
 
     try:
         start, length = (float(x) for x in text.split(":"))
     except ValueError:
-        raise VioError(f"--right-dropout: expected START:LENGTH in seconds such as 20:5, got {text!r}") from None
+        raise UsageError(f"--right-dropout: expected START:LENGTH in seconds such as 20:5, got {text!r}") from None
     return start, length
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio import VioError
+    from vio import UsageError, VioError
     from vio.sim.generate import SimConfig, simulate
 
     w, h = _size(args.size)
@@ -101,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
                  "--no-imu-noise": args.no_imu_noise or None, "--imu-rate": None if args.imu_rate == 200.0 else 1}
         given = [k for k, v in model.items() if v is not None]
         if given:
-            raise VioError(f"{', '.join(given)}: the IMU of --imu-from is the recording's; these options change "
+            raise UsageError(f"{', '.join(given)}: the IMU of --imu-from is the recording's; these options change "
                            "only the simulated IMU")
     cfg = SimConfig(profile=args.profile, duration_s=args.duration, seed=args.seed, variant=args.variant,
                     rate_hz=args.rate, imu_rate_hz=args.imu_rate, still_start_s=args.still_start,
@@ -114,6 +125,13 @@ def run(args: argparse.Namespace) -> int:
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
                     time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
                     imu_mount=args.imu_mount, imu_from=args.imu_from, recorded_start_s=args.recorded_start)
+    try:  # every check of resolved() is on an option's value: a usage error (exit 2), named by the option
+        cfg.resolved()
+    except VioError as e:
+        text = str(e).removeprefix("simulate: ")
+        field = text.split(" ", 1)[0]
+        rest = text[len(field):].removeprefix(" =")  # "--duration -3.0 is outside [0.1, 3600]"
+        raise UsageError(_OPTION_OF[field] + rest if field in _OPTION_OF else text) from None
     summary = simulate(args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.line())
     return 0
