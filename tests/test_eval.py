@@ -396,3 +396,22 @@ def test_max_gap_below_the_pose_spacing_is_refused_and_sparse_poses_are_not_all_
                  ]) == 0
     d = json.loads((tmp_path / "e.json").read_text())
     assert d["coverage"] > 0.8 and d["rpe"], d
+
+
+def test_a_tum_file_written_w_first_is_named_not_scored_silently(tmp_path, gt, capsys):
+    """TUM holds qx qy qz qw; a tool writing qw qx qy qz (EuRoC's order) gives orientations about 180 deg off
+    the truth with right positions, which read as the estimator's rotation error. The summary now says which
+    file's quaternions agree when read w-first; a right file says nothing of it."""
+    write_tum(gt, tmp_path / "gt.txt")
+    lines = []
+    for t, p, q in zip(gt.t_ns, gt.p, gt.q_wxyz):  # q is w x y z: written in that order
+        lines.append(f"{t * 1e-9:.9f} " + " ".join(f"{x:.9f}" for x in (*p, *q)))
+    (tmp_path / "wfirst.txt").write_text("\n".join(lines) + "\n")
+    assert main(["-q", "eval", str(tmp_path / "wfirst.txt"), str(tmp_path / "gt.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "WARNING: orientations disagree by" in out and "if the estimate's quaternions are read w-first" in out
+    assert main(["-q", "eval", str(tmp_path / "gt.txt"), str(tmp_path / "wfirst.txt")]) == 0
+    assert "if the ground truth's quaternions are read w-first" in capsys.readouterr().out
+    write_tum(_noisy_moved(gt, 4), tmp_path / "est.txt")
+    assert main(["-q", "eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt")]) == 0
+    assert "w-first" not in capsys.readouterr().out

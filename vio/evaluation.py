@@ -19,7 +19,7 @@ import numpy as np
 
 from vio import VioError
 from vio.argtypes import positive_float, positive_int
-from vio.geometry import closest_yaw, inv_T, make_T
+from vio.geometry import closest_yaw, inv_T, make_T, quat_wxyz_to_rot
 from vio.trajectory import Trajectory, read_tum
 
 log = logging.getLogger(__name__)
@@ -92,6 +92,7 @@ class EvalResult:
     t_ns: np.ndarray = field(repr=False)  # (M,) matched estimate stamps
     p_gt: np.ndarray = field(repr=False)  # (M, 3) GT positions at t_ns
     p_est: np.ndarray = field(repr=False)  # (M, 3) estimated positions, unaligned
+    quaternion_order: str = ""  # said when one file's orientations agree only if its quaternions are read w-first
 
     def to_dict(self) -> dict:
         """All summary numbers (per-pose arrays left out) as JSON-ready values."""
@@ -122,6 +123,8 @@ class EvalResult:
         ]
         if self.partial:
             lines.append(f"WARNING: {self.partial}")
+        if self.quaternion_order:
+            lines.append(f"WARNING: {self.quaternion_order}")
         for a in (self.ate_4dof, self.ate_se3):
             s = a.trans_m
             lines.append(f"ATE {a.alignment:<5} rmse {s.rmse:.4f} m  mean {s.mean:.4f}  median {s.median:.4f}  "
@@ -300,6 +303,28 @@ def _ate(name: str, T_est: np.ndarray, T_gt: np.ndarray) -> AteResult:
                      "orientations" if small else "positions")
 
 
+W_FIRST_MIN_DEG = 90.0  # a median rotation error above this is not a drift: the quaternions' order is asked about
+W_FIRST_AGREE_DEG = 20.0  # ... and one file read w-first agreeing within this says it was written so
+
+
+def quaternion_order_hint(q_est: np.ndarray, q_gt: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray,
+                          rot_median_deg: float) -> str:
+    """Why orientations that disagree by ~180 deg may not be the estimator's fault: a TUM file written w-first
+    (qw qx qy qz, as EuRoC's csv and many tools hold them) reads as a rotation of about 180 deg from the truth,
+    silently (the positions, and so the ATE, are right). Tried only when the error is beyond any drift."""
+    if not rot_median_deg > W_FIRST_MIN_DEG:
+        return ""
+    for name, T, q in (("estimate", T_est, q_est), ("ground truth", T_gt, q_gt)):
+        T2 = T.copy()
+        T2[:, :3, :3] = quat_wxyz_to_rot(q[:, [1, 2, 3, 0]])  # read as w x y z, a w-first file's are z w x y
+        other = _ate("SE(3)", *((T2, T_gt) if name == "estimate" else (T_est, T2)))
+        if other.rot_deg.median < W_FIRST_AGREE_DEG:
+            return (f"orientations disagree by {rot_median_deg:.0f} deg (median) but agree within "
+                    f"{other.rot_deg.median:.1f} deg if the {name}'s quaternions are read w-first: TUM files hold "
+                    "qx qy qz qw (a writer putting qw first gives this); rotation errors here are not the estimator's")
+    return ""
+
+
 # ------------------------------------------------------------------------------------------------ RPE
 
 def relative_errors(T_est: np.ndarray, T_gt: np.ndarray, length_m: float,
@@ -378,11 +403,14 @@ def evaluate(est: Trajectory, gt: Trajectory, *, max_dt_ms: float = DEFAULT_MAX_
         rpe_trans_pct=float(np.mean([r.trans_pct for r in rpe])) if rpe else math.nan,
         rpe_rot_deg_per_m=float(np.mean([r.rot_deg_per_m for r in rpe])) if rpe else math.nan,
         t_ns=t, p_gt=p_gt, p_est=p_est,
+        quaternion_order=quaternion_order_hint(est_m.q_wxyz, gt_m.q_wxyz, T_est, T_gt, ate6.rot_deg.median),
     )
     log.info("eval: %d matched, ATE 4-DoF %.4f m, SE(3) %.4f m, RPE %s", len(idx), ate4.trans_m.rmse,
              ate6.trans_m.rmse, "-" if math.isnan(result.rpe_trans_pct) else f"{result.rpe_trans_pct:.2f} %")
     if result.partial:
         log.warning("eval: %s", result.partial)
+    if result.quaternion_order:
+        log.warning("eval: %s", result.quaternion_order)
     return result
 
 
