@@ -1390,6 +1390,53 @@ def test_guided_matching_finds_what_the_ratio_test_hid_and_sharpens_the_pose():
     assert np.mean(err[8.0]) < 0.85 * np.mean(err[0.0]), (np.mean(err[8.0]), np.mean(err[0.0]))
 
 
+def test_guided_pairs_are_the_rule_it_states_with_ties_and_repeats():
+    """guided_pairs against the rule written out point by point: each old 3D point in front of the camera takes,
+    among the new features within the radius (d^2 <= r^2) and max_hamming, the smallest descriptor distance, ties to
+    the feature further left (smaller x; equal x: the lower row); a new feature chosen by several keeps the
+    smallest distance, ties to the lower old row; pairs by new feature. Descriptors from a pool of 6 and pixels on
+    a coarse grid, so that ties and equal x are common; the empty cases too."""
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.verify import guided_pairs
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+
+    def reference(old, new, r, max_ham):
+        by_x = np.argsort(new.uv[:, 0], kind="stable")
+        rank = np.empty(len(by_x), np.int64)
+        rank[by_x] = np.arange(len(by_x))
+        best = {}
+        for o in np.flatnonzero(np.isfinite(old.p_cam[:, 0])):
+            p = old.p_cam[o]
+            if p[2] <= 1e-3:
+                continue
+            uv = p[:2] / p[2] @ K[:2, :2].T + K[:2, 2]
+            cands = []
+            for n in range(len(new.uv)):
+                d = new.uv[n] - uv
+                ham = int(np.unpackbits(old.desc[o] ^ new.desc[n]).sum())
+                if d[0] * d[0] + d[1] * d[1] <= r * r and ham <= max_ham:
+                    cands.append((ham, rank[n], n))
+            if cands:
+                ham, _, n = min(cands)
+                if n not in best or (ham, o) < best[n]:
+                    best[n] = (ham, o)
+        return np.array([[best[n][1], n] for n in sorted(best)], np.int64).reshape(-1, 2)
+
+    rng = np.random.default_rng(5)
+    pool = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    for trial in range(60):
+        n_old, n_new = rng.integers(0, 25), rng.integers(0, 40)
+        p = np.column_stack([rng.uniform(-0.5, 0.5, (n_old, 2)), rng.uniform(-0.2, 3, n_old)])
+        p[rng.random(n_old) < 0.2] = np.nan
+        old = KeyframeFeatures(pool[rng.integers(0, 6, n_old)], rng.uniform(0, 100, (n_old, 2)), p)
+        new = KeyframeFeatures(pool[rng.integers(0, 6, n_new)], np.round(rng.uniform(0, 100, (n_new, 2)) / 4) * 4,
+                               np.full((n_new, 3), np.nan))
+        r, max_ham = float(rng.choice([4.0, 8.0, 40.0])), int(rng.choice([0, 60, 256]))
+        got = guided_pairs(old, new, K, np.zeros(3), np.zeros(3), max_ham, r)
+        np.testing.assert_array_equal(got, reference(old, new, r, max_ham), err_msg=f"trial {trial}")
+
+
 def test_a_candidate_the_ratio_test_fails_is_matched_from_the_odometry_prior_and_a_wrong_prior_finds_nothing():
     """`[loop] prior_radius_px`: where the ratio test leaves too few matches for PnP (here: fewer than
     min_inliers), the old points are matched by projection from where the odometry puts the new keyframe (1 deg,

@@ -26,13 +26,14 @@ class PnpResult:
 
 def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio: float) -> np.ndarray:
     """(M, 2) index pairs (old landmark, new feature): ratio test and mutual best."""
-    has3 = np.flatnonzero(np.isfinite(old.p_cam[:, 0]))
+    has3 = old.landmark_rows
     if len(has3) < 4 or len(new.desc) < 4:
         return np.zeros((0, 2), np.int64)
+    old_desc = old.desc[has3]
     # cv2.batchDistance is what BFMatcher's knnMatch calls, without a DMatch object per answer
-    dist, idx = cv2.batchDistance(old.desc[has3], new.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
-    best, second = dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
-    q = np.flatnonzero((best <= max_hamming) & (best < ratio * second))
+    dist, idx = cv2.batchDistance(old_desc, new.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    best = dist[:, 0]
+    q = np.flatnonzero((best <= max_hamming) & (best < ratio * dist[:, 1]))
     if not len(q):
         return np.zeros((0, 2), np.int64)
     t = idx[q, 0].astype(np.int64)
@@ -41,7 +42,7 @@ def match(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio:
     seen[t] = True
     tu = np.flatnonzero(seen)
     inv = np.cumsum(seen)[t] - 1
-    back = cv2.batchDistance(new.desc[tu], old.desc[has3], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1][:, 0]
+    back = cv2.batchDistance(new.desc[tu], old_desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1][:, 0]
     keep = back[inv] == q
     return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
 
@@ -56,7 +57,7 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     No ratio test: the pose already tells where a point must be, so a texture that repeats elsewhere in the image
     does not make its match ambiguous. Across a wide change of view the ratio test of `match` turns down most of
     the true matches; these are the ones it left out."""
-    has3 = np.flatnonzero(np.isfinite(old.p_cam[:, 0]))
+    has3 = old.landmark_rows
     if not len(has3) or not len(new.uv):
         return np.zeros((0, 2), np.int64)
     R = cv2.Rodrigues(rvec)[0]
@@ -66,30 +67,32 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     uv = (p[:, :2] / p[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
     # the new features within radius_px in x of each projection (features sorted by x), then the radius itself:
     # a few thousand pairs instead of an all-against-all distance table
-    by_x = np.argsort(new.uv[:, 0], kind="stable")
-    xs = new.uv[by_x, 0]
+    by_x, xs, ys = new.by_x
     lo = np.searchsorted(xs, uv[:, 0] - radius_px, side="left")
     cnt = np.searchsorted(xs, uv[:, 0] + radius_px, side="right") - lo
     rows = np.repeat(np.arange(len(uv)), cnt)
     start = np.cumsum(cnt) - cnt
-    n = by_x[np.repeat(lo - start, cnt) + np.arange(len(rows))]
-    d = new.uv[n] - uv[rows]
-    d *= d
-    near = d[:, 0] + d[:, 1] <= radius_px ** 2
-    o, n = has3[rows[near]], n[near]
-    if not len(o):
+    s = np.repeat(lo - start, cnt) + np.arange(len(rows))  # positions in the x order
+    dx, dy = xs[s] - uv[rows, 0], ys[s] - uv[rows, 1]
+    near = dx * dx + dy * dy <= radius_px ** 2
+    rows, s = rows[near], s[near]
+    if not len(rows):
         return np.zeros((0, 2), np.int64)
-    x = np.ascontiguousarray(old.desc[o] ^ new.desc[n]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
-    ham = popcount_u64(x).astype(np.int64).sum(axis=1)
+    o = has3[rows]
+    x = np.ascontiguousarray(old.desc[o] ^ new.desc[by_x[s]]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
+    ham = popcount_u64(x).sum(axis=1, dtype=np.int64)
     keep = ham <= max_hamming
     if not keep.any():
         return np.zeros((0, 2), np.int64)
-    o, n, ham = o[keep], n[keep], ham[keep]
-    order = np.lexsort((ham, o))  # per old point its best candidate first ...
-    o, n, ham = o[order], n[order], ham[order]
-    first = np.concatenate((_TRUE, o[1:] != o[:-1]))
-    o, n, ham = o[first], n[first], ham[first]
-    order = np.lexsort((ham, n))  # ... then per new feature its best old point
+    o, s, ham = o[keep], s[keep], ham[keep]
+    # per old point (the candidates come grouped by it) its best candidate, ties to the one met first (further
+    # left): the smallest ham * N + position in one pass ...
+    n_new = len(by_x)
+    first = np.flatnonzero(np.concatenate((_TRUE, o[1:] != o[:-1])))
+    best = np.minimum.reduceat(ham * n_new + s, first)
+    o, n, ham = o[first], by_x[best % n_new], best // n_new
+    # ... then per new feature its best old point (ties to the first old point), in the new features' order
+    order = np.argsort((n * (max_hamming + 1) + ham) * (int(o[-1]) + 1) + o)
     o, n = o[order], n[order]
     first = np.concatenate((_TRUE, n[1:] != n[:-1]))
     return np.column_stack([o[first], n[first]]).reshape(-1, 2)
@@ -123,8 +126,8 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
     n_matches = len(pairs)
     if n_matches < min_inliers:
         return None
-    obj = old.p_cam[pairs[:, 0]].astype(np.float64)
-    img = new.uv[pairs[:, 1]].astype(np.float64)
+    obj = old.p_cam[pairs[:, 0]].astype(np.float64, copy=False)  # the rows taken are a new array already
+    img = new.uv[pairs[:, 1]].astype(np.float64, copy=False)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=60, reprojectionError=reproj_px,
                                              confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     if not ok or inl is None or len(inl) < min_inliers:
@@ -138,7 +141,7 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
     pairs = pairs[inl]
     if guided_px > 0:
         g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-        g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
+        g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64, copy=False), new.uv[g[:, 1]].astype(np.float64, copy=False)
         n_good = int(np.count_nonzero(good))
         fit = _refit(g_obj, g_img, K, rvec, tvec, (reproj_px,), n_good)  # on what the pose explains
         if fit is not None and np.count_nonzero(fit[2] <= reproj_px) >= n_good:
@@ -150,7 +153,9 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
 def _reproj_err(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """Reprojection error [px] of each 3D point `obj` against its pixel `img` under the pose (rvec, tvec)."""
     proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
-    return np.linalg.norm(proj[:, 0] - img, axis=1)
+    d = proj[:, 0] - img
+    d *= d
+    return np.sqrt(d[:, 0] + d[:, 1])  # np.linalg.norm(axis=1)'s sum and root, without its checks
 
 
 def _refit(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
@@ -185,7 +190,7 @@ def pnp_from(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body
     `guided_px` of the guess, then on those within `reproj_px`; None when fewer than `min_inliers` are left."""
     rvec, tvec = _cam_pose(T_old_new_guess, T_body_cam)
     g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-    obj, img = old.p_cam[g[:, 0]].astype(np.float64), new.uv[g[:, 1]].astype(np.float64)
+    obj, img = old.p_cam[g[:, 0]].astype(np.float64, copy=False), new.uv[g[:, 1]].astype(np.float64, copy=False)
     fit = _refit(obj, img, K, rvec, tvec, (guided_px, reproj_px), max(min_inliers, 6))
     if fit is None:
         return None
