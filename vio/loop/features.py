@@ -75,10 +75,11 @@ def spread_corners(uv: np.ndarray, response: np.ndarray, shape: tuple[int, int],
         order = np.argsort((cell.astype(np.uint16) << 8) | weak, kind="stable")
     else:
         order = np.argsort(cell * float(1 << 20) - response, kind="stable")
-    cell = cell[order]
-    rank = np.arange(len(order)) - np.searchsorted(cell, cell)  # position within its cell, strongest first
-    per = max(1, n // (cx * cy))
-    first, rest = order[rank < per], order[rank >= per]
+    count = np.bincount(cell, minlength=cx * cy)
+    # position within its cell, strongest first (the sorted corners come cell by cell)
+    rank = np.arange(len(order)) - np.repeat(np.cumsum(count) - count, count)
+    take = rank < max(1, n // (cx * cy))
+    first, rest = order[take], order[~take]
     rest = rest[np.argsort(-response[rest] if weak is None else weak[rest], kind="stable")][:max(0, n - len(first))]
     return np.concatenate([first, rest])[:n]
 
