@@ -1188,6 +1188,27 @@ def test_pyramid_levels_match_a_view_from_further_off(loop_flight):
     assert two >= 2 * max(one, 10)
 
 
+def test_corners_undistorted_from_the_pixel_table_are_undistort_px_s():
+    """The extractor looks its corners' undistorted pixels up in a table of every integer pixel (FAST's corners lie
+    on them): the same float64 values undistort_px gives the same points (radtan and equidistant lenses); a corner
+    off the integer grid, outside the image or from an image of another size is undistorted directly."""
+    from vio.calibration import CameraCalibration
+    from vio.frontend.undistort import undistort_px
+    from vio.loop.features import FeatureExtractor
+
+    rng = np.random.default_rng(3)
+    for model, dist in (("radtan", (-0.28, 0.07, 2e-4, 2e-5)), ("equidistant", (-0.01, 0.02, -0.01, 0.003))):
+        cam = CameraCalibration(fx=320.0, fy=318.0, cx=161.0, cy=119.5, width=320, height=240, distortion=dist,
+                                distortion_model=model)
+        ex = FeatureExtractor(cam)
+        uv = np.column_stack([rng.integers(0, 320, 500), rng.integers(0, 240, 500)]).astype(np.float32)
+        got = ex._undistort_corners(uv, (240, 320))
+        assert got.tobytes() == undistort_px(cam, uv.astype(np.float64)).tobytes()
+        for odd, shape in ((uv + np.float32(0.5), (240, 320)), (np.vstack([uv, [[320, 5]]]), (240, 320)),
+                           (uv, (480, 640))):
+            np.testing.assert_array_equal(ex._undistort_corners(odd, shape), undistort_px(cam, odd.astype(float)))
+
+
 def test_spread_corners_orders_fast_integer_responses_as_the_float_key_does():
     """FAST's responses (integers 0..255) are sorted by a 16-bit key (cell << 8 | 255 - response) instead of the float
     key cell * 2**20 - response: the same picks in the same order, ties (kept in input order) and the responses 0
