@@ -28,3 +28,16 @@ def v101_path() -> Path:
 @pytest.fixture(scope="session")
 def v102_path() -> Path:
     return _need(V102)
+
+
+@pytest.fixture(autouse=True)
+def _root_log_level():
+    """Each test starts from the root logger's level as the session had it: `vio run`'s main (called in-process by
+    the daemon tests) sets it from `[run] log_level`, and a later test counting INFO records then also counted
+    records from before its own `caplog.at_level` block (test_mavlink's mount-once test failed after them)."""
+    import logging
+
+    root = logging.getLogger()
+    level = root.level
+    yield
+    root.setLevel(level)
