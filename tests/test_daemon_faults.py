@@ -34,6 +34,7 @@ from test_service import (
     _received,
     _started,
     _wait,
+    fly_fake,
     notify_socket,
 )
 
@@ -565,3 +566,97 @@ def test_an_output_failure_reads_as_a_sentence_not_a_python_type():
         "x.png: cannot write image (disk full: 56 KiB left)"
     assert _os_error_text(OSError(errno.ENOSPC, "No space left on device")) == "No space left on device (ENOSPC)"
     assert _os_error_text(KeyError("k")) == "KeyError: 'k'"
+
+
+def _map_info(path: Path) -> tuple[dict, str]:
+    """`vio map info FILE --json` and its text: (header and figures, text)."""
+    args = [sys.executable, "-m", "vio.app.cli", "map", "info", str(path)]
+    js = subprocess.run([*args, "--json"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    text = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert js.returncode == 0 and text.returncode == 0, js.stderr[-2000:] + text.stderr[-2000:]
+    return json.loads(js.stdout), text.stdout
+
+
+def test_a_daemon_killed_mid_flight_keeps_its_map_and_its_restart_grows_it(tmp_path: Path) -> None:
+    """`[map] save` with checkpoints: `vio run` killed with SIGKILL mid-flight (as systemd's watchdog, the OOM killer
+    or a power cut would) leaves its map so far, marked as a checkpoint; restarted on the same boot it loads it,
+    relocalises in it, and its clean stop saves one final map holding both runs' keyframes. Before checkpoints the
+    killed run left nothing and the restart saved only its own keyframes."""
+    _need_pipeline()
+    map_path = tmp_path / "warehouse.map.npz"
+    cfg = tmp_path / "config.toml"
+    cfg.write_text(f"""[source]
+kind = "fake"
+realtime = false
+fake_duration_s = 8.0
+width = 320
+height = 200
+[run]
+status_file = "{tmp_path / 'status.json'}"
+[loop]
+enabled = true
+output_join_edges = 3
+[map]
+save = "{map_path}"
+checkpoint_s = 1.0
+""")
+    log1 = tmp_path / "first.log"
+    with open(log1, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
+                                stdout=out, stderr=subprocess.STDOUT)
+    try:
+        assert _wait(lambda: map_path.exists() and "source finished" not in log1.read_text()
+                     and log1.read_text().count("map checkpoint") >= 1 and time.sleep(2.0) is None, 40), \
+            log1.read_text()[-3000:]
+    finally:
+        proc.kill()  # no clean stop: no final save
+        proc.wait(15)
+    assert "map saved to" not in log1.read_text(), log1.read_text()[-3000:]
+    first, text = _map_info(map_path)
+    assert first["checkpoint"]["pid"] == proc.pid and first["checkpoint"]["loaded"] is None, first
+    assert "checkpoint of a run that did not stop cleanly" in text, text
+    n1 = first["keyframes"]
+    assert n1 >= 2 and len(first.get("parts") or [1]) == 1, first
+
+    rc, text2 = fly_fake(tmp_path, cfg.read_text(), 40)
+    assert rc == 0 and "Traceback" not in text2, text2[-3000:]
+    assert f"its {n1} keyframes are loaded and this run grows them" in text2, text2[-3000:]
+    assert "relocalised in the map" in text2 and "map saved to" in text2, text2[-3000:]
+    final, text = _map_info(map_path)
+    assert "checkpoint" not in final and "did not stop cleanly" not in text, final
+    parts = final["parts"]
+    assert len(parts) == 2 and parts[0]["keyframes"] == n1 and parts[1]["keyframes"] > 0, parts
+    assert final["keyframes"] == n1 + parts[1]["keyframes"], final
+    assert "part 2:" in text and "joined by" in text, text
+
+
+def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_over(tmp_path: Path, caplog) -> None:
+    """A checkpoint at `[map] save` left by a run on an earlier boot (a power cut) is another flight's: it is moved
+    to NAME.checkpoint-TIME.npz and said, and this run starts without it; one of this boot is grown."""
+    from types import SimpleNamespace
+
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import boot_id, load_map, run_identity, save_map
+
+    voc = SimpleNamespace(k=2, depth=1, centres=np.zeros((2, 32), np.uint8), idf=np.ones(2))
+    cam = SimpleNamespace(fx=200.0, fy=200.0, cx=160.0, cy=100.0, width=320, height=200, T_body_cam=np.eye(4))
+    feats = [KeyframeFeatures(np.zeros((3, 32), np.uint8), np.ones((3, 2), np.float32),
+                              np.ones((3, 3), np.float32)) for _ in range(2)]
+    path = tmp_path / "m.npz"
+    cfg = config_from_dict({"map": {"save": str(path)}})
+
+    def write(boot: str) -> None:
+        save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam,
+                 checkpoint={**run_identity(None), "boot_id": boot})
+
+    write(boot_id())
+    grown = service.map_to_grow(cfg, None)
+    assert grown is not None and len(grown.t_ns) == 2 and path.exists()
+    write("an-earlier-boot")
+    with caplog.at_level(logging.WARNING):
+        assert service.map_to_grow(cfg, None) is None
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith("m.checkpoint-")]
+    assert not path.exists() and len(aside) == 1 and "moved to" in caplog.text, caplog.text
+    assert load_map(aside[0]).header["checkpoint"]["boot_id"] == "an-earlier-boot"
+    save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)  # a finished map: written over, as before
+    assert service.map_to_grow(cfg, None) is None and path.exists()

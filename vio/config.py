@@ -505,6 +505,10 @@ class MapConfig:
                          "a map grown by every flight in one place stays the size of that place; 0: all saved",
                          min=0, max=10)
     prune_deg: float = opt(10.0, "with prune_m: the largest turn between the two cameras", min=0.1, max=180)
+    checkpoint_s: float = opt(30.0, "vio run with save: also write the map there this often while flying, marked as a "
+                              "checkpoint (the loop-closure thread writes it), so a run killed without a clean stop "
+                              "loses at most this much of the map, and its restart on the same boot grows it "
+                              "(docs/loop-closure.md#map-files); 0: only at stop", min=0, max=3600)
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ The frame loop only hands a keyframe over (`submit`: a non-blocking put into a b
 drops the keyframe and counts it) and reads the newest correction (`correction`, under a lock). It never
 waits for retrieval, verification or the pose-graph solve. A live view that asks for them (`keep_snapshot`)
 reads the corrected keyframe poses and loop edges as a `LoopSnapshot`, built in this thread after each
-keyframe so that the view never reads the pose graph while it is being solved."""
+keyframe so that the view never reads the pose graph while it is being solved. A map checkpoint (`vio run`'s
+`[map] checkpoint_s`) is written by this thread too, between keyframes: the frame loop never waits for it."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import contextlib
 import logging
 import queue
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,8 +43,17 @@ class _Settled:
 
 
 class LoopWorker:
-    def __init__(self, closer, max_queue: int = 64, keep_snapshot: bool = False) -> None:
+    def __init__(self, closer, max_queue: int = 64, keep_snapshot: bool = False,
+                 checkpoint: Callable[[object], None] | None = None, checkpoint_s: float = 0.0) -> None:
+        """`checkpoint(closer)`: called in this thread every `checkpoint_s` while keyframes came since the last
+        call (and not after close()); what it raises is logged, the stage goes on."""
         self.closer = closer
+        self._checkpoint = checkpoint if checkpoint_s > 0 else None
+        self._checkpoint_s = checkpoint_s
+        self._next_checkpoint = time.monotonic() + checkpoint_s
+        self._checkpointed = 0  # keyframes processed as of the last checkpoint
+        self._checkpoint_error: str | None = None
+        self.checkpoints = 0
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
         self._lock = threading.Lock()
         self._correction = np.eye(4)
@@ -151,9 +163,38 @@ class LoopWorker:
                             np.array([k.session for k in c.keyframes]),
                             tuple((e.i, e.j, e.weight) for e in c.graph.edges if e.kind == "loop"))
 
+    def _next(self):
+        """The next queued item; in between, a checkpoint when one is due and keyframes came since the last."""
+        while self._checkpoint is not None:
+            dirty = self._processed > self._checkpointed and self.error is None and not self._abandon.is_set()
+            wait = self._next_checkpoint - time.monotonic()
+            if dirty and wait <= 0:
+                self._write_checkpoint()
+                continue
+            try:
+                return self._q.get(timeout=wait if dirty else self._checkpoint_s)
+            except queue.Empty:
+                continue
+        return self._q.get()
+
+    def _write_checkpoint(self) -> None:
+        self._next_checkpoint = time.monotonic() + self._checkpoint_s
+        self._checkpointed = self._processed
+        try:
+            self._checkpoint(self.closer)
+            self.checkpoints += 1
+            if self._checkpoint_error is not None:
+                log.info("map checkpoint written again")
+            self._checkpoint_error = None
+        except Exception as e:  # noqa: BLE001 - a failed checkpoint must not stop loop closure
+            msg = str(e) or type(e).__name__
+            if msg != self._checkpoint_error:  # one line per event, not one per checkpoint
+                log.error("map checkpoint not written: %s", msg)
+            self._checkpoint_error = msg
+
     def _run(self) -> None:
         while True:
-            item = self._q.get()
+            item = self._next()
             try:
                 if item is None:
                     if self.error is None and not self._abandon.is_set():

@@ -60,6 +60,11 @@ def run(args: argparse.Namespace) -> int:
         how = "the frame's origin" if j is None else f"joined by {j} loop edges" + (
             " (weak: its place rests on them)" if j < WEAK_JOIN_EDGES else "")
         print(f"  part {k + 1}: {part['keyframes']} keyframes over {spans[k]:.1f} s, {how}")
+    cp = info.get("checkpoint")
+    if cp:
+        print(f"  checkpoint of a run that did not stop cleanly (pid {cp.get('pid')}, started {cp.get('started_utc')}, "
+              f"boot {str(cp.get('boot_id'))[:8]}...): not a finished map; `vio run` restarted on that boot with "
+              "this [map] save grows it")
     if info.get("note"):
         print(f"  note: {info['note']}")
     return 0

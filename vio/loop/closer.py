@@ -128,6 +128,8 @@ class LoopCloser:
         self._pending: list[_Candidate] = []
         self.map_keyframes = 0  # keyframes of a loaded map (the first ones)
         self._map_stamp: tuple | None = None  # the loaded map file as read (mapfile.file_stamp)
+        self._own_stamp: tuple | None = None  # the map file as this run's last save_map left it
+        self._redirect: dict[str, Path] = {}  # a map path found changed by another run -> where this run writes
         self._marginal_warned = False  # correction_uncertainty fell back to the loop sigmas (said once)
         self.map_camera_warning: str | None = None  # a loaded map made with another camera size or focal length
         self.map_mount_change: tuple[float, float] | None = None  # (deg, mm) the map's camera mount differed by
@@ -479,7 +481,7 @@ class LoopCloser:
         ref = self._comp(0)
         return [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
 
-    def save_map(self, path, prune_m: float = 0.0, prune_deg: float = 0.0) -> dict:
+    def save_map(self, path, prune_m: float = 0.0, prune_deg: float = 0.0, checkpoint: dict | None = None) -> dict:
         """Write the keyframes whose poses are in the map's frame: those of the first session (a loaded map's,
         else this flight's start) and of every session a loop edge has joined to it. A segment after an
         estimator reset that never relocalised, or a flight that never relocalised in the loaded map, has
@@ -488,7 +490,12 @@ class LoopCloser:
 
         With `prune_m` > 0, a keyframe of this flight whose camera is within `prune_m` and `prune_deg` of one
         already kept (the loaded map's, or an earlier one of this flight) is not saved (`pruned_keyframes`): a
-        map grown by every flight in the same warehouse would otherwise grow by each flight's whole length."""
+        map grown by every flight in the same warehouse would otherwise grow by each flight's whole length.
+
+        `checkpoint`: the run's identity, for a save in flight (`vio run`'s `[map] checkpoint_s`): the header marks
+        the map as not final. A file this run saved before is compared with what this run left there, as a loaded
+        one with what was loaded: another run's save over it in between is kept, and this run writes beside it
+        (the same `alt` name for every later save)."""
         from vio.loop.mapfile import file_stamp, save_map
 
         target, conflict = Path(path), ""
@@ -498,15 +505,23 @@ class LoopCloser:
             raise VioError(f"{path}: this flight made no keyframe (it never initialised or was too short), so there "
                            "is no map to save; " + ("the map that was there is kept" if target.exists()
                                                      else "nothing written"))
-        loaded = self._map_stamp
+        real = os.path.realpath(target)
+        ref = next((st for st in (self._own_stamp, self._map_stamp) if st is not None and st[0] == real), None)
         now = file_stamp(target)
-        if loaded is not None and os.path.realpath(target) == loaded[0] and now is not None and now != loaded:
+        if real in self._redirect:
+            target = self._redirect[real]
+            conflict = f"{path} changed since this flight loaded or saved it: this flight's map is written to {target}"
+        elif ref is not None and now is not None and now != ref:
             # two flights growing one map at once: the later save would drop the earlier one's keyframes unsaid
             alt = target.with_name(f"{target.stem}.{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}{target.suffix}")
-            conflict = (f"{target} changed since this flight loaded it (another run saved over it): this flight's "
+            why = "loaded" if ref is self._map_stamp else "saved"
+            conflict = (f"{target} changed since this flight {why} it (another run saved over it): this flight's "
                         f"map is written to {alt} instead, and {target} is kept as it is")
             log.warning("map: %s", conflict)
+            self._redirect[real] = alt
             target = alt
+        # a checkpoint says nothing of its own: every few seconds, it would repeat what the final save says once
+        say, warn = (log.debug, log.debug) if checkpoint is not None else (log.info, log.warning)
         keep = self.map_frame_keyframes()
         left_out = len(self.keyframes) - len(keep)
         n_joined = len(keep)
@@ -515,13 +530,13 @@ class LoopCloser:
         pruned = n_joined - len(keep)
         self.saved_keyframes = keep
         if pruned:
-            log.info("map %s: %d of this flight's keyframes not saved: within %.2f m and %.0f deg of a kept one",
+            say("map %s: %d of this flight's keyframes not saved: within %.2f m and %.0f deg of a kept one",
                      path, pruned, prune_m, prune_deg)
         notes = []
         if left_out:
             notes.append(f"{left_out} keyframes left out: their odometry segment was never joined to the map's "
                          f"frame by a loop edge (an estimator reset, or no relocalisation in the loaded map)")
-            log.warning("map %s: %s", path, notes[-1])
+            warn("map %s: %s", path, notes[-1])
         parts = list(self._map_parts) if self.map_keyframes else []
         for s in sorted({self.keyframes[k].session for k in keep if k >= self.map_keyframes}):
             n = sum(1 for k in keep if self.keyframes[k].session == s)
@@ -532,12 +547,12 @@ class LoopCloser:
             if joins is not None and joins < WEAK_JOIN_EDGES:
                 notes.append(f"a part of {n} keyframes is joined to the rest by only {joins} loop edges: its place "
                              f"in the map's frame rests on them (it shared few views with the rest)")
-                log.warning("map %s: %s; fly it where the map's views are, or leave it out", path, notes[-1])
+                warn("map %s: %s; fly it where the map's views are, or leave it out", path, notes[-1])
         h = save_map(target, [self.keyframes[k].t_ns for k in keep], [self.graph.estimate[k] for k in keep],
                      [self.keyframes[k].feats for k in keep], self.vocab, self.cam, note="; ".join(notes),
-                     parts=parts)
-        if loaded is not None and not conflict and os.path.realpath(target) == loaded[0]:
-            self._map_stamp = file_stamp(target)  # this run's own save is no conflict for its next one
+                     parts=parts, checkpoint=checkpoint)
+        if not conflict:
+            self._own_stamp = file_stamp(target)  # this run's own save is no conflict for its next one
         return {**h, "left_out_keyframes": left_out, "pruned_keyframes": pruned, "path": str(target),
                 "conflict": conflict}
 

@@ -8,6 +8,10 @@ One `.npz` (numpy arrays, read with allow_pickle=False) holding a JSON header an
                     parts (optional, readers of version 1 ignore it): the keyframes in order, by the flight
                     segment they came from; join_edges is the loop edges that placed a segment in the map's
                     frame (null for the first, the frame's origin)
+                    checkpoint (optional, readers of version 1 ignore it): present only in a map `vio run` wrote
+                    while flying ([map] checkpoint_s), absent once the run saved it at a clean stop: {"boot_id",
+                    "started_utc", "pid", "loaded"} of the run that wrote it (`run_identity`); a file that still
+                    has it is the map of a run that did not stop cleanly
     kf_t_ns         (N,) int64    keyframe stamps (IMU clock of the mapping flight)
     kf_T_world_body (N, 4, 4) f64 loop-corrected keyframe poses in the map's world frame (ENU/FLU, z up)
     kf_offsets      (N+1,) int64  keyframe k owns descriptor rows kf_offsets[k]:kf_offsets[k+1]
@@ -59,12 +63,31 @@ def file_stamp(path: str | Path) -> tuple | None:
     return os.path.realpath(path), st.st_size, st.st_mtime_ns, st.st_ino
 
 
+def boot_id() -> str:
+    """This boot's id (Linux: /proc/sys/kernel/random/boot_id), '' where there is none: a checkpoint written since
+    this boot is this flight's (a daemon restarted by systemd), one from an earlier boot is not."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def run_identity(loaded: str | None) -> dict:
+    """What names the run writing a checkpoint (the header's `checkpoint`): the boot, the process and its start,
+    and the map it loaded (`[map] load`, its real path, or None)."""
+    return {"boot_id": boot_id(),
+            "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "pid": os.getpid(), "loaded": os.path.realpath(loaded) if loaded else None}
+
+
 def vocabulary_digest(voc) -> str:
     return hashlib.sha256(voc.centres.tobytes() + voc.idf.tobytes()).hexdigest()
 
 
 def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatures], vocabulary, cam,
-             note: str = "", parts: list[dict] | None = None) -> dict:
+             note: str = "", parts: list[dict] | None = None, checkpoint: dict | None = None) -> dict:
+    """Write a map (format: module docstring). `checkpoint`: the writing run's `run_identity`, for a map written in
+    flight that is not final yet (absent: a finished map)."""
     offsets = np.concatenate([[0], np.cumsum([len(f.desc) for f in features])]).astype(np.int64)
     header = {"format": FORMAT, "version": VERSION, "keyframes": len(features), "descriptors": int(offsets[-1]),
               "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -77,6 +100,8 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
               "note": note}
     if parts is not None:
         header["parts"] = parts
+    if checkpoint is not None:
+        header["checkpoint"] = checkpoint
 
     def cat(attr, shape, dtype):
         arrs = [getattr(f, attr) for f in features]
@@ -140,6 +165,10 @@ def _header_problem(header: dict, n: int) -> str | None:
             for q in parts)
         if not ok or sum(q["keyframes"] for q in parts) != n or (parts and parts[0].get("join_edges") is not None):
             return f"its header's parts do not split its {n} keyframes"
+    cp = header.get("checkpoint")
+    if cp is not None and not (isinstance(cp, dict) and isinstance(cp.get("boot_id"), str)
+                               and (cp.get("loaded") is None or isinstance(cp["loaded"], str))):
+        return "its header's checkpoint does not name the run that wrote it"
     cam = header.get("camera")
     if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
                                             and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")):

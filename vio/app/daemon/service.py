@@ -105,6 +105,9 @@ class Service:
         self.output_lock: Any = None  # the MAVLink output's endpoint (output_endpoint_lock), held likewise
         self._map_data = map_data
         self._vocabulary = vocabulary
+        from vio.loop.mapfile import run_identity
+
+        self._run_identity = run_identity(cfg.map.load)  # in the checkpoints' headers
         self.stop = threading.Event()
         self.notifier = notifier or SdNotifier()
         rc = cfg.run
@@ -197,18 +200,28 @@ class Service:
         from vio.loop.closer import LoopCloser
 
         closer = LoopCloser(calib, self.cfg.loop, self._vocabulary)
-        if self.cfg.map.load:
-            if self._map_data is None:
-                from vio.loop.mapfile import load_map
+        if self.cfg.map.load and self._map_data is None:
+            from vio.loop.mapfile import load_map
 
-                self._map_data = load_map(self.cfg.map.load)
+            self._map_data = load_map(self.cfg.map.load)
+        if self._map_data is not None:  # [map] load, or this boot's checkpoint of [map] save (map_to_grow)
             closer.load_map(self._map_data)
-        self.loop = LoopWorker(closer, max_queue=16)  # full: the keyframe is dropped, the odometry never waits
+        every = self.cfg.map.checkpoint_s if self.cfg.map.save else 0.0
+        # full: the keyframe is dropped, the odometry never waits (nor for a checkpoint: written in that thread)
+        self.loop = LoopWorker(closer, max_queue=16, checkpoint=self._save_checkpoint, checkpoint_s=every)
         self.estimator.loop_worker = self.loop
         if self.view is not None:  # the view shows the loop-corrected keyframes
             self.loop.keep_snapshot = True
             self.view.loop = self.loop
         self.estimator.loop_output = self._loop_output
+
+    def _save_checkpoint(self, closer: Any) -> None:
+        """The map so far, marked as a checkpoint of this run ([map] checkpoint_s; in the loop-closure thread)."""
+        h = closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg,
+                            checkpoint=self._run_identity)
+        (log.info if not self.loop or not self.loop.checkpoints else log.debug)(
+            "map checkpoint written to %s: %d keyframes (every %.0f s until the map is saved at stop)",
+            h["path"], h["keyframes"], self.cfg.map.checkpoint_s)
 
     @property
     def workers(self) -> list[Worker]:
@@ -572,7 +585,12 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     if not (getattr(args, "verbose", False) or getattr(args, "quiet", False)):
         logging.getLogger().setLevel(cfg.run.log_level)
-    service = Service(cfg, map_data=checked.map_data, vocabulary=checked.vocabulary)
+    try:
+        map_data = map_to_grow(cfg, checked.map_data)
+    except VioError as e:
+        print(f"vio run: {e}", file=sys.stderr)
+        return EXIT_CONFIG
+    service = Service(cfg, map_data=map_data, vocabulary=checked.vocabulary)
     service.instance_lock, service.output_lock = lock, output_lock
     from drivers.signals import stop_on_signal
 
@@ -720,6 +738,56 @@ def single_instance(cfg: VioConfig) -> Any:
         f.write(f"{os.getpid()}\n")
         f.flush()
     return f
+
+
+def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
+    """The map this run starts from: `map_data` (`[map] load`, read by check_run_config), or the checkpoint a run of
+    this configuration on this boot left at `[map] save` when it did not stop cleanly (killed by the watchdog, the
+    OOM killer, a crash: systemd restarts it), which holds the loaded map and that run's flight so far. A checkpoint
+    from another boot, or of a run that loaded another map, is moved aside to NAME.checkpoint-TIME.npz (kept, said)
+    rather than grown: this flight may be elsewhere, and its keyframes are saved only once it relocalises in what
+    it loaded. Called once at start, after the instance lock (no other daemon of this configuration runs)."""
+    from vio.loop.mapfile import boot_id, load_map
+
+    save = cfg.map.save
+    if not save or not os.path.isfile(save):
+        return map_data
+    if cfg.map.load and os.path.realpath(cfg.map.load) == os.path.realpath(save):
+        cp = (map_data.header.get("checkpoint") if map_data is not None else None) or {}
+        if cp:  # the map grown in place: loaded as configured, whichever run's checkpoint it is
+            log.info("map: %s is a checkpoint of a run (pid %s, started %s) that did not stop cleanly: loaded as "
+                     "[map] load, this run grows it", save, cp.get("pid"), cp.get("started_utc"))
+        return map_data
+    try:
+        m = load_map(save)
+    except VioError:  # not a map (or damaged): written over at the first save, as before checkpoints
+        return map_data
+    cp = m.header.get("checkpoint")
+    if not cp:  # a finished map: [map] save writes over it, as it always did
+        return map_data
+    loaded = os.path.realpath(cfg.map.load) if cfg.map.load else None
+    if cp.get("boot_id") and cp["boot_id"] == boot_id() and cp.get("loaded") == loaded:
+        log.info("map: %s is the checkpoint of this daemon's run started %s (pid %s) on this boot, which did not "
+                 "stop cleanly: its %d keyframes are loaded%s and this run grows them", save, cp.get("started_utc"),
+                 cp.get("pid"), len(m.t_ns), f" in place of [map] load (they hold {cfg.map.load})" if loaded else "")
+        return m
+    p = Path(save)
+    stamp = str(m.header.get("created_utc") or "").replace("-", "").replace(":", "")[:15] or \
+        time.strftime("%Y%m%dT%H%M%S")
+    aside = p.with_name(f"{p.stem}.checkpoint-{stamp}{p.suffix}")
+    k = 1
+    while aside.exists():
+        aside, k = p.with_name(f"{p.stem}.checkpoint-{stamp}-{k}{p.suffix}"), k + 1
+    why = "another boot" if cp.get("boot_id") != boot_id() else f"this boot that loaded {cp.get('loaded')}"
+    try:
+        os.rename(os.path.realpath(save), aside)
+    except OSError as e:
+        raise VioError(f"[map] save: {save} is the checkpoint of a run on {why} that did not stop cleanly, and it "
+                       f"cannot be moved aside to {aside} ({e.strerror or e}): move or load it, then restart") from None
+    log.warning("map: %s was the checkpoint of a run on %s (pid %s, started %s) that did not stop cleanly: moved "
+                "to %s, kept (load it with [map] load to grow it); this run saves a map of its own", save, why,
+                cp.get("pid"), cp.get("started_utc"), aside)
+    return map_data
 
 
 @dataclass(frozen=True)
