@@ -652,6 +652,39 @@ def test_two_flights_growing_one_map_at_once_keep_both(loop_flight, tmp_path):
     assert (tmp_path / "m.npz").read_bytes() == before and len(load_map(hb["path"]).features) == 3
 
 
+def test_a_checkpointed_map_changed_by_another_run_is_kept_and_later_saves_go_to_one_name_beside(loop_flight,
+                                                                                                 tmp_path):
+    """`vio run` checkpoints its map into a file it did not load: a file another run saved over it in between
+    is kept (as a map changed since it was loaded), and this run's checkpoints and final save go beside it, all
+    to one name (not a new file every checkpoint). The checkpoint is marked in the header; the final save not."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map, run_identity
+
+    ds = EurocDataset(loop_flight)
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    run, other = LoopCloser(ds.calibration, LoopConfig()), LoopCloser(ds.calibration, LoopConfig())
+    for k in range(3):
+        run.add_keyframe(int(1e9 * k), make_T(np.eye(3), [0.5 * k, 0, 0]), img, None)
+        other.add_keyframe(int(1e9 * k), make_T(np.eye(3), [0.5 * k, 0, 0]), img, None)
+    path = tmp_path / "m.npz"
+    ident = run_identity(None)
+    h1 = run.save_map(path, checkpoint=ident)
+    assert h1["path"] == str(path) and not h1["conflict"] and load_map(path).header["checkpoint"] == ident
+    assert not run.save_map(path, checkpoint=ident)["conflict"]  # its own checkpoint is no conflict
+    other.save_map(path)
+    theirs = path.read_bytes()
+    h2 = run.save_map(path, checkpoint=ident)
+    assert "changed since this flight saved it" in h2["conflict"] and h2["path"] != str(path)
+    h3 = run.save_map(path)
+    assert h3["path"] == h2["path"] and path.read_bytes() == theirs
+    assert "checkpoint" not in load_map(h3["path"]).header
+    assert len(list(tmp_path.iterdir())) == 2
+
+
 def test_saved_map_counts_the_loop_edges_that_placed_each_part_and_warns_of_a_weak_one(loop_flight, tmp_path,
                                                                                       caplog, capsys):
     """A segment after an estimator reset that closes on the first one through 3 edges is saved (it is in the

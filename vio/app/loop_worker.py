@@ -76,6 +76,7 @@ class LoopWorker:
             log.info("loop closure: map of %d keyframes loaded; poses are in this flight's own frame until it "
                      "relocalises", closer.map_keyframes)
         self._abandon = threading.Event()  # close() ran out of time: skip what is still queued
+        self._closing = threading.Event()  # close() was called: no more checkpoints
         self._thread = threading.Thread(target=self._run, name="loop-closure", daemon=True)
         self._thread.start()
 
@@ -166,7 +167,8 @@ class LoopWorker:
     def _next(self):
         """The next queued item; in between, a checkpoint when one is due and keyframes came since the last."""
         while self._checkpoint is not None:
-            dirty = self._processed > self._checkpointed and self.error is None and not self._abandon.is_set()
+            dirty = self._processed > self._checkpointed and self.error is None and not self._closing.is_set() \
+                and not self._abandon.is_set()  # closing: the final save follows, within the shutdown budget
             wait = self._next_checkpoint - time.monotonic()
             if dirty and wait <= 0:
                 self._write_checkpoint()
@@ -233,6 +235,7 @@ class LoopWorker:
         keyframe), within `timeout_s` if given; else what is queued is dropped (counted). Returns True when
         the thread has stopped (the keyframe in hand gets `grace_s` more), so that its state (the map) can be
         read without it changing underneath."""
+        self._closing.set()
         if not wait:
             with contextlib.suppress(queue.Empty):
                 while True:
