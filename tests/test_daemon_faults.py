@@ -608,6 +608,9 @@ checkpoint_s = 1.0
         assert _wait(lambda: map_path.exists() and "source finished" not in log1.read_text()
                      and log1.read_text().count("map checkpoint") >= 1 and time.sleep(2.0) is None, 40), \
             log1.read_text()[-3000:]
+        loop = json.loads((tmp_path / "status.json").read_text())["loop"]  # what a kill now would keep, shown
+        assert loop["map_checkpoints"] >= 1 and loop["map_checkpoint_error"] is None, loop
+        assert 0 <= loop["map_checkpoint_age_s"] < 5, loop
     finally:
         proc.kill()  # no clean stop: no final save
         proc.wait(15)

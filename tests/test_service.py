@@ -210,6 +210,13 @@ def test_status_text_shows_the_loop_stage_when_it_runs() -> None:
     for needle in ("output blend", "edges 12 (1 switched off), in the map +-1.7 cm",
                    "blend still to go 0.42 m 12.0 deg", "map of 92 keyframes"):
         assert needle in text, text
+    assert "checkpoint" not in text  # no [map] save: nothing said of checkpoints
+    s["loop"].update(map_checkpoints=0, map_checkpoint_error=None, map_checkpoint_age_s=None)
+    assert ", no map checkpoint yet" in format_status(s, "HEALTHY", 1000.5)
+    s["loop"].update(map_checkpoints=4, map_checkpoint_age_s=12.3)
+    assert ", map checkpoint 12.3 s old (4 written)" in format_status(s, "HEALTHY", 1000.5)
+    s["loop"].update(map_checkpoint_error="disk full")
+    assert ", map checkpoint FAILING: disk full" in format_status(s, "HEALTHY", 1000.5)
 
 
 def test_status_text_shows_the_land_after_loss_failsafe_only_when_configured() -> None:

@@ -53,6 +53,7 @@ class LoopWorker:
         self._next_checkpoint = time.monotonic() + checkpoint_s
         self._checkpointed = 0  # keyframes processed as of the last checkpoint
         self._checkpoint_error: str | None = None
+        self._checkpoint_at: float | None = None  # monotonic time of the last checkpoint written
         self.checkpoints = 0
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
         self._lock = threading.Lock()
@@ -123,10 +124,15 @@ class LoopWorker:
         """Counts for the daemon's status file and health line (thread-safe copy)."""
         with self._lock:
             u = self._uncertainty
-            return {"keyframes": self._processed, "closures": self.closures, **self._counts,
-                    "map_keyframes": self.closer.map_keyframes, "dropped": self.dropped, "error": self.error,
-                    # how well the loop edges place the flight in the frame they brought (None in its own frame)
-                    "placement_sigma_m": None if u is None else round(u.position_sigma_m, 4)}
+            at = self._checkpoint_at
+            out = {"keyframes": self._processed, "closures": self.closures, **self._counts,
+                   "map_keyframes": self.closer.map_keyframes, "dropped": self.dropped, "error": self.error,
+                   # how well the loop edges place the flight in the frame they brought (None in its own frame)
+                   "placement_sigma_m": None if u is None else round(u.position_sigma_m, 4)}
+        if self._checkpoint is not None:  # what a kill now would keep of the map ([map] checkpoint_s)
+            out.update(map_checkpoints=self.checkpoints, map_checkpoint_error=self._checkpoint_error,
+                       map_checkpoint_age_s=None if at is None else round(time.monotonic() - at, 1))
+        return out
 
     def _note_events(self, closed: bool) -> None:
         """One log line per event an operator cares about: the first closure, the flight placed in a loaded map,
@@ -185,6 +191,7 @@ class LoopWorker:
         try:
             self._checkpoint(self.closer)
             self.checkpoints += 1
+            self._checkpoint_at = time.monotonic()
             if self._checkpoint_error is not None:
                 log.info("map checkpoint written again")
             self._checkpoint_error = None

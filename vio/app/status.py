@@ -102,6 +102,17 @@ def _fmt(v: Any, unit: str = "", nd: int = 1) -> str:
     return f"{v}{unit}"
 
 
+def _checkpoint_text(lp: dict[str, Any]) -> str:
+    """The map checkpoints of a daemon with `[map] save` (nothing from one without, or an older daemon)."""
+    if "map_checkpoints" not in lp:
+        return ""
+    if lp.get("map_checkpoint_error"):
+        return f", map checkpoint FAILING: {lp['map_checkpoint_error']}"
+    if not lp.get("map_checkpoints"):
+        return ", no map checkpoint yet"
+    return f", map checkpoint {_fmt(lp.get('map_checkpoint_age_s'), ' s')} old ({lp['map_checkpoints']} written)"
+
+
 def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
     """Readable multi-line report; every field tolerates absence (an older daemon, a starting one)."""
     def section(key: str) -> dict:  # absent, null or of another type: an older, starting or foreign daemon
@@ -155,6 +166,7 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
                      f"{_fmt(lp.get('loop_edges'))} ({_fmt(lp.get('switched_off'))} switched off){where}, "
                      f"jumps {_fmt(lp.get('loop_jumps'))}{walk}"
                      + (f", map of {lp['map_keyframes']} keyframes" if lp.get("map_keyframes") else "")
+                     + _checkpoint_text(lp)
                      + (f", STOPPED: {lp['error']}" if lp.get("error") else ""))
     rec = s.get("recording")
     if rec:
