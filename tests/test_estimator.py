@@ -723,13 +723,53 @@ def test_adaptive_imu_noise_reads_the_vibration_of_the_airframe():
     assert nees[True] < 0.5 * nees[False], nees
 
 
+def test_a_shaking_airframe_gets_its_noise_from_the_first_keyframe_not_after_ten(monkeypatch):
+    """The IMU is 40x noisier than its calibration from the start (3-4 m/s^2 of vibration reads so). The median that
+    engages the adaptive noise waits for 10 keyframes; the factors before it claimed the configured density against
+    20x that, and the accelerometer bias was pulled 0.6-0.7 m/s^2 off in the first seconds (ATE 0.20 m on this 8 s
+    flight; QA flights 208 and 216: 0.16-0.28 m/s^2, a 1.3 deg tilt). Now each of those first intervals whose own
+    2 s window reads above the threshold gets the noise it reads (measured: ATE 0.028 m, bias 0.10 m/s^2)."""
+    import vio.estimator as E
+
+    calib = synthetic_calibration()
+    est = Estimator(calib, VioConfig().estimator)
+    seen = []  # (keyframe measurements so far, white noise of the interval that starts here / the gyro's density)
+    params = Estimator._interval_params
+
+    def spy(self, t):
+        out = params(self, t)
+        seen.append((len(self._white_readings), np.sqrt(self._gyro_var_mean) / calib.imu.gyroscope_noise_density,
+                     self.white_scale is not None))
+        return out
+
+    bias = []
+    after = Estimator._after_keyframe
+
+    def spy_kf(self, t, e, ff, deferred=False):
+        bias.append((t, e.bias.accelerometer().copy()))
+        return after(self, t, e, ff, deferred)
+
+    monkeypatch.setattr(Estimator, "_interval_params", spy)
+    monkeypatch.setattr(Estimator, "_after_keyframe", spy_kf)
+    states, _, truth, _ = _run(est, duration_s=8.0, still_s=1.0, seed=5, scene_calib=_imu_noisier(calib, 40.0))
+    assert est.reset_counter == 0 and est.white_scale is not None
+    early = [s for s in seen if s[0] < E.IMU_NOISE_MIN_READINGS]
+    assert len(early) >= 5 and not any(engaged for *_, engaged in early)
+    assert all(30 < k < 55 for _, k, _ in early), early  # the noise the samples carry, not the configured 2x
+    first_3s = [b for t, b in bias if t * 1e-9 < 3.0]
+    assert max(np.linalg.norm(b - np.array([0.05, -0.04, 0.03])) for b in first_3s) < 0.25
+    assert float(np.sqrt(np.mean(_aligned_errors(states, truth) ** 2))) < 0.08
+
+
 def test_the_stereo_check_waits_for_the_quieter_imu_factors_pull_on_cam1_to_fade(monkeypatch):
     """The adaptive IMU noise engages after 10 keyframes; the IMU factors before it claimed the calibration's density,
     and what they said about cam1 stays in its marginal, so the stereo check took their pull for a disparity bias and
     let go of right calibrations (QA runs with 3-4 m/s^2 of vibration: +0.5-0.7 px at 4 sigma, ATE 48 mm for 28 and
     56 for 17). From the raise on, a reading counts only once its sigma is down to half the first one's after the
     raise; a reading that stood out before it does not count. Here every reading after the raise stands out (the
-    thresholds set to 0 there): the check lets go only at a reading that meets the sigma."""
+    thresholds set to 0 there): none counts before a reading meets the sigma, and the check lets go only at one that
+    does (with the first keyframes' provisional noise this flight's factors were never quiet, and the count still
+    starts again at the raise: it meets the sigma at 16.6 s and lets go at the confirming 17.4 s)."""
     from vio.backend import smoother as sm
 
     raised, read = [], []  # read: (t_ns, readings in a row that stood out before it, sigma px, let go)
@@ -762,7 +802,9 @@ def test_the_stereo_check_waits_for_the_quieter_imu_factors_pull_on_cam1_to_fade
     assert after[0][1] == 0  # the readings before the raise do not confirm the first one after it
     first_sigma = after[0][2]
     waited = [r for r in after if not r[3]]
-    assert len(waited) >= 2 and all(r[2] > 0.5 * first_sigma for r in waited), after
+    met = next((i for i, r in enumerate(after) if r[2] <= 0.5 * first_sigma), len(after))
+    assert met >= 2 and len(waited) >= 2, after  # it waited for the sigma at two readings at least
+    assert not any(r[3] for r in after[:met]) and all(r[1] == 0 for r in after[:met + 1]), after  # none counted
     assert all(r[2] <= 0.5 * first_sigma for r in after if r[3]), after
 
 
