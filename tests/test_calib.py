@@ -684,6 +684,17 @@ def test_a_calibration_file_without_imu_or_with_nan_distortion_is_refused(tmp_pa
     with pytest.raises(VioError, match="cam1: T_body_cam is not a rigid transform"):
         load_calibration(tmp_path / "inf.yaml")
 
+    for res in ([320.5, 200], [320, 200, 1], ["320", 200], [True, 200]):  # int() took 320.5 for 320, True for 1
+        d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+        d["cam0"]["resolution"] = res
+        (tmp_path / "res.yaml").write_text(yaml.safe_dump(d))
+        with pytest.raises(VioError, match=r"cam0: resolution must be two whole numbers \[width, height\]"):
+            load_calibration(tmp_path / "res.yaml")
+    d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    d["cam0"]["resolution"] = [float(x) for x in d["cam0"]["resolution"]]  # 752.0 is a whole number: read
+    (tmp_path / "res.yaml").write_text(yaml.safe_dump(d))
+    assert load_calibration(tmp_path / "res.yaml").cam0.width == int(d["cam0"]["resolution"][0])
+
 
 def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     """A hover never passes the extrinsic refinement's motion gate: no calibration is written, and the

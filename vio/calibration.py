@@ -254,7 +254,12 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
         if len(intrinsics) != 4:
             raise VioError(f"{where}: intrinsics must be [fx, fy, cx, cy], got {len(intrinsics)} values")
         fx, fy, cx, cy = (float(x) for x in intrinsics)
-        w, h = (int(x) for x in _need(d, "resolution", where))
+        res = list(_need(d, "resolution", where))
+        if len(res) != 2 or not all(isinstance(x, int) and not isinstance(x, bool) or
+                                    isinstance(x, float) and x.is_integer() for x in res):
+            # int() truncated [320.5, 200] to 320: a size the images may not have, said nowhere
+            raise VioError(f"{where}: resolution must be two whole numbers [width, height] in pixels, got {res}")
+        w, h = (int(x) for x in res)
         if "T_body_cam" in d and "T_cam_imu" in d:
             raise VioError(f"{where}: both T_body_cam and T_cam_imu given (one is the other's inverse): keep one")
         key = "T_body_cam" if "T_body_cam" in d else "T_cam_imu"
