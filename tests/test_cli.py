@@ -254,7 +254,10 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
                        # named by the option, not SimConfig's field ("duration_s = -3.0 is outside"), and exit 2
                        (["simulate", str(tmp_path / "s"), "--duration", "-3"], "--duration -3.0 is outside [0.1, 3600"),
                        (["simulate", str(tmp_path / "s"), "--size", "10x10"], "--size width 10 is outside"),
-                       (["simulate", str(tmp_path / "s"), "--right-dropout", "1:x"], "expected START:LENGTH")):
+                       (["simulate", str(tmp_path / "s"), "--right-dropout", "1:x"], "expected START:LENGTH"),
+                       # exit 1 after the folder was made and the scene built, before
+                       (["simulate", str(tmp_path / "s"), "--scene", "hall", "--aliasing", "1.5"],
+                        "--aliasing is for the room scene only")):
         assert main(argv) == EXIT_USAGE, argv
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, (argv, err)

@@ -31,7 +31,7 @@ from vio.sim import IMU_MOUNTS, default_calibration, perturbed_calibration
 from vio.sim.imu import ImuModel, ImuStream, random_bias, synthesize
 from vio.sim.motion import PROFILES, Motion, MountedMotion, make_profile
 from vio.sim.render import CameraRenderer, Photometric
-from vio.sim.scene import SCENES, Scene, make_scene
+from vio.sim.scene import ALIASING_ROOM_ONLY, SCENES, Scene, make_scene
 from vio.types import ImuSample, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -113,6 +113,8 @@ class SimConfig:
                            "recording's (EuRoC's IMU has its x axis up already)")
         if cfg.scene not in SCENES:
             raise VioError(f"simulate: unknown scene {cfg.scene!r}; expected one of {list(SCENES)}")
+        if cfg.scene != "room" and cfg.aliasing_period_m:  # said before any work, as an option's mistake (exit 2)
+            raise VioError(ALIASING_ROOM_ONLY)
         for name, (lo, hi) in {"calib_error": (0, 20), "stereo_error_px": (-20, 20), "time_offset_drift_ms": (0, 100),
                                "time_offset_period_s": (1, 36000)}.items():
             if not (lo <= getattr(cfg, name) <= hi):

@@ -309,6 +309,7 @@ def shelves_scene(seed: int = 0, ppm: float = 200.0, plain_fraction: float = 0.0
 
 
 SCENES = ("room", "hall", "shelves")
+ALIASING_ROOM_ONLY = "simulate: --aliasing is for the room scene only (the shelves scene repeats by itself)"
 HALL_MAX_PPM = 50.0  # the hall's 1700 m^2 of surface at 200 texels/m would not fit one cv2.remap atlas
 HALL_BRIGHTNESS = 0.4
 
@@ -343,7 +344,7 @@ def make_scene(name: str, seed: int = 0, ppm: float = 200.0, plain_fraction: flo
     if name == "room":
         return default_scene(seed, ppm, plain_fraction, aliasing_period_m)
     if name in ("hall", "shelves") and aliasing_period_m:
-        raise VioError("simulate: --aliasing is for the room scene only (the shelves scene repeats by itself)")
+        raise VioError(ALIASING_ROOM_ONLY)
     if name == "hall":
         return hall_scene(seed, ppm, plain_fraction)
     if name == "shelves":
