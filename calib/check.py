@@ -405,7 +405,9 @@ def check_calibration(dataset_path: str | Path, calib: StereoCalibration | None 
 
 
 def format_report(results: list[CheckResult]) -> str:
-    lines = [f"{r.verdict:4s}  {r.name}: {r.value:.3g} {r.unit}  ({r.detail})" for r in results]
+    # a check with no figure (IMU units), or one not made (SKIP), says no "nan"
+    lines = [f"{r.verdict:4s}  {r.name}: " + (f"{r.value:.3g} {r.unit}  " if np.isfinite(r.value) else "")
+             + f"({r.detail})" for r in results]
     worst = "FAIL" if any(r.verdict == "FAIL" for r in results) else \
         "WARN" if any(r.verdict == "WARN" for r in results) else "PASS"
     skipped = [r.name for r in results if r.verdict == "SKIP"]

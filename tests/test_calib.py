@@ -522,6 +522,8 @@ def test_check_passes_euroc_and_fails_bad_extrinsics(v101_path):
     for name in ("stereo epipolar error", "rectified row alignment", "reprojection consistency",
                  "gravity magnitude when still", "gravity direction vs ground truth"):
         assert good[name].verdict == "PASS", format_report(list(good.values()))
+    report = format_report(list(good.values()))  # checks with no figure said without one ("IMU units: nan" before)
+    assert "nan" not in report and "PASS  IMU units: (accel about g" in report, report
     calib, _ = import_calibration("euroc", [v101_path])
     # 0.5 deg about cam1's x axis moves epipolar lines vertically by ~4 px
     bad = {r.name: r for r in check_calibration(v101_path, _perturbed(calib, [np.radians(0.5), 0, 0]),
