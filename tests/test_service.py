@@ -1006,6 +1006,21 @@ def test_vio_run_flies_without_an_output_folder_it_cannot_write(tmp_path, monkey
         svc_mod.check_run_config(cfg)
 
 
+def test_an_output_name_over_the_file_systems_limit_is_a_configuration_error(tmp_path) -> None:
+    """A [run] path with a name over 255 bytes: a record_dir's was an internal error (Path.exists raised
+    ENAMETOOLONG), a status file's passed the check and failed at every write in flight."""
+    from vio import VioError
+    from vio.app.daemon.service import check_run_config
+    from vio.config import config_from_dict
+
+    long = "x" * 300
+    for key, value in (("record_dir", tmp_path / long), ("status_file", tmp_path / long),
+                       ("trajectory_file", tmp_path / long / "t.tum")):
+        cfg = config_from_dict({"run": {key: str(value)}})
+        with pytest.raises(VioError, match=rf"\[run\] {key}: the name 'x{{24}}'... is 300 bytes long, over the 255"):
+            check_run_config(cfg, warn=lambda _m: None)
+
+
 def test_vio_run_reads_the_loop_vocabulary_once(tmp_path, monkeypatch) -> None:
     """`vio run` read a [loop] vocabulary file twice at start: in its configuration check, and again when the loop
     stage started. The check's vocabulary is now the one the loop stage uses."""

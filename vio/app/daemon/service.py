@@ -904,7 +904,16 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         if not value:
             continue
         parent = Path(value) if key == "record_dir" else Path(value).parent
-        existing = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        # a name over the file system's limit (255 bytes): exists() raised (an internal error), and a status file's
+        # own name passed and failed at every write in flight
+        too_long = next((part for part in Path(value).parts if len(os.fsencode(part)) > 255), None)
+        if too_long is not None:
+            raise VioError(f"[run] {key}: the name {too_long[:24]!r}... is {len(os.fsencode(too_long))} bytes long, "
+                           "over the 255 a file system allows")
+        try:
+            existing = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        except OSError as e:  # the whole path over PATH_MAX, say
+            raise VioError(f"[run] {key} = {value!r}: {e.strerror or e}") from None
         if existing is not None and not existing.is_dir():
             raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
         if existing is not None and not os.access(existing, os.W_OK):
