@@ -167,6 +167,12 @@ def test_a_place_that_cannot_be_written_is_one_line_not_an_internal_error(tmp_pa
     assert main(["simulate", str(tmp_path / "afile" / "out"), "--duration", "1", "--size", "376x240"]) == 1
     err = capsys.readouterr().err
     assert "internal error" not in err and f"{tmp_path / 'afile'}" in err and err.count("\n") == 1, err
+    # `vio demo --keep` simulated and replayed the whole flight before finding it could not write there
+    for keep, says in ((tmp_path / "afile", "is a file, not a folder"),
+                       (tmp_path / "afile" / "sub", "cannot make the folder")):
+        assert main(["demo", "--keep", str(keep)]) == 1
+        out = capsys.readouterr()
+        assert f"--keep {keep}: {says}" in out.err and "simulating" not in out.out, out
 
 
 def test_config_check_reads_a_euroc_source_as_vio_replay_would(tmp_path, capsys, v101_path):

@@ -6,6 +6,7 @@ The first command of the README: it needs nothing but the installed package (no 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -20,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio import UsageError
+    from vio import UsageError, VioError
     from vio.app.replay import TumSink, replay
     from vio.evaluation import evaluate
     from vio.io.euroc import EurocDataset
@@ -28,6 +29,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration < 5:
         raise UsageError(f"--duration {args.duration}: at least 5 s (the flight starts with 2 s standing still)")
+    if args.keep:  # made (and known writable) before the flight is simulated, not after
+        if Path(args.keep).exists() and not Path(args.keep).is_dir():
+            raise VioError(f"--keep {args.keep}: is a file, not a folder")
+        try:
+            Path(args.keep).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise VioError(f"--keep {args.keep}: cannot make the folder ({e.strerror or e})") from None
+        if not os.access(args.keep, os.W_OK):
+            raise VioError(f"--keep {args.keep}: the folder is not writable")
     with tempfile.TemporaryDirectory(prefix="kestrel-demo-") as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
         data = root / "flight"
