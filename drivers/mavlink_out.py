@@ -88,6 +88,7 @@ class MavlinkStats:
     states_not_tracking: int = 0
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
     states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
+    states_refused_armed: int = 0  # a replay's poses withheld while the autopilot said it was armed (poses_to_armed)
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
@@ -173,8 +174,13 @@ class MavlinkOutput:
     def __init__(self, cfg: MavlinkConfig, url: str | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns, T_body_cam0: np.ndarray | None = None,
                  link: MavlinkLink | None = None, counter_file: str | None = None,
-                 max_state_age_ms: float | None = None, random_first_counter: bool = False) -> None:
+                 max_state_age_ms: float | None = None, random_first_counter: bool = False,
+                 poses_to_armed: bool = True) -> None:
         self.cfg = cfg
+        # False for `vio replay --mavlink`: a recording's poses are another flight's, never this vehicle's; an armed
+        # autopilot (a vehicle that may fly, or flies) would fly on them, so none goes out while it says armed
+        self._poses_to_armed = poses_to_armed
+        self._armed_refusal_said = False
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
         if not self.url:
@@ -465,6 +471,9 @@ class MavlinkOutput:
                 if state is not None and max_age is not None and now - state.t_ns > max_age:
                     self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
                     state = None
+                if state is not None and not self._poses_to_armed and self._ap_armed:
+                    self._refuse_armed()
+                    state = None
                 if state is not None:
                     self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
                     self._send_state_messages(state, now)
@@ -683,6 +692,17 @@ class MavlinkOutput:
         log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in "
                     "flight?): not tracking; no LAND is asked for it")
         self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
+
+    def _refuse_armed(self) -> None:
+        """A pose not sent: this output replays a recording and the autopilot says it is armed (said once, in the
+        log and to the ground station)."""
+        self.stats.states_refused_armed += 1
+        if not self._armed_refusal_said:
+            self._armed_refusal_said = True
+            log.error("the autopilot is armed: no pose of this replay is sent while it is (a recording's poses are "
+                      "another flight's, not this vehicle's; replay to a disarmed autopilot on the bench or a SITL "
+                      "before arming, or fly with vio run)")
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO replay: armed, poses not sent")
 
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")

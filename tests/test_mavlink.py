@@ -929,6 +929,43 @@ def test_land_after_loss_asks_an_armed_autopilot_to_land_once_per_loss(ap):
     out.close()
 
 
+def test_a_replay_sends_no_pose_to_an_armed_autopilot(ap, caplog):
+    """`vio replay --mavlink` sends a recording's poses, another flight's: an autopilot that says it is armed would
+    fly on them. None goes out while it says so (said once: log and STATUSTEXT); disarmed, they go out again. `vio
+    run` (the default) sends to an armed autopilot, which is what it is for."""
+    import logging
+
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", messages=["VISION_POSITION_ESTIMATE"])
+    replay_out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+
+    def heartbeat(armed: bool) -> None:
+        ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+        time.sleep(0.02)
+
+    def fly(out: MavlinkOutput, armed: bool, n: int = 4) -> list:
+        got = []
+        for _ in range(n):
+            heartbeat(armed)
+            clock.advance(0.1)
+            out.send_state(state(clock.t))
+            got += ap.drain(0.01)
+        return got
+
+    assert ap.of("VISION_POSITION_ESTIMATE", fly(replay_out, armed=False))
+    with caplog.at_level(logging.ERROR, logger="drivers.mavlink_out"):
+        got = fly(replay_out, armed=True) + fly(replay_out, armed=True)
+    assert not ap.of("VISION_POSITION_ESTIMATE", got) and replay_out.stats.states_refused_armed >= 6
+    assert [m.text for m in ap.of("STATUSTEXT", got)].count("VIO replay: armed, poses not sent") == 1
+    assert sum("the autopilot is armed: no pose of this replay is sent" in r.getMessage()
+               for r in caplog.records) == 1
+    assert ap.of("VISION_POSITION_ESTIMATE", fly(replay_out, armed=False))  # disarmed again: sent
+    replay_out.close()
+    run_out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock)
+    assert ap.of("VISION_POSITION_ESTIMATE", fly(run_out, armed=True)) and run_out.stats.states_refused_armed == 0
+    run_out.close()
+
+
 def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
     """Camera and IMU gone together (an OAK's one cable): no state says tracking = false, and the autopilot heard
     nothing, neither a STATUSTEXT nor, with land_after_loss_s, a LAND (a review's finding). No estimate for 0.5 s

@@ -556,7 +556,7 @@ def run(args: argparse.Namespace) -> int:
         from drivers.mavlink_out import MavlinkOutput, restamp_to_host_clock
 
         mav = MavlinkOutput(cfg.mavlink, args.mavlink, T_body_cam0=dataset.calibration.cam0.T_body_cam,
-                            max_state_age_ms=cfg.mavlink.max_state_age_ms).start()
+                            max_state_age_ms=cfg.mavlink.max_state_age_ms, poses_to_armed=False).start()
         sink = restamp_to_host_clock(mav)
         if loop is not None and cfg.loop.output != "off":  # the autopilot gets the loop-corrected pose
             sink = corrected_sink(sink, loop, cfg)
@@ -581,6 +581,13 @@ def run(args: argparse.Namespace) -> int:
               f"thinned to [view] rate_hz/image_hz, {vs['dropped']} dropped (viewer stuck), cost in the frame loop "
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
+    if mav is not None:
+        ms = mav.stats
+        res.extra["mavlink"] = {"states_sent": ms.states_sent, "states_refused_armed": ms.states_refused_armed,
+                                "autopilot_heartbeats": ms.autopilot_heartbeats}
+        print(f"mavlink: {ms.states_sent} poses sent to {args.mavlink}"
+              + (f"; {ms.states_refused_armed} not sent: the autopilot said it was armed" if ms.states_refused_armed
+                 else ""))
     from vio.estimator import stereo_check_line
 
     line = stereo_check_line(res.extra.get("stereo_check"))
