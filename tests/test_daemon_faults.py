@@ -9,6 +9,8 @@ excerpt whose images end while its IMU runs on (camera loss).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import logging
 import os
@@ -656,6 +658,15 @@ def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_ove
     grown = service.map_to_grow(cfg, None)
     assert grown is not None and len(grown.t_ns) == 2 and path.exists()
     write("an-earlier-boot")
+    # `vio config check` says what `vio run` would do with it, and does nothing
+    from vio.app.cli import main
+
+    toml = tmp_path / "c.toml"
+    toml.write_text(f'[map]\nsave = "{path}"\n')
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        assert main(["-q", "config", "check", str(toml)]) == 0
+    assert f"note: map: {path} is the checkpoint of a run on another boot" in out.getvalue(), out.getvalue()
+    assert "vio run moves it to" in out.getvalue() and path.exists()
     with caplog.at_level(logging.WARNING):
         assert service.map_to_grow(cfg, None) is None
     aside = [p for p in tmp_path.iterdir() if p.name.startswith("m.checkpoint-")]

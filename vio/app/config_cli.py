@@ -21,13 +21,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from vio.app.cli import EXIT_CONFIG
 
+    plan = None
     try:
         cfg = load_config(args.file)
         if args.config_cmd == "check":  # and what `vio run` checks at start: files it names, connection strings
-            from vio.app.daemon.service import check_run_config
+            from vio.app.daemon.service import check_run_config, checkpoint_plan
 
             try:
-                check_run_config(cfg)
+                plan = checkpoint_plan(cfg, check_run_config(cfg).map_data)
             except VioError as e:
                 raise VioError(f"{args.file}: {e}") from None
     except VioError as e:  # an invalid config has its own exit code, as in `vio run`
@@ -35,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     if args.config_cmd == "check":
         print(f"{args.file}: OK")
+        if plan is not None and plan.action:  # what `vio run` would do with it, said before it does
+            print(f"note: {plan.ahead}")
     else:
         print(config_to_toml(cfg), end="")
     return 0

@@ -740,37 +740,49 @@ def single_instance(cfg: VioConfig) -> Any:
     return f
 
 
-def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
-    """The map this run starts from: `map_data` (`[map] load`, read by check_run_config), or the checkpoint a run of
-    this configuration on this boot left at `[map] save` when it did not stop cleanly (killed by the watchdog, the
-    OOM killer, a crash: systemd restarts it), which holds the loaded map and that run's flight so far. A checkpoint
-    from another boot, or of a run that loaded another map, is moved aside to NAME.checkpoint-TIME.npz (kept, said)
-    rather than grown: this flight may be elsewhere, and its keyframes are saved only once it relocalises in what
-    it loaded. Called once at start, after the instance lock (no other daemon of this configuration runs)."""
+@dataclass(frozen=True)
+class CheckpointPlan:
+    """What a `vio run` starting now does with a checkpoint at `[map] save` (checkpoint_plan): `grow` it (`map`),
+    move it `aside` to `aside`, or nothing (`action` None: no checkpoint there); `said` is its log line, `ahead` the
+    same said before it is done (`vio config check`)."""
+
+    action: str | None = None
+    map: Any = None
+    aside: Path | None = None
+    said: str = ""
+    ahead: str = ""
+
+
+def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
+    """Decided, not done: map_to_grow does it at start, `vio config check` says it (a checkpoint waiting at
+    `[map] save` was not said before the daemon started). `map_data` is `[map] load`'s map as read."""
     from vio.loop.mapfile import boot_id, load_map
 
     save = cfg.map.save
     if not save or not os.path.isfile(save):
-        return map_data
+        return CheckpointPlan()
     if cfg.map.load and os.path.realpath(cfg.map.load) == os.path.realpath(save):
         cp = (map_data.header.get("checkpoint") if map_data is not None else None) or {}
-        if cp:  # the map grown in place: loaded as configured, whichever run's checkpoint it is
-            log.info("map: %s is a checkpoint of a run (pid %s, started %s) that did not stop cleanly: loaded as "
-                     "[map] load, this run grows it", save, cp.get("pid"), cp.get("started_utc"))
-        return map_data
+        if not cp:
+            return CheckpointPlan()
+        # the map grown in place: loaded as configured, whichever run's checkpoint it is
+        said = (f"map: {save} is a checkpoint of a run (pid {cp.get('pid')}, started {cp.get('started_utc')}) that "
+                "did not stop cleanly: loaded as [map] load, this run grows it")
+        return CheckpointPlan("grow", map_data, None, said, said.replace("this run", "vio run"))
     try:
         m = load_map(save)
     except VioError:  # not a map (or damaged): written over at the first save, as before checkpoints
-        return map_data
+        return CheckpointPlan()
     cp = m.header.get("checkpoint")
     if not cp:  # a finished map: [map] save writes over it, as it always did
-        return map_data
+        return CheckpointPlan()
     loaded = os.path.realpath(cfg.map.load) if cfg.map.load else None
     if cp.get("boot_id") and cp["boot_id"] == boot_id() and cp.get("loaded") == loaded:
-        log.info("map: %s is the checkpoint of this daemon's run started %s (pid %s) on this boot, which did not "
-                 "stop cleanly: its %d keyframes are loaded%s and this run grows them", save, cp.get("started_utc"),
-                 cp.get("pid"), len(m.t_ns), f" in place of [map] load (they hold {cfg.map.load})" if loaded else "")
-        return m
+        said = (f"map: {save} is the checkpoint of this daemon's run started {cp.get('started_utc')} (pid "
+                f"{cp.get('pid')}) on this boot, which did not stop cleanly: its {len(m.t_ns)} keyframes are loaded"
+                + (f" in place of [map] load (they hold {cfg.map.load})" if loaded else "")
+                + " and this run grows them")
+        return CheckpointPlan("grow", m, None, said, said.replace("this run", "vio run"))
     p = Path(save)
     stamp = str(m.header.get("created_utc") or "").replace("-", "").replace(":", "")[:15] or \
         time.strftime("%Y%m%dT%H%M%S")
@@ -779,14 +791,33 @@ def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
     while aside.exists():
         aside, k = p.with_name(f"{p.stem}.checkpoint-{stamp}-{k}{p.suffix}"), k + 1
     why = "another boot" if cp.get("boot_id") != boot_id() else f"this boot that loaded {cp.get('loaded')}"
-    try:
-        os.rename(os.path.realpath(save), aside)
-    except OSError as e:
-        raise VioError(f"[map] save: {save} is the checkpoint of a run on {why} that did not stop cleanly, and it "
-                       f"cannot be moved aside to {aside} ({e.strerror or e}): move or load it, then restart") from None
-    log.warning("map: %s was the checkpoint of a run on %s (pid %s, started %s) that did not stop cleanly: moved "
-                "to %s, kept (load it with [map] load to grow it); this run saves a map of its own", save, why,
-                cp.get("pid"), cp.get("started_utc"), aside)
+    run = f"a run on {why} (pid {cp.get('pid')}, started {cp.get('started_utc')}) that did not stop cleanly"
+    return CheckpointPlan("aside", None, aside, (
+        f"map: {save} was the checkpoint of {run}: moved to {aside}, kept (load it with [map] load to grow it); this "
+        "run saves a map of its own"), (
+        f"map: {save} is the checkpoint of {run}: vio run moves it to {aside} and keeps it (load it with [map] load to "
+        "grow it), and saves a map of its own"))
+
+
+def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
+    """The map this run starts from: `map_data` (`[map] load`, read by check_run_config), or the checkpoint a run of
+    this configuration on this boot left at `[map] save` when it did not stop cleanly (killed by the watchdog, the
+    OOM killer, a crash: systemd restarts it), which holds the loaded map and that run's flight so far. A checkpoint
+    from another boot, or of a run that loaded another map, is moved aside to NAME.checkpoint-TIME.npz (kept, said)
+    rather than grown: this flight may be elsewhere, and its keyframes are saved only once it relocalises in what
+    it loaded. Called once at start, after the instance lock (no other daemon of this configuration runs)."""
+    plan = checkpoint_plan(cfg, map_data)
+    if plan.action == "grow":
+        log.info("%s", plan.said)
+        return plan.map
+    if plan.action == "aside":
+        try:
+            os.rename(os.path.realpath(cfg.map.save), plan.aside)
+        except OSError as e:
+            raise VioError(f"[map] save: {cfg.map.save} is the checkpoint of a run that did not stop cleanly, and "
+                           f"it cannot be moved aside to {plan.aside} ({e.strerror or e}): move or load it, then "
+                           "restart") from None
+        log.warning("%s", plan.said)
     return map_data
 
 
