@@ -89,6 +89,7 @@ class MavlinkStats:
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
     states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
     states_refused_armed: int = 0  # a replay's poses withheld while the autopilot said it was armed (poses_to_armed)
+    states_refused_unheard: int = 0  # a replay's poses withheld while no autopilot heartbeat said it was disarmed
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
@@ -181,6 +182,7 @@ class MavlinkOutput:
         # autopilot (a vehicle that may fly, or flies) would fly on them, so none goes out while it says armed
         self._poses_to_armed = poses_to_armed
         self._armed_refusal_said = False
+        self._unheard_refusal_said = False
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
         if not self.url:
@@ -471,8 +473,13 @@ class MavlinkOutput:
                 if state is not None and max_age is not None and now - state.t_ns > max_age:
                     self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
                     state = None
-                if state is not None and not self._poses_to_armed and self._ap_armed:
-                    self._refuse_armed()
+                if state is not None and not self._poses_to_armed and (self._ap_armed or not self._link_up):
+                    # unheard (before its first heartbeat, or silent past link_timeout_s) it may be armed: a
+                    # replay's first poses went out before the heartbeat that said so
+                    if self._ap_armed:
+                        self._refuse_armed()
+                    else:
+                        self._refuse_unheard()
                     state = None
                 if state is not None:
                     self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
@@ -703,6 +710,13 @@ class MavlinkOutput:
                       "another flight's, not this vehicle's; replay to a disarmed autopilot on the bench or a SITL "
                       "before arming, or fly with vio run)")
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO replay: armed, poses not sent")
+
+    def _refuse_unheard(self) -> None:
+        """A replay's pose not sent: no autopilot heartbeat (within link_timeout_s) says it is disarmed."""
+        self.stats.states_refused_unheard += 1
+        if not self._unheard_refusal_said:
+            self._unheard_refusal_said = True
+            log.warning("no autopilot heartbeat says it is disarmed: no pose of this replay is sent until one does")
 
     def _statustext(self, severity: int, text: str) -> None:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode()[:50]), "STATUSTEXT")

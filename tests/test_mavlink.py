@@ -966,6 +966,34 @@ def test_a_replay_sends_no_pose_to_an_armed_autopilot(ap, caplog):
     run_out.close()
 
 
+def test_a_replay_sends_no_pose_before_an_autopilot_heartbeat_says_disarmed(ap):
+    """A replay's first states came before the autopilot's first heartbeat (1 Hz) and went out though it might be
+    armed; and one silent past link_timeout_s may have armed since. None goes out until a heartbeat says disarmed,
+    nor once heartbeats stop for link_timeout_s."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", messages=["VISION_POSITION_ESTIMATE"])
+    out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+
+    def fly(n: int = 4, beat: bool = True) -> list:
+        got = []
+        for _ in range(n):
+            if beat:
+                ap.heartbeat(mavlink.MAV_STATE_ACTIVE, 0)
+                time.sleep(0.02)
+            clock.advance(0.1)
+            out.send_state(state(clock.t))
+            got += ap.drain(0.01)
+        return got
+
+    assert not ap.of("VISION_POSITION_ESTIMATE", fly(beat=False)) and out.stats.states_refused_unheard >= 3
+    assert ap.of("VISION_POSITION_ESTIMATE", fly())  # disarmed, heard: sent
+    clock.advance(c.link_timeout_s + 0.5)
+    n = out.stats.states_refused_unheard
+    assert not ap.of("VISION_POSITION_ESTIMATE", fly(beat=False)) and out.stats.states_refused_unheard > n
+    assert out.stats.states_refused_armed == 0
+    out.close()
+
+
 def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
     """Camera and IMU gone together (an OAK's one cable): no state says tracking = false, and the autopilot heard
     nothing, neither a STATUSTEXT nor, with land_after_loss_s, a LAND (a review's finding). No estimate for 0.5 s

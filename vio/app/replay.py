@@ -584,10 +584,13 @@ def run(args: argparse.Namespace) -> int:
     if mav is not None:
         ms = mav.stats
         res.extra["mavlink"] = {"states_sent": ms.states_sent, "states_refused_armed": ms.states_refused_armed,
+                                "states_refused_unheard": ms.states_refused_unheard,
                                 "autopilot_heartbeats": ms.autopilot_heartbeats}
         print(f"mavlink: {ms.states_sent} poses sent to {args.mavlink}"
               + (f"; {ms.states_refused_armed} not sent: the autopilot said it was armed" if ms.states_refused_armed
-                 else ""))
+                 else "")
+              + (f"; {ms.states_refused_unheard} not sent: no autopilot heartbeat said it was disarmed"
+                 if ms.states_refused_unheard else ""))
     from vio.estimator import stereo_check_line
 
     line = stereo_check_line(res.extra.get("stereo_check"))
