@@ -249,7 +249,9 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv
     calib = tmp_path / "c.yaml"
     calib.write_text("cam0: {}\n")
-    for argv, says in ((["demo", "--duration", "1"], "--duration 1.0: at least 5 s"),
+    for argv, says in ((["demo", "--duration", "1"], "--duration 1.0: 5 to 3600 s"),
+                       (["demo", "--duration", "nan"], "--duration nan: 5 to 3600 s"),
+                       (["demo", "--duration", "1e9"], "--duration 1000000000.0: 5 to 3600 s"),
                        (["replay", str(tmp_path), "--calibration", str(calib), "--calib", str(calib)],
                         "--calibration and --calib both give the calibration: give one"),
                        (["replay", str(tmp_path), "--calib", str(calib), str(calib)],

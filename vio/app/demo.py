@@ -27,8 +27,8 @@ def run(args: argparse.Namespace) -> int:
     from vio.io.euroc import EurocDataset
     from vio.sim.generate import SimConfig, simulate
 
-    if args.duration < 5:
-        raise UsageError(f"--duration {args.duration}: at least 5 s (the flight starts with 2 s standing still)")
+    if not 5 <= args.duration <= 3600:  # nan and 1e9 passed and failed after the temp folder: exit 1, not 2
+        raise UsageError(f"--duration {args.duration}: 5 to 3600 s (the flight starts with 2 s standing still)")
     if args.keep:  # made (and known writable) before the flight is simulated, not after
         if Path(args.keep).exists() and not Path(args.keep).is_dir():
             raise VioError(f"--keep {args.keep}: is a file, not a folder")
