@@ -674,3 +674,50 @@ def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_ove
     assert load_map(aside[0]).header["checkpoint"]["boot_id"] == "an-earlier-boot"
     save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)  # a finished map: written over, as before
     assert service.map_to_grow(cfg, None) is None and path.exists()
+
+
+def test_a_checkpoint_that_cannot_be_moved_aside_does_not_keep_vio_run_from_flying(tmp_path: Path, monkeypatch,
+                                                                                    caplog) -> None:
+    """A power cut leaves a checkpoint (another boot's) and the state folder remounted read-only: the move aside
+    failed and `vio run` exited 3, which systemd never restarts: no VIO at all. It flies without saving the map
+    (a save would write over the checkpoint), as with a map folder not writable, and the checkpoint is kept."""
+    import errno
+    from argparse import Namespace
+    from types import SimpleNamespace
+
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import run_identity, save_map
+
+    voc = SimpleNamespace(k=2, depth=1, centres=np.zeros((2, 32), np.uint8), idf=np.ones(2))
+    cam = SimpleNamespace(fx=200.0, fy=200.0, cx=160.0, cy=100.0, width=320, height=200, T_body_cam=np.eye(4))
+    feats = [KeyframeFeatures(np.zeros((3, 32), np.uint8), np.ones((3, 2), np.float32),
+                              np.ones((3, 3), np.float32)) for _ in range(2)]
+    path = tmp_path / "m.npz"
+    save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam,
+             checkpoint={**run_identity(None), "boot_id": "an-earlier-boot"})
+    toml = tmp_path / "c.toml"
+    toml.write_text(f'[map]\nsave = "{path}"\n')
+    started = []
+
+    class Started:
+        watchdog_s = 0.0
+
+        def __init__(self, cfg, map_data=None, vocabulary=None) -> None:
+            started.append(cfg)
+
+        def request_stop(self) -> None:
+            pass
+
+        def run(self) -> int:
+            return 0
+
+    def read_only(*_a) -> None:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(service, "Service", Started)
+    monkeypatch.setattr(signal, "signal", lambda *_a: None)
+    monkeypatch.setattr(os, "rename", read_only)
+    with caplog.at_level(logging.ERROR):
+        assert service.run(Namespace(config=str(toml))) == 0
+    assert len(started) == 1 and started[0].map.save == "", started
+    assert path.exists() and "cannot be moved aside" in caplog.text and "will not be saved" in caplog.text

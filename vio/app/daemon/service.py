@@ -33,6 +33,7 @@ The daemon is part of the application layer (`vio.app`), the only code in `vio` 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import signal
@@ -588,8 +589,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         map_data = map_to_grow(cfg, checked.map_data)
     except VioError as e:
-        print(f"vio run: {e}", file=sys.stderr)
-        return EXIT_CONFIG
+        # a checkpoint that cannot be moved aside (the state folder remounted read-only after the power cut that
+        # left it): exit 3 is never restarted and the vehicle had no VIO at all; as check_run_config does for a
+        # map folder not writable, fly without saving the map (which would write over the checkpoint)
+        log.error("%s: running, the map will not be saved", e)
+        cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, save=""))
+        map_data = checked.map_data
     service = Service(cfg, map_data=map_data, vocabulary=checked.vocabulary)
     service.instance_lock, service.output_lock = lock, output_lock
     from drivers.signals import stop_on_signal
@@ -783,7 +788,7 @@ def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
                 + (f" in place of [map] load (they hold {cfg.map.load})" if loaded else "")
                 + " and this run grows them")
         return CheckpointPlan("grow", m, None, said, said.replace("this run", "vio run"))
-    p = Path(save)
+    p = Path(os.path.realpath(save))  # beside the file itself: renamed from a link's folder it may cross devices
     stamp = str(m.header.get("created_utc") or "").replace("-", "").replace(":", "")[:15] or \
         time.strftime("%Y%m%dT%H%M%S")
     aside = p.with_name(f"{p.stem}.checkpoint-{stamp}{p.suffix}")
