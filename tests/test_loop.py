@@ -1242,6 +1242,23 @@ def test_corners_undistorted_from_the_pixel_table_are_undistort_px_s():
             np.testing.assert_array_equal(ex._undistort_corners(odd, shape), undistort_px(cam, odd.astype(float)))
 
 
+def test_the_pixel_tables_kept_are_the_newest_cameras_not_every_one():
+    """Every camera's table was kept for the life of the process (5.8 MB at 752x480): a `vio batch` worker over a
+    calibration sweep grew by one per calibration. The newest PIXEL_TABLES_KEPT are kept; one in use stays."""
+    import dataclasses
+
+    from vio.calibration import CameraCalibration
+    from vio.loop import features as F
+
+    cam = CameraCalibration(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24, distortion=(0.0, 0.0, 0.0, 0.0),
+                            distortion_model="radtan")
+    used = F.pixel_table(cam)
+    for k in range(3 * F.PIXEL_TABLES_KEPT):
+        F.pixel_table(dataclasses.replace(cam, fx=41.0 + k))
+        assert F.pixel_table(cam) is used  # in use: kept, not made again
+    assert len(F._PIXEL_TABLES) <= F.PIXEL_TABLES_KEPT
+
+
 def test_spread_corners_orders_fast_integer_responses_as_the_float_key_does():
     """FAST's responses (integers 0..255) are sorted by a 16-bit key (cell << 8 | 255 - response) instead of the float
     key cell * 2**20 - response: the same picks in the same order, ties (kept in input order) and the responses 0

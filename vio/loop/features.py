@@ -116,6 +116,9 @@ def _points(kps: list) -> tuple[np.ndarray, np.ndarray]:
 
 
 _PIXEL_TABLES: dict[tuple, np.ndarray] = {}
+# the newest cameras' tables kept: a process that makes loop stages for many calibrations (a `vio batch` worker
+# over a calib_error sweep, a test session) kept every one, 5.8 MB each at 752x480 and 16 MB at 1280x800
+PIXEL_TABLES_KEPT = 4
 
 
 def pixel_table(cam: CameraCalibration) -> np.ndarray:
@@ -124,13 +127,16 @@ def pixel_table(cam: CameraCalibration) -> np.ndarray:
     FAST's corners lie on integer pixels, and OpenCV undistorts each point on its own (the same iterations for one
     as for a batch), so a corner's row of this table is exactly what undistort_px gives it: ~0.1 ms a keyframe
     saved on the simulator's 752x480 for 0.11 s and 5.8 MB once per camera (kept for the process: a second loop
-    stage with the same camera, as the benches and tests make, shares it)."""
+    stage with the same camera, as the benches and tests make, shares it; the newest PIXEL_TABLES_KEPT cameras')."""
     key = (cam.distortion_model, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
            tuple(np.asarray(cam.dist_coeffs, float).ravel().tolist()))
-    table = _PIXEL_TABLES.get(key)
+    table = _PIXEL_TABLES.pop(key, None)
     if table is None:
         y, x = np.divmod(np.arange(cam.width * cam.height), cam.width)
-        table = _PIXEL_TABLES[key] = undistort_px(cam, np.column_stack([x, y]).astype(np.float64))
+        table = undistort_px(cam, np.column_stack([x, y]).astype(np.float64))
+    _PIXEL_TABLES[key] = table  # the newest last
+    while len(_PIXEL_TABLES) > PIXEL_TABLES_KEPT:
+        del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
     return table
 
 
