@@ -8,6 +8,7 @@ detection"). `levels` > 1 adds pyramid levels, for maps revisited from other dis
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import cached_property
 from itertools import compress
@@ -119,6 +120,7 @@ _PIXEL_TABLES: dict[tuple, np.ndarray] = {}
 # the newest cameras' tables kept: a process that makes loop stages for many calibrations (a `vio batch` worker
 # over a calib_error sweep, a test session) kept every one, 5.8 MB each at 752x480 and 16 MB at 1280x800
 PIXEL_TABLES_KEPT = 4
+_PIXEL_TABLES_LOCK = threading.Lock()
 
 
 def pixel_table(cam: CameraCalibration) -> np.ndarray:
@@ -130,13 +132,14 @@ def pixel_table(cam: CameraCalibration) -> np.ndarray:
     stage with the same camera, as the benches and tests make, shares it; the newest PIXEL_TABLES_KEPT cameras')."""
     key = (cam.distortion_model, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
            tuple(np.asarray(cam.dist_coeffs, float).ravel().tolist()))
-    table = _PIXEL_TABLES.pop(key, None)
-    if table is None:
-        y, x = np.divmod(np.arange(cam.width * cam.height), cam.width)
-        table = undistort_px(cam, np.column_stack([x, y]).astype(np.float64))
-    _PIXEL_TABLES[key] = table  # the newest last
-    while len(_PIXEL_TABLES) > PIXEL_TABLES_KEPT:
-        del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
+    with _PIXEL_TABLES_LOCK:  # loop stages in two threads (a daemon's, a test's) must not evict under each other
+        table = _PIXEL_TABLES.pop(key, None)
+        if table is None:
+            y, x = np.divmod(np.arange(cam.width * cam.height), cam.width)
+            table = undistort_px(cam, np.column_stack([x, y]).astype(np.float64))
+        _PIXEL_TABLES[key] = table  # the newest last
+        while len(_PIXEL_TABLES) > PIXEL_TABLES_KEPT:
+            del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
     return table
 
 
