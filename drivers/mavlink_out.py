@@ -652,7 +652,9 @@ class MavlinkOutput:
         to LAND where it is. Why here and not only in the autopilot: with vision gone its EKF dead-reckons on
         the IMU and holds a position that drifts away (0.9-2.7 m in 10 s in the SITL test) until its variance
         reaches FS_EKF_THRESH (8 s there); a LAND after a few seconds comes down near where vision was lost."""
-        if self.cfg.land_after_loss_s <= 0:
+        if self.cfg.land_after_loss_s <= 0 or not self._poses_to_armed:
+            # a replay (poses_to_armed False) is another flight's: its loss, or its end, is not this vehicle's,
+            # and with the flight's own configuration it asked an armed autopilot to LAND
             return
         # decided and marked under the lock send_state() takes: tracking regained between the two must neither
         # get a LAND nor leave this loss marked done for the next one (a review's finding: the failsafe was off)

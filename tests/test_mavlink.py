@@ -994,6 +994,30 @@ def test_a_replay_sends_no_pose_before_an_autopilot_heartbeat_says_disarmed(ap):
     out.close()
 
 
+def test_a_replay_never_asks_an_armed_autopilot_to_land(ap):
+    """`vio replay --mavlink --config FLIGHT.toml` with land_after_loss_s: the recording's loss of tracking (or its
+    end: no more estimates) asked the armed autopilot to LAND, a vehicle flying on something else. Only `vio run`
+    (poses_to_armed) asks."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", messages=["VISION_POSITION_ESTIMATE"], land_after_loss_s=1.0)
+    out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+
+    def heartbeat(armed: bool) -> None:
+        ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+        time.sleep(0.02)
+
+    got = []
+    for armed, tracking in [(False, True)] * 3 + [(True, False)] * 8:
+        heartbeat(armed)
+        clock.advance(0.5)
+        out.send_state(state(clock.t, tracking=tracking, quality=100 if tracking else 0))
+        got += ap.drain(0.01)
+    assert ap.of("VISION_POSITION_ESTIMATE", got)  # sent while disarmed
+    assert not [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_NAV_LAND], got
+    assert out.stats.land_requests == 0
+    out.close()
+
+
 def test_no_estimate_at_all_is_a_loss_too_and_lands_an_armed_vehicle(ap):
     """Camera and IMU gone together (an OAK's one cable): no state says tracking = false, and the autopilot heard
     nothing, neither a STATUSTEXT nor, with land_after_loss_s, a LAND (a review's finding). No estimate for 0.5 s
