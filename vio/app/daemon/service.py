@@ -820,8 +820,8 @@ def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
             os.rename(os.path.realpath(cfg.map.save), plan.aside)
         except OSError as e:
             raise VioError(f"[map] save: {cfg.map.save} is the checkpoint of a run that did not stop cleanly, and "
-                           f"it cannot be moved aside to {plan.aside} ({e.strerror or e}): move or load it, then "
-                           "restart") from None
+                           f"it cannot be moved aside to {plan.aside} ({e.strerror or e}); it is kept: move it, or "
+                           "load it with [map] load") from None
         log.warning("%s", plan.said)
     return map_data
 
