@@ -458,7 +458,8 @@ class MavlinkOutput:
                 self._send(mavlink.MAVLink_heartbeat_message(
                     mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                     mavlink.MAV_STATE_ACTIVE, 3), "HEARTBEAT")
-            if self._origin_left > 0 and now >= self._next_origin_ns:
+            # a replay sets no EKF origin on an armed autopilot either (the review: its origin_lat/lon went out to it)
+            if self._origin_left > 0 and now >= self._next_origin_ns and (self._poses_to_armed or not self._ap_armed):
                 self._send_origin()
                 self._origin_left -= 1
                 self._next_origin_ns = now + 1_000_000_000

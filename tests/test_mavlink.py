@@ -685,6 +685,24 @@ def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
     out.close()
 
 
+def test_a_replay_sets_no_origin_on_an_armed_autopilot(ap):
+    """A replay's configured origin (its flight's config) is another flight's business: not sent to an autopilot
+    that says it is armed; once it says disarmed, as for `vio run`."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+    out.poll()
+    ap.drain()  # its first heartbeat: the autopilot's side learns where to answer
+    for armed in (True, False):
+        for _ in range(4):
+            ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+            time.sleep(0.02)
+            out.poll()
+            clock.advance(0.6)
+        assert bool(ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())) is not armed, armed
+    out.close()
+
+
 def test_an_autopilot_restart_inside_the_link_timeout_gets_the_origin_again(ap, caplog):
     """ArduCopter SITL rebooted with 2.3 s of silent heartbeats, inside link_timeout_s (3 s): the link never
     went down, so the origin it had confirmed was never sent again and the rebooted EKF had none (GUIDED
