@@ -674,6 +674,13 @@ def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_ove
     assert load_map(aside[0]).header["checkpoint"]["boot_id"] == "an-earlier-boot"
     save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)  # a finished map: written over, as before
     assert service.map_to_grow(cfg, None) is None and path.exists()
+    # [map] save a hard link of [map] load: the map grown in place (as check_run_config sees it), not another
+    # run's checkpoint to move aside (they were compared by real path)
+    write("an-earlier-boot")
+    os.link(path, tmp_path / "hard.npz")
+    linked = config_from_dict({"map": {"load": str(path), "save": str(tmp_path / "hard.npz")}})
+    plan = service.checkpoint_plan(linked, load_map(path))
+    assert plan.action == "grow" and plan.map is not None, plan
 
 
 def test_a_checkpoint_that_cannot_be_moved_aside_does_not_keep_vio_run_from_flying(tmp_path: Path, monkeypatch,

@@ -761,12 +761,14 @@ class CheckpointPlan:
 def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
     """Decided, not done: map_to_grow does it at start, `vio config check` says it (a checkpoint waiting at
     `[map] save` was not said before the daemon started). `map_data` is `[map] load`'s map as read."""
+    from vio.io.outputs import same_file
     from vio.loop.mapfile import boot_id, load_map
 
     save = cfg.map.save
     if not save or not os.path.isfile(save):
         return CheckpointPlan()
-    if cfg.map.load and os.path.realpath(cfg.map.load) == os.path.realpath(save):
+    # one file as check_run_config sees it (a hard link too): the map grown in place
+    if cfg.map.load and same_file(cfg.map.load, save):
         cp = (map_data.header.get("checkpoint") if map_data is not None else None) or {}
         if not cp:
             return CheckpointPlan()
