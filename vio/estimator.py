@@ -952,26 +952,35 @@ class Estimator:
         if self.white_scale is None and len(readings) < IMU_NOISE_MIN_READINGS:
             return self._provisional_params(now)
         if self.white_scale is None and level <= b.imu_noise_adaptive_above:
-            if self._params_now is not self.params:  # a provisional noise the median did not confirm
-                self._use_params(self.params)
-            return self._params_now
+            return self._configured_params()  # a provisional noise the median did not confirm goes too
         if self.white_scale is not None and level < 0.8 * b.imu_noise_adaptive_above:
             log.info("IMU white noise down to %.1fx the calibration's density: pre-integration noise back to "
                      "imu_noise_scale %.1f", level, b.imu_noise_scale)
             self.white_scale = None
-            self._use_params(self.params)
-            return self._params_now
-        scale = np.clip(k * b.imu_noise_adaptive_gain, b.imu_noise_scale, b.imu_noise_max_scale)
-        if self.white_scale is not None and np.all(np.abs(scale / self.white_scale - 1.0) < 0.05):
-            return self._params_now  # the same within 5 %: no new parameter object
+            return self._configured_params()
         if self.white_scale is None:
             log.info("IMU white noise reads %.1fx the calibration's density (gyro %s, accel %s: vibration): "
                      "pre-integration noise follows it", level, np.round(k[:3], 1), np.round(k[3:], 1))
             if isinstance(self._state, _Running):  # what the quieter factors said about cam1 is overconfident
                 self._state.smoother.imu_noise_raised()
-        self.white_scale = scale
-        self._use_params(combined_params(self.calib.imu, b.imu_noise_scale, white_scale=scale))
+        self.white_scale = self._follow_white_noise(k, self.white_scale)
         return self._params_now
+
+    def _configured_params(self) -> gtsam.PreintegrationCombinedParams:
+        """The configured noise (the same parameter object, so that its replays stay bit for bit)."""
+        if self._params_now is not self.params:
+            self._use_params(self.params)
+        return self._params_now
+
+    def _follow_white_noise(self, reading: np.ndarray, held: np.ndarray | None) -> np.ndarray:
+        """The white-noise scale a reading asks for (gain, clipped to [imu_noise_scale, imu_noise_max_scale]), in
+        use from now on; `held` kept as it is when the new one is within 5 % of it (no new parameter object)."""
+        b = self.bcfg
+        scale = np.clip(reading * b.imu_noise_adaptive_gain, b.imu_noise_scale, b.imu_noise_max_scale)
+        if held is not None and np.all(np.abs(scale / held - 1.0) < 0.05):
+            return held
+        self._use_params(combined_params(self.calib.imu, b.imu_noise_scale, white_scale=scale))
+        return scale
 
     def _provisional_params(self, now: np.ndarray) -> gtsam.PreintegrationCombinedParams:
         """Before the adaptive noise may engage (IMU_NOISE_MIN_READINGS keyframes), an interval whose own 2 s window
@@ -987,17 +996,10 @@ class Estimator:
         convergence from the static start (aggressive-hard-s1 30 mm, 42 with them raised at 1x). The first windows
         of a normal airframe (4-11x realistic, 3-16x EuRoC V1_01/V1_02) keep the configured noise object exactly;
         the median alone still engages the noise (the log line, the stereo check's restart) and lets it go."""
-        b = self.bcfg
-        if float(np.max(now)) <= IMU_NOISE_ALONE_ABOVE * b.imu_noise_adaptive_above:
-            if self._params_now is not self.params:
-                self._use_params(self.params)
-            return self._params_now
-        scale = np.clip(now * b.imu_noise_adaptive_gain, b.imu_noise_scale, b.imu_noise_max_scale)
-        if self._provisional_scale is not None and self._params_now is not self.params and \
-                np.all(np.abs(scale / self._provisional_scale - 1.0) < 0.05):
-            return self._params_now
-        self._provisional_scale = scale
-        self._use_params(combined_params(self.calib.imu, b.imu_noise_scale, white_scale=scale))
+        if float(np.max(now)) <= IMU_NOISE_ALONE_ABOVE * self.bcfg.imu_noise_adaptive_above:
+            return self._configured_params()
+        held = self._provisional_scale if self._params_now is not self.params else None
+        self._provisional_scale = self._follow_white_noise(now, held)
         return self._params_now
 
     def _marginal(self) -> None:
