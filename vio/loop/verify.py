@@ -126,8 +126,7 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
     n_matches = len(pairs)
     if n_matches < min_inliers:
         return None
-    obj = old.p_cam[pairs[:, 0]].astype(np.float64, copy=False)  # the rows taken are a new array already
-    img = new.uv[pairs[:, 1]].astype(np.float64, copy=False)
+    obj, img = _points_of(old, new, pairs)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=60, reprojectionError=reproj_px,
                                              confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     if not ok or inl is None or len(inl) < min_inliers:
@@ -141,13 +140,20 @@ def pnp(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body_cam:
     pairs = pairs[inl]
     if guided_px > 0:
         g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-        g_obj, g_img = old.p_cam[g[:, 0]].astype(np.float64, copy=False), new.uv[g[:, 1]].astype(np.float64, copy=False)
+        g_obj, g_img = _points_of(old, new, g)
         n_good = int(np.count_nonzero(good))
         fit = _refit(g_obj, g_img, K, rvec, tvec, (reproj_px,), n_good)  # on what the pose explains
         if fit is not None and np.count_nonzero(fit[2] <= reproj_px) >= n_good:
             rvec, tvec, err = fit
             pairs, good, n_matches = g, err <= reproj_px, len(g)
     return _result(rvec, tvec, T_body_cam, err, good, pairs, n_matches)
+
+
+def _points_of(old: KeyframeFeatures, new: KeyframeFeatures, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs' 3D points (old keyframe's cam0) and pixels (new keyframe's) as float64, what OpenCV's PnP takes
+    (the rows taken are new arrays already: no second copy)."""
+    return (old.p_cam[pairs[:, 0]].astype(np.float64, copy=False),
+            new.uv[pairs[:, 1]].astype(np.float64, copy=False))
 
 
 def _reproj_err(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -190,7 +196,7 @@ def pnp_from(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, T_body
     `guided_px` of the guess, then on those within `reproj_px`; None when fewer than `min_inliers` are left."""
     rvec, tvec = _cam_pose(T_old_new_guess, T_body_cam)
     g = guided_pairs(old, new, K, rvec, tvec, max_hamming, guided_px)
-    obj, img = old.p_cam[g[:, 0]].astype(np.float64, copy=False), new.uv[g[:, 1]].astype(np.float64, copy=False)
+    obj, img = _points_of(old, new, g)
     fit = _refit(obj, img, K, rvec, tvec, (guided_px, reproj_px), max(min_inliers, 6))
     if fit is None:
         return None
