@@ -72,12 +72,18 @@ def boot_id() -> str:
         return ""
 
 
+def loaded_key(loaded: str | None) -> str | None:
+    """The map a run loaded (`[map] load`) as a checkpoint's header names it, and a restart compares it: its real
+    path, or None."""
+    return os.path.realpath(loaded) if loaded else None
+
+
 def run_identity(loaded: str | None) -> dict:
     """What names the run writing a checkpoint (the header's `checkpoint`): the boot, the process and its start,
-    and the map it loaded (`[map] load`, its real path, or None)."""
+    and the map it loaded (`loaded_key`)."""
     return {"boot_id": boot_id(),
             "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "pid": os.getpid(), "loaded": os.path.realpath(loaded) if loaded else None}
+            "pid": os.getpid(), "loaded": loaded_key(loaded)}
 
 
 def vocabulary_digest(voc) -> str:

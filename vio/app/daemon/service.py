@@ -762,7 +762,7 @@ def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
     """Decided, not done: map_to_grow does it at start, `vio config check` says it (a checkpoint waiting at
     `[map] save` was not said before the daemon started). `map_data` is `[map] load`'s map as read."""
     from vio.io.outputs import same_file
-    from vio.loop.mapfile import boot_id, load_map
+    from vio.loop.mapfile import boot_id, load_map, loaded_key
 
     save = cfg.map.save
     if not save or not os.path.isfile(save):
@@ -783,7 +783,7 @@ def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
     cp = m.header.get("checkpoint")
     if not cp:  # a finished map: [map] save writes over it, as it always did
         return CheckpointPlan()
-    loaded = os.path.realpath(cfg.map.load) if cfg.map.load else None
+    loaded = loaded_key(cfg.map.load)  # as the run that wrote the checkpoint named its own
     if cp.get("boot_id") and cp["boot_id"] == boot_id() and cp.get("loaded") == loaded:
         said = (f"map: {save} is the checkpoint of this daemon's run started {cp.get('started_utc')} (pid "
                 f"{cp.get('pid')}) on this boot, which did not stop cleanly: its {len(m.t_ns)} keyframes are loaded"
