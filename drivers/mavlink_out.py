@@ -178,11 +178,13 @@ class MavlinkOutput:
                  max_state_age_ms: float | None = None, random_first_counter: bool = False,
                  poses_to_armed: bool = True) -> None:
         self.cfg = cfg
-        # False for `vio replay --mavlink`: a recording's poses are another flight's, never this vehicle's; an armed
-        # autopilot (a vehicle that may fly, or flies) would fly on them, so none goes out while it says armed
+        # False for `vio replay --mavlink` and `vio run` with a recorded or simulated source: their poses are another
+        # flight's, never this vehicle's; an armed autopilot (a vehicle that may fly, or flies) would fly on them, so
+        # none goes out while it says armed
         self._poses_to_armed = poses_to_armed
         self._armed_refusal_said = False
         self._unheard_refusal_said = False
+        self._refusing: str | None = None  # the last pose of a replay was withheld: "armed" / "unheard"
         self._link = link
         self.url = link.url if link is not None else url if url is not None else cfg.url
         if not self.url:
@@ -306,6 +308,8 @@ class MavlinkOutput:
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
                 "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
                 "states_too_old": st.states_too_old, "withholding_old_poses": self._too_old_spell,
+                "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
+                "states_refused_armed": st.states_refused_armed, "states_refused_unheard": st.states_refused_unheard,
                 "autopilot_heartbeats": st.autopilot_heartbeats,
                 "other_heartbeats": st.other_heartbeats,
                 "timesync_answered": st.timesync_answered, "link_losses": st.link_losses,
@@ -481,8 +485,10 @@ class MavlinkOutput:
                         self._refuse_armed()
                     else:
                         self._refuse_unheard()
+                    self._refusing = "armed" if self._ap_armed else "unheard"
                     state = None
                 if state is not None:
+                    self._refusing = None
                     self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
                     self._send_state_messages(state, now)
 
@@ -709,9 +715,9 @@ class MavlinkOutput:
         self.stats.states_refused_armed += 1
         if not self._armed_refusal_said:
             self._armed_refusal_said = True
-            log.error("the autopilot is armed: no pose of this replay is sent while it is (a recording's poses are "
-                      "another flight's, not this vehicle's; replay to a disarmed autopilot on the bench or a SITL "
-                      "before arming, or fly with vio run)")
+            log.error("the autopilot is armed: no pose of this replay is sent while it is (a recording's or a "
+                      "simulation's poses are another flight's, not this vehicle's; replay to a disarmed autopilot "
+                      "on the bench or a SITL before arming, or fly with vio run and a live [source])")
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "VIO replay: armed, poses not sent")
 
     def _refuse_unheard(self) -> None:
@@ -789,7 +795,7 @@ class MavlinkOutput:
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
                 self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                if self._ap_armed and self.stats.autopilot_heartbeats == 1:
+                if self._ap_armed and self.stats.autopilot_heartbeats == 1 and self._poses_to_armed:
                     self._armed_before_any_pose(now)
                 booting = msg.system_status in BOOTING_STATES
                 if booting and self._ap_running and locked:

@@ -638,6 +638,7 @@ class FakeAutopilot(threading.Thread):
         self.counts: dict[str, int] = {}
         self.odometry_quality: list[int] = []  # quality of every ODOMETRY received
         self.components: set[int] = set()
+        self.armed = False  # what its HEARTBEATs say
         self.stop = threading.Event()
 
     def run(self) -> None:
@@ -659,7 +660,8 @@ class FakeAutopilot(threading.Thread):
                 pass
             if peer is not None and time.monotonic() >= next_hb:
                 hb = self.mavlink.MAVLink_heartbeat_message(
-                    self.mavlink.MAV_TYPE_QUADROTOR, self.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                    self.mavlink.MAV_TYPE_QUADROTOR, self.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                    self.mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0, 0,
                     self.mavlink.MAV_STATE_ACTIVE, 3)
                 self.sock.sendto(hb.pack(encoder), peer)
                 next_hb = time.monotonic() + 0.5
@@ -754,6 +756,41 @@ def test_vio_run_end_to_end_with_fake_source(tmp_path: Path, notify_socket) -> N
     assert took < 2.0
     assert json.loads((tmp_path / "status.json").read_text())["state"] == "stopped"
     assert "Traceback" not in log_path.read_text()
+
+
+def test_vio_run_with_a_simulated_source_sends_no_pose_to_an_armed_autopilot(tmp_path: Path, notify_socket) -> None:
+    """`[source] kind = "fake"` (or "euroc") is another flight's: as `vio replay --mavlink`, the daemon sends none of
+    its poses while the autopilot says it is armed (it would fly on them), says why in the log and the status, and
+    sends them once it is disarmed. Before, only `vio replay` held them back."""
+    _need_pipeline()
+    sock, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.armed = True
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, '[source]\nkind = "fake"\nwidth = 320\nheight = 200',
+                                   ap.port, notify_path)
+    status_path = tmp_path / "status.json"
+
+    def status() -> dict:
+        try:
+            return json.loads(status_path.read_text())
+        except (OSError, ValueError):
+            return {}
+    try:
+        assert _wait(lambda: any(n.startswith("READY=1") for n in _received(sock)), 60), log_path.read_text()[-3000:]
+        assert _wait(lambda: any("poses not sent" in w and "autopilot says it is armed" in w
+                                 for w in status().get("warnings", [])), 20), status()
+        assert ap.poses() == 0, ap.counts
+        assert status()["state"] == "degraded"
+        assert "the autopilot is armed: no pose of this replay is sent" in log_path.read_text()
+        assert "this process has sent no pose yet" not in log_path.read_text()  # not this vehicle's loss either
+        ap.armed = False
+        assert _wait(lambda: ap.poses() >= 10, 20), f"autopilot got {ap.counts}"
+        assert _wait(lambda: not any("poses not sent" in w for w in status().get("warnings", [])), 10), status()
+    finally:
+        rc, took = _stop_daemon(proc)
+        ap.stop.set()
+    assert rc == 0 and took < 2.0, log_path.read_text()[-3000:]
 
 
 def test_vio_run_replays_euroc_as_live(tmp_path: Path, notify_socket, v101_path: Path) -> None:

@@ -70,6 +70,8 @@ log = logging.getLogger(__name__)
 JOIN_BUDGET_S = 1.6  # shutdown must finish within 2 s of SIGTERM; keep a margin for the final status write
 STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog stops being fed
 VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
+# sources whose poses are another flight's (a recording, a simulation): never flown on (MavlinkOutput poses_to_armed)
+NOT_THIS_VEHICLE = ("euroc", "fake")
 
 
 def open_source(cfg: VioConfig, mavlink_link: Any = None) -> Source:
@@ -395,6 +397,12 @@ class Service:
             warnings.append("poses withheld: older than [mavlink] max_state_age_ms "
                             f"({self.cfg.mavlink.max_state_age_ms:.0f} ms; the estimator is behind its sensors)")
             tracking = False
+        refusing = link.get("withholding_replay_poses")
+        if refusing:
+            # a recorded or simulated source (NOT_THIS_VEHICLE) and an autopilot that is armed or not heard disarmed
+            warnings.append(f"poses not sent: [source] kind = {self.cfg.source.kind!r} is another flight's and the "
+                            + ("autopilot says it is armed" if refusing == "armed"
+                               else "no autopilot heartbeat says it is disarmed"))
         recording = self.recorder.status() if self.recorder is not None else None
         if recording is not None and recording["state"] == "failed":
             warnings.append(f"recording failed: {recording['error']}")
@@ -556,10 +564,13 @@ def _default_mavlink_factory(cfg: VioConfig, calibration: Callable[[], StereoCal
         from drivers.mavlink_out import MavlinkOutput
 
         calib = calibration()  # the camera mount comes from it; unknown yet: Service._set_mount later
-        # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips)
+        # its own thread answers TIMESYNC within milliseconds (PX4 rejects slow round trips). A recorded or
+        # simulated source ("euroc", "fake") is another flight's: as with `vio replay --mavlink`, no pose of it
+        # goes to an autopilot that is armed or unheard, and its losses ask no LAND
         return MavlinkOutput(cfg.mavlink, cfg.mavlink.url, link=link, counter_file=cfg.mavlink.counter_file,
                              max_state_age_ms=cfg.mavlink.max_state_age_ms, random_first_counter=True,
-                             T_body_cam0=calib.cam0.T_body_cam if calib is not None else None).start()
+                             T_body_cam0=calib.cam0.T_body_cam if calib is not None else None,
+                             poses_to_armed=cfg.source.kind not in NOT_THIS_VEHICLE).start()
     return make
 
 
