@@ -977,7 +977,8 @@ def test_a_second_daemon_sending_to_the_same_mavlink_endpoint_is_refused(tmp_pat
             f"{port}" in lines[0], second.stderr
         assert f"one started by hand: kill {first.pid}" in lines[0]  # not only the service's systemctl
         assert not (tmp_path / "second" / "status.json").exists()
-        from vio.app.daemon.service import output_endpoint_key, output_endpoint_lock
+        from vio.app.daemon.service import output_endpoint_lock
+        from vio.app.endpoint_lock import output_endpoint_key
 
         other = output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:127.0.0.1:{port + 1}"}}))
         assert other is not None  # another port: another endpoint
@@ -986,10 +987,65 @@ def test_a_second_daemon_sending_to_the_same_mavlink_endpoint_is_refused(tmp_pat
         _stop_daemon(first)
     lock = output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:127.0.0.1:{port}"}}))
     assert lock is not None  # the first one ended: the endpoint is free
-    with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\)"):
+    with pytest.raises(VioError, match=rf"another vio [a-z -]+ \(pid {os.getpid()}\)"):
         output_endpoint_lock(config_from_dict({"mavlink": {"url": f"udpout:localhost:{port}"}}))
     lock.close()
     assert output_endpoint_key(f"udp:0.0.0.0:{port}") == f"udpin:*:{port}"  # mavutil's udp: is udpin:
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the endpoint lock is Linux's abstract sockets")
+def test_a_replay_and_a_daemon_never_send_to_one_autopilot_together(tmp_path, v101_path) -> None:
+    """`vio replay --mavlink` took no endpoint lock: a replay towards the autopilot of a running `vio run` sent a
+    recording's poses as component 197 between the live ones. Each now refuses the other at start, one line naming
+    the other's pid and command: the replay exits 1 (as its other refusals) before any output file is made, the
+    daemon exits 3 (as for another daemon)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nothing else here is told to use
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\n[mavlink]\nurl = "udpout:127.0.0.1:{port}"\n[run]\nstatus_file = '
+                   f'"{tmp_path / "status.json"}"\n')
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    vio = [sys.executable, "-m", "vio.app.cli"]
+    replay = [*vio, "replay", str(v101_path), "--no-progress", "-o", str(tmp_path / "replay.tum"), "--mavlink",
+              f"udpout:localhost:{port}"]
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen([*vio, "run", "--config", str(cfg)], cwd=REPO, env=env, stdout=log_file,
+                                  stderr=subprocess.STDOUT)
+    try:
+        assert _wait(lambda: "kestrel-vio starting" in log_path.read_text(), 60), log_path.read_text()
+        refused = subprocess.run(replay, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 1, refused.stdout + refused.stderr
+        lines = refused.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(
+            f"vio replay: error: another vio run (pid {daemon.pid}) sends to the autopilot at udpout:127.0.0.1:{port} "
+            f"(--mavlink udpout:localhost:{port})"), refused.stderr
+        assert not (tmp_path / "replay.tum").exists()  # refused before any output
+    finally:
+        _stop_daemon(daemon)
+    from vio import VioError
+    from vio.app.endpoint_lock import mavlink_endpoint_lock
+
+    def replay_holds_it() -> bool:
+        try:
+            mavlink_endpoint_lock(f"udpout:127.0.0.1:{port}", "probe", "-").close()
+        except VioError:
+            return True
+        return False
+
+    first = subprocess.Popen(replay, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert _wait(replay_holds_it, 60)
+        first.send_signal(signal.SIGSTOP)  # the replay holds the endpoint as long as the daemon takes to start
+        second = subprocess.run([*vio, "run", "--config", str(cfg)], cwd=REPO, env=env, capture_output=True,
+                                text=True, timeout=60)
+        assert second.returncode == 3, second.stdout + second.stderr
+        assert f"another vio replay --mavlink (pid {first.pid}) sends to the autopilot at udpout:127.0.0.1:{port}" \
+            in second.stderr and f"kill {first.pid}" in second.stderr, second.stderr
+    finally:
+        first.kill()
+        first.wait()
 
 
 def test_output_endpoint_key_is_what_two_daemons_would_share(tmp_path) -> None:
@@ -998,7 +1054,7 @@ def test_output_endpoint_key_is_what_two_daemons_would_share(tmp_path) -> None:
     component 197 (a QA walk-through). A listener is its protocol and port; a sender its peer; a serial device its
     real path, whatever the baud rate or the link that names it."""
     from vio import VioError
-    from vio.app.daemon.service import output_endpoint_key as key
+    from vio.app.endpoint_lock import output_endpoint_key as key
     from vio.config import config_from_dict
 
     assert key("udpin:0.0.0.0:14550") == key("udpin:127.0.0.1:14550") == key("udp:192.168.1.5:14550")
@@ -1019,7 +1075,7 @@ def test_output_endpoint_key_is_what_two_daemons_would_share(tmp_path) -> None:
 
         first = output_endpoint_lock(config_from_dict({"mavlink": {"url": "udpin:0.0.0.0:14555"}}))
         try:
-            with pytest.raises(VioError, match=rf"another vio run \(pid {os.getpid()}\) sends to the autopilot at "
+            with pytest.raises(VioError, match=rf"another vio [a-z -]+ \(pid {os.getpid()}\) sends to the autopilot at "
                                "udpin:\\*:14555"):
                 output_endpoint_lock(config_from_dict({"mavlink": {"url": "udpin:127.0.0.1:14555"}}))
         finally:

@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from vio import UsageError, VioError
 from vio.argtypes import positive_int
 from vio.io.outputs import check_outputs
 from vio.types import NavState
+
+if TYPE_CHECKING:
+    from vio.config import VioConfig
 
 log = logging.getLogger(__name__)
 
@@ -487,7 +491,6 @@ def check_map_not_replaced(save: str, load: str | None, key: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vio.calibration import load_calibration
     from vio.config import load_config
 
     if args.threads:  # 0: OpenCV's own pool
@@ -527,6 +530,23 @@ def run(args: argparse.Namespace) -> int:
         from vio.app.view import check_view
 
         check_view(args.view, cfg.view, "the live view (--view)")
+    endpoint_lock = None
+    if args.mavlink:  # before the recording is read: a daemon (or a replay) already sends to that autopilot
+        from vio.app.endpoint_lock import mavlink_endpoint_lock
+
+        endpoint_lock = mavlink_endpoint_lock(args.mavlink, f"--mavlink {args.mavlink}",
+                                              "replay to another autopilot (or without --mavlink)")
+    try:
+        return _run(args, cfg, save_map, load_map, view_file)
+    finally:
+        if endpoint_lock is not None:  # held to the replay's end, past its last pose (mav.close() in _run)
+            endpoint_lock.close()
+
+
+def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str, view_file: str | None) -> int:
+    """run()'s replay itself, once the options are checked (and --mavlink's endpoint held)."""
+    from vio.calibration import load_calibration
+
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)

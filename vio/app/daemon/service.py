@@ -59,6 +59,7 @@ from vio.app.daemon.status import (
     write_status_file,
 )
 from vio.app.daemon.workers import EstimatorWorker, SourceWorker, Worker
+from vio.app.endpoint_lock import mavlink_endpoint_lock
 from vio.app.sdnotify import SdNotifier, watchdog_interval_s
 from vio.config import VioConfig, load_config
 
@@ -624,85 +625,14 @@ def run(args: argparse.Namespace) -> int:
     return service.run()
 
 
-def output_endpoint_key(url: str) -> str | None:
-    """What two MAVLink URLs that take one autopilot endpoint have in common, or None for a URL that is not one.
-
-    A listening socket (udpin:, mavutil's udp:, tcpin:) takes its protocol's port on every address at once as far
-    as the autopilot is concerned (mavutil's udpin binds with SO_REUSEADDR, so udpin:0.0.0.0:14550 and
-    udpin:127.0.0.1:14550 both bind, and the autopilot's packets go to one of them): 'udpin:*:14550'. An outbound
-    one (udpout:, tcp:, udpbcast:) is its peer, the host spelled one way ('udpout:127.0.0.1:14550' for
-    udpout:localhost:14550 too); other peers are other endpoints. A serial device is its real path, the baud rate
-    left out ('serial:/dev/ttyACM0' for /dev/serial/by-id/usb-...:115200 too; its flock,
-    drivers.mavlink_link._hold_serial, holds it as well, but only once opened, and without naming the holder)."""
-    import ipaddress
-
-    from drivers.mavlink_link import _NETWORK_PREFIXES
-
-    if not url.startswith(_NETWORK_PREFIXES):
-        device = url.partition(":")[0]
-        if device.startswith("/dev/"):
-            return f"serial:{os.path.realpath(device)}"
-        return f"serial:{device.upper()}" if device.upper().startswith("COM") else None
-    kind, _, where = url.partition(":")
-    host, _, port = where.rpartition(":")
-    kind = "udpin" if kind == "udp" else kind
-    if kind in ("udpin", "tcpin"):
-        return f"{kind}:*:{port}"
-    host = host.strip("[]").lower()
-    try:
-        host = str(ipaddress.ip_address(host))
-    except ValueError:
-        host = "127.0.0.1" if host == "localhost" else host
-    return f"{kind}:{host}:{port}"
-
-
 def output_endpoint_lock(cfg: VioConfig) -> Any:
-    """A socket held for the life of the process in Linux's abstract socket namespace, named after the [mavlink]
-    url's endpoint (output_endpoint_key), or None (no [mavlink] url, not Linux, no lock to be had: said).
-
-    Two daemons with their own configurations and status files (the service, and one started by hand from another
-    folder) but one output endpoint both sent to the autopilot as component 197, their poses interleaved, and
-    single_instance, which locks the status file, could not see it: a udpout sender binds no port of its own and
-    mavutil's udpin binds with SO_REUSEADDR, so the network says nothing either. The second is refused, naming the
-    first's pid (SO_PEERCRED of a connection to its socket). The abstract namespace has no files and no
-    permissions: every user's daemon meets the same name (systemd's PrivateTmp would hide a lock file in /tmp), and
-    the kernel releases it however the process ends."""
-    import errno
-    import hashlib
-    import socket
-    import struct
-
-    key = output_endpoint_key(cfg.mavlink.url) if cfg.mavlink.url else None
-    if key is None or not sys.platform.startswith("linux"):
+    """The [mavlink] url's endpoint lock (vio.app.endpoint_lock.mavlink_endpoint_lock, which `vio replay
+    --mavlink` takes too), held for the life of the process, or None (no [mavlink] url, not Linux, no lock to be
+    had: said). A second vio run, or a replay, sending to the same autopilot is refused, naming the holder's pid."""
+    if not cfg.mavlink.url:
         return None
-    name = f"kestrel-vio/mavlink/{key}"
-    if len(name) > 100:  # the abstract name's room (108 bytes less the leading NUL): a long host name is hashed
-        name = f"kestrel-vio/mavlink/{hashlib.sha256(key.encode()).hexdigest()}"
-    address = b"\0" + name.encode()
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        s.bind(address)
-        s.listen(1)
-        return s
-    except OSError as e:
-        s.close()
-        if e.errno != errno.EADDRINUSE:
-            log.warning("no MAVLink output lock (%s): a second vio run sending to %s would not be refused",
-                        e.strerror or e, key)
-            return None
-    pid = "?"
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-            probe.settimeout(1.0)
-            probe.connect(address)
-            pid = str(struct.unpack("3i", probe.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
-                                                           struct.calcsize("3i")))[0])
-    except OSError:  # the other one ended meanwhile, or will not say: refused all the same (a restart tries again)
-        pass
-    raise VioError(f"another vio run (pid {pid}) sends to the autopilot at {key} ([mavlink] url = "
-                   f"{cfg.mavlink.url!r}): two daemons would send to it as one, their poses interleaved; stop it "
-                   f"first (the service: systemctl stop kestrel-vio; one started by hand: kill {pid}), or give this "
-                   "one another [mavlink] url")
+    return mavlink_endpoint_lock(cfg.mavlink.url, f"[mavlink] url = {cfg.mavlink.url!r}",
+                                 "give this one another [mavlink] url")
 
 
 def single_instance(cfg: VioConfig) -> Any:
