@@ -55,6 +55,7 @@ from drivers.mavlink_link import (  # noqa: F401 (mavutil, open_connection re-ex
 from vio import VioError
 from vio.config import MavlinkConfig
 from vio.geometry import make_T
+from vio.io.atomic import replace_atomically
 from vio.types import NavState
 
 log = logging.getLogger(__name__)
@@ -568,19 +569,14 @@ class MavlinkOutput:
         p = self._counter_file
         if p is None or value == self._counter_saved:
             return
-        tmp = p.with_name(f".{p.name}.tmp")
         try:
-            with open(tmp, "w") as f:
-                f.write(f"{value}\n")
-            os.replace(tmp, p)
+            replace_atomically(p, lambda f: f.write(f"{value}\n".encode()), durable=False)
             self._counter_saved = value
         except OSError as e:
             # what is kept there is stale from now on: gone if it can be removed (a full disk), else a restart
             # finds that it cannot write it back and starts at a random value (_first_counter)
             with contextlib.suppress(OSError):
                 p.unlink()
-            with contextlib.suppress(OSError):
-                tmp.unlink()
             log.warning("cannot keep the reset_counter in %s (%s): a restart will start at a random one", p,
                         e.strerror or e)
             self._counter_file = None

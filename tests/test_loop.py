@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -2586,3 +2587,47 @@ def test_a_map_is_never_renamed_over_a_device_or_pipe(tmp_path, capsys):
     with pytest.raises(VioError, match="is not a regular file"):
         save_map(fifo, [], np.zeros((0, 4, 4)), [], voc, cam)
     assert fifo.is_fifo() and sorted(p.name for p in tmp_path.iterdir()) == ["pipe.npz"]
+
+
+def _map_contents() -> tuple:
+    """mapfile.save_map's arguments for a map of two keyframes (what it reads of a vocabulary and a camera)."""
+    from types import SimpleNamespace
+
+    from vio.loop.features import KeyframeFeatures
+
+    voc = SimpleNamespace(k=2, depth=1, centres=np.zeros((2, 32), np.uint8), idf=np.ones(2))
+    cam = SimpleNamespace(fx=200.0, fy=200.0, cx=160.0, cy=100.0, width=320, height=200, T_body_cam=np.eye(4))
+    feats = [KeyframeFeatures(np.zeros((3, 32), np.uint8), np.ones((3, 2), np.float32),
+                              np.ones((3, 3), np.float32)) for _ in range(2)]
+    return [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam
+
+
+def test_a_saved_map_survives_a_power_cut_after_its_rename(tmp_path, monkeypatch):
+    """A map (and a checkpoint: the same writer) was synced, then renamed over the old one, but the rename lived in
+    the page cache until the kernel wrote the folder: a drone's power cut seconds after "map saved" could come back
+    with the old map. The folder is synced after the rename; the status file (rewritten every second) is not."""
+    import stat
+
+    from vio.app.daemon.status import write_status_file
+    from vio.loop.mapfile import load_map, save_map
+
+    events: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append("sync folder" if stat.S_ISDIR(os.fstat(fd).st_mode) else "sync file")
+        real_fsync(fd)
+
+    def replace(src, dst) -> None:
+        events.append(f"rename to {Path(dst).name}")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    save_map(tmp_path / "m.npz", *_map_contents())
+    assert events == ["sync file", "rename to m.npz", "sync folder"], events
+    assert len(load_map(tmp_path / "m.npz").t_ns) == 2
+    assert os.listdir(tmp_path) == ["m.npz"]  # no temporary left
+    events.clear()
+    write_status_file(tmp_path / "status.json", {"state": "ok"})
+    assert events == ["rename to status.json"]  # atomic, not synced: rewritten every second

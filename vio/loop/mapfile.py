@@ -25,7 +25,6 @@ survives a vocabulary update."""
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import hashlib
 import json
@@ -38,6 +37,7 @@ import numpy as np
 
 from vio import VioError
 from vio.geometry import is_se3
+from vio.io.atomic import replace_atomically
 from vio.loop.features import KeyframeFeatures
 from vio.loop.vocabulary import NPZ_DAMAGED
 
@@ -120,19 +120,15 @@ def save_map(path: str | Path, t_ns, T_world_body, features: list[KeyframeFeatur
     real = Path(os.path.realpath(path))
     if real.exists() and not real.is_file():  # renamed over, a device node (/dev/null as root) would be replaced
         raise VioError(f"{path}: is not a regular file (a device, pipe or socket): the map is not written there")
-    tmp = real.with_name(f".{real.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, header=np.array(json.dumps(header)), kf_t_ns=np.asarray(t_ns, np.int64),
-                                kf_T_world_body=np.asarray(T_world_body, np.float64).reshape(-1, 4, 4),
-                                kf_offsets=offsets, desc=cat("desc", (0, 32), np.uint8),
-                                uv=cat("uv", (0, 2), np.float32), p_cam=cat("p_cam", (0, 3), np.float32))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, real)
+
+    def write(f) -> None:
+        np.savez_compressed(f, header=np.array(json.dumps(header)), kf_t_ns=np.asarray(t_ns, np.int64),
+                            kf_T_world_body=np.asarray(T_world_body, np.float64).reshape(-1, 4, 4),
+                            kf_offsets=offsets, desc=cat("desc", (0, 32), np.uint8),
+                            uv=cat("uv", (0, 2), np.float32), p_cam=cat("p_cam", (0, 3), np.float32))
+    try:  # durable: a map is the work of every flight that grew it, and a drone's power is cut, not shut down
+        replace_atomically(real, write, durable=True)
     except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
         raise VioError(f"{path}: cannot write the map ({e.strerror or e}); "
                        + ("the map that was there is kept" if path.exists() else "nothing written")) from None
     return header

@@ -5,11 +5,12 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from vio.io.atomic import replace_atomically
 
 if TYPE_CHECKING:
     from vio.app.daemon.protocols import PoseOutput, Source
@@ -78,11 +79,11 @@ def _dash(v: Any) -> str:
 
 
 def write_status_file(path: Path, snap: dict) -> None:
-    """Atomic replace: a reader never sees half a file (temp file in the same folder, then rename)."""
+    """Atomic replace: a reader never sees half a file (temp file in the same folder, then rename). Not synced: it
+    is rewritten every second and says what a running process does (after a power cut it is stale anyway)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(snap, indent=1, default=_json_default) + "\n")
-    os.replace(tmp, path)
+    text = json.dumps(snap, indent=1, default=_json_default) + "\n"
+    replace_atomically(path, lambda f: f.write(text.encode()), durable=False)
 
 
 def _json_default(o: Any) -> Any:

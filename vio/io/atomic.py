@@ -1,0 +1,64 @@
+"""Files replaced whole: written beside the target under a temporary name and renamed over it, so that a reader (or
+the next start, after a kill) finds the old file or the new one, never half of one. The one place that names the
+temporary files, so that a start can find the ones a killed writer left (remove_stale_temporaries)."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+log = logging.getLogger(__name__)
+
+
+def temporary_path(path: Path, pid: int | None = None) -> Path:
+    """Where `path` is written before it is renamed over: beside it (a rename does not cross file systems), hidden,
+    named after it and the writing process (two processes writing one file do not write into one temporary)."""
+    return path.with_name(f".{path.name}.{os.getpid() if pid is None else pid}.tmp")
+
+
+def fsync_folder(folder: Path) -> None:
+    """Make a rename (or a new file) in `folder` survive a power cut: the new name is in the folder's own blocks,
+    which an fsync of the file does not write. Where a folder cannot be opened or synced (not POSIX, some network
+    and FUSE file systems: EINVAL, EBADF) nothing more can be done; said in the debug log."""
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
+    try:
+        fd = os.open(folder, flags)
+    except OSError as e:
+        log.debug("cannot open %s to sync it (%s): a power cut may lose the last rename in it", folder, e)
+        return
+    try:
+        os.fsync(fd)
+    except OSError as e:
+        if e.errno not in (errno.EINVAL, errno.EBADF, errno.ENOTSUP, errno.EROFS):
+            raise
+        log.debug("cannot sync the folder %s (%s): a power cut may lose the last rename in it", folder, e)
+    finally:
+        os.close(fd)
+
+
+def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: bool) -> None:
+    """Write `path` whole: `write(f)` into temporary_path(path), then renamed over `path` (the temporary removed on
+    any failure, the old file kept). `durable`: the data are synced before the rename and the folder after it, so
+    that a power cut (a drone's battery pulled) leaves the old file or the whole new one, and not the old one once
+    the new one was said to be written (a rename is in the page cache until the folder is synced). Not durable: a
+    file rewritten every second (the status file) or that a restart can do without (the reset counter), where a
+    sync on a busy SD card would hold the writer for up to seconds. OSError as raised."""
+    tmp = temporary_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    if durable:
+        fsync_folder(path.parent)
