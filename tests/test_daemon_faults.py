@@ -683,6 +683,37 @@ def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_ove
     assert plan.action == "grow" and plan.map is not None, plan
 
 
+def test_a_map_write_cut_short_leaves_its_temporary_only_until_the_next_start(tmp_path: Path, caplog) -> None:
+    """A checkpoint being written when the stop's budget ran out (or SIGKILL, a power cut) left its temporary file,
+    as large as the map, beside `[map] save`: one more at every such restart. The next start removes those whose
+    writer no longer runs (one log line), beside the real file when `[map] save` is a link; not a running
+    process's (a replay saving the same map now), nor any other name."""
+    from vio.io.atomic import temporary_path
+
+    (tmp_path / "state").mkdir()
+    real = tmp_path / "state" / "m.npz"
+    (tmp_path / "m.npz").symlink_to(real)  # [map] save through a link: the map (and its temporary) is beside real
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = temporary_path(real, dead.pid)
+    stale.write_bytes(bytes(4096))  # half a map
+    running = temporary_path(real)  # this process's: a write in progress
+    running.write_bytes(b"x")
+    others = [real.with_name(".m.npz.tmp"), real.with_name(f".other.npz.{dead.pid}.tmp"),
+              real.with_name(f"m.npz.{dead.pid}.tmp"), tmp_path / f".m.npz.{dead.pid}.tmp"]
+    for p in others:
+        p.write_bytes(b"y")
+    cfg = config_from_dict({"map": {"save": str(tmp_path / "m.npz")}})
+    with caplog.at_level(logging.INFO, logger="vio.app.daemon.service"):
+        assert service.map_to_grow(cfg, None) is None
+    assert not stale.exists() and running.exists() and all(p.exists() for p in others)
+    said = [r.getMessage() for r in caplog.records if "temporary file" in r.getMessage()]
+    assert len(said) == 1 and "removed 1 temporary file(s) of [map] save" in said[0] and str(stale) in said[0], said
+    caplog.clear()
+    service.map_to_grow(cfg, None)  # nothing left to remove: nothing said
+    assert not [r for r in caplog.records if "temporary file" in r.getMessage()]
+
+
 def test_a_checkpoint_that_cannot_be_moved_aside_does_not_keep_vio_run_from_flying(tmp_path: Path, monkeypatch,
                                                                                     caplog) -> None:
     """A power cut leaves a checkpoint (another boot's) and the state folder remounted read-only: the move aside

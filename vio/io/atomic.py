@@ -8,6 +8,7 @@ import contextlib
 import errno
 import logging
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
@@ -62,3 +63,47 @@ def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: b
         raise
     if durable:
         fsync_folder(path.parent)
+
+
+def _alive(pid: int) -> bool:
+    """Is a process `pid` running (another user's too)? A pid reused since counts as running: its file is kept, and
+    so is one named with pid 0 (os.kill(0) would ask about this process group; no writer has that pid)."""
+    if pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # OverflowError: a number no pid can be
+        return False
+    except OSError:  # EPERM: someone else's process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Remove the temporary files of `path` (temporary_path's names) whose writer no longer runs, and return them.
+
+    A writer killed mid-write (a stop's budget that ran out while a map checkpoint was written, the OOM killer, a
+    power cut) leaves its temporary beside the file: a map's is as large as the map, one more at every such restart,
+    on a companion computer's small disk. Only this name pattern is touched, and not a file of a process that runs
+    (a replay saving the same map now, this process)."""
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.tmp")
+    removed = []
+    try:
+        names = os.listdir(path.parent)
+    except OSError:
+        return []
+    for name in names:
+        m = pattern.fullmatch(name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        p = path.parent / name
+        try:
+            if not p.is_file() or p.is_symlink():
+                continue
+            p.unlink()
+        except OSError as e:
+            log.warning("%s: a temporary file left by a writer that was stopped mid-write; cannot remove it (%s)",
+                        p, e.strerror or e)
+            continue
+        removed.append(p)
+    return removed

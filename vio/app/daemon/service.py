@@ -753,7 +753,16 @@ def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
     OOM killer, a crash: systemd restarts it), which holds the loaded map and that run's flight so far. A checkpoint
     from another boot, or of a run that loaded another map, is moved aside to NAME.checkpoint-TIME.npz (kept, said)
     rather than grown: this flight may be elsewhere, and its keyframes are saved only once it relocalises in what
-    it loaded. Called once at start, after the instance lock (no other daemon of this configuration runs)."""
+    it loaded. Temporary files of `[map] save` whose writer no longer runs (a write cut short) are removed first:
+    each is as large as the map, one more at every such restart. Called once at start, after the instance lock (no
+    other daemon of this configuration runs)."""
+    if cfg.map.save:  # a checkpoint's write cut short (the stop's budget ran out, SIGKILL, a power cut)
+        from vio.io.atomic import remove_stale_temporaries
+
+        removed = remove_stale_temporaries(Path(os.path.realpath(cfg.map.save)))
+        if removed:
+            log.warning("map: removed %d temporary file(s) of [map] save left by a run stopped while it wrote the map "
+                        "(%s)", len(removed), ", ".join(str(p) for p in removed))
     plan = checkpoint_plan(cfg, map_data)
     if plan.action == "grow":
         log.info("%s", plan.said)
