@@ -133,6 +133,18 @@ def refuse_recorded(out: str | Path, fmt: str, overwrite: bool) -> None:
         raise VioError(f"{path}: already {what}; refusing to overwrite recorded data")
 
 
+def refuse_unwritable(out: str | Path, fmt: str) -> None:
+    """VioError when OUT cannot be written (a read-only card, a folder of another user's, a path through a file; an
+    MCAP file's folder missing: its writer makes no folder), said before the source is opened: the writer failed
+    once the sensors were up, saying that what was written before stays readable where nothing was."""
+    from vio.io.outputs import folder_problem
+
+    path = Path(out)
+    problem = folder_problem(path.parent if fmt == "mcap" else path, made=fmt != "mcap")
+    if problem:
+        raise VioError(f"{out}: cannot record there: {problem}")
+
+
 def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: str, overwrite: bool,
                  png_level: int = 0):
     """EurocWriter (a folder) or McapWriter (one file; sensors on ROS 2 schemas, `images` png/jpeg/raw)."""
@@ -174,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     if (args.format or cfg.run.record_format) == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
         raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")
     refuse_recorded(args.out, args.format or cfg.run.record_format, args.overwrite)
+    refuse_unwritable(args.out, args.format or cfg.run.record_format)
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 

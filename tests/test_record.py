@@ -191,6 +191,38 @@ def test_an_existing_recording_is_refused_before_the_source_opens(tmp_path: Path
     assert (tmp_path / "old.mcap").read_bytes() == b"kept"
 
 
+def test_an_output_that_cannot_be_written_is_refused_before_the_source_opens(tmp_path: Path, monkeypatch,
+                                                                            capsys) -> None:
+    """`vio record` into a place it cannot write opened the source (an OAK takes seconds), then failed at the first
+    write with "what was written before stays readable" where nothing was (a QA sweep). Said first, one line,
+    exit 1 as the command's other refusals of OUT, nothing left behind. Tried by writing (os.access says yes to
+    root in a mode-555 folder and in /proc)."""
+    import drivers.source
+    from vio.app.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    opened = []
+    monkeypatch.setattr(drivers.source, "open_source", lambda cfg: opened.append(cfg))
+    cases = [([str(tmp_path / "afile" / "rec")], f"{tmp_path / 'afile'} is a file, not a folder"),
+             ([str(tmp_path / "afile" / "r.mcap"), "--format", "mcap"], "is a file, not a folder"),
+             # the MCAP writer makes no folder (the EuRoC one makes OUT and its parents)
+             ([str(tmp_path / "none" / "r.mcap"), "--format", "mcap"], f"folder {tmp_path / 'none'} does not exist")]
+    if Path("/proc/self").is_dir():  # Linux: no file can be made in /proc, by root neither
+        cases += [(["/proc/kestrel-vio-test-rec"], "folder /proc cannot be written"),
+                  (["/proc/kestrel-vio-test.mcap", "--format", "mcap"], "folder /proc cannot be written")]
+    if os.geteuid() != 0:  # root writes in a mode-555 folder
+        (tmp_path / "ro").mkdir(mode=0o555)
+        cases.append(([str(tmp_path / "ro" / "rec")], f"folder {tmp_path / 'ro'} cannot be written"))
+    for argv, says in cases:
+        assert main(["record", *argv, "--source", "fake", "--duration", "1"]) == 1, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"vio record: error: {argv[0]}: cannot record there: ") \
+            and says in err[0], err
+    assert not opened
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["afile"] + (["ro"] if os.geteuid() != 0 else []))
+    assert not (tmp_path / "ro").exists() or not list((tmp_path / "ro").iterdir())  # the try left nothing
+
+
 def test_a_full_disk_while_recording_mcap_is_one_line_not_an_internal_error(tmp_path: Path) -> None:
     """A file size limit (or a full disk) during an MCAP recording ended in "internal error: OSError: [Errno 27]
     File too large" (a QA sweep); the EuRoC writer named its file. Now one line, exit 1, and the part written

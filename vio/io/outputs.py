@@ -5,6 +5,7 @@ would lose the recording)."""
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from vio import VioError
@@ -114,6 +115,31 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             raise VioError(f"{p}: cannot write {what}{via}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
             raise NotWritable(f"{p}: cannot write {what}{via}: folder {folder} is not writable")
+
+
+def folder_problem(folder: str | Path, made: bool) -> str | None:
+    """Why files cannot be written in `folder`, or None. `made`: the writer makes the folder and its parents (the
+    nearest one that exists is tried), else the folder itself must exist.
+
+    Tried, not asked: a file is made and removed there. os.access says yes to root in a read-only (mode 555)
+    folder and in /proc, and the writer then failed once the sensors were up (`vio record`: an OAK takes
+    seconds to start), with "what was written before stays readable" where nothing was."""
+    folder = Path(folder)
+    try:
+        existing = next((p for p in (folder, *folder.parents) if p.exists()), Path(".")) if made else folder
+    except OSError as e:  # a name over the file system's limits
+        return f"{folder}: {e.strerror or e}"
+    if not existing.exists():
+        return f"folder {existing} does not exist"
+    if not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".vio-write-test-", dir=existing)
+    except OSError as e:
+        return f"folder {existing} cannot be written ({e.strerror or e})"
+    os.close(fd)
+    os.unlink(probe)
+    return None
 
 
 def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | None) -> None:
