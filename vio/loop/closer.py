@@ -244,6 +244,27 @@ class LoopCloser:
     def _detect(self, i: int, bow: BowVector) -> bool:
         c = self.cfg
         self._pending = [p for p in self._pending if i - p.i <= c.consistency_window]
+        cands = self.candidates(i, bow)
+        self.stats.queried += 1
+        if not cands:
+            self.stats.refused["no candidate"] += 1
+            return False
+        reason = "pnp"
+        for j, _score in cands:
+            cand, why = self.verify(i, j)
+            if cand is None:
+                reason = reason if why == "pnp" else why  # the last gate passed PnP and refused it, if any
+                continue
+            self._pending.append(cand)
+            return self._consistent(i)
+        self.stats.refused[reason] += 1
+        return False
+
+    def candidates(self, i: int, bow: BowVector) -> list[tuple[int, float]]:
+        """Keyframe i's retrieval candidates (keyframe, score) in the order they are verified: the best `candidates`
+        allowed (`_allowed`), and while its session is relocalising or confirming a join the best reloc_candidates of
+        the other sessions; all with score >= min_score. Also what bench/loop_reloc.py --evidence verifies."""
+        c = self.cfg
         ok = self._allowed(i)
         cands = self.index.query(bow, ok, c.candidates)
         mine = self._comp(self.keyframes[i].session)
@@ -259,61 +280,54 @@ class LoopCloser:
                 other_frame = lambda j: self.keyframes[j].session != self.keyframes[i].session  # noqa: E731
             cands += [(j, s) for j, s in self.index.query(bow, lambda j: ok(j) and other_frame(j), c.reloc_candidates)
                       if j not in seen]
-        cands = [(j, s) for j, s in cands if s >= c.min_score]
-        self.stats.queried += 1
-        if not cands:
-            self.stats.refused["no candidate"] += 1
-            return False
-        kf = self.keyframes[i]
+        return [(j, s) for j, s in cands if s >= c.min_score]
+
+    def verify(self, i: int, j: int) -> tuple[_Candidate | None, str]:
+        """Keyframe j as a loop candidate of keyframe i through every gate (PnP, two-way, gravity, drift gate; the
+        reloc_* ones for another frame, or the frame of a join not confirmed yet): (the candidate, "") or (None,
+        the gate that refused it). Nothing is kept."""
+        c = self.cfg
+        kf, old = self.keyframes[i], self.keyframes[j]
         g = self.graph
-        reason = "pnp"
-        for j, _score in cands:
-            old = self.keyframes[j]
-            # another frame, or the frame of a join not confirmed yet: the relocalisation rules (its own gates, no
-            # matching guided by the placement under test)
-            other = self._comp(old.session) != self._comp(kf.session) or (confirming and old.session != kf.session)
-            min_inl = c.reloc_min_inliers if other else c.min_inliers
-            kw = dict(max_hamming=c.max_hamming, reproj_px=c.reproj_threshold_px, min_inliers=min_inl,
-                      guided_px=c.guided_radius_px)
-            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
-            if res is None and not other and c.prior_radius_px > 0:
-                # matched by projection from where the graph puts the new keyframe (verify.pnp `prior`)
-                res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio,
-                          prior=inv_T(g.estimate[j]) @ g.estimate[i], prior_px=c.prior_radius_px, **kw)
-            if res is None:
-                continue
-            if c.guided_radius_px > 0:  # the other way matched by projection from this pose (verify.pnp_from)
-                back = pnp_from(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, inv_T(res.T_old_new), **kw)
-            else:
-                back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
-            two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
-            if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
-                reason = "two-way"
-                continue
-            T_edge = _mean_pose(res.T_old_new, inv_T(back.T_old_new))
-            if c.refine_edges:
-                T_ref = refine_edge(old.feats, kf.feats, res, back, self.cam.K, self.baseline_m,
-                                    self.cam.T_body_cam, T_edge)
-                # the two PnPs agreed within the two-way tolerance: a refinement that leaves it is not trusted
-                if T_ref is not None and _agree(inv_T(T_edge) @ T_ref, *two_way):
-                    T_edge = T_ref
-            res = dataclasses.replace(res, T_old_new=T_edge, inliers=min(res.inliers, back.inliers))
-            tilt = gravity_disagreement_deg(g.estimate[j][:3, :3], g.odom[i][:3, :3], res.T_old_new[:3, :3])
-            if tilt > c.gravity_max_deg:
-                reason = "gravity"
-                continue
-            corr = g.estimate[j] @ res.T_old_new @ inv_T(g.estimate[i])
-            if not other:
-                since = abs(kf.path_m - old.path_m) if old.session == kf.session else float("inf")
-                allowed_m = c.drift_gate_m + c.drift_gate_per_m * since
-                if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(yaw_of(corr[:3, :3]))) > \
-                        c.drift_gate_deg:
-                    reason = "drift gate"
-                    continue
-            self._pending.append(_Candidate(i, j, res.T_old_new, corr, res.inliers))
-            return self._consistent(i)
-        self.stats.refused[reason] += 1
-        return False
+        confirming = not self._relocalising(kf.session) and self._confirming(kf.session)
+        # another frame, or the frame of a join not confirmed yet: the relocalisation rules (its own gates, no
+        # matching guided by the placement under test)
+        other = self._comp(old.session) != self._comp(kf.session) or (confirming and old.session != kf.session)
+        min_inl = c.reloc_min_inliers if other else c.min_inliers
+        kw = dict(max_hamming=c.max_hamming, reproj_px=c.reproj_threshold_px, min_inliers=min_inl,
+                  guided_px=c.guided_radius_px)
+        res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
+        if res is None and not other and c.prior_radius_px > 0:
+            # matched by projection from where the graph puts the new keyframe (verify.pnp `prior`)
+            res = pnp(old.feats, kf.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio,
+                      prior=inv_T(g.estimate[j]) @ g.estimate[i], prior_px=c.prior_radius_px, **kw)
+        if res is None:
+            return None, "pnp"
+        if c.guided_radius_px > 0:  # the other way matched by projection from this pose (verify.pnp_from)
+            back = pnp_from(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, inv_T(res.T_old_new), **kw)
+        else:
+            back = pnp(kf.feats, old.feats, self.cam.K, self.cam.T_body_cam, ratio=c.match_ratio, **kw)
+        two_way = (c.reloc_two_way_m, c.reloc_two_way_deg) if other else (c.two_way_m, c.two_way_deg)
+        if back is None or not _agree(res.T_old_new @ back.T_old_new, *two_way):
+            return None, "two-way"
+        T_edge = _mean_pose(res.T_old_new, inv_T(back.T_old_new))
+        if c.refine_edges:
+            T_ref = refine_edge(old.feats, kf.feats, res, back, self.cam.K, self.baseline_m,
+                                self.cam.T_body_cam, T_edge)
+            # the two PnPs agreed within the two-way tolerance: a refinement that leaves it is not trusted
+            if T_ref is not None and _agree(inv_T(T_edge) @ T_ref, *two_way):
+                T_edge = T_ref
+        res = dataclasses.replace(res, T_old_new=T_edge, inliers=min(res.inliers, back.inliers))
+        tilt = gravity_disagreement_deg(g.estimate[j][:3, :3], g.odom[i][:3, :3], res.T_old_new[:3, :3])
+        if tilt > c.gravity_max_deg:
+            return None, "gravity"
+        corr = g.estimate[j] @ res.T_old_new @ inv_T(g.estimate[i])
+        if not other:
+            since = abs(kf.path_m - old.path_m) if old.session == kf.session else float("inf")
+            allowed_m = c.drift_gate_m + c.drift_gate_per_m * since
+            if np.linalg.norm(corr[:3, 3]) > allowed_m or abs(np.degrees(yaw_of(corr[:3, :3]))) > c.drift_gate_deg:
+                return None, "drift gate"
+        return _Candidate(i, j, res.T_old_new, corr, res.inliers), ""
 
     def placement_unconfirmed(self) -> bool:
         """The newest keyframe's session is joined to another frame (a loaded map, the flight before a reset) by
