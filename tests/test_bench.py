@@ -189,3 +189,31 @@ def test_null_compare_refuses_an_unknown_case() -> None:
     r = subprocess.run([sys.executable, str(REPO / "bench" / "null_compare.py"), "--only", "no-such-flight"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 1 and "unknown case(s) no-such-flight" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_reloc_evidence_replays_the_join_rule_and_its_bound_refuses_every_lookalike() -> None:
+    """bench/loop_reloc.py --evidence: on every verified candidate of a start's first 2 s, the loop stage's rule (the
+    first verified candidate of each keyframe, reloc_min_consistent agreeing keyframes within consistency_window)
+    joins where three look-alikes agree first; the bound (every look-alike refused) joins on the true place, later.
+    A refused candidate, or agreement spread over more than the window, makes no join."""
+    from bench.loop_reloc import _false_edge, _first_join
+    from vio.config import VioConfig
+    from vio.geometry import make_T
+
+    cfg = VioConfig().loop
+    assert (cfg.reloc_min_consistent, cfg.consistency_window) == (3, 5)
+    la = {"refused": "", "inliers": 80, "lookalike": True, "correction": [1.5, 0.0, 0.0, 0.0]}
+    true = {"refused": "", "inliers": 70, "lookalike": False, "correction": [0.0, 0.02, 0.0, 0.01]}
+    refused = {"map_keyframe": 3, "refused": "two-way"}
+    kfs = [{"t_s": 0.25 * k, "candidates": c} for k, c in
+           enumerate([[la], [la, true], [refused, la, true], [refused, true], [true]])]
+    assert _first_join(kfs, cfg, "first") == (0.5, False)
+    assert _first_join(kfs, cfg, "oracle") == (0.75, True)
+    assert _first_join(kfs[:2], cfg, "first") is None
+    # three true keyframes, but the first and the last 6 keyframes apart: out of the consistency window
+    spread = [{"t_s": 0.25 * k, "candidates": [true] if k in (0, 1, 7) else [refused]} for k in range(8)]
+    assert _first_join(spread, cfg, "oracle") is None
+    # the ground-truth test of an edge: within 0.2 m / 3 deg is the place, a texture period off is a look-alike
+    G = make_T(np.eye(3), [1.0, 2.0, 0.5])
+    assert not _false_edge(G, G, make_T(np.eye(3), [0.1, 0.0, 0.0]))
+    assert _false_edge(G, G, make_T(np.eye(3), [1.5, 0.0, 0.0]))
