@@ -43,7 +43,10 @@ class AutopilotStub:
         from pymavlink import mavutil
 
         self._mavutil = mavutil
-        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=1, dialect="ardupilotmega")
+        # component 1 as a flight controller's: `vio run` on a recording (kind = "euroc") sends no pose until an
+        # autopilot heartbeat (drivers.mavlink_link.is_autopilot_heartbeat) says it is disarmed
+        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1,
+                                               dialect="ardupilotmega")
         self.port = self.conn.port.getsockname()[1]
         self.records: list[tuple[int, int]] = []
         self._stop = threading.Event()
