@@ -117,6 +117,111 @@ def refeed(rec: _Recorder, calib, loop_cfg, gt, t: np.ndarray, T_odom: np.ndarra
             **{k: cl.stats.to_dict()[k] for k in ("detect_ms_mean", "graph_ms_mean")}}
 
 
+def _flight_data(spec: str | None, cache: Path, size: tuple[int, int], scene: str, dataset: Path | None) -> Path:
+    """The flight's EuRoC folder: `dataset`, or `spec` (profile:duration_s:seed:variant[:aliasing m]) simulated
+    into `cache` the first time it is asked for."""
+    from vio.sim.generate import SimConfig, simulate
+
+    if dataset is not None:
+        return dataset
+    profile, dur, seed, variant, *alias = spec.split(":")
+    period = float(alias[0]) if alias else None
+    data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-{size[0]}x{size[1]}" +
+                    (f"-aliasing{alias[0]}m" if alias else "") + ("" if scene == "room" else f"-{scene}"))
+    if not (data / "mav0").is_dir():
+        simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
+                                 width=size[0], height=size[1], aliasing_period_m=period, scene=scene),
+                 overwrite=True, progress=False)
+    return data
+
+
+def record(spec: str | None, cache: Path, size: tuple[int, int], scene: str, dataset: Path | None,
+           config: Path | None, out_dir: Path) -> Path:
+    """Replay the flight once and keep what its loop stage was handed (keyframes, settled poses), with the
+    calibration and [loop] configuration, in out_dir/<flight>.pkl: `--refeed-timing` feeds it again as often as
+    asked, without the replay (its threads and its timing noise) and with exactly the same keyframes each time."""
+    import pickle
+
+    from vio.app.replay import replay
+    from vio.config import VioConfig, load_config
+    from vio.io.euroc import EurocDataset
+
+    data = _flight_data(spec, cache, size, scene, dataset)
+    cfg = load_config(config) if config is not None else VioConfig()
+    rec = _Recorder()
+    ds = EurocDataset(data)
+    replay(ds, cfg, progress=False, loop=rec)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / f"{data.name}.pkl"
+    with open(out, "wb") as f:
+        pickle.dump({"flight": data.name, "items": rec.items, "settles": rec.settles,
+                     "calibration": ds.calibration, "loop": cfg.loop}, f, protocol=pickle.HIGHEST_PROTOCOL)
+    return out
+
+
+def loop_digest(closer) -> str:
+    """SHA-256 of everything the loop stage decided and keeps: each keyframe's features and bag of words, the pose
+    graph's edges (poses, weights, inliers, sigma scales), odometry and estimate, and the stage's counts (not its
+    timings). Two revisions of the stage fed the same recording agree on it only if their results are
+    bit-identical."""
+    import hashlib
+
+    h = hashlib.sha256()
+
+    def put(*xs) -> None:
+        for x in xs:
+            h.update(np.ascontiguousarray(x).tobytes() if isinstance(x, np.ndarray) else repr(x).encode())
+
+    for kf, v in zip(closer.keyframes, closer.index.vectors):
+        put(kf.t_ns, kf.session, kf.path_m, kf.feats.desc, kf.feats.uv, kf.feats.p_cam, v.words, v.weights)
+    for e in closer.graph.edges:
+        put(e.i, e.j, e.kind, e.weight, e.inliers, e.sigma_scale, e.T_i_j)
+    put(np.array(closer.graph.odom), np.array(closer.graph.estimate))
+    put({k: v for k, v in closer.stats.to_dict().items() if "_ms" not in k})
+    return h.hexdigest()
+
+
+def refeed_timing(paths: list[Path], runs: int) -> list[dict]:
+    """Each recording (`--record`) fed to a fresh loop stage `runs` times, the recordings taking turns, OpenCV
+    on one thread: per run the stage's `detect_ms` (extraction, retrieval, verification per searched keyframe)
+    measured in this process's CPU time instead of the wall clock (other work on a shared machine adds to the
+    wall clock, not to this), and the digest of the results (`loop_digest`), which must not change between runs."""
+    import pickle
+    import types
+
+    import cv2
+
+    import vio.loop.closer as closer_mod
+    from vio.loop.closer import LoopCloser
+
+    recs = []
+    for p in paths:
+        with open(p, "rb") as f:
+            d = pickle.load(f)
+        rec = _Recorder()
+        rec.items, rec.settles = d["items"], d["settles"]
+        recs.append((d, rec))
+    cv2.setNumThreads(1)
+    cpu_clock = types.SimpleNamespace(**{k: getattr(time, k) for k in dir(time) if not k.startswith("_")})
+    cpu_clock.perf_counter = time.process_time
+    rows = []
+    try:
+        closer_mod.time = cpu_clock
+        for run in range(runs):
+            for d, rec in recs:
+                cl = LoopCloser(d["calibration"], d["loop"])
+                rec.feed(cl)
+                st = cl.stats.to_dict()
+                rows.append({"flight": d["flight"], "run": run, "searched": len(cl.stats.detect_ms),
+                             "detect_cpu_ms_mean": st["detect_ms_mean"], "graph_cpu_ms_mean": st["graph_ms_mean"],
+                             "accepted": st["accepted"], "digest": loop_digest(cl),
+                             "load": os.getloadavg()[0]})
+    finally:
+        closer_mod.time = time
+        cv2.setNumThreads(-1)
+    return rows
+
+
 def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene: str = "room",
                dataset: Path | None = None, config: Path | None = None, refeed_configs: tuple[Path, ...] = ()) -> dict:
     import cv2
@@ -127,20 +232,9 @@ def run_flight(spec: str, cache: Path, size: tuple[int, int] = (752, 480), scene
     from vio.evaluation import end_drift_m, evaluate
     from vio.io.euroc import EurocDataset
     from vio.loop.closer import LoopCloser
-    from vio.sim.generate import SimConfig, simulate
     from vio.trajectory import Trajectory
 
-    if dataset is not None:
-        data = dataset
-    else:
-        profile, dur, seed, variant, *alias = spec.split(":")
-        period = float(alias[0]) if alias else None
-        data = cache / (f"{profile}-{variant}-seed{seed}-{dur}s-{size[0]}x{size[1]}" +
-                        (f"-aliasing{alias[0]}m" if alias else "") + ("" if scene == "room" else f"-{scene}"))
-        if not (data / "mav0").is_dir():
-            simulate(data, SimConfig(profile=profile, duration_s=float(dur), seed=int(seed), variant=variant,
-                                     width=size[0], height=size[1], aliasing_period_m=period, scene=scene),
-                     overwrite=True, progress=False)
+    data = _flight_data(spec, cache, size, scene, dataset)
     ds = EurocDataset(data)
     gt = ds.groundtruth.trajectory
     cfg = load_config(config) if config is not None else VioConfig()
@@ -275,7 +369,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--datasets", nargs="+", type=Path, metavar="DIR",
                     help="recorded flights with ground truth (EuRoC ASL folders, e.g. made by `vio simulate "
                          "--imu-from`) instead of --flights")
+    ap.add_argument("--record", type=Path, metavar="DIR",
+                    help="only replay each flight once and keep its loop stage's keyframes in DIR/<flight>.pkl "
+                         "(for --refeed-timing)")
+    ap.add_argument("--refeed-timing", type=Path, nargs="+", metavar="PKL",
+                    help="only feed these recordings (--record) to a fresh loop stage --runs times each, on one "
+                         "thread: detection + verification per searched keyframe in CPU time, and a digest of "
+                         "the results (equal digests: bit-identical loop stage)")
+    ap.add_argument("--runs", type=int, default=3, help="re-feeds of each recording for --refeed-timing")
     args = ap.parse_args(argv)
+    if args.refeed_timing:
+        missing = [str(p) for p in args.refeed_timing if not p.is_file()]
+        if missing:
+            print(f"no such recording: {', '.join(missing)} (make them with --record DIR)", file=sys.stderr)
+            return 2
+        rows = refeed_timing(args.refeed_timing, args.runs)
+        for r in rows:
+            print(f"{r['flight']} run {r['run']}: detection {r['detect_cpu_ms_mean']:.3f} ms CPU per searched "
+                  f"keyframe ({r['searched']} searched), pose graph {r['graph_cpu_ms_mean']:.3f}, "
+                  f"{r['accepted']} edges, load {r['load']:.1f}, digest {r['digest'][:16]}", flush=True)
+        for name in dict.fromkeys(r["flight"] for r in rows):
+            ms = [r["detect_cpu_ms_mean"] for r in rows if r["flight"] == name]
+            digests = {r["digest"] for r in rows if r["flight"] == name}
+            print(f"{name}: detection mean of runs {np.mean(ms):.3f} ms (fastest {min(ms):.3f}, slowest "
+                  f"{max(ms):.3f}), digest {'same in every run' if len(digests) == 1 else 'DIFFERS between runs'}",
+                  flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        return 0
     if args.graph:
         rows = []
         for n in args.graph:
@@ -297,8 +418,12 @@ def main(argv: list[str] | None = None) -> int:
         if dataset is not None and not (dataset / "mav0").is_dir():
             print(f"{dataset}: not an EuRoC ASL folder (no mav0/)", file=sys.stderr)
             return 2
-        r = run_flight(spec, Path(args.cache), tuple(int(v) for v in args.size.lower().split("x")), args.scene,
-                       dataset, args.config, tuple(args.refeed_config))
+        size = tuple(int(v) for v in args.size.lower().split("x"))
+        if args.record:
+            print(f"recorded {record(spec, Path(args.cache), size, args.scene, dataset, args.config, args.record)}",
+                  flush=True)
+            continue
+        r = run_flight(spec, Path(args.cache), size, args.scene, dataset, args.config, tuple(args.refeed_config))
         rows.append(r)
         print(f"{r['flight']}: ATE {r['ate_odometry_m']:.4f} -> {r['ate_loop_m']:.4f} m ({r['ate_ratio']:.2f}x; "
               f"with exact loop edges {r['ate_loop_true_edges_m']:.4f} m), "

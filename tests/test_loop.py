@@ -320,6 +320,40 @@ def test_spacing_takes_a_hovering_keyframe_only_every_spacing_s_and_always_the_o
     assert len(every.keyframes) == 5 and every.stats.spaced_out == 0
 
 
+def test_bench_recording_refeeds_to_the_same_results_and_its_digest_sees_a_change(laps_flight, tmp_path):
+    """bench/loop_closure.py --record / --refeed-timing, the check that a faster loop stage decides exactly as the
+    one before: the recorded keyframes re-fed twice give the same digest and a CPU-time cost; one edge weighted
+    differently, or one keyframe's pixel moved by one ulp, gives another digest."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.loop_closure import _Recorder, loop_digest, record, refeed_timing
+    from vio.loop.closer import LoopCloser
+
+    pkl = record(None, tmp_path, (376, 240), "room", laps_flight, None, tmp_path / "rec")
+    rows = refeed_timing([pkl], 2)
+    assert [r["run"] for r in rows] == [0, 1] and rows[0]["digest"] == rows[1]["digest"]
+    assert rows[0]["accepted"] >= 1 and rows[0]["searched"] > 10 and rows[0]["detect_cpu_ms_mean"] > 0
+    import pickle
+
+    d = pickle.loads(pkl.read_bytes())
+    rec = _Recorder()
+    rec.items, rec.settles = d["items"], d["settles"]
+    cl = LoopCloser(d["calibration"], d["loop"])
+    rec.feed(cl)
+    assert loop_digest(cl) == rows[0]["digest"]
+    e = next(e for e in cl.graph.edges if e.kind == "loop")
+    w = e.weight
+    e.weight = np.nextafter(w, -np.inf)
+    assert loop_digest(cl) != rows[0]["digest"]
+    e.weight = w
+    assert loop_digest(cl) == rows[0]["digest"]
+    uv = cl.keyframes[3].feats.uv
+    uv[0, 0] = np.nextafter(uv[0, 0], np.inf)
+    assert loop_digest(cl) != rows[0]["digest"]
+
+
 def test_replay_with_loop_closure_writes_both_trajectories_and_leaves_odometry_alone(laps_flight, tmp_path, capsys):
     from vio.app.cli import main
 
