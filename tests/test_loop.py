@@ -320,6 +320,26 @@ def test_spacing_takes_a_hovering_keyframe_only_every_spacing_s_and_always_the_o
     assert len(every.keyframes) == 5 and every.stats.spaced_out == 0
 
 
+def test_so3_exp_of_one_vector_is_scipys_to_the_bit():
+    """geometry.so3_exp's closed form for one vector (the loop stage's edge mean, the front end's gyro prediction)
+    must give scipy's matrix exactly, or the loop stage's edges and the odometry would move: both sides of the
+    small-angle series, the series' own edge, zero, a half turn, and what is not finite (scipy's answer)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(7)
+    vecs = [rng.normal(size=(20000, 3)) * s for s in (1e-7, 3e-4, 5.8e-4, 1e-3, 0.02, 0.5, 2.0)]
+    vecs.append(np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, np.nextafter(1e-3, 1.0), 0.0], [0.0, 0.0, np.pi],
+                          [1e-300, 0.0, 0.0], [-3.0, 2.0, 1.0]]))
+    for V in vecs:
+        ref = Rotation.from_rotvec(V).as_matrix()
+        mine = np.array([so3_exp(v) for v in V])
+        assert mine.tobytes() == ref.tobytes(), np.argwhere(mine != ref)[:3]  # bytes: -0.0 too
+    for bad in ([np.nan, 0.0, 0.0], [np.inf, 0.0, 0.0]):
+        with np.errstate(invalid="ignore"):
+            np.testing.assert_array_equal(so3_exp(np.array(bad)), Rotation.from_rotvec(bad).as_matrix())
+    np.testing.assert_array_equal(so3_exp(vecs[4][:5]), Rotation.from_rotvec(vecs[4][:5]).as_matrix())  # a stack
+
+
 def test_bench_recording_refeeds_to_the_same_results_and_its_digest_sees_a_change(laps_flight, tmp_path):
     """bench/loop_closure.py --record / --refeed-timing, the check that a faster loop stage decides exactly as the
     one before: the recorded keyframes re-fed twice give the same digest and a CPU-time cost; one edge weighted

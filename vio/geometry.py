@@ -8,6 +8,7 @@ costs ~100 us a call, Rot3 ~3 us, equal to 1e-15).
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 
@@ -54,7 +55,34 @@ def rot_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix (..., 3, 3) of rotation vector(s) (..., 3) (axis * angle, rad)."""
-    return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
+    phi = np.asarray(phi, dtype=float)
+    if phi.shape == (3,):
+        R = _so3_exp_one(float(phi[0]), float(phi[1]), float(phi[2]))
+        if R is not None:
+            return R
+    return Rotation.from_rotvec(phi).as_matrix()
+
+
+def _so3_exp_one(x: float, y: float, z: float) -> np.ndarray | None:
+    """scipy's Rotation.from_rotvec(v).as_matrix() of one finite rotation vector, the same operations in the same
+    order on Python floats (libm's sin and cos, as scipy's compiled code calls them): equal to the bit (a test
+    compares them on a million vectors from 1e-6 to 3 rad, both sides of the small-angle series), at 5 us instead
+    of scipy's 33 us for one vector (the loop stage's edge mean asks one per verified candidate). None when the
+    vector is not finite (math.sin raises where C's gives NaN: scipy's answer then)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    if not math.isfinite(angle):
+        return None
+    if angle <= 1e-3:  # scipy's Taylor series of sin(angle / 2) / angle
+        a2 = angle * angle
+        scale = 0.5 - a2 / 48 + a2 * a2 / 3840
+    else:
+        scale = math.sin(angle / 2) / angle
+    qx, qy, qz, w = scale * x, scale * y, scale * z, math.cos(angle / 2)
+    x2, y2, z2, w2 = qx * qx, qy * qy, qz * qz, w * w
+    xy, zw, xz, yw, yz, xw = qx * qy, qz * w, qx * qz, qy * w, qy * qz, qx * w
+    return np.array([[x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+                     [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+                     [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2]])
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
