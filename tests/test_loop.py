@@ -340,6 +340,33 @@ def test_so3_exp_of_one_vector_is_scipys_to_the_bit():
     np.testing.assert_array_equal(so3_exp(vecs[4][:5]), Rotation.from_rotvec(vecs[4][:5]).as_matrix())  # a stack
 
 
+def test_inv_T_of_one_transform_is_the_stacks_einsum_to_the_bit():
+    """geometry.inv_T's path for one 4x4 must give the bytes the stacked path (einsum) gives, -0.0 included (a zero
+    translation under a rotation with negative entries), or loop edges and odometry would move."""
+    from scipy.spatial.transform import Rotation
+
+    from vio.geometry import inv_T
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.random(n, random_state=2).as_matrix()
+    T[:, :3, 3] = rng.normal(size=(n, 3)) * rng.choice([0.0, -0.0, 1e-3, 1.0, 100.0], size=(n, 1))
+    T[::5, :3, :3] = [[-0.6, 0.8, 0.0], [-0.8, -0.6, 0.0], [-0.0, 0.0, 1.0]]
+    T[::7, 1, 3] = -0.0
+    stacked = inv_T(T)  # the einsum path
+    one = np.array([inv_T(t) for t in T])
+    assert one.tobytes() == stacked.tobytes(), np.argwhere(one != stacked)[:3]
+    t = stacked[:, :3, 3]
+    assert (np.signbit(t) & (t == 0)).any()  # the -0.0 case is in the sample
+    # a column-major pose (gtsam's) keeps the general path: einsum sums it in another order, in its memory order
+    for k in range(0, n, 97):
+        F = np.asfortranarray(T[k])
+        ref = stacked[k].copy()
+        ref[:3, 3] = -np.einsum("ij,j->i", F[:3, :3].T, F[:3, 3])
+        assert inv_T(F).tobytes(order="A") == np.asfortranarray(ref).tobytes(order="A") and inv_T(F).flags.f_contiguous
+
+
 def test_bench_recording_refeeds_to_the_same_results_and_its_digest_sees_a_change(laps_flight, tmp_path):
     """bench/loop_closure.py --record / --refeed-timing, the check that a faster loop stage decides exactly as the
     one before: the recorded keyframes re-fed twice give the same digest and a CPU-time cost; one edge weighted

@@ -103,6 +103,15 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def inv_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (or a stack of them, shape (..., 4, 4))."""
     T = np.asarray(T, dtype=float)
+    if T.shape == (4, 4) and T.flags.c_contiguous:
+        # one row-major transform on Python floats, 4 us instead of 15 (the loop stage inverts ~9 a searched
+        # keyframe): einsum's answer to the bit, which sums a row-major T's (0 + first product) + second + third in
+        # that order, so a zero translation keeps its -0.0 (a test compares the bytes). A column-major T (gtsam's
+        # poses) einsum sums in another order (first + third) + second, and its answer keeps T's memory order, in
+        # which numpy's products round differently: it stays on the general path below
+        (a, b, c, x), (d, e, f, y), (g, h, i, z) = T[:3].tolist()
+        return np.array([[a, d, g, -(0.0 + a * x + d * y + g * z)], [b, e, h, -(0.0 + b * x + e * y + h * z)],
+                         [c, f, i, -(0.0 + c * x + f * y + i * z)], [0.0, 0.0, 0.0, 1.0]])
     R = T[..., :3, :3]
     t = T[..., :3, 3]
     out = np.zeros_like(T)
