@@ -60,27 +60,32 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     has3 = old.landmark_rows
     if not len(has3) or not len(new.uv):
         return np.zeros((0, 2), np.int64)
+    # (gathers by `take` and methods instead of fancy indexing and np.* wrappers: the same arrays, ~15 % less time
+    # on the shelves flight's 323 calls)
     R = cv2.Rodrigues(rvec)[0]
-    p = old.p_cam[has3] @ R.T + np.ravel(tvec)
+    p = old.p_cam.take(has3, axis=0) @ R.T + np.ravel(tvec)
     front = p[:, 2] > 1e-3
-    has3, p = has3[front], p[front]
+    if not front.all():
+        has3, p = has3[front], p[front]
     uv = (p[:, :2] / p[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+    u, v = uv[:, 0], uv[:, 1]
     # the new features within radius_px in x of each projection (features sorted by x), then the radius itself:
     # a few thousand pairs instead of an all-against-all distance table
     by_x, xs, ys = new.by_x
-    lo = np.searchsorted(xs, uv[:, 0] - radius_px, side="left")
-    cnt = np.searchsorted(xs, uv[:, 0] + radius_px, side="right") - lo
-    rows = np.repeat(np.arange(len(uv)), cnt)
-    start = np.cumsum(cnt) - cnt
-    s = np.repeat(lo - start, cnt) + np.arange(len(rows))  # positions in the x order
-    dx, dy = xs[s] - uv[rows, 0], ys[s] - uv[rows, 1]
+    lo = xs.searchsorted(u - radius_px, side="left")
+    cnt = xs.searchsorted(u + radius_px, side="right") - lo
+    rows = np.arange(len(uv)).repeat(cnt)
+    start = cnt.cumsum() - cnt
+    s = (lo - start).repeat(cnt) + np.arange(len(rows))  # positions in the x order
+    dx, dy = xs.take(s) - u.take(rows), ys.take(s) - v.take(rows)
     near = dx * dx + dy * dy <= radius_px ** 2
     rows, s = rows[near], s[near]
     if not len(rows):
         return np.zeros((0, 2), np.int64)
-    o = has3[rows]
-    x = np.ascontiguousarray(old.desc[o] ^ new.desc[by_x[s]]).view(np.uint64)  # (M, 4): 256 bits as 64-bit words
-    ham = popcount_u64(x).sum(axis=1, dtype=np.int64)
+    o = has3.take(rows)
+    x = (old.desc.take(o, axis=0) ^ new.desc.take(by_x.take(s), axis=0)).view(np.uint64)  # (M, 4): 64-bit words
+    pc = popcount_u64(x)  # (M, 4) uint8, each <= 64: two of them add up in uint8 without overflow
+    ham = (pc[:, 0].astype(np.int64) + pc[:, 1]) + (pc[:, 2] + pc[:, 3])  # (sum(axis=1) is 3x slower on 4 columns)
     keep = ham <= max_hamming
     if not keep.any():
         return np.zeros((0, 2), np.int64)
@@ -90,10 +95,10 @@ def guided_pairs(old: KeyframeFeatures, new: KeyframeFeatures, K: np.ndarray, rv
     n_new = len(by_x)
     first = np.flatnonzero(np.concatenate((_TRUE, o[1:] != o[:-1])))
     best = np.minimum.reduceat(ham * n_new + s, first)
-    o, n, ham = o[first], by_x[best % n_new], best // n_new
+    o, n, ham = o.take(first), by_x.take(best % n_new), best // n_new
     # ... then per new feature its best old point (ties to the first old point), in the new features' order
-    order = np.argsort((n * (max_hamming + 1) + ham) * (int(o[-1]) + 1) + o)
-    o, n = o[order], n[order]
+    order = ((n * (max_hamming + 1) + ham) * (int(o[-1]) + 1) + o).argsort()
+    o, n = o.take(order), n.take(order)
     first = np.concatenate((_TRUE, n[1:] != n[:-1]))
     return np.column_stack([o[first], n[first]]).reshape(-1, 2)
 
