@@ -89,8 +89,12 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
         raise VioError(f"kalibr: none of {[str(f) for f in files]} has a 'cam0' entry (camchain-imucam.yaml)")
     if "cam1" not in chain:
         raise VioError(f"{chain_path}: missing key 'cam1' (a stereo camera chain is needed)")
-    c0, c1 = dict(chain["cam0"]), dict(chain["cam1"])
     where0, where1 = f"{chain_path}: cam0", f"{chain_path}: cam1"
+    for key, where in (("cam0", where0), ("cam1", where1)):
+        if not isinstance(chain[key], dict):  # dict() of a number or a list was an internal TypeError
+            raise VioError(f"{where}: expected a mapping of camera keys (T_cam_imu, intrinsics, ...), got "
+                           f"{type(chain[key]).__name__} {chain[key]!r:.40}")
+    c0, c1 = dict(chain["cam0"]), dict(chain["cam1"])
     more = sorted(k for k in chain if k.startswith("cam") and k not in ("cam0", "cam1"))
     if more:
         notes.add(f"{chain_path}: {', '.join(more)} left out: Kestrel uses the stereo pair cam0 / cam1")
@@ -120,7 +124,11 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
         c["T_cam_imu"] = np.asarray(c["T_cam_imu"], dtype=float).tolist()
     cam0 = camera_from_dict(c0, where0, kalibr=True)
     cam1 = camera_from_dict(c1, where1, kalibr=True)
-    shifts = [float(c.get("timeshift_cam_imu", 0.0)) for c in (c0, c1)]
+    try:
+        shifts = [float(c.get("timeshift_cam_imu", 0.0)) for c in (c0, c1)]
+    except (TypeError, ValueError):  # a string or a list: was an internal ValueError
+        raise VioError(f"{chain_path}: timeshift_cam_imu = {[c.get('timeshift_cam_imu') for c in (c0, c1)]}: "
+                       "expected a number of seconds") from None
     if not all(math.isfinite(x) for x in shifts):
         raise VioError(f"{chain_path}: timeshift_cam_imu = {shifts}: seconds, finite")
     if abs(shifts[0] - shifts[1]) > 1e-4:

@@ -97,6 +97,31 @@ def test_kalibr_errors_name_file_and_key(tmp_path):
         import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml", g])
 
 
+def test_kalibr_values_of_the_wrong_type_are_named_in_one_line(tmp_path, capsys):
+    """A camchain edited by hand with a camera that is not a mapping, a timeshift that is not a number, or
+    intrinsics that are a word: `vio calib import` said 'internal error: TypeError' / 'ValueError', or counted the
+    word's letters as intrinsics ('got 3 values')."""
+    from vio.app.cli import main
+
+    text = (DATA / "kalibr_camchain_imucam.yaml").read_text()
+    cases = {
+        "cam0: 5\ncam1: 6\n": r"cam0: expected a mapping of camera keys .*got int 5",
+        "cam0: [1, 2]\ncam1: [3]\n": r"cam0: expected a mapping of camera keys .*got list \[1, 2\]",
+        text.replace("timeshift_cam_imu: -0.0052", "timeshift_cam_imu: abc"):
+            r"timeshift_cam_imu = \['abc', 'abc'\]: expected a number of seconds",
+        text.replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: foo"):
+            r"cam0: intrinsics must be a list \[fx, fy, cx, cy\], got 'foo'",
+    }
+    f, out = tmp_path / "camchain.yaml", tmp_path / "c.yaml"
+    for content, message in cases.items():
+        f.write_text(content)
+        capsys.readouterr()
+        assert main(["calib", "import", "kalibr", str(f), "-o", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert re.search(r"^vio calib: error: .*camchain\.yaml: " + message, err), err
+        assert "internal error" not in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
 def test_euroc_import_roundtrip(tmp_path, v101_path):
     calib, _ = import_calibration("euroc", [v101_path])
     assert calib.cam0.fx == pytest.approx(458.654)

@@ -250,7 +250,9 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
         model = str(d.get("camera_model", "pinhole"))
         if model.lower() != "pinhole":  # first: kalibr's omni has 5 intrinsics ("too many values to unpack")
             raise VioError(f"{where}: camera_model '{model}' is not supported (only 'pinhole')")
-        intrinsics = list(_need(d, "intrinsics", where))
+        intrinsics = _need(d, "intrinsics", where)
+        if not isinstance(intrinsics, (list, tuple)):  # list('foo') said "got 3 values"
+            raise VioError(f"{where}: intrinsics must be a list [fx, fy, cx, cy], got {intrinsics!r:.40}")
         if len(intrinsics) != 4:
             raise VioError(f"{where}: intrinsics must be [fx, fy, cx, cy], got {len(intrinsics)} values")
         fx, fy, cx, cy = (float(x) for x in intrinsics)
