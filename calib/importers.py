@@ -146,7 +146,7 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
 
 def import_euroc(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
     """A EuRoC dataset folder, or its cam0, cam1 [, imu0] sensor.yaml files in that order."""
-    from vio.io.euroc import find_mav0, read_camera_yaml, read_imu_yaml
+    from vio.io.euroc import find_mav0, read_camera_yaml, read_imu_T_BS, read_imu_yaml
 
     notes = ImportNotes()
     files = [Path(f) for f in files]
@@ -159,10 +159,9 @@ def import_euroc(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ster
     cam0, cam1 = read_camera_yaml(files[0]), read_camera_yaml(files[1])
     if len(files) == 3:
         imu = read_imu_yaml(files[2])
-        T_BS_imu = load_yaml(files[2]).get("T_BS", {}).get("data")
-        if T_BS_imu is not None and not np.allclose(np.asarray(T_BS_imu, float).reshape(4, 4), np.eye(4)):
+        T_B_imu = read_imu_T_BS(files[2])
+        if T_B_imu is not None and not np.allclose(T_B_imu, np.eye(4)):
             # our body frame is the IMU: re-express camera mounts relative to it
-            T_B_imu = np.asarray(T_BS_imu, float).reshape(4, 4)
             cam0 = cam0.with_T_body_cam(inv_T(T_B_imu) @ cam0.T_body_cam)
             cam1 = cam1.with_T_body_cam(inv_T(T_B_imu) @ cam1.T_body_cam)
             notes.add(f"{files[2]}: IMU T_BS is not identity; camera extrinsics re-expressed in the IMU frame")

@@ -134,6 +134,26 @@ def test_euroc_import_roundtrip(tmp_path, v101_path):
     _roundtrip(calib, tmp_path)
 
 
+def test_euroc_import_of_an_imu_yaml_with_a_bad_T_BS_says_so(tmp_path, v101_path, capsys):
+    """imu0/sensor.yaml's T_BS as a bare list, or with 15 numbers: 'internal error: AttributeError' / 'ValueError'
+    (the cameras' T_BS was checked, the IMU's not)."""
+    from vio.app.cli import main
+
+    mav0 = v101_path / "mav0"
+    imu_text = (mav0 / "imu0/sensor.yaml").read_text()
+    imu, out = tmp_path / "sensor.yaml", tmp_path / "c.yaml"
+    bare_list = imu_text.replace("T_BS:", "T_BS: [1, 0, 0]\nold_T_BS:")
+    fifteen = imu_text.replace("0.0, 0.0, 0.0, 1.0]", "0.0, 0.0, 0.0]")
+    for content, message in ((bare_list, "expected 16 values .*got 3"), (fifteen, "expected 16 values .*got 15")):
+        imu.write_text(content)
+        capsys.readouterr()
+        assert main(["calib", "import", "euroc", str(mav0 / "cam0/sensor.yaml"), str(mav0 / "cam1/sensor.yaml"),
+                     str(imu), "-o", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert re.search(r"^vio calib: error: .*sensor\.yaml: T_BS: " + message, err), err
+        assert "internal error" not in err and not out.exists()
+
+
 def test_opencv_import_units_and_convention(tmp_path):
     calib, notes = import_calibration("opencv", [DATA / "opencv_stereo.yaml"], translation_unit="mm")
     assert calib.baseline_m == pytest.approx(0.07512, abs=1e-4)

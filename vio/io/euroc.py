@@ -374,6 +374,21 @@ def read_camera_yaml(path: Path) -> CameraCalibration:
         raise VioError(f"{path}: {e}") from None
 
 
+def read_imu_T_BS(path: Path) -> np.ndarray | None:
+    """The IMU's T_BS of an imu0/sensor.yaml (None when the file has none), checked as the cameras' are: a list
+    there, or a matrix of the wrong size, was an internal AttributeError / ValueError of `vio calib import euroc`."""
+    d = load_yaml(path)
+    if "T_BS" not in d:
+        return None
+    try:
+        T = np.array(_yaml_numbers(d, "T_BS", 16, what=" (a 4x4 matrix in data)")).reshape(4, 4)
+    except VioError as e:
+        raise VioError(f"{path}: {e}") from None
+    if not is_se3(T, tol=1e-4):
+        raise VioError(f"{path}: T_BS: not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
+    return T
+
+
 def read_imu_yaml(path: Path) -> ImuNoise:
     d = load_yaml(path)
     keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
