@@ -896,6 +896,24 @@ def test_map_file_refuses_other_formats(tmp_path, capsys):
 
 
 
+def test_map_info_of_a_header_whose_parts_leave_out_join_edges_or_whose_size_is_fractional(tmp_path, capsys):
+    """The loader takes a part without `join_edges` as the frame's origin (None), but `vio map info` then stopped on
+    'internal error: KeyError'; a camera 752.5 px wide was loaded and shown as such (sizes are whole pixels)."""
+    from vio.app.cli import main
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    arrays = dict(kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                  p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    head = '{"format": "kestrel-vio-map", "version": 1, '
+    np.savez(tmp_path / "m.npz", header=np.array(head + '"parts": [{"keyframes": 2}], ' + cam + '}'), **arrays)
+    assert main(["map", "info", str(tmp_path / "m.npz")]) == 0
+    assert "part 1: 2 keyframes over 0.0 s, the frame's origin" in capsys.readouterr().out
+    np.savez(tmp_path / "f.npz", header=np.array(head + cam.replace("752", "752.5") + '}'), **arrays)
+    assert main(["map", "info", str(tmp_path / "f.npz")]) == 1
+    err = capsys.readouterr().err
+    assert "damaged map (its header has no camera size" in err and "internal error" not in err, err
+
+
 def test_a_map_whose_version_is_missing_zero_or_negative_is_refused_as_damaged(tmp_path, capsys):
     """Every map ever written says version 1 or more; a header with version 0, a negative one, or none at all was
     loaded as if it said 1 (and `vio map info` printed "version 0"). Refused now, one line, like other damage."""

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     c = info["camera"]
     print(f"  camera {c['width']}x{c['height']} fx {c['fx']:.1f} fy {c['fy']:.1f}")
     for k, part in enumerate(info.get("parts") or []):
-        j = part["join_edges"]
+        j = part.get("join_edges")  # optional: the loader takes a part without it as the origin
         how = "the frame's origin" if j is None else f"joined by {j} loop edges" + (
             " (weak: its place rests on them)" if j < WEAK_JOIN_EDGES else "")
         print(f"  part {k + 1}: {part['keyframes']} keyframes over {spans[k]:.1f} s, {how}")

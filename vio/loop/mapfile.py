@@ -173,7 +173,8 @@ def _header_problem(header: dict, n: int) -> str | None:
         return "its header's checkpoint does not name the run that wrote it"
     cam = header.get("camera")
     if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
-                                            and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")):
+                                            and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")) \
+            or not all(float(cam[k]).is_integer() for k in ("width", "height")):  # whole pixels: 752.5 was taken
         # the principal point too: the loader re-expresses the map's pixels in the flight's camera with it
         return "its header has no camera size, focal lengths and principal point"
     if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
