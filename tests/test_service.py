@@ -1212,3 +1212,14 @@ def test_config_check_refuses_daemon_outputs_over_what_it_reads_or_into_the_reco
     cfg.write_text(f"{src}[run]\ntrajectory_file = '{tmp_path / 'poses.tum'}'\nstatus_file = '{tmp_path / 's.json'}'\n")
     assert main(["-q", "config", "check", str(cfg)]) == 0, capsys.readouterr().err
     assert (rig.read_bytes(), cam_csv.read_bytes()) == before
+
+
+def test_the_warning_for_held_back_simulated_poses_reads_as_a_sentence() -> None:
+    """`vio run` with `[source] kind = "fake"` and no autopilot heard: the status said "... is another flight's and
+    the no autopilot heartbeat says it is disarmed" (a first-time user's walk-through of docs/first-flight.md)."""
+    from vio.app.daemon.service import replay_refusal_warning
+
+    assert replay_refusal_warning("fake", "unheard") == (
+        "poses not sent: [source] kind = 'fake' is another flight's and no autopilot heartbeat says it is disarmed")
+    assert replay_refusal_warning("euroc", "armed") == (
+        "poses not sent: [source] kind = 'euroc' is another flight's and the autopilot says it is armed")

@@ -95,6 +95,14 @@ def load_run_calibration(cfg: VioConfig, source_calibration: Any) -> Any:
 
 # ------------------------------------------------------------------------------------------------ service
 
+
+def replay_refusal_warning(kind: str, refusing: str) -> str:
+    """The status warning while the MAVLink output holds back a simulated or recorded source's poses (`refusing`:
+    "armed", or why no disarmed heartbeat came). Before, the second case read "... another flight's and the no
+    autopilot heartbeat says it is disarmed"."""
+    why = "the autopilot says it is armed" if refusing == "armed" else "no autopilot heartbeat says it is disarmed"
+    return f"poses not sent: [source] kind = {kind!r} is another flight's and {why}"
+
 class Service:
     """Builds the pipeline, supervises it and reports its health; `run()` returns on SIGTERM/SIGINT."""
 
@@ -401,9 +409,7 @@ class Service:
         refusing = link.get("withholding_replay_poses")
         if refusing:
             # a recorded or simulated source (NOT_THIS_VEHICLE) and an autopilot that is armed or not heard disarmed
-            warnings.append(f"poses not sent: [source] kind = {self.cfg.source.kind!r} is another flight's and the "
-                            + ("autopilot says it is armed" if refusing == "armed"
-                               else "no autopilot heartbeat says it is disarmed"))
+            warnings.append(replay_refusal_warning(self.cfg.source.kind, refusing))
         recording = self.recorder.status() if self.recorder is not None else None
         if recording is not None and recording["state"] == "failed":
             warnings.append(f"recording failed: {recording['error']}")
