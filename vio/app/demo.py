@@ -18,6 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", choices=PROFILES, default="survey", help="simulated motion profile (default survey)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the flight")
     p.add_argument("--keep", metavar="DIR", help="write the dataset and trajectory here instead of a temp folder")
+    # `vio -q demo` sets it too (cli.main): -q drew both progress bars, as demo had no way to turn them off
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,11 +45,11 @@ def run(args: argparse.Namespace) -> int:
         data = root / "flight"
         print(f"demo: simulating a {args.duration:g} s {args.profile} flight (seed {args.seed}) into {data}")
         simulate(data, SimConfig(profile=args.profile, duration_s=args.duration, seed=args.seed),
-                 overwrite=True, progress=True)
+                 overwrite=True, progress=not args.no_progress)
         dataset = EurocDataset(data)
         tum = TumSink(root / "trajectory.tum")
         try:
-            res = replay(dataset, sinks=[tum])
+            res = replay(dataset, sinks=[tum], progress=not args.no_progress)
         finally:
             tum.close()
         ev = evaluate(res.trajectory(), dataset.groundtruth.trajectory)
