@@ -56,6 +56,34 @@ def test_local_workers_and_ray_give_the_same_report(flights, tmp_path):
     assert on_ray["engine"] == "ray:local"
 
 
+def _dies_on_crash(path: str, options: dict) -> dict:
+    """replay_flight, but the worker process is killed (as by the kernel's OOM killer) for a flight named crash."""
+    import os
+    import signal
+
+    from vio.app.batch import replay_flight
+
+    if Path(path).name == "crash":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return replay_flight(path, options)
+
+
+def test_a_worker_that_dies_loses_only_its_own_flight(flights, tmp_path, monkeypatch):
+    """One flight whose worker is killed broke the process pool, and every flight not finished by then (running
+    beside it or waiting its turn) was a row 'worker failed: BrokenProcessPool': the rest of the batch was lost.
+    They are run again now, each alone; only the killed flight is a failed row."""
+    import vio.app.batch as batch
+
+    monkeypatch.setattr(batch, "replay_flight", _dies_on_crash)
+    (tmp_path / "crash").mkdir()
+    report = run_batch([str(tmp_path / "crash"), str(flights[0]), str(flights[1])], tmp_path / "out", workers=2,
+                       progress=False)
+    rows = {r["flight"]: r for r in report["flights"]}
+    assert rows["f0"]["ok"] and rows["f1"]["ok"], rows
+    assert not rows["crash"]["ok"] and "its process died while replaying this flight" in rows["crash"]["error"]
+    assert (tmp_path / "out" / "traj" / "f0.tum").is_file() and (tmp_path / "out" / "traj" / "f1.tum").is_file()
+
+
 def test_compare_names_better_and_worse():
     def rep(ate0, ate1, ok1=True):
         row = {"flight": "a", "ok": True, "error": None, "ate_m": ate0, "rpe_pct": None, "resets": 0,

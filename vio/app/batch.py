@@ -135,16 +135,48 @@ def _run_local(jobs: list[tuple[str, str, dict]], workers: int, progress) -> lis
 
 
 def _run_pool(cf, mp, jobs, workers: int, progress, rows: list) -> list[dict]:
+    """Each flight in a worker process; each row to `progress` as it comes. A worker that dies (killed, out of
+    memory, a crash in native code) breaks the whole pool: every flight not finished by then failed with
+    BrokenProcessPool, those still waiting their turn too (one flight that ran out of memory lost the rest of the
+    batch). Those flights are run again, each in a process of its own, so that only a flight that kills its own
+    worker is a failed row."""
+    from concurrent.futures.process import BrokenProcessPool
+
     # spawn: a fresh interpreter per worker, as a Ray worker is (no state forked from the parent)
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+    ctx = mp.get_context("spawn")
+    broken: list[int] = []
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         futs = {pool.submit(replay_flight, jobs[k][0], jobs[k][2]): k for k in range(len(jobs))}
         for f in cf.as_completed(futs):
             k = futs[f]
             try:
                 rows[k] = _store(f.result(), jobs[k][1])
-            except Exception as e:  # the worker itself died (killed, out of memory)
+            except BrokenProcessPool:
+                broken.append(k)
+                continue
+            except Exception as e:
                 rows[k] = _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}", jobs[k][1])
             progress(rows[k])
+    if not broken:
+        return rows
+    broken.sort()
+    log.warning("batch: a worker process died (killed, out of memory or crashed): the %d flights not finished then "
+                "run again, each in a process of its own", len(broken))
+
+    def alone(k: int) -> dict:
+        with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as one:
+            try:
+                return _store(one.submit(replay_flight, jobs[k][0], jobs[k][2]).result(), jobs[k][1])
+            except BrokenProcessPool:
+                return _failed_row(jobs[k][0], "worker failed: its process died while replaying this flight "
+                                   "(killed, out of memory, or a crash in native code)", jobs[k][1])
+            except Exception as e:
+                return _failed_row(jobs[k][0], f"worker failed: {type(e).__name__}: {e}", jobs[k][1])
+
+    with cf.ThreadPoolExecutor(max_workers=workers) as threads:
+        for k, row in zip(broken, threads.map(alone, broken)):
+            rows[k] = row
+            progress(row)
     return rows  # type: ignore[return-value]
 
 
