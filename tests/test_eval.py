@@ -398,6 +398,29 @@ def test_max_gap_below_the_pose_spacing_is_refused_and_sparse_poses_are_not_all_
     assert d["coverage"] > 0.8 and d["rpe"], d
 
 
+def test_a_hover_written_w_first_is_named_too(tmp_path, capsys):
+    """On a hover (a path too small to align on) the SE(3) ATE is aligned on the orientations, which absorbs a w-first
+    file's near-constant misreading: `vio eval` printed a 4-DoF rotation error of ~135 deg and no hint (a walk-through
+    with the EuRoC excerpt, 2 cm of path)."""
+    rng = np.random.default_rng(3)
+    n = 200
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 50_000_000
+    p = 0.002 * rng.standard_normal((n, 3))
+    # the EuRoC V1_01 excerpt's attitude (w x y z), turned by a few tenths of a degree at random
+    q = np.array([0.0033, -0.8296, -0.018, -0.558]) + 0.003 * rng.standard_normal((n, 4))
+    hover = Trajectory(t, p, q / np.linalg.norm(q, axis=1, keepdims=True))
+    write_tum(hover, tmp_path / "gt.txt")
+    lines = [f"{ti * 1e-9:.9f} " + " ".join(f"{x:.9f}" for x in (*pi, *qi)) for ti, pi, qi in zip(t, p, hover.q_wxyz)]
+    (tmp_path / "wfirst.txt").write_text("\n".join(lines) + "\n")
+    assert main(["-q", "eval", str(tmp_path / "wfirst.txt"), str(tmp_path / "gt.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "path too small" in out and "if the estimate's quaternions are read w-first" in out, out
+    assert main(["-q", "eval", str(tmp_path / "gt.txt"), str(tmp_path / "wfirst.txt")]) == 0
+    assert "if the ground truth's quaternions are read w-first" in capsys.readouterr().out
+    assert main(["-q", "eval", str(tmp_path / "gt.txt"), str(tmp_path / "gt.txt")]) == 0
+    assert "w-first" not in capsys.readouterr().out
+
+
 def test_a_tum_file_written_w_first_is_named_not_scored_silently(tmp_path, gt, capsys):
     """TUM holds qx qy qz qw; a tool writing qw qx qy qz (EuRoC's order) gives orientations about 180 deg off
     the truth with right positions, which read as the estimator's rotation error. The summary now says which
