@@ -180,9 +180,14 @@ def _fs_mat(fs, key: str, where: str, shape: tuple[int, ...] | None = None) -> n
     node = fs.getNode(key)
     if node.empty():
         raise VioError(f"{where}: missing key '{key}'")
-    m = node.mat()
-    if m is None:
-        m = np.asarray([node.at(i).real() for i in range(node.size())]) if node.isSeq() else None
+    import cv2
+
+    try:
+        m = node.mat()
+        if m is None:
+            m = np.asarray([node.at(i).real() for i in range(node.size())]) if node.isSeq() else None
+    except cv2.error:  # a mapping without rows/cols/data, a string: OpenCV's C++ assertion was an internal error
+        m = None
     if m is None:
         raise VioError(f"{where}: key '{key}' is not a matrix")
     m = np.asarray(m, dtype=float)
@@ -193,20 +198,47 @@ def _fs_mat(fs, key: str, where: str, shape: tuple[int, ...] | None = None) -> n
     return m
 
 
+MAX_IMAGE_SIDE_PX = 100_000
+
+
 def _fs_size(fs, where: str) -> tuple[int, int]:
+    """The image size [w, h] of an OpenCV file, whole positive pixels (VioError otherwise): a word or a mapping
+    there read as 1.8e308 through FileNode.real() and was written to the calibration as the width, exit 0."""
+    import cv2
+
+    def whole(values: list, key: str) -> tuple[int, ...]:
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) and v == int(v) and 0 < v <= MAX_IMAGE_SIDE_PX
+                   for v in values):
+            raise VioError(f"{where}: {key} must be whole numbers of pixels [width, height], got {values}")
+        return tuple(int(v) for v in values)
+
+    def number(node) -> object:
+        kinds = {cv2.FileNode_MAP: "a mapping", cv2.FileNode_SEQ: "a list"}
+        return node.real() if node.isInt() or node.isReal() else (node.string() or kinds.get(node.type(), "none"))
+
     for key in ("image_size", "imageSize", "size"):
         node = fs.getNode(key)
         if not node.empty():
-            vals = node.mat().ravel() if node.mat() is not None else [node.at(i).real() for i in range(node.size())]
+            try:
+                mat = node.mat() if node.isMap() else None
+            except cv2.error:
+                mat = None
+            vals = mat.ravel().tolist() if mat is not None else \
+                [number(node.at(i)) for i in range(node.size())] if node.isSeq() else [number(node)]
             if len(vals) == 2:
-                return int(vals[0]), int(vals[1])
+                return whole(vals, key)  # type: ignore[return-value]
     for kw, kh in _SIZE_KEYS:
         if not fs.getNode(kw).empty() and not fs.getNode(kh).empty():
-            return int(fs.getNode(kw).real()), int(fs.getNode(kh).real())
+            return whole([number(fs.getNode(kw)), number(fs.getNode(kh))], f"{kw} / {kh}")  # type: ignore
     raise VioError(f"{where}: missing image size (key 'image_size' [w, h] or 'image_width'/'image_height')")
 
 
 _UNIT_TO_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+def _one_line_cv(e: Exception) -> str:
+    """OpenCV's error without its source path: 'error: (-215:Assertion failed) isMap() in function ...'."""
+    return str(getattr(e, "err", "") or e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
 
 
 def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
@@ -234,6 +266,9 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
         raise VioError(f"{path}: cannot open as an OpenCV FileStorage file")
     where = str(path)
     try:
+        if not fs.root().isMap():  # a YAML list or scalar: getNode's C++ assertion 'isMap()' was an internal error
+            raise VioError(f"{where}: not an OpenCV stereo calibration (its top level is not a mapping of keys); `vio "
+                           "calib import opencv` reads the YAML/XML of cv2.FileStorage with K1 D1 K2 D2 R T")
         K = [_fs_mat(fs, k, where, (3, 3)) for k in ("K1", "K2")]
         D = [_fs_mat(fs, k, where).ravel() for k in ("D1", "D2")]
         R = _fs_mat(fs, "R", where)
@@ -244,6 +279,9 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
         w, h = _fs_size(fs, where)
         model_node = fs.getNode("distortion_model")
         model = model_node.string() if not model_node.empty() else "radtan"
+    except cv2.error as e:  # a key of another shape than the reader asks of it (OpenCV asserts in C++)
+        raise VioError(f"{where}: a value OpenCV cannot read as K1 D1 K2 D2 R T and the image size expect "
+                       f"({_one_line_cv(e)})") from None
     finally:
         fs.release()
     if np.linalg.norm(t) > 1.0:

@@ -205,6 +205,33 @@ def test_opencv_missing_key(tmp_path):
         import_calibration("opencv", [f])
 
 
+def test_opencv_import_refuses_a_size_or_a_matrix_it_cannot_read(tmp_path, capsys):
+    """`image_width: abc` read as 1.8e308 through OpenCV's FileNode.real() and was written as the calibration's width,
+    exit 0; a YAML list at the top, or K1 as a word, was 'internal error: error: OpenCV ... isMap()'."""
+    from vio.app.cli import main
+
+    text = (DATA / "opencv_stereo.yaml").read_text()
+    k1 = text[text.index("K1: !!opencv-matrix"):text.index("D1:")]
+    cases = ((text.replace("image_width: 1280", "image_width: abc"),
+              r"image_width / image_height must be whole numbers of pixels \[width, height\], got \['abc', 800.0\]"),
+             (text.replace("image_width: 1280", "image_width: {a: 1}"), r"got \['a mapping', 800.0\]"),
+             (text.replace("image_width: 1280", "image_width: 1280.5"), r"got \[1280.5, 800.0\]"),
+             ("- 1\n- 2\n", r"not an OpenCV stereo calibration \(its top level is not a mapping of keys\)"),
+             (text.replace(k1, 'K1: "abc"\n'), r"key 'K1' is not a matrix"),
+             (text.replace(k1, "K1: {a: 1, b: 2}\n"), r"key 'K1' is not a matrix"))
+    f, out = tmp_path / "stereo.yaml", tmp_path / "c.yaml"
+    for content, message in cases:
+        f.write_text(content)
+        capsys.readouterr()
+        assert main(["calib", "import", "opencv", str(f), "--translation-unit", "mm", "-o", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert re.search(r"^vio calib: error: .*stereo\.yaml: .*" + message, err, re.M), err
+        assert "internal error" not in err and not out.exists()
+    f.write_text(text.replace("image_width: 1280\nimage_height: 800", "image_size: [1280, 800]"))
+    assert main(["calib", "import", "opencv", str(f), "--translation-unit", "mm", "-o", str(out)]) == 0
+    assert (load_calibration(out).cam0.width, load_calibration(out).cam0.height) == (1280, 800)
+
+
 def test_opencv_import_of_another_tool_s_file_says_what_it_reads(tmp_path, capsys):
     """A Kalibr camchain, a JSON or an empty file given to the OpenCV importer ended in "internal error:
     SystemError: <class 'cv2.FileStorage'> returned a result with an exception set" (a QA sweep)."""
