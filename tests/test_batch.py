@@ -84,6 +84,25 @@ def test_a_worker_that_dies_loses_only_its_own_flight(flights, tmp_path, monkeyp
     assert (tmp_path / "out" / "traj" / "f0.tum").is_file() and (tmp_path / "out" / "traj" / "f1.tum").is_file()
 
 
+def test_a_compare_file_that_is_no_report_is_refused_before_any_replay(tmp_path, capsys):
+    """`--compare` given a binary file was 'internal error: UnicodeDecodeError'; given another JSON (a status file)
+    the whole batch ran and then stopped on 'internal error: KeyError: flights', compare.md never written."""
+    from vio.app.cli import main
+
+    cases = {"bin.dat": (bytes(range(256)), "not a text file"),
+             "status.json": (b'{"state": "running"}', "no list of flights"),
+             "odd.json": (b'{"flights": [{"flight": "a", "ok": true, "ate_m": "x", "rpe_pct": null, "resets": 0}]}',
+                          "flight 1 lacks its name, ok, ate_m, rpe_pct or resets, or one is of another type")}
+    for name, (content, says) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        capsys.readouterr()
+        assert main(["batch", str(tmp_path / "flight"), "-o", str(tmp_path / "out"), "--compare",
+                     str(tmp_path / name)]) == 1
+        err = capsys.readouterr().err
+        assert f"vio batch: error: {tmp_path / name}: not a batch report ({says})" in err, err
+        assert "internal error" not in err and not (tmp_path / "out").exists()
+
+
 def test_compare_names_better_and_worse():
     def rep(ate0, ate1, ok1=True):
         row = {"flight": "a", "ok": True, "error": None, "ate_m": ate0, "rpe_pct": None, "resets": 0,

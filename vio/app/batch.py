@@ -435,11 +435,30 @@ def load_report(path: str | Path) -> dict:
     if p.is_dir():
         p = p / "report.json"
     try:
-        return json.loads(p.read_text())
+        report = json.loads(p.read_text())
     except OSError as e:
         raise VioError(f"{p}: cannot read the report ({e.strerror})") from None
+    except UnicodeDecodeError:  # a binary file: was an internal error
+        raise VioError(f"{p}: not a batch report (not a text file)") from None
     except json.JSONDecodeError as e:
         raise VioError(f"{p}: not a batch report ({e})") from None
+    problem = _report_problem(report)
+    if problem:  # a JSON of another kind (a status file) failed with a KeyError after the whole batch had run
+        raise VioError(f"{p}: not a batch report ({problem})")
+    return report
+
+
+def _report_problem(report: object) -> str | None:
+    """What keeps `report` from being compared with (compare() reads these keys of each old row), or None."""
+    if not isinstance(report, dict) or not isinstance(report.get("flights"), list):
+        return "no list of flights"
+    number = (int, float)
+    for k, row in enumerate(report["flights"]):
+        if not isinstance(row, dict) or not isinstance(row.get("flight"), str) or not isinstance(row.get("ok"), bool) \
+                or any(not (row.get(key) is None or isinstance(row.get(key), number) and
+                            not isinstance(row.get(key), bool)) for key in ("ate_m", "rpe_pct", "resets")):
+            return f"flight {k + 1} lacks its name, ok, ate_m, rpe_pct or resets, or one is of another type"
+    return None
 
 
 def compare(new: dict, old: dict, tol: float = 0.05) -> str:
