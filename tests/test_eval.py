@@ -398,6 +398,20 @@ def test_max_gap_below_the_pose_spacing_is_refused_and_sparse_poses_are_not_all_
     assert d["coverage"] > 0.8 and d["rpe"], d
 
 
+def test_files_saved_with_a_byte_order_mark_are_read(tmp_path, gt, capsys):
+    """A TUM file or a EuRoC ground-truth csv saved by a Windows editor starts with a BOM: the TUM header's '#' was
+    not seen ("expected 8 values ..., got 10"), and the csv was taken for a TUM file ("got 42")."""
+    write_tum(gt, tmp_path / "gt.txt")
+    (tmp_path / "bom.txt").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "gt.txt").read_bytes())
+    rows = ["#timestamp,p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"]
+    rows += [f"{t},{p[0]},{p[1]},{p[2]},{q[0]},{q[1]},{q[2]},{q[3]}" for t, p, q in zip(gt.t_ns, gt.p, gt.q_wxyz)]
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + "\r\n".join(rows).encode() + b"\r\n")
+    for est, truth in (("bom.txt", "gt.txt"), ("gt.txt", "bom.csv")):
+        assert main(["-q", "eval", str(tmp_path / est), str(tmp_path / truth)]) == 0, capsys.readouterr().err
+        out = capsys.readouterr().out
+        assert f"poses: {len(gt)} estimated, {len(gt)} ground truth, {len(gt)} matched" in out, out
+
+
 def test_a_hover_written_w_first_is_named_too(tmp_path, capsys):
     """On a hover (a path too small to align on) the SE(3) ATE is aligned on the orientations, which absorbs a w-first
     file's near-constant misreading: `vio eval` printed a 4-DoF rotation error of ~135 deg and no hint (a walk-through

@@ -179,7 +179,7 @@ def _looks_like_euroc_csv(path: Path) -> bool:
     try:
         with open(path, errors="replace") as f:
             for line in f:
-                s = line.strip()
+                s = line.strip().lstrip("\ufeff")  # a BOM before EuRoC's '#timestamp' header: read as TUM, refused
                 if s and not s.startswith("#"):
                     parts = s.split(",")
                     return len(parts) >= 8 and parts[0].strip().isdigit()

@@ -160,6 +160,8 @@ def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
         raise VioError(f"{path}: cannot read ({e.strerror})") from None
     except UnicodeDecodeError:
         raise VioError(f"{path}: not a text file") from None
+    # a byte-order mark (a file saved by a Windows editor) hid the header's '#': "expected 8 values ..., got 10"
+    text = text.removeprefix("\ufeff")
     lines = text.splitlines()
     t, p, q = [], [], []
     runs: list[tuple[str | None, list, list, list]] = [(None, t, p, q)]  # (its marker line, t, p, q) of each run
