@@ -169,3 +169,14 @@ def test_a_quality_sigma_beyond_a_metre_is_refused():
     with pytest.raises(VioError, match="quality_sigma_m.*maximum 1.0"):
         config_from_dict({"backend": {"quality_sigma_m": 5}})
     assert config_from_dict({"backend": {"quality_sigma_m": 0.1}}).backend.quality_sigma_m == 0.1
+
+
+def test_a_config_saved_with_a_byte_order_mark_is_read(tmp_path, capsys):
+    """A config edited in Windows Notepad starts with a BOM: `vio config check` said 'not valid TOML (Invalid
+    statement (at line 1, column 1))', and `vio run` refused to start on it."""
+    path = tmp_path / "config.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + b'[source]\r\nkind = "fake"\r\nfps = 15\r\n')
+    assert main(["config", "show", str(path)]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert 'kind = "fake"' in out and "fps = 15" in out
+    assert load_config(path).source.fps == 15

@@ -658,7 +658,8 @@ def load_config(path: str | Path | None) -> VioConfig:
     except OSError as e:
         raise VioError(f"{path}: cannot read config ({e.strerror})") from None
     try:
-        data = tomllib.loads(raw.decode("utf-8"))
+        # utf-8-sig: a byte-order mark (Notepad's UTF-8) was "not valid TOML (Invalid statement (at line 1, column 1))"
+        data = tomllib.loads(raw.decode("utf-8-sig"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise VioError(f"{path}: not valid TOML ({e})") from None
     return config_from_dict(data, str(path))
