@@ -122,6 +122,23 @@ def test_kalibr_values_of_the_wrong_type_are_named_in_one_line(tmp_path, capsys)
         assert "internal error" not in err and len(err.strip().splitlines()) == 1 and not out.exists()
 
 
+def test_another_tool_s_file_given_as_the_calibration_says_how_to_convert_it(v101_path, capsys):
+    """`vio calib show` (and replay, run) of a EuRoC sensor.yaml, a depthai JSON, an OpenCV stereo file or a Kalibr
+    imu.yaml said "unknown key 'sensor_type'; known keys: cam0, ..." (the Kalibr camchain alone was named), and of a
+    dataset folder "cannot read (Is a directory)": neither says what to do."""
+    from vio.app.cli import main
+
+    for path, says in ((v101_path / "mav0/cam0/sensor.yaml", "a EuRoC sensor.yaml .*vio calib import euroc"),
+                       (DATA.parent / "depthai_calib.json", r"a depthai \(OAK\) calibration.*import depthai"),
+                       (DATA / "opencv_stereo.yaml", "an OpenCV stereo calibration.*vio calib import opencv"),
+                       (DATA / "kalibr_imu.yaml", "a Kalibr imu.yaml.*vio calib import kalibr CAMCHAIN.yaml IMU.yaml"),
+                       (v101_path, "is a folder, not a calibration file .*vio calib import euroc DATASET")):
+        capsys.readouterr()
+        assert main(["calib", "show", str(path)]) == 1
+        err = capsys.readouterr().err
+        assert re.search(f"^vio calib: error: {re.escape(str(path))}: {says}", err), err
+
+
 def test_euroc_import_roundtrip(tmp_path, v101_path):
     calib, _ = import_calibration("euroc", [v101_path])
     assert calib.cam0.fx == pytest.approx(458.654)

@@ -303,9 +303,26 @@ def calibration_to_dict(calib: StereoCalibration) -> dict:
     }
 
 
+# another tool's calibration file, told by keys only it has -> what converts it (`vio calib import`)
+FOREIGN_CALIBRATIONS = (
+    (("sensor_type", "T_BS"), "a EuRoC sensor.yaml (one sensor of a dataset)",
+     "vio calib import euroc DATASET -o OUT.yaml"),
+    (("cameraData", "batchName", "boardName"), "a depthai (OAK) calibration",
+     "vio calib import depthai FILE.json --size WxH -o OUT.yaml"),
+    (("K1", "D1", "M1", "image_width", "imageSize"), "an OpenCV stereo calibration",
+     "vio calib import opencv FILE.yaml -o OUT.yaml"),
+    (("accelerometer_noise_density", "gyroscope_noise_density", "imu0"), "a Kalibr imu.yaml",
+     "vio calib import kalibr CAMCHAIN.yaml IMU.yaml -o OUT.yaml"),
+)
+
+
 def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibration:
     if not isinstance(d, dict):
         raise VioError(f"{where}: expected a mapping with cam0, cam1, imu")
+    if "cam0" not in d:  # a first-time user's other file: "unknown key 'sensor_type'" said not what to do
+        for keys, what, command in FOREIGN_CALIBRATIONS:
+            if any(k in d for k in keys):
+                raise VioError(f"{where}: {what}, not a Kestrel calibration file: convert it with `{command}`")
     refuse_unknown_keys(d, CALIBRATION_KEYS, where)
     cam0 = camera_from_dict(_need(d, "cam0", where), f"{where}: cam0")
     cam1 = camera_from_dict(_need(d, "cam1", where), f"{where}: cam1")
@@ -366,6 +383,9 @@ def load_yaml(path: Path) -> dict:
 
 def load_calibration(path: str | Path) -> StereoCalibration:
     """Load the project's calibration file (see docs/formats.md)."""
+    if Path(path).is_dir():  # a dataset folder: "cannot read (Is a directory)" said not what to give instead
+        raise VioError(f"{path}: is a folder, not a calibration file (a EuRoC dataset's own calibration: convert it "
+                       "with `vio calib import euroc DATASET -o OUT.yaml`)")
     return calibration_from_dict(load_yaml(Path(path)), where=str(path))
 
 
