@@ -1223,3 +1223,24 @@ def test_the_warning_for_held_back_simulated_poses_reads_as_a_sentence() -> None
         "poses not sent: [source] kind = 'fake' is another flight's and no autopilot heartbeat says it is disarmed")
     assert replay_refusal_warning("euroc", "armed") == (
         "poses not sent: [source] kind = 'euroc' is another flight's and the autopilot says it is armed")
+
+
+def test_a_status_or_pose_log_path_that_is_a_folder_is_refused_and_an_empty_one_said(tmp_path: Path, capsys) -> None:
+    """`[run] status_file` naming a folder passed `vio config check` and `vio run`: the status was never written
+    ('Is a directory', logged once), its lock went beside it as FOLDER.lock, and `vio status` said only 'cannot read
+    status: Is a directory'. An empty status_file (no status written) made `vio status --config` read '.'."""
+    from vio.app.cli import main
+
+    (tmp_path / "state").mkdir()
+    for key in ("status_file", "trajectory_file"):
+        cfg = tmp_path / f"{key}.toml"
+        cfg.write_text(f'[source]\nkind = "fake"\n[run]\n{key} = "{tmp_path / "state"}"\n')
+        capsys.readouterr()
+        assert main(["config", "check", str(cfg)]) == 3
+        err = capsys.readouterr().err
+        assert f"[run] {key} = '{tmp_path / 'state'}': is a folder; give a file name in it" in err, err
+    cfg = tmp_path / "none.toml"
+    cfg.write_text('[run]\nstatus_file = ""\n')
+    assert main(["status", "--config", str(cfg)]) == 4
+    assert f"UNKNOWN ([run] status_file is empty in {cfg}: a daemon with this configuration writes no status" in \
+        capsys.readouterr().err

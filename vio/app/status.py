@@ -225,6 +225,13 @@ def missing_file_text(path: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.file and args.config:
+        from vio.config import load_config
+
+        if not load_config(args.config).run.status_file:  # read as '.': "cannot read status: Is a directory"
+            print(f"kestrel-vio: UNKNOWN ([run] status_file is empty in {args.config}: a daemon with this "
+                  "configuration writes no status file; set one to use vio status)", file=sys.stderr)
+            return EXIT_NOT_RUNNING
     path = _status_path(args)
     try:
         status = read_status(path)

@@ -910,6 +910,10 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             raise VioError(f"[run] {key} = {value!r}: {e.strerror or e}") from None
         if existing is not None and not existing.is_dir():
             raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
+        if key != "record_dir" and Path(value).is_dir():
+            # a status file there was never written ('Is a directory', logged once) and `vio status` could not read
+            # it; the lock went beside it as FOLDER.lock
+            raise VioError(f"[run] {key} = {value!r}: is a folder; give a file name in it")
         if existing is not None and not os.access(existing, os.W_OK):
             problem = f"[run] {key} = {value!r}: {existing} is not writable"
             if warn is None:
