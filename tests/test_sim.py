@@ -408,3 +408,18 @@ def test_stereo_error_states_cam1_principal_point_off_and_nothing_else(tmp_path)
     np.testing.assert_allclose(stated.cam1.T_body_cam, truth.cam1.T_body_cam, atol=1e-12)
     with pytest.raises(VioError, match="stereo_error_px"):
         simulate(tmp_path / "t", dataclasses.replace(cfg, stereo_error_px=25.0))
+
+
+def test_simulate_into_a_file_or_through_one_says_so_before_the_flight_is_built(tmp_path, capsys):
+    """`vio simulate OUT` with a file at OUT said 'OUT: File exists' (the folder could not be made), after the flight
+    had been built; through a file, 'Not a directory'."""
+    from vio.app.cli import main
+
+    (tmp_path / "afile").write_text("notes\n")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        capsys.readouterr()
+        assert main(["simulate", str(out), "--duration", "1", "--no-progress"]) == 1
+        err = capsys.readouterr().err
+        assert f"vio simulate: error: {out}: cannot write the dataset: {tmp_path / 'afile'} is a file, not a folder" \
+            in err, err
+    assert (tmp_path / "afile").read_text() == "notes\n"

@@ -227,8 +227,12 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
              progress: bool = False) -> SimSummary:
     """Render and write the flight to `out` (EuRoC ASL layout, with ground truth at the IMU rate)."""
     from vio.io.euroc import EurocWriter
+    from vio.io.outputs import folder_problem
 
     out = Path(out)
+    problem = folder_problem(out, made=True)  # a file at OUT was "OUT: File exists"; said before the flight is built
+    if problem:
+        raise VioError(f"{out}: cannot write the dataset: {problem}")
     sim = build(cfg)
     cfg = sim.config
     _prepare_out(out, overwrite)
