@@ -1244,3 +1244,22 @@ def test_a_status_or_pose_log_path_that_is_a_folder_is_refused_and_an_empty_one_
     assert main(["status", "--config", str(cfg)]) == 4
     assert f"UNKNOWN ([run] status_file is empty in {cfg}: a daemon with this configuration writes no status" in \
         capsys.readouterr().err
+
+
+def test_a_counter_file_that_is_a_folder_is_refused_at_start(tmp_path: Path, capsys) -> None:
+    """`[mavlink] counter_file` naming a folder passed `vio config check` and `vio run`: the reset_counter was never
+    kept, each start took a random one and said so only as a warning. Refused as `[run] status_file` is; an empty
+    counter_file (a random start, by choice) still passes."""
+    from vio.app.cli import main
+
+    (tmp_path / "state").mkdir()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\n[run]\nstatus_file = ""\n'
+                   f'[mavlink]\ncounter_file = "{tmp_path / "state"}"\n')
+    said = f"[mavlink] counter_file = '{tmp_path / 'state'}': is a folder; give a file name in it"
+    assert main(["config", "check", str(cfg)]) == 3
+    assert said in capsys.readouterr().err
+    assert main(["run", "--config", str(cfg)]) == 3  # refused before any sensor starts
+    assert said in capsys.readouterr().err
+    cfg.write_text('[source]\nkind = "fake"\n[run]\nstatus_file = ""\n[mavlink]\ncounter_file = ""\n')
+    assert main(["config", "check", str(cfg)]) == 0

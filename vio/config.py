@@ -277,7 +277,7 @@ class MavlinkConfig:
     counter_file: str = opt("/var/lib/kestrel-vio/reset_counter", "where `vio run` keeps the last reset_counter "
                             "sent: a restarted daemon (systemd after a crash or the watchdog) starts at the next "
                             "value, so the autopilot re-references to its new origin; empty, or a folder that "
-                            "does not exist: a random start")
+                            "does not exist: a random start (one naming a folder is refused at start)")
     mount_offset_m: list = opt([0.0, 0.0, 0.0], "IMU position in the vehicle FRD frame [m]")
     delay_ms: float = opt(0.0, "extra latency to report/document for VISO_DELAY_MS", min=0, max=1000)
     origin_lat_deg: float = opt(float("nan"), "SET_GPS_GLOBAL_ORIGIN latitude; nan = do not send")

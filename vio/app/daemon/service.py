@@ -910,10 +910,6 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             raise VioError(f"[run] {key} = {value!r}: {e.strerror or e}") from None
         if existing is not None and not existing.is_dir():
             raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
-        if key != "record_dir" and Path(value).is_dir():
-            # a status file there was never written ('Is a directory', logged once) and `vio status` could not read
-            # it; the lock went beside it as FOLDER.lock
-            raise VioError(f"[run] {key} = {value!r}: is a folder; give a file name in it")
         if existing is not None and not os.access(existing, os.W_OK):
             problem = f"[run] {key} = {value!r}: {existing} is not writable"
             if warn is None:
@@ -921,4 +917,16 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             # `vio run` flies without that output rather than not at all: a disk gone read-only or full in flight
             # made the watchdog's restart exit 3, which systemd never restarts (a review's finding)
             warn(f"{problem}: running without it")
+    for what, value in files.items():
+        if what == "[map] save" or not value:  # the map: check_outputs above
+            continue
+        try:
+            is_folder = Path(value).is_dir()
+        except OSError:  # a counter_file name over the file system's limits: not kept, a random start (the daemon)
+            is_folder = False
+        if is_folder:
+            # a status file there was never written ('Is a directory', logged once) and `vio status` could not read
+            # it; the lock went beside it as FOLDER.lock; a reset_counter was never kept (a random start each time,
+            # said only as a warning)
+            raise VioError(f"{what} = {value!r}: is a folder; give a file name in it")
     return CheckedInputs(map_data, vocabulary)
