@@ -36,15 +36,34 @@ class RecordStats:
     frames: int = 0
     imu: int = 0
     dropped_out_of_order: int = 0
-    first_t_ns: int | None = None
+    first_t_ns: int | None = None  # the first stamp recorded, of either stream
     last_t_ns: int | None = None
     source_health: dict = field(default_factory=dict)
+    first_frame_t_ns: int | None = None
+    first_imu_t_ns: int | None = None
+
+    @property
+    def start_t_ns(self) -> int | None:
+        """Where the recording holds both streams: the first stamp of the stream that started last (a camera boots
+        after its IMU, a serial IMU opens before the camera: seconds apart), or of the only one. `--duration`
+        counts from here."""
+        starts = [t for t in (self.first_frame_t_ns, self.first_imu_t_ns) if t is not None]
+        return max(starts) if starts else None
 
     @property
     def span_s(self) -> float:
-        if self.first_t_ns is None or self.last_t_ns is None:
+        """Seconds from `start_t_ns` to the last stamp: what `--duration` asked for. Counted from the first stamp
+        of either stream, `--duration 10` with a serial IMU read 'over 12.21 s' (the IMU's lead counted)."""
+        if self.start_t_ns is None or self.last_t_ns is None:
             return 0.0
-        return (self.last_t_ns - self.first_t_ns) / 1e9
+        return (self.last_t_ns - self.start_t_ns) / 1e9
+
+    @property
+    def lead_s(self) -> float:
+        """Seconds one stream was recorded alone before the other started (0 with one stream)."""
+        if self.first_t_ns is None or self.start_t_ns is None:
+            return 0.0
+        return (self.start_t_ns - self.first_t_ns) / 1e9
 
 
 def _wait_calibration(source: SensorSource, timeout_s: float, stop: threading.Event) -> StereoCalibration:
@@ -100,9 +119,13 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
                     if isinstance(m, ImuSample):
                         writer.write_imu(m)
                         stats.imu += 1
+                        if stats.first_imu_t_ns is None:
+                            stats.first_imu_t_ns = m.t_ns
                     elif isinstance(m, StereoFrame):
                         writer.write_frame(m)
                         stats.frames += 1
+                        if stats.first_frame_t_ns is None:
+                            stats.first_frame_t_ns = m.t_ns
                     stats.last_t_ns = max(stats.last_t_ns or m.t_ns, m.t_ns)
                 now = time.monotonic()
                 if now >= next_flush:  # data may stop arriving: flush on the wall clock too
@@ -208,8 +231,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-    log.info("recorded %d stereo frames and %d IMU samples over %.2f s to %s (dropped: %d out of order)",
-             stats.frames, stats.imu, stats.span_s, args.out, stats.dropped_out_of_order)
+    lead = ""
+    if stats.lead_s > 0:
+        first = "IMU" if stats.first_imu_t_ns == stats.first_t_ns else "stereo frames"
+        later = "stereo frame" if first == "IMU" else "IMU sample"
+        lead = f" (from the first {later}; {first} from {stats.lead_s:.2f} s before it)"
+    log.info("recorded %d stereo frames and %d IMU samples over %.2f s%s to %s (dropped: %d out of order)",
+             stats.frames, stats.imu, stats.span_s, lead, args.out, stats.dropped_out_of_order)
     log.info("source health at the end: %s", stats.source_health)
     if stats.frames == 0 and stats.imu == 0:
         log.error("nothing was recorded; source health: %s", stats.source_health)

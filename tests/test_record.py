@@ -243,3 +243,20 @@ def test_a_full_disk_while_recording_mcap_is_one_line_not_an_internal_error(tmp_
                        preexec_fn=small_files)
     assert r.returncode == 1 and "cannot write the recording (File too large)" in r.stderr, r.stderr
     assert "internal error" not in r.stderr and 0 < out.stat().st_size <= limit
+
+
+def test_the_span_said_is_the_recording_with_both_streams(tmp_path: Path, monkeypatch, caplog) -> None:
+    """`vio record --duration 10` with a serial IMU said 'over 12.21 s': the IMU samples from before the first camera
+    frame were counted. The span said is now the one `--duration` counts (from the stream that started last), and
+    the other stream's lead is said beside it."""
+    import drivers.source
+    from vio.app.cli import main
+
+    monkeypatch.setattr(drivers.source, "open_source", lambda cfg: _LateCamera(
+        width=160, height=100, fps=20, imu_rate_hz=200, duration_s=3.0, t0_ns=T0, realtime=False))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "fake"\n')
+    with caplog.at_level("INFO"):
+        assert main(["record", str(tmp_path / "rec"), "--duration", "1", "--config", str(cfg)]) == 0
+    said = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("recorded "))
+    assert "IMU samples over 1.00 s (from the first stereo frame; IMU from 0.50 s before it) to" in said, said
