@@ -77,6 +77,13 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[backend]\nlag_s = 0.0\n", "[backend]: 'lag_s' = 0.0 is below the minimum 0.2"),
     ("[backend\n", "not valid TOML"),
     ("[nonsense]\n", "unknown section [nonsense]"),
+    # a key above the first [section] header was called 'unknown section [rate_hz]' (a review)
+    ("rate_hz = 5\n[source]\nkind = 'fake'\n", "unknown key 'rate_hz' at top level (above any [section] header): "
+     "it is a key of [mavlink] and of [view]; move it to the one meant"),
+    ("max_features = 500\n", "unknown key 'max_features' at top level (above any [section] header): it is a key of "
+     "[frontend]; move it there"),
+    ("max_featurs = 500\n", "did you mean [frontend] max_features?"),
+    ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is not a number; give one from 0.2 to 60"),  # was 'below'
     ("[loop]\noutput = 'jump'\n", "[loop] output = 'jump' needs the loop stage, which is off"),
     # what `vio run` checks at start too (a review: these passed the check, and vio run retried them forever)
     ("[source]\nkind = 'euroc'\n", "needs 'dataset'"),

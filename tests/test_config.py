@@ -83,7 +83,7 @@ def _write(tmp_path, text: str):
     ("[backend]\nlag_s = true\n", "[backend]: 'lag_s' must be float, got bool True"),
     ("[frontend]\nmax_features = 5\n", "[frontend]: 'max_features' = 5 is below the minimum 10"),
     ("[frontend]\nmax_features = 100000\n", "[frontend]: 'max_features' = 100000 is above the maximum 2000"),
-    ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is below the minimum"),
+    ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is not a number; give one from 0.2 to 60"),
     ("[source]\nkind = \"webcam\"\n", "[source]: 'kind' = 'webcam' is not one of ['oak', 'euroc', 'fake', 'sitl']"),
     ("[frontnd]\nmax_features = 100\n", "unknown section [frontnd] (did you mean [frontend]?)"),
     ("[zebra]\n", "unknown section [zebra]; known sections: frontend"),

@@ -376,6 +376,9 @@ def test_a_file_vio_run_appended_several_runs_to_is_read_one_run_at_a_time(tmp_p
     with caplog.at_level(logging.WARNING):
         assert np.array_equal(load_trajectory(tmp_path / "single.tum").t_ns, gt.t_ns)
     assert "runs" not in caplog.text
+    # --run 2 of a file of one run said 'holds 1 runs'
+    assert main(["-q", "eval", str(tmp_path / "single.tum"), str(tmp_path / "gt.txt"), "--run", "2"]) == 1
+    assert "single.tum: holds 1 run, not run 2" in capsys.readouterr().err
 
 
 def test_max_gap_below_the_pose_spacing_is_refused_and_sparse_poses_are_not_all_gaps(tmp_path, gt, capsys):

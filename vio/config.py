@@ -547,7 +547,11 @@ def _check_value(where: str, name: str, fld: dataclasses.Field, typ: Any, value:
     meta = fld.metadata
     if isinstance(value, float) and math.isnan(value) and meta.get("min") is None:
         return value
-    if meta.get("min") is not None and (value < meta["min"] or (isinstance(value, float) and math.isnan(value))):
+    if meta.get("min") is not None and isinstance(value, float) and math.isnan(value):
+        # "nan is below the minimum" read as a number too small; nan is none
+        wanted = f"at least {meta['min']}" if meta.get("max") is None else f"from {meta['min']} to {meta['max']}"
+        raise VioError(f"{where}: '{name}' = nan is not a number; give one {wanted}")
+    if meta.get("min") is not None and value < meta["min"]:
         raise VioError(f"{where}: '{name}' = {value!r} is below the minimum {meta['min']}")
     if meta.get("max") is not None and value > meta["max"]:
         raise VioError(f"{where}: '{name}' = {value!r} is above the maximum {meta['max']}")
@@ -568,11 +572,30 @@ def _build_section(cls: type, data: Any, where: str) -> Any:
     return cls(**kwargs)
 
 
+def _top_level_key_problem(name: str, types: dict[str, type]) -> str:
+    """A key above the first [section] header (`rate_hz = 5`) is no section: it was called 'unknown section
+    [rate_hz]'. Said as a key, with the sections that have it (or a key close to it)."""
+    keys = {sec: [f.name for f in dataclasses.fields(cls)] for sec, cls in types.items()}
+    problem = f"unknown key '{name}' at top level (above any [section] header)"
+    owners = [f"[{sec}]" for sec, names in keys.items() if name in names]
+    if len(owners) == 1:
+        return f"{problem}: it is a key of {owners[0]}; move it there"
+    if owners:
+        return f"{problem}: it is a key of {' and of '.join(owners)}; move it to the one meant"
+    everywhere = {f"[{sec}] {k}": k for sec, names in keys.items() for k in names}
+    hint = difflib.get_close_matches(name, list(set(everywhere.values())), n=1)
+    if hint:
+        return f"{problem}: did you mean " + " or ".join(w for w, k in everywhere.items() if k == hint[0]) + "?"
+    return f"{problem}; known sections: {', '.join(types)}"
+
+
 def config_from_dict(data: dict, source: str = "config") -> VioConfig:
     """Validate a parsed TOML mapping into a VioConfig; every error names `source`, section and key."""
     types = _section_types()
     sections = {}
     for name, value in data.items():
+        if name not in types and not isinstance(value, dict):
+            raise VioError(f"{source}: {_top_level_key_problem(name, types)}")
         if name not in types:
             hint = difflib.get_close_matches(name, list(types), n=1)
             more = f" (did you mean [{hint[0]}]?)" if hint else f"; known sections: {', '.join(types)}"

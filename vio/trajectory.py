@@ -135,7 +135,7 @@ def _one_run(path: Path, runs: list[tuple[str | None, list, list, list]], run: i
     if run is None and len(runs) == 1:
         return runs[0][1:]
     if run is not None and not 1 <= run <= len(runs):
-        raise VioError(f"{path}: holds {len(runs)} runs, not run {run}")
+        raise VioError(f"{path}: holds {len(runs)} run{'s' if len(runs) != 1 else ''}, not run {run}")
     k = run if run is not None else max((n for n, r in enumerate(runs, 1) if r[1]), default=len(runs))
     marker, t, p, q = runs[k - 1]
     which = marker[len(RUN_MARKER) - len("started"):].split(": the poses")[0] if marker else "before any marker"
