@@ -479,15 +479,20 @@ class MavlinkOutput:
                 if state is not None and max_age is not None and now - state.t_ns > max_age:
                     self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
                     state = None
-                if state is not None and not self._poses_to_armed and (self._ap_armed or not self._link_up):
+                refusing = self._replay_refusal()
+                if state is not None and refusing:
                     # unheard (before its first heartbeat, or silent past link_timeout_s) it may be armed: a
                     # replay's first poses went out before the heartbeat that said so
-                    if self._ap_armed:
+                    if refusing == "armed":
                         self._refuse_armed()
                     else:
                         self._refuse_unheard()
-                    self._refusing = "armed" if self._ap_armed else "unheard"
+                    self._refusing = refusing
                     state = None
+                elif self._refusing is not None:
+                    # no pose to send (the recording ended, tracking lost): the reason as it is now, None once heard
+                    # disarmed; the status said "poses not sent ... armed" until the next pose, which may never come
+                    self._refusing = refusing
                 if state is not None:
                     self._refusing = None
                     self._next_send_ns = _next_slot(self._next_send_ns, self._period_ns, now)
@@ -704,6 +709,13 @@ class MavlinkOutput:
         log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in "
                     "flight?): not tracking; no LAND is asked for it")
         self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
+
+    def _replay_refusal(self) -> str | None:
+        """Why a pose of this output would be withheld now: "armed", "unheard" (no heartbeat within link_timeout_s
+        says disarmed), or None (sent; always None with poses_to_armed)."""
+        if self._poses_to_armed or not (self._ap_armed or not self._link_up):
+            return None
+        return "armed" if self._ap_armed else "unheard"
 
     def _refuse_armed(self) -> None:
         """A pose not sent: this output replays a recording and the autopilot says it is armed (said once, in the

@@ -1224,3 +1224,31 @@ def test_a_serial_link_is_held_exclusively(caplog):
     open_connection(f"{dev}:115200", 2).close()
     os.close(master)
     os.close(slave)
+
+
+def test_a_replays_refusal_is_not_said_after_the_autopilot_disarms_with_no_pose_to_send(ap):
+    """The status's "poses not sent: ... the autopilot says it is armed" (health's withholding_replay_poses) was
+    cleared only by the next pose sent: a recording that ended, or a loss of tracking, while the autopilot was armed
+    kept saying it was armed after it disarmed. It now follows the autopilot while no pose is pending."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", messages=["VISION_POSITION_ESTIMATE"])
+    out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+
+    def beat(armed: bool, pose: bool) -> None:
+        for _ in range(3):
+            ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+            time.sleep(0.02)
+            clock.advance(0.1)
+            if pose:
+                out.send_state(state(clock.t))
+            out.poll()
+
+    out.poll()
+    ap.drain()  # our first heartbeat: the autopilot's side learns where to answer
+    beat(armed=True, pose=True)
+    assert out.health()["withholding_replay_poses"] == "armed" and out.stats.states_refused_armed
+    beat(armed=False, pose=False)  # the recording ended: no more poses
+    assert out.health()["withholding_replay_poses"] is None
+    beat(armed=False, pose=True)
+    assert out.health()["withholding_replay_poses"] is None and out.stats.states_sent
+    out.close()
