@@ -2730,3 +2730,28 @@ def test_a_saved_map_survives_a_power_cut_after_its_rename(tmp_path, monkeypatch
     events.clear()
     write_status_file(tmp_path / "status.json", {"state": "ok"})
     assert events == ["rename to status.json"]  # atomic, not synced: rewritten every second
+
+
+def test_a_map_renamed_into_place_whose_folder_cannot_be_synced_is_not_said_lost(tmp_path, monkeypatch, caplog):
+    """The folder's sync after the rename raising (EIO from a failing card) made save_map say 'cannot write the map
+    (...); the map that was there is kept' of a map already replaced by the new one (and the daemon 'map not
+    saved'). The new map is in place: it is returned as saved, and the lost durability is said in the log."""
+    import errno
+    import logging
+    import stat
+
+    from vio.loop.mapfile import load_map, save_map
+
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real_fsync(fd)
+
+    save_map(tmp_path / "m.npz", [5, 6], *_map_contents()[1:])  # the old map
+    monkeypatch.setattr(os, "fsync", fsync)
+    with caplog.at_level(logging.WARNING, logger="vio.io.atomic"):
+        h = save_map(tmp_path / "m.npz", *_map_contents())
+    assert h["keyframes"] == 2 and list(load_map(tmp_path / "m.npz").t_ns) == [1, 2]  # the new one
+    assert "could not be synced" in caplog.text

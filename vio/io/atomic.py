@@ -48,7 +48,8 @@ def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: b
     that a power cut (a drone's battery pulled) leaves the old file or the whole new one, and not the old one once
     the new one was said to be written (a rename is in the page cache until the folder is synced). Not durable: a
     file rewritten every second (the status file) or that a restart can do without (the reset counter), where a
-    sync on a busy SD card would hold the writer for up to seconds. OSError as raised."""
+    sync on a busy SD card would hold the writer for up to seconds. OSError as raised, the old file kept; once
+    renamed, a folder that cannot be synced is only said (logged)."""
     tmp = temporary_path(path)
     try:
         with open(tmp, "wb") as f:
@@ -62,7 +63,13 @@ def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: b
             tmp.unlink()
         raise
     if durable:
-        fsync_folder(path.parent)
+        try:
+            fsync_folder(path.parent)
+        except OSError as e:
+            # the new file is in place (a reader, and the caller, get it): an error here raised as if the write had
+            # failed, and save_map said "the map that was there is kept" of a map already replaced
+            log.warning("%s: written, but its folder could not be synced (%s): a power cut soon may bring back the "
+                        "file it replaced", path, e.strerror or e)
 
 
 def _alive(pid: int) -> bool:
