@@ -139,6 +139,17 @@ def test_another_tool_s_file_given_as_the_calibration_says_how_to_convert_it(v10
         assert re.search(f"^vio calib: error: {re.escape(str(path))}: {says}", err), err
 
 
+def test_a_calibration_name_over_the_file_system_s_limit_is_one_line(tmp_path, capsys):
+    """The folder check added for a dataset given as the calibration (Path.is_dir) raised on a name over 255 bytes:
+    'internal error: OSError: [Errno 36] File name too long', where the read said it in one line before."""
+    from vio.app.cli import main
+
+    path = tmp_path / ("c" * 300)
+    assert main(["calib", "show", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("vio calib: error: ") and "internal error" not in err and len(err.splitlines()) == 1, err
+
+
 def test_euroc_import_roundtrip(tmp_path, v101_path):
     calib, _ = import_calibration("euroc", [v101_path])
     assert calib.cam0.fx == pytest.approx(458.654)

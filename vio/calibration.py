@@ -383,7 +383,11 @@ def load_yaml(path: Path) -> dict:
 
 def load_calibration(path: str | Path) -> StereoCalibration:
     """Load the project's calibration file (see docs/formats.md)."""
-    if Path(path).is_dir():  # a dataset folder: "cannot read (Is a directory)" said not what to give instead
+    try:
+        is_folder = Path(path).is_dir()
+    except OSError:  # a name over the file system's limits: load_yaml says it in one line (was an internal error)
+        is_folder = False
+    if is_folder:  # a dataset folder: "cannot read (Is a directory)" said not what to give instead
         raise VioError(f"{path}: is a folder, not a calibration file (a EuRoC dataset's own calibration: convert it "
                        "with `vio calib import euroc DATASET -o OUT.yaml`)")
     return calibration_from_dict(load_yaml(Path(path)), where=str(path))
