@@ -206,10 +206,14 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     src_cfg = cfg.source if args.source is None else dataclasses.replace(cfg.source, kind=args.source)
     calibration = load_calibration(src_cfg.calibration) if src_cfg.calibration else None
-    if (args.format or cfg.run.record_format) == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
-        raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")
-    refuse_recorded(args.out, args.format or cfg.run.record_format, args.overwrite)
-    refuse_unwritable(args.out, args.format or cfg.run.record_format)
+    fmt = args.format or cfg.run.record_format
+    try:
+        if fmt == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
+            raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")
+        refuse_recorded(args.out, fmt, args.overwrite)
+    except OSError as e:  # a name over the file system's limits: was 'internal error: OSError: File name too long'
+        raise VioError(f"{args.out}: cannot record there: {e.strerror or e}") from None
+    refuse_unwritable(args.out, fmt)
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 

@@ -260,3 +260,26 @@ def test_the_span_said_is_the_recording_with_both_streams(tmp_path: Path, monkey
         assert main(["record", str(tmp_path / "rec"), "--duration", "1", "--config", str(cfg)]) == 0
     said = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("recorded "))
     assert "IMU samples over 1.00 s (from the first stereo frame; IMU from 0.50 s before it) to" in said, said
+
+
+def test_an_output_name_over_the_file_system_s_limit_is_refused_in_one_line(tmp_path: Path, monkeypatch,
+                                                                           capsys) -> None:
+    """A name over 255 bytes in OUT was 'internal error: OSError: [Errno 36] File name too long': Path.exists()
+    raises it, in the refusal of a recorded OUT and in folder_problem's check of an MCAP file's folder, which said
+    it caught a name over the limits."""
+    import drivers.source
+    from vio.app.cli import main
+    from vio.io.outputs import folder_problem
+
+    long = tmp_path / ("n" * 300)
+    opened = []
+    monkeypatch.setattr(drivers.source, "open_source", lambda cfg: opened.append(cfg))
+    for argv in ([str(long / "rec")], [str(long)], [str(long / "r.mcap"), "--format", "mcap"],
+                 [f"{long}.mcap", "--format", "mcap"]):
+        capsys.readouterr()
+        assert main(["record", *argv, "--source", "fake", "--duration", "1"]) == 1, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"vio record: error: {argv[0]}: cannot record there: ") \
+            and "File name too long" in err[0], err
+    assert not opened
+    assert "File name too long" in (folder_problem(long, made=False) or "")

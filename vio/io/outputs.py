@@ -127,12 +127,12 @@ def folder_problem(folder: str | Path, made: bool) -> str | None:
     folder = Path(folder)
     try:
         existing = next((p for p in (folder, *folder.parents) if p.exists()), Path(".")) if made else folder
-    except OSError as e:  # a name over the file system's limits
+        if not existing.exists():
+            return f"folder {existing} does not exist"
+        if not existing.is_dir():
+            return f"{existing} is a file, not a folder"
+    except OSError as e:  # a name over the file system's limits (made=False: the folder's own exists() raised)
         return f"{folder}: {e.strerror or e}"
-    if not existing.exists():
-        return f"folder {existing} does not exist"
-    if not existing.is_dir():
-        return f"{existing} is a file, not a folder"
     try:
         fd, probe = tempfile.mkstemp(prefix=".vio-write-test-", dir=existing)
     except OSError as e:
