@@ -36,7 +36,6 @@ class RecordStats:
     frames: int = 0
     imu: int = 0
     dropped_out_of_order: int = 0
-    first_t_ns: int | None = None  # the first stamp recorded, of either stream
     last_t_ns: int | None = None
     source_health: dict = field(default_factory=dict)
     first_frame_t_ns: int | None = None
@@ -60,10 +59,19 @@ class RecordStats:
 
     @property
     def lead_s(self) -> float:
-        """Seconds one stream was recorded alone before the other started (0 with one stream)."""
-        if self.first_t_ns is None or self.start_t_ns is None:
+        """Seconds one stream was recorded alone before the other started (0 with one stream). From the streams'
+        first stamps, not from the first one received: a source may hand over a later IMU sample before an earlier
+        frame, and the lead was then 0 (not said) or short."""
+        if self.first_frame_t_ns is None or self.first_imu_t_ns is None:
             return 0.0
-        return (self.start_t_ns - self.first_t_ns) / 1e9
+        return abs(self.first_frame_t_ns - self.first_imu_t_ns) / 1e9
+
+    @property
+    def leading_stream(self) -> str | None:
+        """"IMU" or "stereo frames": the stream that started first (None when lead_s is 0)."""
+        if not self.lead_s:
+            return None
+        return "IMU" if self.first_imu_t_ns < self.first_frame_t_ns else "stereo frames"  # type: ignore[operator]
 
 
 def _wait_calibration(source: SensorSource, timeout_s: float, stop: threading.Event) -> StereoCalibration:
@@ -103,8 +111,6 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
                 msgs = source.poll()
                 for m in msgs:
                     key = "imu" if isinstance(m, ImuSample) else "frame"
-                    if stats.first_t_ns is None:
-                        stats.first_t_ns = m.t_ns
                     if duration_s is not None and last[key] < 0 and (end_ns is None or m.t_ns < end_ns):
                         # the span counts from the later of the two streams' starts (a camera that boots after the
                         # IMU would otherwise get less than asked); a source with one stream counts from it
@@ -236,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
         for s, h in old.items():
             signal.signal(s, h)
     lead = ""
-    if stats.lead_s > 0:
-        first = "IMU" if stats.first_imu_t_ns == stats.first_t_ns else "stereo frames"
+    first = stats.leading_stream
+    if first is not None:
         later = "stereo frame" if first == "IMU" else "IMU sample"
         lead = f" (from the first {later}; {first} from {stats.lead_s:.2f} s before it)"
     log.info("recorded %d stereo frames and %d IMU samples over %.2f s%s to %s (dropped: %d out of order)",
