@@ -463,8 +463,9 @@ class MavlinkOutput:
                 self._send(mavlink.MAVLink_heartbeat_message(
                     mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                     mavlink.MAV_STATE_ACTIVE, 3), "HEARTBEAT")
-            # a replay sets no EKF origin on an armed autopilot either (the review: its origin_lat/lon went out to it)
-            if self._origin_left > 0 and now >= self._next_origin_ns and (self._poses_to_armed or not self._ap_armed):
+            # a replay sets no EKF origin on an armed autopilot either (the review: its origin_lat/lon went out to it),
+            # nor on one silent past link_timeout_s, which may have armed since (its 60 tries went on through a loss)
+            if self._origin_left > 0 and now >= self._next_origin_ns and self._replay_refusal() is None:
                 self._send_origin()
                 self._origin_left -= 1
                 self._next_origin_ns = now + 1_000_000_000

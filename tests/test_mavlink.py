@@ -703,6 +703,32 @@ def test_a_replay_sets_no_origin_on_an_armed_autopilot(ap):
     out.close()
 
 
+def test_a_replay_sets_no_origin_on_an_autopilot_it_no_longer_hears(ap):
+    """A replay's origin went on being sent (up to ORIGIN_MAX_SENDS, 1 s apart, until confirmed) after the autopilot
+    fell silent past link_timeout_s, though it may have armed meanwhile (its poses were held back then). Held back
+    too until a heartbeat says disarmed again."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+    out.poll()
+    ap.drain()  # its first heartbeat: the autopilot's side learns where to answer
+
+    def step(n: int, beat: bool) -> list:
+        for _ in range(n):
+            if beat:
+                ap.heartbeat(mavlink.MAV_STATE_ACTIVE, 0)
+                time.sleep(0.02)
+            out.poll()
+            clock.advance(0.6)
+        return ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())
+
+    assert step(3, beat=True)  # heard disarmed: sent (not confirmed: tried again)
+    step(int(c.link_timeout_s / 0.6) + 1, beat=False)  # silent past the timeout
+    assert not out.link_up and not step(4, beat=False)
+    assert step(3, beat=True)  # heard disarmed again
+    out.close()
+
+
 def test_an_autopilot_restart_inside_the_link_timeout_gets_the_origin_again(ap, caplog):
     """ArduCopter SITL rebooted with 2.3 s of silent heartbeats, inside link_timeout_s (3 s): the link never
     went down, so the origin it had confirmed was never sent again and the rebooted EKF had none (GUIDED
