@@ -764,7 +764,9 @@ class MavlinkOutput:
 
     def _tracking_text(self, text: str, severity: int) -> None:
         with self._lock:
-            if self.connected:
+            # a replay's tracking is another flight's: not said on an armed vehicle's ground station (a "VIO
+            # tracking lost" there, spoken aloud by QGC / Mission Planner, is of a vehicle not flying on it)
+            if self.connected and self._replay_refusal() != "armed":
                 self._statustext(severity, text)
 
     def _check_flapping(self, now: int) -> None:

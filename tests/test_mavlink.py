@@ -1038,6 +1038,36 @@ def test_a_replay_sends_no_pose_before_an_autopilot_heartbeat_says_disarmed(ap):
     out.close()
 
 
+def test_a_replay_says_nothing_of_its_tracking_to_an_armed_autopilot(ap):
+    """A replay towards an armed autopilot sent no pose, but its recording's losses and regains went out as
+    STATUSTEXT 'VIO tracking lost' / 'regained' to the ground station of a vehicle flying on something else
+    (spoken aloud by QGC and Mission Planner). Only the one 'VIO replay: armed, poses not sent' goes out; disarmed,
+    they are said as for vio run."""
+    clock = FakeClock()
+    c = MavlinkConfig(mount="rpy", messages=["VISION_POSITION_ESTIMATE"])
+
+    def fly(armed: bool) -> list:
+        out = MavlinkOutput(c, f"udpout:127.0.0.1:{ap.port}", clock_ns=clock, poses_to_armed=False)
+        out.poll()
+        ap.drain()  # its first heartbeat: the autopilot's side learns where to answer
+        got = []
+        for tracking in (True, True, False, False, True, True):
+            ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+            time.sleep(0.02)
+            clock.advance(0.5)
+            out.poll()
+            out.send_state(state(clock.t, tracking=tracking, quality=100 if tracking else 0))
+            out.poll()
+            got += ap.drain(0.01)
+        out.close()
+        return [m.text for m in ap.of("STATUSTEXT", got)]
+
+    texts = fly(armed=True)
+    assert texts == ["VIO replay: armed, poses not sent"], texts
+    texts = fly(armed=False)
+    assert "VIO tracking lost" in texts and "VIO replay: armed, poses not sent" not in texts, texts
+
+
 def test_a_replay_never_asks_an_armed_autopilot_to_land(ap):
     """`vio replay --mavlink --config FLIGHT.toml` with land_after_loss_s: the recording's loss of tracking (or its
     end: no more estimates) asked the armed autopilot to LAND, a vehicle flying on something else. Only `vio run`
