@@ -190,13 +190,16 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
     return "\n".join(lines)
 
 
-def _status_path(args: argparse.Namespace) -> Path:
+def _status_path(args: argparse.Namespace) -> Path | None:
+    """The status file to read; None when --config names a configuration that writes none ([run] status_file
+    empty)."""
     if args.file:
         return Path(args.file)
     if args.config:
         from vio.config import load_config
 
-        return Path(load_config(args.config).run.status_file)
+        status_file = load_config(args.config).run.status_file
+        return Path(status_file) if status_file else None
     return Path(DEFAULT_STATUS_FILE)
 
 
@@ -225,14 +228,11 @@ def missing_file_text(path: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.file and args.config:
-        from vio.config import load_config
-
-        if not load_config(args.config).run.status_file:  # read as '.': "cannot read status: Is a directory"
-            print(f"kestrel-vio: UNKNOWN ([run] status_file is empty in {args.config}: a daemon with this "
-                  "configuration writes no status file; set one to use vio status)", file=sys.stderr)
-            return EXIT_NOT_RUNNING
     path = _status_path(args)
+    if path is None:  # read as '.': "cannot read status: Is a directory"
+        print(f"kestrel-vio: UNKNOWN ([run] status_file is empty in {args.config}: a daemon with this "
+              "configuration writes no status file; set one to use vio status)", file=sys.stderr)
+        return EXIT_NOT_RUNNING
     try:
         status = read_status(path)
     except FileNotFoundError:
