@@ -346,15 +346,24 @@ def _yaml_numbers(d: dict, key: str, n: int | tuple[int, ...], kind=float, what:
     return out
 
 
+def _yaml_T_BS(d: dict) -> np.ndarray:
+    """A sensor.yaml's T_BS as a 4x4 matrix (its 16 numbers checked; rigidity is _check_rigid's)."""
+    return np.array(_yaml_numbers(d, "T_BS", 16, what=" (a 4x4 matrix in data)")).reshape(4, 4)
+
+
+def _check_rigid(T: np.ndarray) -> None:
+    if not is_se3(T, tol=1e-4):
+        raise VioError("T_BS: not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
+
+
 def _camera_from_yaml(d: dict) -> CameraCalibration:
-    T = np.array(_yaml_numbers(d, "T_BS", 16, what=" (a 4x4 matrix in data)")).reshape(4, 4)
+    T = _yaml_T_BS(d)
     fx, fy, cx, cy = _yaml_numbers(d, "intrinsics", 4, what=" [fx, fy, cx, cy]")
     w, h = _yaml_numbers(d, "resolution", 2, int, " [width, height]")
     dist = _yaml_numbers(d, "distortion_coefficients", tuple(range(1, 15)), what="") \
         if "distortion_coefficients" in d else [0.0, 0.0, 0.0, 0.0]
     rate = _yaml_numbers({"rate_hz": [d.get("rate_hz", 20)]}, "rate_hz", 1)[0]
-    if not is_se3(T, tol=1e-4):
-        raise VioError("T_BS: not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
+    _check_rigid(T)
     return CameraCalibration(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
                              distortion_model=str(d.get("distortion_model", "radial-tangential")),
                              distortion=tuple(dist), T_body_cam=T, rate_hz=rate)
@@ -381,11 +390,10 @@ def read_imu_T_BS(path: Path) -> np.ndarray | None:
     if "T_BS" not in d:
         return None
     try:
-        T = np.array(_yaml_numbers(d, "T_BS", 16, what=" (a 4x4 matrix in data)")).reshape(4, 4)
+        T = _yaml_T_BS(d)
+        _check_rigid(T)
     except VioError as e:
         raise VioError(f"{path}: {e}") from None
-    if not is_se3(T, tol=1e-4):
-        raise VioError(f"{path}: T_BS: not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)")
     return T
 
 
