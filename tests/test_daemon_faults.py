@@ -687,8 +687,9 @@ def test_a_map_write_cut_short_leaves_its_temporary_only_until_the_next_start(tm
     """A checkpoint being written when the stop's budget ran out (or SIGKILL, a power cut) left its temporary file,
     as large as the map, beside `[map] save`: one more at every such restart. The next start removes those whose
     writer no longer runs (one log line), beside the real file when `[map] save` is a link; not a running
-    process's (a replay saving the same map now), nor any other name."""
-    from vio.io.atomic import temporary_path
+    process's (a replay saving the same map now), nor one written in the last STALE_AFTER_S (a writer in another
+    container, whose pid this process cannot see), nor any other name."""
+    from vio.io.atomic import STALE_AFTER_S, temporary_path
 
     (tmp_path / "state").mkdir()
     real = tmp_path / "state" / "m.npz"
@@ -701,8 +702,17 @@ def test_a_map_write_cut_short_leaves_its_temporary_only_until_the_next_start(tm
     running.write_bytes(b"x")
     others = [real.with_name(".m.npz.tmp"), real.with_name(f".other.npz.{dead.pid}.tmp"),
               real.with_name(f"m.npz.{dead.pid}.tmp"), tmp_path / f".m.npz.{dead.pid}.tmp"]
+    old = time.time() - STALE_AFTER_S - 5  # all of these last written before the guard's span
     for p in others:
         p.write_bytes(b"y")
+    for p in [stale, running, *others]:
+        os.utime(p, (old, old))
+    others.append(running)
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    unseen = temporary_path(real, gone.pid)
+    unseen.write_bytes(b"z")  # no process here has this pid, but it is being written now (another container)
+    others.append(unseen)
     cfg = config_from_dict({"map": {"save": str(tmp_path / "m.npz")}})
     with caplog.at_level(logging.INFO, logger="vio.app.daemon.service"):
         assert service.map_to_grow(cfg, None) is None

@@ -9,11 +9,19 @@ import errno
 import logging
 import os
 import re
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
 log = logging.getLogger(__name__)
+
+# A temporary modified this recently is left alone even when no process here has its writer's pid: a writer in
+# another container or PID namespace sharing the folder (a replay in a toolbox container saving the map the daemon
+# loads) has a pid this process cannot see, and removing its temporary mid-write makes its rename fail and its map
+# lost. A write refreshes the file's mtime as it goes (a large map on a slow SD card: seconds); a temporary
+# untouched for this long has no writer.
+STALE_AFTER_S = 120.0
 
 
 def temporary_path(path: Path, pid: int | None = None) -> Path:
@@ -92,7 +100,8 @@ def remove_stale_temporaries(path: Path) -> list[Path]:
     A writer killed mid-write (a stop's budget that ran out while a map checkpoint was written, the OOM killer, a
     power cut) leaves its temporary beside the file: a map's is as large as the map, one more at every such restart,
     on a companion computer's small disk. Only this name pattern is touched, and not a file of a process that runs
-    (a replay saving the same map now, this process)."""
+    (a replay saving the same map now, this process), nor one written within STALE_AFTER_S (a writer this process
+    cannot see; a clock set back since makes a file look young: kept, it goes at a later start)."""
     pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.tmp")
     removed = []
     try:
@@ -105,7 +114,7 @@ def remove_stale_temporaries(path: Path) -> list[Path]:
             continue
         p = path.parent / name
         try:
-            if not p.is_file() or p.is_symlink():
+            if not p.is_file() or p.is_symlink() or time.time() - p.lstat().st_mtime < STALE_AFTER_S:
                 continue
             p.unlink()
         except OSError as e:
