@@ -83,6 +83,10 @@ def test_config_check_good_file(tmp_path, capsys):
     ("max_features = 500\n", "unknown key 'max_features' at top level (above any [section] header): it is a key of "
      "[frontend]; move it there"),
     ("max_featurs = 500\n", "did you mean [frontend] max_features?"),
+    # [[x]] (an array of tables) is a header too: it was an unknown key "above any [section] header", and [[source]]
+    # "expected a table of settings, got list"
+    ("[[sourcex]]\nkind = 'fake'\n", "unknown section [[sourcex]] (did you mean [source]?)"),
+    ("[[source]]\nkind = 'fake'\n", "[[source]] is a list of sections; write [source] (one pair of brackets)"),
     ("[backend]\nlag_s = nan\n", "[backend]: 'lag_s' = nan is not a number; give one from 0.2 to 60"),  # was 'below'
     ("[loop]\noutput = 'jump'\n", "[loop] output = 'jump' needs the loop stage, which is off"),
     # what `vio run` checks at start too (a review: these passed the check, and vio run retried them forever)

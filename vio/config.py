@@ -594,6 +594,15 @@ def config_from_dict(data: dict, source: str = "config") -> VioConfig:
     types = _section_types()
     sections = {}
     for name, value in data.items():
+        if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            # [[name]] (a TOML array of tables) is a section header too: it was called an unknown key "at top
+            # level (above any [section] header)", or "expected a table of settings, got list" for [[source]]
+            if name in types:
+                raise VioError(f"{source}: [[{name}]] is a list of sections; write [{name}] (one pair of "
+                               "brackets): there is one such section")
+            hint = difflib.get_close_matches(name, list(types), n=1)
+            more = f" (did you mean [{hint[0]}]?)" if hint else f"; known sections: {', '.join(types)}"
+            raise VioError(f"{source}: unknown section [[{name}]]{more}")
         if name not in types and not isinstance(value, dict):
             raise VioError(f"{source}: {_top_level_key_problem(name, types)}")
         if name not in types:
