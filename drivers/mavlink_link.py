@@ -90,12 +90,31 @@ def check_url(url: str, key: str = "[mavlink] url") -> None:
                            "(e.g. udpout:127.0.0.1:14550)")
         return
     if url.startswith("/dev/") or url.upper().startswith("COM"):
-        baud = url.partition(":")[2]
+        baud = split_serial_url(url)[1]
         if baud and not (baud.isdigit() and int(baud) > 0):  # ':0' opened the port at 0 baud, retried for ever
             raise VioError(f"{key} {url!r}: baud rate {baud!r} is not a positive whole number (e.g. 921600)")
         return
     raise VioError(f"{key} {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
                    "or a serial device such as /dev/ttyAMA0:921600")
+
+
+BY_PATH = "/dev/serial/by-path/"
+
+
+def split_serial_url(url: str) -> tuple[str, str]:
+    """A serial `DEVICE[:BAUD]` as (device, baud text, '' when none): the baud is what follows the LAST colon.
+
+    udev's /dev/serial/by-path/ names, the way to say which USB port when two adapters look alike, hold colons
+    themselves (`platform-xhci-hcd.1-usb-0:2:1.0`): split at the first colon, such a name was refused as a bad baud
+    rate ('2:1.0:921600') with or without one. So a tail that is no whole number is part of the device name there
+    (or where a device of that full name exists); elsewhere it stays a (bad) baud rate, said by check_url."""
+    device, sep, tail = url.rpartition(":")
+    if not sep or tail.isdigit():
+        return (device, tail) if sep else (url, "")
+    if url.startswith(BY_PATH) or os.path.exists(url):
+        return url, ""
+    device, _, baud = url.partition(":")
+    return device, baud
 
 
 def open_connection(url: str, source_system: int) -> mavutil.mavfile:
@@ -112,10 +131,12 @@ def open_connection(url: str, source_system: int) -> mavutil.mavfile:
         return conn
     if url.startswith(_NETWORK_PREFIXES):
         return mavutil.mavlink_connection(url, **kw)
-    device, _, baud = url.partition(":")
+    device, baud = split_serial_url(url)
     hold = _hold_serial(device)  # before mavutil opens it: its open sets the line's speed
     try:
-        conn = mavutil.mavlink_connection(device, baud=int(baud or 921600), **kw)
+        # mavutil's own dispatch takes any name with a colon for a UDP address (a by-path device): opened as serial
+        conn = mavutil.mavserial(device, baud=int(baud or 921600), source_system=source_system,
+                                 source_component=OUR_COMPONENT)
     except BaseException:
         _release(hold)
         raise

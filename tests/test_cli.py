@@ -280,3 +280,42 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
         assert main(argv) == EXIT_USAGE, argv
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, (argv, err)
+
+
+def test_a_serial_device_named_by_its_usb_port_is_a_mavlink_url(tmp_path):
+    """udev's /dev/serial/by-path/ names (the way to say which USB port when two adapters look alike) hold colons:
+    `[mavlink] url = "/dev/serial/by-path/platform-xhci-hcd.1-usb-0:2:1.0:921600"` was refused, split at its first
+    colon, as "baud rate '2:1.0:921600' is not a positive whole number" (exit 3, with or without a baud rate; an
+    integrator's walk-through). The baud rate is what follows the last colon, and only when it is a number."""
+    import os
+    import pty
+
+    from drivers.mavlink_link import open_connection, split_serial_url
+    from vio.app.endpoint_lock import output_endpoint_key
+
+    by_path = "/dev/serial/by-path/platform-xhci-hcd.1-usb-0:2:1.0"
+    for url in (by_path, f"{by_path}:921600", f"{by_path}-port0:57600"):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f"[source]\nkind = 'fake'\n[mavlink]\nurl = '{url}'\ncounter_file = ''\n"
+                       f"[run]\nstatus_file = '{tmp_path / 'st.json'}'\n")
+        r = _vio("config", "check", str(cfg))
+        assert r.returncode == EXIT_OK and r.stderr == "", (url, r.stderr)
+    assert split_serial_url(f"{by_path}:921600") == (by_path, "921600") and split_serial_url(by_path) == (by_path, "")
+    assert split_serial_url("/dev/ttyAMA0:921600") == ("/dev/ttyAMA0", "921600")
+    assert split_serial_url("/dev/ttyAMA0:9216OO") == ("/dev/ttyAMA0", "9216OO")  # still a bad baud rate (above)
+    # the device opened is the port's, at the baud rate given: a pty behind a link named as udev names it
+    master, slave = pty.openpty()
+    try:
+        link = tmp_path / "pci-0000:00:14.0-usb-0:2:1.0"
+        link.symlink_to(os.ttyname(slave))
+        url = f"/dev/../{link}:115200"
+        conn = open_connection(url, source_system=1)
+        try:
+            assert conn.port.port == f"/dev/../{link}" and conn.port.baudrate == 115200
+            assert output_endpoint_key(url) == output_endpoint_key(f"/dev/../{link}") == \
+                f"serial:{os.path.realpath(os.ttyname(slave))}"
+        finally:
+            conn.close()
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -34,10 +34,10 @@ def output_endpoint_key(url: str) -> str | None:
     drivers.mavlink_link._hold_serial, holds it as well, but only once opened, and without naming the holder)."""
     import ipaddress
 
-    from drivers.mavlink_link import _NETWORK_PREFIXES
+    from drivers.mavlink_link import _NETWORK_PREFIXES, split_serial_url
 
     if not url.startswith(_NETWORK_PREFIXES):
-        device = url.partition(":")[0]
+        device = split_serial_url(url)[0]
         if device.startswith("/dev/"):
             return f"serial:{os.path.realpath(device)}"
         return f"serial:{device.upper()}" if device.upper().startswith("COM") else None

@@ -846,7 +846,9 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         from drivers.mavlink_link import check_url
 
         check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
-        dev = [u.partition(":")[0] for u in (src.mavlink_imu_url, cfg.mavlink.url) if u and u.startswith("/dev/")]
+        from drivers.mavlink_link import split_serial_url
+
+        dev = [split_serial_url(u)[0] for u in (src.mavlink_imu_url, cfg.mavlink.url) if u and u.startswith("/dev/")]
         if len(dev) == 2 and os.path.realpath(dev[0]) == os.path.realpath(dev[1]) and \
                 src.mavlink_imu_url != cfg.mavlink.url:
             # two links on one serial device: the second cannot open it (held exclusively), and was retried for ever
