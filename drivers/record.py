@@ -29,6 +29,9 @@ from vio.types import ImuSample, StereoFrame
 log = logging.getLogger(__name__)
 
 FLUSH_INTERVAL_S = 0.5
+# a stream silent this long while the other one went on stopped (a pulled cable), or had a gap the closing lines say:
+# an OAK's frames trail its IMU by tens of ms, a stream's period is 50 ms at most
+STREAM_STOPPED_S = 1.0
 
 
 @dataclass
@@ -40,6 +43,10 @@ class RecordStats:
     source_health: dict = field(default_factory=dict)
     first_frame_t_ns: int | None = None
     first_imu_t_ns: int | None = None
+    last_frame_t_ns: int | None = None
+    last_imu_t_ns: int | None = None
+    # per stream ("IMU", "stereo frames"): its longest silence between two of its stamps, (length ns, end stamp)
+    longest_gap: dict = field(default_factory=dict)
 
     @property
     def start_t_ns(self) -> int | None:
@@ -65,6 +72,24 @@ class RecordStats:
         if self.first_frame_t_ns is None or self.first_imu_t_ns is None:
             return 0.0
         return abs(self.first_frame_t_ns - self.first_imu_t_ns) / 1e9
+
+    @property
+    def stopped_stream(self) -> tuple[str, float] | None:
+        """("IMU" or "stereo frames", seconds) when one stream ended more than STREAM_STOPPED_S before the other: a
+        serial IMU unplugged in the recording left its frames without IMU and `vio record` said "recorded ... over
+        8.00 s", exit 0 (an integrator's walk-through). None when both went on to the end (or only one was there)."""
+        if self.last_frame_t_ns is None or self.last_imu_t_ns is None:
+            return None
+        early = (self.last_frame_t_ns - self.last_imu_t_ns) / 1e9
+        if abs(early) <= STREAM_STOPPED_S:
+            return None
+        return ("IMU", early) if early > 0 else ("stereo frames", -early)
+
+    def note_gap(self, stream: str, t_ns: int, previous_ns: int) -> None:
+        """Keep `stream`'s longest silence (from its previous stamp to `t_ns`)."""
+        gap = t_ns - previous_ns
+        if gap > self.longest_gap.get(stream, (0, 0))[0]:
+            self.longest_gap[stream] = (gap, t_ns)
 
     @property
     def leading_stream(self) -> str | None:
@@ -121,15 +146,19 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
                     if m.t_ns <= last[key]:  # EuRoC needs strictly increasing stamps per file
                         stats.dropped_out_of_order += 1
                         continue
+                    if last[key] >= 0:
+                        stats.note_gap("IMU" if key == "imu" else "stereo frames", m.t_ns, last[key])
                     last[key] = m.t_ns
                     if isinstance(m, ImuSample):
                         writer.write_imu(m)
                         stats.imu += 1
+                        stats.last_imu_t_ns = m.t_ns
                         if stats.first_imu_t_ns is None:
                             stats.first_imu_t_ns = m.t_ns
                     elif isinstance(m, StereoFrame):
                         writer.write_frame(m)
                         stats.frames += 1
+                        stats.last_frame_t_ns = m.t_ns
                         if stats.first_frame_t_ns is None:
                             stats.first_frame_t_ns = m.t_ns
                     stats.last_t_ns = max(stats.last_t_ns or m.t_ns, m.t_ns)
@@ -258,4 +287,30 @@ def run(args: argparse.Namespace) -> int:
                   "camera frame" if stats.frames == 0 else "IMU sample", "camera" if stats.frames == 0 else "IMU",
                   args.out, stats.source_health)
         return 1
+    return _stream_stops(stats, args.out)
+
+
+def _driver_error(health: dict, stream: str) -> str:
+    """The last error the driver of `stream` reported (a combined source's camera or IMU part, else the source's)."""
+    part = health.get("imu" if stream == "IMU" else "camera")
+    err = (part if isinstance(part, dict) else health).get("last_error") or ""
+    return f" ({err})" if err else ""
+
+
+def _stream_stops(stats: RecordStats, out: str) -> int:
+    """Say a stream that stopped before the end (exit 1: the recording is not what was asked, though what it holds
+    is kept and replays up to there) or went silent for a while and came back (a warning: a replay resets there)."""
+    stopped = stats.stopped_stream
+    if stopped is not None:
+        stream, early_s = stopped
+        other = "stereo frames" if stream == "IMU" else "IMU"
+        why = _driver_error(stats.source_health, stream)
+        log.error("the %s stopped %.2f s before the end of the recording%s: the last %.2f s of %s have no %s; "
+                  "what was recorded is kept, and a replay of %s uses it up to there", stream, early_s, why, early_s,
+                  other, stream, out)
+        return 1
+    for stream, (gap_ns, t_ns) in stats.longest_gap.items():
+        if gap_ns > STREAM_STOPPED_S * 1e9 and stats.start_t_ns is not None:
+            log.warning("the %s had a gap of %.2f s (ending %.2f s into the recording): a replay resets there",
+                        stream, gap_ns / 1e9, (t_ns - stats.start_t_ns) / 1e9)
     return 0

@@ -295,3 +295,86 @@ def test_an_output_name_over_the_file_system_s_limit_is_refused_in_one_line(tmp_
             and "File name too long" in err[0], err
     assert not opened
     assert "File name too long" in (folder_problem(long, made=False) or "")
+
+
+def test_an_imu_unplugged_while_recording_fails_the_command_and_says_so(tmp_path: Path) -> None:
+    """A serial IMU (a pty speaking the framed protocol) that goes away part-way: `vio record` said "recorded 161
+    stereo frames and 931 IMU samples over 8.00 s", exit 0, though the IMU had stopped before the first frame (an
+    integrator's walk-through). Now an error names the stream that stopped, how long before the end, and its driver's
+    error; exit 1; what was recorded is kept and replays up to the IMU's end."""
+    import pty
+    import tty
+
+    pytest.importorskip("serial")
+    from drivers.reference_sender import imu_frames
+
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\nwidth = 160\nheight = 100\nimu = "serial"\n'
+                   f'serial_port = "{os.ttyname(slave)}"\n')
+    out = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "record", str(out), "--config", str(cfg),
+                             "--duration", "4"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        t_start = time.monotonic()
+        frames = imu_frames(10**6, 400.0, t0_us=int(t_start * 1e6))
+        cam0 = out / "mav0" / "cam0" / "data.csv"
+        k, stop_at = 0, None
+        while stop_at is None or time.monotonic() < stop_at:  # 400 Hz in real time until 1 s of camera frames
+            due = t_start + k / 400.0
+            time.sleep(max(0.0, due - time.monotonic()))
+            os.write(master, next(frames).data)
+            k += 1
+            if stop_at is None and k % 40 == 0 and cam0.is_file() and cam0.read_text().count("\n") > 20:
+                stop_at = time.monotonic() + 0.2
+            assert time.monotonic() - t_start < 60 and proc.poll() is None, "no camera frames recorded"
+        os.close(master)  # the cable pulled: the port goes away
+        os.close(slave)
+        master = slave = -1
+        rc = proc.wait(timeout=60)
+        log = proc.stdout.read().decode()
+    finally:
+        for fd in (master, slave):
+            if fd >= 0:
+                os.close(fd)
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == 1, log
+    said = next((line for line in log.splitlines() if "the IMU stopped" in line), log)
+    assert "s before the end of the recording (" in said and "serial IMU port" in said and "have no IMU" in said, said
+    assert "Traceback" not in log
+    ds = EurocDataset(out)  # kept, and readable
+    last_frame = int(cam0.read_text().splitlines()[-1].split(",")[0])
+    assert len(ds) > 20 and ds.imu.t_ns[-1] < last_frame - 1_000_000_000
+
+
+class _Silent(FakeSource):
+    """A stream silent between two stamps (`imu` or frames), the other going on."""
+
+    def __init__(self, imu: bool, from_s: float, to_s: float) -> None:
+        super().__init__(width=160, height=100, fps=20, imu_rate_hz=200, duration_s=4.0, t0_ns=T0, realtime=False)
+        self.kind = ImuSample if imu else StereoFrame
+        self.window = (T0 + int(from_s * 1e9), T0 + int(to_s * 1e9))
+
+    def poll(self):
+        lo, hi = self.window
+        return [m for m in super().poll() if not (isinstance(m, self.kind) and lo < m.t_ns < hi)]
+
+
+@pytest.mark.parametrize("imu, to_s, rc, says", [
+    (False, 9.0, 1, "the stereo frames stopped 2.50 s before the end of the recording: the last 2.50 s of IMU have no "
+                    "stereo frames"),
+    (True, 3.0, 0, "the IMU had a gap of 1.50 s (ending 3.00 s into the recording): a replay resets there"),
+])
+def test_a_stream_that_stops_or_pauses_is_said(tmp_path: Path, monkeypatch, caplog, imu, to_s, rc, says) -> None:
+    import drivers.source
+    from vio.app.cli import main
+
+    monkeypatch.setattr(drivers.source, "open_source", lambda cfg: _Silent(imu, 1.5, to_s))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "fake"\n')
+    with caplog.at_level("INFO"):
+        assert main(["record", str(tmp_path / "rec"), "--config", str(cfg)]) == rc
+    assert any(says in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
