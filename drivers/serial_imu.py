@@ -21,6 +21,11 @@ from vio.types import ImuSample
 
 log = logging.getLogger(__name__)
 
+# a port open this long with not one byte, or this many bytes with not one valid frame, is said (the status, the log):
+# silent, the status said only "IMU: no samples", whatever the reason (an integrator's walk-through)
+SILENT_S = 2.0
+GARBAGE_BYTES = 100 * 40  # a hundred frames' worth
+
 
 def _default_serial_factory(port: str, baud: int, timeout: float) -> Any:
     from vio.extras import require  # pyserial, imported here so that the module loads without it
@@ -54,6 +59,10 @@ class SerialImuSource(ThreadedSource):
         self.disconnects = 0
         self.last_error = ""
         self.clock_withheld = 0  # samples held back while the clock sync could not place their stamps
+        # why an open port gives no sample: nothing arrives, or bytes that are no frame (wrong baud, wrong device)
+        self.link_problem = ""
+        self._last_byte_at = 0.0
+        self._bytes_at_open = self._frames_at_open = 0
 
     def poll(self) -> list[Message]:
         return self._queue.drain()
@@ -76,6 +85,9 @@ class SerialImuSource(ThreadedSource):
                 continue
             log.info("serial IMU port %s open at %d baud", self.port, self.baud)
             self.state = "running"
+            self._last_byte_at = time.monotonic()  # since it opened, or since its last byte
+            self._bytes_at_open, self._frames_at_open = self.parser.stats.bytes_in, self.parser.stats.frames_ok
+            self.link_problem = ""
             backoff = 0.1
             try:
                 self._pump(ser)
@@ -94,7 +106,27 @@ class SerialImuSource(ThreadedSource):
             data = ser.read(max(1, min(waiting, 4096)))
             t_arrival = time.monotonic_ns()
             if data:
+                self._last_byte_at = t_arrival / 1e9
                 self.feed(data, t_arrival)
+            self._check_link(t_arrival / 1e9)
+
+    def _check_link(self, now_s: float) -> None:
+        """Name why the open port gives no sample (logged once, in health()'s last_error until a frame comes)."""
+        st = self.parser.stats
+        got, ok = st.bytes_in - self._bytes_at_open, st.frames_ok - self._frames_at_open
+        problem = ""
+        if now_s - self._last_byte_at > SILENT_S:
+            problem = (f"serial IMU port {self.port} is open but nothing arrives on it: is the IMU powered and "
+                       "sending, its TX wired to this port's RX?")
+        elif ok == 0 and got >= GARBAGE_BYTES:
+            problem = (f"serial IMU port {self.port}: bytes arrive at {self.baud} baud but not one valid frame: the "
+                       "sender at another baud rate than [source] serial_baud, or another device on [source] "
+                       "serial_port?")
+        if problem and problem != self.link_problem:
+            log.error("%s", problem)
+        elif self.link_problem and not problem:
+            log.info("serial IMU port %s: frames arriving", self.port)
+        self.link_problem = problem
 
     def feed(self, data: bytes, t_arrival_ns: int) -> None:
         """Parse bytes that arrived at `t_arrival_ns` (host clock) and queue the samples. Public so that
@@ -126,7 +158,8 @@ class SerialImuSource(ThreadedSource):
         return {"name": self.name, "state": self.state, "port": self.port, "baud": self.baud,
                 "open_failures": self.open_failures, "disconnects": self.disconnects,
                 # while the clock sync cannot place the stamps, that is why no sample comes (and it clears with it)
-                "queue_dropped": self._queue.dropped, "last_error": self.clock.problem or self.last_error,
+                "queue_dropped": self._queue.dropped,
+                "last_error": self.clock.problem or self.link_problem or self.last_error,
                 "clock_withheld": self.clock_withheld,
                 "parser": self.parser.stats.as_dict(), "stream": self.monitor.as_dict(),
                 "clock": self.clock.as_dict()}

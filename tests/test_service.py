@@ -927,6 +927,67 @@ def test_a_serial_imu_that_cannot_open_is_named_in_the_status(tmp_path: Path, no
         ap.stop.set()
 
 
+@pytest.mark.parametrize("sends, says", [
+    ("nothing", "is open but nothing arrives on it: is the IMU powered and sending, its TX wired to this port's RX?"),
+    ("wrong baud", "bytes arrive at 921600 baud but not one valid frame: the sender at another baud rate than "
+                   "[source] serial_baud, or another device on [source] serial_port?"),
+])
+def test_a_serial_imu_port_that_opens_but_gives_no_frame_says_why(tmp_path: Path, notify_socket, sends: str,
+                                                                  says: str) -> None:
+    """The serial IMU's port opens (a pty) but no frame comes: nothing at all (TX/RX swapped, the IMU unpowered), or
+    bytes at a wrong baud rate. The status said only 'IMU: no samples for N s: no poses', the same for both and for
+    every other reason (an integrator's walk-through); it names the link's problem now, and so does the log."""
+    import pty
+    import threading
+    import tty
+
+    import numpy as np
+
+    from drivers.reference_sender import _wrong_baud_bytes
+
+    pytest.importorskip("serial")
+    _need_pipeline()
+    _, notify_path = notify_socket
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    stop = threading.Event()
+
+    def garbage() -> None:  # what a UART reads from a sender at another baud rate, 40 kB/s
+        rng = np.random.default_rng(5)
+        while not stop.wait(0.02):
+            os.write(master, _wrong_baud_bytes(rng, 800))
+
+    writer = threading.Thread(target=garbage, daemon=True)
+    if sends == "wrong baud":
+        writer.start()
+    ap = FakeAutopilot()
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, '[source]\nkind = "fake"\nwidth = 320\nheight = 200\nimu = "serial"\n'
+                                   f'serial_port = "{os.ttyname(slave)}"', ap.port, notify_path)
+    status = tmp_path / "status.json"
+
+    def warned() -> bool:
+        try:
+            warnings = json.loads(status.read_text())["warnings"]
+            return any(says in w and w.startswith("IMU: no samples") for w in warnings)
+        except (OSError, ValueError, KeyError):
+            return False
+
+    try:
+        assert _wait(warned, 30), log_path.read_text()[-3000:]
+        assert ap.poses() == 0
+        said = [line for line in log_path.read_text().splitlines() if "drivers.serial_imu" in line and says in line]
+        assert len(said) == 1, said  # one log line, not one a read
+    finally:
+        _stop_daemon(proc)
+        ap.stop.set()
+        stop.set()
+        if writer.is_alive():
+            writer.join(2)
+        os.close(master)
+        os.close(slave)
+
+
 def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
     """The lock fell back to the temp folder when the status folder did not exist yet; the first daemon's status
     write then made the folder and a second daemon locked another path and ran (a review's finding)."""
