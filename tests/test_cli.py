@@ -114,6 +114,18 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[mavlink]\nmount = 'rpy'\nmount_rpy_deg = ['a', 0, 0]\n", "[mavlink] mount_rpy_deg must be 3 finite numbers"),
     ("[mavlink]\nmount = 'rpy'\nmount_rpy_deg = [true, 0, 0]\n", "[mavlink] mount_rpy_deg must be 3 finite numbers"),
     ("[mavlink]\nmount_offset_m = [0.1, nan, 0]\n", "[mavlink] mount_offset_m must be 3 finite numbers"),
+    # an integrator's walk-through: a serial IMU port that could never open passed, and was retried for ever; a baud
+    # rate that cannot carry the IMU's rate lost frames all flight; one port for the IMU and the autopilot
+    ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '/dev/ttyUSB0:921600'\n",
+     "[source] serial_port = '/dev/ttyUSB0:921600' names the device only (the baud rate is serial_baud): serial_port = "
+     "'/dev/ttyUSB0', serial_baud = 921600"),
+    ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = 'ttyACM0'\n",
+     "[source] serial_port = 'ttyACM0' is not a device path: give it whole, e.g. '/dev/ttyACM0'"),
+    ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_baud = 115200\n", "[source] serial_baud = 115200 carries at "
+     "most 288 IMU frames a second (40 bytes of 10 bits each), fewer than serial_imu_rate_hz = 400"),
+    ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '/dev/ttyAMA0'\n[mavlink]\nurl = '/dev/ttyAMA0:921600'\n",
+     "[source] serial_port = '/dev/ttyAMA0' is the autopilot's port ([mavlink] url = '/dev/ttyAMA0:921600'): a serial "
+     "IMU needs a port of its own; for the flight controller's IMU set [source] imu = 'mavlink'"),
 ])
 def test_config_check_bad_files(tmp_path, capsys, text, expected):
     bad = tmp_path / "bad.toml"

@@ -643,6 +643,8 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
                        "output) or [source] mavlink_imu_url")
     if src.imu == "serial" and not src.serial_port.strip():
         raise VioError(f"{source}: [source] imu = 'serial' needs [source] serial_port (e.g. /dev/ttyUSB0)")
+    if src.imu == "serial":
+        _check_serial_imu_link(src, source)
     if src.imu == "mavlink" and src.mavlink_imu_message == "RAW_IMU" and not (
             src.mavlink_imu_accel_scale and src.mavlink_imu_gyro_scale):
         raise VioError(f"{source}: [source] mavlink_imu_message = 'RAW_IMU' is in the sensor's own units: set "
@@ -678,6 +680,27 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if b.vision_timeout_s > b.lost_timeout_s:
         raise VioError(f"{source}: [backend] vision_timeout_s ({b.vision_timeout_s}) must not exceed lost_timeout_s "
                        f"({b.lost_timeout_s}): output would continue after the estimator gave up")
+
+
+SERIAL_FRAME_BITS = 40 * 10  # one IMU frame of the serial protocol: 40 bytes, 10 bits each on the wire (8N1)
+
+
+def _check_serial_imu_link(src: SourceConfig, source: str) -> None:
+    """A serial IMU's port and baud rate as `vio run` would open them: these passed the check and were retried for
+    ever (a port that can never open), or lost frames for the whole flight (an integrator's walk-through)."""
+    port = src.serial_port
+    device, sep, tail = port.rpartition(":")
+    if sep and tail.isdigit():  # [mavlink] url's DEVICE:BAUD carried over: pyserial opens a device of that name
+        raise VioError(f"{source}: [source] serial_port = {port!r} names the device only (the baud rate is "
+                       f"serial_baud): serial_port = {device!r}, serial_baud = {tail}")
+    if not (port.startswith("/") or port.upper().startswith("COM")):
+        raise VioError(f"{source}: [source] serial_port = {port!r} is not a device path: give it whole, e.g. "
+                       f"'/dev/{port.rpartition('/')[2]}'")
+    most = src.serial_baud / SERIAL_FRAME_BITS
+    if most < src.serial_imu_rate_hz:
+        raise VioError(f"{source}: [source] serial_baud = {src.serial_baud} carries at most {most:.0f} IMU frames a "
+                       f"second (40 bytes of 10 bits each), fewer than serial_imu_rate_hz = {src.serial_imu_rate_hz:g}:"
+                       " use 460800 or 921600 baud on both sides, or set serial_imu_rate_hz to the rate the IMU sends")
 
 
 def load_config(path: str | Path | None) -> VioConfig:

@@ -854,6 +854,14 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             # two links on one serial device: the second cannot open it (held exclusively), and was retried for ever
             raise VioError(f"[source] mavlink_imu_url = {src.mavlink_imu_url!r} and [mavlink] url = "
                            f"{cfg.mavlink.url!r} are one serial device: leave mavlink_imu_url empty to share the link")
+    if src.imu == "serial" and cfg.mavlink.url.startswith("/dev/"):
+        from drivers.mavlink_link import split_serial_url
+
+        if os.path.realpath(split_serial_url(cfg.mavlink.url)[0]) == os.path.realpath(src.serial_port):
+            # the two readers took each other's bytes: frames lost to the MAVLink parser and MAVLink to the IMU's
+            raise VioError(f"[source] serial_port = {src.serial_port!r} is the autopilot's port ([mavlink] url = "
+                           f"{cfg.mavlink.url!r}): a serial IMU needs a port of its own; for the flight controller's "
+                           "IMU set [source] imu = 'mavlink'")
     if cfg.mavlink.url:  # a connection string that can never open would be retried forever, unseen by systemd
         from drivers.mavlink_out import check_mavlink_config
 
