@@ -99,6 +99,11 @@ class RecordStats:
         return "IMU" if self.first_imu_t_ns < self.first_frame_t_ns else "stereo frames"  # type: ignore[operator]
 
 
+class RecordingWriteError(VioError):
+    """The writer could not write an image (cv2.imwrite says only that it failed): said with what most likely
+    happened (a full disk, the folder removed), as `vio run`'s recorder says it."""
+
+
 def _wait_calibration(source: SensorSource, timeout_s: float, stop: threading.Event) -> StereoCalibration:
     deadline = time.monotonic() + timeout_s
     while not stop.is_set():
@@ -156,7 +161,10 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
                         if stats.first_imu_t_ns is None:
                             stats.first_imu_t_ns = m.t_ns
                     elif isinstance(m, StereoFrame):
-                        writer.write_frame(m)
+                        try:
+                            writer.write_frame(m)
+                        except VioError as e:  # an image cv2 could not write
+                            raise RecordingWriteError(str(e)) from None
                         stats.frames += 1
                         stats.last_frame_t_ns = m.t_ns
                         if stats.first_frame_t_ns is None:
@@ -267,6 +275,11 @@ def run(args: argparse.Namespace) -> int:
         except OSError as e:  # a full disk or a file size limit in the MCAP writer: an "internal error" before
             raise VioError(f"{args.out}: cannot write the recording ({e.strerror or e}): stopped; what was written "
                            "before stays readable") from None
+        except RecordingWriteError as e:  # a full disk for a EuRoC folder's images: it said only 'cannot write image'
+            from vio.io.outputs import storage_diagnosis
+
+            raise VioError(f"{args.out}: cannot write the recording ({e}{storage_diagnosis(Path(args.out))}): "
+                           "stopped; what was written before stays readable") from None
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -4,7 +4,9 @@ would lose the recording)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -162,3 +164,20 @@ def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | 
         raise VioError(f"{path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise VioError(f"{path}: cannot write there (read-only or no permission)")
+
+
+DISK_FULL_BYTES = 4 << 20  # below this much free space, a failed image write is taken for a full disk
+
+
+def storage_diagnosis(root: Path | None) -> str:
+    """What an image write error (cv2.imwrite only says it failed) most likely was: ' (disk full: ...)', ' (the
+    recording folder was removed)', or '' (shared by `vio run`'s recorder and `vio record`)."""
+    if root is None:
+        return ""
+    if not root.exists():
+        return " (the recording folder was removed)"
+    with contextlib.suppress(OSError):
+        free = shutil.disk_usage(root).free
+        if free < DISK_FULL_BYTES:  # a file system keeps a few blocks back, and one image did not fit
+            return f" (disk full: {free // 1024} KiB left, No space left on device)"
+    return ""

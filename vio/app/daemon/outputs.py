@@ -8,7 +8,6 @@ import datetime
 import errno
 import logging
 import os
-import shutil
 import threading
 import time
 from collections import deque
@@ -21,6 +20,7 @@ from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
 from vio.app.daemon.status import _mavlink_health
 from vio.app.daemon.workers import Worker
 from vio.geometry import rot_to_quat_wxyz
+from vio.io.outputs import storage_diagnosis as _storage_diagnosis
 from vio.trajectory import RUN_MARKER, format_tum_line
 from vio.types import ImuSample, NavState, StereoFrame
 
@@ -338,22 +338,6 @@ class RecorderWorker(Worker):
     def status(self) -> dict:
         return {"state": self.state, "dir": str(self.root) if self.root else None, "error": self.error or None,
                 "frames": self.frames, "imu": self.imu, "frames_dropped": self.buf.frames_dropped}
-
-
-DISK_FULL_BYTES = 4 << 20  # below this much free space, a failed image write is taken for a full disk
-
-
-def _storage_diagnosis(root: Path | None) -> str:
-    """What an image write error (cv2.imwrite only says it failed) most likely was."""
-    if root is None:
-        return ""
-    if not root.exists():
-        return " (the recording folder was removed)"
-    with contextlib.suppress(OSError):
-        free = shutil.disk_usage(root).free
-        if free < DISK_FULL_BYTES:  # a file system keeps a few blocks back, and one image did not fit
-            return f" (disk full: {free // 1024} KiB left, No space left on device)"
-    return ""
 
 
 def _close_writer_files(writer: Any) -> None:
