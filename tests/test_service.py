@@ -988,6 +988,40 @@ def test_a_serial_imu_port_that_opens_but_gives_no_frame_says_why(tmp_path: Path
         os.close(slave)
 
 
+def test_an_oak_that_is_not_there_is_named_in_the_status_from_the_first_second(tmp_path: Path, notify_socket) -> None:
+    """`vio run` with `kind = "oak"` and no camera plugged in: the driver logged 'no OAK device found' within a second,
+    but `vio status` said 'sensors not delivering (starting)' for the 10 s the source thread waits for a booting OAK
+    (an integrator's walk-through). The status names the driver's error as soon as the driver has one."""
+    pytest.importorskip("depthai")
+    _need_pipeline()
+    _, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, '[source]\nkind = "oak"', ap.port, notify_path)
+    status = tmp_path / "status.json"
+    seen: dict = {}
+
+    def no_device() -> bool:
+        try:
+            st = json.loads(status.read_text())
+        except (OSError, ValueError):
+            return False
+        if st["source"]["driver"].get("state") != "no_device":
+            return False
+        seen.update(st)
+        return True
+
+    try:
+        assert _wait(no_device, 30), log_path.read_text()[-3000:]
+        assert seen["uptime_s"] < 8, seen["uptime_s"]  # within the source thread's wait for a first frame
+        assert any(w.startswith("sensors not delivering (no OAK device found") for w in seen["warnings"]), \
+            seen["warnings"]
+        assert ap.poses() == 0
+    finally:
+        _stop_daemon(proc)
+        ap.stop.set()
+
+
 def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
     """The lock fell back to the temp folder when the status folder did not exist yet; the first daemon's status
     write then made the folder and a second daemon locked another path and ran (a review's finding)."""

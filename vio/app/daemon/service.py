@@ -309,7 +309,7 @@ class Service:
             why = "sensors delivering" if self.source.last_imu else \
                 f"camera delivering, no IMU sample yet ({_driver_error(self.source.source, 'imu') or 'starting'})"
         elif up >= self.cfg.run.ready_timeout_s:
-            why = f"no sensor data after {up:.0f} s ({self.source.last_error or 'starting'}); still trying"
+            why = f"no sensor data after {up:.0f} s ({_silent_source_why(self.source)}); still trying"
         else:
             return
         self.ready = True
@@ -368,7 +368,7 @@ class Service:
         camera_ok = self.camera_fresh()
         imu_ok = imu_age is not None and imu_age <= VISION_STALE_S
         if not src.connected:
-            warnings.append(f"sensors not delivering ({src.last_error or 'starting'})")
+            warnings.append(f"sensors not delivering ({_silent_source_why(src)})")
         else:
             if not camera_ok:
                 warnings.append("camera: no frames" + (f" for {frame_age:.1f} s" if frame_age is not None else ""))
@@ -517,6 +517,22 @@ class Service:
             if not getattr(self, "_status_warned", False):
                 log.warning("cannot write status file %s: %s", path, e.strerror)
                 self._status_warned = True
+
+
+def _silent_source_why(worker: Any) -> str:
+    """Why the source delivers nothing: the source thread's own reason, else what its driver last said (an OAK's
+    'no OAK device found' from its first second: the status said '(starting)' for the 10 s the thread waits before
+    it calls an unbooted device lost, an integrator's walk-through), else 'starting'."""
+    if worker.last_error:
+        return worker.last_error
+    try:
+        health = worker.source.health() if worker.source is not None else {}
+    except Exception:  # display only
+        health = {}
+    for part in (health.get("camera"), health.get("imu"), health):  # a combined source's parts, or the source
+        if isinstance(part, dict) and part.get("last_error"):
+            return str(part["last_error"])
+    return "starting"
 
 
 def _driver_error(source: Any, part: str) -> str:
