@@ -1022,6 +1022,51 @@ def test_an_oak_that_is_not_there_is_named_in_the_status_from_the_first_second(t
         ap.stop.set()
 
 
+def test_a_calibration_file_of_another_camera_is_said(tmp_path: Path, notify_socket) -> None:
+    """`[source] calibration` names a file of another camera than the one streaming (its lens 1.4x longer: another
+    model, another unit's import): the daemon flew with it unsaid, every distance off by that ratio (an integrator's
+    walk-through). Now, once the source reports its own calibration, an error in the log and a status warning say
+    what differs (state degraded); the file still wins (a recalibration of this camera is what it is for)."""
+    import dataclasses
+
+    from drivers.fake import FakeSource
+    from vio.calibration import save_calibration
+
+    _need_pipeline()
+    own = FakeSource(width=320, height=200, fps=20, imu_rate_hz=200, duration_s=1.0, realtime=False).calibration()
+    longer = dataclasses.replace(own, cam0=dataclasses.replace(own.cam0, fx=own.cam0.fx * 1.4, fy=own.cam0.fy * 1.4),
+                                 cam1=dataclasses.replace(own.cam1, fx=own.cam1.fx * 1.4, fy=own.cam1.fy * 1.4))
+    calib = tmp_path / "other.yaml"
+    save_calibration(longer, calib)
+    _, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, f'[source]\nkind = "fake"\nwidth = 320\nheight = 200\n'
+                                   f'calibration = "{calib}"', ap.port, notify_path)
+    status = tmp_path / "status.json"
+    says = (f"calibration: [source] calibration = '{calib}' is not this fake source's camera: its cam0 focal length fx "
+            f"is {own.cam0.fx * 1.4:.1f} px, the camera's {own.cam0.fx:.1f} px (what it reports itself)")
+
+    def warned() -> bool:
+        try:
+            return any(w.startswith(says) for w in json.loads(status.read_text())["warnings"])
+        except (OSError, ValueError, KeyError):
+            return False
+
+    try:
+        assert _wait(warned, 30), log_path.read_text()[-3000:]
+        assert json.loads(status.read_text())["state"] != "running"
+        assert sum(says in line for line in log_path.read_text().splitlines() if "ERROR" in line) == 1
+    finally:
+        _stop_daemon(proc)
+        ap.stop.set()
+    from vio.calibration import other_camera_problem
+
+    assert other_camera_problem(own, own) is None  # the camera's own, or a recalibration of it, is no other camera
+    assert other_camera_problem(dataclasses.replace(own, cam0=dataclasses.replace(own.cam0, fx=own.cam0.fx * 1.03)),
+                                own) is None
+
+
 def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
     """The lock fell back to the temp folder when the status folder did not exist yet; the first daemon's status
     write then made the folder and a second daemon locked another path and ran (a review's finding)."""

@@ -208,6 +208,23 @@ def calibration_units_problem(calib: StereoCalibration, stereo: bool = True) -> 
     return next((p for _, _, p in calibration_unit_checks(calib, stereo) if p), None)
 
 
+# a recalibration of one camera moves its focal lengths and baseline by a per cent or two; another camera model (a wide
+# lens, a long baseline) by tens of per cents
+OTHER_CAMERA_RATIO = 1.10
+
+
+def other_camera_problem(given: StereoCalibration, device: StereoCalibration) -> str | None:
+    """How a calibration file differs from the one the camera (or recording) reports itself, when by more than a
+    recalibration of the same camera would: the file is another camera's, and every distance estimated with it is off
+    by that ratio. None when they agree. The device's is taken at the file's image size."""
+    scale = given.cam0.width / device.cam0.width
+    pairs = (("stereo baseline", given.baseline_m * 1e3, device.baseline_m * 1e3, "mm"),
+             ("cam0 focal length fx", given.cam0.fx, device.cam0.fx * scale, "px"))
+    off = [f"its {name} is {a:.1f} {unit}, the camera's {b:.1f} {unit}" for name, a, b, unit in pairs
+           if a > 0 and b > 0 and max(a / b, b / a) > OTHER_CAMERA_RATIO]
+    return "; ".join(off) or None
+
+
 # ---------------------------------------------------------------------------------------------- file I/O
 
 def _camera_to_dict(cam: CameraCalibration) -> dict:

@@ -166,12 +166,30 @@ class Service:
         self._logged_overflow = 0
         self._logged_drops = 0
         self._stall_warned = False
+        self._other_camera_said: str | None = None  # the file calibration against the source's own, once compared
 
     # -- wiring ---------------------------------------------------------------------------------------
     def _calibration_now(self) -> Any:
         if not self.source.calibration_ready.is_set() and not self.cfg.source.calibration:
             return None
         return load_run_calibration(self.cfg, self.source.calibration)
+
+    def _other_camera(self) -> str:
+        """Once the source has reported its own calibration: '' when [source] calibration agrees with it, else why
+        the file looks like another camera's (logged once). The file wins all the same (a recalibration is what it is
+        for), so this is a warning: a file of another camera model (an OAK-D Long Range's 150 mm baseline on an
+        OAK-D's 75 mm) was used unsaid, every distance sent to the autopilot off by that ratio."""
+        if self._other_camera_said is None and self.cfg.source.calibration and self.source.calibration is not None:
+            from vio.calibration import other_camera_problem
+
+            problem = other_camera_problem(load_run_calibration(self.cfg, None), self.source.calibration)
+            self._other_camera_said = "" if problem is None else (
+                f"[source] calibration = {self.cfg.source.calibration!r} is not this {self.cfg.source.kind} source's "
+                f"camera: {problem} (what it reports itself); distances are off by that ratio: give this camera's "
+                "calibration, or leave [source] calibration empty for its own")
+            if problem:
+                log.error("calibration: %s", self._other_camera_said)
+        return self._other_camera_said or ""
 
     def _set_mount(self, mav: Any) -> bool:
         """Give the MAVLink output the camera mount from the calibration once it is known (an OAK reports
@@ -390,6 +408,9 @@ class Service:
                         and camera_ok and (h is None or h.tracking))
         if h is not None and h.sensor_error:
             warnings.append(f"sensor error: {h.sensor_error}")
+        other = self._other_camera()
+        if other:
+            warnings.append(f"calibration: {other}")
         if h is not None and h.calibration_warning:
             warnings.append(f"calibration: {h.calibration_warning}")
         if h is not None and h.stereo_warning:
