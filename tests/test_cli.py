@@ -331,3 +331,23 @@ def test_a_serial_device_named_by_its_usb_port_is_a_mavlink_url(tmp_path):
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_path_written_with_a_tilde_is_refused_not_made_in_the_working_folder(tmp_path):
+    """`record_dir = "~/records"` passed `vio config check`, and `vio run` recorded into a folder named '~' in its
+    working directory (nothing expands '~' but a shell; an integrator's walk-through); `calibration = "~/c.yaml"` said
+    'No such file' of a file the user's shell shows. Each path key starting with '~' is refused, with the expansion
+    meant."""
+    import os
+
+    for section, key in (("run", "record_dir"), ("source", "calibration"), ("run", "trajectory_file"),
+                         ("map", "save")):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f"[{section}]\n{key} = '~/kestrel/x'\n")
+        r = subprocess.run([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], capture_output=True,
+                           text=True, timeout=120, cwd=tmp_path)
+        assert r.returncode == EXIT_CONFIG, (key, r.stderr)
+        assert r.stderr.strip() == (f"vio run: configuration error: {cfg}: [{section}] {key} = '~/kestrel/x': '~' is "
+                                    "not expanded in a configuration (the service's home is not yours either): give "
+                                    f"the whole path, e.g. {os.path.expanduser('~/kestrel/x')!r}"), r.stderr
+        assert not (tmp_path / "~").exists()

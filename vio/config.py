@@ -615,8 +615,30 @@ def config_from_dict(data: dict, source: str = "config") -> VioConfig:
     return cfg
 
 
+# the settings that name a file or folder
+PATH_KEYS = {"source": ("dataset", "calibration", "serial_port", "sitl_blackout_file"),
+             "run": ("record_dir", "trajectory_file", "status_file"), "mavlink": ("counter_file",),
+             "map": ("load", "save"), "loop": ("vocabulary",), "view": ("target",)}
+
+
+def _check_paths(cfg: VioConfig, source: str) -> None:
+    """A path starting with '~' is taken as it is written (nothing here expands it, as a shell would): `record_dir =
+    "~/records"` passed the check and `vio run` recorded into a folder named '~' in its working directory (an
+    integrator's walk-through); `calibration = "~/calib.yaml"` said 'No such file' of a file the user's shell shows."""
+    import os
+
+    for section, keys in PATH_KEYS.items():
+        for key in keys:
+            value = getattr(getattr(cfg, section), key)
+            if value.startswith("~"):
+                raise VioError(f"{source}: [{section}] {key} = {value!r}: '~' is not expanded in a configuration (the "
+                               "service's home is not yours either): give the whole path, e.g. "
+                               f"{os.path.expanduser(value)!r}")
+
+
 def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     """Settings that are valid alone but contradict each other."""
+    _check_paths(cfg, source)
     m = cfg.mavlink
     for key in ("mount_rpy_deg", "mount_offset_m"):  # ['a', 0, 0] ended in an internal error (float('a') below)
         v = getattr(m, key)
