@@ -1067,6 +1067,43 @@ def test_a_calibration_file_of_another_camera_is_said(tmp_path: Path, notify_soc
                                 own) is None
 
 
+def test_a_stopped_daemon_s_status_does_not_say_tracking(tmp_path: Path, notify_socket) -> None:
+    """SIGTERM while tracking: the status written at the stop (state 'stopped') kept the estimator's 'tracking': true,
+    and `vio status --json` said it of a daemon gone for half an hour (an integrator's walk-through; docs/install.md:
+    tracking is true only while the last state is under 1 s old). A stopped daemon tracks nothing."""
+    _need_pipeline()
+    _, notify_path = notify_socket
+    ap = FakeAutopilot()
+    ap.start()
+    proc, log_path = _start_daemon(tmp_path, '[source]\nkind = "fake"\nwidth = 320\nheight = 200', ap.port,
+                                   notify_path)
+    status = tmp_path / "status.json"
+
+    def tracking() -> bool:
+        try:
+            return json.loads(status.read_text())["estimator"]["tracking"] is True
+        except (OSError, ValueError, KeyError):
+            return False
+
+    try:
+        assert _wait(tracking, 60), log_path.read_text()[-3000:]
+    finally:
+        rc, _ = _stop_daemon(proc)
+        ap.stop.set()
+    assert rc == 0
+    written = json.loads(status.read_text())
+    assert written["state"] == "stopped" and written["estimator"]["tracking"] is False
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "status", "--json", "--file", str(status)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 4 and json.loads(r.stdout)["estimator"]["tracking"] is False, r.stdout
+    # a status file written as the daemon stopped before this change says it too
+    written["estimator"]["tracking"] = True
+    status.write_text(json.dumps(written))
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "status", "--json", "--file", str(status)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 4 and json.loads(r.stdout)["estimator"]["tracking"] is False, r.stdout
+
+
 def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
     """The lock fell back to the temp folder when the status folder did not exist yet; the first daemon's status
     write then made the folder and a second daemon locked another path and ran (a review's finding)."""

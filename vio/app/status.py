@@ -244,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
     now = time.time()
     code, verdict = evaluate(status, now, args.stale_s)
     gone = code == EXIT_NOT_RUNNING and status.get("state") != "stopped"
+    if status.get("state") == "stopped" and isinstance(status.get("estimator"), dict):
+        status = {**status, "estimator": {**status["estimator"], "tracking": False}}  # one written before 2026-12-07
     if args.json:
         print(json.dumps(_not_running(status, verdict) if gone else status, indent=1))
     else:

@@ -308,6 +308,9 @@ class Service:
             self.view.close(timeout_s=max(0.2, deadline - time.monotonic()))
         status = self.snapshot()
         status["state"] = "stopped"
+        # the last word of a daemon that no longer estimates: the snapshot taken as it stopped said tracking true, and
+        # `vio status --json` kept saying so of a daemon gone for hours (docs/install.md: true only while fresh)
+        status["estimator"]["tracking"] = False
         self._write_status(status)
         if stuck:
             log.warning("stopped with %s still busy after %.1f s (abandoned)", ", ".join(stuck), JOIN_BUDGET_S)
