@@ -249,6 +249,13 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     src_cfg = cfg.source if args.source is None else dataclasses.replace(cfg.source, kind=args.source)
     calibration = load_calibration(src_cfg.calibration) if src_cfg.calibration else None
+    if calibration is not None and src_cfg.kind in ("fake", "oak"):
+        from vio.calibration import streamed_size_problem
+
+        # the recording's sensor.yaml said 1280x800 of 320x200 images: exit 0, and `vio replay` refused it
+        problem = streamed_size_problem(calibration, src_cfg.width, src_cfg.height, src_cfg.calibration)
+        if problem:
+            raise VioError(f"{args.config}: {problem}")
     fmt = args.format or cfg.run.record_format
     try:
         if fmt == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():

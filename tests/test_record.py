@@ -406,3 +406,26 @@ def test_a_full_disk_while_recording_euroc_says_so_and_keeps_what_was_written(tm
         assert len(ds) > 5 and len(ds.imu.t_ns) > 50
     finally:
         subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_a_calibration_for_another_image_size_is_refused_before_recording(tmp_path: Path) -> None:
+    """`[source] calibration` for 320x200 images, the camera streaming 160x100: `vio record` wrote the file's size
+    into the recording's sensor.yaml, exit 0, and `vio replay` then refused the recording ('images are 160x100 but the
+    calibration is for 320x200'; an integrator's walk-through). Refused before the source opens now, as `vio run`
+    refuses it, in one line; nothing is written."""
+    from vio.calibration import save_calibration
+
+    calib = tmp_path / "c320.yaml"
+    save_calibration(FakeSource(width=320, height=200, fps=20, imu_rate_hz=200, duration_s=1.0,
+                                realtime=False).calibration(), calib)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\nwidth = 160\nheight = 100\nrealtime = false\ncalibration = "{calib}"\n')
+    out = tmp_path / "rec"
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "record", str(out), "--config", str(cfg), "--duration",
+                        "1"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.strip() == (f"vio record: error: {cfg}: [source] calibration = '{calib}' is for 320x200 images, "
+                                "but the camera streams [source] width x height = 160x100: set width/height to the "
+                                "calibrated size, or import the calibration for the streamed one (vio calib import "
+                                "depthai FILE --size 160x100 -o CALIB.yaml)"), r.stderr
+    assert not out.exists()

@@ -208,6 +208,18 @@ def calibration_units_problem(calib: StereoCalibration, stereo: bool = True) -> 
     return next((p for _, _, p in calibration_unit_checks(calib, stereo) if p), None)
 
 
+def streamed_size_problem(calib: StereoCalibration, width: int, height: int, path: str) -> str | None:
+    """Why the calibration file `path` cannot be used with a camera streaming width x height: every frame would be
+    refused as unusable (`vio run`, whose status said only 'not initialised yet'), and a recording made with it is
+    refused by `vio replay`. None when the sizes agree."""
+    if (calib.cam0.width, calib.cam0.height) == (width, height):
+        return None
+    return (f"[source] calibration = {path!r} is for {calib.cam0.width}x{calib.cam0.height} images, but the camera "
+            f"streams [source] width x height = {width}x{height}: set width/height to the calibrated size, or import "
+            f"the calibration for the streamed one (vio calib import depthai FILE --size {width}x{height} -o "
+            "CALIB.yaml)")
+
+
 # a recalibration of one camera moves its focal lengths and baseline by a per cent or two; another camera model (a wide
 # lens, a long baseline) by tens of per cents
 OTHER_CAMERA_RATIO = 1.10

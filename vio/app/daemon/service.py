@@ -875,13 +875,12 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             preflight(EurocDataset(src.dataset, calibration=calib))
         except VioError as e:
             raise VioError(f"[source] dataset = {src.dataset!r}: {e}") from None
-    if calib is not None and src.kind in ("fake", "sitl", "oak") and \
-            (calib.cam0.width, calib.cam0.height) != (src.width, src.height):
-        # every frame would be refused as unusable, and the status would only say "not initialised yet"
-        raise VioError(f"[source] calibration = {src.calibration!r} is for {calib.cam0.width}x{calib.cam0.height} "
-                       f"images, but the camera streams [source] width x height = {src.width}x{src.height}: "
-                       "set width/height to the calibrated size, or import the calibration for the streamed one "
-                       f"(vio calib import depthai FILE --size {src.width}x{src.height} -o CALIB.yaml)")
+    if calib is not None and src.kind in ("fake", "sitl", "oak"):
+        from vio.calibration import streamed_size_problem
+
+        problem = streamed_size_problem(calib, src.width, src.height, src.calibration)
+        if problem:
+            raise VioError(problem)
     if src.imu == "mavlink" and src.mavlink_imu_url:
         from drivers.mavlink_link import check_url
 
