@@ -137,8 +137,11 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
         with _open_writer(out, calib, fmt, images, overwrite, png_level) as writer:
             next_flush = time.monotonic() + FLUSH_INTERVAL_S
             done = False
+            compared = calibration is None
             while not stop.is_set() and not done:
                 msgs = source.poll()
+                if not compared and msgs:
+                    compared = _other_camera(calibration, source)
                 for m in msgs:
                     key = "imu" if isinstance(m, ImuSample) else "frame"
                     if duration_s is not None and last[key] < 0 and (end_ns is None or m.t_ns < end_ns):
@@ -186,6 +189,23 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
         stats.source_health = source.health()
         source.stop()
     return stats
+
+
+def _other_camera(given: StereoCalibration, source: SensorSource) -> bool:
+    """Compare the calibration file with the one the source reports itself, once it does (True then): a file of
+    another camera went into the recording unsaid, every distance of its replays off by that ratio (as `vio run`
+    says it: vio/app/daemon/service.py)."""
+    from vio.calibration import other_camera_problem
+
+    own = source.calibration()
+    if own is None:
+        return False
+    problem = other_camera_problem(given, own)
+    if problem:
+        log.error("calibration: [source] calibration is not this %s source's camera: %s (what it reports itself); "
+                  "it goes into the recording all the same: replays of it are off by that ratio unless its sensor.yaml "
+                  "files are replaced with this camera's calibration", source.name, problem)
+    return True
 
 
 def refuse_recorded(out: str | Path, fmt: str, overwrite: bool) -> None:

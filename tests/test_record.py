@@ -429,3 +429,24 @@ def test_a_calibration_for_another_image_size_is_refused_before_recording(tmp_pa
                                 "calibrated size, or import the calibration for the streamed one (vio calib import "
                                 "depthai FILE --size 160x100 -o CALIB.yaml)"), r.stderr
     assert not out.exists()
+
+
+def test_a_calibration_of_another_camera_is_said_while_recording(tmp_path: Path) -> None:
+    """A `[source] calibration` whose focal lengths are 1.4x the streaming camera's (another lens, another unit's
+    import) went into the recording unsaid (an integrator's walk-through). Said once the source reports its own,
+    as `vio run` says it; the recording goes on with the file (it wins, as in `vio run`)."""
+    import dataclasses
+
+    from vio.calibration import save_calibration
+
+    own = FakeSource(width=160, height=100, fps=20, imu_rate_hz=200, duration_s=1.0, realtime=False).calibration()
+    calib = tmp_path / "other.yaml"
+    save_calibration(dataclasses.replace(own, cam0=dataclasses.replace(own.cam0, fx=own.cam0.fx * 1.4)), calib)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\nwidth = 160\nheight = 100\nrealtime = false\ncalibration = "{calib}"\n')
+    r = subprocess.run([sys.executable, "-m", "vio.app.cli", "record", str(tmp_path / "rec"), "--config", str(cfg),
+                        "--duration", "1"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    said = [line for line in r.stderr.splitlines() if "ERROR" in line and "is not this fake source's camera" in line]
+    assert len(said) == 1 and f"its cam0 focal length fx is {own.cam0.fx * 1.4:.1f} px, the camera's " \
+        f"{own.cam0.fx:.1f} px" in said[0], r.stderr
