@@ -19,7 +19,7 @@ import itertools
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,9 +89,11 @@ def corrupt_link(frames: list[SentFrame], faults: LinkFaults, seed: int = 0) -> 
 
 
 def stream_realtime(fd: int, rate_hz: float, seconds: float, faults: LinkFaults | None = None,
-                    chunk_frames: int = 4, seed: int = 0) -> int:
+                    chunk_frames: int = 4, seed: int = 0, listened: Callable[[], bool] | None = None) -> int:
     """Write frames to `fd` paced in real time (chunks of `chunk_frames`, as a UART FIFO would); the
-    device stamps are microseconds of time.monotonic, i.e. a device clock with zero drift."""
+    device stamps are microseconds of time.monotonic, i.e. a device clock with zero drift. With `listened`, a chunk
+    is sent only while it says a reader is there: the others are lost, as on a UART nobody reads (a pty buffered
+    them, and the reader that opened it later got seconds-old frames in one burst)."""
     n = int(seconds * rate_hz)
     t_start = time.monotonic()
     t0_us = int(t_start * 1e6)
@@ -105,10 +107,25 @@ def stream_realtime(fd: int, rate_hz: float, seconds: float, faults: LinkFaults 
         delay = due - time.monotonic()
         if delay > 0:
             time.sleep(delay)
+        if listened is not None and not listened():
+            continue
         data = corrupt_link(chunk, faults, seed + j)[0] if faults else b"".join(f.data for f in chunk)
         os.write(fd, data)
         sent += len(chunk)
     return sent
+
+
+def pty_listened(master: int) -> Callable[[], bool]:
+    """Whether a process has the slave side of the pty `master` open (Linux: the master polls POLLHUP while none
+    has)."""
+    import select
+
+    poller = select.poll()
+    poller.register(master, select.POLLHUP)
+
+    def listened() -> bool:
+        return not any(ev & select.POLLHUP for _, ev in poller.poll(0))
+    return listened
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,15 +144,18 @@ def main(argv: list[str] | None = None) -> int:
         master, slave = os.openpty()
         tty.setraw(slave)
         print(os.ttyname(slave), flush=True)
+        os.close(slave)  # only a reader holds it open: the frames go out while one does (pty_listened)
         fd = master
+        listened = pty_listened(master)
     else:
         from vio.extras import require
 
         serial = require("serial", "serial", "the reference sender on a serial port")
         ser = serial.Serial(args.port, args.baud)
         fd = ser.fileno()
+        listened = None
     with contextlib.suppress(KeyboardInterrupt):
-        stream_realtime(fd, args.rate, args.seconds, LinkFaults() if args.faults else None)
+        stream_realtime(fd, args.rate, args.seconds, LinkFaults() if args.faults else None, listened=listened)
     return 0
 
 

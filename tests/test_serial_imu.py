@@ -314,3 +314,33 @@ def test_c_sender_is_byte_identical() -> None:
         assert res.stdout.split() == [f.data.hex() for f in frames]
     finally:
         os.unlink(exe)
+
+
+def test_the_pty_bench_sender_sends_only_while_a_reader_listens() -> None:
+    """docs/serial-imu.md's bench (`python -m drivers.reference_sender --pty`, then `vio record`): the pty buffered the
+    frames sent before the recorder opened it, which then got seconds-old frames in one burst: its clock sync placed
+    them late, dropped ~350 samples as non-monotonic, and once restarted itself ('device clock jumped by 0.501 s'; an
+    integrator's walk-through). A UART nobody reads loses them: the sender now sends only while a reader has the pty
+    open, so the first frame read is a fresh one."""
+    import select
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "drivers.reference_sender", "--pty", "--rate", "400", "--seconds",
+                             "20"], stdout=subprocess.PIPE, text=True)
+    try:
+        name = proc.stdout.readline().strip()
+        time.sleep(1.0)  # a second of frames while nobody listens
+        fd = os.open(name, os.O_RDONLY | os.O_NOCTTY)
+        try:
+            t_open_us = time.monotonic() * 1e6
+            parser, frames = FrameParser(), []
+            while not frames:
+                assert select.select([fd], [], [], 5.0)[0], "no frame within 5 s of opening"
+                frames = parser.feed(os.read(fd, 4096))
+        finally:
+            os.close(fd)
+    finally:
+        proc.kill()
+        proc.wait(10)
+    # the sender's device clock is time.monotonic in microseconds: the first frame read is from after the open
+    assert frames[0].t_us > t_open_us - 50_000, (t_open_us - frames[0].t_us) / 1e6
