@@ -449,9 +449,13 @@ class MavlinkOutput:
         with self._lock:
             now = self._clock()
             if self._link is not None:
-                if not self._link.connected:
-                    return
-            elif self._conn is None and (now < self._reopen_at_ns or not self._open()):
+                closed = not self._link.connected
+            else:  # (re)open our own connection when due
+                closed = self._conn is None and (now < self._reopen_at_ns or not self._open())
+            if closed:
+                # no connection (a serial port gone): no heartbeat either, so the link goes down after
+                # link_timeout_s. It stayed 'up' (status healthy) for as long as the port was gone (a walk-through)
+                self._update_link(now)
                 return
             self._read_incoming(now)
             self._update_link(now)

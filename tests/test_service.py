@@ -427,6 +427,14 @@ class RecordingMavlink:
         self.closed = True
 
 
+def _read_status(path: Path) -> dict:
+    """The daemon's status file, {} while it is not there or half written."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
 def _wait(cond, timeout_s: float) -> bool:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout_s:
@@ -772,10 +780,7 @@ def test_vio_run_with_a_simulated_source_sends_no_pose_to_an_armed_autopilot(tmp
     status_path = tmp_path / "status.json"
 
     def status() -> dict:
-        try:
-            return json.loads(status_path.read_text())
-        except (OSError, ValueError):
-            return {}
+        return _read_status(status_path)
     try:
         assert _wait(lambda: any(n.startswith("READY=1") for n in _received(sock)), 60), log_path.read_text()[-3000:]
         assert _wait(lambda: any("poses not sent" in w and "autopilot says it is armed" in w
@@ -1102,6 +1107,78 @@ def test_a_stopped_daemon_s_status_does_not_say_tracking(tmp_path: Path, notify_
     r = subprocess.run([sys.executable, "-m", "vio.app.cli", "status", "--json", "--file", str(status)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 4 and json.loads(r.stdout)["estimator"]["tracking"] is False, r.stdout
+
+
+def test_an_autopilot_serial_port_that_goes_away_is_a_link_down(tmp_path: Path) -> None:
+    """`[mavlink] url` on a serial port (a pty with a flight controller's heartbeats on it) that goes away in flight:
+    the output logged 'link error ... reconnecting' and then, while the port stayed gone, its link state was never
+    looked at again: `vio status` said HEALTHY, 'link up' for as long as the port was gone (an integrator's
+    walk-through). The link now goes down after link_timeout_s as for any silence: 'autopilot link lost' in the log,
+    state degraded, `autopilot link down` in the status."""
+    import pty
+    import select
+    import tty
+
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    _need_pipeline()
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    fds = [master, slave]
+    stop = threading.Event()
+    odometry: list[int] = []
+
+    def autopilot() -> None:  # heartbeats every 0.3 s, disarmed; counts the poses received
+        enc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
+        while not stop.is_set():
+            hb = mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                    0, 0, mavlink2.MAV_STATE_STANDBY, 3)
+            try:
+                os.write(master, hb.pack(enc))
+                while select.select([master], [], [], 0.3)[0]:
+                    for msg in parser.parse_buffer(os.read(master, 4096)) or []:
+                        if msg.get_type() == "ODOMETRY":
+                            odometry.append(1)
+            except OSError:
+                return
+
+    ap = threading.Thread(target=autopilot, daemon=True)
+    ap.start()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[source]\nkind = "fake"\nwidth = 320\nheight = 200\n[mavlink]\n'
+                   f'url = "{os.ttyname(slave)}:921600"\ncounter_file = ""\n'
+                   f'[run]\nstatus_file = "{tmp_path / "status.json"}"\n')
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)], cwd=REPO,
+                                stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    status = tmp_path / "status.json"
+
+    def read() -> dict:
+        return _read_status(status)
+
+    try:
+        assert _wait(lambda: read().get("mavlink", {}).get("state") == "up" and len(odometry) > 5, 60), \
+            log_path.read_text()[-3000:]
+        stop.set()
+        ap.join(2)
+        for fd in fds:  # the port goes away (a USB flight controller unplugged)
+            os.close(fd)
+        fds = []
+        t_gone = time.monotonic()
+        assert _wait(lambda: read().get("mavlink", {}).get("state") == "down", 15), \
+            (read().get("mavlink"), log_path.read_text()[-2000:])
+        assert time.monotonic() - t_gone < 8  # link_timeout_s (3 s) and a status period or two
+        st = read()
+        assert st["state"] != "running" and "autopilot link down" in st["warnings"], st["warnings"]
+        assert "autopilot link lost: no heartbeat for 3.0 s" in log_path.read_text()
+    finally:
+        stop.set()
+        for fd in fds:
+            os.close(fd)
+        _stop_daemon(proc)
 
 
 def test_the_instance_lock_is_one_path_whether_or_not_the_status_folder_exists(tmp_path) -> None:
