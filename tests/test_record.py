@@ -450,3 +450,45 @@ def test_a_calibration_of_another_camera_is_said_while_recording(tmp_path: Path)
     said = [line for line in r.stderr.splitlines() if "ERROR" in line and "is not this fake source's camera" in line]
     assert len(said) == 1 and f"its cam0 focal length fx is {own.cam0.fx * 1.4:.1f} px, the camera's " \
         f"{own.cam0.fx:.1f} px" in said[0], r.stderr
+
+
+def test_a_second_reader_of_the_serial_imu_is_refused_not_sharing_its_bytes(tmp_path: Path) -> None:
+    """`vio record` run beside the service (docs/first-flight.md says to stop it first; forgotten) opened the serial
+    IMU's port too, and the two readers split its bytes: the daemon's IMU fell from 400 to ~150 Hz with three
+    estimator resets, and the recording was as torn, exit 0 (an integrator's walk-through). The port is held
+    exclusively now: the second reader is refused with one line saying who may hold it, the first flies on."""
+    pytest.importorskip("serial")
+    sender = subprocess.Popen([sys.executable, "-m", "drivers.reference_sender", "--pty", "--rate", "400",
+                               "--seconds", "120"], stdout=subprocess.PIPE, text=True)
+    daemon = None
+    try:
+        port = sender.stdout.readline().strip()
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f'[source]\nkind = "fake"\nwidth = 160\nheight = 100\nimu = "serial"\nserial_port = "{port}"\n'
+                       f'[run]\nstatus_file = "{tmp_path / "status.json"}"\n[mavlink]\ncounter_file = ""\n')
+        log_path = tmp_path / "daemon.log"
+        with open(log_path, "w") as log:
+            daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
+                                      stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        assert _wait_for(lambda: f"serial IMU port {port} open" in log_path.read_text(), 60), log_path.read_text()
+        r = subprocess.run([sys.executable, "-m", "vio.app.cli", "record", str(tmp_path / "rec"), "--config", str(cfg),
+                            "--duration", "2"], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 1, r.stderr
+        assert f"serial IMU port {port} is held by another process (a running vio run, or vio record" in r.stderr
+        assert daemon.poll() is None and f"serial IMU port {port} lost" not in log_path.read_text(), \
+            log_path.read_text()[-3000:]
+    finally:
+        if daemon is not None:
+            daemon.send_signal(signal.SIGTERM)
+            daemon.wait(15)
+        sender.kill()
+        sender.wait(10)
+
+
+def _wait_for(cond, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return False
