@@ -126,13 +126,16 @@ def test_killed_recorder_leaves_a_readable_dataset(tmp_path: Path) -> None:
     assert len(ds) >= 40 and len(list(ds.frames())) == len(ds)
 
 
-def test_sigterm_flushes_and_exits_cleanly(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_flushes_and_exits_cleanly(tmp_path: Path, sig: signal.Signals) -> None:
+    """SIGTERM, and SIGHUP (`vio record` over ssh whose session ends: it killed the recorder, exit 129, the data since
+    the last flush lost, 0.56 s, and the IMU csv cut mid-row; an integrator's walk-through): flushed, exit 0."""
     out = tmp_path / "ds"
     proc = _start_recorder(tmp_path, out)
     try:
         _wait_rows(out / "mav0" / "imu0" / "data.csv", 10, proc)
         time.sleep(0.5)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         t_term = time.monotonic_ns()
         rc = proc.wait(timeout=15)
         log = proc.stdout.read().decode()
@@ -140,9 +143,10 @@ def test_sigterm_flushes_and_exits_cleanly(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert rc == 0, log
-    assert "SIGTERM received" in log and "recorded" in log
+    assert f"{sig.name} received: finishing the recording" in log and "recorded" in log
     ds = EurocDataset(out)
     assert t_term - int(ds.imu.t_ns[-1]) < 100_000_000  # flushed up to the signal, not the last fsync
+    assert (out / "mav0" / "imu0" / "data.csv").read_bytes().endswith(b"\n")
 
 
 class _LateCamera(FakeSource):
@@ -492,3 +496,4 @@ def _wait_for(cond, timeout_s: float) -> bool:
             return True
         time.sleep(0.05)
     return False
+
