@@ -1031,7 +1031,8 @@ def test_a_calibration_file_of_another_camera_is_said(tmp_path: Path, notify_soc
     """`[source] calibration` names a file of another camera than the one streaming (its lens 1.4x longer: another
     model, another unit's import): the daemon flew with it unsaid, every distance off by that ratio (an integrator's
     walk-through). Now, once the source reports its own calibration, an error in the log and a status warning say
-    what differs (state degraded); the file still wins (a recalibration of this camera is what it is for)."""
+    what differs (state degraded), and the estimator stops for the run: no pose computed with it is sent. A
+    recalibration of this camera (a few per cent) is no other camera."""
     import dataclasses
 
     from drivers.fake import FakeSource
@@ -1062,6 +1063,14 @@ def test_a_calibration_file_of_another_camera_is_said(tmp_path: Path, notify_soc
         assert _wait(warned, 30), log_path.read_text()[-3000:]
         assert json.loads(status.read_text())["state"] != "running"
         assert sum(says in line for line in log_path.read_text().splitlines() if "ERROR" in line) == 1
+        # and nothing computed with it reaches the autopilot: the estimator stops for the run
+        time.sleep(1.5)
+        sent = ap.poses()
+        time.sleep(2.0)
+        assert ap.poses() == sent, (sent, ap.poses())
+        st = json.loads(status.read_text())
+        assert not st["estimator"]["tracking"], st
+        assert any(w.startswith("sensor error: calibration of another camera") for w in st["warnings"]), st
     finally:
         _stop_daemon(proc)
         ap.stop.set()

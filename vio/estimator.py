@@ -728,10 +728,13 @@ class Estimator:
             self.reset(f"{what}: {problem}", bridge=False, keep_bias=False)
 
     def stop_for_run(self, problem: str) -> None:
-        """Take over the run-final verdict on the IMU (`_imu_disagrees`, `EstimatorHealth.stopped_for_run`) of an
-        estimator this one replaces: the daemon makes a new one when reset() raises, and the sensor is still as
-        wrong as it was. This one stays stopped for the run too, saying the same."""
+        """A run-final verdict from outside (`EstimatorHealth.stopped_for_run`): the one on the IMU of an estimator
+        this one replaces (the daemon makes a new one when reset() raises, and the sensor is still as wrong as it
+        was), or the daemon's on a calibration file of another camera. This one stays stopped for the run, saying
+        the same; a running one ends its output now."""
         self._imu_camera_error = self.sensor_error = problem
+        if self.initialized:
+            self.reset(problem, bridge=False, keep_bias=False)
 
     def _hand_offset_to_state(self) -> None:
         """The smoother's time offset state has started (a keyframe passed its motion gate) and follows the

@@ -176,9 +176,9 @@ class Service:
 
     def _other_camera(self) -> str:
         """Once the source has reported its own calibration: '' when [source] calibration agrees with it, else why
-        the file looks like another camera's (logged once). The file wins all the same (a recalibration is what it is
-        for), so this is a warning: a file of another camera model (an OAK-D Long Range's 150 mm baseline on an
-        OAK-D's 75 mm) was used unsaid, every distance sent to the autopilot off by that ratio."""
+        the file looks like another camera's (logged once). A file of another camera model (an OAK-D Long Range's
+        150 mm baseline on an OAK-D's 75 mm) was used unsaid, every distance sent to the autopilot off by that ratio.
+        Such a file is no recalibration (other_camera_problem): the estimator stops for the run, no pose is sent."""
         if self._other_camera_said is None and self.cfg.source.calibration and self.source.calibration is not None:
             from vio.calibration import other_camera_problem
 
@@ -188,7 +188,8 @@ class Service:
                 f"camera: {problem} (what it reports itself); distances are off by that ratio: give this camera's "
                 "calibration, or leave [source] calibration empty for its own")
             if problem:
-                log.error("calibration: %s", self._other_camera_said)
+                log.error("calibration: %s; no pose is estimated for the rest of this run", self._other_camera_said)
+                self.estimator.stop_for_run(f"calibration of another camera: {problem}")
         return self._other_camera_said or ""
 
     def _set_mount(self, mav: Any) -> bool:

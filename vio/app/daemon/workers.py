@@ -197,6 +197,8 @@ class EstimatorWorker(Worker):
         self.out = out
         self.max_gap_ns = int(max_imu_gap_s * 1e9)
         self.estimator: EstimatorApi | None = None
+        self._verdict: str | None = None  # a run-final verdict handed in by another thread (stop_for_run)
+        self._verdict_applied = False
         self.health: EstimatorHealth | None = None  # snapshot taken in this thread (status reads it)
         self.tracks: int | None = None  # features in the newest frame
         self._health_at = 0.0
@@ -224,6 +226,10 @@ class EstimatorWorker(Worker):
             return
         while not self.stop_event.is_set():
             self.beat()
+            if self._verdict is not None and not self._verdict_applied:
+                self._verdict_applied = True
+                self.estimator.stop_for_run(self._verdict)
+                self._snapshot_health(force=True)
             self._snapshot_health()
             imu, item = self.buf.take(0.1)
             if self.buf.imu_overflow != self._seen_overflow:
@@ -252,6 +258,11 @@ class EstimatorWorker(Worker):
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
+
+    def stop_for_run(self, problem: str) -> None:
+        """Stop the estimator for the rest of this run (no pose, no restart), from any thread: applied on this
+        worker's thread before its next input, as the estimator's own verdict on the IMU is."""
+        self._verdict = problem
 
     def _stopped_for_run(self) -> str | None:
         """The current estimator's run-final verdict (EstimatorHealth.stopped_for_run): asked of it, or, where its
