@@ -67,6 +67,11 @@ FLAP_CHANGES, FLAP_WINDOW_NS = 4, 3_000_000_000  # tracking changes within the w
 # GPS_GLOBAL_ORIGIN (an autopilot still booting drops them: without an origin GUIDED take-off is refused),
 # at most ORIGIN_MAX_SENDS times; then one warning.
 ORIGIN_MAX_SENDS = 60
+# Once confirmed, while the autopilot is disarmed, GPS_GLOBAL_ORIGIN is asked for every ORIGIN_RECHECK_NS; no answer
+# within ORIGIN_ANSWER_NS (an autopilot without an origin sends none) means it lost the origin, which is set again.
+# Why: ArduPilot confirms an origin set while it boots, then its EKF3 initialises and drops it (NavEKF3::
+# InitialiseFilter clears the shared origin): ArduCopter SITL then had no origin and no home (1 of 6 flights).
+ORIGIN_RECHECK_NS, ORIGIN_ANSWER_NS = 5_000_000_000, 3_000_000_000
 # land_after_loss_s: MAV_CMD_NAV_LAND is repeated 1 s apart until the autopilot accepts it (COMMAND_ACK) or
 # is seen disarmed, at most LAND_MAX_SENDS times per loss (a dropped command must not leave it dead-reckoning).
 LAND_MAX_SENDS = 5
@@ -95,6 +100,7 @@ class MavlinkStats:
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
     origin_confirmed: bool = False  # the autopilot reported GPS_GLOBAL_ORIGIN after we set it
+    origin_lost: int = 0  # times a confirmed origin went unreported (the autopilot dropped it) and was set again
     land_requests: int = 0  # MAV_CMD_NAV_LAND sent because tracking was lost land_after_loss_s (all losses)
     land_accepted: bool = False  # the autopilot acknowledged the last loss's LAND request
     timesync_answered: int = 0
@@ -228,6 +234,8 @@ class MavlinkOutput:
         self._link_up = False
         self._origin_left = 0
         self._next_origin_ns = 0
+        self._origin_recheck_ns: int | None = None  # when to ask for the confirmed origin again (None: not checking)
+        self._origin_asked_ns: int | None = None  # when the unanswered request went out
         self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
         # states older than this (t_ns on the host clock, as `vio run` and `vio replay --mavlink` stamp them) are
         # not sent: None or 0 = no limit (states stamped on another clock: tests, tools)
@@ -318,6 +326,7 @@ class MavlinkOutput:
                 "reconnects": st.reconnects, "io_errors": st.io_errors, "last_latency_ms": st.last_latency_ms,
                 "land_after_loss_s": self.cfg.land_after_loss_s, "land_requests": st.land_requests,
                 "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed,
+                "origin_lost": st.origin_lost,
                 "first_tilt_deg": st.first_tilt_deg}
 
     def send_state(self, state: NavState) -> bool:
@@ -477,6 +486,7 @@ class MavlinkOutput:
                     log.warning("autopilot did not confirm the EKF origin after %d tries (no GPS_GLOBAL_ORIGIN): "
                                 "set it from the ground station, or GUIDED/AUTO take-off may be refused",
                                 ORIGIN_MAX_SENDS)
+            self._recheck_origin(now)
             if now >= self._next_send_ns:
                 with self._pending_lock:
                     state, self._pending = self._pending, None
@@ -634,6 +644,36 @@ class MavlinkOutput:
             log.warning("the vehicle is %.0f deg from level at its first pose: if it stands level, set [mavlink] "
                         "camera_tilt_deg (or mount_rpy_deg) to the camera's tilt; the attitude sent is off by it", tilt)
 
+    def _recheck_origin(self, now: int) -> None:
+        """While the autopilot is heard disarmed, ask for the origin it confirmed every ORIGIN_RECHECK_NS; unanswered
+        for ORIGIN_ANSWER_NS, it was dropped (an EKF that initialised after confirming it): set it again, once per
+        loss, with the usual ORIGIN_MAX_SENDS tries."""
+        if self._origin_recheck_ns is None:
+            return
+        if self._ap_armed or not self._link_up:  # an answer missed then is no loss: ask again once disarmed
+            self._origin_asked_ns = None
+            return
+        if self._origin_asked_ns is not None and now - self._origin_asked_ns > ORIGIN_ANSWER_NS:
+            self.stats.origin_lost += 1
+            log.warning("the autopilot no longer reports the EKF origin it confirmed (no GPS_GLOBAL_ORIGIN %.0f s "
+                        "after asking; its EKF initialised again?): setting it again", ORIGIN_ANSWER_NS / 1e9)
+            self._set_origin_again(now)
+        elif self._origin_asked_ns is None and now >= self._origin_recheck_ns:
+            self._origin_asked_ns, self._origin_recheck_ns = now, now + ORIGIN_RECHECK_NS
+            self._request_origin()
+
+    def _set_origin_again(self, now: int) -> None:
+        """Send the origin and home until confirmed (after a link-up, a restart, a dropped origin)."""
+        self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
+        self._origin_recheck_ns = self._origin_asked_ns = None
+        self.stats.origin_confirmed = False
+
+    def _request_origin(self) -> None:
+        # an autopilot that already had the origin does not resend it unasked; one without an origin sends nothing
+        self._send(mavlink.MAVLink_command_long_message(
+            self.target_system, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+            float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
+
     def _send_origin(self) -> None:
         lat, lon = int(round(self.cfg.origin_lat_deg * 1e7)), int(round(self.cfg.origin_lon_deg * 1e7))
         alt_mm = int(round(self.cfg.origin_alt_m * 1000))
@@ -642,10 +682,7 @@ class MavlinkOutput:
         self._send(mavlink.MAVLink_set_home_position_message(
             self.target_system, lat, lon, alt_mm, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0),
             "SET_HOME_POSITION")
-        # ask for the confirmation (an autopilot that already had the origin does not resend it unasked)
-        self._send(mavlink.MAVLink_command_long_message(
-            self.target_system, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
-            float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
+        self._request_origin()  # the confirmation
 
     def _check_estimates_stopped(self, now: int) -> None:
         """Tracking is lost too when no estimate arrives at all (NO_ESTIMATE_LOST_NS): with the camera and the IMU
@@ -833,11 +870,14 @@ class MavlinkOutput:
                             self._link.set_source_system(sysid)
                         else:
                             self._conn.mav.srcSystem = sysid
-            elif kind == "GPS_GLOBAL_ORIGIN" and self._origin_left > 0 and msg.get_srcSystem() == self.target_system:
-                self._origin_left = 0
-                self.stats.origin_confirmed = True
-                log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
-                         msg.longitude * 1e-7, msg.altitude * 1e-3)
+            elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
+                self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
+                if self._origin_left > 0:
+                    self._origin_left = 0
+                    self._origin_recheck_ns = now + ORIGIN_RECHECK_NS
+                    self.stats.origin_confirmed = True
+                    log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
+                             msg.longitude * 1e-7, msg.altitude * 1e-3)
             elif (kind == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_NAV_LAND and self._land_done
                   and msg.get_srcSystem() == self.target_system):
                 accepted = msg.result == mavlink.MAV_RESULT_ACCEPTED
@@ -869,16 +909,14 @@ class MavlinkOutput:
         origin = math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg)
         log.warning("the autopilot restarted (%s)%s", why, ": setting the EKF origin again" if origin else "")
         if origin:
-            self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
-            self.stats.origin_confirmed = False
+            self._set_origin_again(now)
 
     def _update_link(self, now: int) -> None:
         up = self._last_ap_heartbeat_ns is not None and now - self._last_ap_heartbeat_ns < self._timeout_ns
         if up and not self._link_up:
             log.info("autopilot link up (system %d) on %s", self.target_system, self.url)
             if math.isfinite(self.cfg.origin_lat_deg) and math.isfinite(self.cfg.origin_lon_deg):
-                self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
-                self.stats.origin_confirmed = False
+                self._set_origin_again(now)
         elif self._link_up and not up:
             self.stats.link_losses += 1
             log.warning("autopilot link lost: no heartbeat for %.1f s", self.cfg.link_timeout_s)

@@ -685,6 +685,57 @@ def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
     out.close()
 
 
+def test_an_origin_the_autopilot_drops_after_confirming_it_is_set_again(ap, caplog):
+    """ArduCopter SITL confirmed the origin set while it booted (GPS_GLOBAL_ORIGIN), then its EKF3 initialised and
+    dropped it (NavEKF3::InitialiseFilter clears the shared origin): no origin, no home, GUIDED take-off refused
+    (1 of 6 flights; the bench's harness set it). While disarmed the confirmed origin is asked for every 5 s; an
+    autopilot that answers gets nothing else, one that stops answering for 3 s gets the origin again. Armed, no
+    check (an answer missed then is no loss)."""
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    has_origin = True
+
+    def run(seconds: float, base_mode: int = 0) -> list:
+        """polls 0.5 s apart, the autopilot's heartbeat before each; it answers origin requests while it has one"""
+        got = []
+        for _ in range(int(seconds / 0.5)):
+            ap.heartbeat(base_mode=base_mode)
+            time.sleep(0.01)
+            out.poll()
+            clock.advance(0.5)
+            new = ap.drain(0.02)
+            got += new
+            asked = [m for m in ap.of("COMMAND_LONG", new) if m.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+                     and m.param1 == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN]
+            if asked and has_origin:
+                ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
+        return got
+
+    def asks(msgs: list) -> int:
+        return len([m for m in ap.of("COMMAND_LONG", msgs) if m.command == mavlink.MAV_CMD_REQUEST_MESSAGE])
+
+    out.poll()
+    ap.drain()
+    got = run(2.0)
+    assert out.stats.origin_confirmed and len(ap.of("SET_GPS_GLOBAL_ORIGIN", got)) == 1
+    got = run(20.0)  # answered: asked again every 5 s, nothing set
+    assert not ap.of("SET_GPS_GLOBAL_ORIGIN", got) and 3 <= asks(got) <= 5 and out.stats.origin_lost == 0
+    has_origin = False  # its EKF initialised: the origin is gone, and it says nothing
+    with caplog.at_level(logging.WARNING, logger="drivers.mavlink_out"):
+        got = run(10.0)
+    assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and ap.of("SET_HOME_POSITION", got)
+    assert out.stats.origin_lost == 1 and not out.stats.origin_confirmed
+    assert "no longer reports the EKF origin it confirmed" in caplog.text
+    has_origin = True
+    run(2.0)
+    assert out.stats.origin_confirmed and out.health()["origin_lost"] == 1
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    has_origin = False
+    got = run(20.0, base_mode=armed)  # armed: not asked, nothing set
+    assert asks(got) == 0 and not ap.of("SET_GPS_GLOBAL_ORIGIN", got) and out.stats.origin_lost == 1
+    out.close()
+
+
 def test_a_replay_sets_no_origin_on_an_armed_autopilot(ap):
     """A replay's configured origin (its flight's config) is another flight's business: not sent to an autopilot
     that says it is armed; once it says disarmed, as for `vio run`."""
