@@ -819,19 +819,30 @@ def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     assert "enough rotation" in capsys.readouterr().err and not out.exists()
 
 
-def _turning_flight(tmp_path, **sim):
+@pytest.fixture(scope="module")
+def turning_flight(tmp_path_factory):
     """An 8 s aggressive flight (turns about every axis) at 376x240 whose sensor.yaml is wrong as `sim` says;
-    returns its folder and the calibration it states."""
+    returns its folder and the calibration it states. Each distinct flight is simulated once per module (the
+    simulator is deterministic for a seed; five tests read three flights) and the tests only read it: what they
+    write goes to their own tmp_path."""
     from vio.io.euroc import EurocDataset
     from vio.sim.generate import SimConfig, simulate
 
-    data = tmp_path / "turns"
-    simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
-                             still_start_s=1.0, seed=3, **sim), progress=False)
-    return data, EurocDataset(data).calibration
+    flights: dict[tuple, Path] = {}
+
+    def make(**sim) -> tuple[Path, object]:
+        key = tuple(sorted(sim.items()))
+        if key not in flights:
+            data = tmp_path_factory.mktemp("turns") / "turns"
+            simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
+                                     still_start_s=1.0, seed=3, **sim), progress=False)
+            flights[key] = data
+        return flights[key], EurocDataset(flights[key]).calibration
+
+    return make
 
 
-def test_check_compares_the_camera_imu_rotation_with_the_gyro(tmp_path):
+def test_check_compares_the_camera_imu_rotation_with_the_gyro(turning_flight):
     """An inverted T_cam_imu, a file that states no camera-IMU extrinsic (body = cam0) or a rig turned by 5 deg
     leave every stereo check passing, and flew at 0.3-6 m of error with the quality the autopilot fuses (a
     review's finding). The camera's turns between frames against the gyro's tell the rotation."""
@@ -840,7 +851,7 @@ def test_check_compares_the_camera_imu_rotation_with_the_gyro(tmp_path):
     from calib.check import check_camera_imu_rotation
     from vio.io.euroc import EurocDataset
 
-    data, stated = _turning_flight(tmp_path)
+    data, stated = turning_flight()
 
     def rig(T0: np.ndarray) -> object:
         """both cameras moved together: the stereo pair as it was"""
@@ -859,13 +870,13 @@ def test_check_compares_the_camera_imu_rotation_with_the_gyro(tmp_path):
     assert check(rig(np.linalg.inv(stated.cam0.T_body_cam))).verdict == "FAIL"  # T_cam_imu taken as T_imu_cam
 
 
-def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
+def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys, turning_flight):
     """`vio calib refine --intrinsics` on a turning flight whose sensor.yaml is slightly wrong writes a loadable
     calibration with refined extrinsics and focal lengths (the principal point held) and says how far each moved."""
     from vio.app.cli import main
     from vio.calibration import load_calibration
 
-    data, stated = _turning_flight(tmp_path, calib_error=2.0)
+    data, stated = turning_flight(calib_error=2.0)
     out = tmp_path / "refined.yaml"
     assert main(["calib", "refine", str(data), "--output", str(out), "--intrinsics"]) == 0
     text = capsys.readouterr().out
@@ -876,7 +887,7 @@ def test_calib_refine_writes_refined_focal_lengths(tmp_path, capsys):
     assert not np.allclose(refined.cam0.T_body_cam, stated.cam0.T_body_cam)
 
 
-def test_calib_refine_stereo_only_turns_cam1_back_and_holds_the_rest(tmp_path, capsys):
+def test_calib_refine_stereo_only_turns_cam1_back_and_holds_the_rest(tmp_path, capsys, turning_flight):
     """A recording whose cam1 principal point the sensor.yaml states 1 px off (a stereo calibration that drifted):
     `vio calib refine --stereo-only` writes a calibration in which only cam1's pose on the body moved, by about
     what 1 px of disparity is, and says so; with --stereo as well it refuses with a message."""
@@ -885,7 +896,7 @@ def test_calib_refine_stereo_only_turns_cam1_back_and_holds_the_rest(tmp_path, c
     from vio.app.cli import main
     from vio.calibration import load_calibration
 
-    data, stated = _turning_flight(tmp_path, stereo_error_px=1.0)
+    data, stated = turning_flight(stereo_error_px=1.0)
     out = tmp_path / "refined.yaml"
     assert main(["calib", "refine", str(data), "--output", str(out), "--stereo-only"]) == 0
     said = capsys.readouterr().out
@@ -921,7 +932,7 @@ def test_calib_refine_stereo_only_leaves_cam1_alone_when_the_recording_cannot_sh
     np.testing.assert_allclose(load_calibration(out).cam1.T_body_cam, stated.cam1.T_body_cam, atol=1e-9)
 
 
-def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_check_passes(tmp_path, capsys):
+def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_check_passes(turning_flight, capsys):
     """cam1's principal point stated 1 px sideways: every right pixel moves along its epipolar line, so the
     epipolar, rectification and reprojection checks pass and the calibration looks fine; `--disparity` replays
     the recording, finds the bias (well over 3 sigma) and fails the check with what to do about it."""
@@ -929,7 +940,7 @@ def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_chec
 
     from vio.app.cli import main
 
-    data, _ = _turning_flight(tmp_path, stereo_error_px=1.0)
+    data, _ = turning_flight(stereo_error_px=1.0)
     assert main(["calib", "check", "-", str(data), "--max-frames", "10"]) == 0
     said = capsys.readouterr().out
     assert re.search(r"PASS  stereo epipolar error", said) and "overall: PASS" in said
@@ -942,7 +953,7 @@ def test_calib_check_disparity_finds_a_drifted_stereo_pair_that_every_other_chec
     assert "overall: FAIL" in said
 
 
-def test_calib_check_disparity_finds_two_cameras_whose_focal_lengths_disagree(tmp_path):
+def test_calib_check_disparity_finds_two_cameras_whose_focal_lengths_disagree(turning_flight):
     """cam1's fx stated 1 % too long (cam0 as it was): the right pixels move along the epipolar lines in
     proportion to their distance from the centre, so the epipolar check passes; the stereo check's focal reading
     finds it (about 1 % of half the image width at the edge) and fails it, while the disparity row (the turn about
@@ -952,7 +963,7 @@ def test_calib_check_disparity_finds_two_cameras_whose_focal_lengths_disagree(tm
     from calib.check import check_disparity, check_epipolar, collect_matches
     from vio.io.euroc import EurocDataset
 
-    data, stated = _turning_flight(tmp_path)
+    data, stated = turning_flight()
     wrong = dataclasses.replace(stated, cam1=dataclasses.replace(stated.cam1, fx=stated.cam1.fx * 1.01))
     m, _ = collect_matches(EurocDataset(data, calibration=wrong), wrong, 10)
     assert check_epipolar(wrong, m).verdict == "PASS"
