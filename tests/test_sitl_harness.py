@@ -227,6 +227,17 @@ def test_kestrel_land_after_loss_reaches_the_daemon_config(tmp_path):
     assert load_config(kestrel_config(tmp_path, 15.0, 320, 200, 3.0)).mavlink.land_after_loss_s == 3.0
 
 
+def test_record_makes_the_daemon_record_what_it_received(tmp_path):
+    """raw.npz holds only the harness's streams: a drifting flight could not be replayed. --record has the daemon
+    record its frames and IMU (EuRoC) in the run folder; off by default (disk writes beside a real-time SITL)."""
+    from bench.sitl.run import kestrel_config
+    from vio.config import load_config
+
+    assert load_config(kestrel_config(tmp_path, 15.0, 320, 200)).run.record_dir == ""
+    cfg = load_config(kestrel_config(tmp_path, 15.0, 320, 200, record=True))
+    assert cfg.run.record_dir == str(tmp_path / "record") and cfg.run.record_format == "euroc"
+
+
 def test_bad_ap_param_is_a_one_line_error(tmp_path, capsys):
     assert main(["--sitl-bin", "/bin/true", "--ap-param", "FS_EKF_THRESH", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
