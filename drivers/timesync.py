@@ -38,12 +38,6 @@ FAST_DRIFT_PPM = 2_000.0
 # late block); from then on it is a median of the blocks' pairwise slopes, which one stalled read cannot bend.
 ROBUST_BLOCKS = 5
 EARLY_DRIFT_PPM = 1_000.0
-# A round trip bounds the device clock's offset to within its half round trip, whatever the link's delays: two in
-# a row that put the offset this far outside that bound from the fitted line mean the device clock stepped (an
-# ArduPilot SITL that stalls under load loses that much simulated time for good), which the line, fitted over 20 s,
-# would otherwise follow only over its whole window.
-ROUNDTRIP_STEP_S = 0.02
-ROUNDTRIP_STEP_COUNT = 2
 
 
 def _theil_sen(t: np.ndarray, d: np.ndarray) -> float:
@@ -74,11 +68,8 @@ class ClockSync:
     """Running lower-envelope fit of host arrival time against device time."""
 
     def __init__(self, block_s: float = 1.0, window_s: float = 20.0, max_jump_s: float = 0.5,
-                 max_drift_ppm: float = MAX_DRIFT_PPM, roundtrip: bool = False,
-                 max_step_s: float = ROUNDTRIP_STEP_S) -> None:
+                 max_drift_ppm: float = MAX_DRIFT_PPM, roundtrip: bool = False) -> None:
         self.roundtrip = roundtrip
-        self.max_step_ns = int(max_step_s * 1e9)
-        self._step_misses = 0  # round trips in a row outside the line by more than max_step_s (roundtrip only)
         self.block_ns = int(block_s * 1e9)
         self.window_blocks = max(2, int(round(window_s / block_s)))
         self.max_jump_ns = int(max_jump_s * 1e9)
@@ -103,7 +94,6 @@ class ClockSync:
         self._cur_start = None
         self._est = None
         self._last_dev = None
-        self._step_misses = 0
         self.resets += 1
 
     def add(self, t_dev_ns: int, t_host_ns: int, uncertainty_ns: int = 0) -> None:
@@ -119,10 +109,6 @@ class ClockSync:
         if self._est is not None and miss > self.max_jump_ns:
             log.warning("device clock jumped by %.3f s against the host: clock sync restarted",
                         (self._predict_offset(t_dev_ns) - d) / 1e9)
-            self.reset()
-        elif self._stepped(miss):
-            log.warning("device clock stepped by %+.3f s against the host (TIMESYNC round trips %.0f ms outside the "
-                        "fitted line): clock sync restarted", (self._predict_offset(t_dev_ns) - d) / 1e9, miss / 1e6)
             self.reset()
         if self._last_dev is not None and t_dev_ns < self._last_dev:
             log.warning("device clock went backwards by %.3f s: clock sync restarted",
@@ -142,22 +128,6 @@ class ClockSync:
         key = uncertainty_ns if self.roundtrip else d
         if self._cur is None or key < (self._cur[2] if self.roundtrip else self._cur[1]):
             self._cur = (t_dev_ns, d, uncertainty_ns)
-
-    def _stepped(self, miss_ns: float) -> bool:
-        """True at the ROUNDTRIP_STEP_COUNT-th round trip in a row that excludes the line by over max_step_s.
-
-        Why: the line is a least-squares fit over 20 s; a step in the device clock bends it only gradually, so the
-        stamps are off by up to the step for the whole window. In an ArduPilot SITL flight on a loaded machine the
-        SITL stalled and its clock fell 0.15 s behind the host's for good: modelled from its log, the IMU stamps ran
-        up to 0.2 s off for ~25 s (the "runs +0.7 %" warnings were this bend), and meanwhile Kestrel's yaw error stepped
-        from 4 to 9.7 deg at quality 100 (docs/autopilot.md, "Re-checked 2026-12-07"). Only once the slope is
-        a robust one within the followed range: before, a fast RC clock misses the provisional line by more."""
-        e = self._est
-        if not self.roundtrip or e is None or e.n_blocks < ROBUST_BLOCKS or abs(e.drift_ppm) >= self.max_drift * 1e6:
-            self._step_misses = 0
-            return False
-        self._step_misses = self._step_misses + 1 if miss_ns > self.max_step_ns else 0
-        return self._step_misses >= ROUNDTRIP_STEP_COUNT
 
     def _refit(self) -> None:
         t = np.array([b[0] for b in self._blocks], dtype=np.float64)

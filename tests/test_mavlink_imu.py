@@ -163,7 +163,6 @@ def test_roundtrip_clocksync_tracks_drift_and_offset_with_asymmetric_delays(seed
             errs.append(cs.to_host(dev(ts1 + 50_000_000)) - (ts1 + 50_000_000))
     assert np.max(np.abs(errs)) < 500_000
     assert abs(cs.estimate.drift_ppm - (1 / (1 + 50e-6) - 1) * 1e6) < 10
-    assert cs.resets == 0  # the step check never fires on a steady clock, whatever the delays
 
 
 def test_roundtrip_clocksync_is_not_bent_by_a_reader_that_stalled_for_over_a_block() -> None:
@@ -189,37 +188,6 @@ def test_roundtrip_clocksync_is_not_bent_by_a_reader_that_stalled_for_over_a_blo
             errs.append(cs.to_host(ts1 + 5_000_000_000) - ts1)
     assert np.max(np.abs(drift)) < 100, np.max(np.abs(drift))
     assert np.max(np.abs(errs)) < 1_000_000, np.max(np.abs(errs))
-
-
-@pytest.mark.parametrize("step_ms", [-150, 40])
-def test_roundtrip_clocksync_follows_a_step_of_the_device_clock_within_a_second(step_ms: int, caplog) -> None:
-    """60 s of TIMESYNC at 10 Hz (one-way delays 0.2 ms + exp(0.5 ms)); 30 s in, the device clock stops for 150 ms
-    (an ArduPilot SITL that stalled under load: it lost that much simulated time for good, its VISP log against
-    Kestrel's stamps) or jumps 40 ms ahead. From 1 s after the step every mapped stamp is within 2 ms again. Before,
-    the 20 s line bent slowly towards it: stamps off by up to the step for the whole window (modelled on that
-    flight: up to 0.2 s for ~25 s, and the 'runs +0.7 %' warnings) while the estimator took them as exact."""
-    rng = np.random.default_rng(1)
-    cs = ClockSync(roundtrip=True)
-    at = 31_000_000_000
-
-    def dev(host: int) -> int:
-        if step_ms < 0:  # stopped for -step_ms, then runs on from where it stopped
-            return int(5e9 + min(host, at) + max(0, host - at + step_ms * 1_000_000))
-        return int(5e9 + host + (step_ms * 1_000_000 if host >= at else 0))
-
-    errs = []
-    with caplog.at_level(logging.WARNING, logger="drivers.timesync"):
-        for i in range(600):
-            ts1 = 1_000_000_000 + i * 100_000_000
-            out, back = (int(x) for x in 2e5 + rng.exponential(5e5, 2))
-            t_recv = ts1 + out + back
-            cs.add(dev(ts1 + out), (ts1 + t_recv) // 2, (t_recv - ts1) // 2)
-            h = ts1 + 50_000_000
-            if h >= at + 1_000_000_000:
-                errs.append(cs.to_host(dev(h)) - h)
-    assert np.max(np.abs(errs)) < 2_000_000, np.max(np.abs(errs)) / 1e6
-    assert cs.resets == 1
-    assert sum("device clock stepped by" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_each_message_is_stamped_when_read_never_before_it_arrived() -> None:
