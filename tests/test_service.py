@@ -435,6 +435,15 @@ def _read_status(path: Path) -> dict:
         return {}
 
 
+def _status_warns(status: Path, match) -> bool:
+    """Whether the daemon's status file holds a warning `match(w)` accepts; a file being replaced (or not yet
+    written) reads as not yet."""
+    try:
+        return any(match(w) for w in json.loads(status.read_text())["warnings"])
+    except (OSError, ValueError, KeyError):
+        return False
+
+
 def _wait(cond, timeout_s: float) -> bool:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout_s:
@@ -917,14 +926,9 @@ def test_a_serial_imu_that_cannot_open_is_named_in_the_status(tmp_path: Path, no
                                    f'serial_port = "{tmp_path / "ttyNOPE0"}"', ap.port, notify_path)
     status = tmp_path / "status.json"
 
-    def says() -> bool:
-        try:
-            return any("cannot open serial IMU port" in w for w in json.loads(status.read_text())["warnings"])
-        except (OSError, ValueError, KeyError):
-            return False
-
     try:
-        assert _wait(says, 30), log_path.read_text()[-3000:]
+        assert _wait(lambda: _status_warns(status, lambda w: "cannot open serial IMU port" in w), 30), \
+            log_path.read_text()[-3000:]
         assert ap.poses() == 0
         assert "camera delivering, no IMU sample yet (cannot open serial IMU port" in log_path.read_text()
     finally:
@@ -971,15 +975,9 @@ def test_a_serial_imu_port_that_opens_but_gives_no_frame_says_why(tmp_path: Path
                                    f'serial_port = "{os.ttyname(slave)}"', ap.port, notify_path)
     status = tmp_path / "status.json"
 
-    def warned() -> bool:
-        try:
-            warnings = json.loads(status.read_text())["warnings"]
-            return any(says in w and w.startswith("IMU: no samples") for w in warnings)
-        except (OSError, ValueError, KeyError):
-            return False
-
     try:
-        assert _wait(warned, 30), log_path.read_text()[-3000:]
+        assert _wait(lambda: _status_warns(status, lambda w: says in w and w.startswith("IMU: no samples")), 30), \
+            log_path.read_text()[-3000:]
         assert ap.poses() == 0
         said = [line for line in log_path.read_text().splitlines() if "drivers.serial_imu" in line and says in line]
         assert len(said) == 1, said  # one log line, not one a read
@@ -1053,14 +1051,9 @@ def test_a_calibration_file_of_another_camera_is_said(tmp_path: Path, notify_soc
     says = (f"calibration: [source] calibration = '{calib}' is not this fake source's camera: its cam0 focal length fx "
             f"is {own.cam0.fx * 1.4:.1f} px, the camera's {own.cam0.fx:.1f} px (what it reports itself)")
 
-    def warned() -> bool:
-        try:
-            return any(w.startswith(says) for w in json.loads(status.read_text())["warnings"])
-        except (OSError, ValueError, KeyError):
-            return False
-
     try:
-        assert _wait(warned, 30), log_path.read_text()[-3000:]
+        assert _wait(lambda: _status_warns(status, lambda w: w.startswith(says)), 30), \
+            log_path.read_text()[-3000:]
         assert json.loads(status.read_text())["state"] != "running"
         assert sum(says in line for line in log_path.read_text().splitlines() if "ERROR" in line) == 1
         # and nothing computed with it reaches the autopilot: the estimator stops for the run
