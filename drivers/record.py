@@ -39,7 +39,6 @@ class RecordStats:
     frames: int = 0
     imu: int = 0
     dropped_out_of_order: int = 0
-    last_t_ns: int | None = None
     source_health: dict = field(default_factory=dict)
     first_frame_t_ns: int | None = None
     first_imu_t_ns: int | None = None
@@ -55,6 +54,12 @@ class RecordStats:
         counts from here."""
         starts = [t for t in (self.first_frame_t_ns, self.first_imu_t_ns) if t is not None]
         return max(starts) if starts else None
+
+    @property
+    def last_t_ns(self) -> int | None:
+        """The newest stamp recorded, of either stream."""
+        ends = [t for t in (self.last_frame_t_ns, self.last_imu_t_ns) if t is not None]
+        return max(ends) if ends else None
 
     @property
     def span_s(self) -> float:
@@ -172,7 +177,6 @@ def record(source: SensorSource, out: str | Path, *, duration_s: float | None = 
                         stats.last_frame_t_ns = m.t_ns
                         if stats.first_frame_t_ns is None:
                             stats.first_frame_t_ns = m.t_ns
-                    stats.last_t_ns = max(stats.last_t_ns or m.t_ns, m.t_ns)
                 now = time.monotonic()
                 if now >= next_flush:  # data may stop arriving: flush on the wall clock too
                     writer.flush()

@@ -271,11 +271,11 @@ def test_the_lead_said_is_from_the_streams_first_stamps_not_the_first_received()
     handed over before an earlier frame made a frames' lead 0 (not said), or shorter than it was."""
     from drivers.record import RecordStats
 
-    st = RecordStats(first_frame_t_ns=T0, first_imu_t_ns=T0 + 300_000_000, last_t_ns=T0 + 1_300_000_000)
+    st = RecordStats(first_frame_t_ns=T0, first_imu_t_ns=T0 + 300_000_000, last_imu_t_ns=T0 + 1_300_000_000)
     assert st.lead_s == pytest.approx(0.3) and st.leading_stream == "stereo frames" and st.span_s == pytest.approx(1.0)
-    st = RecordStats(first_frame_t_ns=T0 + 200_000_000, first_imu_t_ns=T0, last_t_ns=T0 + 1_200_000_000)
+    st = RecordStats(first_frame_t_ns=T0 + 200_000_000, first_imu_t_ns=T0, last_imu_t_ns=T0 + 1_200_000_000)
     assert st.lead_s == pytest.approx(0.2) and st.leading_stream == "IMU"
-    assert RecordStats(first_imu_t_ns=T0, last_t_ns=T0 + 1).leading_stream is None
+    assert RecordStats(first_imu_t_ns=T0, last_imu_t_ns=T0 + 1).leading_stream is None
 
 
 def test_an_output_name_over_the_file_system_s_limit_is_refused_in_one_line(tmp_path: Path, monkeypatch,
