@@ -1298,6 +1298,58 @@ def _scale_consistent_matches(ex, img: np.ndarray, far: np.ndarray, s: float, x0
     return int(np.count_nonzero(np.linalg.norm((pa + 0.5) / s - 0.5 + [x0, y0] - pb, axis=1) <= 3.0))
 
 
+def test_upright_keypoints_are_the_keypoints_convert_makes():
+    """The stereo points' keypoints are made through `map` instead of cv2.KeyPoint.convert: every attribute the same
+    (pixel, size, angle -1, response 1, level 0, class_id -1), fractional and integer pixels alike."""
+    import cv2
+
+    from vio.loop.features import PATCH, upright_keypoints
+
+    rng = np.random.default_rng(7)
+    uv = np.vstack([rng.uniform(0, 752, (300, 2)), rng.integers(0, 480, (50, 2))]).astype(np.float32)
+
+    def attrs(kps: list) -> list[tuple]:
+        return [(k.pt, k.size, k.angle, k.response, k.octave, k.class_id) for k in kps]
+    assert attrs(upright_keypoints(uv, PATCH)) == attrs(cv2.KeyPoint.convert(uv, float(PATCH)))
+    assert upright_keypoints(uv[:0], PATCH) == []
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_extracted_rows_keep_each_stereo_point_with_its_pixel_and_3d_point(loop_flight, levels):
+    """`extract` puts the corners and the stereo points kept by the description back together row by row: on one
+    level by slices (compute() keeps the points in order), on a pyramid by masks (compute() regroups the points by
+    level, stereo points among the corners). Every row with a 3D point must carry that stereo point's own pixel,
+    and every corner row none."""
+    import cv2
+
+    from vio.io.euroc import EurocDataset
+    from vio.loop.features import FeatureExtractor
+    from vio.types import FeatureFrame
+
+    ds = EurocDataset(loop_flight)
+    cam = ds.calibration.cam0
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    rng = np.random.default_rng(3)
+    n = 120
+    uv0 = np.column_stack([rng.uniform(0, cam.width, n), rng.uniform(0, cam.height, n)])  # some near the border
+    depth = rng.uniform(0.5, 6.0, n)
+    depth[::7] = np.nan  # no stereo match: not described
+    ff = FeatureFrame(0, np.arange(n, dtype=np.int64), uv0, uv0.copy(), depth, np.ones(n, np.int64))
+    f = FeatureExtractor(cam, 300, levels=levels, level_scale=1.44).extract(img, ff)
+    has3 = np.isfinite(f.p_cam[:, 0])
+    assert 0 < np.count_nonzero(has3) < np.count_nonzero(np.isfinite(depth))  # some dropped at the border
+    assert np.count_nonzero(~has3) > 100  # corners
+    for uv, p in zip(f.uv[has3], f.p_cam[has3]):
+        k = np.flatnonzero((uv0 == uv).all(axis=1))
+        assert len(k) == 1 and np.isfinite(depth[k[0]])
+        z = depth[k[0]]
+        assert p.tolist() == [(uv[0] - cam.cx) / cam.fx * z, (uv[1] - cam.cy) / cam.fy * z, z]
+    corner_uv = {tuple(u) for u in f.uv[~has3].tolist()}
+    assert not corner_uv & {tuple(u) for u in uv0.tolist()}
+    if levels == 1:  # corners first, then the stereo points
+        assert not has3[:np.count_nonzero(~has3)].any()
+
+
 def test_pyramid_levels_match_a_view_from_further_off(loop_flight):
     """`orb_levels` 2 at 1.44: corners found and described on a second, smaller level, so that a place seen
     from 1.73x further off (a map flown at another height) still matches; one level loses most matches."""
