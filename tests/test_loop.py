@@ -1613,6 +1613,53 @@ def test_guided_matching_finds_what_the_ratio_test_hid_and_sharpens_the_pose():
     assert np.mean(err[8.0]) < 0.85 * np.mean(err[0.0]), (np.mean(err[8.0]), np.mean(err[0.0]))
 
 
+def test_match_from_one_distance_table_is_batch_distances_answer_with_ties():
+    """`match` finds nearest, second-nearest and the mutual test in one numpy table of distances instead of
+    cv2.batchDistance's K=2 and K=1 searches: the same pairs, on descriptors made to tie (a few bits flipped off a
+    few bases, so that many distances are equal: which of equally near old landmarks is a new feature's nearest
+    decides the mutual test; equally near new features fail the ratio test whichever is first), and the table is
+    every pair's XOR bit count."""
+    import cv2
+
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.verify import hamming_table, match
+
+    def reference(old: KeyframeFeatures, new: KeyframeFeatures, max_hamming: int, ratio: float) -> np.ndarray:
+        has3 = old.landmark_rows
+        old_desc = old.desc[has3]
+        dist, idx = cv2.batchDistance(old_desc, new.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+        q = np.flatnonzero((dist[:, 0] <= max_hamming) & (dist[:, 0] < ratio * dist[:, 1]))
+        t = idx[q, 0].astype(np.int64)
+        back = cv2.batchDistance(new.desc[t], old_desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)[1][:, 0]
+        keep = back == q
+        return np.column_stack([has3[q[keep]], t[keep]]).reshape(-1, 2)
+
+    rng = np.random.default_rng(11)
+    bases = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+
+    def descriptors(n: int) -> np.ndarray:
+        d = bases[rng.integers(0, len(bases), n)].copy()
+        flips = rng.integers(0, 256, (n, 3))  # three bits off a base: distances of a handful of values
+        for k in range(3):
+            d[np.arange(n), flips[:, k] // 8] ^= (1 << (flips[:, k] % 8)).astype(np.uint8)
+        return d
+
+    tested = 0
+    for n_old, n_new in ((150, 400), (40, 5), (4, 4), (300, 60)):
+        p = rng.uniform(1, 5, (n_old, 3))
+        p[rng.random(n_old) < 0.3] = np.nan  # corners: no 3D point, not matched from
+        old = KeyframeFeatures(descriptors(n_old), rng.uniform(0, 700, (n_old, 2)), p)
+        new = KeyframeFeatures(descriptors(n_new), rng.uniform(0, 700, (n_new, 2)), np.full((n_new, 3), np.nan))
+        a, b = old.desc, new.desc
+        bits = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(axis=2)
+        assert np.array_equal(hamming_table(a, b), bits)
+        for max_hamming, ratio in ((60, 0.8), (4, 0.8), (60, 1.0), (2, 0.5)):
+            got, want = match(old, new, max_hamming, ratio), reference(old, new, max_hamming, ratio)
+            assert np.array_equal(got, want)
+            tested += len(want)
+    assert tested > 100  # pairs found, not only empty answers
+
+
 def test_guided_pairs_are_the_rule_it_states_with_ties_and_repeats():
     """guided_pairs against the rule written out point by point: each old 3D point in front of the camera takes,
     among the new features within the radius (d^2 <= r^2) and max_hamming, the smallest descriptor distance, ties to
