@@ -75,6 +75,21 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
     assert d["stereo_check"]["released_at_s"] == [float(m.group(1))]
     assert 0.4 < d["calibration_refined"]["disparity_px"] < 1.6 and "calibration: " in said
     caplog.clear()
+    # A pull beyond stereo_check_max_deg is not a calibration that drifted (a replay started in a hover read 1 deg,
+    # let go, and lost its scale: 700 m off in 50 s): held, said once, counted. Here the bound is set under this
+    # flight's 1 px (0.25 deg at fx 229 px) to read the same data as such a pull.
+    cfg = tmp_path / "max.toml"
+    cfg.write_text("[backend]\nstereo_check_max_deg = 0.1\n")
+    stats = tmp_path / "held.json"
+    with caplog.at_level(logging.WARNING, logger="vio.estimator"):
+        assert main(["-q", "replay", str(tmp_path / "drifted"), "--config", str(cfg), "--stats", str(stats),
+                     "--no-progress"]) == 0
+    said, d = capsys.readouterr().out, json.loads(stats.read_text())
+    warned = [r.getMessage() for r in caplog.records if "stereo check" in r.getMessage()]
+    assert len(warned) == 1 and "further from the calibration" in warned[0], warned
+    assert d["stereo_check"]["released_at_s"] == [] and d["stereo_check"]["implausible_readings"] >= 1
+    assert re.search(r"calibration kept; [0-9]+ readings? beyond stereo_check_max_deg", said), said
+    caplog.clear()
     said, d = flight("right", 0.0)
     assert re.search(r"stereo check: disparity bias [-+0-9.]+ \+- [0-9.]+ px[^\n]* \(1 sigma\) at [0-9.]+ s: "
                      r"calibration kept", said), said

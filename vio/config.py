@@ -158,6 +158,11 @@ class BackendConfig:
                                    "(two cameras' fx stated differently scale the disparities across the image)")
     stereo_check_px: float = opt(0.15, "disparity bias [px] below which the stereo check lets the calibration "
                                  "stand", min=0.0, max=20)
+    stereo_check_max_deg: float = opt(0.5, "largest calibration error the stereo check takes for one [deg of turn: "
+                                      "the disparity bias, or a focal length's change at the image edge, over fx]; "
+                                      "a reading beyond it is not let go: a stereo pair does not bend that far in "
+                                      "flight, the estimate disagrees with it (a start in a hover read 1 deg and, "
+                                      "let go, lost its scale: 700 m off in 50 s)", min=0.01, max=10)
     stereo_check_sigma: float = opt(4.0, "how many sigma the disparity bias must stand out before the check acts",
                                     min=1.0, max=100)
     stereo_check_confirm: int = opt(2, "consecutive stereo checks whose reading must stand out before it acts (a "

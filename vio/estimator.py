@@ -258,6 +258,7 @@ class Estimator:
         self._refined: tuple[np.ndarray, np.ndarray, int, tuple | None] | None = None
         self._stereo_finding: StereoFinding | None = None  # the stereo check's newest reading (backend.stereo_check)
         self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
+        self._stereo_implausible = 0  # readings beyond stereo_check_max_deg, over the flight (not acted on)
         self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
@@ -404,6 +405,12 @@ class Estimator:
             f = self._stereo_released[-1]
             said.append(f"the right camera disagrees with the stereo calibration ({f.describe()}, found in flight): "
                         "cam1 refined in flight since; fix the stereo calibration")
+        f = self._stereo_finding
+        if f is not None and f.implausible:
+            said.append(f"the stereo check reads the right camera off the calibration ({f.describe()}), more than a "
+                        "stereo pair bends in flight: held as calibrated; either the estimate was off (a start "
+                        "while moving) or the stereo calibration is grossly wrong (vio calib check CALIB DATASET "
+                        "--disparity)")
         if self.offset_estimator is not None and self.offset_estimator.slow_warning:
             said.append(self.offset_estimator.slow_warning)
         return "; ".join(said) or None
@@ -1070,7 +1077,16 @@ class Estimator:
         if f is None or f is self._stereo_finding:
             return
         self._stereo_finding = f
-        log.debug("stereo check t=%d: %s%s", f.t_ns, f.describe(), " -> let go" if f.released else "")
+        log.debug("stereo check t=%d: %s%s", f.t_ns, f.describe(),
+                  " -> let go" if f.released else " -> implausible, held" if f.implausible else "")
+        if f.implausible:
+            self._stereo_implausible += 1
+            if self._stereo_implausible == 1:
+                log.warning("stereo check: the data pull the right camera further from the calibration (%s) than "
+                            "a stereo pair bends in flight (stereo_check_max_deg %g deg): held as calibrated, since "
+                            "the pair is what holds the scale; either the estimate is off (a start while moving) or "
+                            "the stereo calibration is grossly wrong (vio calib check CALIB DATASET --disparity)",
+                            f.describe(), self.bcfg.stereo_check_max_deg)
         if f.released:
             self._stereo_released.append(f)
             log.warning("stereo check: the right camera disagrees with the calibration (%s): depths and scale were "
@@ -1088,7 +1104,8 @@ class Estimator:
 
         out: dict = {"released_at_s": [at_s(r) for r in self._stereo_released],
                      "released_readings": [r.describe() for r in self._stereo_released],
-                     "released_disparity_px": [r.disparity_px for r in self._stereo_released]}
+                     "released_disparity_px": [r.disparity_px for r in self._stereo_released],
+                     "implausible_readings": self._stereo_implausible}
         if f is not None:
             out.update(disparity_px=f.disparity_px, sigma_px=f.sigma_px, at_s=at_s(f), reading=f.describe(),
                        focal_px=[list(x) for x in f.focal_px] if f.focal_px else None)
@@ -1299,6 +1316,9 @@ def stereo_check_line(check: dict | None, then: str = " (calibration line below)
     if check["released_at_s"]:
         return (f"stereo check: the right camera disagreed with the calibration at {check['released_at_s'][0]:.1f} s "
                 f"({check['released_readings'][0]}): cam1 refined in flight from then{then}")
+    held = check.get("implausible_readings", 0)
+    held_said = (f"; {held} reading{'s' * (held > 1)} beyond stereo_check_max_deg (the estimate's pull, not the "
+                 "camera's) held") if held else ""
     if "disparity_px" in check:
-        return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept"
+        return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept{held_said}"
     return None

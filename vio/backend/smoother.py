@@ -128,6 +128,7 @@ class StereoFinding:
     sigma_px: float  # 1-sigma of that
     released: bool  # the holds were let go at this check: cam1 is refined from here on
     focal_px: tuple[tuple[float, float], ...] | None = None  # (reading, sigma) of cam1's fx, fy at the image edge
+    implausible: bool = False  # beyond stereo_check_max_deg: not a calibration error, not acted on
 
     def describe(self) -> str:
         """The readings in words, e.g. 'disparity bias +0.49 +- 0.11 px; cam1's fx at the image edge +0.05 +- 0.10
@@ -862,6 +863,11 @@ class VioSmoother:
             edge = 0.5 * np.array([self.calib.cam1.width, self.calib.cam1.height]) / np.array([fx, self.calib.cam1.fy])
             px += [(b[6 + k] * edge[k], np.sqrt(var[6 + k]) * edge[k]) for k in (0, 1)]
         shows = [abs(v) >= cfg.stereo_check_px and abs(v) >= cfg.stereo_check_sigma * sg for v, sg in px]
+        # A pull beyond any calibration drift is the estimate's, not the camera's: let go, the pair would stop holding
+        # the scale. (Seen on a replay started in a hover: 3.2 px at fx 190 px, 1 deg; let go, 700 m off in 50 s.)
+        implausible = max(abs(v) for v, _ in px) > np.tan(np.radians(cfg.stereo_check_max_deg)) * fx
+        if implausible:
+            shows = [False] * len(px)
         if self._settle_sigma is not None:  # the IMU noise was raised: the older factors' pull must fade first
             if self._settle_sigma == 0.0:
                 self._settle_sigma = float(px[0][1])
@@ -886,7 +892,7 @@ class VioSmoother:
                 raise SmootherFailure(f"smoother update failed releasing the stereo extrinsic: "
                                       f"{type(e).__name__}") from None
             self._holds = []
-        self.stereo_finding = StereoFinding(t_ns, disp, sigma, release, focal)
+        self.stereo_finding = StereoFinding(t_ns, disp, sigma, release, focal, implausible)
 
     def _relative_rotation_information(self, held: gtsam.Pose3) -> tuple[np.ndarray | None, np.ndarray]:
         """With the rig refined: the posterior information of cam1's rotation relative to cam0 (about cam1's axes),
