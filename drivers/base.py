@@ -11,6 +11,7 @@ Linux). Usage by the daemon::
         for msg in src.poll():             # non-blocking; returns what arrived since the last call
             estimator.feed(msg)
         log(src.health())                  # counters, state, clock sync: plain dict, JSON-serialisable
+        src.stamp_uncertainty_s()          # how far the newest stamps may be off the host clock [s]
     src.stop()                             # joins threads, closes ports; safe to call twice
 
 Each source keeps IMU and camera data in separate bounded queues so a slow consumer drops stale frames
@@ -60,6 +61,14 @@ class SensorSource(ABC):
     def health(self) -> dict[str, Any]:
         """Counters and state for logs and `vio status`."""
         return {"name": self.name}
+
+    def stamp_uncertainty_s(self) -> float:
+        """How far the host stamps of the samples delivered now may be off the truth [s]: 0 for a source stamped on
+        the host clock itself (an OAK: depthai maps its clock; the fake flight; a dataset), the clock fit's own
+        measure for a device with a clock of its own (serial and MAVLink IMU, drivers/timesync.py), inf while it
+        cannot place them. The daemon's output grows the covariance sent by the motion over this time and sends
+        nothing beyond [mavlink] max_stamp_error_ms (docs/autopilot.md "IMU clock health")."""
+        return 0.0
 
     @property
     def finished(self) -> bool:
@@ -174,6 +183,10 @@ class CombinedSource(SensorSource):
 
     def health(self) -> dict[str, Any]:
         return {"name": self.name, "camera": self.camera.health(), "imu": self.imu.health()}
+
+    def stamp_uncertainty_s(self) -> float:
+        """The less certain of the two sources' stamps (the IMU's: the cameras here stamp on the host clock)."""
+        return max(self.camera.stamp_uncertainty_s(), self.imu.stamp_uncertainty_s())
 
     @property
     def finished(self) -> bool:

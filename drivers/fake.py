@@ -107,6 +107,9 @@ class FakeSource(SensorSource):
         self.imu_sent = 0
         self.frames_late = 0
         self.render_ms = 0.0  # mean render time of a stereo pair (exponential average)
+        # what stamp_uncertainty_s() says: the simulated stamps are exact (0), a test sets it to act out an IMU whose
+        # clock sync has gone wrong mid-flight (the daemon's output then grows the covariance or sends nothing)
+        self.clock_uncertainty_s = 0.0
 
     # -- deterministic content -----------------------------------------------------------------------------
     @property
@@ -159,6 +162,9 @@ class FakeSource(SensorSource):
 
     def calibration(self) -> StereoCalibration:
         return self._sim[0].calibration
+
+    def stamp_uncertainty_s(self) -> float:
+        return self.clock_uncertainty_s
 
     # -- source interface ----------------------------------------------------------------------------------
     def _t0(self) -> int:

@@ -30,6 +30,7 @@ ImuSamples on the host clock like any other source (drivers/base.py).
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import Counter, deque
@@ -114,6 +115,7 @@ class MavlinkImuSource(ThreadedSource):
         self._last_sample_arrival_ns: int | None = None
         self._last_dev_ns: int | None = None
         self._slew_state: tuple[int, int] | None = None  # (last device stamp, dev->host offset given out) [ns]
+        self._slew_lag_ns = 0  # how far the offset given out still is from the mapping's (being slewed in)
         self._timesync_after_ns = 0  # answers to requests sent before this host time are ignored (reboot)
         self._pending_ts: deque[int] = deque(maxlen=64)
         self.timesync_sent = 0
@@ -317,6 +319,7 @@ class MavlinkImuSource(ThreadedSource):
             step = int(SLEW_FRACTION * (t_dev - prev_dev))
             off = prev_off + max(-step, min(step, target - prev_off))
         self._slew_state = (t_dev, off)
+        self._slew_lag_ns = abs(target - off)
         return t_dev + off
 
     def _to_host(self, t_dev: int, t_arrival_ns: int) -> int | None:
@@ -349,6 +352,17 @@ class MavlinkImuSource(ThreadedSource):
                 self._error_once("scale", f"{self.message} acceleration is {g:.4g} m/s^2 at the start (expected "
                                  f"~9.8) with mavlink_imu_accel_scale {self.accel_scale:g}: the scale is wrong for "
                                  "this message's units (mG: 9.80665e-3)")
+
+    # ---------------------------------------------------------------- clock health
+    def stamp_uncertainty_s(self) -> float:
+        """How far the newest samples' host stamps may be off [s]: the clock fit in use (TIMESYNC, else the arrival
+        envelope; timesync.ClockSync.uncertainty_ns) plus what the slew has not applied yet; inf before any sample
+        and while the arrival fit cannot place the stamps."""
+        with self._lock:
+            if self._last_dev_ns is None:
+                return math.inf
+            clock = self.timesync if self.clock_source == "timesync" else self.arrival
+            return (clock.uncertainty_ns(self._last_dev_ns) + self._slew_lag_ns) / 1e9
 
     # ---------------------------------------------------------------- health
     def health(self) -> dict[str, Any]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -66,6 +67,7 @@ class SerialImuSource(ThreadedSource):
         self.link_problem = ""
         self._last_byte_at = 0.0
         self._bytes_at_open = self._frames_at_open = 0
+        self._last_dev_ns: int | None = None  # the newest frame's device stamp (the clock health is asked for it)
 
     def poll(self) -> list[Message]:
         return self._queue.drain()
@@ -151,6 +153,8 @@ class SerialImuSource(ThreadedSource):
         # first fit) converting frame by frame would collapse a burst onto one arrival stamp
         for raw in raws:
             self.clock.add(raw.t_us * 1000, t_arrival_ns)
+        if raws:
+            self._last_dev_ns = raws[-1].t_us * 1000
         if self.clock.problem:  # stamps the clock sync cannot place: none at all is safer than wrong ones
             self.clock_withheld += len(raws)
             return
@@ -159,6 +163,12 @@ class SerialImuSource(ThreadedSource):
             if t_host is None or not self.monitor.check(t_host):
                 continue
             self._queue.put(ImuSample(t_host, raw.gyro, raw.accel))
+
+    def stamp_uncertainty_s(self) -> float:
+        """How far the newest samples' host stamps may be off [s] (timesync.ClockSync.uncertainty_ns of the arrival
+        fit); inf before the first frame and while the fit cannot place the stamps (then none is delivered)."""
+        t_dev = self._last_dev_ns
+        return math.inf if t_dev is None else self.clock.uncertainty_ns(t_dev) / 1e9
 
     def health(self) -> dict[str, Any]:
         return {"name": self.name, "state": self.state, "port": self.port, "baud": self.baud,

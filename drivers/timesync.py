@@ -16,6 +16,16 @@ midpoint (ts1 + t_recv)/2, whatever the link's one-way delays. Each pair is that
 its uncertainty, each block keeps its tightest round trip, and the line is a plain least-squares fit
 through those (no envelope shift: the error is symmetric, not one-sided).
 
+How far the stamps may be off (`uncertainty_ns`, which the daemon's output stage turns into covariance and quality,
+docs/autopilot.md "IMU clock health"): the fit's misfit to its newest seconds (each block's distance from the line,
+beyond a round trip's own half duration: what the line provably misses now), the move of the mapping at the last
+refit (consecutive fits that disagree, or the newest block against the mapping in use before it: the stamps given
+out before it were off by that much), the smallest miss of the pairs of the last LIVE_S against the mapping (between
+refits), and, once no block has closed for a while (answers stopped), a growth of STALE_RATE per second of
+extrapolation. On a healthy clock the first three stay within a millisecond or two; a SITL that stalled 150 ms puts
+the newest blocks ~0.1 s off the 20 s line that only bends towards them, and the measure says so for as long as the
+line has not caught up.
+
 `StreamMonitor` checks any stamped stream for gaps, non-monotonic stamps and time jumps and counts them,
 so data problems are reported, never silently smoothed over.
 """
@@ -23,6 +33,7 @@ so data problems are reported, never silently smoothed over.
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -38,6 +49,18 @@ FAST_DRIFT_PPM = 2_000.0
 # late block); from then on it is a median of the blocks' pairwise slopes, which one stalled read cannot bend.
 ROBUST_BLOCKS = 5
 EARLY_DRIFT_PPM = 1_000.0
+# The uncertainty measure: the misfit of the newest RECENT_BLOCKS blocks counts (older ones the line has averaged
+# over; a step shows in the newest), and without a new block for more than two block lengths (the autopilot stopped
+# answering TIMESYNC) the extrapolated line is trusted to STALE_RATE (0.1 %: ten times a crystal's worst, about
+# what a SITL that loses time under load drifts by, docs/autopilot.md) per second beyond them.
+RECENT_BLOCKS = 3
+STALE_RATE = 1e-3
+# Between refits (a block closes once a second) the newest pairs are compared with the mapping as they come: the
+# smallest miss (beyond a round trip's bound) among those of the last LIVE_S, once there are LIVE_MIN_PAIRS of them.
+# The smallest, because single answers miss for reasons of their own (ArduPilot's answers stamped up to 43 ms early,
+# in runs of up to 5 of its 10 a second; a late arrival); a stepped clock makes every one miss: seen within LIVE_S.
+LIVE_S = 0.6
+LIVE_MIN_PAIRS = 6
 
 
 def _theil_sen(t: np.ndarray, d: np.ndarray) -> float:
@@ -87,6 +110,14 @@ class ClockSync:
         # growing amount (a line clamped at 0.1 % on a 1 % slow clock put them 185 ms early: a review's finding)
         self.problem: str | None = None
         self._fast_warned = False
+        self._misfit_ns = 0.0  # the newest blocks' distance from the line (beyond their own bounds) at the last refit
+        self._jump_ns = 0.0  # how far the last refit moved the mapping at its newest block
+        self._cur_d_max: int | None = None  # arrivals before the first fit: the current block's largest host - device
+        # the pairs of the last LIVE_S: their device times, and (t_dev, miss) with misses rising from the oldest on
+        # (a sliding minimum: each add is O(1) on average and the measure a float read from another thread)
+        self._live_t: deque[int] = deque()
+        self._live_min: deque[tuple[int, float]] = deque()
+        self._live_miss_ns = 0.0
 
     def reset(self) -> None:
         """Forget everything (device restarted or its clock jumped)."""
@@ -96,6 +127,11 @@ class ClockSync:
         self._cur_start = None
         self._est = None
         self._last_dev = None
+        self._misfit_ns = self._jump_ns = 0.0
+        self._cur_d_max = None
+        self._live_t.clear()
+        self._live_min.clear()
+        self._live_miss_ns = 0.0
         self.resets += 1
 
     def add(self, t_dev_ns: int, t_host_ns: int, uncertainty_ns: int = 0) -> None:
@@ -127,7 +163,11 @@ class ClockSync:
                 self._refit()
             self._cur = None
             self._cur_all = []
+            self._cur_d_max = None
             self._cur_start = t_dev_ns
+        self._cur_d_max = d if self._cur_d_max is None else max(self._cur_d_max, d)
+        if self._est is not None:
+            self._add_live(t_dev_ns, max(abs(d - self._predict_offset(t_dev_ns)) - uncertainty_ns, 0.0))
         key = uncertainty_ns if self.roundtrip else d
         if self._cur is None or key < (self._cur[2] if self.roundtrip else self._cur[1]):
             self._cur = (t_dev_ns, d, uncertainty_ns)
@@ -179,7 +219,19 @@ class ClockSync:
             # under three seconds of answers no slope yet: the newest second's (a mean over two would lag a clock
             # drifting 2 % by 10 ms more, a review's finding)
             slope, icpt = 0.0, float(self._blocks[-1][1] if self.roundtrip else np.min(d))
+        before = self._predict_offset(t_ref) if self._est is not None else None
         self._est = ClockEstimate(icpt, slope * 1e6, t_ref, len(t))
+        # the newest block against the mapping in use until now (how far the stamps of the last second were off,
+        # beyond a round trip's own bound), or, the same in other words, how far this refit moved the mapping there
+        self._jump_ns = 0.0 if before is None else max(abs(self._predict_offset(t_ref) - before),
+                                                        abs(d[-1] - before) - (u[-1] if self.roundtrip else 0.0))
+        # each recent block's distance from the line: a round trip's beyond its own half round trip (the truth lies
+        # within it), over the last RECENT_BLOCKS; for arrivals the newest block's height above the envelope (its
+        # least delayed sample came that much later than the line says: a reader stalled for the whole second, or a
+        # clock that stepped; the next block tells them apart, so an older late block no longer counts)
+        k = min(RECENT_BLOCKS if self.roundtrip else 1, len(t))
+        miss = np.abs(d[-k:] - (icpt + slope * (t[-k:] - t_ref)))
+        self._misfit_ns = float(np.max(np.maximum(miss - u[-k:], 0.0) if self.roundtrip else miss))
 
     def _check_rate(self, slope: float, n_blocks: int) -> None:
         """A crystal keeps a device clock within 0.01 % of the host's; an MCU on its internal RC oscillator is off
@@ -214,6 +266,38 @@ class ClockSync:
             return int(t_dev_ns + self._cur[1])
         return None
 
+    def uncertainty_ns(self, t_dev_ns: int) -> float:
+        """How far the host stamp `to_host(t_dev_ns)` may be off the truth [ns]: the recent blocks' misfit to the
+        line, the last refit's move or the newest pairs' smallest miss, whichever is largest, plus STALE_RATE per ns
+        of extrapolation beyond two blocks after the newest; before the first fit the current block's own spread (its
+        tightest round trip's half duration, or the arrivals' range); inf while the stamps cannot be placed
+        (`problem`, no sample)."""
+        if self.problem is not None:
+            return math.inf
+        e = self._est
+        if e is None:
+            if self._cur is None:
+                return math.inf
+            if self.roundtrip:
+                return float(self._cur[2])
+            return float((self._cur_d_max or self._cur[1]) - self._cur[1])
+        stale = max(0, t_dev_ns - e.t_ref_dev_ns - 2 * self.block_ns)
+        return max(self._misfit_ns, self._jump_ns, self._live_miss_ns) + STALE_RATE * stale
+
+    def _add_live(self, t_dev_ns: int, miss: float) -> None:
+        """Keep the smallest miss of the pairs of the last LIVE_S against the mapping in use (0 with fewer than
+        LIVE_MIN_PAIRS of them)."""
+        oldest = t_dev_ns - LIVE_S * 1e9
+        self._live_t.append(t_dev_ns)
+        while self._live_t[0] < oldest:
+            self._live_t.popleft()
+        while self._live_min and self._live_min[-1][1] >= miss:
+            self._live_min.pop()
+        self._live_min.append((t_dev_ns, miss))
+        while self._live_min[0][0] < oldest:
+            self._live_min.popleft()
+        self._live_miss_ns = self._live_min[0][1] if len(self._live_t) >= LIVE_MIN_PAIRS else 0.0
+
     @property
     def estimate(self) -> ClockEstimate | None:
         return self._est
@@ -223,7 +307,8 @@ class ClockSync:
         return {"mode": "roundtrip" if self.roundtrip else "arrival",
                 "offset_ns": None if e is None else round(e.offset_ns),
                 "drift_ppm": None if e is None else round(e.drift_ppm, 3),
-                "blocks": 0 if e is None else e.n_blocks, "resets": self.resets, "problem": self.problem}
+                "blocks": 0 if e is None else e.n_blocks, "resets": self.resets, "problem": self.problem,
+                "misfit_ms": round(self._misfit_ns / 1e6, 3), "refit_move_ms": round(self._jump_ns / 1e6, 3)}
 
 
 class StreamMonitor:

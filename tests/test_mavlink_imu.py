@@ -212,6 +212,59 @@ def test_roundtrip_clocksync_is_not_pulled_by_answers_stamped_early() -> None:
     assert np.max(np.abs(errs)) < 500_000, np.max(np.abs(errs)) / 1e6
 
 
+def _fly_with_a_stalled_fc_clock(seconds: float, t_stall_s: float, early: float = 0.0,
+                                 seed: int = 0) -> tuple[MavlinkImuSource, np.ndarray]:
+    """A 200 Hz HIGHRES_IMU stream and TIMESYNC answers at 10 Hz, handed to the source as its link would (no socket,
+    simulated host time); at `t_stall_s` the autopilot's clock falls 150 ms behind over 0.3 s and stays there (the
+    ArduPilot SITL under load, docs/autopilot.md); a share `early` of the answers is stamped 20-43 ms early (its
+    UART receive-time estimate on a TCP link). Rows every 50 ms: (time [s], the newest sample's stamp error [ms],
+    stamp_uncertainty_s() [ms])."""
+    rng = np.random.default_rng(seed)
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"))
+    h0 = 1_000_000_000
+
+    def fc(h: int) -> int:
+        return int(7e9 + h - 150e6 * min(max(((h - h0) / 1e9 - t_stall_s) / 0.3, 0.0), 1.0))
+
+    assert src.stamp_uncertainty_s() == float("inf")  # no sample yet: nothing is known
+    rows = []
+    for k in range(int(seconds * 200)):
+        h = h0 + k * PERIOD_NS
+        if k % 20 == 0:
+            rtt = int(4e5 + rng.exponential(6e5))
+            src._pending_ts.append(h)  # as _send_timesync does
+            ahead = int(rng.uniform(20e6, 43e6)) if rng.random() < early else 0
+            src.on_message(mavlink.MAVLink_timesync_message(fc(h + rtt // 2) - ahead, h), h + rtt)
+        src.on_message(highres(fc(h)), h + 1_000_000 + int(rng.exponential(3e5)))
+        got = src.poll()
+        if got and k % 10 == 0:
+            rows.append(((h - h0) / 1e9, (got[-1].t_ns - h) / 1e6, src.stamp_uncertainty_s() * 1e3))
+    return src, np.array(rows)
+
+
+def test_the_imu_source_says_how_far_its_stamps_may_be_off_when_the_autopilot_clock_stalls() -> None:
+    """The measure the daemon's output turns into covariance and quality (SensorSource.stamp_uncertainty_s). Healthy,
+    with 12 % of the answers stamped early as on the SITL: under 1 ms (the output's 5 ms tolerance: nothing sent
+    changes). The SITL's 150 ms stall, which the 20 s TIMESYNC line only bends towards (stamps up to 150 ms off for
+    ~25 s): within 0.9 s the measure says it, at least half the actual error wherever that is over 20 ms, over the
+    50 ms refusal bound for over 80 % of the time the stamps are over 50 ms off and never while they are under 25 ms,
+    and back under 1 ms once the line has caught up. Before, the source said nothing of it (health() showed a rate
+    warning at most)."""
+    src, r = _fly_with_a_stalled_fc_clock(65.0, 30.0, early=0.12)
+    assert src.clock_source == "timesync"
+    t, err, meas = r[:, 0], np.abs(r[:, 1]), r[:, 2]
+    healthy = (t > 5) & (t < 30)
+    assert err[healthy].max() < 1.0 and meas[healthy].max() < 1.0, (err[healthy].max(), meas[healthy].max())
+    after = t >= 30.9
+    assert err[after].max() > 140  # the stall is there to be seen
+    off = after & (err > 20)
+    assert np.all(meas[off] >= 0.5 * err[off]), r[off & (meas < 0.5 * err)]
+    assert np.mean(meas[after & (err > 50)] > 50) > 0.8  # 87 %: under it only where the error crosses 50 ms
+    assert not np.any(meas[after & (err < 25)] > 50)
+    caught_up = t > 58
+    assert err[caught_up].max() < 1.0 and meas[caught_up].max() < 1.0, r[caught_up & (meas >= 1.0)]
+
+
 def test_each_message_is_stamped_when_read_never_before_it_arrived() -> None:
     """The reader drains a backlog in one loop, and recv_match reads the socket again as its buffer runs out: a
     message that came in 40 ms after the loop began is stamped then, not at the loop's start (one stamp per loop

@@ -182,6 +182,42 @@ def test_a_clock_rate_beyond_what_the_sync_follows_withholds_the_samples() -> No
     assert src.poll() == [] and src.health()["clock_withheld"] == 10 and "beyond" in src.health()["last_error"]
 
 
+def test_the_serial_imu_says_how_far_its_stamps_may_be_off() -> None:
+    """SensorSource.stamp_uncertainty_s of the arrival-time fit, fed as the reader feeds it (4 frames per read every
+    10 ms, 1-3 ms late): unknown (inf) before the first frame; under 1 ms on a healthy link and through a reader that
+    stalls 0.4 s (the stamps are right: the output's 5 ms tolerance leaves everything sent as it was); when the
+    device clock falls 100 ms behind (within 0.3 s, at 20 s), which the envelope takes for delay and does not
+    follow until such blocks make half its 20 s window, over the 50 ms refusal bound within a second and for as long
+    as the stamps are that far off; and inf while the clock runs beyond what the fit follows (no sample is delivered
+    then)."""
+    rng = np.random.default_rng(2)
+    src = SerialImuSource(port="/dev/null")
+    assert src.stamp_uncertainty_s() == float("inf")
+    g, a = np.zeros(3), np.array([0.0, 0.0, 9.81])
+    rows = []
+    for read in range(2800):  # 28 s
+        h = read * 10_000_000
+        made = [h - 7_500_000 + 2_500_000 * i for i in range(4)]  # host time each frame was made
+        lag = [100e6 * min(max((m / 1e9 - 20.0) / 0.3, 0.0), 1.0) for m in made]
+        chunk = b"".join(encode_imu(4 * read + i, int((1e9 + m - d) / 1000), g, a) for i, (m, d) in
+                         enumerate(zip(made, lag)))
+        arrival = h + int(rng.uniform(1e6, 3e6))
+        if 10.0 <= h / 1e9 < 10.4:  # the reader stalled: these reads come in at its end
+            arrival = int(10.4e9) + 1_000_000
+        src.feed(chunk, arrival)
+        got = src.poll()
+        if got and read % 5 == 0:
+            rows.append((h / 1e9, (got[-1].t_ns - (h - 1e9)) / 1e6, src.stamp_uncertainty_s() * 1e3))
+    r = np.array(rows)
+    t, err, meas = r[:, 0], np.abs(r[:, 1] - np.median(r[(r[:, 0] > 2) & (r[:, 0] < 20), 1])), r[:, 2]
+    healthy = (t > 2) & (t < 20)  # the stall at 10 s included
+    assert err[healthy].max() < 2.0 and meas[healthy].max() < 1.0, (err[healthy].max(), meas[healthy].max())
+    stepped = t > 21.0
+    assert err[stepped].min() > 95 and meas[stepped].min() > 50, (err[stepped].min(), meas[stepped].min())
+    src.clock.problem = "device clock runs -10.00 % against the host's"  # as _check_rate sets it
+    assert src.stamp_uncertainty_s() == float("inf")
+
+
 def test_clock_sync_restarts_on_device_reset() -> None:
     cs = ClockSync(block_s=0.1)
     for k in range(100):
