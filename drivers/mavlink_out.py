@@ -94,6 +94,7 @@ class MavlinkStats:
     states_not_tracking: int = 0
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
     states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
+    states_withheld: int = 0  # not sent while the daemon withheld every pose (withhold(): the IMU clock unsure)
     states_refused_armed: int = 0  # a replay's poses withheld while the autopilot said it was armed (poses_to_armed)
     states_refused_unheard: int = 0  # a replay's poses withheld while no autopilot heartbeat said it was disarmed
     sent: dict = field(default_factory=dict)
@@ -241,6 +242,7 @@ class MavlinkOutput:
         # not sent: None or 0 = no limit (states stamped on another clock: tests, tools)
         self._max_age_ns = int(max_state_age_ms * 1e6) if max_state_age_ms else None
         self._too_old_spell = False
+        self._withheld_for: str | None = None  # why the daemon holds every pose back (withhold()); None: it does not
         self._counter_file = Path(counter_file) if counter_file else None
         self._random_first_counter = random_first_counter  # `vio run` with no counter_file; a replay starts at 0
         self._counter_saved: int | None = None
@@ -317,6 +319,7 @@ class MavlinkOutput:
                 "states_sent": st.states_sent, "states_superseded": st.states_superseded,
                 "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
                 "states_too_old": st.states_too_old, "withholding_old_poses": self._too_old_spell,
+                "withholding_for": self._withheld_for, "states_withheld": st.states_withheld,
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "states_refused_armed": st.states_refused_armed, "states_refused_unheard": st.states_refused_unheard,
                 "autopilot_heartbeats": st.autopilot_heartbeats,
@@ -357,6 +360,9 @@ class MavlinkOutput:
             elif self._too_old_spell:  # a fresh state, tracking or not, ends the spell
                 self._too_old_spell = False
                 log.info("poses fresh again (%.0f ms old)", age / 1e6)
+        if self._withheld_for is not None and state.tracking:
+            self.stats.states_withheld += 1
+            state = dataclasses.replace(state, tracking=False, quality=0)
         finite = _sendable(state)
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
@@ -385,7 +391,7 @@ class MavlinkOutput:
                                 self.cfg.mount)
                     self._mount_warned = True
             elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell
-                                         or never_tracked):
+                                         or self._withheld_for is not None or never_tracked):
                 self.stats.states_not_tracking += 1
                 self._pending = None
             elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \
@@ -405,6 +411,21 @@ class MavlinkOutput:
         return taken
 
     __call__ = send_state  # NavStateSink: sink(state)
+
+    def withhold(self, why: str | None) -> None:
+        """While `why` is set no pose goes out at all, not even lost_output's -1/0 ones (a loss of tracking, as for
+        poses too old); the first of a spell says `why` (at most 50 characters) to the ground station as a
+        STATUSTEXT. The daemon sets it while the IMU source's stamps are too uncertain to fly on (its output stage's
+        StampErrorGate, [mavlink] max_stamp_error_ms), and calls this before every state (so a reopened output
+        learns it at once); None ends it."""
+        with self._pending_lock:
+            was, self._withheld_for = self._withheld_for, why
+            if why is not None:
+                self._pending = None  # a pose taken before the spell does not go out in it
+        if why is not None and was is None:
+            with self._lock:
+                if self.connected and self._replay_refusal() != "armed":
+                    self._statustext(mavlink.MAV_SEVERITY_WARNING, why)
 
     def force_reset(self) -> None:
         """Bump reset_counter without an estimator reset (e.g. the estimator was re-created and its own

@@ -1303,6 +1303,36 @@ def test_a_pose_older_than_max_state_age_is_not_sent_and_counts_as_lost(ap, capl
     out.close()
 
 
+def test_poses_withheld_for_an_unsure_imu_clock_send_nothing_not_even_a_failed_pose(ap):
+    """The daemon's output stage withholds every pose while the IMU source's stamps are too uncertain ([mavlink]
+    max_stamp_error_ms): nothing goes out, not even lost_output = 'failed's quality -1 ODOMETRY (PX4 fuses it at
+    EKF2_EV_QMIN 0), a pose taken before it does not go out in its slot, the ground station hears why once and
+    the loss of tracking as ever; withhold(None) resumes."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"], lost_output="failed")
+    out.send_state(state(clock.t))
+    clock.advance(0.01)
+    out.send_state(state(clock.t))  # inside the slot: pending
+    assert [m.quality for m in ap.of("ODOMETRY", ap.drain())] == [80]
+    out.withhold("VIO: IMU clock unsure, no poses")
+    clock.advance(0.05)
+    out.poll()
+    for _ in range(3):
+        out.withhold("VIO: IMU clock unsure, no poses")  # before every state: said once
+        out.send_state(state(clock.t))
+        clock.advance(0.05)
+    got = ap.drain()
+    assert not ap.of("ODOMETRY", got), [m.quality for m in ap.of("ODOMETRY", got)]
+    assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO: IMU clock unsure, no poses", "VIO tracking lost"]
+    assert out.health()["states_withheld"] == 3 and out.health()["withholding_for"]
+    out.withhold(None)
+    out.send_state(state(clock.t))
+    got = ap.drain()
+    assert [m.quality for m in ap.of("ODOMETRY", got)] == [80]
+    assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking regained"]
+    out.close()
+
+
 def test_a_serial_link_is_held_exclusively(caplog):
     """Two daemons on one flight controller's UART both opened it and interleaved their poses and reset counters
     (a QA sweep): the device is held with flock, and the second output cannot open it, says why and retries."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import os
 import signal
 import socket
@@ -301,6 +302,11 @@ class ScriptedSource:
     def health(self) -> dict:
         return {"name": "scripted", "k": self.k}
 
+    clock_error_s = 0.0  # what stamp_uncertainty_s() says: a test raises it to act out a sick IMU clock sync
+
+    def stamp_uncertainty_s(self) -> float:
+        return self.clock_error_s
+
     def poll(self) -> list:
         if self.silent.is_set():
             self.t_next = time.monotonic_ns()
@@ -419,6 +425,11 @@ class RecordingMavlink:
     def send_state(self, s: NavState) -> None:
         self.states.append(s)
         self.stats.states_sent += 1
+
+    withheld_for: str | None = None  # as MavlinkOutput.withhold() was last told
+
+    def withhold(self, why: str | None) -> None:
+        self.withheld_for = why
 
     def poll(self) -> None:
         return None
@@ -564,6 +575,171 @@ def test_a_calibration_found_wrong_in_flight_shows_in_the_status_as_degraded(tmp
         svc.request_stop(signal.SIGTERM)
         runner.join(5.0)
     assert not runner.is_alive()
+
+
+class Moving(ScriptedEstimator):
+    """ScriptedEstimator flying at 2 m/s and turning at 0.5 rad/s, with a 1 cm position sigma per axis."""
+
+    def feed_frame(self, f: StereoFrame) -> NavState | None:
+        st = super().feed_frame(f)
+        if st is None:
+            return None
+        return NavState(st.t_ns, st.T_world_body, np.array([2.0, 0.0, 0.0]), cov_pose=np.eye(6) * 1e-4,
+                        cov_vel=np.eye(3) * 1e-4, omega_body=np.array([0.0, 0.0, 0.5]), reset_counter=st.reset_counter)
+
+
+def test_the_imu_clock_health_reaches_what_is_sent_and_the_status(tmp_path: Path, caplog) -> None:
+    """The IMU source's own measure of how far its stamps may be off (stamp_uncertainty_s) rises mid-flight, as the
+    ArduPilot SITL's did when its clock stalled 150 ms (docs/autopilot.md: stamps ~0.2 s off for ~25 s went out at
+    quality 100 with a covariance that did not grow). 2 ms (a healthy fit): every state goes out as the estimator
+    made it. 20 ms at 2 m/s and 0.5 rad/s: position variance + (2 m/s x 20 ms)^2 along the motion, yaw + (0.5 x
+    0.02)^2, quality 67 (two thirds of the way from 5 to the 50 ms bound left), and the status says 67 and why.
+    200 ms, beyond [mavlink] max_stamp_error_ms: nothing tracked goes out, one log line, status not tracking,
+    quality 0, the reason. Back at 1 ms: the estimator's states again, one line. Before, nothing of it reached
+    the output or the status."""
+    caplog.set_level(logging.INFO)
+    status = tmp_path / "status.json"
+    cfg = config_from_dict({"run": {"status_file": str(status)}, "mavlink": {"max_stamp_error_ms": 50.0}})
+    srcs: list[ScriptedSource] = []
+    ests: list[Moving] = []
+    mavs: list[RecordingMavlink] = []
+
+    def source() -> ScriptedSource:
+        srcs.append(_started(ScriptedSource([], threading.Event(), [])))
+        return srcs[-1]
+
+    svc = Service(cfg, source_factory=source, estimator_factory=lambda c: ests.append(Moving(c, [])) or ests[-1],
+                  mavlink_factory=lambda: mavs.append(RecordingMavlink()) or mavs[-1], notifier=SdNotifier(""))
+    made: dict[int, NavState] = {}
+    feed = Moving.feed_frame
+
+    def remember(self: Moving, f: StereoFrame) -> NavState | None:
+        st = feed(self, f)
+        if st is not None:
+            made[st.t_ns] = st
+        return st
+
+    Moving.feed_frame = remember  # type: ignore[method-assign]
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+
+    def sent_after(n: int, count: int) -> list[NavState]:
+        assert _wait(lambda: len(mavs) and len(mavs[0].states) >= n + count, 3.0), "no more states sent"
+        return mavs[0].states[n + 2:]  # the first two may have been checked before the change
+
+    def status_says(cond) -> dict:
+        assert _wait(lambda: cond(_read_status(status)), 3.0), _read_status(status)
+        return _read_status(status)
+
+    try:
+        assert _wait(lambda: srcs and svc.ready, 5.0)
+        srcs[0].clock_error_s = 0.002
+        healthy = sent_after(0, 6)
+        assert all(s is made[s.t_ns] for s in healthy)  # untouched: same quality, same covariance
+        st = status_says(lambda st: st.get("state") == "running")
+        assert st["estimator"]["quality"] == 100 and st["mavlink"]["stamp_error_ms"] == 2.0
+
+        srcs[0].clock_error_s = 0.020
+        grown = sent_after(len(mavs[0].states), 6)
+        for s in grown:
+            m = made[s.t_ns]
+            add = np.zeros((6, 6))
+            add[2, 2] = (0.5 * 0.02) ** 2
+            add[3, 3] = (2.0 * 0.02) ** 2  # body x = world x here: the motion is along it
+            np.testing.assert_allclose(s.cov_pose, m.cov_pose + add, atol=1e-12)
+            assert s.tracking and s.quality == 67 and np.array_equal(s.cov_vel, m.cov_vel)  # no acceleration
+        st = status_says(lambda st: st.get("estimator", {}).get("quality") == 67)
+        assert st["state"] == "degraded" and st["estimator"]["tracking"]
+        assert any(w.startswith("IMU stamps uncertain by 20 ms") for w in st["warnings"]), st["warnings"]
+
+        srcs[0].clock_error_s = 0.200
+        refused = sent_after(len(mavs[0].states), 6)
+        assert refused and not any(s.tracking for s in refused) and {s.quality for s in refused} == {0}
+        assert mavs[0].withheld_for == "VIO: IMU clock unsure, no poses"  # not even lost_output's -1/0 poses
+        st = status_says(lambda st: st.get("estimator", {}).get("tracking") is False)
+        assert st["estimator"]["quality"] == 0 and st["state"] == "degraded" and not st["healthy"]
+        assert st["mavlink"]["refusing_uncertain_stamps"] and st["mavlink"]["stamp_error_ms"] == 200.0
+        assert any(w.startswith("poses not sent: IMU stamps uncertain by 200 ms, beyond [mavlink] max_stamp_error_ms "
+                                "= 50") for w in st["warnings"]), st["warnings"]
+
+        srcs[0].clock_error_s = 0.001
+        back = sent_after(len(mavs[0].states), 6)
+        assert all(s is made[s.t_ns] for s in back) and mavs[0].withheld_for is None
+        st = status_says(lambda st: st.get("state") == "running")
+        assert st["estimator"]["quality"] == 100 and st["estimator"]["tracking"]
+        assert not any("stamps" in w for w in st["warnings"])
+    finally:
+        Moving.feed_frame = feed  # type: ignore[method-assign]
+        svc.request_stop(signal.SIGTERM)
+        runner.join(5.0)
+    assert not runner.is_alive()
+    said = [r.getMessage() for r in caplog.records if r.name == "vio.app.daemon.outputs"]
+    assert len(said) == 2, said  # entering, leaving: one line each
+    assert said[0].startswith("IMU stamps uncertain by 200 ms (the IMU source's clock sync), beyond [mavlink] "
+                              "max_stamp_error_ms = 50: no pose is sent until they are back under 40 ms"), said
+    assert said[1].startswith("IMU stamps uncertain by 1 ms again"), said
+
+
+def test_the_status_quality_is_what_the_autopilot_gets_while_the_output_refuses(tmp_path: Path) -> None:
+    """The MAVLink output holds back a simulated source's poses (the autopilot says it is armed): the estimator tracks
+    at quality 100, nothing goes out, and the status said quality 100 beside 'poses not sent'. It says 0 now (what
+    is sent), and 100 again once poses go out."""
+    status = tmp_path / "status.json"
+    cfg = config_from_dict({"run": {"status_file": str(status)}, "source": {"kind": "fake"}})
+
+    class Refusing(RecordingMavlink):
+        refusing: str | None = "armed"
+
+        def health(self) -> dict:
+            return {**super().health(), "withholding_replay_poses": self.refusing}
+
+    mavs: list[Refusing] = []
+    svc = Service(cfg, source_factory=lambda: _started(ScriptedSource([], threading.Event(), [])),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []),
+                  mavlink_factory=lambda: mavs.append(Refusing()) or mavs[-1], notifier=SdNotifier(""))
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    try:
+        assert _wait(lambda: _status_warns(status, lambda w: w.startswith("poses not sent")), 5.0), \
+            _read_status(status)
+        st = _read_status(status)
+        assert st["estimator"]["tracking"] and st["estimator"]["quality"] == 0, st["estimator"]
+        mavs[0].refusing = None
+        assert _wait(lambda: _read_status(status).get("state") == "running", 3.0), _read_status(status)
+        assert _read_status(status)["estimator"]["quality"] == 100
+    finally:
+        svc.request_stop(signal.SIGTERM)
+        runner.join(5.0)
+    assert not runner.is_alive()
+
+
+def test_a_stamp_error_grows_the_covariance_along_the_motion_in_the_frames_sent() -> None:
+    """StampErrorGate.apply, the vehicle yawed 90 deg (body x = world y): 2 m/s along world x is 2 m/s along body -y,
+    so 20 ms of stamp error adds (0.04 m)^2 to the body y position variance only; an acceleration of 2 m/s^2 (from
+    the velocities of states 0.1 s apart) adds (0.04 m/s)^2 to the world x velocity variance; a turn about body z
+    (0.5 rad/s) adds (0.01 rad)^2 to that rotation's. NaN or inf (the fit cannot place the stamps) refuses."""
+    from vio.app.daemon.outputs import StampErrorGate
+
+    err = [0.02]
+    gate = StampErrorGate(lambda: err[0], 0.05, 0.05)
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+
+    def state(t_s: float, vx: float) -> NavState:
+        return NavState(int(t_s * 1e9), T, np.array([vx, 0.0, 0.0]), cov_pose=np.eye(6) * 1e-4,
+                        cov_vel=np.eye(3) * 1e-4, omega_body=np.array([0.0, 0.0, 0.5]))
+
+    gate.apply(state(1.0, 2.0))
+    s = gate.apply(state(1.1, 2.2))
+    add = np.zeros(6)
+    add[2], add[4] = 0.01**2, (2.2 * 0.02) ** 2
+    np.testing.assert_allclose(s.cov_pose, np.eye(6) * 1e-4 + np.diag(add), atol=1e-12)
+    np.testing.assert_allclose(s.cov_vel, np.eye(3) * 1e-4 + np.diag([(2.0 * 0.02) ** 2, 0, 0]), atol=1e-12)
+    assert s.tracking and s.quality == 67
+    for bad in (float("nan"), float("inf")):
+        err[0] = bad
+        s = gate.apply(state(1.2, 2.2))
+        assert not s.tracking and s.quality == 0 and gate.refusing
 
 
 def _started(src: ScriptedSource) -> ScriptedSource:

@@ -296,6 +296,12 @@ class MavlinkConfig:
     land_after_loss_s: float = opt(0.0, "once tracking has been lost this long while the autopilot is armed, "
                                    "ask it to LAND (MAV_CMD_NAV_LAND) rather than let it dead-reckon on its IMU "
                                    "until its own EKF failsafe [s]; 0 = off", min=0, max=600)
+    max_stamp_error_ms: float = opt(50.0, "the IMU source's own measure of how far its sample stamps may be off the "
+                                    "host clock (its device-clock fit: TIMESYNC or arrival times; 0 for an OAK) "
+                                    "beyond which no pose is sent, a loss of tracking until it is back within [ms]. "
+                                    "Between 5 ms and this the covariance sent grows by the motion over that time "
+                                    "(speed x error in position, turn rate x error in attitude) and the quality "
+                                    "falls towards 0; under 5 ms nothing changes", min=10, max=1000)
 
 
 @dataclass(frozen=True)

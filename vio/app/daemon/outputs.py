@@ -7,6 +7,7 @@ import dataclasses
 import datetime
 import errno
 import logging
+import math
 import os
 import threading
 import time
@@ -15,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
 from vio.app.daemon.status import _mavlink_health
@@ -22,13 +25,115 @@ from vio.app.daemon.workers import Worker
 from vio.geometry import rot_to_quat_wxyz
 from vio.io.outputs import storage_diagnosis as _storage_diagnosis
 from vio.trajectory import RUN_MARKER, format_tum_line
-from vio.types import ImuSample, NavState, StereoFrame
+from vio.types import ImuSample, NavState, StereoFrame, covariance_quality
 
 if TYPE_CHECKING:
     from vio.app.daemon.protocols import PoseOutput
     pass
 
 log = logging.getLogger(__name__)
+
+# An IMU stamp error up to this is what a healthy device-clock fit shows (TIMESYNC on the ArduPilot SITL within
+# 1.4 ms, a USB serial IMU's arrival envelope within about 1 ms: docs/autopilot.md), and a constant part of it is the
+# camera-IMU time offset the estimator solves in flight: under it nothing sent changes.
+STAMP_TOLERANCE_S = 0.005
+# a refusal ends once the stamp error is back under this share of the bound: one line per event, not one per
+# state while it hovers at the bound
+STAMP_RESUME_FRACTION = 0.8
+ACCEL_BASE_NS = 50_000_000  # the acceleration (velocity error of a stamp error) from velocities this far apart
+STAMPS_WITHHELD_TEXT = "VIO: IMU clock unsure, no poses"  # the STATUSTEXT of a refusal
+
+
+class StampErrorGate:
+    """What the IMU source's clock health does to the state sent: a stamp error dt (the source's own measure,
+    SensorSource.stamp_uncertainty_s) while the body moves at v, turns at w and accelerates at a puts the pose about
+    v*dt, the attitude w*dt and the velocity a*dt off. Over STAMP_TOLERANCE_S those go into the covariance sent (along
+    the motion: position in the body frame, attitude about the turn axis, velocity in the world frame) and the
+    quality is capped by the grown covariance ([backend] quality_sigma_m, as the estimator caps it) and by how close
+    dt is to `max_error_s`, falling to 0 there; beyond `max_error_s` ([mavlink] max_stamp_error_ms) the state goes
+    on as not tracking and the OutputWorker has the MAVLink output withhold every pose (not even lost_output's -1/0
+    ones; a loss of tracking with its log line and STATUSTEXT, and one STATUSTEXT naming the clock), with one log
+    line here on entering and one on leaving (once back under STAMP_RESUME_FRACTION of the bound). Under the
+    tolerance the state is handed on untouched.
+
+    Why in the output and not the estimator: a stamp error is no noise the estimator models (docs/autopilot.md, the
+    c12373d r2 flight: IMU stamps ~0.2 s off for ~25 s went out at quality 100 and a 5 cm sigma)."""
+
+    def __init__(self, uncertainty: Callable[[], float], max_error_s: float, quality_sigma_m: float | None) -> None:
+        self._uncertainty = uncertainty
+        self.max_error_s = max_error_s
+        self.quality_sigma_m = quality_sigma_m
+        self.error_s = 0.0  # the measure as last read
+        self.refusing = False
+        self.refused = 0  # tracked states sent as not tracking for it
+        self.grown = 0  # tracked states sent with a grown covariance
+        self._v_base: tuple[int, np.ndarray] | None = None  # (t_ns, v_world) the acceleration is taken against
+        self._accel = np.zeros(3)
+
+    def apply(self, s: NavState) -> NavState:
+        """`s` as it may go to the autopilot with the source's stamp error now."""
+        dt = self._uncertainty()
+        self.error_s = dt
+        self._track_accel(s)
+        if not dt <= self.max_error_s:  # inf and nan too
+            if not self.refusing:
+                self.refusing = True
+                log.warning("IMU stamps uncertain by %s (the IMU source's clock sync), beyond [mavlink] "
+                            "max_stamp_error_ms = %.0f: no pose is sent until they are back under %.0f ms",
+                            stamp_error_text(dt), self.max_error_s * 1e3,
+                            STAMP_RESUME_FRACTION * self.max_error_s * 1e3)
+        elif self.refusing and dt <= STAMP_RESUME_FRACTION * self.max_error_s:
+            self.refusing = False
+            log.info("IMU stamps uncertain by %s again (under %.0f ms): poses sent again (over %.0f ms with their "
+                     "covariance grown by it)", stamp_error_text(dt), STAMP_RESUME_FRACTION * self.max_error_s * 1e3,
+                     STAMP_TOLERANCE_S * 1e3)
+        if not s.tracking:
+            return s
+        if self.refusing:
+            self.refused += 1
+            return dataclasses.replace(s, tracking=False, quality=0)
+        if dt <= STAMP_TOLERANCE_S:
+            return s
+        self.grown += 1
+        return self.grown_by(s, dt)
+
+    def grown_by(self, s: NavState, dt: float) -> NavState:
+        """`s` with the errors of a stamp error `dt` [s] added to its covariance and its quality capped."""
+        w = np.asarray(s.omega_body, dtype=float)
+        v_body = s.T_world_body[:3, :3].T @ np.asarray(s.v_world, dtype=float)
+        cov_pose = np.array(s.cov_pose, dtype=float)
+        cov_pose[:3, :3] += dt * dt * np.outer(w, w)
+        cov_pose[3:, 3:] += dt * dt * np.outer(v_body, v_body)
+        cov_vel = np.asarray(s.cov_vel, dtype=float) + dt * dt * np.outer(self._accel, self._accel)
+        share = (self.max_error_s - dt) / (self.max_error_s - STAMP_TOLERANCE_S)
+        if self.quality_sigma_m is not None:
+            share = min(share, covariance_quality(cov_pose, self.quality_sigma_m))
+        quality = max(1, min(s.quality, round(100 * share)))
+        return dataclasses.replace(s, cov_pose=cov_pose, cov_vel=cov_vel, quality=quality)
+
+    def _track_accel(self, s: NavState) -> None:
+        """The acceleration from the velocities of states at least ACCEL_BASE_NS apart (time going back, an
+        estimator reset, starts over)."""
+        v = np.asarray(s.v_world, dtype=float)
+        base = self._v_base
+        if base is None or s.t_ns < base[0]:
+            self._v_base, self._accel = (s.t_ns, v), np.zeros(3)
+        elif s.t_ns - base[0] >= ACCEL_BASE_NS:
+            accel = (v - base[1]) / ((s.t_ns - base[0]) * 1e-9)
+            self._accel = accel if np.isfinite(accel).all() else np.zeros(3)
+            self._v_base = (s.t_ns, v)
+
+    def status(self) -> dict:
+        """For `vio status`: the stamp error now [ms], whether poses are refused for it, the counts."""
+        return {"stamp_error_ms": round(self.error_s * 1e3, 1) if math.isfinite(self.error_s) else None,
+                "max_stamp_error_ms": round(self.max_error_s * 1e3, 1), "refusing_uncertain_stamps": self.refusing,
+                "states_refused_stamps": self.refused, "states_grown_stamps": self.grown}
+
+
+def stamp_error_text(dt: float) -> str:
+    """'42 ms', or what an infinite / NaN stamp error means."""
+    return f"{dt * 1e3:.0f} ms" if math.isfinite(dt) else "an unknown amount (the fit cannot place them)"
+
 
 class TrajectoryLog:
     """The TUM pose log. An error (disk full, file-size limit, folder removed or read-only) ends it with ONE
@@ -111,7 +216,7 @@ class OutputWorker(Worker):
 
     def __init__(self, stop: threading.Event, latest: LatestState, open_mavlink: Callable[[], PoseOutput] | None,
                  trajectory_file: str, reconnect_max_s: float, vision_ok: Callable[[], bool] = lambda: True,
-                 mount: Callable[[Any], bool] | None = None) -> None:
+                 mount: Callable[[Any], bool] | None = None, stamps: StampErrorGate | None = None) -> None:
         super().__init__("output", stop)
         self.latest = latest
         self._open = open_mavlink
@@ -120,6 +225,8 @@ class OutputWorker(Worker):
         self.trajectory = TrajectoryLog(trajectory_file)
         self.reconnect_max_s = reconnect_max_s
         self.vision_ok = vision_ok
+        self.stamps = stamps  # the IMU source's clock health on what is sent (None: stamps on the host clock)
+        self.quality_out: int | None = None  # of the newest state handed on: what the autopilot gets, 0 while lost
         self.mav: PoseOutput | None = None
         self.offered = 0  # states handed to the MAVLink output (it sends the newest at its own rate)
         self.withheld = 0  # tracking states turned into not-tracking ones because no camera frames arrive
@@ -148,7 +255,10 @@ class OutputWorker(Worker):
     def _checked(self, s: NavState) -> NavState:
         if s.tracking and not self.vision_ok():
             self.withheld += 1
-            return dataclasses.replace(s, tracking=False, quality=0)
+            s = dataclasses.replace(s, tracking=False, quality=0)
+        if self.stamps is not None:
+            s = self.stamps.apply(s)
+        self.quality_out = s.quality if s.tracking else 0
         return s
 
     def _ensure_mavlink(self) -> None:
@@ -169,6 +279,7 @@ class OutputWorker(Worker):
             try:
                 if self._mount_pending and self._mount is not None:
                     self._mount_pending = not self._mount(self.mav)
+                self.mav.withhold(STAMPS_WITHHELD_TEXT if self.stamps is not None and self.stamps.refusing else None)
                 self.mav.send_state(s)
                 self.offered += 1
             except Exception as e:

@@ -32,6 +32,8 @@ class Source(Protocol):
 
     def health(self) -> dict[str, Any]: ...
 
+    def stamp_uncertainty_s(self) -> float: ...  # how far its IMU stamps may be off the host clock [s]
+
 
 class EstimatorApi(Protocol):
     """The estimator (vio.estimator.Estimator)."""
@@ -61,6 +63,8 @@ class PoseOutput(Protocol):
     def states_sent(self) -> int: ...
 
     def send_state(self, state: NavState) -> object: ...
+
+    def withhold(self, why: str | None) -> None: ...  # no pose at all while `why` is set (said once to the GCS)
 
     def poll(self) -> None: ...
 

@@ -47,7 +47,13 @@ from typing import TYPE_CHECKING, Any
 
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, RateWindow, SensorBuffer
-from vio.app.daemon.outputs import OutputWorker, RecorderWorker
+from vio.app.daemon.outputs import (
+    STAMP_TOLERANCE_S,
+    OutputWorker,
+    RecorderWorker,
+    StampErrorGate,
+    stamp_error_text,
+)
 from vio.app.daemon.protocols import EstimatorApi, PoseOutput, Source
 from vio.app.daemon.status import (
     STATUS_VERSION,
@@ -150,8 +156,10 @@ class Service:
         if mavlink_factory is None and cfg.mavlink.url:
             mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now, self.mavlink_link)
             mount = self._set_mount
+        stamps = StampErrorGate(self.source.stamp_uncertainty_s, cfg.mavlink.max_stamp_error_ms / 1e3,
+                                cfg.backend.quality_sigma_m)
         self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
-                                   vision_ok=self.camera_fresh, mount=mount)
+                                   vision_ok=self.camera_fresh, mount=mount, stamps=stamps)
         self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now,
                                         rc.record_format, rc.record_images, self.latest, lambda: self._last_status,
                                         rc.record_png_level)
@@ -435,6 +443,17 @@ class Service:
         if refusing:
             # a recorded or simulated source (NOT_THIS_VEHICLE) and an autopilot that is armed or not heard disarmed
             warnings.append(replay_refusal_warning(self.cfg.source.kind, refusing))
+        stamps = out.stamps
+        clock_refused = stamps is not None and stamps.refusing
+        if clock_refused:
+            # the autopilot gets nothing: not tracking, as for poses too old (the status said quality 100 meanwhile)
+            warnings.append(f"poses not sent: IMU stamps uncertain by {stamp_error_text(stamps.error_s)}, beyond "
+                            f"[mavlink] max_stamp_error_ms = {stamps.max_error_s * 1e3:.0f} (the IMU source's clock "
+                            "sync: source.driver clock in vio status --json)")
+            tracking = False
+        elif stamps is not None and stamps.error_s > STAMP_TOLERANCE_S and imu_ok:
+            warnings.append(f"IMU stamps uncertain by {stamp_error_text(stamps.error_s)} (the IMU source's clock "
+                            "sync): the covariance sent grows by the motion over that time and the quality falls")
         recording = self.recorder.status() if self.recorder is not None else None
         if recording is not None and recording["state"] == "failed":
             warnings.append(f"recording failed: {recording['error']}")
@@ -446,7 +465,8 @@ class Service:
             mode = "starting"
         elif not ok:
             mode = "unhealthy"
-        elif not tracking and not withheld and src.connected and imu_ok and not getattr(h, "stopped_for_run", None):
+        elif not tracking and not withheld and not clock_refused and src.connected and imu_ok and \
+                not getattr(h, "stopped_for_run", None):
             mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
         elif warnings or not tracking:
             mode = "degraded"
@@ -468,7 +488,8 @@ class Service:
                        "driver": _source_health(src.source)},
             "estimator": {
                 "tracking": tracking,
-                "quality": (state.quality if tracking else 0) if state is not None else None,
+                # what the autopilot gets (the output's checks applied): 0 while nothing tracked goes out
+                "quality": _quality_sent(state, tracking and not refusing, out.quality_out),
                 "initialized": h.initialized if h is not None else None,
                 "reset_counter": state.reset_counter if state is not None else None,  # as the autopilot got it
                 # estimator resets so far, as the log counts them: the counter above moves with the next pose only
@@ -491,7 +512,8 @@ class Service:
                    if self._loop_output is not None and self.cfg.loop.output == "blend" else
                    {"blend_remaining_m": None, "blend_remaining_deg": None})},
             "latency_ms": {"p50": round(lat[len(lat) // 2], 1), "max": round(lat[-1], 1)} if lat else None,
-            "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld},
+            "mavlink": {**link, "sent": out.sent, "errors": out.errors, "withheld_no_camera": out.withheld,
+                        **(out.stamps.status() if out.stamps is not None else {})},
             "recording": recording,
             "trajectory_file": trajectory,
             "watchdog": {"enabled": self.watchdog_s is not None, "fed": self._last_watchdog > 0},
@@ -542,6 +564,16 @@ class Service:
             if not getattr(self, "_status_warned", False):
                 log.warning("cannot write status file %s: %s", path, e.strerror)
                 self._status_warned = True
+
+
+def _quality_sent(state: Any, sending: bool, quality_out: int | None) -> int | None:
+    """The quality the autopilot gets: the output's (after its vision and clock checks), 0 while no tracked pose goes
+    out (lost, too old, refused), None before any state. The estimator's own said 100 while the output refused."""
+    if state is None:
+        return None
+    if not sending:
+        return 0
+    return state.quality if quality_out is None else quality_out
 
 
 def _silent_source_why(worker: Any) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -76,6 +77,8 @@ class SourceWorker(Worker):
         self.calibration: Any = None
         self.calibration_ready = threading.Event()
         self.source: Source | None = None
+        self._stamp_error_s = 0.0  # the last source's measure, kept while it is reopened (its data may still be queued)
+        self._stamp_error_failed = False
 
     def loop(self) -> None:
         backoff = 0.2
@@ -99,6 +102,23 @@ class SourceWorker(Worker):
                 break
             self.stop_event.wait(backoff)
             backoff = min(backoff * 2, self.reconnect_max_s)
+
+    def stamp_uncertainty_s(self) -> float:
+        """The source's own measure of how far its IMU stamps may be off [s] (SensorSource.stamp_uncertainty_s), read
+        from the output thread; a source whose measure fails is taken as unable to place its stamps (inf, said
+        once): no pose rather than one that may be off by any amount."""
+        src = self.source
+        if src is None:
+            return self._stamp_error_s
+        try:
+            self._stamp_error_s = float(src.stamp_uncertainty_s())
+        except Exception as e:  # a driver bug must not pass for a healthy clock
+            if not self._stamp_error_failed:
+                self._stamp_error_failed = True
+                log.error("the source's stamp_uncertainty_s() failed (%s: %s): its stamps are taken as unplaceable",
+                          type(e).__name__, e)
+            self._stamp_error_s = math.inf
+        return self._stamp_error_s
 
     def _idle_finished(self) -> None:
         """The data are over and reopening would replay them from the start (a jump back in position, or in
