@@ -78,6 +78,7 @@ class StereoTracker:
         self._depth = np.zeros(0)  # last stereo depth per track (NaN: none)
         self._tried = np.zeros(0, bool)  # stereo search made at least once (frames may skip stereo)
         self._anc = Anchors.empty(self._anchor.p ** 2) if self._anchor else None
+        self._anc_rows: np.ndarray | None = None  # rows of _anc the tracks kept this frame (copied once, at its end)
         self._kf_ids = np.zeros(0, np.int64)
         self._kf_uv = np.zeros((0, 2))
         self._R_kf_cur = np.eye(3)
@@ -237,11 +238,13 @@ class StereoTracker:
         return bad
 
     def _keep(self, keep: np.ndarray) -> None:
-        """Keep only the tracks `keep` (index or mask) in every per-track array."""
+        """Keep only the tracks `keep` (index or mask) in every per-track array. The anchors' rows are only
+        noted (`_anc_rows`): process() copies them once per frame, with the renewed and new ones."""
         self._ids, self._raw, self._len = self._ids[keep], self._raw[keep], self._len[keep]
         self._depth, self._uv, self._tried = self._depth[keep], self._uv[keep], self._tried[keep]
         if self._anc is not None:
-            self._anc = self._anc.take(keep)
+            rows = np.arange(len(self._anc)) if self._anc_rows is None else self._anc_rows
+            self._anc_rows = rows[keep]
 
     def _drop(self, bad: np.ndarray) -> None:
         if bad.any():
@@ -322,10 +325,10 @@ class StereoTracker:
         self._len += 1
         self._uv = uv_cur[inl]
         self._drop(self._drift_outliers())
+        renew, renewed = None, None
         if self._anc is not None:
-            renew = self._anchor.needs_renewal(self._anc)
-            if renew.any():
-                self._anc.replace(renew, self._anchor.build(left, self._raw[renew]))
+            renew = self._anchor.needs_renewal(self._anc.A[self._anc_rows])
+            renewed = self._anchor.build(left, self._raw[renew]) if renew.any() else None
         if R is not None and had_prev:
             self._R_kf_cur = self._R_kf_cur @ R
         t = lap("ransac", t)
@@ -340,8 +343,10 @@ class StereoTracker:
             self._len = np.concatenate([self._len, np.ones(m, np.int64)])
             self._depth = np.concatenate([self._depth, np.full(m, np.nan)])
             self._tried = np.concatenate([self._tried, np.zeros(m, bool)])
-            if self._anc is not None:
-                self._anc = self._anc.concat(self._anchor.build(left, new))
+        if self._anc is not None:  # the kept rows, renewed where due, then the new tracks' anchors: one copy
+            self._anc = self._anc.assemble(self._anc_rows, renew if renewed is not None else None, renewed,
+                                           self._anchor.build(left, new) if len(new) else None)
+            self._anc_rows = None
         t = lap("detect", t)
 
         if self._want_keyframe:
