@@ -426,3 +426,18 @@ def test_broken_right_image_gives_mono_and_keeps_the_tracker_consistent(scene: P
         assert b.tracking_ok and b.n_stereo == 0 and "mono only" in b.reason
         c = tr2.process(f2)  # tracking goes on from this frame's image and tracks
         assert c.tracking_ok and len(np.intersect1d(a.ids, c.ids)) >= 0.8 * len(a.ids)
+
+
+def test_median_is_numpys_float() -> None:
+    """The per-frame median (vio.frontend.median) must give np.median's float bit for bit: the replays'
+    trajectories stay byte-identical only if it does. Odd and even lengths, wide ranges, ties, and NaN."""
+    from vio.frontend.median import median
+
+    rng = np.random.default_rng(7)
+    for n in [*range(1, 40), 199, 200]:
+        for _ in range(50):
+            x = rng.normal(size=n) * 10.0 ** rng.integers(-6, 7)
+            assert median(x) == float(np.median(x))
+            r = np.round(x, 1)  # ties in the middle pair
+            assert median(r) == float(np.median(r))
+    assert np.isnan(median(np.array([1.0, np.nan, 2.0]))) and np.isnan(median(np.array([np.nan, 3.0, 1.0, 2.0])))

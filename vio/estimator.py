@@ -42,6 +42,7 @@ from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration, calibration_units_problem
 from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
+from vio.frontend.median import median
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
@@ -1305,7 +1306,7 @@ def median_flow_px(prev: FeatureFrame | None, cur: FeatureFrame) -> float:
     _, ip, ic = np.intersect1d(prev.ids, cur.ids, return_indices=True)
     if len(ip) < 5:
         return float("inf")
-    return float(np.median(np.linalg.norm(cur.uv0[ic] - prev.uv0[ip], axis=1)))
+    return median(np.linalg.norm(cur.uv0[ic] - prev.uv0[ip], axis=1))
 
 
 def stereo_check_line(check: dict | None, then: str = " (calibration line below)") -> str | None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from vio.calibration import StereoCalibration
 from vio.config import FrontendConfig
+from vio.frontend.median import median
 from vio.frontend.undistort import bearings, undistort_px
 from vio.geometry import skew
 
@@ -108,7 +109,7 @@ class StereoMatcher:
         for c in np.unique(cell[~known]):
             d = depth[known & (cell == c)]
             if len(d) >= min_count:
-                out[~known & (cell == c)] = np.median(d)
+                out[~known & (cell == c)] = median(d)
         return out
 
     def match(self, left: np.ndarray, right: np.ndarray, uv0_raw: np.ndarray, uv0: np.ndarray,
@@ -124,7 +125,7 @@ class StereoMatcher:
             return out
         h, w = right.shape[:2]
         known = np.isfinite(depth_guess)
-        fallback = float(np.median(depth_guess[known])) if known.any() else self.default_depth_m
+        fallback = median(depth_guess[known]) if known.any() else self.default_depth_m
         # A point without a depth of its own starts at its neighbours' depth, or the frame's median depth: close
         # enough for the short search. Only a frame without any depth yet (start, reset) needs the coarse pyramid;
         # a second KLT call per frame cost a third of the stereo time on EuRoC.

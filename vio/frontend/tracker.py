@@ -22,6 +22,7 @@ import numpy as np
 from vio.calibration import StereoCalibration
 from vio.config import FrontendConfig
 from vio.frontend.anchor import AnchorRefiner, Anchors
+from vio.frontend.median import median
 from vio.frontend.quality import image_problem
 from vio.frontend.ransac import temporal_inliers
 from vio.frontend.stereo import StereoMatcher, klt_fb
@@ -274,7 +275,7 @@ class StereoTracker:
             return 0.0
         pred, front = rotate_px(self.K0, self._R_kf_cur.T, self._kf_uv[i_kf])
         d = np.linalg.norm(self._uv[i_cur] - pred, axis=1)[front]
-        return float(np.median(d)) if len(d) else 0.0
+        return median(d) if len(d) else 0.0
 
     # ---------------------------------------------------------------------------------------- main
     def process(self, frame: StereoFrame, R_cam0prev_cam0cur: np.ndarray | None = None,
