@@ -12,9 +12,10 @@ import numpy as np
 from vio.config import FrontendConfig
 
 
-def image_problem(img: np.ndarray, cfg: FrontendConfig) -> str:
-    """Why `img` (8-bit grey) is unusable, or "" when it looks fine."""
-    mean = float(cv2.mean(img)[0])
+def image_problem(img: np.ndarray, cfg: FrontendConfig, mean: float | None = None) -> str:
+    """Why `img` (8-bit grey) is unusable, or "" when it looks fine. `mean`: the image's mean grey level when the
+    caller has it already (the tracker's gain compensation needs it too: one pass over the image fewer)."""
+    mean = float(cv2.mean(img)[0]) if mean is None else mean
     if mean < cfg.min_mean_intensity:
         return f"image too dark (mean grey {mean:.1f} < {cfg.min_mean_intensity:g})"
     saturated = float(np.count_nonzero(img >= 250)) / img.size

@@ -303,12 +303,13 @@ class StereoTracker:
         left, why = self._prepare(frame.left, "left")
         if left is None:
             return self._bad(t_ns, why)
-        why = image_problem(left, self.cfg)
+        mean = float(cv2.mean(left)[0])
+        why = image_problem(left, self.cfg, mean)
         if why:
             self._last_t = t_ns
             return self._bad(t_ns, why)
         t = lap("check", t_start)
-        left = self._normalise(left)
+        left = self._normalise(left, mean=mean)
         t = lap("preprocess", t)
 
         had_prev = self._prev_img is not None
@@ -394,16 +395,17 @@ class StereoTracker:
             self._bad_run = 0
         return ff
 
-    def _normalise(self, img: np.ndarray, right: bool = False) -> np.ndarray:
+    def _normalise(self, img: np.ndarray, right: bool = False, mean: float | None = None) -> np.ndarray:
         """CLAHE, or a global gain that keeps brightness steady so KLT's constant-brightness model holds.
 
         The left image is held at the previous left image's mean (and sets it for the next frame); the right
-        image gets the gain that matches it to this frame's left, so call it after the left."""
+        image gets the gain that matches it to this frame's left, so call it after the left. `mean`: img's mean
+        grey level, when the caller has it (the image check computes it)."""
         if self._clahe is not None:
             return self._clahe.apply(img)
         if not self.cfg.gain_compensation:
             return img
-        m = float(cv2.mean(img)[0])
+        m = float(cv2.mean(img)[0]) if mean is None else mean
         if right or self._prev_img is not None:
             gain = self._prev_mean / max(m, 1.0)
             if abs(gain - 1.0) > (0.05 if right else 0.03):
@@ -419,7 +421,8 @@ class StereoTracker:
         if raw is None:
             return None, "no right image: mono only"
         right, why = self._prepare(raw, "right")
-        why = why or image_problem(right, self.cfg)
+        mean = None if why else float(cv2.mean(right)[0])
+        why = why or image_problem(right, self.cfg, mean)
         if why:
             return None, f"right image unusable ({why}): mono only"
-        return self._normalise(right, right=True), ""
+        return self._normalise(right, right=True, mean=mean), ""
