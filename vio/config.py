@@ -109,6 +109,18 @@ class BackendConfig:
     max_gyro_bias_rad_s: float = opt(0.3, "gyro bias (its largest component) above which the estimate, or a "
                                  "still start, is implausible", min=0.01, max=10)
     max_accel_bias_m_s2: float = opt(1.5, "accel bias above which the estimate is implausible", min=0.01, max=50)
+    motion_check: bool = opt(True, "compare the smoother's motion between keyframes with the stereo pair's own metric "
+                             "motion (PnP of the last keyframe's stereo points, no IMU) and reset when they "
+                             "disagree (a lost scale or velocity the covariance does not show)")
+    motion_check_sigma: float = opt(5.0, "how many sigma of the stereo reading (image noise, depth noise, "
+                                    "motion_check_scale_sigma) the smoother's displacement must be off", min=1, max=100)
+    motion_check_min_m_s: float = opt(1.0, "disagreement [m/s over the keyframe interval] below which the motion "
+                                      "check never acts, however small the stereo reading's sigma", min=0.05, max=100)
+    motion_check_scale_sigma: float = opt(0.1, "relative 1-sigma allowed the stereo reading's scale for a stereo "
+                                          "calibration off by up to stereo_check_max_deg (correlated depth errors)",
+                                          min=0.0, max=10)
+    motion_check_confirm: int = opt(3, "consecutive keyframes that must disagree before the motion check resets "
+                                    "(~1 s at keyframe_max_interval_s 0.4; one bad PnP does not)", min=1, max=100)
     imu_noise_scale: float = opt(2.0, "multiplier on the calibration's IMU noise densities (with imu_noise_adaptive: "
                                  "the least the white noise is scaled by)", min=0.1, max=100)
     imu_noise_adaptive: bool = opt(True, "on an airframe that shakes the IMU (its white noise, measured over the last "

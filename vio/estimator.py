@@ -47,6 +47,7 @@ from vio.geometry import so3_log, yaw_between, yaw_position_alignment
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, static_initialize
+from vio.motion_check import MotionCheck
 from vio.propagator import Propagator
 from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, accel_units_problem, gyro_units_problem, imu_sample_problem
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame, covariance_quality
@@ -113,6 +114,7 @@ class _Running:
     marginal_due: bool = False  # the last keyframe's marginal is computed on the next frame (spreads the cost)
     deferred: _DeferredKeyframe | None = None  # a keyframe chosen on the last frame, solved on this one
     just_solved: bool = False  # this frame's call solved the last frame's keyframe (its dues wait a frame)
+    motion: MotionCheck | None = None  # the smoother's motion against the stereo pair's (backend.motion_check)
 
 
 @dataclass
@@ -887,6 +889,7 @@ class Estimator:
                                   applied_offset_ns=int(init.t_ns) - int(ff.t_ns))
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
+        self._start_motion_check(init.t_ns, est, ff)
         self.moving_init.clear()
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
         log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
@@ -1218,8 +1221,31 @@ class Estimator:
             self._hand_offset_to_state()
         if est.T_body_cam0 is not None:
             self._refined = (est.T_body_cam0, est.T_body_cam1, run.smoother.extrinsic_keyframes, est.intrinsics)
+        self._check_motion(t, est, ff)
         self._note_stereo_check(run.smoother.stereo_finding)  # one the solve read (a check still due there)
         return self._after_keyframe(t, est, ff, deferred)
+
+    def _start_motion_check(self, t: int, est, ff: FeatureFrame) -> None:
+        """A new smoother run's motion check, from its first keyframe (vio.motion_check)."""
+        b = self.bcfg
+        if not b.motion_check:
+            return
+        run = self._state
+        run.motion = MotionCheck(self.calib.cam0.K, self.calib.baseline_m, n_sigma=b.motion_check_sigma,
+                                 min_m_s=b.motion_check_min_m_s, scale_sigma=b.motion_check_scale_sigma,
+                                 confirm=b.motion_check_confirm)
+        self._check_motion(t, est, ff)
+
+    def _check_motion(self, t: int, est, ff: FeatureFrame) -> None:
+        """The smoother's keyframe against the stereo pair's own motion: a SmootherFailure (not bridged: the state
+        is what is wrong) once they have disagreed for motion_check_confirm keyframes. Reads only."""
+        chk = self._state.motion
+        if chk is None:
+            return
+        T_body_cam0 = self._refined[0] if self._refined is not None else self.calib.cam0.T_body_cam
+        failure = chk.add(t, ff, est.pose.matrix() @ T_body_cam0)
+        if failure is not None:
+            raise SmootherFailure(failure, state_ok=False)
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:
         """Last keyframe covariance grown by the IMU pre-integration since then.
