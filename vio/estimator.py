@@ -262,6 +262,7 @@ class Estimator:
         self._stereo_finding: StereoFinding | None = None  # the stereo check's newest reading (backend.stereo_check)
         self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
         self._stereo_implausible = 0  # readings beyond stereo_check_max_deg, over the flight (not acted on)
+        self._reset_anchor: np.ndarray | None = None  # T_world_body the next reset continues from (motion check)
         self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
@@ -511,6 +512,8 @@ class Estimator:
                 bias = gtsam.imuBias.ConstantBias(st.accel_bias, st.gyro_bias)
                 w.bridge = _ResetBridge(st.t_ns, gtsam.NavState(gtsam.Pose3(st.T_world_body), st.v_world), bias,
                                         gtsam.PreintegratedCombinedMeasurements(self.params, bias), st.t_ns)
+        if self._reset_anchor is not None:  # a better pose than the last one (the motion check's; never bridged)
+            w.anchor, self._reset_anchor = self._reset_anchor, None
         # re-armed only from a running estimate: a failed restart (`_try_init`'s SmootherFailure) must not bring
         # back a bias the reset before it chose not to keep
         if keep_bias and isinstance(self._state, _Running) and self._latest is not None and \
@@ -1245,6 +1248,8 @@ class Estimator:
         T_body_cam0 = self._refined[0] if self._refined is not None else self.calib.cam0.T_body_cam
         failure = chk.add(t, ff, est.pose.matrix() @ T_body_cam0)
         if failure is not None:
+            # the restart continues from where the stereo pair says the vehicle is, not from the runaway's pose
+            self._reset_anchor = chk.stereo_anchor() @ np.linalg.inv(T_body_cam0)
             raise SmootherFailure(failure, state_ok=False)
 
     def _grown_covariance(self, pim: gtsam.PreintegratedCombinedMeasurements) -> tuple[np.ndarray, np.ndarray]:

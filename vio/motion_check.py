@@ -108,6 +108,7 @@ class MotionCheck:
         self.confirm = confirm
         self._prev: tuple[int, FeatureFrame, np.ndarray] | None = None  # (t, features, T_world_cam0) at a keyframe
         self.streak: list[MotionReading] = []  # the disagreeing readings in a row
+        self._streak_poses: list[np.ndarray] = []  # T_world_cam0 before the streak's first keyframe, then at each
         self.readings = 0  # compared keyframes (for the stats and tests)
         self.worst: MotionReading | None = None  # the largest disagreement in sigma, for the logs
 
@@ -135,10 +136,25 @@ class MotionCheck:
                 log.debug("motion check t=%d: agrees again after %d (%s)", t_ns, len(self.streak), r.describe())
             self.streak = []
             return None
+        if not self.streak:
+            self._streak_poses = [T_prev]
         self.streak.append(r)
+        self._streak_poses.append(T_cur)
         log.debug("motion check t=%d: disagrees (%d in a row): %s", t_ns, len(self.streak), r.describe())
         if len(self.streak) < self.confirm:
             return None
         return (f"motion check: the estimate's motion disagrees with the stereo pair's on {len(self.streak)} "
                 f"keyframes in a row ({r.describe()}): scale or velocity lost")
 
+    def stereo_anchor(self) -> np.ndarray | None:
+        """T_world_cam0 at the newest keyframe with the position carried from the last keyframe before the streak by
+        the stereo displacements (turned into the world by the smoother's orientations, which the gyro holds),
+        instead of the smoother's: where a reset should continue from. None without a streak."""
+        if not self.streak:
+            return None
+        T = self._streak_poses[-1].copy()
+        p = self._streak_poses[0][:3, 3].copy()
+        for r, T_k in zip(self.streak, self._streak_poses[1:]):
+            p += T_k[:3, :3] @ r.stereo_m
+        T[:3, 3] = p
+        return T
