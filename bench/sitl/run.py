@@ -27,6 +27,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -184,14 +185,17 @@ def ensure_home(conn, rec: Recorder, timeout_s: float = 20.0) -> bool:
 
 
 def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hold_on_loss: bool = True,
-        land_after_loss_s: float | None = None) -> dict:
+        land_after_loss_s: float | None = None, restart_at_s: float | None = None,
+        restart: Callable[[], None] | None = None) -> dict:
     """Wait for vision, record the ground alignment, take off, follow `path`, black out, land. Returns the events.
 
     With `hold_on_loss` the mission clock stops at Kestrel's "VIO tracking lost" STATUSTEXT (the target
     stays where the vehicle was, zero velocity) and runs on at "VIO tracking regained": the autopilot
     dead-reckons through a blackout and keeps flying any moving target it is given, so holding is the
     mission's job (docs/autopilot.md, "Camera blackouts"). With `land_after_loss_s` the mission lands once
-    vision has been lost that long (the EKF's own failsafe comes only when its variance grows, ~8 s)."""
+    vision has been lost that long (the EKF's own failsafe comes only when its variance grows, ~8 s).
+    With `restart_at_s` the harness calls `restart` (kill Kestrel, start it again, as systemd does after a crash)
+    once the mission clock reaches it: a restart in flight, which then starts in the air."""
     blackout = out / "blackout"
     deadline = time.monotonic() + 120
     while not any("external nav" in s for _, s in rec.text):
@@ -212,11 +216,13 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
     t_mission, last_ns, n_text = 0.0, t0, 0
     lost = False
     lost_since = None
+    restarted_ns = None
     while t_mission < path.duration_s:
         now = time.monotonic_ns()
         if hold_on_loss:  # what a companion mission should do: hold where vision was lost, resume when back
             for _t, text in rec.text[n_text:]:
-                lost = True if "VIO tracking lost" in text else False if "VIO tracking regained" in text else lost
+                lost = True if ("VIO tracking lost" in text or "VIO not tracking" in text) \
+                    else False if "VIO tracking regained" in text else lost
             n_text = len(rec.text)
         if lost and land_after_loss_s is not None and lost_since is not None \
                 and now - lost_since > land_after_loss_s * 1e9:
@@ -225,6 +231,9 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
         if not lost:
             t_mission += (now - last_ns) * 1e-9
         last_ns = now
+        if restart is not None and restarted_ns is None and restart_at_s is not None and t_mission >= restart_at_s:
+            restarted_ns = now
+            restart()
         if end_ns is None and pending and t_mission >= pending[0][0]:
             _start_s, dur = pending.pop(0)
             blackout.touch()
@@ -250,7 +259,7 @@ def fly(conn, rec: Recorder, path: msn.Path, faults: list[float], out: Path, hol
     while rec.armed and time.monotonic() < deadline:
         time.sleep(1.0)
     return {"t_ground": t_ground, "t0": t0, "blackouts": windows, "clock": clock, "hold_on_loss": hold_on_loss,
-            "home_set_by_harness": home_by_harness}
+            "home_set_by_harness": home_by_harness, "restarted_ns": restarted_ns}
 
 
 def save_raw(rec: Recorder, ev: dict, out: Path) -> None:
@@ -299,6 +308,8 @@ def summarise(rec: Recorder | SimpleNamespace, path: msn.Path, ev: dict, out: Pa
             ev.get("kestrel_land_after_loss_s", 0.0), ev.get("harness_land_after_loss_s")],
         "ArduPilot parameters over PARAMS (--ap-param)": ev.get("ap_params", {}),
         "home set by the harness (Kestrel's origin not taken)": bool(ev.get("home_set_by_harness", False)),
+        "Kestrel killed and restarted at [s into the mission]": (round((ev["restarted_ns"] - ev["t0"]) * 1e-9, 1)
+                                                                  if ev.get("restarted_ns") else None),
         "vehicle cross-track error vs mission path [m]": rep.error_stats(
             rep.distance_to_polyline(p_truth, align.apply(path.waypoints))),
         "vehicle error vs timed setpoint [m]": rep.error_stats(np.linalg.norm(p_truth - p_planned, axis=1)),
@@ -360,6 +371,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kestrel-land-after-loss", type=float, default=0.0, metavar="S",
                     help="Kestrel's own [mavlink] land_after_loss_s: the daemon asks the autopilot to LAND once "
                          "tracking has been lost S s (the product's option; default 0 = off)")
+    ap.add_argument("--restart-at", type=float, default=None, metavar="S",
+                    help="kill Kestrel S seconds into the mission and start it again 1 s later (a crash and "
+                         "systemd's restart, in flight)")
     ap.add_argument("--record", action="store_true",
                     help="Kestrel records the frames and IMU samples it received to OUT/record/<start time> (EuRoC, "
                          "about 2 MB/s at 320x200 and 15 Hz; more disk writes beside the real-time SITL), for "
@@ -415,11 +429,23 @@ def main(argv: list[str] | None = None) -> int:
         rec = Recorder(conn)
         rec.start()
         cfg = kestrel_config(out, args.fps, args.width, args.height, args.kestrel_land_after_loss, args.record)
-        daemon = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
-                                  stdout=open(out / "kestrel.log", "w"), stderr=subprocess.STDOUT)
+        def start_daemon(mode: str = "w") -> subprocess.Popen:
+            return subprocess.Popen([sys.executable, "-m", "vio.app.cli", "run", "--config", str(cfg)],
+                                    stdout=open(out / "kestrel.log", mode), stderr=subprocess.STDOUT)
+
+        daemon = start_daemon()
+
+        def restart() -> None:  # a crash (SIGKILL: nothing said, nothing flushed) and systemd's restart 1 s later
+            nonlocal daemon
+            daemon.kill()
+            daemon.wait(10)
+            print("[harness] Kestrel killed in flight; restarting it in 1 s", flush=True)
+            time.sleep(1.0)
+            daemon = start_daemon("a")
+
         try:
             ev = fly(conn, rec, path, faults, out, hold_on_loss=not args.no_hold,
-                     land_after_loss_s=args.land_after_loss)
+                     land_after_loss_s=args.land_after_loss, restart_at_s=args.restart_at, restart=restart)
             ev.update(kestrel_land_after_loss_s=args.kestrel_land_after_loss, ap_params=ap_params,
                       harness_land_after_loss_s=args.land_after_loss)
         finally:
