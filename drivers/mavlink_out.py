@@ -54,7 +54,7 @@ from drivers.mavlink_link import (  # noqa: F401 (mavutil, open_connection re-ex
 )
 from vio import VioError
 from vio.config import MavlinkConfig
-from vio.geometry import make_T
+from vio.geometry import make_T, rot_to_quat_wxyz
 from vio.io.atomic import replace_atomically
 from vio.types import NavState
 
@@ -72,6 +72,13 @@ ORIGIN_MAX_SENDS = 60
 # Why: ArduPilot confirms an origin set while it boots, then its EKF3 initialises and drops it (NavEKF3::
 # InitialiseFilter clears the shared origin): ArduCopter SITL then had no origin and no home (1 of 6 flights).
 ORIGIN_RECHECK_NS, ORIGIN_ANSWER_NS = 5_000_000_000, 3_000_000_000
+# A start in flight continues in the autopilot's frame: its own estimate (LOCAL_POSITION_NED, ATTITUDE), asked for at
+# this rate when it is heard armed before our first pose, is taken only when this fresh at our first tracked pose.
+AP_POSE_RATE_HZ = 10.0
+# what the output reads from a link it shares with the MAVLink IMU (the link's reader hands these over)
+LINK_MESSAGES = frozenset({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN", "COMMAND_ACK", "LOCAL_POSITION_NED",
+                           "ATTITUDE"})
+AP_POSE_MAX_AGE_NS = 500_000_000
 # land_after_loss_s: MAV_CMD_NAV_LAND is repeated 1 s apart until the autopilot accepts it (COMMAND_ACK) or
 # is seen disarmed, at most LAND_MAX_SENDS times per loss (a dropped command must not leave it dead-reckoning).
 LAND_MAX_SENDS = 5
@@ -204,6 +211,14 @@ class MavlinkOutput:
         # ODOMETRY quality while lost: -1 is "failed" in the MAVLink spec, rejected by ArduPilot's VISO_QUAL_MIN at
         # its default 0 (PX4 fuses any quality unless EKF2_EV_QMIN >= 1); 0 is "unknown", fused by both at 0
         self._lost_quality = -1 if cfg.lost_output == "failed" else 0
+        # A start in flight (armed before our first pose): the first tracked pose is placed where the autopilot's own
+        # estimate has the vehicle, and every pose after it goes through the same yaw turn and shift (NED). EKF3
+        # resets its position to the external nav's at a reset_counter change; a new process's world starts where
+        # the vehicle was, so its position moved by all the vehicle had flown (1.3 m on the SITL, docs/autopilot.md).
+        self._continue_frame = False
+        self._ap_local: tuple[int, np.ndarray] | None = None  # (arrival ns, LOCAL_POSITION_NED x, y, z)
+        self._ap_yaw: tuple[int, float] | None = None  # (arrival ns, ATTITUDE yaw [rad])
+        self._align: tuple[np.ndarray, np.ndarray, float] | None = None  # (R about down, shift [m], yaw [rad])
         self._px4_said = False  # the PX4 EKF2_EV_QMIN advice, once
         if cfg.lost_output == "quality0":
             log.warning("[mavlink] lost_output = 'quality0': a lost pose goes out with quality 0 ('unknown'), which "
@@ -276,7 +291,7 @@ class MavlinkOutput:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         if link is not None:
-            link.subscribe({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN", "COMMAND_ACK"}, self._on_link_message)
+            link.subscribe(LINK_MESSAGES, self._on_link_message)
             link.acquire()
 
     # ---------------------------------------------------------------- public API
@@ -542,6 +557,8 @@ class MavlinkOutput:
             raise VioError("the IMU mount is not known yet: call set_camera_mount() (mount = camera-*)")
         od = to_vehicle_odometry(state.t_ns, state.T_world_body, state.v_world, state.omega_body,
                                  state.cov_pose, state.cov_vel, self.T_frd_body)
+        if state.tracking or self._align is not None:
+            od = self._in_autopilot_frame(od)
         usec = state.t_ns // 1000
         reset = self._sent_counter(state)
         pose_cov = upper_triangle(od.cov_pose_ned)
@@ -772,6 +789,43 @@ class MavlinkOutput:
         log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in "
                     "flight?): not tracking; no LAND is asked for it")
         self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
+        self._continue_frame = True
+        for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
+            self._send(mavlink.MAVLink_command_long_message(
+                self.target_system, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / AP_POSE_RATE_HZ,
+                0, 0, 0, 0, 0), "COMMAND_LONG")
+
+    def _in_autopilot_frame(self, od):
+        """`od` (a tracked state's vehicle odometry) in the autopilot's frame after a start in flight: decided at the
+        first tracked pose (the autopilot's estimate no older than AP_POSE_MAX_AGE_NS, else our own frame, said),
+        then the same turn and shift for every pose of this process."""
+        if self._continue_frame:
+            self._continue_frame = False
+            now = self._clock()
+            local, yaw = self._ap_local, self._ap_yaw
+            if local is None or yaw is None or now - min(local[0], yaw[0]) > AP_POSE_MAX_AGE_NS:
+                log.warning("started in flight, but the autopilot's own position and attitude did not arrive "
+                            "(LOCAL_POSITION_NED, ATTITUDE): poses start a new frame, and the autopilot's position "
+                            "jumps to it at the reset_counter change")
+            else:
+                dyaw = math.remainder(yaw[1] - float(od.rpy[2]), math.tau)
+                c, s_ = math.cos(dyaw), math.sin(dyaw)
+                R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+                shift = local[1] - R @ od.p_ned
+                self._align = (R, shift, dyaw)
+                log.info("started in flight: poses continue in the autopilot's frame (its estimate at "
+                         "%.2f, %.2f, %.2f m NED, yaw %.1f deg; ours turned %.1f deg and shifted %.2f m)",
+                         *local[1], math.degrees(yaw[1]), math.degrees(dyaw), float(np.linalg.norm(shift)))
+        if self._align is None:
+            return od
+        R, shift, dyaw = self._align
+        J = np.eye(6)
+        J[:3, :3] = R
+        R_ned_frd = R @ od.R_ned_frd
+        rpy = np.array([od.rpy[0], od.rpy[1], math.remainder(float(od.rpy[2]) + dyaw, math.tau)])
+        return dataclasses.replace(od, p_ned=R @ od.p_ned + shift, R_ned_frd=R_ned_frd, rpy=rpy,
+                                   q_ned_frd_wxyz=rot_to_quat_wxyz(R_ned_frd), v_ned=R @ od.v_ned,
+                                   cov_pose_ned=J @ od.cov_pose_ned @ J.T, cov_v_ned=R @ od.cov_v_ned @ R.T)
 
     def _replay_refusal(self) -> str | None:
         """Why a pose of this output would be withheld now: "armed", "unheard" (no heartbeat within link_timeout_s
@@ -891,6 +945,10 @@ class MavlinkOutput:
                             self._link.set_source_system(sysid)
                         else:
                             self._conn.mav.srcSystem = sysid
+            elif kind == "LOCAL_POSITION_NED" and msg.get_srcSystem() == self.target_system:
+                self._ap_local = (now, np.array([msg.x, msg.y, msg.z], dtype=float))
+            elif kind == "ATTITUDE" and msg.get_srcSystem() == self.target_system:
+                self._ap_yaw = (now, float(msg.yaw))
             elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
                 self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
                 if self._origin_left > 0:

@@ -5,6 +5,7 @@ heartbeat and link-loss contracts."""
 from __future__ import annotations
 
 import logging
+import math
 import socket
 import threading
 import time
@@ -1388,4 +1389,76 @@ def test_a_replays_refusal_is_not_said_after_the_autopilot_disarms_with_no_pose_
     assert out.health()["withholding_replay_poses"] is None
     beat(armed=False, pose=True)
     assert out.health()["withholding_replay_poses"] is None and out.stats.states_sent
+    out.close()
+
+
+def test_a_process_started_in_flight_continues_in_the_autopilots_frame(ap, caplog):
+    """A daemon restarted in flight starts its world where the vehicle is; EKF3 resets its position to the external
+    nav's at the new reset_counter, so the autopilot's position moved by all the vehicle had flown (1.3 m on the
+    SITL, docs/autopilot.md). Heard armed before its first pose, the output asks for the autopilot's own estimate and
+    places its first tracked pose there, then turns and shifts every later pose the same way."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    out.poll()  # our first heartbeat: the UDP autopilot learns where to answer
+    ap.drain()
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, armed, 4,
+                               mavlink.MAV_STATE_ACTIVE)
+    time.sleep(0.02)
+    out.poll()
+    asked = [m.param1 for m in ap.of("COMMAND_LONG", ap.drain())
+             if m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert sorted(asked) == sorted([mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE])
+    yaw_ap = math.radians(120.0)
+    ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0)
+    ap.conn.mav.attitude_send(1000, 0.0, 0.0, yaw_ap, 0.0, 0.0, 0.0)
+    time.sleep(0.02)
+    clock.advance(0.1)
+    out.poll()
+    first = state(clock.t)  # at (1, 2, 3) in our world, level, its own yaw
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        out.send_state(first)
+        got = ap.drain()
+    od0 = ap.of("ODOMETRY", got)[-1]
+    w, x, y, z = od0.q
+    np.testing.assert_allclose([od0.x, od0.y, od0.z], [4.0, -3.0, -1.5], atol=1e-5)
+    assert math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)) == pytest.approx(yaw_ap, abs=1e-5)
+    assert "continue in the autopilot's frame" in caplog.text
+    # 1 m along our world x later: the autopilot sees it 1 m along its heading turned by the same yaw
+    ours = to_vehicle_odometry(first.t_ns, first.T_world_body, first.v_world, first.omega_body, first.cov_pose,
+                               first.cov_vel, out.T_frd_body)
+    clock.advance(0.1)
+    T = first.T_world_body.copy()
+    T[0, 3] += 1.0
+    out.send_state(state(clock.t, T_world_body=T))
+    od1 = ap.of("ODOMETRY", ap.drain())[-1]
+    step = np.array([od1.x - od0.x, od1.y - od0.y, od1.z - od0.z])
+    dyaw = yaw_ap - ours.rpy[2]
+    expect = np.array([math.cos(dyaw), math.sin(dyaw), 0.0])  # our world x is NED x before the turn
+    np.testing.assert_allclose(step, expect, atol=1e-5)
+    out.close()
+
+
+def test_a_process_started_on_the_ground_keeps_its_own_frame(ap):
+    """Disarmed when first heard (the normal start): nothing is asked and nothing turned."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    out.poll()
+    ap.drain()
+    ap.heartbeat()
+    time.sleep(0.02)
+    out.poll()
+    ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0)
+    ap.conn.mav.attitude_send(1000, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0)
+    time.sleep(0.02)
+    clock.advance(0.1)
+    out.poll()
+    s = state(clock.t)
+    out.send_state(s)
+    got = ap.drain()
+    assert not [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    od = ap.of("ODOMETRY", got)[-1]
+    ours = to_vehicle_odometry(s.t_ns, s.T_world_body, s.v_world, s.omega_body, s.cov_pose, s.cov_vel,
+                               out.T_frd_body)
+    np.testing.assert_allclose([od.x, od.y, od.z], ours.p_ned, atol=1e-5)
     out.close()
