@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
         except RecordingWriteError as e:  # a full disk for a EuRoC folder's images: it said only 'cannot write image'
             from vio.io.outputs import storage_diagnosis
 
-            raise VioError(f"{args.out}: cannot write the recording ({e}{storage_diagnosis(Path(args.out))}): "
+            raise VioError(f"{args.out}: cannot write the recording ({e}{storage_diagnosis(Path(args.out), str(e))}): "
                            "stopped; what was written before stays readable") from None
     finally:
         for s, h in old.items():

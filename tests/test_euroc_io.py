@@ -530,3 +530,26 @@ def test_a_time_offset_that_moves_the_camera_off_the_imu_is_named(v101_path):
     with pytest.raises(VioError, match=r"the calibration's time_offset_ns = 1000000000000 \(\+1000\.000 s, t_imu = "
                        r"t_cam \+ offset\) moves every cam0 stamp outside the IMU's .* \(an offset in another unit"):
         EurocDataset(v101_path, dataclasses.replace(calib, time_offset_ns=10**12))
+
+
+def test_an_image_folder_removed_under_the_writer_is_said_by_the_writer(tmp_path):
+    """A recording folder being removed goes deepest first: an image write fails while the recording's root is
+    still there, and the recorder's look at the root found nothing to say ('cannot write image' alone: a flaky CI
+    run of test_removed_output_folders_stop_those_outputs_only). The writer says it, and the diagnosis does not
+    say it twice."""
+    import shutil
+
+    from vio import VioError
+    from vio.io.outputs import storage_diagnosis
+
+    img = np.zeros((400, 640), np.uint8)
+    with EurocWriter(tmp_path / "rec", _calibration()) as w:
+        w.write_frame(StereoFrame(1_000_000_000, img, img))
+        shutil.rmtree(tmp_path / "rec" / "mav0" / "cam0" / "data")  # the root still there, as mid-removal
+        with pytest.raises(VioError) as e:
+            w.write_frame(StereoFrame(1_050_000_000, img, img))
+    said = str(e.value)
+    assert "cannot write image (the recording folder was removed)" in said
+    assert storage_diagnosis(tmp_path / "rec", said) == ""
+    shutil.rmtree(tmp_path / "rec")
+    assert storage_diagnosis(tmp_path / "rec") == " (the recording folder was removed)"

@@ -428,7 +428,8 @@ class RecorderWorker(Worker):
         self.state = "failed"
         # a writer that never opened never had its folder: "the recording folder was removed" said of a folder a
         # read-only disk never let it make (a QA sweep)
-        self.error = _os_error_text(e) + _storage_diagnosis(self.root if self.writer is not None else None)
+        said = _os_error_text(e)
+        self.error = said + _storage_diagnosis(self.root if self.writer is not None else None, said)
         self.buf.close()
         if self.fmt == "mcap":  # an MCAP file without its summary is read up to its last complete chunk
             with contextlib.suppress(Exception):
