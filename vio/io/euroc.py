@@ -37,7 +37,6 @@ from vio.calibration import (
 from vio.config import refuse_unknown_keys
 from vio.geometry import is_se3
 from vio.io.images import Uint16To8, grey
-from vio.io.outputs import REMOVED_TEXT
 from vio.trajectory import Trajectory
 from vio.types import ImuSample, StereoFrame
 
@@ -849,6 +848,9 @@ class FlushPacer:
         elif t_ns - self._last_t >= self._interval_ns:
             flush()
             self._last_t = t_ns
+
+
+REMOVED_TEXT = "the recording folder was removed"  # how a write error into a removed folder is said (storage_diagnosis)
 
 
 class EurocWriter:

@@ -169,13 +169,12 @@ def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | 
 DISK_FULL_BYTES = 4 << 20  # below this much free space, a failed image write is taken for a full disk
 
 
-REMOVED_TEXT = "the recording folder was removed"
-
-
 def storage_diagnosis(root: Path | None, said: str = "") -> str:
     """What an image write error (cv2.imwrite only says it failed) most likely was: ' (disk full: ...)', ' (the
     recording folder was removed)', or '' (shared by `vio run`'s recorder and `vio record`); '' too when the error
     `said` it already (the writer saw its folder gone)."""
+    from vio.io.euroc import REMOVED_TEXT
+
     if root is None or REMOVED_TEXT in said:
         return ""
     if not root.exists():
