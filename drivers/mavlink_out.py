@@ -33,6 +33,7 @@ import numpy as np
 
 from drivers.mavlink_frames import (
     SNAP_DEG,
+    VehicleOdometry,
     mount_rotation,
     mount_rpy_deg_from_matrix,
     mount_transform,
@@ -75,10 +76,10 @@ ORIGIN_RECHECK_NS, ORIGIN_ANSWER_NS = 5_000_000_000, 3_000_000_000
 # A start in flight continues in the autopilot's frame: its own estimate (LOCAL_POSITION_NED, ATTITUDE), asked for at
 # this rate when it is heard armed before our first pose, is taken only when this fresh at our first tracked pose.
 AP_POSE_RATE_HZ = 10.0
+AP_POSE_MAX_AGE_NS = 500_000_000
 # what the output reads from a link it shares with the MAVLink IMU (the link's reader hands these over)
 LINK_MESSAGES = frozenset({"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN", "COMMAND_ACK", "LOCAL_POSITION_NED",
                            "ATTITUDE"})
-AP_POSE_MAX_AGE_NS = 500_000_000
 # land_after_loss_s: MAV_CMD_NAV_LAND is repeated 1 s apart until the autopilot accepts it (COMMAND_ACK) or
 # is seen disarmed, at most LAND_MAX_SENDS times per loss (a dropped command must not leave it dead-reckoning).
 LAND_MAX_SENDS = 5
@@ -795,7 +796,7 @@ class MavlinkOutput:
                 self.target_system, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / AP_POSE_RATE_HZ,
                 0, 0, 0, 0, 0), "COMMAND_LONG")
 
-    def _in_autopilot_frame(self, od):
+    def _in_autopilot_frame(self, od: VehicleOdometry) -> VehicleOdometry:
         """`od` (a tracked state's vehicle odometry) in the autopilot's frame after a start in flight: decided at the
         first tracked pose (the autopilot's estimate no older than AP_POSE_MAX_AGE_NS, else our own frame, said),
         then the same turn and shift for every pose of this process."""

@@ -276,11 +276,13 @@ class ClockSync:
             return math.inf
         e = self._est
         if e is None:
-            if self._cur is None:
+            # read once: the serial IMU's reader thread closes blocks (self._cur = None) while the output asks
+            cur, d_max = self._cur, self._cur_d_max
+            if cur is None:
                 return math.inf
             if self.roundtrip:
-                return float(self._cur[2])
-            return float((self._cur_d_max or self._cur[1]) - self._cur[1])
+                return float(cur[2])
+            return max(float((d_max or cur[1]) - cur[1]), 0.0)  # 0 floor: a d_max read from the next block
         stale = max(0, t_dev_ns - e.t_ref_dev_ns - 2 * self.block_ns)
         return max(self._misfit_ns, self._jump_ns, self._live_miss_ns) + STALE_RATE * stale
 

@@ -65,6 +65,9 @@ IMU_NOISE_ALONE_ABOVE = 2.0
 BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
 BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
 OMEGA_WINDOW_NS = 10_000_000  # gyro averaged over this much before a keyframe for the time offset state's twist
+# a stereo-check reading beyond stereo_check_max_deg, said in the log once and in the status while it is the newest
+IMPLAUSIBLE_STEREO_WHY = ("either the estimate is off (a start while moving) or the stereo calibration is grossly "
+                          "wrong (vio calib check CALIB DATASET --disparity)")
 
 
 @dataclass
@@ -412,9 +415,7 @@ class Estimator:
         f = self._stereo_finding
         if f is not None and f.implausible:
             said.append(f"the stereo check reads the right camera off the calibration ({f.describe()}), more than a "
-                        "stereo pair bends in flight: held as calibrated; either the estimate was off (a start "
-                        "while moving) or the stereo calibration is grossly wrong (vio calib check CALIB DATASET "
-                        "--disparity)")
+                        f"stereo pair bends in flight: held as calibrated; {IMPLAUSIBLE_STEREO_WHY}")
         if self.offset_estimator is not None and self.offset_estimator.slow_warning:
             said.append(self.offset_estimator.slow_warning)
         return "; ".join(said) or None
@@ -1091,9 +1092,8 @@ class Estimator:
             if self._stereo_implausible == 1:
                 log.warning("stereo check: the data pull the right camera further from the calibration (%s) than "
                             "a stereo pair bends in flight (stereo_check_max_deg %g deg): held as calibrated, since "
-                            "the pair is what holds the scale; either the estimate is off (a start while moving) or "
-                            "the stereo calibration is grossly wrong (vio calib check CALIB DATASET --disparity)",
-                            f.describe(), self.bcfg.stereo_check_max_deg)
+                            "the pair is what holds the scale; %s", f.describe(), self.bcfg.stereo_check_max_deg,
+                            IMPLAUSIBLE_STEREO_WHY)
         if f.released:
             self._stereo_released.append(f)
             log.warning("stereo check: the right camera disagrees with the calibration (%s): depths and scale were "

@@ -863,8 +863,9 @@ class VioSmoother:
             edge = 0.5 * np.array([self.calib.cam1.width, self.calib.cam1.height]) / np.array([fx, self.calib.cam1.fy])
             px += [(b[6 + k] * edge[k], np.sqrt(var[6 + k]) * edge[k]) for k in (0, 1)]
         shows = [abs(v) >= cfg.stereo_check_px and abs(v) >= cfg.stereo_check_sigma * sg for v, sg in px]
-        # A pull beyond any calibration drift is the estimate's, not the camera's: let go, the pair would stop holding
-        # the scale. (Seen on a replay started in a hover: 3.2 px at fx 190 px, 1 deg; let go, 700 m off in 50 s.)
+        # A pull beyond any calibration drift is the estimate's, not the camera's: letting go of cam1 for it would
+        # leave the scale to that estimate. (A replay started in a hover read 3.2 px at fx 190 px, 1 deg; let go,
+        # it was 700 m off in 50 s.)
         implausible = max(abs(v) for v, _ in px) > np.tan(np.radians(cfg.stereo_check_max_deg)) * fx
         if implausible:
             shows = [False] * len(px)
