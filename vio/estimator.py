@@ -46,7 +46,7 @@ from vio.frontend.median import median
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
 from vio.imu_buffer import ImuBuffer
 from vio.init.moving_init import MovingInitializer
-from vio.init.static_init import InitialState, is_still, static_initialize
+from vio.init.static_init import InitialState, is_still, rotation_reading, static_initialize
 from vio.motion_check import MotionCheck
 from vio.propagator import Propagator
 from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, accel_units_problem, gyro_units_problem, imu_sample_problem
@@ -289,6 +289,8 @@ class Estimator:
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
+        self._init_frames: deque[FeatureFrame] = deque()  # usable frames of the still window while not started
+        self._turn_refused = False  # a still start refused as a turn was said (once per spell)
         self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
         # continuous noise densities (variance per second), for the IMU-rate covariance growth
         self.white_scale: np.ndarray | None = None  # adaptive IMU noise: the scale in use (gyro xyz, accel xyz)
@@ -777,11 +779,14 @@ class Estimator:
         if self._imu_camera_error is not None:  # final for the run (_imu_disagrees): no start to attempt
             return None
         icfg = self.cfg.init
+        self._keep_init_frame(ff)
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
         plausible = self._sensors_plausible(ts, gyro, accel, ff)
         # a smooth constant-velocity motion looks still to the IMU: the images must agree
         init = static_initialize(ts, gyro, accel, t, icfg, self.calib.view_headings_body) \
             if plausible and self._looks_still_visually(ff) else None
+        if init is not None and self._turn_taken_for_bias(init, ff):
+            init = None
         if init is not None and not self._bias_continuous(init):
             init = None
         if init is None and icfg.allow_moving_start:
@@ -844,6 +849,36 @@ class Estimator:
         self.sensor_error = problem
         return problem is None
 
+    def _keep_init_frame(self, ff: FeatureFrame) -> None:
+        """The usable frames of the last still window (camera clock), for `_turn_taken_for_bias`."""
+        if not self._usable(ff):
+            return
+        frames = self._init_frames
+        frames.append(ff)
+        t_first = ff.t_ns - int(self.cfg.init.static_window_s * 1e9)
+        while len(frames) > 1 and frames[1].t_ns <= t_first:
+            frames.popleft()
+
+    def _turn_taken_for_bias(self, init: InitialState, ff: FeatureFrame) -> bool:
+        """A still start whose gyro mean the tracks follow as a turn is refused (`rotation_reading`): its bias
+        would be the turn. Judged only where the turn would move the tracks `static_turn_visible_px` over the
+        window; said once per spell."""
+        frames = self._init_frames
+        if not frames or frames[0] is ff or frames[-1] is not ff:
+            return False
+        cam = self.calib.cam0
+        reading = rotation_reading(frames[0], ff, init.gyro_bias, cam.T_body_cam[:3, :3], cam.K)
+        if reading is None or reading.predicted_px < self.cfg.init.static_turn_visible_px or not reading.rate_is_turn:
+            self._turn_refused = False
+            return False
+        if not self._turn_refused:
+            log.info("not a still start: the tracks follow the gyro's %.3f rad/s as a turn (moved %.1f px over "
+                     "%.2f s, %.1f px from where that turn puts them; a bias would leave them): waiting for a still "
+                     "or moving start", reading.rate_rad_s, reading.moved_px, reading.span_s,
+                     reading.turn_residual_px)
+        self._turn_refused = True
+        return True
+
     def _bias_continuous(self, init: InitialState) -> bool:
         """After a reset the gyro bias is known: a new one that differs by more than its random walk allows
         is a rotation taken for a bias (a constant-rate turn looks still to the IMU), so it is refused."""
@@ -895,6 +930,7 @@ class Estimator:
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self._start_motion_check(init.t_ns, est, ff)
         self.moving_init.clear()
+        self._init_frames.clear()
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
         log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
                  *T[2, :3])
