@@ -44,7 +44,7 @@ from vio.config import EstimatorConfig, VioConfig
 from vio.frontend.gyro import GyroPrior
 from vio.frontend.median import median
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
-from vio.imu_buffer import ImuBuffer
+from vio.imu_buffer import MOTION_UNKNOWN_GAP_NS, ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, rotation_reading, static_initialize
 from vio.motion_check import MotionCheck
@@ -63,7 +63,6 @@ IMU_NOISE_MIN_READINGS = 10  # keyframe measurements before the adaptive noise m
 # airframe on its own, before the median may decide (_provisional_params)
 IMU_NOISE_ALONE_ABOVE = 2.0
 BRIDGE_POSITION_MAX_S = 3.0  # longest reset gap whose IMU-only position prediction is used (error ~ t^2)
-BRIDGE_MAX_IMU_GAP_NS = 100_000_000  # an IMU gap this long ends the bridge (the motion is unknown)
 OMEGA_WINDOW_NS = 10_000_000  # gyro averaged over this much before a keyframe for the time offset state's twist
 # a stereo-check reading beyond stereo_check_max_deg, said in the log once and in the status while it is the newest
 IMPLAUSIBLE_STEREO_WHY = ("either the estimate is off (a start while moving) or the stereo calibration is grossly "
@@ -356,7 +355,7 @@ class Estimator:
             self.reset(f"IMU gap of {(s.t_ns - prev_t) * 1e-9:.2f} s: the motion in it is unknown", bridge=False)
             st = self._state
         if isinstance(st, _Waiting) and st.bridge is not None and prev_t is not None and \
-                s.t_ns - prev_t > BRIDGE_MAX_IMU_GAP_NS:
+                s.t_ns - prev_t > MOTION_UNKNOWN_GAP_NS:
             log.warning("IMU gap of %.2f s after the reset: the last pose is kept as it was", (s.t_ns - prev_t) * 1e-9)
             st.bridge = None
         # one buffer for all readers: pre-integration, initialisers, gyro prior, and the offset solver's window

@@ -15,6 +15,7 @@ from vio.types import ImuSample
 log = logging.getLogger(__name__)
 
 TRIM_CHUNK = 64  # samples dropped at a time at the least
+MOTION_UNKNOWN_GAP_NS = 100_000_000  # an IMU gap this long: the motion in it is unknown (interpolation is a guess)
 
 
 class ImuBuffer:
@@ -65,6 +66,18 @@ class ImuBuffer:
         t0, t1 = self.t[i - 1], self.t[i]
         a = (t_ns - t0) / (t1 - t0)
         return ((1 - a) * self.gyro[i - 1] + a * self.gyro[i]), ((1 - a) * self.accel[i - 1] + a * self.accel[i])
+
+    def largest_gap_ns(self, t0_ns: int, t1_ns: int) -> int:
+        """The longest spacing between the samples `integrate` reads for [t0, t1] (those inside and the two that
+        bracket it): what it bridges by interpolating. Beyond the buffer's ends it holds the end sample: the
+        stretch to t0 or t1 counts as a gap."""
+        i = max(bisect.bisect_right(self.t, t0_ns) - 1, 0)
+        j = bisect.bisect_left(self.t, t1_ns) + 1
+        knots = self.t[i:j]
+        if not knots:
+            return t1_ns - t0_ns
+        knots = [min(t0_ns, knots[0]), *knots, max(t1_ns, knots[-1])]
+        return max(b - a for a, b in zip(knots[:-1], knots[1:]))
 
     def window(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Samples with t0 <= t <= t1 as arrays (t_ns, gyro, accel)."""

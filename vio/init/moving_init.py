@@ -23,7 +23,7 @@ import numpy as np
 from vio.calibration import StereoCalibration
 from vio.config import InitConfig
 from vio.geometry import GRAVITY_M_S2, gravity_aligned_rotation, inv_T, make_T, so3_log
-from vio.imu_buffer import ImuBuffer
+from vio.imu_buffer import MOTION_UNKNOWN_GAP_NS, ImuBuffer
 from vio.init.static_init import InitialState
 from vio.relative_pose import points_from_depth, solve_pnp
 from vio.types import FeatureFrame
@@ -77,6 +77,13 @@ class MovingInitializer:
             self.frames.append(_Frame(t_ns, ff, np.eye(4)))
             return None
         prev = self.frames[-1]
+        gap = imu.largest_gap_ns(prev.t_ns, t_ns)
+        if gap > MOTION_UNKNOWN_GAP_NS:
+            # the pre-integration would interpolate across it: the fitted bias and gravity absorb a motion nobody
+            # measured (an ArduPilot SITL restart: a 1.9 s gap at the MAVLink IMU's clock jump, a 0.059 rad/s bias)
+            log.debug("moving init: IMU gap of %.2f s before %d; restarting the window", gap * 1e-9, t_ns)
+            self.frames = [_Frame(t_ns, ff, np.eye(4))]
+            return None
         T_c0p_c0c = relative_pose_pnp(prev.ff, ff, self.K)
         if T_c0p_c0c is None:
             log.debug("moving init: no PnP pose at %d; restarting the window", t_ns)
