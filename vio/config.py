@@ -261,14 +261,16 @@ class BackendConfig:
 
 @dataclass(frozen=True)
 class InitConfig:
-    static_window_s: float = opt(0.5, "still IMU needed for a static start", min=0.05, max=30)
+    static_window_s: float = opt(0.5, "still IMU needed for a static start (the IMU buffer keeps 3 s)", min=0.05,
+                                 max=2.5)
     static_gyro_std_rad_s: float = opt(0.02, "gyro std under which the vehicle counts as still", min=1e-4, max=1)
     static_accel_std_m_s2: float = opt(0.5, "accel std under which the vehicle counts as still", min=1e-3, max=10)
     static_turn_visible_px: float = opt(2.0, "a still start's gyro mean is checked against the tracks when, were it a "
                                         "turn, it would move them at least this far over the window [px]: a "
                                         "slow turn the tracks follow is not taken for a gyro bias", min=0.1, max=100)
     allow_moving_start: bool = opt(True, "initialise in motion by visual-inertial alignment")
-    moving_window_s: float = opt(1.0, "frames collected for the in-motion alignment", min=0.2, max=10)
+    moving_window_s: float = opt(1.0, "frames collected for the in-motion alignment (the IMU buffer keeps 3 s)",
+                                 min=0.2, max=2.5)
     moving_min_frames: int = opt(6, "frames with a visual pose needed for the in-motion alignment", min=3, max=100)
 
 

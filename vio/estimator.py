@@ -288,8 +288,9 @@ class Estimator:
         self._prev_ff: FeatureFrame | None = None
         self.last_features: FeatureFrame | None = None  # front-end output of the last frame (debug views)
         self._flow_px = float("inf")  # median feature motion since the previous frame
-        self._init_frames: deque[FeatureFrame] = deque()  # usable frames of the still window while not started
-        self._turn_refused = False  # a still start refused as a turn was said (once per spell)
+        self._still_frames: deque[FeatureFrame] = deque()  # usable frames of the last static_window_s
+        self._last_usable_frame_t: int | None = None  # camera clock
+        self._turn_refused_t: int | None = None  # the last still start refused as a turn (camera clock)
         self._cov_state: tuple[int, np.ndarray] | None = None  # (t, R_world_body) the frame covariance belongs to
         # continuous noise densities (variance per second), for the IMU-rate covariance growth
         self.white_scale: np.ndarray | None = None  # adaptive IMU noise: the scale in use (gyro xyz, accel xyz)
@@ -592,6 +593,7 @@ class Estimator:
         prev_t = self._last_frame_t
         self._last_frame_t = t
         self._flow_px = median_flow_px(self._prev_ff, ff)
+        self._keep_still_window_frame(ff)
         self.last_features = ff
         self._prev_ff = ff
         self.frames_processed += 1
@@ -778,7 +780,6 @@ class Estimator:
         if self._imu_camera_error is not None:  # final for the run (_imu_disagrees): no start to attempt
             return None
         icfg = self.cfg.init
-        self._keep_init_frame(ff)
         ts, gyro, accel = self.imu.window(t - int(icfg.static_window_s * 1e9), t)
         plausible = self._sensors_plausible(ts, gyro, accel, ff)
         # a smooth constant-velocity motion looks still to the IMU: the images must agree
@@ -848,35 +849,54 @@ class Estimator:
         self.sensor_error = problem
         return problem is None
 
-    def _keep_init_frame(self, ff: FeatureFrame) -> None:
-        """The usable frames of the last still window (camera clock), for `_turn_taken_for_bias`."""
+    def _keep_still_window_frame(self, ff: FeatureFrame) -> None:
+        """The usable frames of the last `static_window_s` (camera clock), for `_turn_taken_for_bias`, kept on every
+        frame so that a start after a reset finds them too. An unusable frame breaks the run: tracks across it are
+        not compared (a frame seconds old would stretch the window's rate over its age)."""
+        frames = self._still_frames
         if not self._usable(ff):
+            frames.clear()
             return
-        frames = self._init_frames
         frames.append(ff)
         t_first = ff.t_ns - int(self.cfg.init.static_window_s * 1e9)
         while len(frames) > 1 and frames[1].t_ns <= t_first:
             frames.popleft()
+        self._last_usable_frame_t = ff.t_ns
 
     def _turn_taken_for_bias(self, init: InitialState, ff: FeatureFrame) -> bool:
         """A still start whose gyro mean the tracks follow as a turn is refused (`rotation_reading`): its bias
-        would be the turn. Judged only where the turn would move the tracks `static_turn_visible_px` over the
-        window; said once per spell."""
-        frames = self._init_frames
-        if not frames or frames[0] is ff or frames[-1] is not ff:
-            return False
+        would be the turn. Judged where the turn would move the tracks `static_turn_visible_px` over the window.
+        Until the usable frames span the window (the IMU started first, a reset, a bad frame) a start whose rate
+        the images could judge waits for them, quietly; one with no usable frame for a window (a covered lens on
+        the ground) is the IMU's to decide, as before. A refusal is said once per spell (none for a window before)."""
+        icfg = self.cfg.init
+        window_s = icfg.static_window_s
         cam = self.calib.cam0
+        if not self._usable(ff):
+            last = self._last_usable_frame_t
+            return self._quiet_wait(ff, last is not None and (ff.t_ns - last) * 1e-9 <= window_s)
+        frames = self._still_frames
+        span_s = (ff.t_ns - frames[0].t_ns) * 1e-9
+        if span_s < 0.9 * window_s:  # the most the rate could move a track over the window, as a turn
+            bound_px = float(np.linalg.norm(init.gyro_bias)) * window_s * max(cam.fx, cam.fy) * 1.5
+            return self._quiet_wait(ff, bound_px >= icfg.static_turn_visible_px)
         reading = rotation_reading(frames[0], ff, init.gyro_bias, cam.T_body_cam[:3, :3], cam.K)
-        if reading is None or reading.predicted_px < self.cfg.init.static_turn_visible_px or not reading.rate_is_turn:
-            self._turn_refused = False
+        if reading is None or reading.predicted_px < icfg.static_turn_visible_px or not reading.rate_is_turn:
             return False
-        if not self._turn_refused:
+        last, self._turn_refused_t = self._turn_refused_t, ff.t_ns
+        if last is None or (ff.t_ns - last) * 1e-9 > window_s:  # a new spell
             log.info("not a still start: the tracks follow the gyro's %.3f rad/s as a turn (moved %.1f px over "
                      "%.2f s, %.1f px from where that turn puts them; a bias would leave them): waiting for a still "
                      "or moving start", reading.rate_rad_s, reading.moved_px, reading.span_s,
                      reading.turn_residual_px)
-        self._turn_refused = True
         return True
+
+    def _quiet_wait(self, ff: FeatureFrame, wait: bool) -> bool:
+        """`wait` for the images, unsaid; a wait inside a spell of refusals carries the spell on."""
+        last = self._turn_refused_t
+        if wait and last is not None and (ff.t_ns - last) * 1e-9 <= self.cfg.init.static_window_s:
+            self._turn_refused_t = ff.t_ns
+        return wait
 
     def _bias_continuous(self, init: InitialState) -> bool:
         """After a reset the gyro bias is known: a new one that differs by more than its random walk allows
@@ -929,7 +949,6 @@ class Estimator:
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self._start_motion_check(init.t_ns, est, ff)
         self.moving_init.clear()
-        self._init_frames.clear()
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
         log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
                  *T[2, :3])

@@ -64,6 +64,8 @@ class MovingInitializer:
         self.K = calib.cam0.K
         self.T_body_cam0 = calib.cam0.T_body_cam
         self.frames: list[_Frame] = []
+        # five sample periods at least: a 10 Hz serial or MAVLink IMU (allowed) is 100 ms apart with nothing lost
+        self.max_imu_gap_ns = max(MOTION_UNKNOWN_GAP_NS, int(5e9 / calib.imu.rate_hz))
 
     def clear(self) -> None:
         self.frames = []
@@ -78,7 +80,7 @@ class MovingInitializer:
             return None
         prev = self.frames[-1]
         gap = imu.largest_gap_ns(prev.t_ns, t_ns)
-        if gap > MOTION_UNKNOWN_GAP_NS:
+        if gap > self.max_imu_gap_ns:
             # the pre-integration would interpolate across it: the fitted bias and gravity absorb a motion nobody
             # measured (an ArduPilot SITL restart: a 1.9 s gap at the MAVLink IMU's clock jump, a 0.059 rad/s bias)
             log.debug("moving init: IMU gap of %.2f s before %d; restarting the window", gap * 1e-9, t_ns)
