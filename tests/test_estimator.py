@@ -356,6 +356,11 @@ def test_an_estimate_that_runs_away_from_the_stereo_motion_is_reset_by_the_motio
     assert 3.0 < states[before[-1]].t_ns * 1e-9 < 5.0  # within 2 s of the accelerometer going wrong
     err = [np.linalg.norm(states[k].T_world_body[:3, 3] - truth[k][:3, 3]) for k in before]
     assert max(err) < 8.0 and max(np.linalg.norm(states[k].v_world) for k in before) < 10.0
+    # the replay's stats keep the reset run's readings (a reset starts a new check)
+    mc = est.motion_check_stats()
+    assert mc["resets"] == 1 and mc["disagreeing_keyframes"] >= est.bcfg.motion_check_confirm, mc
+    assert mc["readings"] > mc["disagreeing_keyframes"] and mc["max_sigma"] > est.bcfg.motion_check_sigma, mc
+    assert mc["max_m_s"] > est.bcfg.motion_check_min_m_s and 3.0 < mc["max_sigma_at_s"] < 5.0, mc
 
 
 def test_the_motion_check_stays_quiet_on_a_nominal_flight_and_changes_nothing():
@@ -372,7 +377,11 @@ def test_the_motion_check_stays_quiet_on_a_nominal_flight_and_changes_nothing():
     chk = est._state.motion
     assert est.reset_counter == 0 and chk.readings > 20 and not chk.streak
     assert chk.worst.n_sigma < 0.5 * est.bcfg.motion_check_sigma or chk.worst.gap_m_s < 0.5, chk.worst.describe()
-    _, off = flight(False)
+    mc = est.motion_check_stats()
+    assert (mc["readings"], mc["disagreeing_keyframes"], mc["resets"]) == (chk.readings, 0, 0), mc
+    assert mc["max_sigma"] == round(chk.worst.n_sigma, 2) and mc["max_m_s"] == round(chk.widest.gap_m_s, 3), mc
+    est_off, off = flight(False)
+    assert est_off.motion_check_stats() is None
     assert len(off) == len(states)
     assert all(np.array_equal(a.T_world_body, b.T_world_body) and np.array_equal(a.cov_pose, b.cov_pose)
                for a, b in zip(states, off))

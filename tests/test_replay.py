@@ -25,7 +25,13 @@ def test_replay_cli_writes_tum_and_stats(v101_path, tmp_path, capsys):
     assert d["realtime_factor"] > 0 and len(d["per_frame"]) == 30
     assert {"frontend_ms", "backend_ms", "total_ms"} <= set(d["timing_ms"])
     assert d["init_delay_s"] <= 1.0
-    assert "ATE" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "ATE" in said
+    # the motion check's figures (vio.motion_check): the excerpt stands still, so every keyframe agrees
+    mc = d["motion_check"]
+    assert mc["readings"] >= 1 and mc["disagreeing_keyframes"] == 0 and mc["resets"] == 0, mc
+    assert 0 < mc["max_sigma"] < 5 and 0 <= mc["max_m_s"] < 0.1 and 0 < mc["max_sigma_at_s"] < 3.0, mc
+    assert f"motion check: {mc['readings']} keyframes compared, 0 disagreeing, 0 resets; largest " in said, said
 
 
 def test_replay_with_stereo_refinement_says_what_it_took_out_and_how_sure(v101_path, tmp_path, capsys):

@@ -47,7 +47,7 @@ from vio.geometry import so3_log, yaw_between, yaw_position_alignment
 from vio.imu_buffer import MOTION_UNKNOWN_GAP_NS, ImuBuffer
 from vio.init.moving_init import MovingInitializer
 from vio.init.static_init import InitialState, is_still, rotation_reading, static_initialize
-from vio.motion_check import MotionCheck
+from vio.motion_check import MotionCheck, MotionReading, MotionTally
 from vio.propagator import Propagator
 from vio.sanity import MAX_ACCEL_M_S2, MAX_GYRO_RAD_S, accel_units_problem, gyro_units_problem, imu_sample_problem
 from vio.types import FeatureFrame, ImuSample, NavState, StereoFrame, covariance_quality
@@ -265,6 +265,7 @@ class Estimator:
         self._stereo_released: list[StereoFinding] = []  # the readings at which it let go, over the flight
         self._stereo_implausible = 0  # readings beyond stereo_check_max_deg, over the flight (not acted on)
         self._reset_anchor: np.ndarray | None = None  # T_world_body the next reset continues from (motion check)
+        self._motion_before = MotionTally()  # the motion checks of smoother runs ended by resets, for the stats
         self._t_first_ns: int | None = None  # the first frame's stamp: flight times in the stats count from it
         self.listeners: list[Callable[[NavState], None]] = []
         self._processed: deque[ProcessedFrame] = deque(maxlen=64)  # bounded: a caller that never takes them
@@ -497,6 +498,8 @@ class Estimator:
             self._time_links_before += self._state.smoother.time_links  # the flight's count outlives the smoother
             # keyframes that left the window before the failure keep their settled poses (the rest never settle)
             self._settled_before_reset += self._state.smoother.take_settled()
+            if self._state.motion is not None:  # the flight's motion check figures outlive the run's check
+                self._motion_before = self._state.motion.tally(self._motion_before)
         learnt = self.time_offset_estimate_ns if bridge else self.time_offset_ns
         if learnt != self.time_offset_ns:  # the time state's offset outlives its smoother
             log.info("camera-IMU time offset: %.2f ms -> %.2f ms (the smoother's time state, kept across the reset)",
@@ -1172,6 +1175,25 @@ class Estimator:
                        focal_px=[list(x) for x in f.focal_px] if f.focal_px else None)
         return out
 
+    def motion_check_stats(self) -> dict | None:
+        """What the motion check (`[backend] motion_check`) read over the flight, every smoother run's check added up,
+        for the replay's stats (None: the check is off)."""
+        if not self.bcfg.motion_check:
+            return None
+        run = self._state
+        t = run.motion.tally(self._motion_before) if isinstance(run, _Running) and run.motion is not None \
+            else self._motion_before
+
+        def at_s(r: MotionReading) -> float | None:
+            return round((r.t_ns - self._t_first_ns) * 1e-9, 3) if self._t_first_ns is not None else None
+
+        return {"readings": t.readings, "disagreeing_keyframes": t.disagreeing, "resets": t.resets,
+                "max_sigma": None if t.worst is None else round(t.worst.n_sigma, 2),
+                "max_sigma_at_s": None if t.worst is None else at_s(t.worst),
+                "max_sigma_reading": None if t.worst is None else t.worst.describe(),
+                "max_m_s": None if t.widest is None else round(t.widest.gap_m_s, 3),
+                "max_m_s_at_s": None if t.widest is None else at_s(t.widest)}
+
     def refinement_stats(self) -> dict | None:
         """Refined extrinsics and how far they moved from the calibration, for the replay's stats."""
         if self._refined is None:  # nothing refined (a stereo check that held: stereo_check_stats says why)
@@ -1408,3 +1430,15 @@ def stereo_check_line(check: dict | None, then: str = " (calibration line below)
     if "disparity_px" in check:
         return f"stereo check: {check['reading']} (1 sigma) at {check['at_s']:.1f} s: calibration kept{held_said}"
     return None
+
+
+def motion_check_line(check: dict | None) -> str | None:
+    """One line on what the motion check (`[backend] motion_check`) read over the flight (None: check off)."""
+    if not check:
+        return None
+    if not check["readings"]:
+        return "motion check: no keyframe compared (no stereo points seen again)"
+    resets = check["resets"]
+    return (f"motion check: {check['readings']} keyframes compared, {check['disagreeing_keyframes']} disagreeing, "
+            f"{resets} reset{'s' * (resets != 1)}; largest {check['max_sigma']:.1f} sigma "
+            f"at {check['max_sigma_at_s']:.1f} s, {check['max_m_s']:.3f} m/s apart at {check['max_m_s_at_s']:.1f} s")

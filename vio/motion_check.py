@@ -58,6 +58,17 @@ class MotionReading:
                 f"{self.gap_m_s:.2f} m/s apart, {self.n_sigma:.0f} sigma ({self.inliers} points)")
 
 
+@dataclass(frozen=True)
+class MotionTally:
+    """The check's figures over a flight: a reset starts a new MotionCheck, so the stats add them up run by run."""
+
+    readings: int = 0  # compared keyframes
+    disagreeing: int = 0  # keyframes beyond motion_check_sigma and motion_check_min_m_s
+    resets: int = 0  # confirmed disagreements (each reset the estimator)
+    worst: MotionReading | None = None  # the most sigma
+    widest: MotionReading | None = None  # the most m/s apart
+
+
 def stereo_displacement(prev: FeatureFrame, cur: FeatureFrame, K: np.ndarray,
                         baseline_m: float) -> tuple[np.ndarray, np.ndarray, int] | None:
     """The left camera's displacement from prev to cur, in cur's camera frame, by PnP of prev's stereo points
@@ -110,7 +121,10 @@ class MotionCheck:
         self.streak: list[MotionReading] = []  # the disagreeing readings in a row
         self._streak_poses: list[np.ndarray] = []  # T_world_cam0 before the streak's first keyframe, then at each
         self.readings = 0  # compared keyframes (for the stats and tests)
+        self.disagreeing = 0  # readings beyond both thresholds (in a streak or not)
+        self.confirmed = 0  # failures returned (each one a reset)
         self.worst: MotionReading | None = None  # the largest disagreement in sigma, for the logs
+        self.widest: MotionReading | None = None  # the largest disagreement in m/s
 
     def add(self, t_ns: int, ff: FeatureFrame, T_world_cam0: np.ndarray) -> str | None:
         """This keyframe (IMU-clock stamp, its features, the smoother's left-camera pose); the failure when the
@@ -131,11 +145,14 @@ class MotionCheck:
         self.readings += 1
         if self.worst is None or r.n_sigma > self.worst.n_sigma:
             self.worst = r
+        if self.widest is None or r.gap_m_s > self.widest.gap_m_s:
+            self.widest = r
         if r.n_sigma <= self.n_sigma or r.gap_m_s <= self.min_m_s:
             if self.streak:
                 log.debug("motion check t=%d: agrees again after %d (%s)", t_ns, len(self.streak), r.describe())
             self.streak = []
             return None
+        self.disagreeing += 1
         if not self.streak:
             self._streak_poses = [T_prev]
         self.streak.append(r)
@@ -143,8 +160,19 @@ class MotionCheck:
         log.debug("motion check t=%d: disagrees (%d in a row): %s", t_ns, len(self.streak), r.describe())
         if len(self.streak) < self.confirm:
             return None
+        self.confirmed += 1
         return (f"motion check: the estimate's motion disagrees with the stereo pair's on {len(self.streak)} "
                 f"keyframes in a row ({r.describe()}): scale or velocity lost")
+
+    def tally(self, before: MotionTally) -> MotionTally:
+        """`before` (the flight's earlier smoother runs) with this run's readings added."""
+        def most(a: MotionReading | None, b: MotionReading | None, key) -> MotionReading | None:
+            return a if b is None or (a is not None and key(a) >= key(b)) else b
+
+        return MotionTally(before.readings + self.readings, before.disagreeing + self.disagreeing,
+                           before.resets + self.confirmed,
+                           most(before.worst, self.worst, lambda r: r.n_sigma),
+                           most(before.widest, self.widest, lambda r: r.gap_m_s))
 
     def stereo_anchor(self) -> np.ndarray | None:
         """T_world_cam0 at the newest keyframe with the position carried from the last keyframe before the streak by

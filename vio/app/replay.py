@@ -339,7 +339,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                               "data_notes": list(dataset.stats.notes),
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
                               "calibration_refined": est.refinement_stats(),
-                              "stereo_check": est.stereo_check_stats()},
+                              "stereo_check": est.stereo_check_stats(),
+                              "motion_check": est.motion_check_stats()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error,
                        ended_blocked=bool(states) and h.stopped_for_run is not None)
     summary = res.unusable_summary()
@@ -611,11 +612,11 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
                  else "")
               + (f"; {ms.states_refused_unheard} not sent: no autopilot heartbeat said it was disarmed"
                  if ms.states_refused_unheard else ""))
-    from vio.estimator import stereo_check_line
+    from vio.estimator import motion_check_line, stereo_check_line
 
-    line = stereo_check_line(res.extra.get("stereo_check"))
-    if line:
-        print(line)
+    for line in (stereo_check_line(res.extra.get("stereo_check")), motion_check_line(res.extra.get("motion_check"))):
+        if line:
+            print(line)
     refined = res.extra.get("calibration_refined")
     if refined:  # [backend] refine_stereo_rotation / refine_extrinsics: what the flight taught about the rig
         if "disparity_sigma_px" in refined:
