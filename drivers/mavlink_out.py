@@ -102,7 +102,10 @@ class MavlinkStats:
     states_not_tracking: int = 0
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
     states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
-    states_withheld: int = 0  # not sent while the daemon withheld every pose (withhold(): the IMU clock unsure)
+    # not sent while the daemon withheld every pose (withhold(): the IMU clock unsure), tracking or not: the daemon's
+    # gate hands them on as lost already, so only counting every one gives the count of states it held back
+    states_withheld: int = 0
+    withheld_for: str = ""  # why the last withholding spell held them back (kept after it ends; "" before any)
     states_refused_armed: int = 0  # a replay's poses withheld while the autopilot said it was armed (poses_to_armed)
     states_refused_unheard: int = 0  # a replay's poses withheld while no autopilot heartbeat said it was disarmed
     sent: dict = field(default_factory=dict)
@@ -336,6 +339,7 @@ class MavlinkOutput:
                 "states_not_tracking": st.states_not_tracking, "states_not_finite": st.states_not_finite,
                 "states_too_old": st.states_too_old, "withholding_old_poses": self._too_old_spell,
                 "withholding_for": self._withheld_for, "states_withheld": st.states_withheld,
+                "withheld_for": st.withheld_for,
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "states_refused_armed": st.states_refused_armed, "states_refused_unheard": st.states_refused_unheard,
                 "autopilot_heartbeats": st.autopilot_heartbeats,
@@ -376,9 +380,11 @@ class MavlinkOutput:
             elif self._too_old_spell:  # a fresh state, tracking or not, ends the spell
                 self._too_old_spell = False
                 log.info("poses fresh again (%.0f ms old)", age / 1e6)
-        if self._withheld_for is not None and state.tracking:
+        withheld = self._withheld_for is not None
+        if withheld:
             self.stats.states_withheld += 1
-            state = dataclasses.replace(state, tracking=False, quality=0)
+            if state.tracking:
+                state = dataclasses.replace(state, tracking=False, quality=0)
         finite = _sendable(state)
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
@@ -407,8 +413,8 @@ class MavlinkOutput:
                                 self.cfg.mount)
                     self._mount_warned = True
             elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell
-                                         or self._withheld_for is not None or never_tracked):
-                self.stats.states_not_tracking += 1
+                                         or withheld or never_tracked):
+                self.stats.states_not_tracking += not withheld  # one reason a state: the withholding's above
                 self._pending = None
             elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \
                     (self._pending is not None and state.t_ns < self._pending.t_ns):
@@ -438,6 +444,7 @@ class MavlinkOutput:
             was, self._withheld_for = self._withheld_for, why
             if why is not None:
                 self._pending = None  # a pose taken before the spell does not go out in it
+                self.stats.withheld_for = why
         if why is not None and was is None:
             with self._lock:
                 if self.connected and self._replay_refusal() != "armed":

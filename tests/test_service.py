@@ -401,6 +401,8 @@ class ScriptedEstimator:
 class MavStats:
     states_sent: int = 0
     autopilot_heartbeats: int = 3
+    states_withheld: int = 0
+    withheld_for: str = ""
 
 
 class RecordingMavlink:
@@ -425,11 +427,14 @@ class RecordingMavlink:
     def send_state(self, s: NavState) -> None:
         self.states.append(s)
         self.stats.states_sent += 1
+        self.stats.states_withheld += self.withheld_for is not None  # as MavlinkOutput counts them
 
     withheld_for: str | None = None  # as MavlinkOutput.withhold() was last told
 
     def withhold(self, why: str | None) -> None:
         self.withheld_for = why
+        if why is not None:
+            self.stats.withheld_for = why
 
     def poll(self) -> None:
         return None
@@ -659,6 +664,12 @@ def test_the_imu_clock_health_reaches_what_is_sent_and_the_status(tmp_path: Path
         st = status_says(lambda st: st.get("estimator", {}).get("tracking") is False)
         assert st["estimator"]["quality"] == 0 and st["state"] == "degraded" and not st["healthy"]
         assert st["mavlink"]["refusing_uncertain_stamps"] and st["mavlink"]["stamp_error_ms"] == 200.0
+        # one count of the states held back, the output's, with its why (the gate kept a second one: N beside 0)
+        st = status_says(lambda st: st.get("mavlink", {}).get("states_withheld", 0) >= len(refused))
+        assert "states_refused_stamps" not in st["mavlink"], st["mavlink"]
+        assert st["mavlink"]["withheld_for"] == "VIO: IMU clock unsure, no poses"
+        assert f"withheld {st['mavlink']['states_withheld']} (VIO: IMU clock unsure, no poses)" in \
+            format_status(st, "DEGRADED", st["written_unix"])
         assert any(w.startswith("poses not sent: IMU stamps uncertain by 200 ms, beyond [mavlink] max_stamp_error_ms "
                                 "= 50") for w in st["warnings"]), st["warnings"]
 

@@ -113,6 +113,14 @@ def _checkpoint_text(lp: dict[str, Any]) -> str:
     return f", map checkpoint {_fmt(lp.get('map_checkpoint_age_s'), ' s')} old ({lp['map_checkpoints']} written)"
 
 
+def _withheld_text(mav: dict[str, Any]) -> str:
+    """The states the MAVLink output held back on the daemon's word and why (the IMU clock; nothing before any)."""
+    n = mav.get("states_withheld")
+    if not n:
+        return ""
+    return f", withheld {n} ({mav.get('withholding_for') or mav.get('withheld_for') or 'no reason given'})"
+
+
 def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
     """Readable multi-line report; every field tolerates absence (an older daemon, a starting one)."""
     def section(key: str) -> dict:  # absent, null or of another type: an older, starting or foreign daemon
@@ -139,7 +147,7 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"  position  {e.get('position_m') or '-'} m (world, z up)   "
         f"latency frame->output p50 {_fmt(lat.get('p50'), ' ms')} max {_fmt(lat.get('max'), ' ms')}",
         f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
-        f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}"
+        f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}{_withheld_text(mav)}"
         if mav.get("state") != "off" else
         "  mavlink   OFF: [mavlink] url is empty, no pose goes to an autopilot",
     ]

@@ -64,8 +64,7 @@ class StampErrorGate:
         self.max_error_s = max_error_s
         self.quality_sigma_m = quality_sigma_m
         self.error_s = 0.0  # the measure as last read
-        self.refusing = False
-        self.refused = 0  # tracked states sent as not tracking for it
+        self.refusing = False  # the states go on as lost and the MAVLink output withholds them (its states_withheld)
         self.grown = 0  # tracked states sent with a grown covariance
         self._v_base: tuple[int, np.ndarray] | None = None  # (t_ns, v_world) the acceleration is taken against
         self._accel = np.zeros(3)
@@ -90,7 +89,6 @@ class StampErrorGate:
         if not s.tracking:
             return s
         if self.refusing:
-            self.refused += 1
             return dataclasses.replace(s, tracking=False, quality=0)
         if dt <= STAMP_TOLERANCE_S:
             return s
@@ -124,10 +122,12 @@ class StampErrorGate:
             self._v_base = (s.t_ns, v)
 
     def status(self) -> dict:
-        """For `vio status`: the stamp error now [ms], whether poses are refused for it, the counts."""
+        """For `vio status`: the stamp error now [ms], whether poses are refused for it, the states it grew. The
+        states it refused are the MAVLink output's `states_withheld` (with `withheld_for`, the why): the one count of
+        states withheld, every state of a spell, tracked or lost (a second count here read N beside the output's 0)."""
         return {"stamp_error_ms": round(self.error_s * 1e3, 1) if math.isfinite(self.error_s) else None,
                 "max_stamp_error_ms": round(self.max_error_s * 1e3, 1), "refusing_uncertain_stamps": self.refusing,
-                "states_refused_stamps": self.refused, "states_grown_stamps": self.grown}
+                "states_grown_stamps": self.grown}
 
 
 def stamp_error_text(dt: float) -> str:
