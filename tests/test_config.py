@@ -127,6 +127,10 @@ def test_missing_and_binary_files(tmp_path):
     ("[backend]\nimu_noise_adaptive = true\nimu_noise_scale = 8.0\nimu_noise_max_scale = 4.0\n",
      "below imu_noise_scale"),
     ("[source]\nimu = \"serial\"\nserial_port = \"\"\n", "needs \\[source\\] serial_port"),
+    # the IMU clock gate's quality ramp runs from the tolerance to the bound: none left between them
+    ("[mavlink]\nstamp_tolerance_ms = 50\n", r"stamp_tolerance_ms = 50 must be below max_stamp_error_ms = 50"),
+    ("[mavlink]\nmax_stamp_error_ms = 20\nstamp_tolerance_ms = 30.5\n",
+     r"stamp_tolerance_ms = 30\.5 must be below max_stamp_error_ms = 20: the quality falls"),
 ])
 def test_contradicting_settings_are_refused(tmp_path, text, match):
     """A mounting given for the wrong mode would be silently ignored, and the IMU flown upside down."""

@@ -732,7 +732,7 @@ def test_a_stamp_error_grows_the_covariance_along_the_motion_in_the_frames_sent(
     from vio.app.daemon.outputs import StampErrorGate
 
     err = [0.02]
-    gate = StampErrorGate(lambda: err[0], 0.05, 0.05)
+    gate = StampErrorGate(lambda: err[0], 0.05, 0.05, 0.005)
     T = np.eye(4)
     T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 
@@ -751,6 +751,30 @@ def test_a_stamp_error_grows_the_covariance_along_the_motion_in_the_frames_sent(
         err[0] = bad
         s = gate.apply(state(1.2, 2.2))
         assert not s.tracking and s.quality == 0 and gate.refusing
+
+
+def test_the_stamp_tolerance_is_the_configured_one_and_the_quality_ramp_starts_there(tmp_path: Path) -> None:
+    """[mavlink] stamp_tolerance_ms (it was a 5 ms constant): with 10 ms, 8 ms of stamp error changes nothing and
+    20 ms caps the quality at 100 x (50 - 20) / (50 - 10) = 75 (67 with 5 ms); the daemon builds its gate from the
+    config and says the tolerance in its status; a tolerance at the bound is refused (the config names the keys)."""
+    from vio.app.daemon.outputs import StampErrorGate
+
+    err = [0.008]
+    gate = StampErrorGate(lambda: err[0], 0.05, None, 0.010)
+    s0 = NavState(1_000_000_000, np.eye(4), np.array([2.0, 0.0, 0.0]), cov_pose=np.eye(6) * 1e-4,
+                  cov_vel=np.eye(3) * 1e-4)
+    assert gate.apply(s0) is s0
+    err[0] = 0.020
+    assert gate.apply(s0).quality == 75 and gate.grown == 1
+    with pytest.raises(ValueError, match="stamp tolerance 50 ms must be below the bound 50 ms"):
+        StampErrorGate(lambda: 0.0, 0.05, None, 0.05)
+    cfg = config_from_dict({"run": {"status_file": str(tmp_path / "s.json")},
+                            "mavlink": {"stamp_tolerance_ms": 12.5}})
+    svc = Service(cfg, source_factory=lambda: ScriptedSource([], threading.Event(), []),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []), mavlink_factory=RecordingMavlink,
+                  notifier=SdNotifier(""))
+    assert svc.output.stamps.tolerance_s == 0.0125
+    assert svc.snapshot()["mavlink"]["stamp_tolerance_ms"] == 12.5
 
 
 def _started(src: ScriptedSource) -> ScriptedSource:

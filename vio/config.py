@@ -316,9 +316,14 @@ class MavlinkConfig:
     max_stamp_error_ms: float = opt(50.0, "the IMU source's own measure of how far its sample stamps may be off the "
                                     "host clock (its device-clock fit: TIMESYNC or arrival times; 0 for an OAK) "
                                     "beyond which no pose is sent, a loss of tracking until it is back within [ms]. "
-                                    "Between 5 ms and this the covariance sent grows by the motion over that time "
-                                    "(speed x error in position, turn rate x error in attitude) and the quality "
-                                    "falls towards 0; under 5 ms nothing changes", min=10, max=1000)
+                                    "Between stamp_tolerance_ms and this the covariance sent grows by the motion "
+                                    "over that time (speed x error in position, turn rate x error in attitude) and "
+                                    "the quality falls towards 0", min=10, max=1000)
+    stamp_tolerance_ms: float = opt(5.0, "an IMU stamp error up to this changes nothing sent (a healthy device-clock "
+                                    "fit's own scatter: TIMESYNC on the ArduPilot SITL within 1.4 ms, a USB serial "
+                                    "IMU's arrival envelope within about 1 ms; a constant part is the camera-IMU "
+                                    "offset the estimator solves); from it to max_stamp_error_ms the quality falls "
+                                    "linearly from 100 to 0 [ms]; must be below max_stamp_error_ms", min=0, max=1000)
 
 
 @dataclass(frozen=True)
@@ -687,6 +692,10 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
                        f"pi/2): give degrees, e.g. {[round(math.degrees(v), 1) for v in rpy]}; only if you measured "
                        f"a tilt of {near:g} degrees (it cannot be told from radians here), write {away:g}: 0.02 deg "
                        "makes no difference")
+    if not m.stamp_tolerance_ms < m.max_stamp_error_ms:  # the quality ramp between them would divide by <= 0
+        raise VioError(f"{source}: [mavlink] stamp_tolerance_ms = {m.stamp_tolerance_ms:g} must be below "
+                       f"max_stamp_error_ms = {m.max_stamp_error_ms:g}: the quality falls from 100 at the first to 0 "
+                       "at the second (poses withheld beyond it)")
     src = cfg.source
     if src.imu == "mavlink" and not (src.mavlink_imu_url or m.url):
         raise VioError(f"{source}: [source] imu = 'mavlink' needs a connection: [mavlink] url (shared with the pose "

@@ -33,10 +33,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# An IMU stamp error up to this is what a healthy device-clock fit shows (TIMESYNC on the ArduPilot SITL within
-# 1.4 ms, a USB serial IMU's arrival envelope within about 1 ms: docs/autopilot.md), and a constant part of it is the
-# camera-IMU time offset the estimator solves in flight: under it nothing sent changes.
-STAMP_TOLERANCE_S = 0.005
 # a refusal ends once the stamp error is back under this share of the bound: one line per event, not one per
 # state while it hovers at the bound
 STAMP_RESUME_FRACTION = 0.8
@@ -47,7 +43,9 @@ STAMPS_WITHHELD_TEXT = "VIO: IMU clock unsure, no poses"  # the STATUSTEXT of a 
 class StampErrorGate:
     """What the IMU source's clock health does to the state sent: a stamp error dt (the source's own measure,
     SensorSource.stamp_uncertainty_s) while the body moves at v, turns at w and accelerates at a puts the pose about
-    v*dt, the attitude w*dt and the velocity a*dt off. Over STAMP_TOLERANCE_S those go into the covariance sent (along
+    v*dt, the attitude w*dt and the velocity a*dt off. Over `tolerance_s` ([mavlink] stamp_tolerance_ms: what a
+    healthy device-clock fit shows, and a constant part of it is the camera-IMU offset the estimator solves in
+    flight) those go into the covariance sent (along
     the motion: position in the body frame, attitude about the turn axis, velocity in the world frame) and the
     quality is capped by the grown covariance ([backend] quality_sigma_m, as the estimator caps it) and by how close
     dt is to `max_error_s`, falling to 0 there; beyond `max_error_s` ([mavlink] max_stamp_error_ms) the state goes
@@ -59,9 +57,14 @@ class StampErrorGate:
     Why in the output and not the estimator: a stamp error is no noise the estimator models (docs/autopilot.md, the
     c12373d r2 flight: IMU stamps ~0.2 s off for ~25 s went out at quality 100 and a 5 cm sigma)."""
 
-    def __init__(self, uncertainty: Callable[[], float], max_error_s: float, quality_sigma_m: float | None) -> None:
+    def __init__(self, uncertainty: Callable[[], float], max_error_s: float, quality_sigma_m: float | None,
+                 tolerance_s: float) -> None:
+        if not 0 <= tolerance_s < max_error_s:  # the config refuses it with the keys' names (vio.config)
+            raise ValueError(f"stamp tolerance {tolerance_s * 1e3:g} ms must be below the bound "
+                             f"{max_error_s * 1e3:g} ms")
         self._uncertainty = uncertainty
         self.max_error_s = max_error_s
+        self.tolerance_s = tolerance_s
         self.quality_sigma_m = quality_sigma_m
         self.error_s = 0.0  # the measure as last read
         self.refusing = False  # the states go on as lost and the MAVLink output withholds them (its states_withheld)
@@ -85,12 +88,12 @@ class StampErrorGate:
             self.refusing = False
             log.info("IMU stamps uncertain by %s again (under %.0f ms): poses sent again (over %.0f ms with their "
                      "covariance grown by it)", stamp_error_text(dt), STAMP_RESUME_FRACTION * self.max_error_s * 1e3,
-                     STAMP_TOLERANCE_S * 1e3)
+                     self.tolerance_s * 1e3)
         if not s.tracking:
             return s
         if self.refusing:
             return dataclasses.replace(s, tracking=False, quality=0)
-        if dt <= STAMP_TOLERANCE_S:
+        if dt <= self.tolerance_s:
             return s
         self.grown += 1
         return self.grown_by(s, dt)
@@ -103,7 +106,7 @@ class StampErrorGate:
         cov_pose[:3, :3] += dt * dt * np.outer(w, w)
         cov_pose[3:, 3:] += dt * dt * np.outer(v_body, v_body)
         cov_vel = np.asarray(s.cov_vel, dtype=float) + dt * dt * np.outer(self._accel, self._accel)
-        share = (self.max_error_s - dt) / (self.max_error_s - STAMP_TOLERANCE_S)
+        share = (self.max_error_s - dt) / (self.max_error_s - self.tolerance_s)
         if self.quality_sigma_m is not None:
             share = min(share, covariance_quality(cov_pose, self.quality_sigma_m))
         quality = max(1, min(s.quality, round(100 * share)))
@@ -126,7 +129,8 @@ class StampErrorGate:
         states it refused are the MAVLink output's `states_withheld` (with `withheld_for`, the why): the one count of
         states withheld, every state of a spell, tracked or lost (a second count here read N beside the output's 0)."""
         return {"stamp_error_ms": round(self.error_s * 1e3, 1) if math.isfinite(self.error_s) else None,
-                "max_stamp_error_ms": round(self.max_error_s * 1e3, 1), "refusing_uncertain_stamps": self.refusing,
+                "max_stamp_error_ms": round(self.max_error_s * 1e3, 1),
+                "stamp_tolerance_ms": round(self.tolerance_s * 1e3, 1), "refusing_uncertain_stamps": self.refusing,
                 "states_grown_stamps": self.grown}
 
 

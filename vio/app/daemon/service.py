@@ -48,7 +48,6 @@ from typing import TYPE_CHECKING, Any
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, RateWindow, SensorBuffer
 from vio.app.daemon.outputs import (
-    STAMP_TOLERANCE_S,
     OutputWorker,
     RecorderWorker,
     StampErrorGate,
@@ -157,7 +156,7 @@ class Service:
             mavlink_factory = _default_mavlink_factory(cfg, self._calibration_now, self.mavlink_link)
             mount = self._set_mount
         stamps = StampErrorGate(self.source.stamp_uncertainty_s, cfg.mavlink.max_stamp_error_ms / 1e3,
-                                cfg.backend.quality_sigma_m)
+                                cfg.backend.quality_sigma_m, cfg.mavlink.stamp_tolerance_ms / 1e3)
         self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
                                    vision_ok=self.camera_fresh, mount=mount, stamps=stamps)
         self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now,
@@ -451,7 +450,7 @@ class Service:
                             f"[mavlink] max_stamp_error_ms = {stamps.max_error_s * 1e3:.0f} (the IMU source's clock "
                             "sync: source.driver clock in vio status --json)")
             tracking = False
-        elif stamps is not None and stamps.error_s > STAMP_TOLERANCE_S and imu_ok:
+        elif stamps is not None and stamps.error_s > stamps.tolerance_s and imu_ok:
             warnings.append(f"IMU stamps uncertain by {stamp_error_text(stamps.error_s)} (the IMU source's clock "
                             "sync): the covariance sent grows by the motion over that time and the quality falls")
         recording = self.recorder.status() if self.recorder is not None else None
