@@ -34,6 +34,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from vio import VioError
+from vio.serial_url import split_serial_url
 
 os.environ["MAVLINK20"] = "1"  # ODOMETRY (id 331) exists only in MAVLink 2; must precede the dialect import
 from pymavlink import mavutil  # noqa: E402
@@ -96,25 +97,6 @@ def check_url(url: str, key: str = "[mavlink] url") -> None:
         return
     raise VioError(f"{key} {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
                    "or a serial device such as /dev/ttyAMA0:921600")
-
-
-BY_PATH = "/dev/serial/by-path/"
-
-
-def split_serial_url(url: str) -> tuple[str, str]:
-    """A serial `DEVICE[:BAUD]` as (device, baud text, '' when none): the baud is what follows the LAST colon.
-
-    udev's /dev/serial/by-path/ names, the way to say which USB port when two adapters look alike, hold colons
-    themselves (`platform-xhci-hcd.1-usb-0:2:1.0`): split at the first colon, such a name was refused as a bad baud
-    rate ('2:1.0:921600') with or without one. So a tail that is no whole number is part of the device name there
-    (or where a device of that full name exists); elsewhere it stays a (bad) baud rate, said by check_url."""
-    device, sep, tail = url.rpartition(":")
-    if not sep or tail.isdigit():
-        return (device, tail) if sep else (url, "")
-    if url.startswith(BY_PATH) or os.path.exists(url):
-        return url, ""
-    device, _, baud = url.partition(":")
-    return device, baud
 
 
 def open_connection(url: str, source_system: int) -> mavutil.mavfile:

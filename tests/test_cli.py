@@ -119,6 +119,11 @@ def test_config_check_good_file(tmp_path, capsys):
     ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '/dev/ttyUSB0:921600'\n",
      "[source] serial_port = '/dev/ttyUSB0:921600' names the device only (the baud rate is serial_baud): serial_port = "
      "'/dev/ttyUSB0', serial_baud = 921600"),
+    # one parser with the MAVLink link's (vio.serial_url): a tail that is no baud rate on a device of no such name
+    # passed the hand-made split and was retried for ever
+    ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '/dev/ttyUSB0:abc'\n",
+     "[source] serial_port = '/dev/ttyUSB0:abc': no device of that name, and 'abc' after the colon is no baud rate "
+     "(that is serial_baud): serial_port = '/dev/ttyUSB0'?"),
     ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = 'ttyACM0'\n",
      "[source] serial_port = 'ttyACM0' is not a device path: give it whole, e.g. '/dev/ttyACM0'"),
     ("[source]\nkind = 'fake'\nimu = 'serial'\nserial_baud = 115200\n", "[source] serial_baud = 115200 carries at "
@@ -302,8 +307,9 @@ def test_a_serial_device_named_by_its_usb_port_is_a_mavlink_url(tmp_path):
     import os
     import pty
 
-    from drivers.mavlink_link import open_connection, split_serial_url
+    from drivers.mavlink_link import open_connection
     from vio.app.endpoint_lock import output_endpoint_key
+    from vio.serial_url import split_serial_url
 
     by_path = "/dev/serial/by-path/platform-xhci-hcd.1-usb-0:2:1.0"
     for url in (by_path, f"{by_path}:921600", f"{by_path}-port0:57600"):
@@ -312,6 +318,11 @@ def test_a_serial_device_named_by_its_usb_port_is_a_mavlink_url(tmp_path):
                        f"[run]\nstatus_file = '{tmp_path / 'st.json'}'\n")
         r = _vio("config", "check", str(cfg))
         assert r.returncode == EXIT_OK and r.stderr == "", (url, r.stderr)
+    # a serial IMU's port is read by the same parser: its by-path name keeps its colons
+    cfg.write_text(f"[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '{by_path}'\n"
+                   f"[run]\nstatus_file = '{tmp_path / 'st.json'}'\n")
+    r = _vio("config", "check", str(cfg))
+    assert r.returncode == EXIT_OK and r.stderr == "", r.stderr
     assert split_serial_url(f"{by_path}:921600") == (by_path, "921600") and split_serial_url(by_path) == (by_path, "")
     assert split_serial_url("/dev/ttyAMA0:921600") == ("/dev/ttyAMA0", "921600")
     assert split_serial_url("/dev/ttyAMA0:9216OO") == ("/dev/ttyAMA0", "9216OO")  # still a bad baud rate (above)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from vio import VioError
+from vio.serial_url import split_serial_url
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -748,10 +749,13 @@ def _check_serial_imu_link(src: SourceConfig, source: str) -> None:
     """A serial IMU's port and baud rate as `vio run` would open them: these passed the check and were retried for
     ever (a port that can never open), or lost frames for the whole flight (an integrator's walk-through)."""
     port = src.serial_port
-    device, sep, tail = port.rpartition(":")
-    if sep and tail.isdigit():  # [mavlink] url's DEVICE:BAUD carried over: pyserial opens a device of that name
+    device, tail = split_serial_url(port)  # as the MAVLink link splits a url: by-path names keep their colons
+    if tail.isdigit():  # [mavlink] url's DEVICE:BAUD carried over: pyserial opens a device of that name
         raise VioError(f"{source}: [source] serial_port = {port!r} names the device only (the baud rate is "
                        f"serial_baud): serial_port = {device!r}, serial_baud = {tail}")
+    if tail:  # no baud rate either, and no device of that full name: pyserial retried it for ever
+        raise VioError(f"{source}: [source] serial_port = {port!r}: no device of that name, and {tail!r} after "
+                       f"the colon is no baud rate (that is serial_baud): serial_port = {device!r}?")
     if not (port.startswith("/") or port.upper().startswith("COM")):
         raise VioError(f"{source}: [source] serial_port = {port!r} is not a device path: give it whole, e.g. "
                        f"'/dev/{port.rpartition('/')[2]}'")

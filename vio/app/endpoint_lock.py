@@ -34,7 +34,8 @@ def output_endpoint_key(url: str) -> str | None:
     drivers.mavlink_link._hold_serial, holds it as well, but only once opened, and without naming the holder)."""
     import ipaddress
 
-    from drivers.mavlink_link import _NETWORK_PREFIXES, split_serial_url
+    from drivers.mavlink_link import _NETWORK_PREFIXES
+    from vio.serial_url import split_serial_url
 
     if not url.startswith(_NETWORK_PREFIXES):
         device = split_serial_url(url)[0]

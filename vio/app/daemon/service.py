@@ -917,7 +917,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
         from drivers.mavlink_link import check_url
 
         check_url(src.mavlink_imu_url, "[source] mavlink_imu_url")
-        from drivers.mavlink_link import split_serial_url
+        from vio.serial_url import split_serial_url
 
         dev = [split_serial_url(u)[0] for u in (src.mavlink_imu_url, cfg.mavlink.url) if u and u.startswith("/dev/")]
         if len(dev) == 2 and os.path.realpath(dev[0]) == os.path.realpath(dev[1]) and \
@@ -926,7 +926,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             raise VioError(f"[source] mavlink_imu_url = {src.mavlink_imu_url!r} and [mavlink] url = "
                            f"{cfg.mavlink.url!r} are one serial device: leave mavlink_imu_url empty to share the link")
     if src.imu == "serial" and cfg.mavlink.url.startswith("/dev/"):
-        from drivers.mavlink_link import split_serial_url
+        from vio.serial_url import split_serial_url
 
         if os.path.realpath(split_serial_url(cfg.mavlink.url)[0]) == os.path.realpath(src.serial_port):
             # the two readers took each other's bytes: frames lost to the MAVLink parser and MAVLink to the IMU's
