@@ -3,7 +3,11 @@ skip with a clear reason on a fresh clone that lacks it."""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,6 +32,50 @@ def v101_path() -> Path:
 @pytest.fixture(scope="session")
 def v102_path() -> Path:
     return _need(V102)
+
+
+@pytest.fixture(scope="session")
+def simulated_flight(tmp_path_factory) -> Callable[..., Path]:
+    """`simulated_flight(SimConfig)` -> the folder of that flight, simulated once per test run and shared by every
+    test file and every xdist worker (the simulator is deterministic for a config): the same drifted-stereo-pair
+    flight was simulated by tests/test_replay.py and tests/test_calib.py each. The tests only read it (what they
+    write goes to their own tmp_path). Across workers: under the run's common base folder, one lock per flight."""
+    from vio.sim.generate import simulate
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # each worker's base lies in the run's
+        base = base.parent
+    cache = base / "simulated_flights"
+    cache.mkdir(exist_ok=True)
+
+    def make(cfg) -> Path:
+        name = hashlib.sha256(repr(cfg).encode()).hexdigest()[:16]
+        data, done = cache / name, cache / f"{name}.done"
+        with open(cache / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # another worker simulating it: wait for its flight
+            if not done.exists():
+                shutil.rmtree(data, ignore_errors=True)  # a worker that died part-way
+                simulate(data, cfg, progress=False)
+                done.write_text(repr(cfg))
+        return data
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def turning_flight(simulated_flight) -> Callable[..., tuple[Path, object]]:
+    """An 8 s aggressive flight (turns about every axis) at 376x240 whose sensor.yaml is wrong as `sim` says
+    (`turning_flight(stereo_error_px=1.0)`: a drifted stereo pair); returns its folder and the calibration it
+    states. Used by tests/test_calib.py and tests/test_replay.py: each distinct flight is simulated once a run."""
+    from vio.io.euroc import EurocDataset
+    from vio.sim.generate import SimConfig
+
+    def make(**sim) -> tuple[Path, object]:
+        data = simulated_flight(SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376,
+                                          height=240, still_start_s=1.0, seed=3, **sim))
+        return data, EurocDataset(data).calibration
+
+    return make
 
 
 @pytest.fixture(autouse=True)

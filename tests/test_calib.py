@@ -819,29 +819,6 @@ def test_calib_refine_refuses_a_flight_without_rotation(tmp_path, capsys):
     assert "enough rotation" in capsys.readouterr().err and not out.exists()
 
 
-@pytest.fixture(scope="module")
-def turning_flight(tmp_path_factory):
-    """An 8 s aggressive flight (turns about every axis) at 376x240 whose sensor.yaml is wrong as `sim` says;
-    returns its folder and the calibration it states. Each distinct flight is simulated once per module (the
-    simulator is deterministic for a seed; five tests read three flights) and the tests only read it: what they
-    write goes to their own tmp_path."""
-    from vio.io.euroc import EurocDataset
-    from vio.sim.generate import SimConfig, simulate
-
-    flights: dict[tuple, Path] = {}
-
-    def make(**sim) -> tuple[Path, object]:
-        key = tuple(sorted(sim.items()))
-        if key not in flights:
-            data = tmp_path_factory.mktemp("turns") / "turns"
-            simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
-                                     still_start_s=1.0, seed=3, **sim), progress=False)
-            flights[key] = data
-        return flights[key], EurocDataset(flights[key]).calibration
-
-    return make
-
-
 def test_check_compares_the_camera_imu_rotation_with_the_gyro(turning_flight):
     """An inverted T_cam_imu, a file that states no camera-IMU extrinsic (body = cam0) or a rig turned by 5 deg
     leave every stereo check passing, and flew at 0.3-6 m of error with the quality the autopilot fuses (a

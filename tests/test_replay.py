@@ -53,7 +53,7 @@ def test_replay_with_stereo_refinement_says_what_it_took_out_and_how_sure(v101_p
     assert "calibration:" not in capsys.readouterr().out
 
 
-def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, capsys, caplog):
+def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, capsys, caplog, turning_flight):
     """The default stereo check on a recording whose sensor.yaml states cam1's principal point 1 px off: the
     replay warns once that the disparities are off (with what to run), refines cam1 from then, and says both in
     its output and stats; the same recording with the calibration right keeps it and says that. (This flight
@@ -61,12 +61,8 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
     import logging
     import re
 
-    from vio.sim.generate import SimConfig, simulate
-
     def flight(name: str, px: float):
-        data = tmp_path / name
-        simulate(data, SimConfig(profile="aggressive", duration_s=8.0, variant="clean", width=376, height=240,
-                                 still_start_s=1.0, seed=3, stereo_error_px=px), progress=False)
+        data = turning_flight(stereo_error_px=px)[0]  # simulated once a run: tests/test_calib.py reads it too
         stats = tmp_path / f"{name}.json"
         with caplog.at_level(logging.WARNING, logger="vio.estimator"):
             assert main(["-q", "replay", str(data), "--stats", str(stats), "--no-progress"]) == 0
@@ -88,8 +84,8 @@ def test_replay_with_a_drifted_stereo_pair_lets_go_of_it_and_says_so(tmp_path, c
     cfg.write_text("[backend]\nstereo_check_max_deg = 0.1\n")
     stats = tmp_path / "held.json"
     with caplog.at_level(logging.WARNING, logger="vio.estimator"):
-        assert main(["-q", "replay", str(tmp_path / "drifted"), "--config", str(cfg), "--stats", str(stats),
-                     "--no-progress"]) == 0
+        assert main(["-q", "replay", str(turning_flight(stereo_error_px=1.0)[0]), "--config", str(cfg), "--stats",
+                     str(stats), "--no-progress"]) == 0
     said, d = capsys.readouterr().out, json.loads(stats.read_text())
     warned = [r.getMessage() for r in caplog.records if "stereo check" in r.getMessage()]
     assert len(warned) == 1 and "further from the calibration" in warned[0], warned
