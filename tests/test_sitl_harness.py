@@ -364,3 +364,43 @@ def test_summary_of_a_perfect_synthetic_flight(tmp_path):
     assert hold["horizontal_max_m"] == pytest.approx(np.linalg.norm(moved[1, :2] - moved[0, :2]), abs=0.06)
     k = s["Kestrel error vs SITL truth, 4-DoF aligned per reset segment [m]"]
     assert k["segments"] == 1 and k["rmse"] < 1e-3
+
+
+def _truth_npz(path, t_s: np.ndarray, ned: np.ndarray, yaw: np.ndarray) -> None:
+    """A raw.npz `truth` array as bench/sitl/run.py records it: t_ns, n, e, d, yaw, q1..q4 (FRD -> NED, w first)."""
+    q = np.array([rot_to_quat_wxyz(_rz(y)) for y in yaw])  # a yaw about NED's down axis: FRD -> NED
+    np.savez(path, truth=np.c_[(1_000_000_000 + t_s * 1e9).round(), ned, yaw, q])
+
+
+def test_consistent_flight_imu_is_what_a_perfect_imu_reads_along_the_truth(tmp_path):
+    """The perfect IMU bench/sitl/consistent_flight.py writes must be that of the truth it renders: a level
+    vehicle accelerating north at 0.4 m/s^2 while yawing at 0.3 rad/s reads gyro (0, 0, 0.3) on its FRD body,
+    and (R^T (a - g)) in its accelerometer: gravity on -z (FRD) and the acceleration turned into the body."""
+    from bench.sitl.consistent_flight import TruthSplines
+
+    t = np.arange(0.0, 6.0, 0.05)
+    ned = np.c_[0.2 * t**2, np.zeros_like(t), np.full_like(t, -1.5)]
+    _truth_npz(tmp_path / "raw.npz", t, ned, 0.3 * t)
+    truth = TruthSplines(tmp_path / "raw.npz", lam=None)
+    ts = np.array([2.0, 3.0, 4.0])
+    gyro, accel = truth.imu(ts)
+    assert np.allclose(gyro, [[0.0, 0.0, 0.3]] * 3, atol=2e-3)
+    # north acceleration 0.4 m/s^2 in the FRD body yawed by 0.3 t: x = 0.4 cos, y = -0.4 sin; gravity reads -g on z
+    expect = np.c_[0.4 * np.cos(0.3 * ts), -0.4 * np.sin(0.3 * ts), np.full(3, -9.80665)]
+    assert np.allclose(accel, expect, atol=0.02), accel
+
+
+def test_consistent_flight_quantises_to_sim_states_latitude_longitude_grid():
+    """SIM_STATE's lat_int/lon_int are 1e-7 deg: 1.11 cm north, cos(lat) of that east; the tool's --quantise
+    must land where a SIM_STATE position does after drivers/sitl_camera.py reads it back."""
+    from bench.sitl.consistent_flight import quantised
+
+    rng = np.random.default_rng(3)
+    ned = np.c_[rng.uniform(-3, 3, 50), rng.uniform(-3, 3, 50), np.full(50, -1.2)]
+    back = np.array([ned_from_geodetic(HOME, int(round((HOME[0] + math.degrees(n / EARTH_RADIUS_M)) * 1e7)),
+                                       int(round((HOME[1] + math.degrees(e / (EARTH_RADIUS_M *
+                                                                              math.cos(math.radians(HOME[0])))))
+                                                 * 1e7)), HOME[2] - d) for n, e, d in ned])
+    q = quantised(world_from_ned(ned), HOME[0])
+    assert np.abs(q - world_from_ned(back))[:, :2].max() < 1e-6
+    assert 0.004 < np.abs(q - world_from_ned(ned))[:, 0].max() <= 0.0056  # half a 1.11 cm step at most
