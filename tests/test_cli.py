@@ -326,6 +326,18 @@ def test_a_serial_device_named_by_its_usb_port_is_a_mavlink_url(tmp_path):
     assert split_serial_url(f"{by_path}:921600") == (by_path, "921600") and split_serial_url(by_path) == (by_path, "")
     assert split_serial_url("/dev/ttyAMA0:921600") == ("/dev/ttyAMA0", "921600")
     assert split_serial_url("/dev/ttyAMA0:9216OO") == ("/dev/ttyAMA0", "9216OO")  # still a bad baud rate (above)
+    # by-id names may hold colons too (an ESP32's serial number is its MAC address), and may not exist yet at start
+    by_id = "/dev/serial/by-id/usb-Espressif_USB_JTAG_serial_debug_unit_F4:12:FA:5A:B2:C8-if00"
+    assert split_serial_url(by_id) == (by_id, "") and split_serial_url(f"{by_id}:921600") == (by_id, "921600")
+    cfg.write_text(f"[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '{by_id}'\n"
+                   f"[run]\nstatus_file = '{tmp_path / 'st.json'}'\n")
+    r = _vio("config", "check", str(cfg))
+    assert r.returncode == EXIT_OK and r.stderr == "", r.stderr
+    # a port that ends in a colon (a baud rate left out) can never open: refused
+    cfg.write_text(f"[source]\nkind = 'fake'\nimu = 'serial'\nserial_port = '/dev/ttyUSB0:'\n"
+                   f"[run]\nstatus_file = '{tmp_path / 'st.json'}'\n")
+    r = _vio("config", "check", str(cfg))
+    assert r.returncode == EXIT_CONFIG and "serial_port = '/dev/ttyUSB0:'" in r.stderr, r.stderr
     # the device opened is the port's, at the baud rate given: a pty behind a link named as udev names it
     master, slave = pty.openpty()
     try:

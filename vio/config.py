@@ -753,9 +753,11 @@ def _check_serial_imu_link(src: SourceConfig, source: str) -> None:
     if tail.isdigit():  # [mavlink] url's DEVICE:BAUD carried over: pyserial opens a device of that name
         raise VioError(f"{source}: [source] serial_port = {port!r} names the device only (the baud rate is "
                        f"serial_baud): serial_port = {device!r}, serial_baud = {tail}")
-    if tail:  # no baud rate either, and no device of that full name: pyserial retried it for ever
-        raise VioError(f"{source}: [source] serial_port = {port!r}: no device of that name, and {tail!r} after "
-                       f"the colon is no baud rate (that is serial_baud): serial_port = {device!r}?")
+    if tail or port.endswith(":"):  # no baud rate either, and no device of that full name: retried for ever
+        after = f"{tail!r} after the colon is no baud rate (that is serial_baud)" if tail else \
+            "it ends in a colon (the baud rate is serial_baud)"
+        raise VioError(f"{source}: [source] serial_port = {port!r}: no device of that name, and {after}: "
+                       f"serial_port = {device!r}?")
     if not (port.startswith("/") or port.upper().startswith("COM")):
         raise VioError(f"{source}: [source] serial_port = {port!r} is not a device path: give it whole, e.g. "
                        f"'/dev/{port.rpartition('/')[2]}'")

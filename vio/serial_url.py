@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-BY_PATH = "/dev/serial/by-path/"
+UDEV_SERIAL = "/dev/serial/"  # by-path/ and by-id/: udev allows colons in both (a port, a serial number)
 
 
 def split_serial_url(url: str) -> tuple[str, str]:
@@ -18,12 +18,14 @@ def split_serial_url(url: str) -> tuple[str, str]:
 
     udev's /dev/serial/by-path/ names, the way to say which USB port when two adapters look alike, hold colons
     themselves (`platform-xhci-hcd.1-usb-0:2:1.0`): split at the first colon, such a name was refused as a bad baud
-    rate ('2:1.0:921600') with or without one. So a tail that is no whole number is part of the device name there
-    (or where a device of that full name exists); elsewhere it stays a (bad) baud rate, said by the caller."""
+    rate ('2:1.0:921600') with or without one; by-id names may too (an ESP32's USB serial number is its MAC address,
+    `usb-Espressif_USB_JTAG_serial_debug_unit_F4:12:FA:5A:B2:C8-if00`). So a tail that is no whole number is part of
+    the device name under /dev/serial/ (present or not: an adapter may enumerate after the service starts) or where
+    a device of that full name exists; elsewhere it stays a (bad) baud rate, said by the caller."""
     device, sep, tail = url.rpartition(":")
     if not sep or tail.isdigit():
         return (device, tail) if sep else (url, "")
-    if url.startswith(BY_PATH) or os.path.exists(url):
+    if url.startswith(UDEV_SERIAL) or os.path.exists(url):
         return url, ""
     device, _, baud = url.partition(":")
     return device, baud
