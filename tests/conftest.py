@@ -43,7 +43,7 @@ def simulated_flight(tmp_path_factory) -> Callable[..., Path]:
     from vio.sim.generate import simulate
 
     base = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):  # each worker's base lies in the run's
+    if os.environ.get("PYTEST_XDIST_WORKER") and base.name.startswith("popen-"):  # a local worker's base: in the run's
         base = base.parent
     cache = base / "simulated_flights"
     cache.mkdir(exist_ok=True)
