@@ -953,8 +953,8 @@ class Estimator:
         self._start_motion_check(init.t_ns, est, ff)
         self.moving_init.clear()
         # "up" in the IMU's axes rather than Euler roll/pitch, which read -50/-89 deg for an IMU with x up
-        log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame", init.method, init.t_ns,
-                 *T[2, :3])
+        log.info("initialised (%s) at t=%d: up is (%+.3f %+.3f %+.3f) in the IMU frame, gyro bias (%.4f %.4f %.4f) "
+                 "rad/s", init.method, init.t_ns, *T[2, :3], *init.gyro_bias)
         if self._stereo_loss is not None:  # started at rest with the right camera still out: say what runs now
             log.warning("stereo: still none at the start: %s", self._without_stereo())
         return self._after_keyframe(init.t_ns, est, ff)

@@ -74,7 +74,8 @@ def static_initialize(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, t_i
     g_mean = gyro.mean(axis=0)
     a_mean = accel.mean(axis=0)
     R_wb = gravity_aligned_rotation(a_mean, headings)
-    log.info("static initialisation: |a| %.3f m/s^2, gyro bias (%.4f %.4f %.4f) rad/s over %.2f s",
+    # a candidate: the estimator may still refuse it (a turn, a bias jump), every frame; the start says its bias
+    log.debug("static initialisation: |a| %.3f m/s^2, gyro bias (%.4f %.4f %.4f) rad/s over %.2f s",
              float(np.linalg.norm(a_mean)), *g_mean, span_s)
     return InitialState(int(t_init_ns), make_T(R_wb, np.zeros(3)), np.zeros(3), g_mean, np.zeros(3), "static")
 
