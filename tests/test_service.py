@@ -1730,3 +1730,17 @@ def test_a_counter_file_that_is_a_folder_is_refused_at_start(tmp_path: Path, cap
     assert said in capsys.readouterr().err
     cfg.write_text('[source]\nkind = "fake"\n[run]\nstatus_file = ""\n[mavlink]\ncounter_file = ""\n')
     assert main(["config", "check", str(cfg)]) == 0
+
+
+def test_the_reason_for_no_pose_before_the_start_fits_a_start_in_flight_too() -> None:
+    """Before its first pose the status said "keep the camera still", which a daemon restarted in flight (it starts
+    moving within about a second, docs/autopilot.md "A restart in flight") cannot do."""
+    from vio.app.daemon.status import _not_tracking_reason
+    from vio.backend.synthetic import synthetic_calibration
+    from vio.estimator import Estimator
+
+    h = Estimator(synthetic_calibration()).health()
+    assert not h.initialized
+    reason = _not_tracking_reason(h, camera_ok=True)
+    assert reason.startswith("not initialised yet") and "still" in reason and "motion" in reason, reason
+

@@ -68,7 +68,9 @@ def _not_tracking_reason(h: EstimatorHealth | None, camera_ok: bool, imu_ok: boo
     top = sorted(h.unusable_reasons.items(), key=lambda kv: -kv[1])[:2]
     unusable = f"; unusable frames: {', '.join(f'{k} x{n}' for k, n in top)}" if top else ""
     if not h.initialized:
-        return f"not initialised yet (keep the camera still, facing a textured, lit scene){unusable}"
+        # a restart in flight waits here too: "keep still" alone is no advice to a flying vehicle
+        return (f"not initialised yet (it starts when still, or after about a second of motion, facing a textured, "
+                f"lit scene){unusable}")
     if h.vision_age_s is None:
         return f"no usable camera frame yet{unusable}"
     return f"last usable camera frame {h.vision_age_s:.1f} s ago (IMU time){unusable}"
