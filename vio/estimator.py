@@ -883,7 +883,7 @@ class Estimator:
         if span_s < 0.9 * window_s:  # the most the rate could move a track over the window, as a turn
             bound_px = float(np.linalg.norm(init.gyro_bias)) * window_s * max(cam.fx, cam.fy) * 1.5
             return self._quiet_wait(ff, bound_px >= icfg.static_turn_visible_px)
-        reading = rotation_reading(frames[0], ff, init.gyro_bias, cam.T_body_cam[:3, :3], cam.K)
+        reading = rotation_reading(frames[0], ff, init.gyro_bias, cam.T_body_cam, cam.K)
         if reading is None or reading.predicted_px < icfg.static_turn_visible_px or not reading.rate_is_turn:
             return False
         last, self._turn_refused_t = self._turn_refused_t, ff.t_ns

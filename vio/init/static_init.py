@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vio.config import InitConfig
+from vio.frontend.gyro import body_to_camera_rotation
+from vio.frontend.undistort import rotate_px
 from vio.geometry import gravity_aligned_rotation, make_T, so3_exp
 from vio.types import FeatureFrame
 
@@ -96,7 +98,7 @@ class RotationReading:
         return self.turn_residual_px < self.moved_px
 
 
-def rotation_reading(old: FeatureFrame, new: FeatureFrame, gyro_mean: np.ndarray, R_body_cam: np.ndarray,
+def rotation_reading(old: FeatureFrame, new: FeatureFrame, gyro_mean: np.ndarray, T_body_cam: np.ndarray,
                      K: np.ndarray, min_shared: int = 10) -> RotationReading | None:
     """Compare the tracks of two frames with where a body turn at `gyro_mean` would have moved them.
 
@@ -104,22 +106,17 @@ def rotation_reading(old: FeatureFrame, new: FeatureFrame, gyro_mean: np.ndarray
     under the per-frame flow gate at low resolution (0.05 rad/s is 0.6 px a frame at fx 190 and 15 Hz), so a
     start in flight took the turn for a gyro bias (an ArduPilot SITL restart: 0.049 rad/s). Over the whole window
     the turn moves the tracks by pixels while a bias moves nothing, and which of the two the tracks follow answers
-    the question. Pure rotation: the world point's bearing turns by R_c1_c0 = R_cb Exp(-w dt) R_bc. None when the
-    frames share fewer than `min_shared` tracks (no judgement)."""
+    the question. Pure rotation: the old pixels through the turn's infinite homography (`rotate_px`, as the front
+    end's gyro prior predicts tracks). None when the frames share fewer than `min_shared` tracks (no judgement)."""
     _, i0, i1 = np.intersect1d(old.ids, new.ids, return_indices=True)
     if len(i0) < min_shared:
         return None
     dt = (new.t_ns - old.t_ns) * 1e-9
-    R = R_body_cam.T @ so3_exp(-np.asarray(gyro_mean, float) * dt) @ R_body_cam
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    u0 = old.uv0[i0]
-    bearings = np.column_stack([(u0[:, 0] - cx) / fx, (u0[:, 1] - cy) / fy, np.ones(len(i0))])
-    b1 = bearings @ R.T
-    ok = b1[:, 2] > 1e-6
+    R_new_old = body_to_camera_rotation(so3_exp(np.asarray(gyro_mean, float) * dt), T_body_cam).T
+    pred, ok = rotate_px(K, R_new_old, old.uv0[i0])
     if np.count_nonzero(ok) < min_shared:
         return None
-    pred = np.column_stack([fx * b1[ok, 0] / b1[ok, 2] + cx, fy * b1[ok, 1] / b1[ok, 2] + cy])
-    u0, u1 = u0[ok], new.uv0[i1][ok]
+    pred, u0, u1 = pred[ok], old.uv0[i0][ok], new.uv0[i1][ok]
     return RotationReading(float(np.linalg.norm(gyro_mean)), dt,
                            float(np.median(np.linalg.norm(pred - u0, axis=1))),
                            float(np.median(np.linalg.norm(u1 - u0, axis=1))),
