@@ -359,6 +359,28 @@ def test_drifting_time_offset_is_stamped_and_recorded(tmp_path):
     assert truth[:, 1].max() - truth[:, 1].min() > 9e6
 
 
+def test_stamp_jitter_delays_the_stamps_and_records_the_truth(tmp_path, capsys):
+    """--stamp-jitter-ms: every frame stamped late by its own delay (mean taken off), the images and IMU those of
+    the same flight without it; the true offset of each frame in time_offset_truth.csv."""
+    cfg = SimConfig(duration_s=2.0, variant="clean", still_start_s=0.5, stamp_jitter_ms=3.0, **TINY)
+    simulate(tmp_path / "j", cfg)
+    simulate(tmp_path / "r", dataclasses.replace(cfg, stamp_jitter_ms=0.0))
+    jit, ref = EurocDataset(tmp_path / "j"), EurocDataset(tmp_path / "r")
+    assert jit.calibration.time_offset_ns == 0 and np.array_equal(jit.imu.t_ns, ref.imu.t_ns)
+    moved = jit.cam0_t - ref.cam0_t  # later stamp: later by the delay beyond the mean
+    truth = np.loadtxt(tmp_path / "j" / "time_offset_truth.csv", delimiter=",", dtype=np.int64)
+    np.testing.assert_array_equal(truth[:, 0], jit.cam0_t)
+    np.testing.assert_array_equal(truth[:, 1], -moved)
+    assert np.all(np.diff(jit.cam0_t) > 0) and 1.5e6 < np.std(moved) < 4.5e6 and abs(np.mean(moved)) < 1e6
+    assert moved.min() >= -3e6 and moved.max() <= 25e6 - 3e6  # exponential delays capped at half a period
+    assert np.array_equal(cv2.imread(str(jit.cam0_files[10]), cv2.IMREAD_UNCHANGED),
+                          cv2.imread(str(ref.cam0_files[10]), cv2.IMREAD_UNCHANGED))
+    with pytest.raises(VioError, match="stamp_jitter_ms = 6.0 is over a tenth of the frame period"):
+        dataclasses.replace(cfg, stamp_jitter_ms=6.0).resolved()
+    assert main(["simulate", str(tmp_path / "x"), "--stamp-jitter-ms", "-1"]) == 2  # usage, named by the option
+    assert "--stamp-jitter-ms -1.0 is outside [0, 20]" in capsys.readouterr().err
+
+
 def test_cli_variant_options(tmp_path, capsys):
     out = tmp_path / "v"
     assert main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--variant", "clean", "--no-progress",

@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the time offset drifts by +-MS around --time-offset-ms (a sinusoid, see --drift-period)")
     p.add_argument("--drift-period", type=float, default=60.0, metavar="S",
                    help="period of the time offset drift in s (default: 60)")
+    p.add_argument("--stamp-jitter-ms", type=float, default=0.0, metavar="MS",
+                   help="stamp each frame late by a random delay of mean and spread MS, its mean taken off (a camera "
+                        "stamped on arrival at the host; the truth in OUT/time_offset_truth.csv)")
     p.add_argument("--imu-mount", choices=sorted(IMU_MOUNTS), default="flu",
                    help="how the IMU sits on the vehicle: flu (square: x forward, z up; default) or oak (a "
                         "forward-looking Luxonis OAK: IMU x up, z backwards); the same flight either way")
@@ -79,7 +82,8 @@ _OPTION_OF = {"duration_s": "--duration", "rate_hz": "--rate", "imu_rate_hz": "-
               "vibration": "--vibration", "plain_fraction": "--plain", "exposure_ms": "--blur-ms",
               "image_noise": "--image-noise", "drop_frames": "--drop-frames", "calib_error": "--calib-error",
               "stereo_error_px": "--stereo-error", "time_offset_drift_ms": "--time-offset-drift-ms",
-              "time_offset_period_s": "--drift-period", "recorded_start_s": "--recorded-start"}
+              "time_offset_period_s": "--drift-period",
+              "stamp_jitter_ms": "--stamp-jitter-ms", "recorded_start_s": "--recorded-start"}
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -124,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
                     stereo_error_px=args.stereo_error,
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
                     time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
+                    stamp_jitter_ms=args.stamp_jitter_ms,
                     imu_mount=args.imu_mount, imu_from=args.imu_from, recorded_start_s=args.recorded_start)
     try:  # every check of resolved() is on an option's value: a usage error (exit 2), named by the option
         cfg.resolved()

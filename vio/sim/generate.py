@@ -4,8 +4,10 @@ Clocks: the truth (and the IMU) run on one clock; a frame exposed at true time t
 t_cam = t - time_offset, so the dataset obeys the calibration's t_imu = t_cam + time_offset_ns (recorded in
 mav0/kestrel.yaml). A positive `time_offset_ms` therefore stamps images *earlier* than the IMU samples
 taken at the same instant. With `time_offset_drift_ms` the offset drifts as a slow sinusoid around that
-value (USB cameras, serial IMUs); the calibration states the mean and `<out>/time_offset_truth.csv` the
-true offset of every frame. The run's settings go to `<out>/simulation.yaml`.
+value (USB cameras, serial IMUs); with `stamp_jitter_ms` each frame is stamped late by a random delay, as
+a camera stamped on arrival at the host is (exponential: mostly short, now and then long; its mean is taken
+off, as the calibration's latency). The calibration states the mean offset and `<out>/time_offset_truth.csv`
+the true offset of every frame. The run's settings go to `<out>/simulation.yaml`.
 
 Calibration error (`calib_error`): the images are rendered with the true calibration but the dataset's
 sensor.yaml files state a perturbed one (vio.sim.perturbed_calibration); the truth is kept beside the
@@ -85,6 +87,7 @@ class SimConfig:
     right_dropouts: tuple[tuple[float, float], ...] = ()  # (start_s, length_s): the right camera gives no image
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
     time_offset_period_s: float = 60.0  # period of that drift
+    stamp_jitter_ms: float = 0.0  # frames stamped late by a random delay of this mean (and spread), mean taken off
     imu_mount: str = "flu"  # the IMU's axes on the vehicle (vio.sim.IMU_MOUNTS): "flu" square, "oak" x up
     imu_from: str | None = None  # a EuRoC recording: its IMU and ground truth replace profile and IMU model
     recorded_start_s: float = 0.0  # with imu_from: where in the recording's ground truth the flight starts
@@ -116,7 +119,7 @@ class SimConfig:
         if cfg.scene != "room" and cfg.aliasing_period_m:  # said before any work, as an option's mistake (exit 2)
             raise VioError(ALIASING_ROOM_ONLY)
         for name, (lo, hi) in {"calib_error": (0, 20), "stereo_error_px": (-20, 20), "time_offset_drift_ms": (0, 100),
-                               "time_offset_period_s": (1, 36000)}.items():
+                               "time_offset_period_s": (1, 36000), "stamp_jitter_ms": (0, 20)}.items():
             if not (lo <= getattr(cfg, name) <= hi):
                 raise VioError(f"simulate: {name} = {getattr(cfg, name)} is outside [{lo}, {hi}]")
         for start, length in cfg.right_dropouts:
@@ -124,6 +127,9 @@ class SimConfig:
                 raise VioError(f"simulate: right dropout {start}:{length} needs start >= 0 and length > 0 s")
         if cfg.recorded_start_s < 0:
             raise VioError(f"simulate: recorded_start_s = {cfg.recorded_start_s} is negative")
+        if cfg.stamp_jitter_ms * 1e-3 * cfg.rate_hz > 0.1:  # delays are capped at half a period: keep the cap rare
+            raise VioError(f"simulate: stamp_jitter_ms = {cfg.stamp_jitter_ms} is over a tenth of the frame period "
+                           f"({100 / cfg.rate_hz:.1f} ms at {cfg.rate_hz:g} Hz)")
         if cfg.imu_rate_hz < cfg.rate_hz:
             raise VioError(f"simulate: imu_rate_hz {cfg.imu_rate_hz} is below the camera rate {cfg.rate_hz}")
         return cfg
@@ -161,10 +167,21 @@ class Simulation:
     written_calibration: StereoCalibration  # what the dataset's sensor.yaml states (calibration unless calib_error)
 
     def time_offset_ns(self, t_s: np.ndarray) -> np.ndarray:
-        """True camera-IMU offset (t_imu = t_cam + offset) of frames exposed at true times t_s."""
+        """True camera-IMU offset (t_imu = t_cam + offset) of frames exposed at true times t_s; with stamp
+        jitter, t_s must be the flight's frame times (the k-th time gets the k-th frame's delay)."""
         c = self.config
         drift = c.time_offset_drift_ms * 1e6 * np.sin(2 * np.pi * np.asarray(t_s, float) / c.time_offset_period_s)
+        if c.stamp_jitter_ms > 0:  # a later stamp is a smaller offset
+            drift = drift - self.stamp_delays_ns(len(t_s))
         return np.round(self.calibration.time_offset_ns + drift).astype(np.int64)
+
+    def stamp_delays_ns(self, n: int) -> np.ndarray:
+        """The first n frames' arrival delays beyond the mean: exponential with mean and spread
+        `stamp_jitter_ms`, capped at half a frame period so stamps keep their order, minus their mean."""
+        c = self.config
+        mean_ns = c.stamp_jitter_ms * 1e6
+        delay = np.minimum(np.random.default_rng([c.seed, 7]).exponential(mean_ns, n), 0.5e9 / c.rate_hz)
+        return delay - mean_ns
 
     def right_dropped(self, t_s: float) -> bool:
         return any(start <= t_s < start + length for start, length in self.config.right_dropouts)
@@ -258,7 +275,7 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
         from tqdm import tqdm
         bar = tqdm(total=len(sim.frame_t_s), unit="frame", desc="rendering", leave=False)
     offsets_ns = sim.time_offset_ns(sim.frame_t_s)
-    if cfg.time_offset_drift_ms > 0:
+    if cfg.time_offset_drift_ms > 0 or cfg.stamp_jitter_ms > 0:
         (out / "time_offset_truth.csv").write_text("#t_cam_ns,time_offset_ns\n" + "".join(
             f"{T0_NS + round(t * 1e9) - o},{o}\n" for t, o in zip(sim.frame_t_s, offsets_ns)))
     with EurocWriter(out, sim.written_calibration, overwrite=True) as writer:
