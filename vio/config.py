@@ -226,6 +226,14 @@ class BackendConfig:
     covariance_every_kf: int = opt(5, "marginal covariances every N keyframes (they cost a few ms); grown with "
                                    "the IMU in between", min=1, max=1000)
     estimate_time_offset: bool = opt(True, "re-estimate the camera-IMU time offset in flight (gyro vs track rotation)")
+    frame_stamps: str = opt("auto", "frame stamps as given ('raw'), or restamped on the camera's own clock, a line "
+                            "fitted to the last frame_stamp_window_s of stamps ('regular': a camera stamped on "
+                            "arrival at the host, whose stamps jitter by milliseconds); 'auto' restamps only while the "
+                            "stamps spread by 0.25 ms or more around that line (device-stamped cameras and datasets "
+                            "such as EuRoC fit it to microseconds: kept as given)", choices=("auto", "raw", "regular"))
+    frame_stamp_window_s: float = opt(10.0, "stamps the camera clock is fitted to [s]: longer averages the jitter "
+                                      "down further, and a clock that drifts is still a line over seconds",
+                                      min=1, max=120)
     stereo_every_frame: bool = opt(False, "stereo (and right-image decoding) on every frame, not only where a keyframe "
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")
     time_offset_max_ms: float = opt(50.0, "largest offset error searched for", min=1, max=500)

@@ -41,6 +41,7 @@ from vio.backend.smoother import SmootherFailure, StereoFinding, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration, calibration_units_problem
 from vio.config import EstimatorConfig, VioConfig
+from vio.frame_clock import FrameClock
 from vio.frontend.gyro import GyroPrior
 from vio.frontend.median import median
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
@@ -244,6 +245,9 @@ class Estimator:
         self.gyro_prior = GyroPrior(calib.cam0.T_body_cam, 0, imu=self.imu)
         self.time_offset_ns = int(calib.time_offset_ns)  # t_imu = t_cam + offset; may be re-estimated
         b = self.bcfg
+        # frames stamped on arrival restamped on the camera's own clock; kept across resets (the camera's clock
+        # does not change when the estimator does)
+        self.frame_clock = FrameClock(b.frame_stamps, b.frame_stamp_window_s)
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
                                                  track_window_s=b.time_offset_track_window_s,
@@ -442,6 +446,9 @@ class Estimator:
     def _enqueue(self, item: StereoFrame | FeatureFrame) -> None:
         """Bounded wait for the IMU: a frame stamped far ahead of it, or one that would grow the queue past
         max_pending_frames (an IMU that stopped), is dropped and counted instead of waiting forever."""
+        t_ns = self.frame_clock.restamp(item.t_ns)
+        if t_ns != item.t_ns:  # a stamp the camera's fitted clock puts elsewhere (vio.frame_clock)
+            item = dataclasses.replace(item, t_ns=t_ns)
         if self._t_first_ns is None:
             self._t_first_ns = int(item.t_ns)
         b = self.bcfg

@@ -340,7 +340,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
                               "calibration_refined": est.refinement_stats(),
                               "stereo_check": est.stereo_check_stats(),
-                              "motion_check": est.motion_check_stats()},
+                              "motion_check": est.motion_check_stats(),
+                              "frame_stamps": est.frame_clock.stats.as_dict()},
                        frames_listed=listed, unusable_reasons=unusable, sensor_error=h.sensor_error,
                        ended_blocked=bool(states) and h.stopped_for_run is not None)
     summary = res.unusable_summary()
@@ -613,8 +614,10 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
               + (f"; {ms.states_refused_unheard} not sent: no autopilot heartbeat said it was disarmed"
                  if ms.states_refused_unheard else ""))
     from vio.estimator import motion_check_line, stereo_check_line
+    from vio.frame_clock import frame_stamps_line
 
-    for line in (stereo_check_line(res.extra.get("stereo_check")), motion_check_line(res.extra.get("motion_check"))):
+    for line in (stereo_check_line(res.extra.get("stereo_check")), motion_check_line(res.extra.get("motion_check")),
+                 frame_stamps_line(res.extra.get("frame_stamps"))):
         if line:
             print(line)
     refined = res.extra.get("calibration_refined")

@@ -1,0 +1,198 @@
+"""Frame stamps on the camera's own clock, for cameras stamped on arrival at the host.
+
+A camera exposes on its own crystal, one frame every period; a driver that stamps each frame when it reaches
+the host (a USB camera read through V4L2 or GStreamer, a simulator's frames over a socket, a recording made
+that way) adds the transfer's varying delay to every stamp. The estimator integrates the IMU between frame
+stamps, so a few milliseconds of that delay move each keyframe along the path by the vehicle's speed times
+it: on a simulated aggressive flight 3 ms of jitter took the ATE from 16 to 64 mm (docs/estimator.md "Frame
+stamps").
+
+`FrameClock` fits the camera's clock, stamp = offset + period x frame number, to the last
+`frame_stamp_window_s` of stamps (least squares, then again without the stamps far off that line: a frame
+held up for long), numbering frames by the fitted period so that dropped frames keep their place, and stamps
+each frame with the line's value. The line keeps the stamps' mean, so a constant latency stays where the
+calibration's time offset has it. It only steps in where it helps: with `frame_stamps = "auto"` the stamps
+are kept as given while their spread around the line is below `ON_MS` (a camera stamped on the device, as an
+OAK, or a dataset such as EuRoC, whose stamps fit to well under a microsecond: byte for byte the same
+replay), and it never restamps where the spread is too large to number frames reliably, where a stamp
+leaves the line for good (a camera restarted, its rate changed: the fit starts again), or across a gap.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MODES = ("auto", "raw", "regular")
+MIN_FRAMES = 20  # frames in the fit before a stamp is moved: a line from fewer moves them by its own error
+ON_MS = 0.25  # auto: restamp from this spread (1 sigma, robust) of the stamps around the line...
+OFF_MS = 0.1  # ...until it falls below this one (hysteresis: no switching back and forth near one threshold)
+MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept
+OFF_LINE_PERIODS = 0.25  # a stamp this far from the line (and 8 sigma) is off it...
+OFF_LINE_IN_ROW = 3  # ...and this many in a row mean the camera's clock changed: the fit starts again
+MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
+
+
+@dataclass
+class FrameClockStats:
+    """What the clock did over a run, for the replay's statistics and the daemon's status."""
+
+    mode: str
+    frames: int = 0
+    restamped: int = 0
+    largest_move_ns: int = 0
+    spread_ns: float | None = None  # the stamps' latest spread around the fitted line (robust 1 sigma)
+    period_ns: float | None = None  # the fitted frame period
+    restarts: int = 0  # fits started again (gaps, a clock that changed)
+
+    def as_dict(self) -> dict:
+        return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
+                "largest_move_ms": round(self.largest_move_ns * 1e-6, 3),
+                "spread_ms": None if self.spread_ns is None else round(self.spread_ns * 1e-6, 3),
+                "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
+                "restarts": self.restarts}
+
+
+class FrameClock:
+    """Restamps frames on a line fitted to their recent stamps (see the module's docstring)."""
+
+    def __init__(self, mode: str = "auto", window_s: float = 10.0) -> None:
+        if mode not in MODES:
+            raise ValueError(f"frame stamps mode {mode!r} is not one of {list(MODES)}")
+        self.mode = mode
+        self.window_ns = int(window_s * 1e9)
+        self.stats = FrameClockStats(mode)
+        self._ref_ns = 0  # stamps are kept relative to the run's first one (float64 keeps them exact)
+        self._n: deque[int] = deque()
+        self._a: deque[float] = deque()
+        self._line: tuple[float, float] | None = None  # (value at frame 0, period) in ns relative to _ref_ns
+        self._spread = 0.0
+        self._on = False
+        self._off_line = 0
+        self._warned = False  # the spread-too-large warning, once per fit
+        self._last_in = None
+        self._last_out = None
+
+    def restamp(self, t_ns: int) -> int:
+        """The stamp to use for a frame stamped `t_ns` (stamps must come in order; others pass unchanged)."""
+        t_ns = int(t_ns)
+        self.stats.frames += 1
+        if self.mode == "raw":
+            return t_ns
+        last_in, self._last_in = self._last_in, t_ns
+        if last_in is None or t_ns <= last_in or t_ns - last_in > MAX_GAP_S * 1e9:
+            if last_in is not None:
+                gap = f"a gap of {(t_ns - last_in) * 1e-9:.2f} s" if t_ns > last_in else "a stamp out of order"
+                self._restart(gap)
+            self._start(t_ns)
+            return self._out(t_ns, t_ns)
+        a = float(t_ns - self._ref_ns)
+        n = self._number(a)
+        if self._line is not None:
+            off = a - (self._line[0] + self._line[1] * n)
+            if abs(off) > max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread):
+                self._off_line += 1
+                if self._off_line >= OFF_LINE_IN_ROW:
+                    self._restart(f"{OFF_LINE_IN_ROW} frames in a row off the camera clock's line "
+                                  f"(the last by {off * 1e-6:.1f} ms)")
+                    self._start(t_ns)
+                    return self._out(t_ns, t_ns)
+                late = off > 0 and self._on  # a frame held up: the line has it; one early: the clock may have changed
+                line = self._ref_ns + int(round(self._line[0] + self._line[1] * n))
+                return self._out(t_ns, line if late else t_ns)  # out of the fit either way
+        self._off_line = 0
+        self._n.append(n)
+        self._a.append(a)
+        while self._a and a - self._a[0] > self.window_ns:
+            self._n.popleft()
+            self._a.popleft()
+        if len(self._n) >= MIN_FRAMES:
+            self._fit()
+        if not self._on or self._line is None:
+            return self._out(t_ns, t_ns)
+        return self._out(t_ns, self._ref_ns + int(round(self._line[0] + self._line[1] * n)))
+
+    def _start(self, t_ns: int) -> None:
+        self._ref_ns = t_ns
+        self._n.clear()
+        self._a.clear()
+        self._n.append(0)
+        self._a.append(0.0)
+        self._line = None
+        self._off_line = 0
+        self._warned = False
+        self._on = False  # kept as given until the new fit has MIN_FRAMES (the restart's line says so)
+
+    def _restart(self, why: str) -> None:
+        self.stats.restarts += 1
+        log.info("frame clock: %s: fitting the camera's clock again (stamps kept as given meanwhile)", why)
+
+    def _number(self, a: float) -> int:
+        """This frame's number: the last one's plus the fitted periods since it (a dropped frame is skipped)."""
+        n_last, a_last = self._n[-1], self._a[-1]
+        if self._line is not None:
+            c, period = self._line
+            return n_last + max(1, int(round((a - (c + period * n_last)) / period)))
+        steps = np.diff(np.asarray(self._a)) if len(self._a) > 1 else None
+        period = float(np.median(steps)) if steps is not None else a - a_last  # warming up: the typical step
+        return n_last + max(1, int(round((a - a_last) / period)))
+
+    def _fit(self) -> None:
+        n = np.asarray(self._n, dtype=float)
+        a = np.asarray(self._a)
+        keep = np.ones(len(n), bool)
+        for _ in range(2):  # least squares, then again without the stamps far above or below it
+            nm, am = n[keep].mean(), a[keep].mean()
+            dn = n[keep] - nm
+            period = float(dn @ (a[keep] - am) / (dn @ dn))
+            r = a - (am + period * (n - nm))
+            med = float(np.median(r[keep]))
+            spread = 1.4826 * float(np.median(np.abs(r[keep] - med)))
+            keep = np.abs(r - med) <= max(4 * spread, 1e3)
+        if period <= 0:
+            return
+        self._line = (am - period * nm, period)
+        self._spread = spread
+        self.stats.spread_ns, self.stats.period_ns = spread, period
+        if spread > MAX_SPREAD_PERIODS * period:
+            self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
+                                "period: too much to number the frames, stamps kept as given")
+        elif self.mode == "regular" or spread >= ON_MS * 1e6:
+            self._set_on(True, None)
+        elif spread < OFF_MS * 1e6:
+            self._set_on(False, None)
+
+    def _set_on(self, on: bool, why: str | None) -> None:
+        if on and not self._on:
+            log.info("frame stamps spread %.2f ms (1 sigma) around a %.3f ms frame clock: frames stamped on that "
+                     "clock from now on (frame_stamps = %s)", self._spread * 1e-6, self._line[1] * 1e-6, self.mode)
+        elif self._on and not on:
+            log.info("frame stamps: %s", why or f"the stamps spread {self._spread * 1e-6:.2f} ms around the frame "
+                                                 "clock now: kept as given")
+        elif why and not self._warned:
+            log.warning("frame stamps: %s", why)
+        self._warned = self._warned or why is not None
+        self._on = on
+
+    def _out(self, t_in: int, t_out: int) -> int:
+        if self._last_out is not None and t_out <= self._last_out:
+            t_out = t_in  # never out of order: the estimator would drop the frame
+        self._last_out = t_out
+        if t_out != t_in:
+            self.stats.restamped += 1
+            self.stats.largest_move_ns = max(self.stats.largest_move_ns, abs(t_out - t_in))
+        return t_out
+
+
+def frame_stamps_line(stats: dict | None) -> str | None:
+    """One line for a replay whose frames were restamped (None where every stamp was kept as given)."""
+    if not stats or not stats["restamped"]:
+        return None
+    return (f"frame stamps: {stats['restamped']} of {stats['frames']} frames restamped on the camera's clock "
+            f"({stats['period_ms']:.3f} ms period; the stamps spread {stats['spread_ms']:.2f} ms around it, largest "
+            f"move {stats['largest_move_ms']:.1f} ms; {stats['restarts']} restarts)")
