@@ -134,3 +134,24 @@ def test_a_replay_of_frames_stamped_on_arrival(tmp_path):
         restamped = d["frame_stamps"]["restamped"]
         assert (restamped > 150) if name == "auto" else (restamped == 0)
     assert ate["auto"] < 0.6 * ate["raw"], ate  # 6.1 against 17.4 mm when written
+
+
+def test_the_clock_lets_go_when_the_jitter_ends_and_waits_near_the_bound(caplog):
+    """Auto: a camera whose stamps stop jittering (the host's load went) is kept as given again after a window.
+    Stamps spreading near the bound (0.11 of a period, where the spread read from 20 frames may fall either
+    side of it): no frame numbered wrongly (50 ms off) and no switching back and forth."""
+    rng = np.random.default_rng(13)
+    true = exposures(800, rng)
+    arrived = true + np.concatenate([np.round(rng.exponential(2e6, 400)), np.zeros(400)]).astype(np.int64)
+    clock = FrameClock("auto", window_s=5.0)
+    with caplog.at_level(logging.INFO, logger="vio.frame_clock"):
+        out = restamp_all(clock, arrived)
+    assert "around the frame clock now: kept as given" in caplog.text
+    assert np.array_equal(out[-200:], arrived[-200:]) and clock.stats.restamped > 300
+    near = true + np.round(rng.normal(0, 0.11 * PERIOD_NS, len(true))).astype(np.int64)
+    near = np.maximum.accumulate(near + np.arange(len(near)))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="vio.frame_clock"):
+        out = restamp_all(FrameClock("auto"), near)
+    assert np.max(np.abs(out - true)) < 0.5 * PERIOD_NS
+    assert caplog.text.count("frames stamped on that clock from now on") <= 1

@@ -32,7 +32,8 @@ MODES = ("auto", "raw", "regular")
 MIN_FRAMES = 20  # frames in the fit before a stamp is moved: a line from fewer moves them by its own error
 ON_MS = 0.25  # auto: restamp from this spread (1 sigma, robust) of the stamps around the line...
 OFF_MS = 0.1  # ...until it falls below this one (hysteresis: no switching back and forth near one threshold)
-MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept
+MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept...
+START_SPREAD_PERIODS = 0.1  # ...and restamping starts only below this one (no switching near the bound)
 OFF_LINE_PERIODS = 0.25  # a stamp this far from the line (and 8 sigma) is off it...
 OFF_LINE_IN_ROW = 3  # ...and this many in a row mean the camera's clock changed: the fit starts again
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
@@ -162,10 +163,11 @@ class FrameClock:
         if spread > MAX_SPREAD_PERIODS * period:
             self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
                                 "period: too much to number the frames, stamps kept as given")
-        elif self.mode == "regular" or spread >= ON_MS * 1e6:
+        elif self._on:
+            if self.mode == "auto" and spread < OFF_MS * 1e6:
+                self._set_on(False, None)
+        elif spread <= START_SPREAD_PERIODS * period and (self.mode == "regular" or spread >= ON_MS * 1e6):
             self._set_on(True, None)
-        elif spread < OFF_MS * 1e6:
-            self._set_on(False, None)
 
     def _set_on(self, on: bool, why: str | None) -> None:
         if on and not self._on:
