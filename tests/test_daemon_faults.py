@@ -389,6 +389,9 @@ status_file = "{tmp_path / 'status.json'}"
             w.startswith("camera: no frames") for w in s["warnings"])), 15), d.log[-3000:]
         s = d.status()
         assert s["estimator"]["tracking"] is False and s["estimator"]["quality"] == 0
+        # the EuRoC source's stamps are the recording's (to 0.1 us on a 50 ms clock): none restamped
+        fs = s["estimator"]["frame_stamps"]
+        assert fs["mode"] == "auto" and fs["frames"] > 50 and fs["restamped"] == 0, fs
         time.sleep(0.5)
         n = ap.odometry_tracked()
         time.sleep(2.0)

@@ -340,6 +340,7 @@ class Health:
     sensor_error: str | None = None
     calibration_warning: str | None = None
     stereo_warning: str | None = None
+    frame_stamps: dict | None = None
     stopped_for_run: str | None = None
 
 

@@ -229,8 +229,9 @@ class BackendConfig:
     frame_stamps: str = opt("auto", "frame stamps as given ('raw'), or restamped on the camera's own clock, a line "
                             "fitted to the last frame_stamp_window_s of stamps ('regular': a camera stamped on "
                             "arrival at the host, whose stamps jitter by milliseconds); 'auto' restamps only while the "
-                            "stamps spread by 0.25 ms or more around that line (device-stamped cameras and datasets "
-                            "such as EuRoC fit it to microseconds: kept as given)", choices=("auto", "raw", "regular"))
+                            "stamps jitter by 0.25 ms or more from frame to frame around that line (device-stamped "
+                            "cameras and datasets such as EuRoC fit it to microseconds, and a smoothly drifting "
+                            "offset is the time offset state's: kept as given)", choices=("auto", "raw", "regular"))
     frame_stamp_window_s: float = opt(10.0, "stamps the camera clock is fitted to [s]: longer averages the jitter "
                                       "down further, and a clock that drifts is still a line over seconds",
                                       min=1, max=120)

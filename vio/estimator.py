@@ -161,6 +161,7 @@ class EstimatorHealth:
     calibration_warning: str | None = None  # the flight showed the calibration wrong (the stereo check let go)
     stereo_warning: str | None = None  # frames that asked for stereo found none for a while (right camera, calib)
     stopped_for_run: str | None = None  # why the estimator stopped for the rest of the run (the IMU against the camera)
+    frame_stamps: dict | None = None  # what the frame clock did (vio.frame_clock.FrameClockStats.as_dict)
 
 
 @dataclass(frozen=True)
@@ -411,7 +412,8 @@ class Estimator:
                                self.reset_counter, self.frames_processed, self.frames_unusable,
                                dict(self.unusable_reasons), self.imu_rejected, dict(self.imu_rejected_reasons),
                                self.frames_dropped, age, self.last_reset_reason, self.sensor_error,
-                               self._calibration_warning(), self.stereo_warning, self._imu_camera_error)
+                               self._calibration_warning(), self.stereo_warning, self._imu_camera_error,
+                               self.frame_clock.stats.as_dict())
 
     def _calibration_warning(self) -> str | None:
         said = []

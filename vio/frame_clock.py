@@ -12,9 +12,10 @@ stamps").
 held up for long), numbering frames by the fitted period so that dropped frames keep their place, and stamps
 each frame with the line's value. The line keeps the stamps' mean, so a constant latency stays where the
 calibration's time offset has it. It only steps in where it helps: with `frame_stamps = "auto"` the stamps
-are kept as given while their spread around the line is below `ON_MS` (a camera stamped on the device, as an
-OAK, or a dataset such as EuRoC, whose stamps fit to well under a microsecond: byte for byte the same
-replay), and it never restamps where the spread is too large to number frames reliably, where a stamp
+are kept as given while they jitter (change from one frame to the next around the line) by less than `ON_MS`
+(a camera stamped on the device, as an OAK, or a dataset such as EuRoC, whose stamps fit to well under a
+microsecond: byte for byte the same replay; and a smoothly drifting offset, which the time offset state
+follows), and it never restamps where the spread is too large to number frames reliably, where a stamp
 leaves the line for good (a camera restarted, its rate changed: the fit starts again), or across a gap.
 """
 
@@ -30,7 +31,7 @@ log = logging.getLogger(__name__)
 
 MODES = ("auto", "raw", "regular")
 MIN_FRAMES = 20  # frames in the fit before a stamp is moved: a line from fewer moves them by its own error
-ON_MS = 0.25  # auto: restamp from this spread (1 sigma, robust) of the stamps around the line...
+ON_MS = 0.25  # auto: restamp from this jitter (1 sigma, robust) of the stamps from frame to frame...
 OFF_MS = 0.1  # ...until it falls below this one (hysteresis: no switching back and forth near one threshold)
 MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept...
 START_SPREAD_PERIODS = 0.1  # ...and restamping starts only below this one (no switching near the bound)
@@ -48,6 +49,7 @@ class FrameClockStats:
     restamped: int = 0
     largest_move_ns: int = 0
     spread_ns: float | None = None  # the stamps' latest spread around the fitted line (robust 1 sigma)
+    jitter_ns: float | None = None  # the part of it that changes from frame to frame (what auto goes by)
     period_ns: float | None = None  # the fitted frame period
     restarts: int = 0  # fits started again (gaps, a clock that changed)
 
@@ -55,6 +57,7 @@ class FrameClockStats:
         return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
                 "largest_move_ms": round(self.largest_move_ns * 1e-6, 3),
                 "spread_ms": None if self.spread_ns is None else round(self.spread_ns * 1e-6, 3),
+                "jitter_ms": None if self.jitter_ns is None else round(self.jitter_ns * 1e-6, 3),
                 "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
                 "restarts": self.restarts}
 
@@ -73,6 +76,7 @@ class FrameClock:
         self._a: deque[float] = deque()
         self._line: tuple[float, float] | None = None  # (value at frame 0, period) in ns relative to _ref_ns
         self._spread = 0.0
+        self._jitter = 0.0
         self._on = False
         self._off_line = 0
         self._warned = False  # the spread-too-large warning, once per fit
@@ -157,25 +161,29 @@ class FrameClock:
             keep = np.abs(r - med) <= max(4 * spread, 1e3)
         if period <= 0:
             return
+        # the jitter is what changes from one frame to the next: a stamp offset that drifts smoothly (a camera
+        # clock against the IMU's, which the time offset state follows) leaves the line as well, but not that
+        step = np.diff(r[keep])
+        jitter = 1.4826 * float(np.median(np.abs(step - np.median(step)))) / float(np.sqrt(2.0))
         self._line = (am - period * nm, period)
-        self._spread = spread
-        self.stats.spread_ns, self.stats.period_ns = spread, period
+        self._spread, self._jitter = spread, jitter
+        self.stats.spread_ns, self.stats.jitter_ns, self.stats.period_ns = spread, jitter, period
         if spread > MAX_SPREAD_PERIODS * period:
             self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
                                 "period: too much to number the frames, stamps kept as given")
         elif self._on:
-            if self.mode == "auto" and spread < OFF_MS * 1e6:
+            if self.mode == "auto" and jitter < OFF_MS * 1e6:
                 self._set_on(False, None)
-        elif spread <= START_SPREAD_PERIODS * period and (self.mode == "regular" or spread >= ON_MS * 1e6):
+        elif spread <= START_SPREAD_PERIODS * period and (self.mode == "regular" or jitter >= ON_MS * 1e6):
             self._set_on(True, None)
 
     def _set_on(self, on: bool, why: str | None) -> None:
         if on and not self._on:
-            log.info("frame stamps spread %.2f ms (1 sigma) around a %.3f ms frame clock: frames stamped on that "
-                     "clock from now on (frame_stamps = %s)", self._spread * 1e-6, self._line[1] * 1e-6, self.mode)
+            log.info("frame stamps jitter by %.2f ms (1 sigma) around a %.3f ms frame clock: frames stamped on that "
+                     "clock from now on (frame_stamps = %s)", self._jitter * 1e-6, self._line[1] * 1e-6, self.mode)
         elif self._on and not on:
-            log.info("frame stamps: %s", why or f"the stamps spread {self._spread * 1e-6:.2f} ms around the frame "
-                                                 "clock now: kept as given")
+            log.info("frame stamps: %s", why or f"the stamps jitter by {self._jitter * 1e-6:.2f} ms now: kept as "
+                                                 "given")
         elif why and not self._warned:
             log.warning("frame stamps: %s", why)
         self._warned = self._warned or why is not None

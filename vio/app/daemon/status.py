@@ -52,7 +52,7 @@ def _health_fields(h: EstimatorHealth) -> dict:
             "frames_dropped": h.frames_dropped, "imu_rejected": h.imu_rejected,
             "imu_rejected_reasons": dict(h.imu_rejected_reasons), "last_reset_reason": h.last_reset_reason,
             "sensor_error": h.sensor_error, "calibration_warning": h.calibration_warning,
-            "stereo_warning": h.stereo_warning}
+            "stereo_warning": h.stereo_warning, "frame_stamps": h.frame_stamps}
 
 
 def _not_tracking_reason(h: EstimatorHealth | None, camera_ok: bool, imu_ok: bool = True) -> str:
