@@ -17,7 +17,10 @@ Frames (why the conversions look as they do):
   simulator's forward stereo head (defined on an FLU body) is re-expressed in FRD: T_frd_cam = R_frd_flu @
   T_flu_cam. `[mavlink] mount = "camera-forward"` then finds the IMU square to the airframe.
 
-Stamps: a frame is stamped with the host clock when its SIM_STATE arrived. The SITL must run in real time
+Stamps: a frame is stamped with the host clock when its SIM_STATE arrived. A thread of its own reads and
+stamps the stream, and the rendering takes the newest state: read between renders, a SIM_STATE that waited in
+the socket while a frame was rendered (tens of ms at 320x200) was stamped that much late, and the frames of
+the 2026-12-07 restart flight came 35-99 ms apart around a 65 ms period. The SITL must run in real time
 (`--speedup 1`), since the IMU source maps the autopilot's clock onto the host clock with a drift estimator
 made for crystal errors, not for a simulation running at half speed.
 
@@ -32,6 +35,7 @@ import dataclasses
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -109,10 +113,13 @@ class SitlCameraSource(ThreadedSource):
         self._cams: list | None = None  # [(CameraRenderer, T_body_cam)], built on first use (about a second)
         self._next_ns = 0
         self.seq = 0
-        self.states = 0
+        self.states = 0  # SIM_STATEs the renderer took (the newest at each look)
+        self.states_received = 0
         self.frames_black = 0
         self.render_ms = 0.0
         self.last_T_world_body: np.ndarray | None = None
+        self._latest: tuple[Any, int] | None = None  # the newest SIM_STATE and its arrival stamp, for the renderer
+        self._arrived = threading.Condition()
 
     # -- rendering (no I/O: tests call these directly) -----------------------------------------------------
     def _renderers(self) -> list:
@@ -150,11 +157,13 @@ class SitlCameraSource(ThreadedSource):
         T = T_world_body_from_sim(np.array([msg.q1, msg.q2, msg.q3, msg.q4]),
                                   ned_from_geodetic(self.home, lat, lon, msg.alt))
         self.last_T_world_body = T
-        if t_ns < self._next_ns:
-            return None
         period = int(1e9 / self.fps)
-        # keep the frame grid; after a stall (or at the start) re-anchor it instead of bursting to catch up
-        self._next_ns = self._next_ns + period if t_ns - self._next_ns < period else t_ns + period
+        # the stream comes at the camera rate, a state up to a quarter period early is this frame's (a faster
+        # stream is thinned to the rate); keep the frame grid, after a stall (or at the start) re-anchor it
+        # instead of bursting to catch up
+        if t_ns < self._next_ns - period // 4:
+            return None
+        self._next_ns = self._next_ns + period if abs(t_ns - self._next_ns) < period else t_ns + period
         return self.render(T, t_ns)
 
     # -- source interface ----------------------------------------------------------------------------------
@@ -169,8 +178,10 @@ class SitlCameraSource(ThreadedSource):
         return open_connection(self.url, source_system=255)
 
     def _request_stream(self, conn: Any) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for SIM_STATE at twice the camera rate (frames are taken on the grid)."""
-        conn.mav.command_long_send(1, 0, 511, 0, SIM_STATE_ID, 1e6 / (2 * self.fps), 0, 0, 0, 0, 0)
+        """MAV_CMD_SET_MESSAGE_INTERVAL for SIM_STATE at the camera rate: each state a frame, exposed as regularly
+        as the SITL sends them (at twice the rate, the first state after each grid point made frames 33, 66 or
+        100 ms apart at 15 Hz: the grid's phase against the stream's)."""
+        conn.mav.command_long_send(1, 0, 511, 0, SIM_STATE_ID, 1e6 / self.fps, 0, 0, 0, 0, 0)
 
     def _run(self) -> None:
         self._renderers()
@@ -186,35 +197,58 @@ class SitlCameraSource(ThreadedSource):
             log.info("sitl camera: reading SIM_STATE from %s, rendering %dx%d at %.0f Hz", self.url, self.width,
                      self.height, self.fps)
             self.state = "running"
-            requested_ns, heard = 0, False
+            done = threading.Event()
+            failed: list[BaseException] = []
+            reader = threading.Thread(target=self._receive, args=(conn, done, failed), name="sitl-camera-rx",
+                                      daemon=True)
+            reader.start()
             try:
-                while not self._stop.is_set():
-                    now = self._clock_ns()
-                    # ask again every REQUEST_EVERY_S (a rebooted autopilot forgets message intervals) and
-                    # right after the first message (a udpin link can only answer once the peer is known)
-                    if requested_ns == 0 or now - requested_ns > REQUEST_EVERY_S * 1e9:
-                        self._request_stream(conn)
-                        requested_ns = now
-                    msg = conn.recv_match(type="SIM_STATE", blocking=True, timeout=READ_TIMEOUT_S)
-                    if msg is None:
-                        continue
-                    if not heard:
-                        heard, requested_ns = True, 0
-                    frame = self.on_sim_state(msg, self._clock_ns())
-                    if frame is not None:
+                while not self._stop.is_set() and reader.is_alive():
+                    with self._arrived:
+                        if self._latest is None:
+                            self._arrived.wait(READ_TIMEOUT_S)
+                        item, self._latest = self._latest, None
+                    if item is not None and (frame := self.on_sim_state(*item)) is not None:
                         self._frames.put(frame)
-            except (OSError, ConnectionError) as e:
-                log.warning("sitl camera: link to %s lost (%s); reconnecting", self.url, e)
-                self.state = "connecting"
             finally:
+                done.set()
+                reader.join(timeout=2 * READ_TIMEOUT_S + 1)
                 with contextlib.suppress(OSError, AttributeError):
                     conn.close()
+            if failed and not self._stop.is_set():
+                log.warning("sitl camera: link to %s lost (%s); reconnecting", self.url, failed[0])
+                self.state = "connecting"
+
+    def _receive(self, conn: Any, done: threading.Event, failed: list[BaseException]) -> None:
+        """Read and stamp SIM_STATE as it arrives, keeping only the newest for the renderer; ask for the stream
+        every REQUEST_EVERY_S (a rebooted autopilot forgets message intervals) and right after the first message
+        (a udpin link can only answer once the peer is known)."""
+        requested_ns, heard = 0, False
+        try:
+            while not done.is_set() and not self._stop.is_set():
+                now = self._clock_ns()
+                if requested_ns == 0 or now - requested_ns > REQUEST_EVERY_S * 1e9:
+                    self._request_stream(conn)
+                    requested_ns = now
+                msg = conn.recv_match(type="SIM_STATE", blocking=True, timeout=READ_TIMEOUT_S)
+                if msg is None:
+                    continue
+                t_ns = self._clock_ns()
+                self.states_received += 1
+                if not heard:
+                    heard, requested_ns = True, 0
+                with self._arrived:
+                    self._latest = (msg, t_ns)
+                    self._arrived.notify()
+        except (OSError, ConnectionError) as e:
+            failed.append(e)
 
     def poll(self) -> list[Message]:
         return self._frames.drain()
 
     def health(self) -> dict[str, Any]:
         return {"name": self.name, "state": self.state, "url": self.url, "sim_states": self.states,
-                "frames": self.seq, "frames_black": self.frames_black, "frames_dropped": self._frames.dropped,
+                "sim_states_received": self.states_received, "frames": self.seq, "frames_black": self.frames_black,
+                "frames_dropped": self._frames.dropped,
                 "render_ms": round(self.render_ms, 1), "blackout": self.blacked_out()}
 
