@@ -119,7 +119,9 @@ def test_regular_mode_restamps_small_jitter_and_the_mode_is_checked():
 def test_a_replay_of_frames_stamped_on_arrival(tmp_path):
     """What a user does: a flight whose frames were stamped on arrival (4 ms of jitter) replayed; the default
     restamps it and is far nearer the truth than the stamps as given (`frame_stamps = "raw"`), which the
-    replay's statistics show."""
+    replay's statistics show. Restamped frames keep their images for the track images and the loop closure (found
+    by the stamp fed, 19 of 201 track images were written here and 1 keyframe of 23 reached the loop stage on an 8 s
+    flight)."""
     flight = tmp_path / "jittered"
     assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "10", "--seed", "1",
                  "--size", "376x240", "--stamp-jitter-ms", "4", "--no-progress"]) == 0
@@ -127,8 +129,12 @@ def test_a_replay_of_frames_stamped_on_arrival(tmp_path):
     ate = {}
     for name, extra in (("auto", []), ("raw", ["--config", str(tmp_path / "raw.toml")])):
         stats = tmp_path / f"{name}.json"
-        assert main(["-q", "replay", str(flight), "--no-progress", "--stats", str(stats), *extra]) == 0
+        tracks = tmp_path / f"tracks_{name}"
+        assert main(["-q", "replay", str(flight), "--no-progress", "--stats", str(stats), "--loop",
+                     "--show-tracks", str(tracks), *extra]) == 0
         d = json.loads(stats.read_text())
+        assert len(list(tracks.glob("*.png"))) >= d["frames"] - 2, (name, len(list(tracks.glob("*.png"))))
+        assert d["loop"]["keyframes"] >= 0.6 * d["keyframes"], (name, d["loop"]["keyframes"], d["keyframes"])
         ate[name] = d["evaluation"]["ate_se3"]["trans_m"]["rmse"]
         assert d["resets"] == 0
         restamped = d["frame_stamps"]["restamped"]

@@ -7,6 +7,7 @@ source, the real estimator and a fake autopilot on loopback UDP.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import logging
@@ -358,6 +359,7 @@ class ScriptedEstimator:
         self.unusable = 0
         self.tracking = False
         self.last_features: FeatureFrame | None = None
+        self.last_frame_stamp_ns: int | None = None
         self._done: list[ProcessedFrame] = []
         self.calibration_warning: str | None = None  # what the stereo check says once it let go
 
@@ -373,6 +375,7 @@ class ScriptedEstimator:
             self.explode.pop()
             raise RuntimeError("Indeterminant linear system")
         self.n += 1
+        self.last_frame_stamp_ns = f.t_ns
         if self.blind.is_set():
             self.unusable += 1
             self.tracking = False
@@ -1074,6 +1077,47 @@ def test_recording_is_flushed_on_stop_and_readable(tmp_path: Path) -> None:
     ds = EurocDataset(dataset_dir)
     assert len(ds) == svc.recorder.frames and len(ds.imu) == svc.recorder.imu
     assert len(ds.imu) >= 9 * len(ds)  # 200 Hz IMU vs 20 Hz frames
+
+
+def test_frames_the_estimator_restamps_keep_their_pose_line_and_latency_and_are_recorded_as_given(
+        tmp_path: Path) -> None:
+    """An estimator that moves frame stamps (vio.frame_clock, a camera stamped on arrival): the daemon finds each
+    frame's arrival (the latency, the TUM pose log) by the stamp the estimator gave it, and the recording keeps the
+    stamps as the camera gave them. Found by the stamp fed instead, no restamped frame got its TUM line or its
+    latency (a replay of a jittered flight logged 9 poses of 151: a review's finding)."""
+    from drivers.fake import FakeSource
+    from vio.io.euroc import EurocDataset
+
+    moved_ns = 1_000_000
+
+    class Restamping(ScriptedEstimator):
+        def __init__(self, calib) -> None:
+            super().__init__("calib", [])
+
+        def feed_frame(self, f: StereoFrame) -> NavState | None:
+            return super().feed_frame(dataclasses.replace(f, t_ns=f.t_ns + moved_ns))
+
+    traj = tmp_path / "traj.tum"
+    cfg = config_from_dict({"run": {"status_file": "", "record_dir": str(tmp_path / "rec"),
+                                    "trajectory_file": str(traj)}})
+    svc = Service(cfg, source_factory=lambda: _started(FakeSource(width=96, height=64)),
+                  estimator_factory=Restamping, notifier=SdNotifier(""))
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    try:
+        assert _wait(lambda: svc.recorder.frames >= 20 and len(svc.output.latency_ms) >= 10, 10), \
+            (svc.recorder.frames, len(svc.output.latency_ms))
+    finally:
+        svc.request_stop()
+        runner.join(5)
+    (dataset_dir,) = (tmp_path / "rec").iterdir()
+    given = EurocDataset(dataset_dir).cam0_t
+    t_tum = np.array([round(float(line.split()[0]) * 1e9) for line in traj.read_text().splitlines()
+                      if not line.startswith("#")])
+    assert len(t_tum) >= 10
+    on_given = np.isin(np.round((t_tum - moved_ns) * 1e-6), np.round(given * 1e-6))
+    assert on_given.mean() > 0.8, (t_tum[:5], given[:5])  # the estimator's stamps, one per frame recorded
+    assert not np.isin(np.round(given * 1e-6), np.round(t_tum * 1e-6)).any()  # the recording: the camera's stamps
 
 
 def test_mcap_recording_holds_sensors_and_health_and_replays(tmp_path: Path) -> None:

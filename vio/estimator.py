@@ -249,6 +249,10 @@ class Estimator:
         # frames stamped on arrival restamped on the camera's own clock; kept across resets (the camera's clock
         # does not change when the estimator does)
         self.frame_clock = FrameClock(b.frame_stamps, b.frame_stamp_window_s)
+        # the stamp this estimator gave the frame fed last (the frame clock's, where it moved it): its ProcessedFrame
+        # and SolvedKeyframe carry that one, so a caller keys the frame's image and arrival by it, not by the stamp
+        # it fed (keyed so, every restamped frame's image, arrival and TUM line were lost: a review's finding)
+        self.last_frame_stamp_ns: int | None = None
         self.offset_estimator = OnlineTimeOffset(calib, b.time_offset_window_s, b.time_offset_max_ms * 1e-3,
                                                  imu=self.imu, continuous=b.time_offset_continuous,
                                                  track_window_s=b.time_offset_track_window_s,
@@ -451,6 +455,7 @@ class Estimator:
         t_ns = self.frame_clock.restamp(item.t_ns)
         if t_ns != item.t_ns:  # a stamp the camera's fitted clock puts elsewhere (vio.frame_clock)
             item = dataclasses.replace(item, t_ns=t_ns)
+        self.last_frame_stamp_ns = t_ns
         if self._t_first_ns is None:
             self._t_first_ns = int(item.t_ns)
         b = self.bcfg

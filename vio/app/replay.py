@@ -268,11 +268,12 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
             else:
                 if max_frames is not None and frames >= max_frames:
                     break
-                if writer is not None or view is not None:
-                    waiting[int(ev.t_ns)] = ev
-                if loop is not None:
-                    loop_images[int(ev.t_ns)] = ev.left
                 est.feed_frame(ev)
+                t_est = int(est.last_frame_stamp_ns)  # the stamp its processed frames carry (vio.frame_clock)
+                if writer is not None or view is not None:
+                    waiting[t_est] = ev
+                if loop is not None:
+                    loop_images[t_est] = ev.left
                 frames += 1
                 if bar is not None:
                     bar.update(1)

@@ -39,6 +39,7 @@ class EstimatorApi(Protocol):
     """The estimator (vio.estimator.Estimator)."""
 
     last_features: FeatureFrame | None  # of the newest processed frame (status: track count)
+    last_frame_stamp_ns: int | None  # the stamp it gave the frame fed last (restamped: vio.frame_clock)
 
     def feed_imu(self, s: ImuSample) -> NavState | None: ...
 

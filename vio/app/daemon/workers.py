@@ -269,12 +269,16 @@ class EstimatorWorker(Worker):
                     self._emit(self.estimator.feed_imu(s))
                 if item is not None:
                     self.frames += 1
-                    _remember(self._arrivals, int(item[1].t_ns), item[0])
+                    result = self.estimator.feed_frame(item[1])
+                    # keyed by the stamp the estimator gave the frame (its processed frames carry that one), taken
+                    # before _emit collects them: a frame may be processed inside feed_frame
+                    t = int(self.estimator.last_frame_stamp_ns)
+                    _remember(self._arrivals, t, item[0])
                     if self.loop_worker is not None:
-                        self._left.append((int(item[1].t_ns), item[1].left))
+                        self._left.append((t, item[1].left))
                     if self.view is not None:
-                        _remember(self._view_frames, int(item[1].t_ns), item[1].left)
-                    self._emit(self.estimator.feed_frame(item[1]))
+                        _remember(self._view_frames, t, item[1].left)
+                    self._emit(result)
             except Exception as e:  # gtsam raises RuntimeError and friends; any failure means reset
                 self.errors += 1
                 self._reset(f"estimator failed: {type(e).__name__}: {e}")
