@@ -36,7 +36,9 @@ OFF_MS = 0.1  # ...until it falls below this one (hysteresis: no switching back 
 MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept...
 START_SPREAD_PERIODS = 0.1  # ...and restamping starts only below this one (no switching near the bound)
 OFF_LINE_PERIODS = 0.25  # a stamp this far from the line (and 8 sigma) is off it...
-OFF_LINE_IN_ROW = 3  # ...and this many in a row mean the camera's clock changed: the fit starts again
+OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the camera's clock changed: the fit starts
+# again. Not "in a row": a camera gone from 20 to 30 Hz puts every third frame on the old line and was never
+# refitted, every third frame moved 17 ms (a review's finding)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
 
 
@@ -78,7 +80,7 @@ class FrameClock:
         self._spread = 0.0
         self._jitter = 0.0
         self._on = False
-        self._off_line = 0
+        self._off_line: deque[bool] = deque(maxlen=OFF_LINE_OF_RECENT[1])  # the last frames: off the line or not
         self._warned = False  # the spread-too-large warning, once per fit
         self._last_in = None
         self._last_out = None
@@ -101,16 +103,19 @@ class FrameClock:
         if self._line is not None:
             off = a - (self._line[0] + self._line[1] * n)
             if abs(off) > max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread):
-                self._off_line += 1
-                if self._off_line >= OFF_LINE_IN_ROW:
-                    self._restart(f"{OFF_LINE_IN_ROW} frames in a row off the camera clock's line "
-                                  f"(the last by {off * 1e-6:.1f} ms)")
+                alone = not any(self._off_line)
+                self._off_line.append(True)
+                if sum(self._off_line) >= OFF_LINE_OF_RECENT[0]:
+                    self._restart(f"{OFF_LINE_OF_RECENT[0]} of the last {len(self._off_line)} frames off the camera "
+                                  f"clock's line (the last by {off * 1e-6:.1f} ms)")
                     self._start(t_ns)
                     return self._out(t_ns, t_ns)
-                late = off > 0 and self._on  # a frame held up: the line has it; one early: the clock may have changed
+                # a frame held up: the line has it; one early, or late after others off the line: the clock may
+                # have changed
+                late = off > 0 and self._on and alone
                 line = self._ref_ns + int(round(self._line[0] + self._line[1] * n))
                 return self._out(t_ns, line if late else t_ns)  # out of the fit either way
-        self._off_line = 0
+        self._off_line.append(False)
         self._n.append(n)
         self._a.append(a)
         while self._a and a - self._a[0] > self.window_ns:
@@ -129,7 +134,7 @@ class FrameClock:
         self._n.append(0)
         self._a.append(0.0)
         self._line = None
-        self._off_line = 0
+        self._off_line.clear()
         self._warned = False
         self._on = False  # kept as given until the new fit has MIN_FRAMES (the restart's line says so)
 
