@@ -122,6 +122,20 @@ def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
     assert caplog.text.count("too much to number the frames, stamps kept as given") == 1
 
 
+@pytest.mark.parametrize("hz", [10, 15])
+def test_a_short_window_at_a_low_rate_still_restamps(hz):
+    """frame_stamp_window_s = 1 (the least the config takes) at 10 or 15 Hz holds fewer frames than a fit needs:
+    the fit keeps the last MIN_FRAMES instead, and the jitter is taken out (it never restamped a frame before)."""
+    rng = np.random.default_rng(4)
+    true = exposures(600, rng, period_ns=1e9 / hz)
+    arrived = true + np.round(rng.exponential(3e6, len(true))).astype(np.int64)
+    clock = FrameClock("auto", window_s=1.0)
+    out = restamp_all(clock, arrived)
+    assert clock.stats.restamped > 500
+    latency = np.mean(arrived - true)
+    assert np.std((out - true - latency)[100:]) < 0.6 * np.std((arrived - true - latency)[100:])
+
+
 def test_regular_mode_restamps_small_jitter_and_the_mode_is_checked():
     """`regular` restamps from the first fit even where auto would keep the stamps (0.1 ms of spread)."""
     rng = np.random.default_rng(11)

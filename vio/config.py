@@ -232,8 +232,9 @@ class BackendConfig:
                             "stamps jitter by 0.25 ms or more from frame to frame around that line (device-stamped "
                             "cameras and datasets such as EuRoC fit it to microseconds, and a smoothly drifting "
                             "offset is the time offset state's: kept as given)", choices=("auto", "raw", "regular"))
-    frame_stamp_window_s: float = opt(10.0, "stamps the camera clock is fitted to [s]: longer averages the jitter "
-                                      "down further, and a clock that drifts is still a line over seconds",
+    frame_stamp_window_s: float = opt(10.0, "stamps the camera clock is fitted to [s] (never fewer than the last 20 "
+                                      "frames): longer averages the jitter down further, and a clock that drifts "
+                                      "is still a line over seconds",
                                       min=1, max=120)
     stereo_every_frame: bool = opt(False, "stereo (and right-image decoding) on every frame, not only where a keyframe "
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")

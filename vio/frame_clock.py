@@ -118,7 +118,9 @@ class FrameClock:
         self._off_line.append(False)
         self._n.append(n)
         self._a.append(a)
-        while self._a and a - self._a[0] > self.window_ns:
+        # the window, but never fewer than MIN_FRAMES: a short window at a low rate (1 s at 15 Hz, which the
+        # config allows) never held them, and the clock never restamped a frame, silently (a review's finding)
+        while len(self._a) > MIN_FRAMES and a - self._a[0] > self.window_ns:
             self._n.popleft()
             self._a.popleft()
         if len(self._n) >= MIN_FRAMES:
