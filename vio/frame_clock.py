@@ -36,6 +36,9 @@ OFF_MS = 0.1  # ...until it falls below this one (hysteresis: no switching back 
 MAX_SPREAD_PERIODS = 0.125  # above this spread (in periods) frame numbers could be mistaken: stamps kept...
 START_SPREAD_PERIODS = 0.1  # ...and restamping starts only below this one (no switching near the bound)
 OFF_LINE_PERIODS = 0.25  # a stamp this far from the line (and 8 sigma) is off it...
+EARLY_SIGMAS, EARLY_MIN_NS = 5.0, 1e6  # ...and one this far before it (and 1 ms): a delay never stamps a frame
+# early, a frame held up past the next one's time and numbered as it does (put on the line a period late, it
+# left the next frame out of order for the estimator to drop: a review's finding)
 OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the camera's clock changed: the fit starts
 # again. Not "in a row": a camera gone from 20 to 30 Hz puts every third frame on the old line and was never
 # refitted, every third frame moved 17 ms (a review's finding)
@@ -102,7 +105,8 @@ class FrameClock:
         n = self._number(a)
         if self._line is not None:
             off = a - (self._line[0] + self._line[1] * n)
-            if abs(off) > max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread):
+            far = max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread)
+            if off > far or off < -min(far, max(EARLY_SIGMAS * self._spread, EARLY_MIN_NS)):
                 alone = not any(self._off_line)
                 self._off_line.append(True)
                 if sum(self._off_line) >= OFF_LINE_OF_RECENT[0]:
@@ -198,7 +202,9 @@ class FrameClock:
 
     def _out(self, t_in: int, t_out: int) -> int:
         if self._last_out is not None and t_out <= self._last_out:
-            t_out = t_in  # never out of order: the estimator would drop the frame
+            # not out of order where the stamp as given is not (the estimator would drop the frame); it can be
+            # where a frame held up to within a millisecond or so of the next one's time was put on that time
+            t_out = t_in
         self._last_out = t_out
         if t_out != t_in:
             self.stats.restamped += 1
