@@ -217,3 +217,15 @@ def test_reloc_evidence_replays_the_join_rule_and_its_bound_refuses_every_lookal
     G = make_T(np.eye(3), [1.0, 2.0, 0.5])
     assert not _false_edge(G, G, make_T(np.eye(3), [0.1, 0.0, 0.0]))
     assert _false_edge(G, G, make_T(np.eye(3), [1.5, 0.0, 0.0]))
+
+
+def test_frame_clock_cases_prints_its_table(capsys):
+    """bench/frame_clock_cases.py (docs/estimator.md "Frame stamps"): one row per case, and on plain arrival jitter
+    the restamped stamps are nearer the exposures than the stamps as given."""
+    from bench.frame_clock_cases import CASES, main
+
+    assert main(["--seconds", "20"]) == 0
+    rows = [line.split("|")[1:-1] for line in capsys.readouterr().out.splitlines()[2:]]
+    assert [r[0].strip() for r in rows] == list(CASES)
+    given, restamped = (float(rows[0][k].split("/")[0]) for k in (3, 4))
+    assert restamped < 0.3 * given, rows[0]
