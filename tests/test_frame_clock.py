@@ -143,6 +143,30 @@ def test_frames_delivered_together_at_the_start_do_not_spoil_the_fit(buffered):
     assert np.std(err) < 0.4 * np.std(err_raw) and np.all(np.diff(out) > 0)
 
 
+def test_a_repeated_stamp_passes_and_the_fit_stays_but_a_clock_reset_starts_it_again(caplog):
+    """A driver that repeats a frame's stamp now and then: the repeat comes out not after the stamp before it (the
+    estimator drops it, as it would the stamp as given) and the fit goes on; it was started again on each (4
+    restarts in 2 minutes, 20 frames as given after each). A stamp 5 s back (the camera's clock reset) still
+    starts it again."""
+    rng = np.random.default_rng(1)
+    true = exposures(2400, rng)
+    arrived = true + np.round(rng.exponential(3e6, len(true))).astype(np.int64)
+    at = np.arange(400, len(true), 600)
+    fed = np.insert(arrived, at + 1, arrived[at])  # each repeat right after the frame whose stamp it repeats
+    clock = FrameClock("auto")
+    with caplog.at_level(logging.INFO, logger="vio.frame_clock"):
+        out = restamp_all(clock, fed)
+    assert clock.stats.restarts == 0 and "out of order" not in caplog.text
+    repeats = at + 1 + np.arange(len(at))
+    assert np.all(out[repeats] <= out[repeats - 1]) and np.all(out[repeats] <= fed[repeats])
+    kept = np.delete(out, repeats)
+    assert np.all(np.diff(kept) > 0) and clock.stats.restamped > 0.97 * len(kept)
+    reset = np.concatenate([arrived[:400], arrived[400:] - 5_000_000_000 - arrived[400] + arrived[399]])
+    clock = FrameClock("auto")
+    restamp_all(clock, reset)
+    assert clock.stats.restarts == 1 and clock.stats.restamped > 0.9 * len(reset)
+
+
 def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
     """Stamps spread over a quarter of the period could number a frame wrongly (a 50 ms error): kept as given,
     and said once."""

@@ -91,12 +91,22 @@ class FrameClock:
         self._last_out = None
 
     def restamp(self, t_ns: int) -> int:
-        """The stamp to use for a frame stamped `t_ns` (stamps must come in order; others pass unchanged)."""
+        """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
+        than MAX_GAP_S comes out not after the last one handed out, one that goes back further starts the fit
+        again: a clock reset)."""
         t_ns = int(t_ns)
         self.stats.frames += 1
         if self.mode == "raw":
             return t_ns
-        last_in, self._last_in = self._last_in, t_ns
+        last_in = self._last_in
+        if last_in is not None and last_in - MAX_GAP_S * 1e9 < t_ns <= last_in:
+            # a stamp repeated, or a little out of order: the fit kept, and not after the last stamp handed out, so
+            # that the estimator drops the frame as it would the stamp as given (a repeat of a frame moved earlier
+            # would otherwise come after it). Starting the fit again on each threw away 10 s of fit, kept the next
+            # 20 frames as given and logged twice (a driver repeating a stamp every 30 s: 4 restarts in 2 minutes,
+            # a review's finding)
+            return t_ns if self._last_out is None else min(t_ns, self._last_out)
+        self._last_in = t_ns
         if last_in is None or t_ns <= last_in or t_ns - last_in > MAX_GAP_S * 1e9:
             if last_in is not None:
                 gap = f"a gap of {(t_ns - last_in) * 1e-9:.2f} s" if t_ns > last_in else "a stamp out of order"
