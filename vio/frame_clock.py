@@ -1,11 +1,13 @@
 """Frame stamps on the camera's own clock, for cameras stamped on arrival at the host.
 
 A camera exposes on its own crystal, one frame every period; a driver that stamps each frame when it reaches
-the host (a USB camera read through V4L2 or GStreamer, a simulator's frames over a socket, a recording made
-that way) adds the transfer's varying delay to every stamp. The estimator integrates the IMU between frame
-stamps, so a few milliseconds of that delay move each keyframe along the path by the vehicle's speed times
-it: on a simulated aggressive flight 3 ms of jitter took the ATE from 16 to 64 mm (docs/estimator.md "Frame
-stamps").
+the host (a USB camera read through V4L2 or GStreamer, a recording made that way) adds the transfer's varying
+delay to every stamp. The estimator integrates the IMU between frame stamps, so a few milliseconds of that
+delay move each keyframe along the path by the vehicle's speed times it: on a simulated aggressive flight 3 ms
+of jitter took the ATE from 15 to 57 mm (docs/estimator.md "Frame stamps"). Frames taken at irregular times
+and stamped with them (the SITL camera renders the pose of the SIM_STATE it stamps; an external trigger with
+hardware stamps) are not its case: moved onto a line, they leave the times they show (`frame_stamps = "raw"`,
+which the daemon takes for the SITL camera).
 
 `FrameClock` fits the camera's clock, stamp = offset + period x frame number, to the last
 `frame_stamp_window_s` of stamps (least squares, then again without the stamps far off that line: a frame
