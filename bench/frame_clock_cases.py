@@ -3,9 +3,9 @@ how far from the exposures the stamps it hands out are, against the stamps as gi
 
     nice python bench/frame_clock_cases.py [--seconds 60] [--seed 1]
 
-No images and no estimator: each case is a 20 Hz camera's exposure times (or the SITL camera's frames, stamped with
-the SIM_STATE whose pose they show: the daemon takes those as given), the stamps a driver would give them, and the
-clock's output in `auto` mode. The error of a stamp is its distance from its
+No images and no estimator: each case is a 20 Hz camera's exposure times (or the SITL camera's: the SIM_STATEs the
+simulator sends at the camera rate), the stamps a driver would give them, and the clock's output in `auto`
+mode. The error of a stamp is its distance from its
 exposure less the run's mean latency (a constant latency is the calibration's time offset, not the clock's).
 Columns: frames restamped, fits started again, rms and largest error of the stamps as given and as restamped
 (after the first 200 frames), frames more than 10 ms off, and stamps the clock handed out not after the one before (the
@@ -69,6 +69,9 @@ def _irregular(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray
 
 
 def _sitl(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The SITL camera since 49ef3cb: SIM_STATE sent at the camera rate on the simulator's clock (its 400 Hz loop
+    rounds each send to 2.5 ms), each rendered and stamped on arrival (1 ms exponential delays) by the source's
+    own on_sim_state, which must take every one."""
     from drivers.sitl_camera import SitlCameraSource
 
     class Msg:  # SIM_STATE at the home position, level
@@ -78,9 +81,11 @@ def _sitl(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 
     cam = SitlCameraSource("tcp:unused", (0.0, 0.0, 0.0), width=64, height=48, fps=15.0)
     cam.render = lambda T, t_ns: t_ns  # the stamp is all this needs
-    arrivals = T0 + np.cumsum(np.round(33_333_333 + rng.normal(0, 2e6, 2 * n)).astype(np.int64))
-    stamps = np.array([s for t in arrivals if (s := cam.on_sim_state(Msg(), int(t))) is not None], np.int64)
-    return stamps, stamps.copy()  # each frame rendered at the pose of the SIM_STATE it is stamped with
+    sent = T0 + np.round(np.arange(n) * (1e9 / 15.0) / 2.5e6) * 2.5e6
+    sent = sent.astype(np.int64)
+    arrived = sent + _exp(rng, 1e6, n)
+    taken = [k for k, t in enumerate(arrived) if cam.on_sim_state(Msg(), int(t)) is not None]
+    return sent[taken], arrived[taken]
 
 
 CASES: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.ndarray]]] = {
@@ -92,7 +97,7 @@ CASES: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.ndarr
     "device stamps, offset drift 10 ms / 60 s": lambda r, n: _drift(r, n, 10, 60),
     "device stamps, offset drift 5 ms / 30 s": lambda r, n: _drift(r, n, 5, 30),
     "exact stamps of irregular exposures (1.5 ms)": _irregular,
-    "SITL camera, 15 Hz (SIM_STATE every 33 +- 2 ms)": _sitl,
+    "SITL camera, 15 Hz (SIM_STATE at its rate, 1 ms arrival jitter)": _sitl,
 }
 
 

@@ -5,9 +5,9 @@ the host (a USB camera read through V4L2 or GStreamer, a recording made that way
 delay to every stamp. The estimator integrates the IMU between frame stamps, so a few milliseconds of that
 delay move each keyframe along the path by the vehicle's speed times it: on a simulated aggressive flight 3 ms
 of jitter took the ATE from 15 to 57 mm (docs/estimator.md "Frame stamps"). Frames taken at irregular times
-and stamped with them (the SITL camera renders the pose of the SIM_STATE it stamps; an external trigger with
-hardware stamps) are not its case: moved onto a line, they leave the times they show (`frame_stamps = "raw"`,
-which the daemon takes for the SITL camera).
+and stamped with them (an external trigger with hardware stamps) are not its case: moved onto a line, they
+leave the times they show (`frame_stamps = "raw"`). The SITL camera of bench/sitl is its case: it renders the
+SIM_STATE the autopilot's simulator sends at the camera rate, stamped on arrival.
 
 `FrameClock` fits the camera's clock, stamp = offset + period x frame number, to the last
 `frame_stamp_window_s` of stamps (least squares, then again without the stamps far off that line: a frame
