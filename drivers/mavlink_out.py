@@ -101,7 +101,7 @@ class MavlinkStats:
     states_superseded: int = 0  # replaced by a newer state before their send slot
     states_not_tracking: int = 0
     states_not_finite: int = 0  # a NaN or infinite pose, velocity or covariance: sent as a loss of tracking
-    states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking
+    states_too_old: int = 0  # older than max_state_age_ms: not sent, a loss of tracking (not also withheld: below)
     # not sent while the daemon withheld every pose (withhold(): the IMU clock unsure), tracking or not: the daemon's
     # gate hands them on as lost already, so only counting every one gives the count of states it held back
     states_withheld: int = 0
@@ -357,6 +357,8 @@ class MavlinkOutput:
         if a newer one arrives first. A state with tracking=False cancels the pending one (nothing stale
         goes out) and sends nothing. Returns whether the state was taken for sending."""
         taken = False
+        # read once: the daemon says withhold() before each state, from the thread that calls this
+        withheld = self._withheld_for is not None
         if self._max_age_ns is not None:
             age = self._clock() - state.t_ns
             if age < -ANOTHER_CLOCK_NS and self.stats.states_in == 0:
@@ -369,8 +371,11 @@ class MavlinkOutput:
                 self._too_old_spell = False
             elif age > self._max_age_ns:
                 # flown on as if it were now: never. The estimator is behind its sensors (CPU) or the process was
-                # stalled; poses 0.5-2.9 s old went out at quality 100 (a review's finding)
-                self.stats.states_too_old += 1
+                # stalled; poses 0.5-2.9 s old went out at quality 100 (a review's finding). One reason a state: one
+                # that is withheld too counts as withheld only, the reason that stopped it first (the daemon's gate
+                # held it back before it reached this output: it says withhold() before each state, and its
+                # StampErrorGate handed the state on as lost already); states_withheld stays every state of a spell
+                self.stats.states_too_old += not withheld
                 if not self._too_old_spell:
                     log.warning("poses %.0f ms old are not sent (beyond [mavlink] max_state_age_ms = %.0f): the "
                                 "estimator is behind its sensors (CPU load?) or was stalled; a loss of tracking "
@@ -380,7 +385,6 @@ class MavlinkOutput:
             elif self._too_old_spell:  # a fresh state, tracking or not, ends the spell
                 self._too_old_spell = False
                 log.info("poses fresh again (%.0f ms old)", age / 1e6)
-        withheld = self._withheld_for is not None
         if withheld:
             self.stats.states_withheld += 1
             if state.tracking:

@@ -1341,6 +1341,30 @@ def test_poses_withheld_for_an_unsure_imu_clock_send_nothing_not_even_a_failed_p
     out.close()
 
 
+def test_a_state_both_withheld_and_too_old_counts_once_as_withheld(ap):
+    """A state of a withholding spell (the IMU clock unsure) that is also older than max_state_age_ms counted in both
+    states_withheld and states_too_old: the status added up to more states held back than there were. It counts
+    once, as withheld (the daemon's gate stopped it before the output saw its age); an old state outside a spell
+    counts as too old, and the old-pose spell is still said."""
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                        clock_ns=clock, max_state_age_ms=500)
+    out.send_state(state(clock.t - 50_000_000))  # fresh: sent
+    for _ in range(4):
+        clock.advance(0.1)
+        out.withhold("VIO: IMU clock unsure, no poses")
+        out.send_state(state(clock.t - 900_000_000))  # withheld and 0.9 s old
+    h = out.health()
+    assert (h["states_withheld"], h["states_too_old"]) == (4, 0) and h["withholding_old_poses"]
+    out.withhold(None)
+    clock.advance(0.1)
+    out.send_state(state(clock.t - 900_000_000))  # old, not withheld
+    h = out.health()
+    assert (h["states_withheld"], h["states_too_old"]) == (4, 1)
+    assert len(ap.of("ODOMETRY", ap.drain())) == 1  # only the first
+    out.close()
+
+
 def test_a_serial_link_is_held_exclusively(caplog):
     """Two daemons on one flight controller's UART both opened it and interleaved their poses and reset counters
     (a QA sweep): the device is held with flock, and the second output cannot open it, says why and retries."""
