@@ -428,6 +428,9 @@ class RecordingMavlink:
     def health(self) -> dict:
         return {**asdict(self.stats), "withholding_old_poses": self.withholding}
 
+    def counters(self) -> dict[str, int]:
+        return {k: v for k, v in asdict(self.stats).items() if type(v) is int}
+
     def send_state(self, s: NavState) -> None:
         self.states.append(s)
         self.stats.states_sent += 1
@@ -779,6 +782,60 @@ def test_the_stamp_tolerance_is_the_configured_one_and_the_quality_ramp_starts_t
                   notifier=SdNotifier(""))
     assert svc.output.stamps.tolerance_s == 0.0125
     assert svc.snapshot()["mavlink"]["stamp_tolerance_ms"] == 12.5
+
+
+def test_the_mavlink_counts_cover_the_whole_run_across_a_reopened_output() -> None:
+    """The daemon reopens a MAVLink output that failed (an exception from send_state or poll): the new one starts its
+    counts at 0, so `vio status` read states_withheld 0 and withheld_for "" after it, as if nothing had been held
+    back (docs/autopilot.md said so), and nothing at all while no output was open. The status adds the closed
+    outputs' counts now: the whole run's, between the outputs too."""
+    from drivers.mavlink_out import MavlinkOutput
+    from vio.app.daemon.outputs import STAMPS_WITHHELD_TEXT, OutputWorker, StampErrorGate
+    from vio.config import MavlinkConfig
+
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # the autopilot's end: takes and drops what comes
+    sink.bind(("127.0.0.1", 0))
+    err = [1.0]  # IMU stamps 1 s off: every pose withheld
+    outs: list[MavlinkOutput] = []
+
+    def make() -> MavlinkOutput:
+        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy"), f"udpout:127.0.0.1:{sink.getsockname()[1]}"))
+        return outs[-1]
+
+    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0,
+                     stamps=StampErrorGate(lambda: err[0], 0.05, None, 0.005))
+    t0 = time.monotonic_ns()
+
+    def offer(k: int) -> None:
+        w._send(w._checked(NavState(t0 + k * 100_000_000, np.eye(4), np.zeros(3))))
+
+    def broken(s: NavState) -> None:
+        raise OSError("serial write failed")
+
+    try:
+        w._ensure_mavlink()
+        for k in range(3):
+            offer(k)
+        assert w.link()["states_withheld"] == 3
+        outs[0].send_state = broken  # type: ignore[method-assign]
+        offer(3)  # the output fails: closed, reopened after a back-off
+        assert w.mav is None
+        h = w.link()
+        assert h["state"] == "closed" and h["states_withheld"] == 3 and h["withheld_for"] == STAMPS_WITHHELD_TEXT
+        w._next_open = 0.0
+        w._ensure_mavlink()
+        assert len(outs) == 2 and outs[1].stats.states_withheld == 0  # its own count starts at 0
+        err[0] = 0.001  # the clock is healthy again: sent
+        offer(4)
+        h = w.link()
+        assert (h["states_withheld"], h["withheld_for"], h["states_sent"], w.sent) == (3, STAMPS_WITHHELD_TEXT, 1, 1)
+        err[0] = 1.0
+        offer(5)
+        offer(6)
+        assert w.link()["states_withheld"] == 5 and w.link()["states_in"] == 6  # the failed state never got in
+    finally:
+        w.close()
+        sink.close()
 
 
 def _started(src: ScriptedSource) -> ScriptedSource:

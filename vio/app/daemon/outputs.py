@@ -11,7 +11,7 @@ import math
 import os
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -234,7 +234,10 @@ class OutputWorker(Worker):
         self.mav: PoseOutput | None = None
         self.offered = 0  # states handed to the MAVLink output (it sends the newest at its own rate)
         self.withheld = 0  # tracking states turned into not-tracking ones because no camera frames arrive
-        self._sent_base = 0  # states sent by MAVLink outputs closed since start
+        # the counts of the MAVLink outputs closed since start (a failed one is reopened, starting its own at 0), and
+        # the last why of a withholding among them: the status counts the whole run, as the log does
+        self._closed_counts: Counter[str] = Counter()
+        self._closed_withheld_for = ""
         self.errors = 0
         self.latency_ms: deque[float] = deque(maxlen=200)
         self._seq = 0
@@ -314,7 +317,11 @@ class OutputWorker(Worker):
     def _close_mav(self, final: bool = True) -> None:
         mav, self.mav = self.mav, None
         if mav is not None:
-            self._sent_base += mav.states_sent
+            try:
+                self._closed_counts.update(mav.counters())
+                self._closed_withheld_for = mav.health().get("withheld_for") or self._closed_withheld_for
+            except Exception as e:  # a broken output's counts are lost, not the daemon
+                log.warning("MAVLink output's counters lost at its close: %s: %s", type(e).__name__, e)
             with contextlib.suppress(Exception):
                 mav.close(final=final)
 
@@ -322,14 +329,20 @@ class OutputWorker(Worker):
     def sent(self) -> int:
         """Pose states that went out on the link (cumulative over reconnects)."""
         mav = self.mav
-        return self._sent_base + (mav.states_sent if mav is not None else 0)
+        return self._closed_counts["states_sent"] + (mav.states_sent if mav is not None else 0)
 
     def link(self) -> dict:
+        """The MAVLink output's status, its counts over the whole run (the closed outputs' added); "closed"
+        between a failed output and its reopening, with the counts so far."""
         if self._open is None:
             return {"state": "off"}
-        if self.mav is None:
-            return {"state": "closed"}
-        return _mavlink_health(self.mav)
+        mav = self.mav
+        h = {"state": "closed"} if mav is None else _mavlink_health(mav)
+        for k, n in self._closed_counts.items():
+            h[k] = h.get(k, 0) + n
+        if not h.get("withheld_for") and self._closed_withheld_for:
+            h["withheld_for"] = self._closed_withheld_for
+        return h
 
     def close(self) -> None:
         self._close_mav()
