@@ -108,6 +108,8 @@ class MavlinkStats:
     withheld_for: str = ""  # why the last withholding spell held them back (kept after it ends; "" before any)
     states_refused_armed: int = 0  # a replay's poses withheld while the autopilot said it was armed (poses_to_armed)
     states_refused_unheard: int = 0  # a replay's poses withheld while no autopilot heartbeat said it was disarmed
+    # reached its send slot with no connection (our own one being reopened, a shared link reconnecting): dropped there
+    states_link_closed: int = 0
     sent: dict = field(default_factory=dict)
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
@@ -508,6 +510,13 @@ class MavlinkOutput:
                 # no connection (a serial port gone): no heartbeat either, so the link goes down after
                 # link_timeout_s. It stayed 'up' (status healthy) for as long as the port was gone (a walk-through)
                 self._update_link(now)
+                if now >= self._next_send_ns:
+                    # the state due now cannot go out: dropped and counted (it was kept and then counted superseded,
+                    # or sent stale on reopening). One reason a state: nothing else (its age, a replay's refusal) is
+                    # checked at a slot with no connection, so the closed link is what stopped it
+                    with self._pending_lock:
+                        dropped, self._pending = self._pending, None
+                    self.stats.states_link_closed += dropped is not None
                 return
             self._read_incoming(now)
             self._update_link(now)

@@ -904,6 +904,42 @@ def test_unreachable_tcp_peer_retries_quietly_then_connects(caplog):
     out.close()
 
 
+def test_states_due_while_the_link_is_closed_are_counted_and_said(caplog):
+    """A state whose send slot came while the connection was closed (a serial port unplugged, a TCP peer gone) was
+    counted nowhere as such: it waited, and the next one counted it as superseded (the normal rate limit). It is
+    dropped at its slot and counted in states_link_closed, once (not also superseded), and the replay's summary
+    says how many; the link back, poses go out again."""
+    clock = FakeClock()
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens on `port` now
+    url = f"tcp:127.0.0.1:{port}"
+    out = MavlinkOutput(MavlinkConfig(mount="rpy"), url, clock_ns=clock)
+    for _ in range(5):
+        clock.advance(0.2)
+        out.send_state(state(clock.t))
+    h = out.health()
+    assert not out.connected
+    assert (h["states_link_closed"], h["states_superseded"], h["states_sent"]) == (5, 0, 0)
+    server = socket.socket()
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", port))
+    server.listen(1)
+    try:
+        clock.advance(6.0)
+        out.send_state(state(clock.t))
+        assert out.connected and out.states_sent == 1 and out.health()["states_link_closed"] == 5
+        from vio.app.replay import mavlink_summary
+
+        extra, line = mavlink_summary(out.stats, url)
+        assert extra["states_link_closed"] == 5
+        assert line == f"mavlink: 1 poses sent to {url}; 5 not sent: no connection (the link was closed)"
+    finally:
+        out.close()
+        server.close()
+
+
 # ------------------------------------------------------------------ real time
 
 

@@ -838,6 +838,52 @@ def test_the_mavlink_counts_cover_the_whole_run_across_a_reopened_output() -> No
         sink.close()
 
 
+def test_states_with_no_mavlink_output_open_are_counted_and_shown() -> None:
+    """Between a MAVLink output that could not be opened (or failed) and its reopening, the daemon's output thread
+    dropped every state uncounted: `vio status` said "link closed" and no count. They are counted, with the
+    output's own states due while its connection was closed, in mavlink.states_link_closed, and its mavlink line
+    says how many."""
+    from drivers.mavlink_out import MavlinkOutput
+    from vio.app.daemon.outputs import OutputWorker
+    from vio.config import MavlinkConfig
+
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens on `port` now
+    opens: list[MavlinkOutput] = []
+
+    def make() -> MavlinkOutput:
+        if not opens:
+            opens.append(None)  # type: ignore[arg-type]
+            raise OSError("no such device")
+        opens.append(MavlinkOutput(MavlinkConfig(mount="rpy"), f"tcp:127.0.0.1:{port}"))
+        return opens[-1]
+
+    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0)
+    t0 = time.monotonic_ns()
+
+    def offer(k: int) -> None:
+        w._send(w._checked(NavState(t0 + k * 100_000_000, np.eye(4), np.zeros(3))))
+
+    try:
+        w._ensure_mavlink()  # fails: none open
+        for k in range(3):
+            offer(k)
+        h = w.link()
+        assert (h["state"], h["states_link_closed"]) == ("closed", 3)
+        w._next_open = 0.0
+        w._ensure_mavlink()  # opened, but its connection is not: its TCP peer is not there
+        assert w.mav is not None and not w.mav.connected
+        for k in range(3, 5):
+            offer(k)
+        assert w.link()["states_link_closed"] == 5
+        text = format_status({"mavlink": w.link(), "written_unix": time.time()}, "DEGRADED", time.time())
+        assert ", not sent with the link closed 5" in text, text
+    finally:
+        w.close()
+
+
 def _started(src: ScriptedSource) -> ScriptedSource:
     src.start()
     return src

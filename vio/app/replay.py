@@ -29,6 +29,7 @@ from vio.io.outputs import check_outputs
 from vio.types import NavState
 
 if TYPE_CHECKING:
+    from drivers.mavlink_out import MavlinkStats
     from vio.config import VioConfig
 
 log = logging.getLogger(__name__)
@@ -436,6 +437,21 @@ def _loop_outputs(loop, res: ReplayResult, dataset, path: str | None,
     return d, draw
 
 
+def mavlink_summary(ms: MavlinkStats, url: str) -> tuple[dict, str]:
+    """What `vio replay --mavlink` sent and why the rest was not (its counts for the result, and its summary line)."""
+    extra = {"states_sent": ms.states_sent, "states_refused_armed": ms.states_refused_armed,
+             "states_refused_unheard": ms.states_refused_unheard, "states_link_closed": ms.states_link_closed,
+             "autopilot_heartbeats": ms.autopilot_heartbeats}
+    line = (f"mavlink: {ms.states_sent} poses sent to {url}"
+            + (f"; {ms.states_refused_armed} not sent: the autopilot said it was armed" if ms.states_refused_armed
+               else "")
+            + (f"; {ms.states_refused_unheard} not sent: no autopilot heartbeat said it was disarmed"
+               if ms.states_refused_unheard else "")
+            + (f"; {ms.states_link_closed} not sent: no connection (the link was closed)" if ms.states_link_closed
+               else ""))
+    return extra, line
+
+
 def preflight(dataset) -> None:
     """Stop before replaying what cannot work: a unit mistake in the IMU data or the calibration, no camera
     frame, images of another size than the calibration's (the front end would refuse every frame)."""
@@ -605,15 +621,8 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
               f"mean {vs['submit_ms']['mean']:.3f} ms, max {vs['submit_ms']['max']:.3f} ms"
               + (f"; {args.view}" if args.view != "serve" else ""))
     if mav is not None:
-        ms = mav.stats
-        res.extra["mavlink"] = {"states_sent": ms.states_sent, "states_refused_armed": ms.states_refused_armed,
-                                "states_refused_unheard": ms.states_refused_unheard,
-                                "autopilot_heartbeats": ms.autopilot_heartbeats}
-        print(f"mavlink: {ms.states_sent} poses sent to {args.mavlink}"
-              + (f"; {ms.states_refused_armed} not sent: the autopilot said it was armed" if ms.states_refused_armed
-                 else "")
-              + (f"; {ms.states_refused_unheard} not sent: no autopilot heartbeat said it was disarmed"
-                 if ms.states_refused_unheard else ""))
+        res.extra["mavlink"], line = mavlink_summary(mav.stats, args.mavlink)
+        print(line)
     from vio.estimator import motion_check_line, stereo_check_line
     from vio.frame_clock import frame_stamps_line
 

@@ -121,6 +121,12 @@ def _withheld_text(mav: dict[str, Any]) -> str:
     return f", withheld {n} ({mav.get('withholding_for') or mav.get('withheld_for') or 'no reason given'})"
 
 
+def _link_closed_text(mav: dict[str, Any]) -> str:
+    """The states that found no connection to the autopilot (nothing when none did, or an older daemon)."""
+    n = mav.get("states_link_closed")
+    return f", not sent with the link closed {n}" if n else ""
+
+
 def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
     """Readable multi-line report; every field tolerates absence (an older daemon, a starting one)."""
     def section(key: str) -> dict:  # absent, null or of another type: an older, starting or foreign daemon
@@ -148,6 +154,7 @@ def format_status(s: dict[str, Any], verdict: str, now_unix: float) -> str:
         f"latency frame->output p50 {_fmt(lat.get('p50'), ' ms')} max {_fmt(lat.get('max'), ' ms')}",
         f"  mavlink   link {mav.get('state', '-')}, sent {_fmt(mav.get('sent'))}, "
         f"output {_fmt(r.get('output'), ' Hz')}, errors {_fmt(mav.get('errors'))}{_withheld_text(mav)}"
+        f"{_link_closed_text(mav)}"
         if mav.get("state") != "off" else
         "  mavlink   OFF: [mavlink] url is empty, no pose goes to an autopilot",
     ]

@@ -238,6 +238,7 @@ class OutputWorker(Worker):
         # the last why of a withholding among them: the status counts the whole run, as the log does
         self._closed_counts: Counter[str] = Counter()
         self._closed_withheld_for = ""
+        self.link_closed = 0  # states handed over while no MAVLink output was open (a failed one not reopened yet)
         self.errors = 0
         self.latency_ms: deque[float] = deque(maxlen=200)
         self._seq = 0
@@ -282,15 +283,17 @@ class OutputWorker(Worker):
             self._backoff = min(self._backoff * 2, self.reconnect_max_s)
 
     def _send(self, s: NavState) -> None:
-        if self.mav is not None:
-            try:
-                if self._mount_pending and self._mount is not None:
-                    self._mount_pending = not self._mount(self.mav)
-                self.mav.withhold(STAMPS_WITHHELD_TEXT if self.stamps is not None and self.stamps.refusing else None)
-                self.mav.send_state(s)
-                self.offered += 1
-            except Exception as e:
-                self._mav_failed(e)
+        if self.mav is None:  # none open: its open failed, or it failed and waits to be reopened
+            self.link_closed += self._open is not None
+            return
+        try:
+            if self._mount_pending and self._mount is not None:
+                self._mount_pending = not self._mount(self.mav)
+            self.mav.withhold(STAMPS_WITHHELD_TEXT if self.stamps is not None and self.stamps.refusing else None)
+            self.mav.send_state(s)
+            self.offered += 1
+        except Exception as e:
+            self._mav_failed(e)
 
     def _frame_done(self, out: Output) -> None:
         """Per camera frame: TUM line, and the latency from frame arrival until its state (or a newer one
@@ -340,6 +343,8 @@ class OutputWorker(Worker):
         h = {"state": "closed"} if mav is None else _mavlink_health(mav)
         for k, n in self._closed_counts.items():
             h[k] = h.get(k, 0) + n
+        # one count of the states the link being closed stopped: at the output's send slot, or with no output at all
+        h["states_link_closed"] = h.get("states_link_closed", 0) + self.link_closed
         if not h.get("withheld_for") and self._closed_withheld_for:
             h["withheld_for"] = self._closed_withheld_for
         return h
