@@ -3,14 +3,19 @@ skip with a clear reason on a fresh clone that lacks it."""
 
 from __future__ import annotations
 
-import fcntl
+import contextlib
 import hashlib
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+try:
+    import fcntl  # POSIX: the xdist workers share each simulated flight under a flock
+except ImportError:  # Windows has no fcntl: each worker simulates its own copy in its own folder (flight_cache)
+    fcntl = None  # type: ignore[assignment]
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("KESTREL_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -42,17 +47,40 @@ def simulated_flight(tmp_path_factory) -> Callable[..., Path]:
     write goes to their own tmp_path). Across workers: under the run's common base folder, one lock per flight."""
     from vio.sim.generate import simulate
 
-    base = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER") and base.name.startswith("popen-"):  # a local worker's base: in the run's
+    return simulated_flight_maker(flight_cache(tmp_path_factory.getbasetemp(), os.environ.get("PYTEST_XDIST_WORKER")),
+                                  simulate)
+
+
+def flight_cache(base: Path, worker: str | None) -> Path:
+    """The folder simulated flights are kept in, made if absent: with fcntl, the run's common base folder above a
+    local xdist worker's own (`popen-gwN`), shared under one flock per flight; without it (Windows), the worker's own
+    base: each worker simulates its own copy, and nothing else writes there (a session's tests run one at a time)."""
+    if fcntl is not None and worker and base.name.startswith("popen-"):
         base = base.parent
     cache = base / "simulated_flights"
     cache.mkdir(exist_ok=True)
+    return cache
 
+
+@contextlib.contextmanager
+def _flight_lock(path: Path) -> Iterator[None]:
+    """Held while a flight is looked for and simulated: another worker simulating it is waited for. No lock without
+    fcntl, where no other worker shares the folder (flight_cache)."""
+    if fcntl is None:
+        yield
+        return
+    with open(path, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+def simulated_flight_maker(cache: Path, simulate: Callable[..., object]) -> Callable[..., Path]:
+    """`make(cfg)` -> the folder of that flight in `cache`, simulated by `simulate(folder, cfg, progress=False)` only
+    when no complete one is there."""
     def make(cfg) -> Path:
         name = hashlib.sha256(repr(cfg).encode()).hexdigest()[:16]
         data, done = cache / name, cache / f"{name}.done"
-        with open(cache / f"{name}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # another worker simulating it: wait for its flight
+        with _flight_lock(cache / f"{name}.lock"):
             if not done.exists():
                 shutil.rmtree(data, ignore_errors=True)  # a worker that died part-way
                 simulate(data, cfg, progress=False)
