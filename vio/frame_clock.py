@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vio.frontend.median import median
+
 log = logging.getLogger(__name__)
 
 MODES = ("auto", "raw", "regular")
@@ -46,6 +48,8 @@ EARLY_MIN_FRAMES = 50
 OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the camera's clock changed: the fit starts
 # again. Not "in a row": a camera gone from 20 to 30 Hz puts every third frame on the old line and was never
 # refitted, every third frame moved 17 ms (a review's finding)
+QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
+QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
 
 
@@ -86,6 +90,7 @@ class FrameClock:
         self._line: tuple[float, float] | None = None  # (value at frame 0, period) in ns relative to _ref_ns
         self._spread = 0.0
         self._jitter = 0.0
+        self._since_fit = 0  # frames since the last fit
         self._on = False
         self._off_line: deque[bool] = deque(maxlen=OFF_LINE_OF_RECENT[1])  # the last frames: off the line or not
         self._warned = False  # the spread-too-large warning, once per fit
@@ -146,7 +151,14 @@ class FrameClock:
             if self._line is None:
                 self._renumber()
                 n = self._n[-1]
-            self._fit()
+            self._since_fit += 1
+            # a fit costs ~0.1 ms; stamps kept as given whose jitter is far below ON_MS (a device's, a dataset's: the
+            # common case) are refitted every QUIET_FIT_EVERY frames only: they are handed out as given whatever the
+            # line, which then only numbers frames and notices jitter starting (that many frames later at most)
+            if self._on or self._jitter >= QUIET_JITTER_MS * 1e6 or self._since_fit >= QUIET_FIT_EVERY \
+                    or len(self._n) < 2 * MIN_FRAMES:
+                self._fit()
+                self._since_fit = 0
         if not self._on or self._line is None:
             return self._out(t_ns, t_ns)
         return self._out(t_ns, self._ref_ns + int(round(self._line[0] + self._line[1] * n)))
@@ -158,6 +170,7 @@ class FrameClock:
         self._n.append(0)
         self._a.append(0.0)
         self._line = None
+        self._since_fit = 0
         self._off_line.clear()
         self._warned = False
         self._on = False  # kept as given until the new fit has MIN_FRAMES (the restart's line says so)
@@ -173,7 +186,7 @@ class FrameClock:
             c, period = self._line
             return n_last + max(1, int(round((a - (c + period * n_last)) / period)))
         steps = np.diff(np.asarray(self._a)) if len(self._a) > 1 else None
-        period = float(np.median(steps)) if steps is not None else a - a_last  # warming up: the typical step
+        period = float(median(steps)) if steps is not None else a - a_last  # warming up: the typical step
         return n_last + max(1, int(round((a - a_last) / period)))
 
     def _renumber(self) -> None:
@@ -182,7 +195,7 @@ class FrameClock:
         10.5 ms period for a 20 Hz camera, said the stamps spread 236 ms, and no frame of the flight was restamped
         (a review's finding)."""
         steps = np.diff(np.asarray(self._a))
-        numbers = np.concatenate([[0], np.cumsum(np.maximum(1, np.round(steps / float(np.median(steps)))))])
+        numbers = np.concatenate([[0], np.cumsum(np.maximum(1, np.round(steps / float(median(steps)))))])
         self._n = deque(int(k) for k in numbers)
 
     def _fit(self) -> None:
@@ -191,23 +204,23 @@ class FrameClock:
         # a robust start, the median step per frame and the median offset, whose far-off stamps the least squares
         # leave out: one least-squares pass over all of them let 4 frames buffered at the start and delivered
         # together tilt the line so far that no stamp of the flight was restamped (a review's finding)
-        r = a - float(np.median(np.diff(a) / np.diff(n))) * n
-        r = np.abs(r - np.median(r))
-        keep = r <= max(4 * 1.4826 * float(np.median(r)), 1e3)
+        r = a - float(median(np.diff(a) / np.diff(n))) * n
+        r = np.abs(r - median(r))
+        keep = r <= max(4 * 1.4826 * float(median(r)), 1e3)
         for _ in range(2):  # least squares, then again without the stamps far above or below it
             nm, am = n[keep].mean(), a[keep].mean()
             dn = n[keep] - nm
             period = float(dn @ (a[keep] - am) / (dn @ dn))
             r = a - (am + period * (n - nm))
-            med = float(np.median(r[keep]))
-            spread = 1.4826 * float(np.median(np.abs(r[keep] - med)))
+            med = float(median(r[keep]))
+            spread = 1.4826 * float(median(np.abs(r[keep] - med)))
             keep = np.abs(r - med) <= max(4 * spread, 1e3)
         if period <= 0:
             return
         # the jitter is what changes from one frame to the next: a stamp offset that drifts smoothly (a camera
         # clock against the IMU's, which the time offset state follows) leaves the line as well, but not that
         step = np.diff(r[keep])
-        jitter = 1.4826 * float(np.median(np.abs(step - np.median(step)))) / float(np.sqrt(2.0))
+        jitter = 1.4826 * float(median(np.abs(step - median(step)))) / float(np.sqrt(2.0))
         self._line = (am - period * nm, period)
         self._spread, self._jitter = spread, jitter
         self.stats.spread_ns, self.stats.jitter_ns, self.stats.period_ns = spread, jitter, period
