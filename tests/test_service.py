@@ -1896,3 +1896,41 @@ def test_the_reason_for_no_pose_before_the_start_fits_a_start_in_flight_too() ->
     reason = _not_tracking_reason(h, camera_ok=True)
     assert reason.startswith("not initialised yet") and "still" in reason and "motion" in reason, reason
 
+
+
+def test_the_mavlink_counts_are_not_doubled_by_a_close_during_a_status_read(monkeypatch) -> None:
+    """`vio status` reads the output thread's counts from the main thread (OutputWorker.link(), .sent) while the
+    output thread may close a failed output and add its counts to the closed ones. Read in between (the open output
+    taken, then its counts added to the closed ones before these were summed), its counts came twice: 2 poses sent
+    read 4. The close and the read are one step each now."""
+    from drivers.mavlink_out import MavlinkOutput
+    from vio.app.daemon import outputs
+    from vio.app.daemon.outputs import OutputWorker
+    from vio.config import MavlinkConfig
+
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    w = OutputWorker(threading.Event(), LatestState(), lambda: MavlinkOutput(
+        MavlinkConfig(mount="rpy"), f"udpout:127.0.0.1:{sink.getsockname()[1]}"), "", 1.0)
+    t0 = time.monotonic_ns()
+    health = outputs._mavlink_health
+
+    def closed_meanwhile(mav):  # the output thread closes the output while the status thread reads it
+        h = health(mav)
+        closer = threading.Thread(target=w._close_mav, kwargs={"final": False})
+        closer.start()
+        closer.join(2.0)
+        return h
+
+    try:
+        w._ensure_mavlink()
+        for k in range(2):
+            w._send(w._checked(NavState(t0 + k * 100_000_000, np.eye(4), np.zeros(3))))
+        assert w.link()["states_in"] == 2
+        monkeypatch.setattr(outputs, "_mavlink_health", closed_meanwhile)
+        h = w.link()
+        assert h["states_in"] == 2, h
+        assert w.mav is None and w.link()["states_in"] == 2  # closed: its counts once, among the closed ones
+    finally:
+        w.close()
+        sink.close()

@@ -238,6 +238,9 @@ class OutputWorker(Worker):
         # the last why of a withholding among them: the status counts the whole run, as the log does
         self._closed_counts: Counter[str] = Counter()
         self._closed_withheld_for = ""
+        # the status thread reads the output and the closed counts (link(), sent) while this thread closes one and adds
+        # its counts: one step each, or a read in between counted the closing output twice (or not at all)
+        self._counts_lock = threading.Lock()
         self.link_closed = 0  # states handed over while no MAVLink output was open (a failed one not reopened yet)
         self.errors = 0
         self.latency_ms: deque[float] = deque(maxlen=200)
@@ -318,35 +321,44 @@ class OutputWorker(Worker):
         self._next_open = time.monotonic() + self._backoff
 
     def _close_mav(self, final: bool = True) -> None:
-        mav, self.mav = self.mav, None
-        if mav is not None:
-            try:
-                self._closed_counts.update(mav.counters())
-                self._closed_withheld_for = mav.health().get("withheld_for") or self._closed_withheld_for
-            except Exception as e:  # a broken output's counts are lost, not the daemon
-                log.warning("MAVLink output's counters lost at its close: %s: %s", type(e).__name__, e)
-            with contextlib.suppress(Exception):
-                mav.close(final=final)
+        mav = self.mav
+        if mav is None:
+            return
+        counts: dict[str, int] = {}
+        why = ""
+        try:
+            counts = mav.counters()
+            why = mav.health().get("withheld_for") or ""
+        except Exception as e:  # a broken output's counts are lost, not the daemon
+            log.warning("MAVLink output's counters lost at its close: %s: %s", type(e).__name__, e)
+        with self._counts_lock:
+            self.mav = None
+            self._closed_counts.update(counts)
+            self._closed_withheld_for = why or self._closed_withheld_for
+        with contextlib.suppress(Exception):
+            mav.close(final=final)
 
     @property
     def sent(self) -> int:
         """Pose states that went out on the link (cumulative over reconnects)."""
-        mav = self.mav
-        return self._closed_counts["states_sent"] + (mav.states_sent if mav is not None else 0)
+        with self._counts_lock:
+            mav, closed = self.mav, self._closed_counts["states_sent"]
+        return closed + (mav.states_sent if mav is not None else 0)
 
     def link(self) -> dict:
         """The MAVLink output's status, its counts over the whole run (the closed outputs' added); "closed"
         between a failed output and its reopening, with the counts so far."""
         if self._open is None:
             return {"state": "off"}
-        mav = self.mav
+        with self._counts_lock:  # the output and the counts of those closed before it, as of one moment
+            mav, closed, closed_for = self.mav, dict(self._closed_counts), self._closed_withheld_for
         h = {"state": "closed"} if mav is None else _mavlink_health(mav)
-        for k, n in self._closed_counts.items():
+        for k, n in closed.items():
             h[k] = h.get(k, 0) + n
         # one count of the states the link being closed stopped: at the output's send slot, or with no output at all
         h["states_link_closed"] = h.get("states_link_closed", 0) + self.link_closed
-        if not h.get("withheld_for") and self._closed_withheld_for:
-            h["withheld_for"] = self._closed_withheld_for
+        if not h.get("withheld_for") and closed_for:
+            h["withheld_for"] = closed_for
         return h
 
     def close(self) -> None:
