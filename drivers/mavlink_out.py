@@ -249,6 +249,7 @@ class MavlinkOutput:
         self._backoff_s = RECONNECT_MIN_S
         self._conn_failed_logged = False
         self._pending: NavState | None = None
+        self._pending_at_ns = 0  # clock time the pending state was taken (a closed link drops it a period later)
         self._last_sent_t_ns: int | None = None
         self._next_send_ns = 0
         self._next_heartbeat_ns = 0
@@ -422,8 +423,12 @@ class MavlinkOutput:
                 pass  # not newer than what the autopilot already has, or than the state waiting for its slot
             else:
                 if self._pending is not None:
-                    self.stats.states_superseded += 1
-                self._pending = state
+                    # waited a whole period with no connection: the closed link stopped it, not the rate limit
+                    if not self.connected and self._clock() - self._pending_at_ns >= self._period_ns:
+                        self.stats.states_link_closed += 1
+                    else:
+                        self.stats.states_superseded += 1
+                self._pending, self._pending_at_ns = state, self._clock()
                 taken = True
         if changed:
             self._on_tracking_change(state.tracking)
@@ -510,13 +515,16 @@ class MavlinkOutput:
                 # no connection (a serial port gone): no heartbeat either, so the link goes down after
                 # link_timeout_s. It stayed 'up' (status healthy) for as long as the port was gone (a walk-through)
                 self._update_link(now)
-                if now >= self._next_send_ns:
-                    # the state due now cannot go out: dropped and counted (it was kept and then counted superseded,
-                    # or sent stale on reopening). One reason a state: nothing else (its age, a replay's refusal) is
-                    # checked at a slot with no connection, so the closed link is what stopped it
-                    with self._pending_lock:
-                        dropped, self._pending = self._pending, None
-                    self.stats.states_link_closed += dropped is not None
+                # a state that waited a whole period past its slot with no connection is dropped and counted (it was
+                # kept and then counted superseded, or sent stale on reopening); one that came in the gap of a link
+                # that reconnects at once (a shared link's reader reopens it within ms) stays for the link's return
+                # (dropped at once, it went nowhere: the poses came a state period apart twice, a review's finding).
+                # One reason a state: nothing else (its age, a replay's refusal) is checked with no connection
+                with self._pending_lock:
+                    if (self._pending is not None and now >= self._next_send_ns
+                            and now - self._pending_at_ns >= self._period_ns):
+                        self._pending = None
+                        self.stats.states_link_closed += 1
                 return
             self._read_incoming(now)
             self._update_link(now)

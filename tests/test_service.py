@@ -877,6 +877,8 @@ def test_states_with_no_mavlink_output_open_are_counted_and_shown() -> None:
         assert w.mav is not None and not w.mav.connected
         for k in range(3, 5):
             offer(k)
+            time.sleep(0.04)  # a send period (30 Hz) past its slot with no connection: dropped there, counted
+            w._poll()
         assert w.link()["states_link_closed"] == 5
         text = format_status({"mavlink": w.link(), "written_unix": time.time()}, "DEGRADED", time.time())
         assert ", not sent with the link closed 5" in text, text
