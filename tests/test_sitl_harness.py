@@ -4,8 +4,10 @@ The one test that needs an ArduCopter SITL binary skips when there is none (CI h
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import threading
 import time
 
 import numpy as np
@@ -408,3 +410,37 @@ def test_consistent_flight_quantises_to_sim_states_latitude_longitude_grid():
     q = quantised(world_from_ned(ned), HOME[0])
     assert np.abs(q - world_from_ned(back))[:, :2].max() < 1e-6
     assert 0.004 < np.abs(q - world_from_ned(ned))[:, 0].max() <= 0.0056  # half a 1.11 cm step at most
+
+
+def test_a_reader_error_that_is_not_an_oserror_reconnects_backed_off(monkeypatch, caplog):
+    """The SIM_STATE reader thread caught OSError only: another error (pymavlink's ValueError on a bad packet, a bug)
+    ended it with a thread traceback, the renderer saw it dead and reopened the link at once, over and over (17,572
+    opens in 3 s, state 'running'). It is a lost link now: said, 'connecting', and backed off as a failed open is."""
+    opens: list[int] = []
+    died: list[object] = []
+    monkeypatch.setattr(threading, "excepthook", died.append)
+
+    class Conn:
+        class mav:
+            @staticmethod
+            def command_long_send(*a) -> None: ...
+
+        def recv_match(self, **kw):
+            raise ValueError("bad packet length")
+
+        def close(self) -> None: ...
+
+    def connect(url: str) -> Conn:
+        opens.append(1)
+        return Conn()
+
+    src = SitlCameraSource("tcp:unused", HOME, width=32, height=24, fps=10.0, connect=connect)
+    monkeypatch.setattr(src, "_renderers", lambda: [])  # no scene needed: no state ever arrives
+    with caplog.at_level(logging.WARNING, logger="drivers.sitl_camera"):
+        src.start()
+        time.sleep(1.0)
+        state = src.state
+        src.stop()
+    assert died == [] and 1 <= len(opens) <= 3, (len(opens), died[:1])
+    assert state == "connecting"
+    assert "link to tcp:unused lost (ValueError: bad packet length); reconnecting in 0.5 s" in caplog.text
