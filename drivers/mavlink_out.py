@@ -237,6 +237,7 @@ class MavlinkOutput:
         elif T_body_cam0 is not None:
             self.set_camera_mount(T_body_cam0)
         self._mount_warned = False
+        self._not_finite_said = False  # the NaN estimate's error line, said once
         self._clock = clock_ns
         self._period_ns = int(round(1e9 / cfg.rate_hz))
         self._timeout_ns = int(cfg.link_timeout_s * 1e9)
@@ -357,6 +358,7 @@ class MavlinkOutput:
         taken = False
         # read once: the daemon says withhold() before each state, from the thread that calls this
         withheld = self._withheld_for is not None
+        too_old = False  # this state: older than max_state_age_ms (its one reason, unless withheld)
         if self._max_age_ns is not None:
             age = self._clock() - state.t_ns
             if age < -ANOTHER_CLOCK_NS and self.stats.states_in == 0:
@@ -373,6 +375,7 @@ class MavlinkOutput:
                 # that is withheld too counts as withheld only, the reason that stopped it first (the daemon's gate
                 # held it back before it reached this output: it says withhold() before each state, and its
                 # StampErrorGate handed the state on as lost already); states_withheld stays every state of a spell
+                too_old = True
                 self.stats.states_too_old += not withheld
                 if not self._too_old_spell:
                     log.warning("poses %.0f ms old are not sent (beyond [mavlink] max_state_age_ms = %.0f): the "
@@ -390,10 +393,12 @@ class MavlinkOutput:
         finite = _sendable(state)
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
-            if not self.stats.states_not_finite:
+            if not self._not_finite_said:
                 log.error("no pose sent: the estimate holds a NaN or infinite value, or a negative variance (pose, "
                           "velocity or covariance); a loss of tracking until it is whole again")
-            self.stats.states_not_finite += 1
+                self._not_finite_said = True
+            # one reason a state: a withheld or too old one is counted there (it stopped the state first)
+            self.stats.states_not_finite += not (withheld or too_old)
             state = dataclasses.replace(state, tracking=False, quality=0)
         with self._pending_lock:
             self.stats.states_in += 1
@@ -416,7 +421,9 @@ class MavlinkOutput:
                     self._mount_warned = True
             elif not state.tracking and (not self._lost_as_quality0 or not finite or self._too_old_spell
                                          or withheld or never_tracked):
-                self.stats.states_not_tracking += not withheld  # one reason a state: the withholding's above
+                # one reason a state: the withholding's, the age's or the NaN's above (a tracked state too old or
+                # not finite counted as 'not tracking' too: 4 states in, 1 sent, 5 reasons)
+                self.stats.states_not_tracking += not (withheld or too_old or not finite)
                 self._pending = None
             elif (self._last_sent_t_ns is not None and state.t_ns <= self._last_sent_t_ns) or \
                     (self._pending is not None and state.t_ns < self._pending.t_ns):

@@ -1452,6 +1452,35 @@ def test_a_state_both_withheld_and_too_old_counts_once_as_withheld(ap):
     out.close()
 
 
+def test_a_state_too_old_or_not_finite_is_not_also_counted_not_tracking(ap, caplog):
+    """One reason a state (as 25994b8 made it for withheld and too old): a tracked state older than max_state_age_ms,
+    or holding a NaN, is sent as a loss of tracking, and counted in states_not_tracking as well as in its own count
+    (4 states in, 1 sent, 5 reasons); a withheld NaN state counted as withheld and not finite. Each counts once now,
+    the reason that stopped it first (withheld, too old, not finite, then the estimator's own loss), and the NaN
+    error line is still said once."""
+    clock = FakeClock()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), f"udpout:127.0.0.1:{ap.port}",
+                        clock_ns=clock, max_state_age_ms=500)
+    nan_cov = np.full((6, 6), np.nan)
+    try:
+        out.send_state(state(clock.t))  # fresh, tracked: sent
+        clock.advance(0.1)
+        out.send_state(state(clock.t - 900_000_000))  # tracked, 0.9 s old
+        clock.advance(0.1)
+        out.send_state(state(clock.t, cov_pose=nan_cov))  # tracked, a NaN covariance
+        clock.advance(0.1)
+        out.send_state(state(clock.t, tracking=False))  # the estimator's own loss
+        clock.advance(0.1)
+        out.withhold("VIO: IMU clock unsure, no poses")
+        out.send_state(state(clock.t, cov_pose=nan_cov))  # withheld, with a NaN
+        st = out.stats
+        got = (st.states_sent, st.states_too_old, st.states_not_finite, st.states_not_tracking, st.states_withheld)
+        assert got == (1, 1, 1, 1, 1) and st.states_in == sum(got)
+        assert caplog.text.count("estimate holds a NaN") == 1
+    finally:
+        out.close()
+
+
 def test_a_serial_link_is_held_exclusively(caplog):
     """Two daemons on one flight controller's UART both opened it and interleaved their poses and reset counters
     (a QA sweep): the device is held with flock, and the second output cannot open it, says why and retries."""
