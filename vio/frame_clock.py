@@ -116,7 +116,8 @@ class FrameClock:
         self._last_in = t_ns
         if last_in is None or t_ns <= last_in or t_ns - last_in > MAX_GAP_S * 1e9:
             if last_in is not None:
-                gap = f"a gap of {(t_ns - last_in) * 1e-9:.2f} s" if t_ns > last_in else "a stamp out of order"
+                gap = f"a gap of {(t_ns - last_in) * 1e-9:.2f} s" if t_ns > last_in else \
+                    f"a stamp {(last_in - t_ns) * 1e-9:.2f} s back (a clock reset)"
                 self._restart(gap)
             self._start(t_ns)
             return self._out(t_ns, t_ns)
@@ -137,8 +138,7 @@ class FrameClock:
                 # a frame held up: the line has it; one early, or late after others off the line: the clock may
                 # have changed
                 late = off > 0 and self._on and alone
-                line = self._ref_ns + int(round(self._line[0] + self._line[1] * n))
-                return self._out(t_ns, line if late else t_ns)  # out of the fit either way
+                return self._out(t_ns, self._on_line(n) if late else t_ns)  # out of the fit either way
         self._off_line.append(False)
         self._n.append(n)
         self._a.append(a)
@@ -161,7 +161,11 @@ class FrameClock:
                 self._since_fit = 0
         if not self._on or self._line is None:
             return self._out(t_ns, t_ns)
-        return self._out(t_ns, self._ref_ns + int(round(self._line[0] + self._line[1] * n)))
+        return self._out(t_ns, self._on_line(n))
+
+    def _on_line(self, n: int) -> int:
+        """Frame n's stamp on the fitted camera clock (host ns)."""
+        return self._ref_ns + int(round(self._line[0] + self._line[1] * n))
 
     def _start(self, t_ns: int) -> None:
         self._ref_ns = t_ns
