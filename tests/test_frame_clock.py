@@ -37,10 +37,13 @@ def test_exact_stamps_are_kept_as_given():
         clock = FrameClock("auto")
         assert np.array_equal(restamp_all(clock, stamps), stamps)
         assert clock.stats.restamped == 0
+        # exact: no stamp link in the estimator, the replay byte for byte what it was
+        assert clock.stats.uncertain == 0 and all(clock.stamp_sigma_ns(int(t)) == 0 for t in stamps[-50:])
     assert frame_stamps_line(clock.stats.as_dict()) is None
     raw = FrameClock("raw")
     jittered = exposures(300, rng) + rng.integers(0, 5_000_000, 300)
     assert np.array_equal(restamp_all(raw, jittered), jittered)
+    assert raw.stats.uncertain == 0 and raw.stamp_sigma_ns(int(jittered[-1])) == 0  # raw: taken as exact
 
 
 @pytest.mark.parametrize("kind", ["exponential", "gaussian"])
@@ -179,6 +182,27 @@ def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
         out = restamp_all(clock, arrived)
     assert np.array_equal(out, arrived)
     assert caplog.text.count("too much to number the frames, stamps kept as given") == 1
+    # kept as given, but not as exact: each stamp's sigma is what the stamps spread (12 ms drawn), which the
+    # estimator's stamp link takes (tests/test_estimator_stamps.py)
+    sigma = np.array([clock.stamp_sigma_ns(int(t)) for t in out[-100:]])
+    assert np.all((sigma > 9e6) & (sigma < 20e6)), (sigma.min(), sigma.max())  # 14-18: the order kept adds
+    assert clock.stamp_sigma_ns(int(out[-1]) + 1) == 0  # a stamp it never handed out
+    assert "stamps uncertain by up to" in frame_stamps_line(clock.stats.as_dict())
+
+
+def test_a_restamped_frame_carries_the_error_of_the_fitted_line():
+    """A restamped stamp is off its exposure by the line's own error, not by the jitter: the sigma handed out says
+    about that, 2 spread / sqrt(frames in the window) at the newest frame, and covers the actual errors."""
+    rng = np.random.default_rng(21)
+    true = exposures(1200, rng)
+    arrived = true + np.round(rng.normal(0, 3e6, len(true))).astype(np.int64)
+    arrived = np.maximum.accumulate(arrived + np.arange(len(true)))
+    clock = FrameClock("auto")
+    out = restamp_all(clock, arrived)
+    sigma = np.array([clock.stamp_sigma_ns(int(t)) for t in out[-200:]])
+    err = (out - true)[-200:]
+    assert np.all((sigma > 0.25e6) & (sigma < 0.8e6)), (sigma.min(), sigma.max())  # 2 x 3 ms / sqrt(200) = 0.42
+    assert np.sqrt(np.mean(err.astype(float) ** 2)) < 1.5 * np.mean(sigma)  # the errors within what it says
 
 
 @pytest.mark.parametrize("hz", [10, 15])
@@ -233,6 +257,34 @@ def test_a_replay_of_frames_stamped_on_arrival(tmp_path):
         restamped = d["frame_stamps"]["restamped"]
         assert (restamped > 150) if name == "auto" else (restamped == 0)
     assert ate["auto"] < 0.6 * ate["raw"], ate  # 6.1 against 17.4 mm when written
+
+
+def test_stamps_jittering_too_much_to_restamp_are_not_taken_as_exact(tmp_path):
+    """A camera stamped on arrival whose stamps spread more than the clock can restamp (9 ms at 20 Hz, kept as given):
+    the stamp link lets each keyframe's camera pose move along the motion by the measured spread, so the estimate
+    does not fold the jitter into the path and the covariance sent covers what is left (pose NEES; 6 is honest).
+    Without it (`frame_stamp_link = false`, the behaviour before) the errors ran to 3-11x the stated sigmas."""
+    import dataclasses
+
+    from vio.config import load_config
+    from vio.consistency import pose_nees, replay_states
+
+    flight = tmp_path / "jittered"
+    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "12", "--seed", "2",
+                 "--size", "376x240", "--stamp-jitter-ms", "9", "--no-progress"]) == 0
+    base = load_config(None)
+    got = {}
+    for link in (True, False):
+        cfg = dataclasses.replace(base, backend=dataclasses.replace(base.backend, frame_stamp_link=link))
+        r = replay_states(flight, cfg)
+        gt = r.dataset.groundtruth.trajectory
+        nees = pose_nees(r.frame_states, gt.t_ns, gt.poses(), skip_s=1.0)
+        got[link] = (nees.mean, float(np.sqrt(np.mean(nees.error_position_m ** 2))))
+        assert r.estimator.frame_clock.stats.restamped == 0  # kept as given: the spread is too large to restamp
+        assert r.estimator.frame_clock.stats.uncertain > 200
+    # when written: NEES 2.1 against 64, position error 11 against 119 mm RMS
+    assert got[True][0] < 8 and got[True][0] < 0.5 * got[False][0], got
+    assert got[True][1] < 0.5 * got[False][1], got
 
 
 def test_the_clock_lets_go_when_the_jitter_ends_and_waits_near_the_bound(caplog):

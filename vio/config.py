@@ -236,6 +236,11 @@ class BackendConfig:
                                       "frames): longer averages the jitter down further, and a clock that drifts "
                                       "is still a line over seconds",
                                       min=1, max=120)
+    frame_stamp_link: bool = opt(True, "let each keyframe's camera pose move along the body's motion by its frame "
+                                 "stamp's uncertainty, as the frame clock measures it (stamps kept as given while "
+                                 "they jitter, the fitted line's error for restamped ones): neither the poses nor the "
+                                 "covariance sent then take a jittering stamp as exact; stamps that keep to their "
+                                 "line (a device's, a dataset's) and 'raw' ones are exact and get none")
     stereo_every_frame: bool = opt(False, "stereo (and right-image decoding) on every frame, not only where a keyframe "
                                    "is possible: ~20 % slower, ATE a few mm lower on some flights")
     time_offset_max_ms: float = opt(50.0, "largest offset error searched for", min=1, max=500)

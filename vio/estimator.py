@@ -1267,13 +1267,18 @@ class Estimator:
                 self._mark_keyframe()
             else:
                 est = run.smoother.add_keyframe(t, run.pim, ff, zero_velocity=still, omega_body=omega,
-                                                applied_offset_ns=t - int(ff.t_ns))  # the stamp's offset
+                                                applied_offset_ns=t - int(ff.t_ns),  # the stamp's offset
+                                                stamp_sigma_ms=self._stamp_sigma_ms(ff))
                 st = self._after_solve(t, est, ff)
         vt = run.last_vision_t
         if vt is None or (t - vt) * 1e-9 > self.bcfg.lost_timeout_s:
             lost = "since the start" if vt is None else f"for {(t - vt) * 1e-9:.2f} s"
             self.reset(f"tracking lost: no usable camera frame {lost}")
         return st
+
+    def _stamp_sigma_ms(self, ff: FeatureFrame) -> float:
+        """How far the keyframe's stamp may be off its exposure (the frame clock's measure; `frame_stamp_link`)."""
+        return self.frame_clock.stamp_sigma_ns(int(ff.t_ns)) * 1e-6 if self.bcfg.frame_stamp_link else 0.0
 
     def _predicted_state(self, t: int, ff: FeatureFrame) -> NavState:
         """The frame's state from the last solved keyframe and the IMU since then (a frame that is not solved)."""
@@ -1304,7 +1309,8 @@ class Estimator:
         started at it with the solved bias, as a solve on the keyframe's own frame gives."""
         d, run.deferred = run.deferred, None
         est = run.smoother.add_keyframe(d.t, run.pim, d.ff, zero_velocity=d.still, omega_body=d.omega_body,
-                                        applied_offset_ns=d.applied_offset_ns)
+                                        applied_offset_ns=d.applied_offset_ns,
+                                        stamp_sigma_ms=self._stamp_sigma_ms(d.ff))
         self._after_solve(d.t, est, d.ff, deferred=True)
 
     def _after_solve(self, t: int, est, ff: FeatureFrame, deferred: bool = False) -> NavState:

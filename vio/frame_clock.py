@@ -50,6 +50,7 @@ OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the came
 # refitted, every third frame moved 17 ms (a review's finding)
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
+SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
 
 
@@ -65,6 +66,9 @@ class FrameClockStats:
     jitter_ns: float | None = None  # the part of it that changes from frame to frame (what auto goes by)
     period_ns: float | None = None  # the fitted frame period
     restarts: int = 0  # fits started again (gaps, a clock that changed)
+    uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
+    sigma_ns: float = 0.0  # the newest frame's stamp sigma
+    sigma_max_ns: float = 0.0  # the largest handed out
 
     def as_dict(self) -> dict:
         return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
@@ -72,7 +76,9 @@ class FrameClockStats:
                 "spread_ms": None if self.spread_ns is None else round(self.spread_ns * 1e-6, 3),
                 "jitter_ms": None if self.jitter_ns is None else round(self.jitter_ns * 1e-6, 3),
                 "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
-                "restarts": self.restarts}
+                "restarts": self.restarts, "uncertain_frames": self.uncertain,
+                "stamp_sigma_ms": round(self.sigma_ns * 1e-6, 3),
+                "stamp_sigma_max_ms": round(self.sigma_max_ns * 1e-6, 3)}
 
 
 class FrameClock:
@@ -96,6 +102,8 @@ class FrameClock:
         self._warned = False  # the spread-too-large warning, once per fit
         self._last_in = None
         self._last_out = None
+        self._fit_n = (0.0, 1.0, 1)  # the last fit's mean frame number, sum of squared deviations, stamps kept
+        self._sigmas: deque[tuple[int, float]] = deque(maxlen=SIGMAS_KEPT)  # (stamp handed out, its sigma [ns])
 
     def restamp(self, t_ns: int) -> int:
         """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
@@ -112,7 +120,7 @@ class FrameClock:
             # would otherwise come after it). Starting the fit again on each threw away 10 s of fit, kept the next
             # 20 frames as given and logged twice (a driver repeating a stamp every 30 s: 4 restarts in 2 minutes,
             # a review's finding)
-            return t_ns if self._last_out is None else min(t_ns, self._last_out)
+            return t_ns if self._last_out is None else min(t_ns, self._last_out)  # dropped, so no sigma for it
         self._last_in = t_ns
         if last_in is None or t_ns <= last_in or t_ns - last_in > MAX_GAP_S * 1e9:
             if last_in is not None:
@@ -120,7 +128,7 @@ class FrameClock:
                     f"a stamp {(last_in - t_ns) * 1e-9:.2f} s back (a clock reset)"
                 self._restart(gap)
             self._start(t_ns)
-            return self._out(t_ns, t_ns)
+            return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
         n = self._number(a)
         if self._line is not None:
@@ -134,11 +142,13 @@ class FrameClock:
                     self._restart(f"{OFF_LINE_OF_RECENT[0]} of the last {len(self._off_line)} frames off the camera "
                                   f"clock's line (the last by {off * 1e-6:.1f} ms)")
                     self._start(t_ns)
-                    return self._out(t_ns, t_ns)
+                    return self._out(t_ns, t_ns, self._given_sigma())
                 # a frame held up: the line has it; one early, or late after others off the line: the clock may
                 # have changed
                 late = off > 0 and self._on and alone
-                return self._out(t_ns, self._on_line(n) if late else t_ns)  # out of the fit either way
+                if late:  # out of the fit either way
+                    return self._out(t_ns, self._on_line(n), self._line_sigma(n))
+                return self._out(t_ns, t_ns, max(abs(off), self._given_sigma()))
         self._off_line.append(False)
         self._n.append(n)
         self._a.append(a)
@@ -160,8 +170,34 @@ class FrameClock:
                 self._fit()
                 self._since_fit = 0
         if not self._on or self._line is None:
-            return self._out(t_ns, t_ns)
-        return self._out(t_ns, self._on_line(n))
+            return self._out(t_ns, t_ns, self._given_sigma())
+        return self._out(t_ns, self._on_line(n), self._line_sigma(n))
+
+    def stamp_sigma_ns(self, t_ns: int) -> float:
+        """How far the stamp `t_ns` handed out (one of the last SIGMAS_KEPT) may be off its frame's exposure, beyond
+        a constant latency (1 sigma, ns): the line's own error for a restamped frame; the stamps' spread around the
+        line for one kept as given while they jitter (ON_MS or more from frame to frame: a jitter the clock could
+        not take out, too large to number the frames, or before its fit holds MIN_FRAMES after a restart); 0 for
+        stamps that keep to their line (a device's, a dataset's), for `raw` (taken as exact), and for a stamp
+        it does not know. The estimator lets each keyframe's camera pose move along its motion by it (the smoother's
+        stamp link), so that neither the poses nor the covariance sent take such a stamp as exact."""
+        for t, sigma in reversed(self._sigmas):
+            if t == t_ns:
+                return sigma
+            if t < t_ns:
+                break
+        return 0.0
+
+    def _given_sigma(self) -> float:
+        """The error of a stamp kept as given: the spread of the last fit (kept across a restart: the same camera,
+        most likely) while its stamps jitter from frame to frame, else 0."""
+        return self._spread if self._jitter >= ON_MS * 1e6 else 0.0
+
+    def _line_sigma(self, n: int) -> float:
+        """The error of frame n's stamp on the fitted line (least squares: spread x sqrt(1/k + (n - mean)^2 / Sxx);
+        ~2 spread / sqrt(k) at the newest frame, 0.4 ms for 3 ms of jitter over a 10 s window at 20 Hz)."""
+        nm, sxx, k = self._fit_n
+        return self._spread * float(np.sqrt(1.0 / k + (n - nm) ** 2 / sxx))
 
     def _on_line(self, n: int) -> int:
         """Frame n's stamp on the fitted camera clock (host ns)."""
@@ -227,6 +263,7 @@ class FrameClock:
         jitter = 1.4826 * float(median(np.abs(step - median(step)))) / float(np.sqrt(2.0))
         self._line = (am - period * nm, period)
         self._spread, self._jitter = spread, jitter
+        self._fit_n = (float(nm), max(float(dn @ dn), 1.0), len(dn))
         self.stats.spread_ns, self.stats.jitter_ns, self.stats.period_ns = spread, jitter, period
         if spread > MAX_SPREAD_PERIODS * period:
             self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
@@ -249,12 +286,17 @@ class FrameClock:
         self._warned = self._warned or why is not None
         self._on = on
 
-    def _out(self, t_in: int, t_out: int) -> int:
+    def _out(self, t_in: int, t_out: int, sigma: float) -> int:
         if self._last_out is not None and t_out <= self._last_out:
             # not out of order where the stamp as given is not (the estimator would drop the frame); it can be
             # where a frame held up to within a millisecond or so of the next one's time was put on that time
-            t_out = t_in
+            t_out, sigma = t_in, max(sigma, self._given_sigma(), float(abs(t_out - t_in)))
         self._last_out = t_out
+        self._sigmas.append((t_out, sigma))
+        self.stats.sigma_ns = sigma
+        if sigma > 0:
+            self.stats.uncertain += 1
+            self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, sigma)
         if t_out != t_in:
             self.stats.restamped += 1
             self.stats.largest_move_ns = max(self.stats.largest_move_ns, abs(t_out - t_in))
@@ -262,9 +304,15 @@ class FrameClock:
 
 
 def frame_stamps_line(stats: dict | None) -> str | None:
-    """One line for a replay whose frames were restamped (None where every stamp was kept as given)."""
-    if not stats or not stats["restamped"]:
+    """One line for a replay whose frames were restamped or whose stamps were uncertain (None where every stamp was
+    kept as given and exact)."""
+    if not stats or not (stats["restamped"] or stats.get("uncertain_frames")):
         return None
-    return (f"frame stamps: {stats['restamped']} of {stats['frames']} frames restamped on the camera's clock "
-            f"({stats['period_ms']:.3f} ms period; the stamps spread {stats['spread_ms']:.2f} ms around it, largest "
-            f"move {stats['largest_move_ms']:.1f} ms; {stats['restarts']} restarts)")
+    line = f"frame stamps: {stats['restamped']} of {stats['frames']} frames restamped on the camera's clock"
+    if stats["period_ms"] is not None:
+        line += (f" ({stats['period_ms']:.3f} ms period; the stamps spread {stats['spread_ms']:.2f} ms around it, "
+                 f"largest move {stats['largest_move_ms']:.1f} ms; {stats['restarts']} restarts)")
+    if stats.get("uncertain_frames"):
+        line += (f"; {stats['uncertain_frames']} stamps uncertain by up to {stats['stamp_sigma_max_ms']:.2f} ms "
+                 "(1 sigma), their camera poses free to move along the motion by it")
+    return line

@@ -160,6 +160,7 @@ MONO_MIN_VIEWS = 3  # keyframes (the current one included) that must see a mono 
 MONO_MAX_REPROJ_PX = 2.0  # a triangulated mono landmark must project this close to every view's pixel
 
 
+STAMP_LINKS_KEPT = 4000  # keyframe numbers remembered as having a stamp link (far more than a window holds)
 KEEP_ALL_LAG_S = 1e9  # a smoother lag that marginalises nothing (between marginalisations)
 TIME_LINK_SIGMA = 1e-4  # rad, m: C(i) = X(i) Exp(xi d) held this tightly (a pixel is ~2e-3 rad; 1e-5 and the
 # offset in seconds made iSAM2 report indeterminate systems on 5 of 18 matrix flights)
@@ -193,8 +194,25 @@ def level_prior(R_world_body: np.ndarray, sigma_tilt_rad: float, sigma_yaw_rad: 
     return gtsam.noiseModel.Gaussian.Covariance(cov)
 
 
+def stamp_link_noise(xi_ms: np.ndarray, sigma_ms: float) -> gtsam.noiseModel.Base:
+    """Noise of the link C = X Exp(xi d) (or C = X without the time state) when the frame's own stamp may be off by
+    `sigma_ms` (1 sigma, white from frame to frame: vio.frame_clock): C may move along the twist xi (per ms) by it,
+    TIME_LINK_SIGMA across. A stamp error moves the whole camera pose along the motion, one error for every pixel
+    of the frame; as pixel noise it would have been averaged away over the frame's hundreds of points."""
+    xi = np.asarray(xi_ms, float).reshape(6)
+    if sigma_ms <= 0:
+        return gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA)
+    return gtsam.noiseModel.Gaussian.Covariance(np.eye(6) * TIME_LINK_SIGMA ** 2 + sigma_ms ** 2 * np.outer(xi, xi))
+
+
+def body_twist_ms(pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None) -> np.ndarray:
+    """The body's twist (gyro, body-frame velocity) per ms: how far the camera-time pose moves per ms of offset."""
+    omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
+    return 1e-3 * np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
+
+
 def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray, X0: gtsam.Pose3, C0: gtsam.Pose3,
-                     d0: float) -> gtsam.LinearContainerFactor:
+                     d0: float, noise: gtsam.noiseModel.Base | None = None) -> gtsam.LinearContainerFactor:
     """error = Log(X^-1 C) - xi d: the camera-time pose C is the IMU-time pose X moved along the body twist
     xi = (omega, v_body), given per unit of d (per ms, as the smoother keeps d).
 
@@ -208,8 +226,14 @@ def time_link_factor(x_key: int, c_key: int, d_key: int, xi: np.ndarray, X0: gts
     delta = X0.between(C0)
     J = gtsam.Pose3.LogmapDerivative(delta)
     e0 = gtsam.Pose3.Logmap(delta) - xi * float(d0)
-    lin = gtsam.JacobianFactor(x_key, -J @ delta.inverse().AdjointMap(), c_key, J, d_key, -xi.reshape(6, 1),
-                               -e0, gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA))
+    A_x, A_c, A_d, b = -J @ delta.inverse().AdjointMap(), J, -xi.reshape(6, 1), -e0
+    if noise is None:
+        model = gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA)
+    else:  # a full covariance (stamp_link_noise): whitened here, the binding takes diagonal models only
+        R = np.asarray(noise.R(), float)
+        A_x, A_c, A_d, b = R @ A_x, R @ A_c, R @ A_d, R @ b
+        model = gtsam.noiseModel.Unit.Create(6)
+    lin = gtsam.JacobianFactor(x_key, A_x, c_key, A_c, d_key, A_d, b, model)
     point = gtsam.Values()
     point.insert(x_key, X0)
     point.insert(c_key, C0)
@@ -302,6 +326,8 @@ class VioSmoother:
         # first keyframe whose projections read the camera-time pose C(i); None: no time state (yet). A state
         # asked for starts at the first keyframe that moves fast enough to show the offset (`_shows_offset`)
         self.time_from: int | None = None
+        self._stamp_linked: set[int] = set()  # keyframes whose projections read C(i) without the time state
+        self.stamp_links = 0  # keyframes given a stamp link (stamp_link_noise) without the time state
         self._time_pending = bool(cfg.time_offset_state if time_state is None else time_state)
         self.time_links = 0  # keyframes whose camera pose was read at the offset (moving fast enough to show it)
         self._applied_ns = 0  # the applied offset at the newest keyframe (time state only)
@@ -345,12 +371,13 @@ class VioSmoother:
 
     def _pose_key(self, i: int) -> int:
         """The pose the projections of keyframe i read: the camera-time C(i) with the time state, else X(i)."""
-        return C(i) if self.time_from is not None and i >= self.time_from else X(i)
+        return C(i) if (self.time_from is not None and i >= self.time_from) or i in self._stamp_linked else X(i)
 
     def _add_time_state(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
                         j: int, t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
-                        applied_ns: int) -> gtsam.Pose3:
-        """D(j), C(j) and their factors (module doc); returns C(j)'s initial value."""
+                        applied_ns: int, stamp_sigma_ms: float = 0.0) -> gtsam.Pose3:
+        """D(j), C(j) and their factors (module doc); returns C(j)'s initial value. `stamp_sigma_ms`: the frame's own
+        stamp error (stamp_link_noise), on top of the offset D follows."""
         cfg = self.cfg
         rate = cfg.time_offset_rate_walk_ms > 0
         if j == self.time_from:
@@ -372,16 +399,17 @@ class VioSmoother:
             else:
                 graph.add(gtsam.BetweenFactorDouble(D(j - 1), D(j), -step, walk))
         self._applied_ns = int(applied_ns)
+        # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
+        twist_ms = body_twist_ms(pose, v_world, omega_body)
         if self._shows_offset(omega_body, v_world):
             self.time_links += 1
             self._linked = (j, int(applied_ns))
-            omega = np.zeros(3) if omega_body is None else np.asarray(omega_body, float)
-            xi = np.r_[omega, pose.rotation().unrotate(np.asarray(v_world, float))]
+            xi_ms = twist_ms
         else:
-            xi = np.zeros(6)  # too slow to tell the offset: C(j) = X(j), d(j) only walks on (module doc)
-        xi_ms = 1e-3 * xi  # d is in ms: the variables stay near unit scale (seconds upset iSAM2's Cholesky)
+            xi_ms = np.zeros(6)  # too slow to tell the offset: C(j) = X(j), d(j) only walks on (module doc)
         cam_pose = pose.compose(gtsam.Pose3.Expmap(xi_ms * d))
-        graph.add(time_link_factor(X(j), C(j), D(j), xi_ms, pose, cam_pose, d))
+        noise = stamp_link_noise(twist_ms, stamp_sigma_ms) if stamp_sigma_ms > 0 else None
+        graph.add(time_link_factor(X(j), C(j), D(j), xi_ms, pose, cam_pose, d, noise))
         values.insert(D(j), float(d))
         values.insert(C(j), cam_pose)
         stamps[D(j)] = stamps[C(j)] = t_s
@@ -389,6 +417,24 @@ class VioSmoother:
             values.insert(S(j), float(0.0 if j == self.time_from else r))
             stamps[S(j)] = t_s
         return cam_pose
+
+    def _add_stamp_link(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
+                        j: int, t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
+                        sigma_ms: float) -> gtsam.Pose3:
+        """Without the time state, a keyframe whose stamp may be off by `sigma_ms` gets a camera-time pose C(j) of its
+        own, held to X(j) except along the body's motion (stamp_link_noise); returns C(j)'s initial value (X's). A
+        keyframe that hardly moves (sigma x twist under the link's own sigma) keeps C(j) = X(j)."""
+        xi_ms = body_twist_ms(pose, v_world, omega_body)
+        if sigma_ms * float(np.linalg.norm(xi_ms)) < TIME_LINK_SIGMA:
+            return pose
+        graph.add(gtsam.BetweenFactorPose3(X(j), C(j), gtsam.Pose3(), stamp_link_noise(xi_ms, sigma_ms)))
+        values.insert(C(j), pose)
+        stamps[C(j)] = t_s
+        if len(self._stamp_linked) > STAMP_LINKS_KEPT:  # those of keyframes long out of the window
+            self._stamp_linked = {i for i in self._stamp_linked if i > j - STAMP_LINKS_KEPT // 2}
+        self._stamp_linked.add(j)
+        self.stamp_links += 1
+        return pose
 
     def _t_s(self, t_ns: int) -> float:
         """Smoother time in seconds relative to the first keyframe (float64 keeps sub-us precision)."""
@@ -513,11 +559,13 @@ class VioSmoother:
 
     def add_keyframe(self, t_ns: int, pim: gtsam.PreintegratedCombinedMeasurements,
                      features: FeatureFrame | None, zero_velocity: bool = False,
-                     omega_body: np.ndarray | None = None, applied_offset_ns: int = 0) -> KeyframeEstimate:
+                     omega_body: np.ndarray | None = None, applied_offset_ns: int = 0,
+                     stamp_sigma_ms: float = 0.0) -> KeyframeEstimate:
         """Add keyframe i+1 tied to i by `pim` (integrated from i's stamp to t_ns with i's bias).
 
         `omega_body` (bias-corrected gyro at t_ns) and `applied_offset_ns` (the offset the frame stamps
-        carry) feed the time offset state, when it is on."""
+        carry) feed the time offset state, when it is on; `stamp_sigma_ms` is how far the frame's own stamp may be
+        off (vio.frame_clock: 0 for exact stamps), which lets its camera pose move along the motion by that much."""
         if self.last is None:
             raise SmootherFailure("add_keyframe before initialize")
         self.check_stereo()  # one the caller has not read yet
@@ -545,9 +593,14 @@ class VioSmoother:
             # the IMU alone would integrate during hover-on-ground and before take-off.
             graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), _sigmas([0.01] * 3)))
             graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(), _sigmas([1e-3] * 3 + [2e-3] * 3)))
-        cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
-                                        applied_offset_ns) \
-            if self._time_state_at(j, omega_body, pred.velocity()) else pred.pose()
+        if self._time_state_at(j, omega_body, pred.velocity()):
+            cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
+                                            applied_offset_ns, stamp_sigma_ms)
+        elif stamp_sigma_ms > 0:
+            cam_pose = self._add_stamp_link(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
+                                            stamp_sigma_ms)
+        else:
+            cam_pose = pred.pose()
         switch = self._rig_pending and features is not None and features.tracking_ok \
             and self._motion_excites_extrinsics(pred.pose(), t_s)
         if switch:
