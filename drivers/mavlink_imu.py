@@ -16,10 +16,14 @@ ImuSamples on the host clock like any other source (drivers/base.py).
   extrinsics (T_body_cam0) must be given relative to it.
 * Time: the message's time_usec (time_boot_ms for SCALED_IMU) is the autopilot's clock. TIMESYNC round
   trips at 10 Hz feed a drift-tracking fit (timesync.ClockSync in round-trip mode) that maps it onto
-  CLOCK_MONOTONIC; until the first answer (or if the autopilot never answers) the arrival-time lower
-  envelope of the IMU messages themselves is used. A stamp that goes back by more than REBOOT_BACK_S is an
-  autopilot reboot: both fits restart and answers to requests sent before it are ignored. A change of
-  mapping (the first TIMESYNC answer replacing the arrival envelope, a refit) is slewed in over a few
+  CLOCK_MONOTONIC. Until the first answer the samples are HELD (at most HOLD_S; one log line, `holds` / `held` /
+  `backlog` in health()) and then placed by it: a link delivers a backlog at once on (re)connection, and the
+  arrival fit used until then put a sample that had waited 1.86 s at its arrival. If the autopilot never answers,
+  the arrival-time lower envelope of the IMU messages themselves is used, never later than a sample's arrival
+  (nor, for held ones, than a later sample's arrival less their device-time difference). A stamp that goes back
+  by more than REBOOT_BACK_S is an autopilot reboot: both fits restart, the samples are held again, and answers
+  to requests sent before it are ignored. A change of mapping (a refit, the first TIMESYNC answer replacing the
+  arrival envelope after a hold that timed out) is slewed in over a few
   samples instead of stepped, so host stamps never go back and no sample is dropped for it.
 * Honesty: a duplicate stamp or one older than the previous (UDP reordering) is dropped and counted; gaps,
   the measured rate, stamp jitter and transport latency are in health(). No IMU message after
@@ -59,6 +63,13 @@ NO_DATA_WARN_S = 3.0  # heartbeat seen, no configured IMU message for this long:
 STATS_WINDOW = 400  # samples behind the rate / jitter / latency figures
 CLOCK_DISAGREE_S = 1.0  # TIMESYNC-mapped stamp this far from the arrival: the IMU stamps use another clock
 SLEW_FRACTION = 0.5  # a mapping change moves the host stamps by at most this fraction of each sample interval
+# At the start and after an autopilot reboot the samples are held until the first TIMESYNC round trip (normally
+# 0.1-0.2 s), at most HOLD_S of arrivals (an autopilot that does not answer: then mapped by the arrivals of all the
+# samples held) and HOLD_MAX samples (the oldest beyond it dropped, counted). Why: a link delivers a backlog at once
+# on (re)connection, and the arrival fit placed a sample that waited 1.86 s at its arrival (docs/autopilot.md).
+HOLD_S = 1.0
+HOLD_MAX = 4000
+BACKLOG_S = 0.1  # a held sample that arrived this long after its mapped stamp was in a backlog (said and counted)
 
 
 class MavlinkImuSource(ThreadedSource):
@@ -128,6 +139,17 @@ class MavlinkImuSource(ThreadedSource):
         self.clock_source = "none"
         self.clock_disagreements = 0
         self._disagree_run = 0
+        self._init_hold()
+
+    def _init_hold(self) -> None:
+        """Hold the next samples until a TIMESYNC round trip places them (the start, an autopilot reboot)."""
+        self._holding = True
+        self._held: deque[tuple[int, int, np.ndarray, np.ndarray]] = deque()  # (t_dev, t_arrival, gyro, accel)
+        self._hold_since_ns: int | None = None
+        self.holds = getattr(self, "holds", 0)  # kept across a reboot: health() counts the whole run
+        self.held = getattr(self, "held", 0)
+        self.hold_dropped = getattr(self, "hold_dropped", 0)
+        self.backlog = getattr(self, "backlog", 0)
 
     # ---------------------------------------------------------------- source interface
     def _before_start(self) -> None:
@@ -260,6 +282,8 @@ class MavlinkImuSource(ThreadedSource):
             self._rtt_ns.append(rtt)
             self.timesync.add(int(msg.tc1), (msg.ts1 + t_arrival_ns) // 2, rtt // 2)
             self.timesync_used += 1
+            if self._holding and self._held:
+                self._release_held(t_arrival_ns, "the first TIMESYNC round trip")
 
     def _on_imu(self, msg: Any, t_arrival_ns: int) -> None:
         self.received += 1
@@ -275,6 +299,7 @@ class MavlinkImuSource(ThreadedSource):
                                 self.message, t_dev / 1e9, (self._last_dev_ns - t_dev) / 1e6)
                 return
             self.reboots += 1
+            self._release_held(t_arrival_ns, "an autopilot reboot")  # placed on the old clock's fits, or dropped
             log.warning("%s stamps went back by %.3f s: the autopilot restarted; clock sync restarted",
                         self.message, (self._last_dev_ns - t_dev) / 1e9)
             self.timesync.reset()
@@ -284,20 +309,84 @@ class MavlinkImuSource(ThreadedSource):
             self._dev_stamps.clear()
             self.request_result = ""  # a rebooted autopilot has forgotten the requested rate
             self._request_tries = 0
+            self._init_hold()
         self._last_dev_ns = t_dev
         self._last_sample_arrival_ns = t_arrival_ns
         self.arrival.add(t_dev, t_arrival_ns)
-        t_host = self._slew(t_dev, self._to_host(t_dev, t_arrival_ns))
-        if t_host is None or not self.monitor.check(t_host):
-            return
-        self._dev_stamps.append(t_dev)
-        self._latency_ns.append(t_arrival_ns - t_host)
         raw_g = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=np.float64)
         raw_a = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=np.float64)
         gyro = self._R @ (raw_g * self.gyro_scale)
         accel = self._R @ (raw_a * self.accel_scale)
         self._check_scale(accel, gyro)
+        if self._holding:
+            self._hold(t_dev, t_arrival_ns, gyro, accel)
+            return
+        self._emit(t_dev, t_arrival_ns, t_arrival_ns, gyro, accel)
+
+    def _emit(self, t_dev: int, t_arrival_ns: int, t_bound_ns: int, gyro: np.ndarray, accel: np.ndarray) -> bool:
+        """Map one sample onto the host clock and hand it on; False if it was not (no mapping, not after the
+        previous one). `t_bound_ns`: the latest host time it can have been made (its arrival, or for a held sample
+        less, from the arrivals of the samples after it)."""
+        t_host = self._slew(t_dev, self._to_host(t_dev, t_bound_ns, held=t_bound_ns != t_arrival_ns))
+        if t_host is None or not self.monitor.check(t_host):
+            return False
+        self._dev_stamps.append(t_dev)
+        self._latency_ns.append(t_arrival_ns - t_host)
         self._queue.put(ImuSample(t_host, gyro, accel))
+        return True
+
+    def _hold(self, t_dev: int, t_arrival_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Keep a sample until the clock sync can place it: the first TIMESYNC round trip (answered after the hold
+        began), or HOLD_S of arrivals without one."""
+        if self._hold_since_ns is None:
+            self._hold_since_ns = t_arrival_ns
+        if len(self._held) >= HOLD_MAX:
+            self._held.popleft()
+            self.hold_dropped += 1
+        self._held.append((t_dev, t_arrival_ns, gyro, accel))
+        self.held += 1
+        if self.timesync.to_host(t_dev) is not None:
+            self._release_held(t_arrival_ns, "the first TIMESYNC round trip")
+        elif t_arrival_ns - self._hold_since_ns >= HOLD_S * 1e9:
+            self._release_held(t_arrival_ns, f"{HOLD_S:g} s without a TIMESYNC answer")
+
+    def _release_held(self, now_ns: int, why: str) -> None:
+        """Hand on the samples held, each mapped by the clock sync as it is now and no later than it can have been
+        made: its arrival, or a later sample's arrival less their device-time difference, whichever is earlier (a
+        sample that waited in a backlog arrived with the fresh ones after it, and is placed by them, never at its
+        own arrival). One log line per hold."""
+        self._holding = False
+        if not self._held:
+            return
+        held = list(self._held)
+        self._held.clear()
+        bounds = [0] * len(held)
+        d_min: int | None = None
+        for i in range(len(held) - 1, -1, -1):  # the smallest arrival - device offset of this sample and those after
+            t_dev, t_arr = held[i][0], held[i][1]
+            d_min = t_arr - t_dev if d_min is None else min(d_min, t_arr - t_dev)
+            bounds[i] = t_dev + d_min
+        sent = late = 0
+        worst = 0
+        for (t_dev, t_arr, gyro, accel), bound in zip(held, bounds):
+            if self._emit(t_dev, t_arr, bound, gyro, accel):
+                sent += 1
+                wait = t_arr - (self.monitor.last_t or t_arr)
+                if wait > BACKLOG_S * 1e9:
+                    late += 1
+                    worst = max(worst, wait)
+        self.backlog += late
+        self.holds += 1
+        text = (f"{len(held)} {self.message} samples held {(now_ns - held[0][1]) / 1e9:.2f} s until {why}: "
+                f"{sent} handed on, mapped by {'TIMESYNC' if self.clock_source == 'timesync' else 'their arrivals'}")
+        if late:
+            text += f", {late} of them arrived up to {worst / 1e9:.2f} s after they were made (a link backlog)"
+        if len(held) - sent:
+            text += f", {len(held) - sent} not placed (dropped)"
+        if late or sent < len(held):
+            log.warning("%s", text)
+        else:
+            log.info("%s", text)
 
     def _slew(self, t_dev: int, t_host: int | None) -> int | None:
         """Apply a change of the dev->host mapping gradually, so that host stamps never step back.
@@ -322,24 +411,31 @@ class MavlinkImuSource(ThreadedSource):
         self._slew_lag_ns = abs(target - off)
         return t_dev + off
 
-    def _to_host(self, t_dev: int, t_arrival_ns: int) -> int | None:
-        """TIMESYNC mapping when it has answers and agrees with the arrivals, else the arrival envelope."""
+    def _to_host(self, t_dev: int, t_bound_ns: int, held: bool = False) -> int | None:
+        """TIMESYNC mapping when it has answers and agrees with the arrivals, else the arrival envelope.
+
+        `t_bound_ns` is the latest host time the sample can have been made (its arrival; for a held sample a later
+        one's arrival less their device-time difference). The arrival envelope is held to it (a fit that a backlog
+        put late cannot put a sample after it arrived), and so is a held sample's TIMESYNC mapping (the first answer
+        may be stamped early, docs/autopilot.md); a live sample's TIMESYNC mapping is left as the round trips
+        place it (stamp_uncertainty_s says when it lies after the arrivals)."""
         t = self.timesync.to_host(t_dev) if self.timesync_used else None
-        if t is not None and abs(t_arrival_ns - t) <= CLOCK_DISAGREE_S * 1e9:
+        if t is not None and abs(t_bound_ns - t) <= CLOCK_DISAGREE_S * 1e9:
             self.clock_source = "timesync"
             self._disagree_run = 0
-            return t
+            return min(t, t_bound_ns) if held else t
         if t is not None:  # a few around a restart are normal; a run of them means another clock
             self.clock_disagreements += 1
             self._disagree_run += 1
             if self._disagree_run == STATS_WINDOW:
-                self._error_once("clock", f"{self.message} stamps are {(t_arrival_ns - t) / 1e9:.1f} s off the "
+                self._error_once("clock", f"{self.message} stamps are {(t_bound_ns - t) / 1e9:.1f} s off the "
                                  "autopilot's TIMESYNC clock: they use another clock; mapped by arrival time")
         self.clock_source = "arrival"
         if self.arrival.problem:  # a rate the fit cannot follow: no stamp rather than a wrong one
             self._error_once("clock_rate", f"{self.message}: {self.arrival.problem}")
             return None
-        return self.arrival.to_host(t_dev)
+        t = self.arrival.to_host(t_dev)
+        return None if t is None else min(t, t_bound_ns)
 
     def _check_scale(self, accel: np.ndarray, gyro: np.ndarray) -> None:
         """At the start the vehicle is (nearly) still: |accel| near 1 g. Far off means a wrong scale."""
@@ -378,6 +474,7 @@ class MavlinkImuSource(ThreadedSource):
                 "latency_ms_median": round(float(np.median(lat)) / 1e6, 3) if len(lat) else None,
                 "latency_ms_p99": round(float(np.percentile(lat, 99)) / 1e6, 3) if len(lat) else None,
                 "duplicates": self.duplicates, "out_of_order": self.out_of_order, "reboots": self.reboots,
+                "holds": self.holds, "held": self.held, "hold_dropped": self.hold_dropped, "backlog": self.backlog,
                 "queue_dropped": self._queue.dropped, "stream": self.monitor.as_dict(),
                 "rate_request": self.request_result or ("sent" if self.request_sent else "not sent"),
                 "other_imu_messages": dict(self.other_imu), "clock_source": self.clock_source,

@@ -81,8 +81,11 @@ class FakeFC(threading.Thread):
                 self.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR,
                                                             mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3))
                 next_hb = now + 500_000_000
-            for msg in (self.due(now, self.start_ns) if self.due else []):
-                self.send(msg)
+            self.send_all(self.due(now, self.start_ns) if self.due else [])
+
+    def send_all(self, msgs: list) -> None:
+        for msg in msgs:
+            self.send(msg)
 
     def _handle(self, msg) -> None:
         name = msg.get_type()
@@ -605,10 +608,13 @@ def test_switch_from_arrival_stamps_to_timesync_drops_no_sample() -> None:
     TIMESYNC round trips do not: the arrival-time mapping used before the first answer is 40 ms late, and
     switching to TIMESYNC used to step every stamp back by 40 ms, dropping ~8 samples as non-monotonic (the
     start-up drops of the SITL stand-in). The mapping now slews: nothing is dropped, stamps increase, and
-    after the first second they are within 5 ms of the instant each sample was made."""
-    class LateFC(FakeFC):  # answers TIMESYNC only after 0.5 s: the first samples are mapped by arrival
+    from 2 s on they are within 5 ms of the instant each sample was made. (The answers come after 1.5 s: the samples
+    are held until the first one for at most mimu.HOLD_S, then mapped by arrival until it comes.)"""
+    assert mimu.HOLD_S < 1.5
+
+    class LateFC(FakeFC):  # answers TIMESYNC only after 1.5 s: samples from the hold's end on are mapped by arrival
         def _handle(self, msg) -> None:
-            if msg.get_type() != "TIMESYNC" or (self.start_ns and time.monotonic_ns() - self.start_ns > 5e8):
+            if msg.get_type() != "TIMESYNC" or (self.start_ns and time.monotonic_ns() - self.start_ns > 1.5e9):
                 super()._handle(msg)
 
     base = stream(lambda h: h, 600)
@@ -620,4 +626,42 @@ def test_switch_from_arrival_stamps_to_timesync_drops_no_sample() -> None:
     assert ks == list(range(len(ks))) and len(ks) >= 580
     assert all(b.t_ns > a.t_ns for a, b in zip(samples, samples[1:]))
     err = np.array([s.t_ns - (fc.start_ns + k * PERIOD_NS) for s, k in zip(samples, ks)]) / 1e6
-    assert h["clock_source"] == "timesync" and np.max(np.abs(err[200:])) < 5.0, np.max(np.abs(err[200:]))
+    assert h["clock_source"] == "timesync" and np.max(np.abs(err[400:])) < 5.0, np.max(np.abs(err[400:]))
+    assert np.max(err[220:280]) > 30  # mapped by arrival (40 ms late) before the first answer: the slew had work
+
+
+def test_a_backlog_delivered_at_connection_is_stamped_when_made_not_when_it_arrived(caplog) -> None:
+    """The autopilot's link delivers 1.86 s of samples at once as the source connects (a TCP backlog; a restarted
+    Kestrel in the SITL restart flight) and answers TIMESYNC only 0.3 s later. Before, the first sample was mapped by
+    its arrival (1.86 s after it was made) and the next ones slewed from there, 300 samples handed on up to 1.86 s
+    off ('device clock jumped ... clock sync restarted' after them). Now the samples are held until the first round
+    trip and placed by it: every one within 6 ms of its making, none lost or after its arrival, one log line and the
+    hold counted in health()."""
+    backlog_s = 1.86
+    back = int(backlog_s * 1e9 / PERIOD_NS)
+
+    class BacklogFC(FakeFC):
+        def _handle(self, msg) -> None:  # TIMESYNC answered from 0.3 s after the first packet on
+            if msg.get_type() != "TIMESYNC" or (self.start_ns and time.monotonic_ns() - self.start_ns > 3e8):
+                super()._handle(msg)
+
+        def send_all(self, msgs: list) -> None:  # a backlog comes in large chunks, as over TCP
+            for i in range(0, len(msgs), 20):
+                for peer in list(self.peers):
+                    self.sock.sendto(b"".join(m.pack(self.encoder) for m in msgs[i:i + 20]), peer)
+
+    fc_clock = lambda h: h + 7 * 10**9  # noqa: E731
+    base = stream(fc_clock, back + 500)
+    fc = BacklogFC(lambda now, start: base(now, start - back * PERIOD_NS), fc_clock)
+    with caplog.at_level(logging.INFO, logger="drivers.mavlink_imu"):
+        src, samples = run_source(fc, 3.3)
+    h = src.health()
+    ks = [int(round(s.gyro[0] * 1e3)) for s in samples]
+    made = np.array([fc.start_ns + (k - back) * PERIOD_NS for k in ks])
+    err = (np.array([s.t_ns for s in samples]) - made) / 1e6
+    assert np.max(np.abs(err)) < 6.0, (np.max(np.abs(err)), np.sum(np.abs(err) > 6.0), err[:3])
+    assert ks == list(range(len(ks))) and len(ks) >= back + 400, (len(ks), ks[:5])
+    assert h["clock_source"] == "timesync" and h["stream"]["non_monotonic"] == 0
+    assert h["holds"] == 1 and h["held"] >= back and h["backlog"] >= back - 40 and h["hold_dropped"] == 0, h
+    lines = [r.getMessage() for r in caplog.records if "held" in r.getMessage()]
+    assert len(lines) == 1 and "a link backlog" in lines[0] and "first TIMESYNC round trip" in lines[0], lines
