@@ -70,6 +70,25 @@ SLEW_FRACTION = 0.5  # a mapping change moves the host stamps by at most this fr
 HOLD_S = 1.0
 HOLD_MAX = 4000
 BACKLOG_S = 0.1  # a held sample that arrived this long after its mapped stamp was in a backlog (said and counted)
+# The newest samples against the mapping, for stamp_uncertainty_s: each one's latency L = arrival - mapped stamp. A
+# sample cannot have been made after it arrived, so L < 0 is a mapping that late (seen at once); and the smallest L
+# of the newest samples (those that arrived or were made in the last ARRIVAL_SPAN_S, at least two) rising above the
+# largest such smallest L of the spans that arrived ARRIVAL_HOLD_S to ARRIVAL_BASE_S before is a mapping that moved
+# early by as much (a device clock that fell behind; seen within ARRIVAL_SPAN_S, and said for ARRIVAL_HOLD_S, by when
+# the TIMESYNC measure has it). The TIMESYNC answers alone took 0.6-0.9 s to show a step (six answers at 10 Hz: single
+# ones are stamped early on ArduPilot). A span, not a count: a reader that stalled reads its backlog at once, and the
+# span then reaches back to a sample read in time. The largest of the earlier spans' floors, not the smallest: the
+# rise is judged against the link's own spread (and one span mapped badly at a start does not count). A link whose
+# latency rises for good reads as a clock step for ARRIVAL_HOLD_S.
+ARRIVAL_SPAN_S = 0.1
+ARRIVAL_HOLD_S = 1.0
+ARRIVAL_BASE_S = 3.0
+ARRIVAL_BASE_MIN_S = 0.5  # no rise is judged on less history than this (a start, a new mapping)
+# ... and it is judged only at a sample that arrived in step with the one before (its arrival gap at least half its
+# device-time gap and at most STEADY_SLACK_S more): not in the middle of a backlog read at once (a stalled reader,
+# TCP), where the samples read so far are the late ones and the span reaches back only to those read before the
+# stall; the rise found last is kept meanwhile.
+STEADY_SLACK_S = 0.05
 
 
 class MavlinkImuSource(ThreadedSource):
@@ -140,6 +159,14 @@ class MavlinkImuSource(ThreadedSource):
         self.clock_disagreements = 0
         self._disagree_run = 0
         self._init_hold()
+        self._init_latency_floor()
+
+    def _init_latency_floor(self) -> None:
+        """Forget the newest samples' latencies (a new mapping: another clock source, a fit restarted)."""
+        self._lat_recent: deque[tuple[int, int, int]] = deque()  # (t_arrival, t_dev, L) of the newest samples
+        self._lat_base: deque[list[int]] = deque()  # [first t_arrival, smallest L] per ARRIVAL_SPAN_S before them
+        self._lat_key: tuple[str, int, int] | None = None  # the mapping they were taken against
+        self._lat_rise_ns = 0  # the rise of their floor as last judged (at a sample that arrived in step)
 
     def _init_hold(self) -> None:
         """Hold the next samples until a TIMESYNC round trip places them (the start, an autopilot reboot)."""
@@ -327,7 +354,11 @@ class MavlinkImuSource(ThreadedSource):
         """Map one sample onto the host clock and hand it on; False if it was not (no mapping, not after the
         previous one). `t_bound_ns`: the latest host time it can have been made (its arrival, or for a held sample
         less, from the arrivals of the samples after it)."""
-        t_host = self._slew(t_dev, self._to_host(t_dev, t_bound_ns, held=t_bound_ns != t_arrival_ns))
+        held = t_bound_ns != t_arrival_ns
+        target = self._to_host(t_dev, t_bound_ns, held=held)
+        if target is not None and not held:
+            self._add_latency(t_arrival_ns, t_dev, t_arrival_ns - target)
+        t_host = self._slew(t_dev, target)
         if t_host is None or not self.monitor.check(t_host):
             return False
         self._dev_stamps.append(t_dev)
@@ -437,6 +468,40 @@ class MavlinkImuSource(ThreadedSource):
         t = self.arrival.to_host(t_dev)
         return None if t is None else min(t, t_bound_ns)
 
+    def _add_latency(self, t_arrival_ns: int, t_dev: int, lat_ns: int) -> None:
+        """Keep the newest samples' latencies against the mapping (ARRIVAL_SPAN_S of arrivals) and the smallest per
+        ARRIVAL_SPAN_S of those of the ARRIVAL_BASE_S before; started afresh whenever the mapping is another one."""
+        key = (self.clock_source, self.timesync.resets, self.arrival.resets)
+        if key != self._lat_key:
+            self._init_latency_floor()
+            self._lat_key = key
+        recent, base = self._lat_recent, self._lat_base
+        steady = bool(recent) and (t_dev - recent[-1][1]) / 2 <= t_arrival_ns - recent[-1][0] \
+            <= t_dev - recent[-1][1] + STEADY_SLACK_S * 1e9
+        recent.append((t_arrival_ns, t_dev, lat_ns))
+        span = int(ARRIVAL_SPAN_S * 1e9)
+        while len(recent) > 1 and t_arrival_ns - recent[1][0] >= span and t_dev - recent[1][1] >= span:
+            t, _, lat = recent.popleft()
+            if base and t - base[-1][0] < span:
+                base[-1][1] = min(base[-1][1], lat)
+            else:
+                base.append([t, lat])
+        while base and base[0][0] < t_arrival_ns - int(ARRIVAL_BASE_S * 1e9):
+            base.popleft()
+        if steady:
+            end = t_arrival_ns - int(ARRIVAL_HOLD_S * 1e9)
+            self._lat_rise_ns = 0
+            if base and end - base[0][0] >= ARRIVAL_BASE_MIN_S * 1e9:
+                self._lat_rise_ns = min(lat for _, _, lat in recent) - max(lat for t, lat in base if t <= end)
+
+    def _arrival_miss_ns(self) -> float:
+        """How far the newest samples show the mapping off [ns]: mapped after their arrival (a late mapping), or their
+        smallest latency risen above those of ARRIVAL_HOLD_S to ARRIVAL_BASE_S before (an early one, as last judged);
+        0 when they show nothing."""
+        if not self._lat_recent:
+            return 0.0
+        return float(max(-min(lat for _, _, lat in self._lat_recent), self._lat_rise_ns, 0))
+
     def _check_scale(self, accel: np.ndarray, gyro: np.ndarray) -> None:
         """At the start the vehicle is (nearly) still: |accel| near 1 g. Far off means a wrong scale."""
         if len(self._scale_checked) >= 50:
@@ -452,13 +517,16 @@ class MavlinkImuSource(ThreadedSource):
     # ---------------------------------------------------------------- clock health
     def stamp_uncertainty_s(self) -> float:
         """How far the newest samples' host stamps may be off [s]: the clock fit in use (TIMESYNC, else the arrival
-        envelope; timesync.ClockSync.uncertainty_ns) plus what the slew has not applied yet; inf before any sample
-        and while the arrival fit cannot place the stamps."""
+        envelope; timesync.ClockSync.uncertainty_ns) or what the newest samples' arrivals show of the mapping
+        (_arrival_miss_ns: a step at once or within ARRIVAL_SPAN_S, where the fit's answers take 0.6-0.9 s), whichever
+        is larger, plus what the slew has not applied yet; inf before any sample and while the arrival fit cannot
+        place the stamps."""
         with self._lock:
             if self._last_dev_ns is None:
                 return math.inf
             clock = self.timesync if self.clock_source == "timesync" else self.arrival
-            return (clock.uncertainty_ns(self._last_dev_ns) + self._slew_lag_ns) / 1e9
+            fit = clock.uncertainty_ns(self._last_dev_ns)
+            return (max(fit, self._arrival_miss_ns()) + self._slew_lag_ns) / 1e9
 
     # ---------------------------------------------------------------- health
     def health(self) -> dict[str, Any]:

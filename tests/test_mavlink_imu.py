@@ -215,19 +215,22 @@ def test_roundtrip_clocksync_is_not_pulled_by_answers_stamped_early() -> None:
     assert np.max(np.abs(errs)) < 500_000, np.max(np.abs(errs)) / 1e6
 
 
-def _fly_with_a_stalled_fc_clock(seconds: float, t_stall_s: float, early: float = 0.0,
-                                 seed: int = 0) -> tuple[MavlinkImuSource, np.ndarray]:
+def _fly_with_a_stalled_fc_clock(seconds: float, t_stall_s: float, early: float = 0.0, seed: int = 0,
+                                 behind_ms: float = 150.0, ramp_s: float = 0.3,
+                                 every: int = 10) -> tuple[MavlinkImuSource, np.ndarray]:
     """A 200 Hz HIGHRES_IMU stream and TIMESYNC answers at 10 Hz, handed to the source as its link would (no socket,
-    simulated host time); at `t_stall_s` the autopilot's clock falls 150 ms behind over 0.3 s and stays there (the
-    ArduPilot SITL under load, docs/autopilot.md); a share `early` of the answers is stamped 20-43 ms early (its
-    UART receive-time estimate on a TCP link). Rows every 50 ms: (time [s], the newest sample's stamp error [ms],
-    stamp_uncertainty_s() [ms])."""
+    simulated host time); at `t_stall_s` the autopilot's clock falls `behind_ms` behind over `ramp_s` (0: a step; a
+    negative `behind_ms` jumps ahead) and stays there (the ArduPilot SITL under load, docs/autopilot.md); a share
+    `early` of the answers is stamped 20-43 ms early (its UART receive-time estimate on a TCP link). Rows every
+    `every` samples (10: 50 ms): (time [s], the newest sample's stamp error [ms], stamp_uncertainty_s() [ms])."""
     rng = np.random.default_rng(seed)
     src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"))
     h0 = 1_000_000_000
 
     def fc(h: int) -> int:
-        return int(7e9 + h - 150e6 * min(max(((h - h0) / 1e9 - t_stall_s) / 0.3, 0.0), 1.0))
+        t = (h - h0) / 1e9 - t_stall_s
+        share = float(t >= 0) if ramp_s == 0 else min(max(t / ramp_s, 0.0), 1.0)
+        return int(7e9 + h - behind_ms * 1e6 * share)
 
     assert src.stamp_uncertainty_s() == float("inf")  # no sample yet: nothing is known
     rows = []
@@ -240,7 +243,7 @@ def _fly_with_a_stalled_fc_clock(seconds: float, t_stall_s: float, early: float 
             src.on_message(mavlink.MAVLink_timesync_message(fc(h + rtt // 2) - ahead, h), h + rtt)
         src.on_message(highres(fc(h)), h + 1_000_000 + int(rng.exponential(3e5)))
         got = src.poll()
-        if got and k % 10 == 0:
+        if got and k % every == 0:
             rows.append(((h - h0) / 1e9, (got[-1].t_ns - h) / 1e6, src.stamp_uncertainty_s() * 1e3))
     return src, np.array(rows)
 
@@ -266,6 +269,26 @@ def test_the_imu_source_says_how_far_its_stamps_may_be_off_when_the_autopilot_cl
     assert not np.any(meas[after & (err < 25)] > 50)
     caught_up = t > 58
     assert err[caught_up].max() < 1.0 and meas[caught_up].max() < 1.0, r[caught_up & (meas >= 1.0)]
+
+
+@pytest.mark.parametrize("behind_ms", [40.0, -40.0])
+def test_the_imu_source_says_a_stepped_autopilot_clock_at_once(behind_ms: float) -> None:
+    """The autopilot's clock steps 40 ms behind (or ahead) at 20 s, with 12 % of the TIMESYNC answers stamped early as
+    on the SITL. The stamps handed on are that far off until the 20 s line bends back, and the measure the daemon's
+    StampErrorGate reads must say so before poses go out with a covariance that does not know it. Before, it took the
+    TIMESYNC answers 0.5-0.6 s here (0.6-0.9 s on the stall above: six answers at 10 Hz, the smallest miss); now the
+    samples' own arrivals say it: a stamp after its arrival at once (ahead), a latency floor risen within 0.1 s of
+    steady arrivals (behind; the first 40 ms of samples are dropped as out of order). Measured every sample: from
+    0.15 s after the step on the measure is at least half the stamps' error wherever that is over 10 ms, and under
+    1 ms before it."""
+    src, r = _fly_with_a_stalled_fc_clock(24.0, 20.0, early=0.12, behind_ms=behind_ms, ramp_s=0.0, every=1)
+    t, err, meas = r[:, 0], np.abs(r[:, 1]), r[:, 2]
+    assert meas[(t > 5) & (t < 20)].max() < 1.0
+    after = (t >= 20.0) & (err > 10)
+    assert np.mean(after) > 0.1 and err[after].max() > 35  # the step is there to be seen
+    short = after & (meas < 0.5 * err)
+    lag = t[short].max() - 20.0 if short.any() else 0.0
+    assert lag < 0.15, (lag, r[short][-3:])
 
 
 def test_each_message_is_stamped_when_read_never_before_it_arrived() -> None:
