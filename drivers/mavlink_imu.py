@@ -339,7 +339,6 @@ class MavlinkImuSource(ThreadedSource):
             self._init_hold()
         self._last_dev_ns = t_dev
         self._last_sample_arrival_ns = t_arrival_ns
-        self.arrival.add(t_dev, t_arrival_ns)
         raw_g = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=np.float64)
         raw_a = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=np.float64)
         gyro = self._R @ (raw_g * self.gyro_scale)
@@ -348,6 +347,7 @@ class MavlinkImuSource(ThreadedSource):
         if self._holding:
             self._hold(t_dev, t_arrival_ns, gyro, accel)
             return
+        self.arrival.add(t_dev, t_arrival_ns)
         self._emit(t_dev, t_arrival_ns, t_arrival_ns, gyro, accel)
 
     def _emit(self, t_dev: int, t_arrival_ns: int, t_bound_ns: int, gyro: np.ndarray, accel: np.ndarray) -> bool:
@@ -385,7 +385,7 @@ class MavlinkImuSource(ThreadedSource):
         """Hand on the samples held, each mapped by the clock sync as it is now and no later than it can have been
         made: its arrival, or a later sample's arrival less their device-time difference, whichever is earlier (a
         sample that waited in a backlog arrived with the fresh ones after it, and is placed by them, never at its
-        own arrival). One log line per hold."""
+        own arrival; the arrival fit gets it at that bound too). One log line per hold."""
         self._holding = False
         if not self._held:
             return
@@ -397,6 +397,9 @@ class MavlinkImuSource(ThreadedSource):
             t_dev, t_arr = held[i][0], held[i][1]
             d_min = t_arr - t_dev if d_min is None else min(d_min, t_arr - t_dev)
             bounds[i] = t_dev + d_min
+        # the arrival fit gets each at its bound: a backlog read at once is then no jump of the device clock to it
+        for (t_dev, _, _, _), bound in zip(held, bounds):
+            self.arrival.add(t_dev, bound)
         sent = late = 0
         worst = 0
         for (t_dev, t_arr, gyro, accel), bound in zip(held, bounds):

@@ -688,3 +688,29 @@ def test_a_backlog_delivered_at_connection_is_stamped_when_made_not_when_it_arri
     assert h["holds"] == 1 and h["held"] >= back and h["backlog"] >= back - 40 and h["hold_dropped"] == 0, h
     lines = [r.getMessage() for r in caplog.records if "held" in r.getMessage()]
     assert len(lines) == 1 and "a link backlog" in lines[0] and "first TIMESYNC round trip" in lines[0], lines
+
+
+@pytest.mark.parametrize("backlog_s", [0.4, 1.3, 1.86])
+def test_a_backlog_from_an_autopilot_that_never_answers_timesync_is_placed_by_the_fresh_samples(backlog_s, caplog):
+    """No TIMESYNC answer at all: the samples are held for mimu.HOLD_S and then mapped by the arrival envelope, each no
+    later than a later sample's arrival less their device-time difference, so the backlog (delivered at once as the
+    source connects, simulated host time) is placed by the fresh samples after it: every stamp within 1.5 ms of its
+    making (the link's 1 ms latency is in the envelope), none lost, and the arrival fit not restarted by it. Before,
+    the first sample was stamped at its arrival (backlog_s late) and the next ones slewed from there."""
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"))
+    h0, back = 10**10, int(backlog_s * 1e9 / PERIOD_NS)
+    made, out = {}, []
+    with caplog.at_level(logging.INFO):
+        for i in range(back + 600):
+            h = h0 + (i - back) * PERIOD_NS
+            made[i] = h
+            arrival = h0 + i * 10_000 if i < back else h + 1_000_000
+            src.on_message(highres(h + 7 * 10**9, gyro=(i * 1e-3, 0.0, 0.0)), arrival)
+            out += src.poll()
+    ks = [int(round(s.gyro[0] * 1e3)) for s in out]
+    err = np.array([s.t_ns - made[k] for s, k in zip(out, ks)]) / 1e6
+    assert np.max(np.abs(err)) < 1.5, (np.max(np.abs(err)), err[:3])
+    assert ks == list(range(back + 600)) and src.clock_source == "arrival"
+    h = src.health()
+    assert h["holds"] == 1 and h["backlog"] > back - 30 and h["clock"]["resets"] == 0, h
+    assert not [r for r in caplog.records if "jumped" in r.getMessage()]
