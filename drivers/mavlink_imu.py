@@ -326,7 +326,10 @@ class MavlinkImuSource(ThreadedSource):
                                 self.message, t_dev / 1e9, (self._last_dev_ns - t_dev) / 1e6)
                 return
             self.reboots += 1
-            self._release_held(t_arrival_ns, "an autopilot reboot")  # placed on the old clock's fits, or dropped
+            if self._held:  # from before the restart: no round trip on that clock will come to place them
+                self.hold_dropped += len(self._held)
+                log.warning("%d %s samples held from before the autopilot restarted dropped: no TIMESYNC round trip "
+                            "placed them", len(self._held), self.message)
             log.warning("%s stamps went back by %.3f s: the autopilot restarted; clock sync restarted",
                         self.message, (self._last_dev_ns - t_dev) / 1e9)
             self.timesync.reset()

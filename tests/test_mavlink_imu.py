@@ -714,3 +714,30 @@ def test_a_backlog_from_an_autopilot_that_never_answers_timesync_is_placed_by_th
     h = src.health()
     assert h["holds"] == 1 and h["backlog"] > back - 30 and h["clock"]["resets"] == 0, h
     assert not [r for r in caplog.records if "jumped" in r.getMessage()]
+
+
+def test_samples_held_from_before_an_autopilot_restart_are_dropped_not_guessed(caplog) -> None:
+    """Kestrel connects while the link still holds 0.5 s of samples from before the autopilot rebooted (its boot clock
+    at 100 s), then the new boot's samples (clock from 0.2 s) come, with TIMESYNC answered on the new clock from 0.2 s
+    on: the old ones cannot be placed by any round trip and are dropped (counted, one line), the new ones are held
+    until the first answer and stamped within 0.1 ms."""
+    src = MavlinkImuSource(MavlinkLink("udpout:127.0.0.1:9"))
+    h0, old = 10**10, 100
+    out = []
+    with caplog.at_level(logging.WARNING):
+        for i in range(old):  # the old boot's samples, delivered at once
+            src.on_message(highres(100 * 10**9 + i * PERIOD_NS, gyro=(-1.0, 0.0, 0.0)), h0 + i * 10_000)
+        for k in range(400):
+            h = h0 + k * PERIOD_NS
+            if k >= 40 and k % 20 == 0:
+                src._pending_ts.append(h)
+                src.on_message(mavlink.MAVLink_timesync_message(h + 300_000 - h0 + 200_000_000, h), h + 600_000)
+            src.on_message(highres(h - h0 + 200_000_000, gyro=(k * 1e-3, 0.0, 0.0)), h + 1_000_000)
+            out += src.poll()
+    ks = [int(round(s.gyro[0] * 1e3)) for s in out]
+    assert ks == list(range(400))
+    err = np.array([s.t_ns - (h0 + k * PERIOD_NS) for s, k in zip(out, ks)]) / 1e6
+    assert np.max(np.abs(err)) < 0.1, np.max(np.abs(err))
+    h = src.health()
+    assert h["reboots"] == 1 and h["hold_dropped"] == old and h["holds"] == 1, h
+    assert len([r for r in caplog.records if "from before the autopilot restarted" in r.getMessage()]) == 1
