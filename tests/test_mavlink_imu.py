@@ -539,7 +539,8 @@ def test_output_and_imu_source_share_one_connection() -> None:
 
 def test_vio_run_with_fake_camera_and_mavlink_imu(tmp_path: Path) -> None:
     """`vio run` with the fake camera and the IMU from a flight controller over UDP (the same simulated
-    flight, sent as HIGHRES_IMU on an FC clock 3 s ahead; one shared connection): tracked poses come back."""
+    flight, sent as HIGHRES_IMU on an FC clock 3 s ahead; one shared connection): tracked poses come back, and on
+    this healthy link the IMU clock health grows or withholds none of them."""
     from drivers.fake import FakeSource
 
     cfg = tmp_path / "config.toml"
@@ -597,9 +598,15 @@ status_file = "{tmp_path / 'status.json'}"
         assert tracked >= 20, f"{tracked} tracked poses; FC got {fc.counts}; log:\n{text[-3000:]}"
         assert len(fc.peers) == 1 and fc.requests  # one connection; the rate was requested
         time.sleep(1.2)  # the status file is written once a second
-        imu = json.loads((tmp_path / "status.json").read_text())["source"]["driver"]["imu"]
+        status = json.loads((tmp_path / "status.json").read_text())
+        imu = status["source"]["driver"]["imu"]
         # the rate is checked by test_stream_rate_request_...; a loaded box starves the fake FC's thread
         assert imu["clock_source"] == "timesync" and 0 < imu["rate_hz"] < 220, imu
+        # a healthy link: the IMU clock health (stamp_uncertainty_s, the arrivals' part included) never left the
+        # [mavlink] stamp_tolerance_ms (5) on any state: nothing grown, nothing withheld (5 runs at load 5-6.5: 0.0 ms)
+        m = status["mavlink"]
+        assert m["stamp_error_ms"] < m["stamp_tolerance_ms"] and m["states_grown_stamps"] == 0, m
+        assert m["states_withheld"] == 0 and imu["holds"] == 1, (m, imu)
     finally:
         proc.terminate()
         rc = proc.wait(10)
