@@ -362,6 +362,7 @@ class ScriptedEstimator:
         self.last_frame_stamp_ns: int | None = None
         self._done: list[ProcessedFrame] = []
         self.calibration_warning: str | None = None  # what the stereo check says once it let go
+        self.frame_stamps: dict | None = None  # what the frame clock says (vio.frame_clock.FrameClockStats.as_dict)
 
     def feed_imu(self, s: ImuSample) -> None:
         return None
@@ -398,7 +399,7 @@ class ScriptedEstimator:
         return Health(initialized=self.n > 0, tracking=self.tracking, reset_counter=self.resets,
                       frames_processed=self.n, frames_unusable=self.unusable,
                       unusable_reasons={"image too dark": self.unusable} if self.unusable else {},
-                      calibration_warning=self.calibration_warning)
+                      calibration_warning=self.calibration_warning, frame_stamps=self.frame_stamps)
 
 
 @dataclass
@@ -556,10 +557,11 @@ def test_service_survives_source_loss_and_estimator_failure(tmp_path: Path, noti
     assert len((tmp_path / "traj.tum").read_text().splitlines()) >= 10
 
 
-def test_a_calibration_found_wrong_in_flight_shows_in_the_status_as_degraded(tmp_path: Path) -> None:
+def test_a_wrong_calibration_or_uncertain_frame_stamps_show_in_the_status_as_degraded(tmp_path: Path) -> None:
     """The estimator's stereo check let go of the calibration: poses keep flowing (cam1 is refined), but the status
     file says why the daemon is not simply running (state degraded, the warning, the estimator's own field), so
-    `vio status` does not call it healthy and the next flight is not flown on the same wrong file unnoticed."""
+    `vio status` does not call it healthy and the next flight is not flown on the same wrong file unnoticed. The
+    same for a camera whose frame stamps jitter too much to restamp."""
     cfg = config_from_dict({"run": {"status_file": str(tmp_path / "status.json")}, "source": {"kind": "fake"}})
     ests: list[ScriptedEstimator] = []
 
@@ -581,6 +583,15 @@ def test_a_calibration_found_wrong_in_flight_shows_in_the_status_as_degraded(tmp
         st = json.loads(status.read_text())
         assert any(w.startswith("calibration: the right camera disagrees") for w in st["warnings"]), st["warnings"]
         assert st["estimator"]["calibration_warning"].startswith("the right camera") and not st["healthy"]
+        # frame stamps the clock could not restamp (kept as given, 8 ms of jitter): said, as the IMU clock's are; a
+        # restamped camera's line error (0.4 ms) is no warning
+        ests[0].calibration_warning = None
+        ests[0].frame_stamps = {"mode": "auto", "restamped": 0, "uncertain_frames": 400, "stamp_sigma_ms": 8.2}
+        assert _wait(lambda: any(w.startswith("camera: frame stamps uncertain by 8.2 ms") for w in
+                                 json.loads(status.read_text())["warnings"]), 3.0)
+        assert json.loads(status.read_text())["state"] == "degraded"
+        ests[0].frame_stamps = {"mode": "auto", "restamped": 400, "uncertain_frames": 400, "stamp_sigma_ms": 0.4}
+        assert _wait(lambda: json.loads(status.read_text())["state"] == "running", 3.0)
         n = len(mavs[0].states)
         assert _wait(lambda: len(mavs[0].states) > n + 3, 3.0)  # still flying on the refined calibration
     finally:

@@ -76,6 +76,8 @@ log = logging.getLogger(__name__)
 JOIN_BUDGET_S = 1.6  # shutdown must finish within 2 s of SIGTERM; keep a margin for the final status write
 STUCK_S = 5.0  # a loop without a heartbeat this long is wedged: the watchdog stops being fed
 VISION_STALE_S = 1.0  # no camera frame for this long: not tracking, whatever the last state said
+FRAME_STAMP_WARN_MS = 2.0  # a frame stamp uncertain by this much (1 sigma) is a warning: a restamped camera's line
+# error is 0.2-1 ms (3 ms of jitter), a camera kept as given for jittering too much reads 5 ms and more
 # sources whose poses are another flight's (a recording, a simulation): never flown on (MavlinkOutput poses_to_armed)
 NOT_THIS_VEHICLE = ("euroc", "fake")
 
@@ -426,6 +428,12 @@ class Service:
             warnings.append(f"calibration: {h.calibration_warning}")
         if h is not None and h.stereo_warning:
             warnings.append(f"stereo: {h.stereo_warning}")
+        frame_stamps = getattr(h, "frame_stamps", None) or {}
+        sigma_ms = frame_stamps.get("stamp_sigma_ms") or 0.0
+        if sigma_ms >= FRAME_STAMP_WARN_MS:
+            warnings.append(f"camera: frame stamps uncertain by {sigma_ms:.1f} ms (1 sigma: arrival jitter the frame "
+                            "clock cannot take out, estimator.frame_stamps); the poses and the covariance sent allow "
+                            "for it, the accuracy suffers: stamp the frames nearer their exposure")
         if self.ready and not tracking:
             warnings.append(f"not tracking: {_not_tracking_reason(h, camera_ok, imu_ok)}")
         self._warn_stall(tracking, src.connected and imu_ok)
