@@ -71,7 +71,9 @@ HOLD_S = 1.0
 HOLD_MAX = 4000
 BACKLOG_S = 0.1  # a held sample that arrived this long after its mapped stamp was in a backlog (said and counted)
 # The newest samples against the mapping, for stamp_uncertainty_s: each one's latency L = arrival - mapped stamp. A
-# sample cannot have been made after it arrived, so L < 0 is a mapping that late (seen at once); and the smallest L
+# sample cannot have been made after it arrived, so L falling below every earlier span's floor is a mapping that went
+# late by as much (seen at once; L < 0 that has always been so is a constant bias, not a step: see _add_latency); and
+# the smallest L
 # of the newest samples (those that arrived or were made in the last ARRIVAL_SPAN_S, at least two) rising above the
 # largest such smallest L of the spans that arrived ARRIVAL_HOLD_S to ARRIVAL_BASE_S before is a mapping that moved
 # early by as much (a device clock that fell behind; seen within ARRIVAL_SPAN_S, and said for ARRIVAL_HOLD_S, by when
@@ -167,6 +169,7 @@ class MavlinkImuSource(ThreadedSource):
         self._lat_base: deque[list[int]] = deque()  # [first t_arrival, smallest L] per ARRIVAL_SPAN_S before them
         self._lat_key: tuple[str, int, int] | None = None  # the mapping they were taken against
         self._lat_rise_ns = 0  # the rise of their floor as last judged (at a sample that arrived in step)
+        self._lat_fall_ns = 0  # how far the newest latencies fell below every earlier span's floor (at once)
 
     def _init_hold(self) -> None:
         """Hold the next samples until a TIMESYNC round trip places them (the start, an autopilot reboot)."""
@@ -494,19 +497,27 @@ class MavlinkImuSource(ThreadedSource):
                 base.append([t, lat])
         while base and base[0][0] < t_arrival_ns - int(ARRIVAL_BASE_S * 1e9):
             base.popleft()
+        end = t_arrival_ns - int(ARRIVAL_HOLD_S * 1e9)
+        judged = bool(base) and end - base[0][0] >= ARRIVAL_BASE_MIN_S * 1e9
+        # a mapping that went late shows at once, in any sample (a backlog only makes latencies longer): the newest
+        # latencies below the smallest floor of the spans before. Not L < 0 itself: a mapping that has always put the
+        # samples a few ms after their arrival (ArduPilot SITL's TIMESYNC over TCP: 5.5-9 ms, every flight) is a
+        # constant part, which cancels on the ODOMETRY stamps and which the camera-IMU offset takes; read as an error
+        # it held a whole SITL flight degraded with its covariance grown (stop 57)
+        self._lat_fall_ns = min(lat for t, lat in base if t <= end) - min(lat for _, _, lat in recent) if judged else 0
         if steady:
-            end = t_arrival_ns - int(ARRIVAL_HOLD_S * 1e9)
             self._lat_rise_ns = 0
-            if base and end - base[0][0] >= ARRIVAL_BASE_MIN_S * 1e9:
+            if judged:
                 self._lat_rise_ns = min(lat for _, _, lat in recent) - max(lat for t, lat in base if t <= end)
 
     def _arrival_miss_ns(self) -> float:
-        """How far the newest samples show the mapping off [ns]: mapped after their arrival (a late mapping), or their
+        """How far the newest samples show the mapping off [ns]: their latencies fallen below the earlier floors (a late
+        mapping), or their
         smallest latency risen above those of ARRIVAL_HOLD_S to ARRIVAL_BASE_S before (an early one, as last judged);
         0 when they show nothing."""
         if not self._lat_recent:
             return 0.0
-        return float(max(-min(lat for _, _, lat in self._lat_recent), self._lat_rise_ns, 0))
+        return float(max(self._lat_fall_ns, self._lat_rise_ns, 0))
 
     def _check_scale(self, accel: np.ndarray, gyro: np.ndarray) -> None:
         """At the start the vehicle is (nearly) still: |accel| near 1 g. Far off means a wrong scale."""
