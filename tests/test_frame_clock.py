@@ -343,3 +343,35 @@ def test_a_stamp_sigma_is_the_standard_deviation_of_the_stamps_error():
     err -= err.mean()
     ratio = float(np.sqrt(np.mean((err / np.array(sigma)[100:]) ** 2)))
     assert 0.8 < ratio < 1.25, ratio  # 0.99 (0.40 before: 15 ms said)
+
+
+def test_each_stamp_keeps_its_sigma_until_the_estimator_solves_it():
+    """The estimator asks for a keyframe's sigma when it solves it, after the frames it queues for the IMU (up to
+    `max_pending_frames`, 1000 at most) and the deferred keyframe: a clock reset in between (a stamp 2 s back) made
+    the search stop at the earlier stamps, and a queue longer than the 256 stamps kept lost the oldest ones; either
+    way those frames were taken as exact."""
+    import dataclasses
+
+    from vio.config import VioConfig
+    from vio.estimator import Estimator
+    from vio.sim import default_calibration
+    from vio.types import FeatureFrame
+
+    rng = np.random.default_rng(4)
+    true = exposures(120, rng)
+    clock = FrameClock("auto")
+    out = restamp_all(clock, true + np.round(np.minimum(rng.exponential(8e6, len(true)), 25e6)).astype(np.int64))
+    before = [clock.stamp_sigma_ns(int(t)) for t in out[-5:]]
+    assert min(before) > 1e6
+    restamp_all(clock, out[-1] - 2_000_000_000 + np.arange(3) * PERIOD_NS)  # a clock reset
+    assert [clock.stamp_sigma_ns(int(t)) for t in out[-5:]] == before
+
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, max_pending_frames=600))
+    est = Estimator(default_calibration(), cfg)
+    true = exposures(500, rng)
+    for t in true + np.round(np.minimum(rng.exponential(8e6, len(true)), 25e6)).astype(np.int64):
+        est.feed_features(FeatureFrame.empty(int(t), "no image"))  # no IMU yet: every frame waits
+    assert len(est._pending) == 500
+    sigmas = [est._stamp_sigma_ms(ff) for ff in est._pending]
+    assert min(sigmas[100:]) > 1.0, min(sigmas[100:])  # 5-8 ms; lost for the oldest 244 before

@@ -41,7 +41,7 @@ from vio.backend.smoother import SmootherFailure, StereoFinding, VioSmoother
 from vio.backend.time_offset import OnlineTimeOffset
 from vio.calibration import StereoCalibration, calibration_units_problem
 from vio.config import EstimatorConfig, VioConfig
-from vio.frame_clock import FrameClock
+from vio.frame_clock import SIGMAS_KEPT, FrameClock
 from vio.frontend.gyro import GyroPrior
 from vio.frontend.median import median
 from vio.geometry import so3_log, yaw_between, yaw_position_alignment
@@ -248,7 +248,9 @@ class Estimator:
         b = self.bcfg
         # frames stamped on arrival restamped on the camera's own clock; kept across resets (the camera's clock
         # does not change when the estimator does)
-        self.frame_clock = FrameClock(b.frame_stamps, b.frame_stamp_window_s)
+        # (each stamp's sigma kept for every frame that may wait for the IMU, the deferred keyframe and a margin)
+        self.frame_clock = FrameClock(b.frame_stamps, b.frame_stamp_window_s,
+                                      max(SIGMAS_KEPT, b.max_pending_frames + 8))
         # the stamp this estimator gave the frame fed last (the frame clock's, where it moved it): its ProcessedFrame
         # and SolvedKeyframe carry that one, so a caller keys the frame's image and arrival by it, not by the stamp
         # it fed (keyed so, every restamped frame's image, arrival and TUM line were lost: a review's finding)

@@ -50,7 +50,8 @@ OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the came
 # refitted, every third frame moved 17 ms (a review's finding)
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
-SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet)
+SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet; at least
+# the frames it may queue: the estimator passes its max_pending_frames)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
 
 
@@ -84,7 +85,7 @@ class FrameClockStats:
 class FrameClock:
     """Restamps frames on a line fitted to their recent stamps (see the module's docstring)."""
 
-    def __init__(self, mode: str = "auto", window_s: float = 10.0) -> None:
+    def __init__(self, mode: str = "auto", window_s: float = 10.0, sigmas_kept: int = SIGMAS_KEPT) -> None:
         if mode not in MODES:
             raise ValueError(f"frame stamps mode {mode!r} is not one of {list(MODES)}")
         self.mode = mode
@@ -107,7 +108,11 @@ class FrameClock:
         # kept around its line (`_line_sigma`) and of a stamp from frame to frame (`_given_sigma`)
         self._rms_ns = 0.0
         self._step_rms_ns = 0.0
-        self._sigmas: deque[tuple[int, float]] = deque(maxlen=SIGMAS_KEPT)  # (stamp handed out, its sigma [ns])
+        # stamp handed out -> its sigma [ns], the newest `sigmas_kept` in the order handed out. Keyed, not searched
+        # back until an older stamp: a clock reset hands out earlier stamps, and the frames still queued from before
+        # it were then taken as exact
+        self._sigmas: dict[int, float] = {}
+        self._sigmas_kept = max(int(sigmas_kept), 1)
 
     def restamp(self, t_ns: int) -> int:
         """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
@@ -185,12 +190,7 @@ class FrameClock:
         stamps that keep to their line (a device's, a dataset's), for `raw` (taken as exact), and for a stamp
         it does not know. The estimator lets each keyframe's camera pose move along its motion by it (the smoother's
         stamp link), so that neither the poses nor the covariance sent take such a stamp as exact."""
-        for t, sigma in reversed(self._sigmas):
-            if t == t_ns:
-                return sigma
-            if t < t_ns:
-                break
-        return 0.0
+        return self._sigmas.get(int(t_ns), 0.0)
 
     def _given_sigma(self) -> float:
         """The error of a stamp kept as given: the standard deviation of the last fit's stamps from frame to frame
@@ -322,7 +322,10 @@ class FrameClock:
             # where a frame held up to within a millisecond or so of the next one's time was put on that time
             t_out, sigma = t_in, max(sigma, self._given_sigma(), float(abs(t_out - t_in)))
         self._last_out = t_out
-        self._sigmas.append((t_out, sigma))
+        if t_out not in self._sigmas:  # a stamp handed out again: the estimator drops that frame, not the first
+            self._sigmas[t_out] = sigma
+            if len(self._sigmas) > self._sigmas_kept:
+                del self._sigmas[next(iter(self._sigmas))]
         self.stats.sigma_ns = sigma
         if sigma > 0:
             self.stats.uncertain += 1
