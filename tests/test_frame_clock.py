@@ -283,6 +283,9 @@ def test_stamps_jittering_too_much_to_restamp_are_not_taken_as_exact(tmp_path):
         got[link] = (nees.mean, float(np.sqrt(np.mean(nees.error_position_m ** 2))))
         assert r.estimator.frame_clock.stats.restamped == 0  # kept as given: the spread is too large to restamp
         assert r.estimator.frame_clock.stats.uncertain > 200
+        # what the replay (and the daemon's status) says of those stamps: free to move only where they are
+        said = frame_stamps_line(r.estimator.frame_clock.stats.as_dict())
+        assert ("free to move along the motion" in said) == link and ("taken as exact" in said) == (not link), said
     # when written: NEES 2.1 against 64, position error 11 against 119 mm RMS
     assert got[True][0] < 8 and got[True][0] < 0.5 * got[False][0], got
     assert got[True][1] < 0.5 * got[False][1], got

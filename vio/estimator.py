@@ -251,6 +251,7 @@ class Estimator:
         # (each stamp's sigma kept for every frame that may wait for the IMU, the deferred keyframe and a margin)
         self.frame_clock = FrameClock(b.frame_stamps, b.frame_stamp_window_s,
                                       max(SIGMAS_KEPT, b.max_pending_frames + 8))
+        self.frame_clock.stats.stamp_link = bool(b.frame_stamp_link)  # what the replay and the status say of them
         # the stamp this estimator gave the frame fed last (the frame clock's, where it moved it): its ProcessedFrame
         # and SolvedKeyframe carry that one, so a caller keys the frame's image and arrival by it, not by the stamp
         # it fed (keyed so, every restamped frame's image, arrival and TUM line were lost: a review's finding)

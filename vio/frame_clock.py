@@ -70,6 +70,7 @@ class FrameClockStats:
     uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
     sigma_ns: float = 0.0  # the newest frame's stamp sigma
     sigma_max_ns: float = 0.0  # the largest handed out
+    stamp_link: bool = True  # whether the estimator uses the sigmas ([backend] frame_stamp_link), for what is said
 
     def as_dict(self) -> dict:
         return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
@@ -79,7 +80,7 @@ class FrameClockStats:
                 "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
                 "restarts": self.restarts, "uncertain_frames": self.uncertain,
                 "stamp_sigma_ms": round(self.sigma_ns * 1e-6, 3),
-                "stamp_sigma_max_ms": round(self.sigma_max_ns * 1e-6, 3)}
+                "stamp_sigma_max_ms": round(self.sigma_max_ns * 1e-6, 3), "stamp_link": self.stamp_link}
 
 
 class FrameClock:
@@ -347,5 +348,7 @@ def frame_stamps_line(stats: dict | None) -> str | None:
                  f"largest move {stats['largest_move_ms']:.1f} ms; {stats['restarts']} restarts)")
     if stats.get("uncertain_frames"):
         line += (f"; {stats['uncertain_frames']} stamps uncertain by up to {stats['stamp_sigma_max_ms']:.2f} ms "
-                 "(1 sigma), their camera poses free to move along the motion by it")
+                 "(1 sigma), " + ("their camera poses free to move along the motion by it"
+                                  if stats.get("stamp_link", True) else "taken as exact ([backend] frame_stamp_link "
+                                                                       "is off)"))
     return line
