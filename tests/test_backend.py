@@ -540,3 +540,67 @@ def test_the_offset_solver_counts_outliers_without_an_info_line_per_solve(caplog
         est = estimate_time_offset(vis, t, gyro, np.eye(4), n_boot=5)
     assert est.n_outliers == 2 and est.n_pairs == len(theta) - 2
     assert not caplog.records
+
+
+def test_a_loosened_time_link_is_whitened_by_its_full_covariance():
+    """With a stamp sigma the time state's link takes a full covariance (sigma^2 xi xi^T on top of the link's own),
+    whitened into the linear factor: its error is 0.5 e^T Sigma^-1 e of the exact error wherever it is evaluated
+    near its point, so a stamp error along the twist costs sigma^-2, one across it TIME_LINK_SIGMA^-2."""
+    import gtsam
+
+    from vio.backend.smoother import TIME_LINK_SIGMA, stamp_link_noise, time_link_factor
+
+    rng = np.random.default_rng(8)
+    xi = 1e-3 * np.array([1.5, -0.5, 0.8, 3.0, 0.4, -1.0])  # per ms: 1.8 rad/s, 3.2 m/s
+    noise = stamp_link_noise(xi, 8.0)
+    cov = noise.covariance()
+    X0 = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.2, 0.1, -0.7), np.array([2.0, -1.0, 1.5]))
+    d0 = 1.5
+    C0 = X0.compose(gtsam.Pose3.Expmap(xi * d0))
+    f = time_link_factor(1, 2, 3, xi, X0, C0, d0, noise)
+    for _ in range(20):
+        X = X0.retract(1e-4 * rng.normal(size=6))
+        d = d0 + 0.01 * rng.normal()
+        C = X.compose(gtsam.Pose3.Expmap(xi * (d + rng.normal(0.0, 8.0)))).retract(
+            rng.normal(0.0, TIME_LINK_SIGMA, 6))  # a stamp off by 8 ms (1 sigma), and the link's own noise
+        vals = gtsam.Values()
+        vals.insert(1, X)
+        vals.insert(2, C)
+        vals.insert(3, d)
+        e = _time_link_error(X, C, d, xi)
+        np.testing.assert_allclose(f.error(vals), 0.5 * e @ np.linalg.solve(cov, e), rtol=0.02, atol=0.02)
+
+
+def test_a_stamp_link_gives_the_camera_pose_room_only_where_projections_read_it():
+    """Without the time state, a keyframe whose stamp may be off (the frame clock's sigma) gets a camera-time pose
+    C(j) held to X(j) except along the twist: at the first keyframe too (a restart in flight starts moving: its
+    projections read X(0) as exact), and not on a keyframe without visual factors (vision lost), where a C(j) with
+    nothing but its link only doubled a pose in the window."""
+    import gtsam
+    from gtsam.symbol_shorthand import C
+
+    from vio.backend.smoother import VioSmoother
+    from vio.config import BackendConfig
+    from vio.sim import default_calibration
+    from vio.types import FeatureFrame
+
+    calib = default_calibration()
+    cfg = dataclasses.replace(BackendConfig(), time_offset_state=False)
+    sm = VioSmoother(calib, cfg)
+    t0 = 10**18
+    seen = FeatureFrame(t0, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0),
+                        np.zeros(0, np.int64))  # tracking, no points (the link alone)
+    v = np.array([3.0, 0.0, 0.0])
+    sm.initialize(t0, np.eye(4), v, np.zeros(3), np.zeros(3), features=seen, omega_body=np.array([0.0, 0.0, 1.0]),
+                  stamp_sigma_ms=8.0)
+    assert sm._estimate.exists(C(0)) and sm._pose_key(0) == C(0)
+    params = combined_params(calib.imu)
+    for j, ff in ((1, None), (2, FeatureFrame.empty(t0, "black")), (3, seen)):
+        pim = gtsam.PreintegratedCombinedMeasurements(params, sm.last.bias)
+        for _ in range(10):
+            pim.integrateMeasurement(np.array([0.0, 0.0, 9.81]), np.array([0.0, 0.0, 1.0]), 0.005)
+        t = t0 + j * 50_000_000
+        sm.add_keyframe(t, pim, None if ff is None else dataclasses.replace(ff, t_ns=t),
+                        omega_body=np.array([0.0, 0.0, 1.0]), stamp_sigma_ms=8.0)
+        assert sm._estimate.exists(C(j)) == (j == 3), j
+    assert sm.stamp_links == 2

@@ -964,7 +964,8 @@ class Estimator:
         est = smoother.initialize(init.t_ns, T, v, init.gyro_bias, init.accel_bias,
                                   sigma_v_m_s=0.01 if static else 0.1, sigma_bg=0.005 if static else 0.02, features=ff,
                                   omega_body=self._omega(init.t_ns, init.gyro_bias),
-                                  applied_offset_ns=int(init.t_ns) - int(ff.t_ns))
+                                  applied_offset_ns=int(init.t_ns) - int(ff.t_ns),
+                                  stamp_sigma_ms=self._stamp_sigma_ms(ff))
         # only now: a restart that fails keeps the waiting state (and its bridge) for the next attempt
         self._state = _Running(smoother, init.t_ns, init.t_ns if self._usable(ff) else None)
         self._start_motion_check(init.t_ns, est, ff)

@@ -418,6 +418,19 @@ class VioSmoother:
             stamps[S(j)] = t_s
         return cam_pose
 
+    def _camera_pose(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float], j: int,
+                     t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
+                     applied_ns: int, stamp_sigma_ms: float, visual: bool) -> gtsam.Pose3:
+        """The pose keyframe j's projections read (the time state's C(j), a stamp link's, else X(j)) with its
+        variables and factors; returns its initial value. A stamp link only where projections will read it
+        (`visual`): on a keyframe without them (vision lost) its C(j) only doubled a pose in the window."""
+        if self._time_state_at(j, omega_body, v_world):
+            return self._add_time_state(graph, values, stamps, j, t_s, pose, v_world, omega_body, applied_ns,
+                                        stamp_sigma_ms)
+        if stamp_sigma_ms > 0 and visual:
+            return self._add_stamp_link(graph, values, stamps, j, t_s, pose, v_world, omega_body, stamp_sigma_ms)
+        return pose
+
     def _add_stamp_link(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float],
                         j: int, t_s: float, pose: gtsam.Pose3, v_world: np.ndarray, omega_body: np.ndarray | None,
                         sigma_ms: float) -> gtsam.Pose3:
@@ -518,9 +531,12 @@ class VioSmoother:
                    accel_bias: np.ndarray, *, sigma_rp_rad: float = 0.02, sigma_yaw_rad: float = 1e-3,
                    sigma_p_m: float = 1e-3, sigma_v_m_s: float = 0.05, sigma_bg: float = 0.005,
                    sigma_ba: float = 0.1, features: FeatureFrame | None = None,
-                   omega_body: np.ndarray | None = None, applied_offset_ns: int = 0) -> KeyframeEstimate:
+                   omega_body: np.ndarray | None = None, applied_offset_ns: int = 0,
+                   stamp_sigma_ms: float = 0.0) -> KeyframeEstimate:
         """First keyframe with priors: position and yaw are gauge freedoms (pinned), roll/pitch come
-        from gravity, velocity and biases from the initialiser with honest uncertainty."""
+        from gravity, velocity and biases from the initialiser with honest uncertainty. `stamp_sigma_ms` as for
+        `add_keyframe`: a restart in flight starts on a moving keyframe, whose stamp is no more exact than the
+        next one's."""
         self.t0_ns = t_ns
         self.index = 0
         pose = gtsam.Pose3(np.asarray(T_world_body, dtype=float))
@@ -547,8 +563,8 @@ class VioSmoother:
                                                    _sigmas([self.cfg.intrinsics_sigma_px] * 2 + [1e-4] * 3)))
                 values.insert(self._k[1], self.K1)
                 stamps[self._k[1]] = 0.0
-        cam_pose = self._add_time_state(graph, values, stamps, 0, 0.0, pose, v_world, omega_body,
-                                        applied_offset_ns) if self._time_state_at(0, omega_body, v_world) else pose
+        cam_pose = self._camera_pose(graph, values, stamps, 0, 0.0, pose, np.asarray(v_world, float), omega_body,
+                                     applied_offset_ns, stamp_sigma_ms, features is not None)
         n_vis, n_lm = 0, 0
         if features is not None:
             n_vis, n_lm = self._add_visual(graph, values, stamps, features, cam_pose, 0, 0.0)
@@ -593,14 +609,8 @@ class VioSmoother:
             # the IMU alone would integrate during hover-on-ground and before take-off.
             graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), _sigmas([0.01] * 3)))
             graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(), _sigmas([1e-3] * 3 + [2e-3] * 3)))
-        if self._time_state_at(j, omega_body, pred.velocity()):
-            cam_pose = self._add_time_state(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
-                                            applied_offset_ns, stamp_sigma_ms)
-        elif stamp_sigma_ms > 0:
-            cam_pose = self._add_stamp_link(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
-                                            stamp_sigma_ms)
-        else:
-            cam_pose = pred.pose()
+        cam_pose = self._camera_pose(graph, values, stamps, j, t_s, pred.pose(), pred.velocity(), omega_body,
+                                     applied_offset_ns, stamp_sigma_ms, features is not None and features.tracking_ok)
         switch = self._rig_pending and features is not None and features.tracking_ok \
             and self._motion_excites_extrinsics(pred.pose(), t_s)
         if switch:
