@@ -378,3 +378,20 @@ def test_each_stamp_keeps_its_sigma_until_the_estimator_solves_it():
     assert len(est._pending) == 500
     sigmas = [est._stamp_sigma_ms(ff) for ff in est._pending]
     assert min(sigmas[100:]) > 1.0, min(sigmas[100:])  # 5-8 ms; lost for the oldest 244 before
+
+
+def test_stamps_before_the_first_fit_are_not_taken_as_exact():
+    """The first fit of a run needs MIN_FRAMES (a second at 20 Hz, two at 10 Hz): a service restarted in flight took
+    its first stamps as exact while they jittered by 8 ms. From WARMUP_SIGMA_FRAMES on they say how much they jitter;
+    exact ones (a device's, EuRoC's: test_exact_stamps_are_kept_as_given) still say nothing."""
+    from vio.frame_clock import MIN_FRAMES
+
+    rng = np.random.default_rng(9)
+    true = exposures(MIN_FRAMES - 1, rng)
+    delay = np.minimum(rng.exponential(8e6, len(true)), 25e6)
+    clock = FrameClock("auto")
+    out = restamp_all(clock, true + np.round(delay).astype(np.int64))
+    sigma = np.array([clock.stamp_sigma_ns(int(t)) for t in out])
+    assert clock.stats.spread_ns is None  # no fit yet
+    assert np.all(sigma[:3] == 0)  # too few stamps to tell
+    assert np.all((sigma[-10:] > 2e6) & (sigma[-10:] < 14e6)), sigma * 1e-6  # 3.1-5.6 ms (all 0 before)

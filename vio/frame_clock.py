@@ -50,6 +50,7 @@ OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the came
 # refitted, every third frame moved 17 ms (a review's finding)
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
+WARMUP_SIGMA_FRAMES = 8  # stamps before a first fit that say how much they jitter (`_given_sigma`)
 SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet; at least
 # the frames it may queue: the estimator passes its max_pending_frames)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
@@ -195,7 +196,14 @@ class FrameClock:
 
     def _given_sigma(self) -> float:
         """The error of a stamp kept as given: the standard deviation of the last fit's stamps from frame to frame
-        (`_step_sigma`; kept across a restart: the same camera, most likely) while they jitter, else 0."""
+        (`_step_sigma`; kept across a restart: the same camera, most likely) while they jitter, else 0. Before the
+        run's first fit (MIN_FRAMES), the same from the stamps so far once there are WARMUP_SIGMA_FRAMES: the first
+        second of a run (a service restarted in flight) took 8 ms of jitter as exact."""
+        if self.stats.spread_ns is None:
+            if len(self._a) < WARMUP_SIGMA_FRAMES:
+                return 0.0
+            robust, rms = self._step_sigma(np.asarray(self._a))
+            return rms if robust >= ON_MS * 1e6 else 0.0
         return self._step_rms_ns if self._jitter >= ON_MS * 1e6 else 0.0
 
     def _line_sigma(self, n: int) -> float:
@@ -208,24 +216,24 @@ class FrameClock:
         return self._rms_ns * float(np.sqrt(1.0 / k + (n - nm) ** 2 / sxx))
 
     @staticmethod
-    def _step_sigma(a: np.ndarray) -> float:
-        """A stamp's standard deviation from frame to frame, from consecutive stamps `a` alone: each step off the
-        median step's nearest multiple (a dropped frame is whole periods), over sqrt(2) (two stamps' errors per step).
-        Not from the residuals of the line: where the stamps spread too much to number the frames, frames numbered
-        wrongly bend the line and the residuals ran to 16 ms for 7 ms of jitter (8 ms arrival delays, 20 Hz). Not
-        robust either (a one-sided delay's robust sigma is 0.7 of its standard deviation); steps off by more than 6
-        robust sigmas (a frame held up) are left out."""
+    def _step_sigma(a: np.ndarray) -> tuple[float, float]:
+        """A stamp's robust sigma and standard deviation from frame to frame, from consecutive stamps `a` alone: each
+        step off the median step's nearest multiple (a dropped frame is whole periods), over sqrt(2) (two stamps'
+        errors per step). Not from the residuals of the line: where the stamps spread too much to number the frames,
+        frames numbered wrongly bend the line and the residuals ran to 16 ms for 7 ms of jitter (8 ms arrival
+        delays, 20 Hz). The standard deviation is the sigma handed out (a one-sided delay's robust sigma is 0.7 of
+        it), without the steps off by more than 6 robust sigmas (a frame held up)."""
         if len(a) < 3:
-            return 0.0
+            return 0.0, 0.0
         steps = np.diff(a)
         period = float(median(steps))
         if period <= 0:
-            return 0.0
+            return 0.0, 0.0
         dev = steps - period * np.maximum(1.0, np.round(steps / period))
         dev = dev - float(median(dev))
         robust = 1.4826 * float(median(np.abs(dev)))
-        dev = dev[np.abs(dev) <= max(6.0 * robust, 1e3)]
-        return float(np.sqrt(np.mean(dev ** 2) / 2.0)) if len(dev) else 0.0
+        kept = dev[np.abs(dev) <= max(6.0 * robust, 1e3)]
+        return robust / np.sqrt(2.0), float(np.sqrt(np.mean(kept ** 2) / 2.0)) if len(kept) else 0.0
 
     def _on_line(self, n: int) -> int:
         """Frame n's stamp on the fitted camera clock (host ns)."""
@@ -294,7 +302,7 @@ class FrameClock:
         self._fit_n = (float(nm), max(float(dn @ dn), 1.0), len(dn))
         kept = r[keep] - float(np.mean(r[keep]))
         self._rms_ns = float(np.sqrt(np.mean(kept ** 2)))
-        self._step_rms_ns = self._step_sigma(a)
+        self._step_rms_ns = self._step_sigma(a)[1]
         self.stats.spread_ns, self.stats.jitter_ns, self.stats.period_ns = spread, jitter, period
         if spread > MAX_SPREAD_PERIODS * period:
             self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
