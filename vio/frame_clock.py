@@ -186,9 +186,10 @@ class FrameClock:
 
     def stamp_sigma_ns(self, t_ns: int) -> float:
         """How far the stamp `t_ns` handed out (one of the last SIGMAS_KEPT) may be off its frame's exposure, beyond
-        a constant latency (1 sigma, ns): the line's own error for a restamped frame; the stamps' spread around the
-        line for one kept as given while they jitter (ON_MS or more from frame to frame: a jitter the clock could
-        not take out, too large to number the frames, or before its fit holds MIN_FRAMES after a restart); 0 for
+        a constant latency (1 sigma, ns): the line's own error for a restamped frame (`_line_sigma`); the stamps'
+        standard deviation from frame to frame for one kept as given while they jitter (`_given_sigma`: ON_MS or more
+        from frame to frame, a jitter the clock could not take out, too large to number the frames, or before a fit
+        holds MIN_FRAMES; a frame off the line and kept: its distance from it, if more); 0 for
         stamps that keep to their line (a device's, a dataset's), for `raw` (taken as exact), and for a stamp
         it does not know. The estimator lets each keyframe's camera pose move along its motion by it (the smoother's
         stamp link), so that neither the poses nor the covariance sent take such a stamp as exact."""
