@@ -51,6 +51,7 @@ OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the came
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
 WARMUP_SIGMA_FRAMES = 8  # stamps before a first fit that say how much they jitter (`_given_sigma`)
+SIGMA_RECENT = 20  # frames whose sigmas' median the stats and the status report
 SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet; at least
 # the frames it may queue: the estimator passes its max_pending_frames)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
@@ -69,7 +70,8 @@ class FrameClockStats:
     period_ns: float | None = None  # the fitted frame period
     restarts: int = 0  # fits started again (gaps, a clock that changed)
     uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
-    sigma_ns: float = 0.0  # the newest frame's stamp sigma
+    sigma_ns: float = 0.0  # the stamps' sigma now: the median of the last SIGMA_RECENT handed out (one frame held up
+    # far off the line, 33 ms on a SITL flight, is not what the camera's stamps are; the status warns on this)
     sigma_max_ns: float = 0.0  # the largest handed out
     stamp_link: bool = True  # whether the estimator uses the sigmas ([backend] frame_stamp_link), for what is said
 
@@ -115,6 +117,7 @@ class FrameClock:
         # it were then taken as exact
         self._sigmas: dict[int, float] = {}
         self._sigmas_kept = max(int(sigmas_kept), 1)
+        self._recent_sigmas: deque[float] = deque(maxlen=SIGMA_RECENT)
 
     def restamp(self, t_ns: int) -> int:
         """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
@@ -336,7 +339,8 @@ class FrameClock:
             self._sigmas[t_out] = sigma
             if len(self._sigmas) > self._sigmas_kept:
                 del self._sigmas[next(iter(self._sigmas))]
-        self.stats.sigma_ns = sigma
+        self._recent_sigmas.append(sigma)
+        self.stats.sigma_ns = float(median(np.asarray(self._recent_sigmas)))
         if sigma > 0:
             self.stats.uncertain += 1
             self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, sigma)
