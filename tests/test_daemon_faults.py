@@ -446,6 +446,44 @@ record_dir = "{rec}"
     np.testing.assert_array_equal(steps, np.diff(given)[:len(steps)])
 
 
+def test_vio_run_on_frames_jittering_too_much_to_restamp_says_so_and_keeps_flying(tmp_path: Path,
+                                                                                  notify_socket) -> None:
+    """`vio run` on a camera whose stamps jitter more than the frame clock can restamp (9 ms at 20 Hz, kept as
+    given): the status says so (the frame stamps' sigma, a warning naming it, state degraded, not HEALTHY) while the
+    poses keep coming, which the stamp link keeps near the truth (docs/estimator.md "Stamps that are not exact")."""
+    _need_pipeline()
+    from vio.app.cli import main
+
+    flight = tmp_path / "jittered"
+    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "8", "--seed", "2", "--size",
+                 "376x240", "--stamp-jitter-ms", "9", "--no-progress"]) == 0
+    sock, notify_path = notify_socket
+    tum = tmp_path / "out.tum"
+    d = Daemon(tmp_path, f"""[source]
+kind = "euroc"
+dataset = "{flight}"
+[run]
+status_file = "{tmp_path / 'status.json'}"
+trajectory_file = "{tum}"
+""", notify_path)
+    warned = []
+    try:
+        def check(s: dict) -> bool:
+            warned.extend(w for w in s["warnings"] if w.startswith("camera: frame stamps uncertain by"))
+            return bool(s["source"]["finished"])
+        assert _wait(lambda: _status_ok(d, check), 60), d.log[-3000:]
+        fs = d.status()["estimator"]["frame_stamps"]
+    finally:
+        rc, _ = d.stop()
+    assert rc == 0, d.log[-3000:]
+    assert fs["restamped"] < 0.2 * fs["frames"] and fs["uncertain_frames"] > 0.8 * fs["frames"], fs
+    assert fs["stamp_sigma_ms"] > 2.0 and fs["stamp_link"] is True, fs
+    assert warned, "no status warning for frame stamps uncertain by several ms"
+    poses = [ln for ln in tum.read_text().splitlines() if ln and not ln.startswith("#")]
+    assert len(poses) > 0.7 * fs["frames"], (len(poses), fs)
+    assert "Traceback" not in d.log
+
+
 def test_an_image_write_that_fails_with_a_few_kib_left_is_called_a_full_disk(tmp_path, monkeypatch):
     """44 KiB left, less than one PNG: the file system reports itself nearly, not exactly, full (a review found
     'cannot write image' with no diagnosis)."""
