@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -70,10 +70,16 @@ class FrameClockStats:
     period_ns: float | None = None  # the fitted frame period
     restarts: int = 0  # fits started again (gaps, a clock that changed)
     uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
-    sigma_ns: float = 0.0  # the stamps' sigma now: the median of the last SIGMA_RECENT handed out (one frame held up
-    # far off the line, 33 ms on a SITL flight, is not what the camera's stamps are; the status warns on this)
+    # the last SIGMA_RECENT sigmas handed out, whose median is `sigma_ns` (taken when read, not on every frame)
+    recent_sigmas: deque = field(default_factory=lambda: deque(maxlen=SIGMA_RECENT))
     sigma_max_ns: float = 0.0  # the largest handed out
     stamp_link: bool = True  # whether the estimator uses the sigmas ([backend] frame_stamp_link), for what is said
+
+    @property
+    def sigma_ns(self) -> float:
+        """The stamps' sigma now: the median of the last SIGMA_RECENT handed out (one frame held up far off the line,
+        33 ms on a SITL flight, is not what the camera's stamps are; the status warns on this)."""
+        return float(median(np.asarray(self.recent_sigmas))) if self.recent_sigmas else 0.0
 
     def as_dict(self) -> dict:
         return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
@@ -111,13 +117,13 @@ class FrameClock:
         # the last fit's standard deviations (not robust: a sigma handed out is taken as Gaussian) of the stamps it
         # kept around its line (`_line_sigma`) and of a stamp from frame to frame (`_given_sigma`)
         self._rms_ns = 0.0
-        self._step_rms_ns = 0.0
+        self._step_rms_ns: float | None = 0.0  # None: not computed yet from `_step_a`, the last fit's stamps
+        self._step_a: np.ndarray | None = None
         # stamp handed out -> its sigma [ns], the newest `sigmas_kept` in the order handed out. Keyed, not searched
         # back until an older stamp: a clock reset hands out earlier stamps, and the frames still queued from before
         # it were then taken as exact
         self._sigmas: dict[int, float] = {}
         self._sigmas_kept = max(int(sigmas_kept), 1)
-        self._recent_sigmas: deque[float] = deque(maxlen=SIGMA_RECENT)
 
     def restamp(self, t_ns: int) -> int:
         """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
@@ -208,7 +214,11 @@ class FrameClock:
                 return 0.0
             robust, rms = self._step_sigma(np.asarray(self._a))
             return rms if robust >= ON_MS * 1e6 else 0.0
-        return self._step_rms_ns if self._jitter >= ON_MS * 1e6 else 0.0
+        if self._jitter < ON_MS * 1e6:
+            return 0.0
+        if self._step_rms_ns is None:  # the last fit's, taken when first asked for (restamped: seldom or never)
+            self._step_rms_ns = self._step_sigma(self._step_a)[1]
+        return self._step_rms_ns
 
     def _line_sigma(self, n: int) -> float:
         """The error of frame n's stamp on the fitted line (least squares: s x sqrt(1/k + (n - mean)^2 / Sxx), s the
@@ -306,10 +316,7 @@ class FrameClock:
         self._line = (am - period * nm, period)
         self._spread, self._jitter = spread, jitter
         self._fit_n = (float(nm), max(float(dn @ dn), 1.0), len(dn))
-        near = np.abs(r - med) <= max(6 * spread, 1e3)
-        kept = r[near] - float(np.mean(r[near]))
-        self._rms_ns = float(np.sqrt(np.mean(kept ** 2)))
-        self._step_rms_ns = self._step_sigma(a)[1]
+        self._step_rms_ns, self._step_a = None, a  # `_given_sigma` reads them from these stamps when it needs them
         self.stats.spread_ns, self.stats.jitter_ns, self.stats.period_ns = spread, jitter, period
         if spread > MAX_SPREAD_PERIODS * period:
             self._set_on(False, f"the stamps spread {spread * 1e-6:.1f} ms around a {period * 1e-6:.2f} ms frame "
@@ -319,6 +326,10 @@ class FrameClock:
                 self._set_on(False, None)
         elif spread <= START_SPREAD_PERIODS * period and (self.mode == "regular" or jitter >= ON_MS * 1e6):
             self._set_on(True, None)
+        if self._on:  # the line's sigma, which only a restamped frame reads (`_on` changes only here and in `_start`)
+            near = np.abs(r - med) <= max(6 * spread, 1e3)
+            kept = r[near] - float(np.mean(r[near]))
+            self._rms_ns = float(np.sqrt(np.mean(kept ** 2)))
 
     def _set_on(self, on: bool, why: str | None) -> None:
         if on and not self._on:
@@ -342,8 +353,7 @@ class FrameClock:
             self._sigmas[t_out] = sigma
             if len(self._sigmas) > self._sigmas_kept:
                 del self._sigmas[next(iter(self._sigmas))]
-        self._recent_sigmas.append(sigma)
-        self.stats.sigma_ns = float(median(np.asarray(self._recent_sigmas)))
+        self.stats.recent_sigmas.append(sigma)
         if sigma > 0:
             self.stats.uncertain += 1
             self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, sigma)
