@@ -407,28 +407,41 @@ status_file = "{tmp_path / 'status.json'}"
 
 
 
-def test_vio_run_on_frames_stamped_on_arrival_logs_and_records_every_frame(tmp_path: Path, notify_socket) -> None:
-    """`vio run` on a camera whose stamps jitter (a EuRoC flight simulated with --stamp-jitter-ms, played live):
-    the estimator restamps the frames, and the daemon still finds each frame's arrival and image by the stamp the
-    source gave it: a TUM line per tracked frame (the first SITL flight with regular frames logged 25 of 3181)
-    and the recording keeps the stamps as given (the same fault as the in-process test in test_service.py, here
-    through `vio run` as users start it)."""
+def _jittered_flight_daemon(tmp_path: Path, notify_socket, duration_s: float, seed: int, jitter_ms: float,
+                            extra_run: str = "") -> tuple[Daemon, Path, Path]:
+    """`vio run` (started) on a simulated aggressive 376x240 flight whose frames are stamped on arrival with
+    `jitter_ms` of jitter, played as a EuRoC source, logging its poses: (daemon, flight, TUM file)."""
     _need_pipeline()
     from vio.app.cli import main
 
     flight = tmp_path / "jittered"
-    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "6", "--seed", "1", "--size",
-                 "376x240", "--stamp-jitter-ms", "4", "--no-progress"]) == 0
-    sock, notify_path = notify_socket
-    tum, rec = tmp_path / "out.tum", tmp_path / "rec"
+    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", str(duration_s), "--seed",
+                 str(seed), "--size", "376x240", "--stamp-jitter-ms", str(jitter_ms), "--no-progress"]) == 0
+    _, notify_path = notify_socket
+    tum = tmp_path / "out.tum"
     d = Daemon(tmp_path, f"""[source]
 kind = "euroc"
 dataset = "{flight}"
 [run]
 status_file = "{tmp_path / 'status.json'}"
 trajectory_file = "{tum}"
-record_dir = "{rec}"
-""", notify_path)
+{extra_run}""", notify_path)
+    return d, flight, tum
+
+
+def _tum_poses(tum: Path) -> list[str]:
+    return [ln for ln in tum.read_text().splitlines() if ln and not ln.startswith("#")]
+
+
+def test_vio_run_on_frames_stamped_on_arrival_logs_and_records_every_frame(tmp_path: Path, notify_socket) -> None:
+    """`vio run` on a camera whose stamps jitter (a EuRoC flight simulated with --stamp-jitter-ms, played live):
+    the estimator restamps the frames, and the daemon still finds each frame's arrival and image by the stamp the
+    source gave it: a TUM line per tracked frame (the first SITL flight with regular frames logged 25 of 3181)
+    and the recording keeps the stamps as given (the same fault as the in-process test in test_service.py, here
+    through `vio run` as users start it)."""
+    rec = tmp_path / "rec"
+    d, flight, tum = _jittered_flight_daemon(tmp_path, notify_socket, duration_s=6, seed=1, jitter_ms=4,
+                                             extra_run=f'record_dir = "{rec}"\n')
     try:
         assert _wait(lambda: _status_ok(d, lambda s: s["source"]["finished"]), 40), d.log[-3000:]
         time.sleep(0.5)
@@ -437,8 +450,7 @@ record_dir = "{rec}"
         rc, _ = d.stop()
     assert rc == 0, d.log[-3000:]
     assert fs["restamped"] > 60, fs
-    poses = [ln for ln in tum.read_text().splitlines() if ln and not ln.startswith("#")]
-    assert len(poses) > 0.8 * fs["frames"], (len(poses), fs)
+    assert len(_tum_poses(tum)) > 0.8 * fs["frames"], (len(_tum_poses(tum)), fs)
     given = EurocDataset(flight).cam0_t
     recorded = EurocDataset(next(rec.iterdir())).cam0_t
     assert len(recorded) > 0.9 * len(given)
@@ -451,21 +463,7 @@ def test_vio_run_on_frames_jittering_too_much_to_restamp_says_so_and_keeps_flyin
     """`vio run` on a camera whose stamps jitter more than the frame clock can restamp (9 ms at 20 Hz, kept as
     given): the status says so (the frame stamps' sigma, a warning naming it, state degraded, not HEALTHY) while the
     poses keep coming, which the stamp link keeps near the truth (docs/estimator.md "Stamps that are not exact")."""
-    _need_pipeline()
-    from vio.app.cli import main
-
-    flight = tmp_path / "jittered"
-    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "8", "--seed", "2", "--size",
-                 "376x240", "--stamp-jitter-ms", "9", "--no-progress"]) == 0
-    sock, notify_path = notify_socket
-    tum = tmp_path / "out.tum"
-    d = Daemon(tmp_path, f"""[source]
-kind = "euroc"
-dataset = "{flight}"
-[run]
-status_file = "{tmp_path / 'status.json'}"
-trajectory_file = "{tum}"
-""", notify_path)
+    d, _, tum = _jittered_flight_daemon(tmp_path, notify_socket, duration_s=8, seed=2, jitter_ms=9)
     warned = []
     try:
         def check(s: dict) -> bool:
@@ -479,8 +477,7 @@ trajectory_file = "{tum}"
     assert fs["restamped"] < 0.2 * fs["frames"] and fs["uncertain_frames"] > 0.8 * fs["frames"], fs
     assert fs["stamp_sigma_ms"] > 2.0 and fs["stamp_link"] is True, fs
     assert warned, "no status warning for frame stamps uncertain by several ms"
-    poses = [ln for ln in tum.read_text().splitlines() if ln and not ln.startswith("#")]
-    assert len(poses) > 0.7 * fs["frames"], (len(poses), fs)
+    assert len(_tum_poses(tum)) > 0.7 * fs["frames"], (len(_tum_poses(tum)), fs)
     assert "Traceback" not in d.log
 
 
