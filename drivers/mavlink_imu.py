@@ -160,6 +160,8 @@ class MavlinkImuSource(ThreadedSource):
         self.clock_source = "none"
         self.clock_disagreements = 0
         self._disagree_run = 0
+        # holds over the whole run (health()), across reboots
+        self.holds = self.held = self.hold_dropped = self.backlog = 0
         self._init_hold()
         self._init_latency_floor()
 
@@ -176,10 +178,6 @@ class MavlinkImuSource(ThreadedSource):
         self._holding = True
         self._held: deque[tuple[int, int, np.ndarray, np.ndarray]] = deque()  # (t_dev, t_arrival, gyro, accel)
         self._hold_since_ns: int | None = None
-        self.holds = getattr(self, "holds", 0)  # kept across a reboot: health() counts the whole run
-        self.held = getattr(self, "held", 0)
-        self.hold_dropped = getattr(self, "hold_dropped", 0)
-        self.backlog = getattr(self, "backlog", 0)
 
     # ---------------------------------------------------------------- source interface
     def _before_start(self) -> None:
@@ -504,17 +502,16 @@ class MavlinkImuSource(ThreadedSource):
         # samples a few ms after their arrival (ArduPilot SITL's TIMESYNC over TCP: 5.5-9 ms, every flight) is a
         # constant part, which cancels on the ODOMETRY stamps and which the camera-IMU offset takes; read as an error
         # it held a whole SITL flight degraded with its covariance grown (stop 57)
-        self._lat_fall_ns = min(lat for t, lat in base if t <= end) - min(lat for _, _, lat in recent) if judged else 0
+        newest = min(lat for _, _, lat in recent)
+        earlier = [lat for t, lat in base if t <= end] if judged else []
+        self._lat_fall_ns = min(earlier) - newest if earlier else 0
         if steady:
-            self._lat_rise_ns = 0
-            if judged:
-                self._lat_rise_ns = min(lat for _, _, lat in recent) - max(lat for t, lat in base if t <= end)
+            self._lat_rise_ns = newest - max(earlier) if earlier else 0
 
     def _arrival_miss_ns(self) -> float:
         """How far the newest samples show the mapping off [ns]: their latencies fallen below the earlier floors (a late
-        mapping), or their
-        smallest latency risen above those of ARRIVAL_HOLD_S to ARRIVAL_BASE_S before (an early one, as last judged);
-        0 when they show nothing."""
+        mapping), or their smallest latency risen above those of ARRIVAL_HOLD_S to ARRIVAL_BASE_S before (an early
+        one, as last judged); 0 when they show nothing."""
         if not self._lat_recent:
             return 0.0
         return float(max(self._lat_fall_ns, self._lat_rise_ns, 0))
