@@ -194,14 +194,12 @@ def level_prior(R_world_body: np.ndarray, sigma_tilt_rad: float, sigma_yaw_rad: 
     return gtsam.noiseModel.Gaussian.Covariance(cov)
 
 
-def stamp_link_noise(xi_ms: np.ndarray, sigma_ms: float) -> gtsam.noiseModel.Base:
+def stamp_link_noise(xi_ms: np.ndarray, sigma_ms: float) -> gtsam.noiseModel.Gaussian:
     """Noise of the link C = X Exp(xi d) (or C = X without the time state) when the frame's own stamp may be off by
     `sigma_ms` (1 sigma, white from frame to frame: vio.frame_clock): C may move along the twist xi (per ms) by it,
     TIME_LINK_SIGMA across. A stamp error moves the whole camera pose along the motion, one error for every pixel
     of the frame; as pixel noise it would have been averaged away over the frame's hundreds of points."""
     xi = np.asarray(xi_ms, float).reshape(6)
-    if sigma_ms <= 0:
-        return gtsam.noiseModel.Isotropic.Sigma(6, TIME_LINK_SIGMA)
     return gtsam.noiseModel.Gaussian.Covariance(np.eye(6) * TIME_LINK_SIGMA ** 2 + sigma_ms ** 2 * np.outer(xi, xi))
 
 
