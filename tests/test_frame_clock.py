@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -192,6 +193,13 @@ def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
     # newest frame's: one frame kept as given far off the line is handed out with its distance (33 ms on a SITL flight)
     assert clock.stats.sigma_ns == pytest.approx(float(np.median(sigma[-20:])))
     assert "stamps uncertain by up to" in frame_stamps_line(clock.stats.as_dict())
+    # what it says is the camera's period and the stamps' jitter from frame to frame, not the figures of a line through
+    # frames numbered wrongly (43.8 ms and 17.4 ms here before)
+    said = clock.stats.as_dict()
+    assert said["period_ms"] == pytest.approx(PERIOD_NS * 1e-6, abs=1.0) and 9 < said["spread_ms"] < 13, said
+    m = re.search(r"jitter ([0-9.]+) ms \(1 sigma\) from frame to frame around a ([0-9.]+) ms frame period",
+                  caplog.text)
+    assert m and 8 < float(m.group(1)) < 14 and abs(float(m.group(2)) - PERIOD_NS * 1e-6) < 3, caplog.text
 
 
 def test_a_frame_held_up_is_not_restamped_onto_the_next_frames_place():
