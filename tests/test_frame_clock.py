@@ -223,6 +223,35 @@ def test_a_frame_held_up_is_not_restamped_onto_the_next_frames_place():
     assert restamped >= 0.6 * 12_000, restamped  # 7 of the 10 restamped (3 kept as given: spread too large)
 
 
+def test_a_usb_stall_is_not_restamped_a_period_off_nor_given_a_sigma_short_of_its_error():
+    """A USB camera's transfer stalls for 120 ms every 10 s: the frames due in it come together at its end (1 ms
+    apart). The first of them, numbered on the line by its arrival two places on (as after two drops), was put on
+    that place 100 ms off its exposure with the line's sub-ms sigma (11 frames in these 2 minutes), the next ones
+    kept as given with 20 ms of sigma for 70 ms of error, the one that started the fit again with 2 ms for 21 (21
+    frames over twice their sigma in all). Now none."""
+    rng = np.random.default_rng(1)
+    true = exposures(2400, rng, period_ns=PERIOD_NS)
+    arrived = true + rng.exponential(2e6, len(true))
+    for k in range(200, 2400, 200):
+        start = true[k] + 1e6
+        hit = (arrived >= start) & (arrived < start + 120e6)
+        arrived[hit] = start + 120e6 + np.arange(int(hit.sum())) * 1e6
+    arrived = np.maximum.accumulate(arrived).astype(np.int64)
+    clock = FrameClock("auto")
+    out, sigma = [], []
+    for t in arrived:
+        out.append(clock.restamp(int(t)))
+        sigma.append(clock.stamp_sigma_ns(out[-1]))
+    out, sigma = np.array(out), np.array(sigma)
+    err = out - true
+    err = err - np.median(err)
+    moved = out != arrived
+    assert np.sum(moved) > 2000  # restamped between the stalls
+    assert not np.any(moved & (np.abs(err) > 25e6)), np.flatnonzero(moved & (np.abs(err) > 25e6))
+    short = (np.abs(err) > 10e6) & (np.abs(err) > 2 * sigma + 2e6)
+    assert not np.any(short), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6) for i in np.flatnonzero(short)]
+
+
 def test_a_restamped_frame_carries_the_error_of_the_fitted_line():
     """A restamped stamp is off its exposure by the line's own error, not by the jitter: the sigma handed out says
     about that, 2 spread / sqrt(frames in the window) at the newest frame, and covers the actual errors."""
