@@ -382,6 +382,28 @@ def test_stamp_jitter_delays_the_stamps_and_records_the_truth(tmp_path, capsys):
     assert "--stamp-jitter-ms -1.0 is outside [0, 20]" in capsys.readouterr().err
 
 
+def test_stamp_stalls_deliver_the_frames_due_in_a_stall_together_at_its_end(tmp_path, capsys):
+    """--stamp-stalls EVERY_S:MS: the camera's transfer stalls for MS now and then (a USB camera); the frames due in a
+    stall are stamped together at its end, 1 ms apart and in order, the others as before; the truth file says each
+    frame's true offset."""
+    cfg = SimConfig(duration_s=6.0, variant="clean", still_start_s=0.5, stamp_stall_every_s=1.0, stamp_stall_ms=120.0,
+                    **TINY)
+    simulate(tmp_path / "s", cfg)
+    simulate(tmp_path / "r", dataclasses.replace(cfg, stamp_stall_every_s=0.0, stamp_stall_ms=0.0))
+    st, ref = EurocDataset(tmp_path / "s"), EurocDataset(tmp_path / "r")
+    late = st.cam0_t - ref.cam0_t
+    truth = np.loadtxt(tmp_path / "s" / "time_offset_truth.csv", delimiter=",", dtype=np.int64)
+    np.testing.assert_array_equal(truth[:, 0], st.cam0_t)
+    np.testing.assert_array_equal(truth[:, 1], -late)
+    steps = np.diff(st.cam0_t)
+    assert np.all(steps >= 1_000_000) and np.sum(steps == 1_000_000) >= 2  # bursts, 1 ms apart, in order
+    assert late.max() > 60e6 and np.all(late >= 0) and np.sum(late > 0) < 0.3 * len(late)  # most frames on time
+    assert main(["simulate", str(tmp_path / "x"), "--stamp-stalls", "often"]) == 2
+    assert "--stamp-stalls: expected EVERY_S:MS" in capsys.readouterr().err
+    with pytest.raises(VioError, match="stamp stalls need both"):
+        dataclasses.replace(cfg, stamp_stall_ms=0.0).resolved()
+
+
 def test_cli_variant_options(tmp_path, capsys):
     out = tmp_path / "v"
     assert main(["simulate", str(out), "--duration", "0.5", "--size", "94x60", "--variant", "clean", "--no-progress",

@@ -61,6 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stamp-jitter-ms", type=float, default=0.0, metavar="MS",
                    help="stamp each frame late by a random delay of mean and spread MS, its mean taken off (a camera "
                         "stamped on arrival at the host; the truth in OUT/time_offset_truth.csv)")
+    p.add_argument("--stamp-stalls", default=None, metavar="EVERY_S:MS",
+                   help="the camera's transfer stalls for MS ms every EVERY_S s on average; the frames due in a "
+                        "stall are stamped together at its end (a USB camera stamped on arrival)")
     p.add_argument("--imu-mount", choices=sorted(IMU_MOUNTS), default="flu",
                    help="how the IMU sits on the vehicle: flu (square: x forward, z up; default) or oak (a "
                         "forward-looking Luxonis OAK: IMU x up, z backwards); the same flight either way")
@@ -83,7 +86,8 @@ _OPTION_OF = {"duration_s": "--duration", "rate_hz": "--rate", "imu_rate_hz": "-
               "image_noise": "--image-noise", "drop_frames": "--drop-frames", "calib_error": "--calib-error",
               "stereo_error_px": "--stereo-error", "time_offset_drift_ms": "--time-offset-drift-ms",
               "time_offset_period_s": "--drift-period",
-              "stamp_jitter_ms": "--stamp-jitter-ms", "recorded_start_s": "--recorded-start"}
+              "stamp_jitter_ms": "--stamp-jitter-ms", "recorded_start_s": "--recorded-start",
+              "stamp_stall_every_s": "--stamp-stalls EVERY_S", "stamp_stall_ms": "--stamp-stalls MS"}
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -96,14 +100,22 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _window(text: str) -> tuple[float, float]:
+def _window(text: str, flag: str = "--right-dropout", form: str = "START:LENGTH in seconds such as 20:5"
+            ) -> tuple[float, float]:
     from vio import UsageError
 
     try:
         start, length = (float(x) for x in text.split(":"))
     except ValueError:
-        raise UsageError(f"--right-dropout: expected START:LENGTH in seconds such as 20:5, got {text!r}") from None
+        raise UsageError(f"{flag}: expected {form}, got {text!r}") from None
     return start, length
+
+
+def _stalls(text: str | None) -> dict:
+    if text is None:
+        return {}
+    every, ms = _window(text, "--stamp-stalls", "EVERY_S:MS such as 10:120")
+    return {"stamp_stall_every_s": every, "stamp_stall_ms": ms}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
                     right_dropouts=tuple(_window(w) for w in args.right_dropout),
                     time_offset_drift_ms=args.time_offset_drift_ms, time_offset_period_s=args.drift_period,
                     stamp_jitter_ms=args.stamp_jitter_ms,
+                    **_stalls(args.stamp_stalls),
                     imu_mount=args.imu_mount, imu_from=args.imu_from, recorded_start_s=args.recorded_start)
     try:  # every check of resolved() is on an option's value: a usage error (exit 2), named by the option
         cfg.resolved()

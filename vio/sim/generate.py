@@ -88,6 +88,10 @@ class SimConfig:
     time_offset_drift_ms: float = 0.0  # amplitude of a sinusoidal drift of the time offset around time_offset_ms
     time_offset_period_s: float = 60.0  # period of that drift
     stamp_jitter_ms: float = 0.0  # frames stamped late by a random delay of this mean (and spread), mean taken off
+    # the camera's transfer stalls now and then (a USB camera): every stamp_stall_every_s on average (Poisson), for
+    # stamp_stall_ms; the frames due in a stall arrive together at its end, 1 ms apart (0: no stalls)
+    stamp_stall_every_s: float = 0.0
+    stamp_stall_ms: float = 0.0
     imu_mount: str = "flu"  # the IMU's axes on the vehicle (vio.sim.IMU_MOUNTS): "flu" square, "oak" x up
     imu_from: str | None = None  # a EuRoC recording: its IMU and ground truth replace profile and IMU model
     recorded_start_s: float = 0.0  # with imu_from: where in the recording's ground truth the flight starts
@@ -119,12 +123,16 @@ class SimConfig:
         if cfg.scene != "room" and cfg.aliasing_period_m:  # said before any work, as an option's mistake (exit 2)
             raise VioError(ALIASING_ROOM_ONLY)
         for name, (lo, hi) in {"calib_error": (0, 20), "stereo_error_px": (-20, 20), "time_offset_drift_ms": (0, 100),
-                               "time_offset_period_s": (1, 36000), "stamp_jitter_ms": (0, 20)}.items():
+                               "time_offset_period_s": (1, 36000), "stamp_jitter_ms": (0, 20),
+                               "stamp_stall_ms": (0, 2000)}.items():
             if not (lo <= getattr(cfg, name) <= hi):
                 raise VioError(f"simulate: {name} = {getattr(cfg, name)} is outside [{lo}, {hi}]")
         for start, length in cfg.right_dropouts:
             if not (start >= 0 and length > 0):
                 raise VioError(f"simulate: right dropout {start}:{length} needs start >= 0 and length > 0 s")
+        if (cfg.stamp_stall_ms > 0) != (cfg.stamp_stall_every_s > 0) or 0 < cfg.stamp_stall_every_s < 0.5:
+            raise VioError(f"simulate: stamp stalls need both a mean interval of at least 0.5 s and a length, got "
+                           f"every {cfg.stamp_stall_every_s} s for {cfg.stamp_stall_ms} ms")
         if cfg.recorded_start_s < 0:
             raise VioError(f"simulate: recorded_start_s = {cfg.recorded_start_s} is negative")
         # delays are capped at half a period (keep the cap rare: 8 % of frames at a fifth); over a tenth the
@@ -173,7 +181,7 @@ class Simulation:
         jitter, t_s must be the flight's frame times (the k-th time gets the k-th frame's delay)."""
         c = self.config
         drift = c.time_offset_drift_ms * 1e6 * np.sin(2 * np.pi * np.asarray(t_s, float) / c.time_offset_period_s)
-        if c.stamp_jitter_ms > 0:  # a later stamp is a smaller offset
+        if c.stamp_jitter_ms > 0 or c.stamp_stall_ms > 0:  # a later stamp is a smaller offset
             drift = drift - self.stamp_delays_ns(len(t_s))
         return np.round(self.calibration.time_offset_ns + drift).astype(np.int64)
 
@@ -183,6 +191,18 @@ class Simulation:
         c = self.config
         mean_ns = c.stamp_jitter_ms * 1e6
         delay = np.minimum(np.random.default_rng([c.seed, 7]).exponential(mean_ns, n), 0.5e9 / c.rate_hz)
+        if c.stamp_stall_ms > 0:  # stalls on top: the frames due in one arrive together at its end, in order
+            rng = np.random.default_rng([c.seed, 8])
+            t = np.arange(n) * (1e9 / c.rate_hz)
+            arrival = t + delay
+            start = rng.exponential(c.stamp_stall_every_s * 1e9)
+            while start < arrival[-1]:
+                hit = np.flatnonzero((arrival >= start) & (arrival < start + c.stamp_stall_ms * 1e6))
+                arrival[hit] = start + c.stamp_stall_ms * 1e6 + np.arange(len(hit)) * 1e6
+                start += c.stamp_stall_ms * 1e6 + rng.exponential(c.stamp_stall_every_s * 1e9)
+            for k in range(1, n):  # a frame due right after a stall queues behind its burst, 1 ms apart
+                arrival[k] = max(arrival[k], arrival[k - 1] + 1e6)
+            delay = arrival - t
         return delay - mean_ns
 
     def right_dropped(self, t_s: float) -> bool:
@@ -277,7 +297,7 @@ def simulate(out: str | Path, cfg: SimConfig = SimConfig(), overwrite: bool = Fa
         from tqdm import tqdm
         bar = tqdm(total=len(sim.frame_t_s), unit="frame", desc="rendering", leave=False)
     offsets_ns = sim.time_offset_ns(sim.frame_t_s)
-    if cfg.time_offset_drift_ms > 0 or cfg.stamp_jitter_ms > 0:
+    if cfg.time_offset_drift_ms > 0 or cfg.stamp_jitter_ms > 0 or cfg.stamp_stall_ms > 0:
         (out / "time_offset_truth.csv").write_text("#t_cam_ns,time_offset_ns\n" + "".join(
             f"{T0_NS + round(t * 1e9) - o},{o}\n" for t, o in zip(sim.frame_t_s, offsets_ns)))
     with EurocWriter(out, sim.written_calibration, overwrite=True) as writer:
