@@ -48,6 +48,7 @@ EARLY_MIN_FRAMES = 50
 OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the camera's clock changed: the fit starts
 # again. Not "in a row": a camera gone from 20 to 30 Hz puts every third frame on the old line and was never
 # refitted, every third frame moved 17 ms (a review's finding)
+BURST_STEP_PERIODS = 0.25  # a late frame this soon after one off the line came in its burst (see `restamp`)
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
 WARMUP_SIGMA_FRAMES = 8  # stamps before a first fit that say how much they jitter (`_given_sigma`)
@@ -158,7 +159,13 @@ class FrameClock:
             early = far if len(self._n) < EARLY_MIN_FRAMES else min(far, max(EARLY_SIGMAS * self._spread, EARLY_MIN_NS))
             if off > far or off < -early:
                 alone = not any(self._off_line)
-                self._off_line.append(True)
+                # Late, right behind a frame off the line: frames queued behind one held up and delivered together
+                # (a USB stall), not a camera clock that changed. Counted, a 120 ms stall's three frames started the
+                # fit again (5 of 11 stalls, 20 frames kept as given after each)
+                burst = off > 0 and bool(self._off_line) and self._off_line[-1] \
+                    and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]
+                if not burst:
+                    self._off_line.append(True)
                 if sum(self._off_line) >= OFF_LINE_OF_RECENT[0]:
                     self._restart(f"{OFF_LINE_OF_RECENT[0]} of the last {len(self._off_line)} frames off the camera "
                                   f"clock's line (the last by {off * 1e-6:.1f} ms)")
