@@ -253,6 +253,24 @@ def test_a_usb_stall_is_not_restamped_a_period_off_nor_given_a_sigma_short_of_it
     assert not np.any(short), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6) for i in np.flatnonzero(short)]
 
 
+def test_a_dropped_frame_a_little_early_is_restamped_at_low_jitter():
+    """1 ms of symmetric jitter, a frame dropped and the next one 4 ms (4 spreads) early: it is numbered past the
+    dropped one, where it belongs; taking it for the next frame held up 46 ms (46 spreads) instead kept it as given
+    with a 46 ms sigma (4 of 1,720 drops at 10 %: none before the check for a frame held up onto the next place)."""
+    rng = np.random.default_rng(11)
+    true = exposures(601, rng)
+    delay = 10e6 + rng.normal(0, 1e6, len(true))
+    delay[401] = 10e6 - 4e6
+    keep = np.arange(len(true)) != 400  # frame 400 dropped
+    true, arrived = true[keep], (true + np.round(delay).astype(np.int64))[keep]
+    clock = FrameClock("auto")
+    out = restamp_all(clock, arrived[:400])
+    assert clock.stats.restamped > 300 and 3 * clock.stats.spread_ns < 4e6 < 5 * clock.stats.spread_ns, clock.stats
+    t = clock.restamp(int(arrived[400]))
+    assert t != arrived[400] and abs(t - true[400] - np.median(out[-100:] - true[300:400])) < 1e6
+    assert clock.stamp_sigma_ns(t) < 1e6 and clock.stats.restarts == 0
+
+
 def test_a_restamped_frame_carries_the_error_of_the_fitted_line():
     """A restamped stamp is off its exposure by the line's own error, not by the jitter: the sigma handed out says
     about that, 2 spread / sqrt(frames in the window) at the newest frame, and covers the actual errors."""
