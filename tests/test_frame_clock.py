@@ -202,6 +202,22 @@ def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
     assert m and 8 < float(m.group(1)) < 14 and abs(float(m.group(2)) - PERIOD_NS * 1e-6) < 3, caplog.text
 
 
+def test_the_stats_of_stamps_kept_as_given_say_their_own_jitter():
+    """A camera gone from 25 to 20 Hz under 3 ms of jitter: frames numbered on the old clock bend the line until the
+    spread is too large to number them, and the stamps are kept as given; the stats say their period and jitter from
+    the stamps themselves (the jitter was the bent line's, 4.5 ms, beside a spread of 2.9 ms)."""
+    rng = np.random.default_rng(1)
+    true = T0 + np.round(np.r_[np.arange(600) * 40e6, 600 * 40e6 + np.arange(600) * 50e6]).astype(np.int64)
+    true = true[rng.random(len(true)) >= 0.05]
+    arrived = true + np.round(10e6 + rng.normal(0, 3e6, len(true))).astype(np.int64)
+    clock = FrameClock("auto")
+    restamp_all(clock, np.maximum.accumulate(arrived + np.arange(len(true))))
+    said = clock.stats.as_dict()
+    assert said["stamp_sigma_ms"] > 2  # kept as given, as the spread too large to number the frames
+    assert said["period_ms"] == pytest.approx(50, abs=1), said
+    assert 2 < said["jitter_ms"] < 4 and 2 < said["spread_ms"] < 4, said
+
+
 def test_a_frame_held_up_is_not_restamped_onto_the_next_frames_place():
     """Delays of 6 ms (exponential, as a USB camera's arrival) at 20 Hz are restamped, but now and then one frame comes
     so late it is numbered as the next, after a drop: put on that place it was a whole period (50 ms) off with the
