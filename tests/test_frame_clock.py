@@ -203,19 +203,18 @@ def test_jitter_too_large_to_number_frames_is_left_alone(caplog):
 
 
 def test_the_stats_of_stamps_kept_as_given_say_their_own_jitter():
-    """A camera gone from 25 to 20 Hz under 3 ms of jitter: frames numbered on the old clock bend the line until the
-    spread is too large to number them, and the stamps are kept as given; the stats say their period and jitter from
-    the stamps themselves (the jitter was the bent line's, 4.5 ms, beside a spread of 2.9 ms)."""
+    """Delays of 9 ms (exponential) at 20 Hz: frames numbered wrongly bend the line until the spread is too large to
+    number them, and the stamps are kept as given; the stats say their period and jitter from the stamps themselves
+    (the jitter was the bent line's, beside a spread from the stamps: a review's finding)."""
     rng = np.random.default_rng(1)
-    true = T0 + np.round(np.r_[np.arange(600) * 40e6, 600 * 40e6 + np.arange(600) * 50e6]).astype(np.int64)
-    true = true[rng.random(len(true)) >= 0.05]
-    arrived = true + np.round(10e6 + rng.normal(0, 3e6, len(true))).astype(np.int64)
+    true = exposures(1200, rng, period_ns=PERIOD_NS)
+    arrived = np.maximum.accumulate(true + np.round(rng.exponential(9e6, len(true))).astype(np.int64))
     clock = FrameClock("auto")
-    restamp_all(clock, np.maximum.accumulate(arrived + np.arange(len(true))))
+    out = restamp_all(clock, arrived)
     said = clock.stats.as_dict()
-    assert said["stamp_sigma_ms"] > 2  # kept as given, as the spread too large to number the frames
+    assert np.array_equal(out, arrived) and said["stamp_sigma_ms"] > 5  # kept as given: too much to number
     assert said["period_ms"] == pytest.approx(50, abs=1), said
-    assert 2 < said["jitter_ms"] < 4 and 2 < said["spread_ms"] < 4, said
+    assert said["jitter_ms"] == said["spread_ms"] and 6 < said["spread_ms"] < 11, said
 
 
 def test_a_frame_held_up_is_not_restamped_onto_the_next_frames_place():
@@ -267,24 +266,6 @@ def test_a_usb_stall_is_not_restamped_a_period_off_nor_given_a_sigma_short_of_it
     assert not np.any(moved & (np.abs(err) > 25e6)), np.flatnonzero(moved & (np.abs(err) > 25e6))
     short = (np.abs(err) > 10e6) & (np.abs(err) > 2 * sigma + 2e6)
     assert not np.any(short), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6) for i in np.flatnonzero(short)]
-
-
-def test_a_dropped_frame_a_little_early_is_restamped_at_low_jitter():
-    """1 ms of symmetric jitter, a frame dropped and the next one 4 ms (4 spreads) early: it is numbered past the
-    dropped one, where it belongs; taking it for the next frame held up 46 ms (46 spreads) instead kept it as given
-    with a 46 ms sigma (4 of 1,720 drops at 10 %: none before the check for a frame held up onto the next place)."""
-    rng = np.random.default_rng(11)
-    true = exposures(601, rng)
-    delay = 10e6 + rng.normal(0, 1e6, len(true))
-    delay[401] = 10e6 - 4e6
-    keep = np.arange(len(true)) != 400  # frame 400 dropped
-    true, arrived = true[keep], (true + np.round(delay).astype(np.int64))[keep]
-    clock = FrameClock("auto")
-    out = restamp_all(clock, arrived[:400])
-    assert clock.stats.restamped > 300 and 3 * clock.stats.spread_ns < 4e6 < 5 * clock.stats.spread_ns, clock.stats
-    t = clock.restamp(int(arrived[400]))
-    assert t != arrived[400] and abs(t - true[400] - np.median(out[-100:] - true[300:400])) < 1e6
-    assert clock.stamp_sigma_ns(t) < 1e6 and clock.stats.restarts == 0
 
 
 def test_a_restamped_frame_carries_the_error_of_the_fitted_line():

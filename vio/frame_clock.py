@@ -192,14 +192,9 @@ class FrameClock:
                 # is a whole period off with the line's sub-ms sigma (exponential delays of 5 / 6 / 7 ms at 20 Hz:
                 # 14 / 63 / 192 of 24,000 frames 50 ms off; 2 / 17 / 42 with this, those left delayed by about a
                 # period, which no stamp tells from a drop). Kept as given, its sigma covering both. (Stamps kept as
-                # given anyway need no number.) Early by over 3 spreads only counts while the hold-up it would
-                # otherwise be stays within 2 `far`: at 1 ms of jitter a dropped frame's successor 3-5 spreads early
-                # (the tail of a symmetric spread) was otherwise taken for the next frame held up ~47 ms (47 spreads),
-                # kept as given with a 47 ms sigma (4 of 1,720 drops at 10 %, 1 or 2 ms Gaussian; none before). The
-                # frames held up under 5 / 6 / 7 ms of exponential delays are still caught (2 / 4 / 16 of 12,000 left a
-                # period off; 2 / 3 / 13 without the bound): a review's finding
+                # given anyway need no number.)
                 late = a - (self._line[0] + self._line[1] * (self._n[-1] + 1))
-                if late <= far or (-off > max(3 * self._spread, EARLY_MIN_NS) and late <= 2 * far):
+                if late <= far or -off > max(3 * self._spread, EARLY_MIN_NS):
                     self._off_line.append(True)  # not on the line for sure either: counts towards a changed clock
                     return self._out(t_ns, t_ns, max(late, -off, self._given_sigma()))
         self._off_line.append(False)
