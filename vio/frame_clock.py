@@ -113,6 +113,7 @@ class FrameClock:
         self._since_fit = 0  # frames since the last fit
         self._on = False
         self._off_line: deque[bool] = deque(maxlen=OFF_LINE_OF_RECENT[1])  # the last frames: off the line or not
+        self._burst = 0  # frames of the burst being delivered (a USB stall's; 0: none), its first counted
         self._warned = False  # the spread-too-large warning, once per fit
         self._last_in = None
         self._last_out = None
@@ -154,19 +155,37 @@ class FrameClock:
             return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
         n = self._number(a)
+        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]:
+            # Two frames this close: the camera did not expose them so; they were held up and delivered together (a
+            # USB stall's burst). Out of the fit (numbered by its arrival, a burst frame sat within `far` of a wrong
+            # place and bent the line: with stalls every 2 s the clock restamped a third of the frames and handed
+            # 5 % out with a sigma under half their error), and so is the frame before it, the burst's first, if
+            # the fit took it; not counted as off the line either (a 120 ms stall's three frames started the fit
+            # again: 5 of 11 stalls, 20 frames kept as given after each). Kept as given, its sigma how late it is
+            # if nothing was dropped since the fit's last (an upper bound: a drop puts its place later).
+            if self._a and self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES:
+                self._n.pop()
+                self._a.pop()
+            if self._burst == 0:
+                # the burst's first went out already (on a place it may not have, with the line's sigma): its sigma,
+                # which the estimator reads when it solves that frame (later), says now how far it may be off from
+                # the next frame's place after the fit's last
+                nxt, head = self._on_line(self._n[-1] + 1), self._last_out
+                if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
+                    self._sigmas[head] = float(abs(head - nxt))
+                    self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
+                self._burst = 1
+            self._burst += 1  # this frame's place if nothing was dropped: the burst's k-th after the fit's last
+            place = self._on_line(self._n[-1] + self._burst)
+            return self._out(t_ns, t_ns, max(float(abs(t_ns - place)), self._given_sigma()))
+        self._burst = 0
         if self._line is not None:
             off = a - (self._line[0] + self._line[1] * n)
             far = max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread)
             early = far if len(self._n) < EARLY_MIN_FRAMES else min(far, max(EARLY_SIGMAS * self._spread, EARLY_MIN_NS))
             if off > far or off < -early:
                 alone = not any(self._off_line)
-                # Late, right behind a frame off the line: frames queued behind one held up and delivered together
-                # (a USB stall), not a camera clock that changed. Counted, a 120 ms stall's three frames started the
-                # fit again (5 of 11 stalls, 20 frames kept as given after each)
-                burst = off > 0 and bool(self._off_line) and self._off_line[-1] \
-                    and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]
-                if not burst:
-                    self._off_line.append(True)
+                self._off_line.append(True)
                 if sum(self._off_line) >= OFF_LINE_OF_RECENT[0]:
                     self._restart(f"{OFF_LINE_OF_RECENT[0]} of the last {len(self._off_line)} frames off the camera "
                                   f"clock's line (the last by {off * 1e-6:.1f} ms)")
@@ -292,6 +311,7 @@ class FrameClock:
         self._line = None
         self._since_fit = 0
         self._off_line.clear()
+        self._burst = 0
         self._warned = False
         self._on = False  # kept as given until the new fit has MIN_FRAMES (the restart's line says so)
 
