@@ -303,6 +303,68 @@ def test_frequent_stalls_keep_the_clock_restamping_and_every_sigma_honest_when_r
     assert restamped > 10_000 and restarts <= 3 and short <= 60, (restamped, restarts, short)  # 11125, 1, 23 now
 
 
+def test_a_stall_s_frames_numbered_past_their_place_get_their_lateness_as_sigma():
+    """A stall ending 85 ms after its first frame's exposure: that frame, numbered two places on by its arrival, sits
+    15 ms early there, and was kept as given with 15 ms of sigma for 85 ms of error; the burst's next one 15 ms for
+    36. Now each is given how late it is on the earliest place it can have (past the frames handed out before it):
+    its error, to a millisecond. (One whose lateness lands within a quarter period of a place on is put there a
+    period or two off with the line's sigma, as after drops: no stamp tells them apart when it comes.)"""
+    rng = np.random.default_rng(2)
+    true = exposures(2400, rng, period_ns=PERIOD_NS)
+    arrived = true + rng.exponential(0.5e6, len(true))
+    stalls = range(200, 2400, 200)
+    for k in stalls:  # first frame 85 or 80 ms late, the next 36 or 31
+        start = true[k] - (35e6 if k % 400 else 40e6)
+        hit = (arrived >= start) & (arrived < start + 120e6)
+        arrived[hit] = start + 120e6 + np.arange(int(hit.sum())) * 1e6
+    arrived = np.maximum.accumulate(arrived).astype(np.int64)
+    clock = FrameClock("auto")
+    out, sigma = [], []
+    for t in arrived:
+        out.append(clock.restamp(int(t)))
+        sigma.append(clock.stamp_sigma_ns(out[-1]))
+    out, sigma = np.array(out), np.array(sigma)
+    err = np.abs(out - true - np.median(out - true))
+    far = err > 10e6
+    assert np.sum(far) == 2 * len(stalls) and clock.stats.restarts == 0
+    assert np.all(np.abs(sigma[far] - err[far]) < 1.5e6), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6)
+                                                          for i in np.flatnonzero(far)]
+
+
+def test_a_long_stall_s_burst_does_not_start_the_fit_again_but_a_faster_camera_does():
+    """A 250 ms stall: five frames in its burst, the later ones numbered a place on by their arrival and early there.
+    Counted as off the line, they started the fit again, the burst's last frames then kept as given with the new
+    fit's sub-ms sigma for 40-90 ms of error. Now a frame late on the earliest place it can have, right behind one
+    off the line, is in the burst: no restart, each frame's sigma its error. A camera gone to 100 Hz, frames 10 ms
+    apart, comes early on those places: the fit starts again within its first frames, as before."""
+    rng = np.random.default_rng(3)
+    true = exposures(2400, rng, period_ns=PERIOD_NS)
+    arrived = true + rng.exponential(0.5e6, len(true))
+    stalls = range(200, 2400, 200)
+    for k in stalls:  # the frames due in it 236, 187, 138, 89 and 40 ms late
+        start = true[k] - 14e6
+        hit = (arrived >= start) & (arrived < start + 250e6)
+        arrived[hit] = start + 250e6 + np.arange(int(hit.sum())) * 1e6
+    arrived = np.maximum.accumulate(arrived).astype(np.int64)
+    clock = FrameClock("auto")
+    out, sigma = [], []
+    for t in arrived:
+        out.append(clock.restamp(int(t)))
+        sigma.append(clock.stamp_sigma_ns(out[-1]))
+    out, sigma = np.array(out), np.array(sigma)
+    err = np.abs(out - true - np.median(out - true))
+    far = err > 10e6
+    assert clock.stats.restarts == 0 and np.sum(far) == 5 * len(stalls)
+    assert np.all(np.abs(sigma[far] - err[far]) < 1.5e6), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6)
+                                                          for i in np.flatnonzero(far)]
+    fast = np.concatenate([true[:600], true[599] + np.arange(1, 200) * 10_000_000])
+    clock = FrameClock("auto")
+    restamp_all(clock, fast[:600])
+    assert clock.stats.restarts == 0
+    restamp_all(clock, fast[600:604])
+    assert clock.stats.restarts == 1
+
+
 def test_a_restamped_frame_carries_the_error_of_the_fitted_line():
     """A restamped stamp is off its exposure by the line's own error, not by the jitter: the sigma handed out says
     about that, 2 spread / sqrt(frames in the window) at the newest frame, and covers the actual errors."""

@@ -155,15 +155,19 @@ class FrameClock:
             return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
         n = self._number(a)
-        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]:
+        head_in = bool(self._a) and self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES
+        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1] and t_ns >= self._on_line(
+                self._n[-2 if head_in else -1] + max(self._burst, 1) + 1) - max(3 * self._spread, EARLY_MIN_NS):
             # Two frames this close: the camera did not expose them so; they were held up and delivered together (a
             # USB stall's burst). Out of the fit (numbered by its arrival, a burst frame sat within `far` of a wrong
             # place and bent the line: with stalls every 2 s the clock restamped a third of the frames and handed
             # 5 % out with a sigma under half their error), and so is the frame before it, the burst's first, if
             # the fit took it; not counted as off the line either (a 120 ms stall's three frames started the fit
             # again: 5 of 11 stalls, 20 frames kept as given after each). Kept as given, its sigma how late it is
-            # if nothing was dropped since the fit's last (an upper bound: a drop puts its place later).
-            if self._a and self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES:
+            # if nothing was dropped since the fit's last (an upper bound: a drop puts its place later). Only a frame
+            # late on that place: a camera gone faster (100 Hz frames 10 ms apart) comes early on it, and is a
+            # changed clock, to fit again (a review's case)
+            if head_in:
                 self._n.pop()
                 self._a.pop()
             if self._burst == 0:
@@ -194,7 +198,10 @@ class FrameClock:
                 # a frame held up: the line has it; one early, or late after others off the line: the clock may
                 # have changed
                 late = off > 0 and self._on and alone
-                skipped = off > 0 and n > self._n[-1] + 1
+                # past the next place, early on it as well as late: a stall's first frame 80-100 ms late numbered
+                # two places on sat 18 ms early there and was given 18 ms for 82 (14 of 20 stalls of 120 ms; a
+                # review's finding)
+                skipped = n > self._n[-1] + 1
                 if late and not skipped:  # out of the fit either way
                     return self._out(t_ns, self._on_line(n), self._line_sigma(n))
                 if skipped:
@@ -202,7 +209,7 @@ class FrameClock:
                     # USB stall delivers them in a burst; 120 ms every 10 s at 20 Hz put 11 frames 100 ms off with
                     # the line's sub-ms sigma, and the burst's next ones given 21 ms for 71). Kept as given, its
                     # sigma how late it is if nothing was dropped.
-                    off = a - (self._line[0] + self._line[1] * (self._n[-1] + 1))
+                    off = max(abs(off), a - (self._line[0] + self._line[1] * (self._n[-1] + 1)))
                 return self._out(t_ns, t_ns, max(abs(off), self._given_sigma()))
             if self._on and off < 0 and n > self._n[-1] + 1:
                 # Numbered past the next frame's place (a drop), yet early on its own: it may as well be the next
