@@ -28,6 +28,24 @@ def restamp_all(clock: FrameClock, stamps: np.ndarray) -> np.ndarray:
     return np.array([clock.restamp(int(t)) for t in stamps], dtype=np.int64)
 
 
+def stall(arrived: np.ndarray, start: float, length_ns: float) -> None:
+    """A USB transfer stalled from `start` for `length_ns`: the frames due in it arrive at its end, 1 ms apart."""
+    hit = (arrived >= start) & (arrived < start + length_ns)
+    arrived[hit] = start + length_ns + np.arange(int(hit.sum())) * 1e6
+
+
+def restamp_with_sigmas(clock: FrameClock, stamps: np.ndarray, lag: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps handed out and each one's sigma, read `lag` frames later (the estimator reads it when it solves the
+    frame: later)."""
+    out, sigma = [], []
+    for t in stamps:
+        out.append(clock.restamp(int(t)))
+        if len(out) > lag:
+            sigma.append(clock.stamp_sigma_ns(out[-1 - lag]))
+    sigma += [clock.stamp_sigma_ns(t) for t in out[len(out) - lag:]] if lag else []
+    return np.array(out), np.array(sigma)
+
+
 def test_exact_stamps_are_kept_as_given():
     """EuRoC's stamps (alternating 128 ns off the grid) and a device-stamped camera's: not one is moved."""
     rng = np.random.default_rng(1)
@@ -248,16 +266,10 @@ def test_a_usb_stall_is_not_restamped_a_period_off_nor_given_a_sigma_short_of_it
     true = exposures(2400, rng, period_ns=PERIOD_NS)
     arrived = true + rng.exponential(2e6, len(true))
     for k in range(200, 2400, 200):
-        start = true[k] + 1e6
-        hit = (arrived >= start) & (arrived < start + 120e6)
-        arrived[hit] = start + 120e6 + np.arange(int(hit.sum())) * 1e6
+        stall(arrived, true[k] + 1e6, 120e6)
     arrived = np.maximum.accumulate(arrived).astype(np.int64)
     clock = FrameClock("auto")
-    out, sigma = [], []
-    for t in arrived:
-        out.append(clock.restamp(int(t)))
-        sigma.append(clock.stamp_sigma_ns(out[-1]))
-    out, sigma = np.array(out), np.array(sigma)
+    out, sigma = restamp_with_sigmas(clock, arrived)
     err = out - true
     err = err - np.median(err)
     moved = out != arrived
@@ -281,20 +293,13 @@ def test_frequent_stalls_keep_the_clock_restamping_and_every_sigma_honest_when_r
         arrived = true + rng.exponential(2e6, len(true))
         start = true[0] + rng.exponential(2e9)
         while start < arrived[-1]:
-            hit = (arrived >= start) & (arrived < start + 120e6)
-            arrived[hit] = start + 120e6 + np.arange(int(hit.sum())) * 1e6
+            stall(arrived, start, 120e6)
             start += 120e6 + rng.exponential(2e9)
         for k in range(1, len(arrived)):
             arrived[k] = max(arrived[k], arrived[k - 1] + 1e6)
         arrived = arrived.astype(np.int64)
         clock = FrameClock("auto")
-        out, sigma = [], []
-        for t in arrived:
-            out.append(clock.restamp(int(t)))
-            if len(out) > 1:
-                sigma.append(clock.stamp_sigma_ns(out[-2]))
-        sigma.append(clock.stamp_sigma_ns(out[-1]))
-        out, sigma = np.array(out), np.array(sigma)
+        out, sigma = restamp_with_sigmas(clock, arrived, lag=1)
         err = out - true
         err = err - np.median(err)
         restamped += int(np.sum(out != arrived))
@@ -314,16 +319,10 @@ def test_a_stall_s_frames_numbered_past_their_place_get_their_lateness_as_sigma(
     arrived = true + rng.exponential(0.5e6, len(true))
     stalls = range(200, 2400, 200)
     for k in stalls:  # first frame 85 or 80 ms late, the next 36 or 31
-        start = true[k] - (35e6 if k % 400 else 40e6)
-        hit = (arrived >= start) & (arrived < start + 120e6)
-        arrived[hit] = start + 120e6 + np.arange(int(hit.sum())) * 1e6
+        stall(arrived, true[k] - (35e6 if k % 400 else 40e6), 120e6)
     arrived = np.maximum.accumulate(arrived).astype(np.int64)
     clock = FrameClock("auto")
-    out, sigma = [], []
-    for t in arrived:
-        out.append(clock.restamp(int(t)))
-        sigma.append(clock.stamp_sigma_ns(out[-1]))
-    out, sigma = np.array(out), np.array(sigma)
+    out, sigma = restamp_with_sigmas(clock, arrived)
     err = np.abs(out - true - np.median(out - true))
     far = err > 10e6
     assert np.sum(far) == 2 * len(stalls) and clock.stats.restarts == 0
@@ -342,16 +341,10 @@ def test_a_long_stall_s_burst_does_not_start_the_fit_again_but_a_faster_camera_d
     arrived = true + rng.exponential(0.5e6, len(true))
     stalls = range(200, 2400, 200)
     for k in stalls:  # the frames due in it 236, 187, 138, 89 and 40 ms late
-        start = true[k] - 14e6
-        hit = (arrived >= start) & (arrived < start + 250e6)
-        arrived[hit] = start + 250e6 + np.arange(int(hit.sum())) * 1e6
+        stall(arrived, true[k] - 14e6, 250e6)
     arrived = np.maximum.accumulate(arrived).astype(np.int64)
     clock = FrameClock("auto")
-    out, sigma = [], []
-    for t in arrived:
-        out.append(clock.restamp(int(t)))
-        sigma.append(clock.stamp_sigma_ns(out[-1]))
-    out, sigma = np.array(out), np.array(sigma)
+    out, sigma = restamp_with_sigmas(clock, arrived)
     err = np.abs(out - true - np.median(out - true))
     far = err > 10e6
     assert clock.stats.restarts == 0 and np.sum(far) == 5 * len(stalls)
