@@ -400,8 +400,9 @@ def test_stamp_stalls_deliver_the_frames_due_in_a_stall_together_at_its_end(tmp_
     assert late.max() > 60e6 and np.all(late >= 0) and np.sum(late > 0) < 0.3 * len(late)  # most frames on time
     assert main(["simulate", str(tmp_path / "x"), "--stamp-stalls", "often"]) == 2
     assert "--stamp-stalls: expected EVERY_S:MS" in capsys.readouterr().err
-    with pytest.raises(VioError, match="stamp stalls need both"):
-        dataclasses.replace(cfg, stamp_stall_ms=0.0).resolved()
+    for bad in ({"stamp_stall_ms": 0.0}, {"stamp_stall_every_s": float("inf")}, {"stamp_stall_every_s": 0.2}):
+        with pytest.raises(VioError, match="stamp stalls need both"):
+            dataclasses.replace(cfg, **bad).resolved()
 
 
 def test_cli_variant_options(tmp_path, capsys):

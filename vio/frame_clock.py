@@ -48,7 +48,7 @@ EARLY_MIN_FRAMES = 50
 OFF_LINE_OF_RECENT = (3, 6)  # ...and this many of the last frames mean the camera's clock changed: the fit starts
 # again. Not "in a row": a camera gone from 20 to 30 Hz puts every third frame on the old line and was never
 # refitted, every third frame moved 17 ms (a review's finding)
-BURST_STEP_PERIODS = 0.25  # a late frame this soon after one off the line came in its burst (see `restamp`)
+BURST_STEP_PERIODS = 0.25  # two frames closer than this were held up and delivered together (a burst: `restamp`)
 QUIET_JITTER_MS = 0.05  # stamps kept as given jittering below this (a fifth of ON_MS)...
 QUIET_FIT_EVERY = 10  # ...are refitted every this many frames, not every frame
 WARMUP_SIGMA_FRAMES = 8  # stamps before a first fit that say how much they jitter (`_given_sigma`)
@@ -176,6 +176,7 @@ class FrameClock:
                 # the next frame's place after the fit's last
                 nxt, head = self._on_line(self._n[-1] + 1), self._last_out
                 if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
+                    self.stats.uncertain += int(self._sigmas[head] == 0)
                     self._sigmas[head] = float(abs(head - nxt))
                     self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
                 self._burst = 1

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,7 +131,8 @@ class SimConfig:
         for start, length in cfg.right_dropouts:
             if not (start >= 0 and length > 0):
                 raise VioError(f"simulate: right dropout {start}:{length} needs start >= 0 and length > 0 s")
-        if (cfg.stamp_stall_ms > 0) != (cfg.stamp_stall_every_s > 0) or 0 < cfg.stamp_stall_every_s < 0.5:
+        if (cfg.stamp_stall_ms > 0) != (cfg.stamp_stall_every_s > 0) or 0 < cfg.stamp_stall_every_s < 0.5 \
+                or not math.isfinite(cfg.stamp_stall_every_s):
             raise VioError(f"simulate: stamp stalls need both a mean interval of at least 0.5 s and a length, got "
                            f"every {cfg.stamp_stall_every_s} s for {cfg.stamp_stall_ms} ms")
         if cfg.recorded_start_s < 0:
