@@ -73,6 +73,8 @@ class FrameClockStats:
     period_ns: float | None = None  # the fitted frame period (the median step where the spread is too large)
     restarts: int = 0  # fits started again (gaps, a clock that changed)
     uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
+    bursts: int = 0  # frames held up and delivered together (a USB stall): bursts seen...
+    burst_frames: int = 0  # ...and their frames, the first of each included
     # the last SIGMA_RECENT sigmas handed out, whose median is `sigma_ns` (taken when read, not on every frame)
     recent_sigmas: deque = field(default_factory=lambda: deque(maxlen=SIGMA_RECENT))
     sigma_max_ns: float = 0.0  # the largest handed out
@@ -90,7 +92,8 @@ class FrameClockStats:
                 "spread_ms": None if self.spread_ns is None else round(self.spread_ns * 1e-6, 3),
                 "jitter_ms": None if self.jitter_ns is None else round(self.jitter_ns * 1e-6, 3),
                 "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
-                "restarts": self.restarts, "uncertain_frames": self.uncertain,
+                "restarts": self.restarts, "uncertain_frames": self.uncertain, "bursts": self.bursts,
+                "burst_frames": self.burst_frames,
                 "stamp_sigma_ms": round(self.sigma_ns * 1e-6, 3),
                 "stamp_sigma_max_ms": round(self.sigma_max_ns * 1e-6, 3), "stamp_link": self.stamp_link}
 
@@ -180,6 +183,9 @@ class FrameClock:
                     self._sigmas[head] = float(abs(head - nxt))
                     self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
                 self._burst = 1
+                self.stats.bursts += 1
+                self.stats.burst_frames += 1
+            self.stats.burst_frames += 1
             self._burst += 1  # this frame's place if nothing was dropped: the burst's k-th after the fit's last
             place = self._on_line(self._n[-1] + self._burst)
             return self._out(t_ns, t_ns, max(float(abs(t_ns - place)), self._given_sigma()))
@@ -440,6 +446,9 @@ def frame_stamps_line(stats: dict | None) -> str | None:
     if stats["period_ms"] is not None:
         line += (f" ({stats['period_ms']:.3f} ms period; the stamps spread {stats['spread_ms']:.2f} ms around it, "
                  f"largest move {stats['largest_move_ms']:.1f} ms; {stats['restarts']} restarts)")
+    if stats.get("bursts"):
+        line += (f"; {stats['burst_frames']} frames in {stats['bursts']} bursts (held up and delivered together: "
+                 "a USB stall? kept as given, their sigma how late they may be)")
     if stats.get("uncertain_frames"):
         line += (f"; {stats['uncertain_frames']} stamps uncertain by up to {stats['stamp_sigma_max_ms']:.2f} ms "
                  "(1 sigma), " + ("their camera poses free to move along the motion by it"
