@@ -157,10 +157,7 @@ class FrameClock:
             self._start(t_ns)
             return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
-        n = self._number(a)
-        head_in = bool(self._a) and self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES
-        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1] and t_ns >= self._on_line(
-                self._n[-2 if head_in else -1] + max(self._burst, 1) + 1) - max(3 * self._spread, EARLY_MIN_NS):
+        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]:
             # Two frames this close: the camera did not expose them so; they were held up and delivered together (a
             # USB stall's burst). Out of the fit (numbered by its arrival, a burst frame sat within `far` of a wrong
             # place and bent the line: with stalls every 2 s the clock restamped a third of the frames and handed
@@ -170,28 +167,32 @@ class FrameClock:
             # if nothing was dropped since the fit's last (an upper bound: a drop puts its place later). Only a frame
             # late on that place: a camera gone faster (100 Hz frames 10 ms apart) comes early on it, and is a
             # changed clock, to fit again (a review's case)
-            if head_in:
-                self._n.pop()
-                self._a.pop()
-            if self._burst == 0:
-                # the burst's first went out already (on a place it may not have, with the line's sigma): its sigma,
-                # which the estimator reads when it solves that frame (later), says now how far it may be off from
-                # the next frame's place after the fit's last
-                nxt, head = self._on_line(self._n[-1] + 1), self._last_out
-                if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
-                    self.stats.uncertain += int(self._sigmas[head] == 0)
-                    self._sigmas[head] = float(abs(head - nxt))
-                    self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
-                self._burst = 1
-                self.stats.bursts += 1
+            head_in = self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES  # the fit took it
+            before = self._n[-2 if head_in else -1]  # the fit's last frame before the burst
+            k = max(self._burst, 1) + 1  # this frame is the burst's k-th after it (its first: 1)
+            place = self._on_line(before + k)  # its place if nothing was dropped
+            if t_ns >= place - max(3 * self._spread, EARLY_MIN_NS):
+                if head_in:
+                    self._n.pop()
+                    self._a.pop()
+                if self._burst == 0:
+                    # the burst's first went out already (on a place it may not have, with the line's sigma): its
+                    # sigma, which the estimator reads when it solves that frame (later), says now how far it may be
+                    # off from the first place after the fit's last
+                    nxt, head = self._on_line(before + 1), self._last_out
+                    if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
+                        self.stats.uncertain += int(self._sigmas[head] == 0)
+                        self._sigmas[head] = float(abs(head - nxt))
+                        self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
+                    self.stats.bursts += 1
+                    self.stats.burst_frames += 1
                 self.stats.burst_frames += 1
-            self.stats.burst_frames += 1
-            self._burst += 1  # this frame's place if nothing was dropped: the burst's k-th after the fit's last
-            place = self._on_line(self._n[-1] + self._burst)
-            return self._out(t_ns, t_ns, max(float(abs(t_ns - place)), self._given_sigma()))
+                self._burst = k
+                return self._out(t_ns, t_ns, max(float(abs(t_ns - place)), self._given_sigma()))
         self._burst = 0
+        n = self._number(a)
         if self._line is not None:
-            off = a - (self._line[0] + self._line[1] * n)
+            off = a - self._place(n)
             far = max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread)
             early = far if len(self._n) < EARLY_MIN_FRAMES else min(far, max(EARLY_SIGMAS * self._spread, EARLY_MIN_NS))
             if off > far or off < -early:
@@ -216,7 +217,7 @@ class FrameClock:
                     # USB stall delivers them in a burst; 120 ms every 10 s at 20 Hz put 11 frames 100 ms off with
                     # the line's sub-ms sigma, and the burst's next ones given 21 ms for 71). Kept as given, its
                     # sigma how late it is if nothing was dropped.
-                    off = max(abs(off), a - (self._line[0] + self._line[1] * (self._n[-1] + 1)))
+                    off = max(abs(off), a - self._place(self._n[-1] + 1))
                 return self._out(t_ns, t_ns, max(abs(off), self._given_sigma()))
             if self._on and off < 0 and n > self._n[-1] + 1:
                 # Numbered past the next frame's place (a drop), yet early on its own: it may as well be the next
@@ -226,7 +227,7 @@ class FrameClock:
                 # 14 / 63 / 192 of 24,000 frames 50 ms off; 2 / 17 / 42 with this, those left delayed by about a
                 # period, which no stamp tells from a drop). Kept as given, its sigma covering both. (Stamps kept as
                 # given anyway need no number.)
-                late = a - (self._line[0] + self._line[1] * (self._n[-1] + 1))
+                late = a - self._place(self._n[-1] + 1)
                 if late <= far or -off > max(3 * self._spread, EARLY_MIN_NS):
                     self._off_line.append(True)  # not on the line for sure either: counts towards a changed clock
                     return self._out(t_ns, t_ns, max(late, -off, self._given_sigma()))
@@ -312,9 +313,13 @@ class FrameClock:
         kept = dev[np.abs(dev) <= max(6.0 * robust, 1e3)]
         return robust / np.sqrt(2.0), float(np.sqrt(np.mean(kept ** 2) / 2.0)) if len(kept) else 0.0
 
+    def _place(self, n: int) -> float:
+        """Frame n's place on the fitted line, relative to the run's first stamp (ns, as `a` in `restamp`)."""
+        return self._line[0] + self._line[1] * n
+
     def _on_line(self, n: int) -> int:
         """Frame n's stamp on the fitted camera clock (host ns)."""
-        return self._ref_ns + int(round(self._line[0] + self._line[1] * n))
+        return self._ref_ns + int(round(self._place(n)))
 
     def _start(self, t_ns: int) -> None:
         self._ref_ns = t_ns
