@@ -277,6 +277,10 @@ def test_a_usb_stall_is_not_restamped_a_period_off_nor_given_a_sigma_short_of_it
     assert clock.stats.restarts == 0  # a burst is no changed camera clock (5 restarts before)
     assert clock.stats.bursts == 11 and "in 11 bursts (held up and delivered together" in frame_stamps_line(
         clock.stats.as_dict())  # said in the replay's line and the status's stats
+    # in plain numbers, as the status file and a log line show them (the largest sigma, raised on a burst's first
+    # frame, was a numpy scalar: np.float64(..) where printed)
+    said = clock.stats.as_dict()
+    assert {type(v) for v in said.values()} <= {int, float, bool, str}, {k: type(v) for k, v in said.items()}
     assert not np.any(moved & (np.abs(err) > 25e6)), np.flatnonzero(moved & (np.abs(err) > 25e6))
     short = (np.abs(err) > 10e6) & (np.abs(err) > 2 * sigma + 2e6)
     assert not np.any(short), [(int(i), err[i] * 1e-6, sigma[i] * 1e-6) for i in np.flatnonzero(short)]

@@ -87,15 +87,16 @@ class FrameClockStats:
         return float(median(np.asarray(self.recent_sigmas))) if self.recent_sigmas else 0.0
 
     def as_dict(self) -> dict:
-        return {"mode": self.mode, "frames": self.frames, "restamped": self.restamped,
-                "largest_move_ms": round(self.largest_move_ns * 1e-6, 3),
-                "spread_ms": None if self.spread_ns is None else round(self.spread_ns * 1e-6, 3),
-                "jitter_ms": None if self.jitter_ns is None else round(self.jitter_ns * 1e-6, 3),
-                "period_ms": None if self.period_ns is None else round(self.period_ns * 1e-6, 4),
-                "restarts": self.restarts, "uncertain_frames": self.uncertain, "bursts": self.bursts,
-                "burst_frames": self.burst_frames,
-                "stamp_sigma_ms": round(self.sigma_ns * 1e-6, 3),
-                "stamp_sigma_max_ms": round(self.sigma_max_ns * 1e-6, 3), "stamp_link": self.stamp_link}
+        """Plain Python numbers only (the fits hand numpy scalars in; a status reader or log gets `1.2`, not
+        `np.float64(1.2)`)."""
+        def ms(ns: float | None, digits: int = 3) -> float | None:
+            return None if ns is None else round(float(ns) * 1e-6, digits)
+        return {"mode": self.mode, "frames": int(self.frames), "restamped": int(self.restamped),
+                "largest_move_ms": ms(self.largest_move_ns), "spread_ms": ms(self.spread_ns),
+                "jitter_ms": ms(self.jitter_ns), "period_ms": ms(self.period_ns, 4),
+                "restarts": int(self.restarts), "uncertain_frames": int(self.uncertain), "bursts": int(self.bursts),
+                "burst_frames": int(self.burst_frames), "stamp_sigma_ms": ms(self.sigma_ns),
+                "stamp_sigma_max_ms": ms(self.sigma_max_ns), "stamp_link": bool(self.stamp_link)}
 
 
 class FrameClock:
