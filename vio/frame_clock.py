@@ -158,7 +158,8 @@ class FrameClock:
             self._start(t_ns)
             return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
-        if self._line is not None and t_ns - last_in < BURST_STEP_PERIODS * self._line[1]:
+        step = self._period_so_far()
+        if step is not None and t_ns - last_in < BURST_STEP_PERIODS * step:
             # Two frames this close: the camera did not expose them so; they were held up and delivered together (a
             # USB stall's burst). Out of the fit (numbered by its arrival, a burst frame sat within `far` of a wrong
             # place and bent the line: with stalls every 2 s the clock restamped a third of the frames and handed
@@ -167,11 +168,14 @@ class FrameClock:
             # again: 5 of 11 stalls, 20 frames kept as given after each). Kept as given, its sigma how late it is
             # if nothing was dropped since the fit's last (an upper bound: a drop puts its place later). Only a frame
             # late on that place: a camera gone faster (100 Hz frames 10 ms apart) comes early on it, and is a
-            # changed clock, to fit again (a review's case)
-            head_in = self._a[-1] == float(last_in - self._ref_ns) and len(self._a) > MIN_FRAMES  # the fit took it
-            before = self._n[-2 if head_in else -1]  # the fit's last frame before the burst
+            # changed clock, to fit again (a review's case). Before a first fit (a run's first second, or after a
+            # restart) the same by the median step so far: stalled frames went out up to 250 ms late as exact
+            head_in = self._a[-1] == float(last_in - self._ref_ns) and \
+                len(self._a) > (MIN_FRAMES if self._line is not None else 1)  # the fit (or the warm-up) took it
+            i = -2 if head_in else -1
+            before = (self._n[i], self._a[i])  # the fit's last frame before the burst: its number and stamp
             k = max(self._burst, 1) + 1  # this frame is the burst's k-th after it (its first: 1)
-            place = self._on_line(before + k)  # its place if nothing was dropped
+            place = self._burst_place(before, k, step)  # its place if nothing was dropped
             if t_ns >= place - max(3 * self._spread, EARLY_MIN_NS):
                 if head_in:
                     self._n.pop()
@@ -180,7 +184,7 @@ class FrameClock:
                     # the burst's first went out already (on a place it may not have, with the line's sigma): its
                     # sigma, which the estimator reads when it solves that frame (later), says now how far it may be
                     # off from the first place after the fit's last
-                    nxt, head = self._on_line(before + 1), self._last_out
+                    nxt, head = self._burst_place(before, 1, step), self._last_out
                     if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
                         self.stats.uncertain += int(self._sigmas[head] == 0)
                         self._sigmas[head] = float(abs(head - nxt))
@@ -313,6 +317,23 @@ class FrameClock:
         robust = 1.4826 * float(median(np.abs(dev)))
         kept = dev[np.abs(dev) <= max(6.0 * robust, 1e3)]
         return robust / np.sqrt(2.0), float(np.sqrt(np.mean(kept ** 2) / 2.0)) if len(kept) else 0.0
+
+    def _period_so_far(self) -> float | None:
+        """The frame period the burst test goes by: the line's, or before a first fit the median step of the frames
+        so far (from three steps: one stall among them does not move it); None before that."""
+        if self._line is not None:
+            return self._line[1]
+        if len(self._a) < 4:
+            return None
+        step = float(median(np.diff(np.asarray(self._a))))
+        return step if step > 0 else None
+
+    def _burst_place(self, before: tuple[int, float], k: int, step: float) -> int:
+        """Host stamp of the k-th frame after the fit's frame `before` (its number and stamp) if none was dropped: on
+        the line, or before a first fit that frame's own stamp plus k steps."""
+        if self._line is not None:
+            return self._on_line(before[0] + k)
+        return self._ref_ns + int(round(before[1] + k * step))
 
     def _place(self, n: int) -> float:
         """Frame n's place on the fitted line, relative to the run's first stamp (ns, as `a` in `restamp`)."""
