@@ -2496,6 +2496,42 @@ def test_jump_counts_no_jump_for_the_same_yaw_on_either_side_of_pi():
     assert out.jumps == 1
 
 
+def test_one_non_finite_pose_does_not_stop_the_blend_for_the_rest_of_the_flight():
+    """A state whose position is NaN (the MAVLink output refuses it, "a loss of tracking until it is whole again")
+    went into the blend's walk: the applied correction became NaN, and every later pose with it, so the autopilot
+    got no pose for the rest of the flight (a review's finding)."""
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    C = make_T(so3_exp(np.array([0, 0, 0.1])), [1.0, 0, 0])
+    out = CorrectedOutput("blend", blend_rate_m_s=0.5, blend_rate_deg_s=5.0)
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    sent = [out.apply(NavState(int(k * 1e8), bad if k == 5 else np.eye(4), np.zeros(3)), C, 1) for k in range(40)]
+    assert all(np.isfinite(o.T_world_body).all() for k, o in enumerate(sent) if k != 5)
+    x = np.array([o.T_world_body[0, 3] for k, o in enumerate(sent) if k != 5])
+    assert np.all(np.abs(np.diff(x)) <= 0.5 * 0.2 + 1e-9) and x[-1] == pytest.approx(1.0)  # bounded, then there
+    assert np.isfinite(out.remaining_m) and out.remaining_m == 0.0
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_non_finite_correction_is_not_taken(mode):
+    """A correction with a NaN in it would make every pose sent NaN until the next solve (each refused by the
+    MAVLink output): the one held is kept, and reset_counter does not move for it."""
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    out = CorrectedOutput(mode, blend_rate_m_s=1e3, blend_rate_deg_s=1e6)
+    C = make_T(np.eye(3), [0.5, 0, 0])
+    out.apply(NavState(0, np.eye(4), np.zeros(3)), C, 1)
+    sent = out.apply(NavState(10**8, np.eye(4), np.zeros(3)), np.full((4, 4), np.nan), 2)
+    assert np.isfinite(sent.T_world_body).all() and sent.T_world_body[0, 3] == pytest.approx(0.5)
+    assert sent.reset_counter == (1 if mode == "jump" else 0)
+    C2 = make_T(np.eye(3), [0.7, 0, 0])
+    sent = out.apply(NavState(2 * 10**8, np.eye(4), np.zeros(3)), C2, 3)  # the next solve is taken
+    assert sent.T_world_body[0, 3] == pytest.approx(0.7) and sent.reset_counter == (2 if mode == "jump" else 0)
+
+
 def test_the_loop_stage_says_which_segment_its_correction_is_for_and_whether_it_is_joined():
     from vio.config import VioConfig
     from vio.loop.closer import LoopCloser

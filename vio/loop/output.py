@@ -11,11 +11,14 @@ segment's origin), so the correction's own uncertainty is added to what is sent 
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import numpy as np
 
 from vio.geometry import make_T, so3_exp, yaw_of
 from vio.types import NavState, covariance_quality
+
+log = logging.getLogger(__name__)
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -102,6 +105,7 @@ class CorrectedOutput:
         self._segment: int | None = None
         self._min_counter: int | None = None
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
+        self._refused_version: int | None = None  # a version whose correction was not finite (said once)
 
     def _takes(self, segment: int | None, own_frame: bool, counter: int | None) -> bool:
         """Is a new version's correction one for the odometry being sent? Not one of the old estimator's after
@@ -141,7 +145,13 @@ class CorrectedOutput:
         # a gap in states (a stall) is not time to walk in: at most MAX_BLEND_STEP_S of blend per state
         dt = 0.0 if self._last_t_ns is None else min(max(state.t_ns - self._last_t_ns, 0) * 1e-9, MAX_BLEND_STEP_S)
         self._last_t_ns = state.t_ns
-        if version != self._version and self._takes(segment, own_frame, counter):
+        if version != self._version and not np.isfinite(T_world_odom).all():
+            # taken, it made every pose sent NaN (each refused by the MAVLink output) until the next solve: the
+            # correction held stays, and reset_counter with it
+            if version != self._refused_version:
+                log.warning("loop correction version %d is not finite: not applied, the one held is kept", version)
+                self._refused_version = version
+        elif version != self._version and self._takes(segment, own_frame, counter):
             # A new correction comes with a new version (a solve). After an estimator reset the newest segment is in
             # a frame of its own until a closure joins it, and the estimator's reset kept its last pose as the new
             # origin, so the correction held still maps it: both modes keep that correction, and its uncertainty,
@@ -157,7 +167,9 @@ class CorrectedOutput:
                 if turned or not np.allclose(self._target[0], self._t):
                     self.jumps += 1
                 self._t, self._yaw = self._target
-        if self.mode == "blend":
+        # a state whose position is not finite (refused by the MAVLink output) does not walk the blend: it made the
+        # applied correction NaN, and every pose after it, for the rest of the flight (a review's finding)
+        if self.mode == "blend" and np.isfinite(state.T_world_body[:3, 3]).all():
             target_t, target_yaw = self._target
             # Bounded where it matters, at the vehicle: the sent position moves by the correction at most
             # rate_m_s * dt per step. A yaw change turns the odometry about its origin, so bounding the translation
