@@ -2532,6 +2532,22 @@ def test_a_non_finite_correction_is_not_taken(mode):
     assert sent.T_world_body[0, 3] == pytest.approx(0.7) and sent.reset_counter == (2 if mode == "jump" else 0)
 
 
+def test_jump_far_from_the_odometrys_origin_counts_every_step():
+    """The jump test compared the new translation with np.allclose's default relative tolerance: 1 km from the
+    odometry's origin a 9 mm step (10 km out: 9 cm) went out without a reset_counter increment, for the autopilot
+    to fuse as a sudden error (a review's finding)."""
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    out = CorrectedOutput("jump")
+    s = NavState(0, np.eye(4), np.zeros(3))
+    a = out.apply(s, make_T(np.eye(3), [1000.0, 0, 0]), 1)
+    b = out.apply(s, make_T(np.eye(3), [1000.009, 0, 0]), 2)
+    assert b.T_world_body[0, 3] - a.T_world_body[0, 3] == pytest.approx(0.009)
+    assert b.reset_counter == a.reset_counter + 1
+    assert out.apply(s, make_T(np.eye(3), [1000.009, 0, 0]), 3).reset_counter == b.reset_counter  # no step: none
+
+
 def test_the_loop_stage_says_which_segment_its_correction_is_for_and_whether_it_is_joined():
     from vio.config import VioConfig
     from vio.loop.closer import LoopCloser

@@ -164,7 +164,8 @@ class CorrectedOutput:
             self._unc = uncertainty
             if self.mode == "jump":
                 turned = abs(_yaw_diff(self._target[1], self._yaw)) > 1e-8
-                if turned or not np.allclose(self._target[0], self._t):
+                # absolute: a relative tolerance let a 9 mm step 1 km from the origin out without a count
+                if turned or not np.allclose(self._target[0], self._t, rtol=0.0, atol=1e-8):
                     self.jumps += 1
                 self._t, self._yaw = self._target
         # a state whose position is not finite (refused by the MAVLink output) does not walk the blend: it made the
