@@ -2365,6 +2365,60 @@ def test_a_map_damaged_inside_a_compressed_array_or_with_float_offsets_is_a_one_
         load_map(tmp_path / "f.npz")
 
 
+def _forged_npy_header(src: Path, dst: Path, member: str, shape: tuple, dtype) -> None:
+    """`src` (an .npz) copied to `dst` with `member`'s .npy header declaring `shape` over 64 bytes of data."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info.filename)
+            if info.filename == member:
+                buf = io.BytesIO()
+                np.lib.format.write_array_header_1_0(buf, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                                           "fortran_order": False, "shape": shape})
+                data = buf.getvalue() + bytes(64)
+            zout.writestr(info.filename, data)
+
+
+def test_a_map_with_arrays_of_the_wrong_rank_or_kind_or_sizes_it_cannot_hold_is_a_one_line_error(tmp_path, capsys):
+    """A QA sweep of damaged maps (a review's): stamps or descriptors stored as one number, stamps as a column,
+    an array header declaring 10^13 descriptors (a damaged or forged size) and a header nested 100000 deep ended in
+    `vio map info` / `[map] load` as "internal error: TypeError / MemoryError / RecursionError"; stamps stored as
+    floats (1.5, 2.5 ns) or beyond int64 (1e30) were cut to whole numbers or wrapped, and a camera `true` pixels
+    wide was taken as 1 ("camera TruexTrue"), all loaded without a word."""
+    from vio.app.cli import main
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + cam + '}')
+    good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    np.savez(tmp_path / "good.npz", **good)
+    assert main(["map", "info", str(tmp_path / "good.npz")]) == 0
+    capsys.readouterr()
+    cases = {"stamp_scalar": (dict(kf_t_ns=np.array(3)), "damaged map (keyframe stamps"),
+             "stamp_column": (dict(kf_t_ns=np.array([[1], [2]])), "damaged map (keyframe stamps"),
+             "stamp_float": (dict(kf_t_ns=np.array([1.5, 2.5])), "damaged map (keyframe stamps"),
+             "stamp_huge": (dict(kf_t_ns=np.array([1e30, 2e30])), "damaged map (keyframe stamps"),
+             "desc_scalar": (dict(desc=np.array(0, np.uint8)), "damaged map (descriptors"),
+             "deep": (dict(header=np.array("[" * 100000 + "]" * 100000)), "not a Kestrel VIO map (its header"),
+             "size_true": (dict(header=np.array(str(hdr).replace("752", "true").replace("480", "true"))),
+                           "damaged map (its header has no camera size")}
+    for name, (change, _) in cases.items():
+        np.savez(tmp_path / f"{name}.npz", **{**good, **change})
+    _forged_npy_header(tmp_path / "good.npz", tmp_path / "huge.npz", "desc.npy", (10**13, 32), np.uint8)
+    cases["huge"] = ({}, "more memory than")
+    for name, (_, says) in cases.items():
+        assert main(["map", "info", str(tmp_path / f"{name}.npz")]) == 1, name
+        err = capsys.readouterr().err
+        assert says in err and "internal error" not in err and len(err.strip().splitlines()) == 1, (name, err)
+    cfg = tmp_path / "c.toml"  # `vio run`'s [map] load goes through the same check
+    cfg.write_text(f"[source]\nkind = 'fake'\n[map]\nload = '{tmp_path / 'huge.npz'}'\n")
+    assert main(["-q", "config", "check", str(cfg)]) == 3
+    err = capsys.readouterr().err
+    assert "[map] load:" in err and "more memory than" in err and "internal error" not in err, err
+
+
 def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, monkeypatch):
     """A map grown in place ([map] load and save the same file): a full disk half-way through the write must not
     cost the old map (it was truncated first), and leaves no partial file behind."""

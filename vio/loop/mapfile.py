@@ -138,6 +138,10 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
                    T: np.ndarray) -> str | None:
     """What does not fit together in a map's arrays (a file damaged or written by something else), or None: a
     map is flown on, so one that would load with keyframes missing, empty, or at NaN poses is refused whole."""
+    # as stored, before any cast: float stamps were cut to whole numbers and ones beyond int64 wrapped, unsaid;
+    # one number or a column ended in a TypeError ("internal error")
+    if t_ns.ndim != 1 or not np.issubdtype(t_ns.dtype, np.integer):
+        return f"keyframe stamps {t_ns.shape} {t_ns.dtype}, one whole number of nanoseconds per keyframe needed"
     n = len(t_ns)
     if n == 0:
         return "no keyframes"
@@ -145,11 +149,11 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         return f"keyframe poses: shape {T.shape} or non-finite values for {n} keyframes"
     if not all(is_se3(Tk, tol=1e-4) for Tk in T):
         return "keyframe poses are not rigid transforms"
+    if desc.ndim != 2 or desc.shape[1] != 32 or desc.dtype != np.uint8:  # before len(desc): one number has none
+        return f"descriptors {desc.shape} {desc.dtype}, ORB needs (N, 32) uint8"
     if off.ndim != 1 or not np.issubdtype(off.dtype, np.integer) or len(off) != n + 1 or off[0] != 0 \
             or np.any(np.diff(off) < 0) or off[-1] != len(desc):  # float offsets cannot slice
         return f"keyframe offsets do not split the {len(desc)} descriptors into {n} keyframes"
-    if desc.ndim != 2 or desc.shape[1] != 32 or desc.dtype != np.uint8:
-        return f"descriptors {desc.shape} {desc.dtype}, ORB needs (N, 32) uint8"
     if uv.shape != (len(desc), 2) or p.shape != (len(desc), 3) or not np.isfinite(uv).all():
         return "pixels or points do not match the descriptors"
     return None
@@ -172,10 +176,11 @@ def _header_problem(header: dict, n: int) -> str | None:
                                and (cp.get("loaded") is None or isinstance(cp["loaded"], str))):
         return "its header's checkpoint does not name the run that wrote it"
     cam = header.get("camera")
-    if not isinstance(cam, dict) or not all(isinstance(cam.get(k), (int, float)) and math.isfinite(cam[k])
+    if not isinstance(cam, dict) or not all(type(cam.get(k)) in (int, float) and math.isfinite(cam[k])
                                             and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")) \
             or not all(float(cam[k]).is_integer() for k in ("width", "height")):  # whole pixels: 752.5 was taken
-        # the principal point too: the loader re-expresses the map's pixels in the flight's camera with it
+        # the principal point too: the loader re-expresses the map's pixels in the flight's camera with it; not
+        # true/false, which Python counts as ints (`vio map info` said "camera TruexTrue")
         return "its header has no camera size, focal lengths and principal point"
     if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
         try:
@@ -214,7 +219,10 @@ def load_map(path: str | Path) -> MapData:
         if not isinstance(z, np.lib.npyio.NpzFile):  # a single .npy array
             raise VioError(f"{path}: not a Kestrel VIO map (a .npy array, not an .npz archive)")
         with z:
-            header = json.loads(str(z["header"]))
+            try:
+                header = json.loads(str(z["header"]))
+            except RecursionError:  # JSON nested thousands deep: no map's header is
+                raise VioError(f"{path}: not a Kestrel VIO map (its header is nested too deep to be one)") from None
             if not isinstance(header, dict) or header.get("format") != FORMAT:
                 got = header.get("format") if isinstance(header, dict) else type(header).__name__
                 raise VioError(f"{path}: not a Kestrel VIO map (format {got!r})")
@@ -231,9 +239,11 @@ def load_map(path: str | Path) -> MapData:
                                f"({VERSION})")
             off = z["kf_offsets"]
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
-            t_ns, T = z["kf_t_ns"].astype(np.int64), z["kf_T_world_body"].astype(np.float64)
-            problem = _inconsistency(off, desc, uv, p, t_ns, T) or _header_problem(header, len(t_ns)) or \
-                _stamps_problem(header, t_ns)
+            t_ns, T = z["kf_t_ns"], z["kf_T_world_body"].astype(np.float64)
+            problem = _inconsistency(off, desc, uv, p, t_ns, T)
+            if not problem:
+                t_ns = t_ns.astype(np.int64)
+                problem = _header_problem(header, len(t_ns)) or _stamps_problem(header, t_ns)
             if problem:
                 raise VioError(f"{path}: damaged map ({problem})")
             feats = [KeyframeFeatures(desc[a:b], uv[a:b], p[a:b]) for a, b in zip(off[:-1], off[1:])]
@@ -244,6 +254,9 @@ def load_map(path: str | Path) -> MapData:
         raise VioError(f"{path}: no such map file") from None
     except OSError as e:
         raise VioError(f"{path}: cannot read the map ({e.strerror or e})") from None
+    except MemoryError as e:  # an array header declaring more than the archive holds (damaged), or a map too large
+        raise VioError(f"{path}: cannot load the map: its arrays need more memory than this computer has ({e}); a "
+                       "damaged file can declare sizes it does not hold") from None
     except NPZ_DAMAGED:  # a damaged file, as one cut short
         raise VioError(f"{path}: not a Kestrel VIO map, or a truncated or damaged one (not a complete .npz "
                        "archive)") from None
