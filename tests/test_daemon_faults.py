@@ -801,6 +801,71 @@ def test_a_map_write_cut_short_leaves_its_temporary_only_until_the_next_start(tm
     assert not [r for r in caplog.records if "temporary file" in r.getMessage()]
 
 
+def _stub_service(monkeypatch) -> list:
+    """service.Service replaced by one that only records the config `vio run` started it with (returned list) and
+    returns at once, and no signal handler installed: what `service.run` decides at start, without a daemon."""
+    started = []
+
+    class Started:
+        watchdog_s = 0.0
+
+        def __init__(self, cfg, map_data=None, vocabulary=None) -> None:
+            started.append(cfg)
+
+        def request_stop(self) -> None:
+            pass
+
+        def run(self) -> int:
+            return 0
+
+    monkeypatch.setattr(service, "Service", Started)
+    monkeypatch.setattr(signal, "signal", lambda *_a: None)
+    return started
+
+
+@pytest.mark.parametrize("kind", ["text", "newer_map"])
+def test_vio_run_never_writes_its_map_over_a_file_at_map_save_that_is_not_a_map_it_reads(tmp_path: Path, monkeypatch,
+                                                                                       caplog, kind) -> None:
+    """`[map] save` naming a file that is not a map (a typo for the calibration, a user's notes) or a map of a newer
+    format: `vio config check` said OK and `vio run`'s first checkpoint (30 s in) renamed its map over it, unsaid (a
+    review's finding: "map checkpoint written to precious.txt"). `vio config check` now refuses it, and `vio run`
+    flies without saving the map (exit 3 is never restarted), the file kept as it was."""
+    from argparse import Namespace
+    from types import SimpleNamespace
+
+    from vio.app.cli import main
+    from vio.loop.features import KeyframeFeatures
+    from vio.loop.mapfile import save_map
+
+    path = tmp_path / "precious.npz"
+    if kind == "text":
+        path.write_text("calibration notes, not a map\n")
+        says = "not a Kestrel VIO map"
+    else:
+        voc = SimpleNamespace(k=2, depth=1, centres=np.zeros((2, 32), np.uint8), idf=np.ones(2))
+        cam = SimpleNamespace(fx=200.0, fy=200.0, cx=160.0, cy=100.0, width=320, height=200, T_body_cam=np.eye(4))
+        feats = [KeyframeFeatures(np.zeros((3, 32), np.uint8), np.ones((3, 2), np.float32),
+                                  np.ones((3, 3), np.float32)) for _ in range(2)]
+        save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)
+        z = dict(np.load(path))
+        header = json.loads(str(z["header"]))
+        np.savez(path, **{**z, "header": np.array(json.dumps({**header, "version": 2}))})
+        says = "newer than this program's"
+    before = path.read_bytes()
+    toml = tmp_path / "c.toml"
+    toml.write_text(f'[map]\nsave = "{path}"\n')
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert main(["-q", "config", "check", str(toml)]) == 3
+    assert "[map] save:" in err.getvalue() and says in err.getvalue() and "would write over it" in err.getvalue(), \
+        err.getvalue()
+    started = _stub_service(monkeypatch)
+    with caplog.at_level(logging.ERROR):
+        assert service.run(Namespace(config=str(toml))) == 0
+    assert len(started) == 1 and started[0].map.save == "", started
+    assert says in caplog.text and "will not be saved" in caplog.text, caplog.text
+    assert path.read_bytes() == before
+
+
 def test_a_checkpoint_that_cannot_be_moved_aside_does_not_keep_vio_run_from_flying(tmp_path: Path, monkeypatch,
                                                                                     caplog) -> None:
     """A power cut leaves a checkpoint (another boot's) and the state folder remounted read-only: the move aside
@@ -822,25 +887,10 @@ def test_a_checkpoint_that_cannot_be_moved_aside_does_not_keep_vio_run_from_flyi
              checkpoint={**run_identity(None), "boot_id": "an-earlier-boot"})
     toml = tmp_path / "c.toml"
     toml.write_text(f'[map]\nsave = "{path}"\n')
-    started = []
-
-    class Started:
-        watchdog_s = 0.0
-
-        def __init__(self, cfg, map_data=None, vocabulary=None) -> None:
-            started.append(cfg)
-
-        def request_stop(self) -> None:
-            pass
-
-        def run(self) -> int:
-            return 0
-
     def read_only(*_a) -> None:
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(service, "Service", Started)
-    monkeypatch.setattr(signal, "signal", lambda *_a: None)
+    started = _stub_service(monkeypatch)
     monkeypatch.setattr(os, "rename", read_only)
     with caplog.at_level(logging.ERROR):
         assert service.run(Namespace(config=str(toml))) == 0

@@ -688,8 +688,9 @@ def run(args: argparse.Namespace) -> int:
         map_data = map_to_grow(cfg, checked.map_data)
     except VioError as e:
         # a checkpoint that cannot be moved aside (the state folder remounted read-only after the power cut that
-        # left it): exit 3 is never restarted and the vehicle had no VIO at all; as check_run_config does for a
-        # map folder not writable, fly without saving the map (which would write over the checkpoint)
+        # left it), or a file at [map] save that is not a map this program reads: exit 3 is never restarted and the
+        # vehicle had no VIO at all; as check_run_config does for a map folder not writable, fly without saving the
+        # map (which would write over that file)
         log.error("%s: running, the map will not be saved", e)
         cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, save=""))
         map_data = checked.map_data
@@ -787,7 +788,8 @@ class CheckpointPlan:
 
 def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
     """Decided, not done: map_to_grow does it at start, `vio config check` says it (a checkpoint waiting at
-    `[map] save` was not said before the daemon started). `map_data` is `[map] load`'s map as read."""
+    `[map] save` was not said before the daemon started). `map_data` is `[map] load`'s map as read. VioError for a
+    file at `[map] save` that is not a map this program reads: no save may write over it."""
     from vio.io.outputs import same_file
     from vio.loop.mapfile import boot_id, load_map, loaded_key
 
@@ -805,8 +807,11 @@ def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
         return CheckpointPlan("grow", map_data, None, said, said.replace("this run", "vio run"))
     try:
         m = load_map(save)
-    except VioError:  # not a map (or damaged): written over at the first save, as before checkpoints
-        return CheckpointPlan()
+    except VioError as e:
+        # not a map this program reads (a user's file, a map of a newer format, a damaged one): the first checkpoint
+        # renamed this run's map over it, unsaid (a review's finding); vio run flies without saving the map instead
+        raise VioError(f"[map] save: {e}; vio run would write over it: move it away or set another [map] save") \
+            from None
     cp = m.header.get("checkpoint")
     if not cp:  # a finished map: [map] save writes over it, as it always did
         return CheckpointPlan()
