@@ -2527,6 +2527,57 @@ def test_a_restarted_output_applies_no_correction_and_takes_none_of_the_old_esti
         assert out.apply(later, C3, 7, None, 3, True, 3).T_world_body[0, 3] == pytest.approx(0.3)
 
 
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_restarted_output_does_not_take_the_old_estimators_correction_while_a_join_is_unconfirmed(mode):
+    """The daemon re-creates a failing estimator (no state came out while it failed, so the output had not taken
+    the loop stage's last solve of the old estimator's keyframes), and the new estimator's first keyframe joins
+    another frame by one edge at once (a take-off where the map was made): the worker keeps the correction it
+    handed over while the join is unconfirmed, but labelled it with the new keyframe's reset_counter, so the output
+    took the OLD estimator's correction for the new odometry: 2 m off, in a frame nothing maps (a review's
+    finding)."""
+    from vio.app.loop_worker import LoopWorker
+    from vio.config import LoopConfig
+    from vio.loop.output import CorrectedOutput
+    from vio.types import NavState
+
+    class Closer(_StubCloser):
+        cfg = LoopConfig()
+        seg, unconfirmed = (0, True), False
+
+        def add_keyframe(self, t_ns, T, image, ff, counter):
+            self.graph.estimate_version += 1
+            if counter == 0:  # the old estimator's closure: drift taken out of its own frame
+                self.corr = make_T(np.eye(3), [2.0, 0, 0])
+            elif self.seg[0] == 0:  # the new estimator's first keyframe, joined to another frame by one edge
+                self.corr = make_T(np.eye(3), [-3.0, 1.0, 0])
+                self.seg, self.unconfirmed = (1, False), True
+            return True
+
+        def correction_segment(self):
+            return self.seg
+
+        def placement_unconfirmed(self):
+            return self.unconfirmed
+
+    c = Closer()
+    w = LoopWorker(c, max_queue=10)
+    out = CorrectedOutput(mode, blend_rate_m_s=1e3, blend_rate_deg_s=1e6)
+    out.apply(NavState(0, np.eye(4), np.zeros(3)), *w.correction())
+    w.submit(1, np.eye(4), None, None, 0)
+    w._q.join()  # solved; no state applies it (the estimator is failing)
+    out.restart(1)  # the daemon's new estimator: its keyframes go with reset_counter 1 on
+    w.submit(2, np.eye(4), None, None, 1)
+    w._q.join()
+    sent = out.apply(NavState(10**8, np.eye(4), np.zeros(3)), *w.correction())
+    assert np.allclose(sent.T_world_body, np.eye(4)), sent.T_world_body
+    c.unconfirmed = False  # confirmed: the join's frame is handed over, and taken
+    w.submit(3, np.eye(4), None, None, 1)
+    w._q.join()
+    sent = out.apply(NavState(2 * 10**8, np.eye(4), np.zeros(3)), *w.correction())
+    assert np.allclose(sent.T_world_body[:3, 3], [-3.0, 1.0, 0])
+    assert w.close(wait=True, timeout_s=5.0)
+
+
 def test_a_blend_walks_no_further_over_a_gap_in_states_than_over_a_quarter_second():
     """A 30 s gap between two states (a stall) let the blend take one 6 m step (a review's finding)."""
     from vio.loop.output import MAX_BLEND_STEP_S, CorrectedOutput

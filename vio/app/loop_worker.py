@@ -60,7 +60,8 @@ class LoopWorker:
         self._correction = np.eye(4)
         self._uncertainty: CorrectionUncertainty | None = None
         self._segment: tuple[int, bool] = (0, True)  # the correction's odometry segment, and is it its own frame
-        self._counter: int | None = None  # reset_counter of the newest keyframe processed (CorrectedOutput.restart)
+        # reset_counter of the newest keyframe the correction was taken at (CorrectedOutput.restart)
+        self._counter: int | None = None
         self.closures = 0  # accepted closures so far
         # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
         # graph deferred brought in later), not when only a new odometry segment begins
@@ -99,7 +100,8 @@ class LoopWorker:
     def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool, int | None]:
         """(T_world_odom, its version: the pose graph's solves behind it, its uncertainty where the frame came
         through loop edges, the odometry segment it is for, is that segment in a frame of its own, the reset_counter
-        the newest keyframe came with) as of the last keyframe processed; the arguments of CorrectedOutput.apply."""
+        of the newest keyframe it was taken at) as of the last keyframe processed; the arguments of
+        CorrectedOutput.apply."""
         with self._lock:
             return self._correction.copy(), self._version, self._uncertainty, *self._segment, self._counter
 
@@ -108,10 +110,9 @@ class LoopWorker:
         estimator reset) changes the correction without one, and `jump` keeps what it has until a closure."""
         if self.closer.placement_unconfirmed():
             # joined to another frame by too few edges to rule out a look-alike place: the output keeps the
-            # correction it has (this segment's own frame) until the join is confirmed
-            with self._lock:
-                if counter is not None:
-                    self._counter = counter
+            # correction it has (this segment's own frame) until the join is confirmed. Its reset_counter stays the
+            # one it was solved with: labelled with this keyframe's, an old estimator's correction not applied yet
+            # passed CorrectedOutput.restart's check and was applied to the new estimator's odometry (a review's)
             return
         T, version = self.closer.correction(), self.closer.graph.estimate_version
         unc, seg = self.closer.correction_uncertainty(), self.closer.correction_segment()
