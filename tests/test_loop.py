@@ -2419,6 +2419,22 @@ def test_a_map_with_arrays_of_the_wrong_rank_or_kind_or_sizes_it_cannot_hold_is_
     assert "[map] load:" in err and "more memory than" in err and "internal error" not in err, err
 
 
+def test_a_map_path_that_is_a_pipe_or_a_device_is_a_one_line_error_not_a_hang(tmp_path):
+    """`vio map info FIFO` (or [map] load / --load-map naming one) waited for ever for a writer to open the pipe:
+    no message, no exit, and `vio run`'s start check would hang the same way (a review's finding). A map is a
+    regular file (a zip archive needs seeking); a device, pipe or socket is refused in one line."""
+    import subprocess
+    import sys
+
+    fifo = tmp_path / "map.npz"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        r = subprocess.run([sys.executable, "-m", "vio.app.cli", "map", "info", str(path)], capture_output=True,
+                           text=True, timeout=60, cwd=Path(__file__).resolve().parent.parent)
+        assert r.returncode == 1 and "is not a regular file" in r.stderr, r.stderr
+        assert "internal error" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
 def test_a_map_write_that_fails_half_way_keeps_the_map_that_was_there(tmp_path, monkeypatch):
     """A map grown in place ([map] load and save the same file): a full disk half-way through the write must not
     cost the old map (it was truncated first), and leaves no partial file behind."""
