@@ -477,6 +477,25 @@ def test_replay_checks_every_output_path_before_it_replays(laps_flight, tmp_path
         assert not (tmp_path / "same").exists() and (tmp_path / "old.npz").read_bytes() == b"a map"
 
 
+def test_a_map_name_too_long_for_its_temporary_is_refused_before_the_work(tmp_path, capsys):
+    """A map is written beside its name as .NAME.PID.tmp and renamed over it: a name of 245-255 bytes passed the
+    start checks, and `vio replay --save-map` replayed the whole recording to end in "cannot write the map (File
+    name too long); nothing written", while `vio run` said OK and failed every checkpoint and its final save in
+    flight (a review's finding). Refused before any work, in both."""
+    from vio.app.cli import main
+
+    name = str(tmp_path / ("m" * 246 + ".npz"))  # 250 bytes: a valid name, its temporary is not
+    assert main(["replay", str(tmp_path / "no-recording"), "--save-map", name, "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "is too long" in err and "shorter name" in err and "internal error" not in err, err
+    (tmp_path / "c.toml").write_text(f"[map]\nsave = '{name}'\n")
+    assert main(["-q", "config", "check", str(tmp_path / "c.toml")]) == 3
+    assert "is too long" in capsys.readouterr().err
+    ok = str(tmp_path / ("m" * 200 + ".npz"))
+    (tmp_path / "c.toml").write_text(f"[map]\nsave = '{ok}'\n")
+    assert main(["-q", "config", "check", str(tmp_path / "c.toml")]) == 0
+
+
 def test_replay_refuses_a_loop_plot_format_it_cannot_write_before_it_replays(tmp_path, capsys):
     """`--loop-plot run.txt` ran the whole replay, wrote the map and stats, then ended in "internal error:
     ValueError: Format 'txt' is not supported". Now refused first, in one line."""

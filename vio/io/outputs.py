@@ -11,6 +11,7 @@ import tempfile
 from pathlib import Path
 
 from vio import VioError
+from vio.io.atomic import temporary_path
 
 # files of a recording's folder besides its sensor data (mav0/): what the simulator knew (vio.sim.generate)
 RECORDING_ROOT_FILES = ("simulation.yaml", "calibration_truth.yaml")
@@ -112,6 +113,10 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             # `--save-map /dev/full` (as root) renamed a regular file over the device node: /dev/full was gone
             raise VioError(f"{p}: is not a regular file (a device, pipe or socket); {what} is written beside it and "
                            "renamed over it: give a file path")
+        n_tmp = len(os.fsencode(temporary_path(real).name)) if what in renamed else 0
+        if n_tmp > 255:  # the save failed, "File name too long", after the whole replay or flight (a review's)
+            raise VioError(f"{p}: the name is too long: {what} is written beside it under a name of {n_tmp} bytes "
+                           "(over the 255 a file system allows) and renamed over it: give a shorter name")
         folder = real.parent if str(real.parent) else Path(".")
         if not folder.is_dir():
             raise VioError(f"{p}: cannot write {what}{via}: folder {folder} does not exist")
