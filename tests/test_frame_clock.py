@@ -613,3 +613,26 @@ def test_a_usb_stall_before_the_first_fit_gets_its_lateness_as_sigma_and_the_fit
         [(int(i), err[i] * 1e-6, sigma[i] * 1e-6) for i in np.flatnonzero(late)]
     assert clock.stats.bursts == 1
     assert np.mean(out[-400:] != arrived[-400:]) > 0.9  # restamping to the end (none of the last 400 before)
+
+
+def test_frames_of_a_usb_stall_are_not_made_keyframes(tmp_path):
+    """A camera whose transfer stalls 150 ms about every second (frames stamped on arrival, 2 ms of delays): the
+    stall's frames go out with their lateness as sigma, and made keyframes they took this 10 s flight to 66 mm (the
+    stamp link frees their camera poses, yet they still bent the path); `keyframe_max_stamp_sigma_ms` (25) leaves
+    them to the next frame: 7.8 mm when written. The replay's line says how many frames it kept from keyframes."""
+    flight = tmp_path / "stalls"
+    assert main(["simulate", str(flight), "--profile", "aggressive", "--duration", "10", "--seed", "2",
+                 "--size", "376x240", "--stamp-jitter-ms", "2", "--stamp-stalls", "1:150", "--no-progress"]) == 0
+    (tmp_path / "off.toml").write_text("[backend]\nkeyframe_max_stamp_sigma_ms = 0\n")
+    ate, said = {}, {}
+    for name, extra in (("default", []), ("off", ["--config", str(tmp_path / "off.toml")])):
+        stats = tmp_path / f"{name}.json"
+        assert main(["-q", "replay", str(flight), "--no-progress", "--stats", str(stats), *extra]) == 0
+        d = json.loads(stats.read_text())
+        assert d["resets"] == 0
+        ate[name] = d["evaluation"]["ate_se3"]["trans_m"]["rmse"]
+        said[name] = d["frame_stamps"]
+    assert said["default"]["bursts"] > 5 and said["default"]["keyframes_skipped"] > 0, said
+    assert said["off"]["keyframes_skipped"] == 0
+    assert ate["default"] < 0.5 * ate["off"], ate
+    assert "frames too uncertain to be keyframes" in frame_stamps_line(said["default"])

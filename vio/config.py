@@ -101,6 +101,10 @@ class BackendConfig:
     keyframe_max_interval_s: float = opt(0.4, "longest time between keyframes", min=0.01, max=10)
     keyframe_min_interval_s: float = opt(0.2, "shortest time between keyframes (caps the solver rate)", min=0, max=10)
     keyframe_min_tracks: int = opt(50, "tracked features below which a keyframe is forced", min=0, max=2000)
+    keyframe_max_stamp_sigma_ms: float = opt(25.0, "a frame whose stamp may be off its exposure by more than this "
+                                             "(the frame clock's sigma: a USB stall's burst, 50-300 ms late) is "
+                                             "not made a keyframe while the last one is younger than 2 x "
+                                             "keyframe_max_interval_s; 0: off", min=0.0, max=10_000)
     pixel_sigma: float = opt(0.5, "std of a feature measurement [px] (the Huber loss starts at huber_k of it); the "
                              "front end's anchor-refined tracks sit 0.1-0.25 px RMS from their true points (1.0 until "
                              "2026-12-05: vision under-weighted against the IMU, docs/estimator.md)", min=0.05, max=20)

@@ -1133,9 +1133,21 @@ class Estimator:
             return self.reset_counter == 0
         return self._flow_px <= self.bcfg.zupt_max_flow_px
 
+    def _stamp_too_uncertain(self, t: int, ff: FeatureFrame) -> bool:
+        """Is the frame's stamp too uncertain for a keyframe (`keyframe_max_stamp_sigma_ms`)? Such a frame (a USB
+        stall's burst, 50-300 ms late) puts its observations anywhere along ~sigma x speed of the path: the stamp
+        link frees its camera pose, but keyframes on them still took a flight with a 150 ms stall every second to
+        162 mm (37 without them) and let the stereo check go on another. The next frame, on time, is the keyframe;
+        the bound (2 x keyframe_max_interval_s since the last) keeps a camera whose every stamp is that bad tracked."""
+        b = self.bcfg
+        return 0 < b.keyframe_max_stamp_sigma_ms * 1e6 < self.frame_clock.stamp_sigma_ns(int(ff.t_ns)) \
+            and (t - self._state.last_kf_t) * 1e-9 < 2 * b.keyframe_max_interval_s
+
     def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:
         b = self.bcfg
         dt = (t - self._state.last_kf_t) * 1e-9
+        if self._stamp_too_uncertain(t, ff):
+            return False
         if dt >= b.keyframe_max_interval_s:
             return True
         if dt < b.keyframe_min_interval_s:  # the solve is the expensive part: bounded rate
@@ -1249,6 +1261,7 @@ class Estimator:
             self._note_stereo_check(run.smoother.check_stereo())
         self._was_keyframe = False
         if not self._is_keyframe(t, ff):
+            self.frame_clock.stats.keyframes_skipped += self._stamp_too_uncertain(t, ff)  # said in the stats
             st = self._predicted_state(t, ff)
         else:
             icfg = self.cfg.init

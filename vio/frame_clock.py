@@ -75,6 +75,8 @@ class FrameClockStats:
     uncertain: int = 0  # frames handed out with a stamp sigma (stamp_sigma_ns > 0: the estimator's stamp link)
     bursts: int = 0  # frames held up and delivered together (a USB stall): bursts seen...
     burst_frames: int = 0  # ...and their frames, the first of each included
+    keyframes_skipped: int = 0  # frames too uncertain for a keyframe ([backend] keyframe_max_stamp_sigma_ms; the
+    # estimator counts them)
     # the last SIGMA_RECENT sigmas handed out, whose median is `sigma_ns` (taken when read, not on every frame)
     recent_sigmas: deque = field(default_factory=lambda: deque(maxlen=SIGMA_RECENT))
     sigma_max_ns: float = 0.0  # the largest handed out
@@ -95,7 +97,8 @@ class FrameClockStats:
                 "largest_move_ms": ms(self.largest_move_ns), "spread_ms": ms(self.spread_ns),
                 "jitter_ms": ms(self.jitter_ns), "period_ms": ms(self.period_ns, 4),
                 "restarts": int(self.restarts), "uncertain_frames": int(self.uncertain), "bursts": int(self.bursts),
-                "burst_frames": int(self.burst_frames), "stamp_sigma_ms": ms(self.sigma_ns),
+                "burst_frames": int(self.burst_frames), "keyframes_skipped": int(self.keyframes_skipped),
+                "stamp_sigma_ms": ms(self.sigma_ns),
                 "stamp_sigma_max_ms": ms(self.sigma_max_ns), "stamp_link": bool(self.stamp_link)}
 
 
@@ -476,6 +479,9 @@ def frame_stamps_line(stats: dict | None) -> str | None:
     if stats.get("bursts"):
         line += (f"; {stats['burst_frames']} frames in {stats['bursts']} bursts (held up and delivered together: "
                  "a USB stall? kept as given, their sigma how late they may be)")
+    if stats.get("keyframes_skipped"):
+        line += (f"; {stats['keyframes_skipped']} frames too uncertain to be keyframes ([backend] "
+                 "keyframe_max_stamp_sigma_ms)")
     if stats.get("uncertain_frames"):
         line += (f"; {stats['uncertain_frames']} stamps uncertain by up to {stats['stamp_sigma_max_ms']:.2f} ms "
                  "(1 sigma), " + ("their camera poses free to move along the motion by it"
