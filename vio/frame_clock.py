@@ -56,6 +56,10 @@ SIGMA_RECENT = 20  # frames whose sigmas' median the stats and the status report
 SIGMAS_KEPT = 256  # stamps handed out whose sigma the estimator can ask for (frames it has not solved yet; at least
 # the frames it may queue: the estimator passes its max_pending_frames)
 MAX_GAP_S = 1.0  # a longer pause between frames starts the fit again (a camera restarted, a recording cut)
+# ...so no burst frame is later than that on its place: the cap of its sigma. Measured from a fit that starved (a
+# host reading a camera in pairs: every frame a burst's or its first, none taken into the warm-up) it grew with the
+# run, 60 s after a minute
+MAX_LATE_NS = MAX_GAP_S * 1e9
 
 
 @dataclass
@@ -188,15 +192,15 @@ class FrameClock:
                     # sigma, which the estimator reads when it solves that frame (later), says now how far it may be
                     # off from the first place after the fit's last
                     nxt, head = self._burst_place(before, 1, step), self._last_out
-                    if head in self._sigmas and abs(head - nxt) > self._sigmas[head]:
+                    if head in self._sigmas and min(abs(head - nxt), MAX_LATE_NS) > self._sigmas[head]:
                         self.stats.uncertain += int(self._sigmas[head] == 0)
-                        self._sigmas[head] = float(abs(head - nxt))
+                        self._sigmas[head] = float(min(abs(head - nxt), MAX_LATE_NS))
                         self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
                     self.stats.bursts += 1
                     self.stats.burst_frames += 1
                 self.stats.burst_frames += 1
                 self._burst = k
-                return self._out(t_ns, t_ns, max(float(abs(t_ns - place)), self._given_sigma()))
+                return self._out(t_ns, t_ns, max(float(min(abs(t_ns - place), MAX_LATE_NS)), self._given_sigma()))
         self._burst = 0
         n = self._number(a)
         if self._line is not None:
