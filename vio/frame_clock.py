@@ -125,6 +125,7 @@ class FrameClock:
         self._on = False
         self._off_line: deque[bool] = deque(maxlen=OFF_LINE_OF_RECENT[1])  # the last frames: off the line or not
         self._burst = 0  # frames of the burst being delivered (a USB stall's; 0: none), its first counted
+        self._burst_step = 0.0  # the frame period that burst was told by (`restamp`)
         self._warned = False  # the spread-too-large warning, once per fit
         self._last_in = None
         self._last_out = None
@@ -166,6 +167,11 @@ class FrameClock:
             return self._out(t_ns, t_ns, self._given_sigma())
         a = float(t_ns - self._ref_ns)
         step = self._period_so_far()
+        if step is None and self._burst:
+            # a burst whose head was the warm-up's fourth stamp: taken back out, it left three, too few for a median
+            # step, and the burst's next frame went out as an ordinary one (32 ms late with sigma 0, into the first
+            # fit: a review's finding). The burst goes on by the step it started with
+            step = self._burst_step
         if step is not None and t_ns - last_in < BURST_STEP_PERIODS * step:
             # Two frames this close: the camera did not expose them so; they were held up and delivered together (a
             # USB stall's burst). Out of the fit (numbered by its arrival, a burst frame sat within `far` of a wrong
@@ -199,7 +205,7 @@ class FrameClock:
                     self.stats.bursts += 1
                     self.stats.burst_frames += 1
                 self.stats.burst_frames += 1
-                self._burst = k
+                self._burst, self._burst_step = k, step
                 return self._out(t_ns, t_ns, max(float(min(abs(t_ns - place), MAX_LATE_NS)), self._given_sigma()))
         self._burst = 0
         n = self._number(a)
