@@ -1474,3 +1474,30 @@ def test_a_reset_after_vision_loss_keeps_the_gyro_bias():
     est.reset("no usable camera frame for 1.00 s")
     assert est._state.trusted_bias is not None
     np.testing.assert_allclose(est._state.trusted_bias[1], est._latest.gyro_bias)
+
+
+def test_frames_kept_from_being_keyframes_by_their_stamp_are_counted_only_where_they_would_have_been_one():
+    """Every stamp 100 ms uncertain, keyframes only by keyframe_max_interval_s (0.4 s): a keyframe every 0.8 s
+    (2 x the interval, the rule's bound), and the stats count the frames the rule kept from being one (those 0.4-0.8 s
+    after the last), not every uncertain frame: they said 15 of each 16 frames (the frames under 0.4 s too, which
+    were no keyframe anyway: 16.7 a gap), for 8."""
+    cfg = VioConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, keyframe_min_parallax_px=1e6,
+                                                               keyframe_min_tracks=0, keyframe_max_interval_s=0.4))
+    est = Estimator(synthetic_calibration(), cfg)
+    est.frame_clock.stamp_sigma_ns = lambda t_ns: 100e6
+    kf: list[int] = []
+    decide = est._is_keyframe
+
+    def is_keyframe(t: int, ff: FeatureFrame) -> bool:  # the keyframes chosen
+        if decide(t, ff):
+            kf.append(t)
+            return True
+        return False
+    est._is_keyframe = is_keyframe
+    states, _, _, _ = _run(est, duration_s=9.0, still_s=1.0, seed=2)
+    assert est.reset_counter == 0 and len(states) > 150
+    gaps = np.diff(sorted(set(kf))) * 1e-9
+    assert np.all(np.abs(gaps - 0.8) < 0.03), gaps
+    per_gap = est.frame_clock.stats.keyframes_skipped / len(gaps)
+    assert abs(per_gap - 8) <= 1.5, per_gap  # 8.9 (the frames after the last keyframe too)
