@@ -4,6 +4,7 @@ simulated loop flight replayed with and without loop closure."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 from pathlib import Path
@@ -3046,3 +3047,45 @@ def test_a_map_renamed_into_place_whose_folder_cannot_be_synced_is_not_said_lost
         h = save_map(tmp_path / "m.npz", *_map_contents())
     assert h["keyframes"] == 2 and list(load_map(tmp_path / "m.npz").t_ns) == [1, 2]  # the new one
     assert "could not be synced" in caplog.text
+
+
+def test_a_vocabulary_pipe_a_nan_in_a_map_header_and_partly_infinite_points_are_said_in_one_line(tmp_path, capsys):
+    """Leftovers of the map-file review: `Vocabulary.load` of a pipe waited for ever for a writer (maps were guarded,
+    vocabularies not); `vio map info --json` printed a header's NaN as NaN, which is not JSON; and a map whose
+    stereo points were finite in x and infinite after it loaded (x is what tells a point: fed to the PnP)."""
+    import subprocess
+    import sys
+
+    from vio.app.cli import main
+
+    fifo = tmp_path / "vocab.npz"
+    os.mkfifo(fifo)
+    code = ("from vio import VioError\nfrom vio.loop.vocabulary import Vocabulary\n"
+            f"try:\n    Vocabulary.load({str(fifo)!r})\nexcept VioError as e:\n    print(e)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       cwd=Path(__file__).resolve().parent.parent)
+    assert "is not a regular file" in r.stdout and not r.stderr, (r.stdout, r.stderr)
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1, "note": NaN, "gain": [Infinity, 1.0], ' + cam + '}')
+    good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    np.savez(tmp_path / "nan.npz", **good)
+    assert main(["map", "info", "--json", str(tmp_path / "nan.npz")]) == 0
+
+    def no_constant(name: str) -> None:
+        raise ValueError(f"{name} is not JSON")
+    info = json.loads(capsys.readouterr().out, parse_constant=no_constant)
+    assert info["note"] is None and info["gain"] == [None, 1.0] and info["keyframes"] == 2, info
+
+    p = np.zeros((5, 3))
+    p[1] = np.nan  # no depth: a map holds such rows
+    np.savez(tmp_path / "nodepth.npz", **{**good, "p_cam": p})
+    assert main(["map", "info", str(tmp_path / "nodepth.npz")]) == 0
+    capsys.readouterr()
+    for row in ([1.0, np.inf, 2.0], [1.0, np.nan, 2.0], [-np.inf] * 3):
+        p[2] = row
+        np.savez(tmp_path / "inf.npz", **{**good, "p_cam": p})
+        assert main(["map", "info", str(tmp_path / "inf.npz")]) == 1, row
+        err = capsys.readouterr().err
+        assert "damaged map (stereo points" in err and len(err.strip().splitlines()) == 1, err

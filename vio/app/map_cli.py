@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
             "span_s": None if mixed else round(sum(spans), 3),
             "part_spans_s": None if mixed else [round(x, 3) for x in spans]}
     if args.json:
-        print(json.dumps(info, indent=1))
+        # a header's NaN or Infinity (json reads them; a hand-edited or foreign header) printed as such is not JSON: a
+        # reader (jq, Python's json with strict parsing) failed on the whole output. Null, as JSON has no such number
+        print(json.dumps(_finite(info), indent=1, allow_nan=False))
         return 0
     print(f"{args.file}: {info['format']} version {info.get('version', 0)}, created "
           f"{info.get('created_utc') or 'at an unknown time'}")
@@ -68,3 +71,14 @@ def run(args: argparse.Namespace) -> int:
     if info.get("note"):
         print(f"  note: {info['note']}")
     return 0
+
+
+def _finite(x: object) -> object:
+    """`x` with every NaN or infinite number (any depth of dicts and lists) as None."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    return x

@@ -157,6 +157,10 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         return f"keyframe offsets do not split the {len(desc)} descriptors into {n} keyframes"
     if uv.shape != (len(desc), 2) or p.shape != (len(desc), 3) or not np.isfinite(uv).all():
         return "pixels or points do not match the descriptors"
+    if not np.all(np.isfinite(p).all(axis=1) | np.isnan(p).all(axis=1)):
+        # a point is three finite coordinates or, without stereo depth, three NaN: a row finite in x (what tells a
+        # point, KeyframeFeatures.has_3d) and infinite or NaN after it was loaded and fed to the PnP
+        return "stereo points neither finite nor NaN (no depth) in all three coordinates"
     return None
 
 

@@ -7,6 +7,8 @@ document frequencies over the training images. The file is a plain npz (`save`/`
 
 from __future__ import annotations
 
+import os
+import stat
 import tokenize
 import zipfile
 import zlib
@@ -130,6 +132,11 @@ class Vocabulary:
     def load(path: str | Path | None = None) -> Vocabulary:
         path = Path(path) if path else DEFAULT_PATH
         try:
+            mode = os.stat(path).st_mode
+            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a folder: said as np.load finds it
+                # a pipe: np.load waited for ever for a writer (`vio replay` / `vio run` with [loop] vocabulary naming
+                # one hung before the flight, as maps did: vio.loop.mapfile.load_map)
+                raise VioError(f"{path}: is not a regular file (a device, pipe or socket), not a vocabulary file")
             with np.load(path, allow_pickle=False) as z:
                 if int(z["format_version"]) != FORMAT_VERSION:
                     raise VioError(f"{path}: vocabulary format {int(z['format_version'])}, expected {FORMAT_VERSION}")
