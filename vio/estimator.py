@@ -1140,7 +1140,8 @@ class Estimator:
         162 mm (37 without them) and let the stereo check go on another. The next frame, on time, is the keyframe;
         the bound (2 x keyframe_max_interval_s since the last) keeps a camera whose every stamp is that bad tracked."""
         b = self.bcfg
-        return 0 < b.keyframe_max_stamp_sigma_ms * 1e6 < self.frame_clock.stamp_sigma_ns(int(ff.t_ns)) \
+        off_ns = max(self.frame_clock.stamp_sigma_ns(int(ff.t_ns)), self.frame_clock.stamp_late_ns(int(ff.t_ns)))
+        return 0 < b.keyframe_max_stamp_sigma_ms * 1e6 < off_ns \
             and (t - self._state.last_kf_t) * 1e-9 < 2 * b.keyframe_max_interval_s
 
     def _is_keyframe(self, t: int, ff: FeatureFrame) -> bool:

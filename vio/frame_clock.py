@@ -140,6 +140,8 @@ class FrameClock:
         # it were then taken as exact
         self._sigmas: dict[int, float] = {}
         self._sigmas_kept = max(int(sigmas_kept), 1)
+        self._late: dict[int, float] = {}  # stamp handed out -> `stamp_late_ns` (only those numbered past the next)
+        self._late_now = 0.0  # that of the frame being restamped
 
     def restamp(self, t_ns: int) -> int:
         """The stamp to use for a frame stamped `t_ns` (stamps must come in order; one not after the last by less
@@ -207,8 +209,13 @@ class FrameClock:
                 self.stats.burst_frames += 1
                 self._burst, self._burst_step = k, step
                 return self._out(t_ns, t_ns, max(float(min(abs(t_ns - place), MAX_LATE_NS)), self._given_sigma()))
-        self._burst = 0
+        behind, self._burst = self._burst + 1, 0  # this frame's place after the fit's last (a burst's frames between)
         n = self._number(a)
+        if self.stats.bursts and n > self._n[-1] + behind and step is not None:
+            # numbered past the next place: frames dropped, or the head of a burst still to come (a camera that
+            # stalled before stalls again), late by this if nothing was dropped (`stamp_late_ns`)
+            self._late_now = a - (self._place(self._n[-1] + behind) if self._line is not None
+                                  else self._a[-1] + behind * step)
         if self._line is not None:
             off = a - self._place(n)
             far = max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread)
@@ -457,6 +464,14 @@ class FrameClock:
         self._warned = self._warned or why is not None
         self._on = on
 
+    def stamp_late_ns(self, t_ns: int) -> float:
+        """How late the stamp `t_ns` handed out may be if the frames its numbering skipped were not dropped but held
+        up behind it (ns; 0 for a frame numbered next, or before the camera stalled once). The head of a USB stall's
+        burst is told only by the burst's next frame, which raises its sigma (`restamp`): a frame processed before
+        that arrives (the IMU past its stamp first) went out with its sigma from before, as a keyframe 100 ms off
+        with 0.2-2.6 ms. The estimator's keyframe rule reads this too."""
+        return self._late.get(int(t_ns), 0.0)
+
     def _out(self, t_in: int, t_out: int, sigma: float) -> int:
         if self._last_out is not None and t_out <= self._last_out:
             # not out of order where the stamp as given is not (the estimator would drop the frame); it can be
@@ -466,7 +481,11 @@ class FrameClock:
         if t_out not in self._sigmas:  # a stamp handed out again: the estimator drops that frame, not the first
             self._sigmas[t_out] = sigma
             if len(self._sigmas) > self._sigmas_kept:
+                self._late.pop(next(iter(self._sigmas)), None)
                 del self._sigmas[next(iter(self._sigmas))]
+            if self._late_now > 0:
+                self._late[t_out] = self._late_now
+        self._late_now = 0.0
         self.stats.recent_sigmas.append(sigma)
         if sigma > 0:
             self.stats.uncertain += 1
