@@ -190,7 +190,7 @@ class FrameClock:
             i = -2 if head_in else -1
             before = (self._n[i], self._a[i])  # the fit's last frame before the burst: its number and stamp
             k = max(self._burst, 1) + 1  # this frame is the burst's k-th after it (its first: 1)
-            place = self._burst_place(before, k, step)  # its place if nothing was dropped
+            place = self._ref_ns + int(round(self._place_after(before, k, step)))  # its place if nothing was dropped
             if t_ns >= place - max(3 * self._spread, EARLY_MIN_NS):
                 if head_in:
                     self._n.pop()
@@ -199,10 +199,12 @@ class FrameClock:
                     # the burst's first went out already (on a place it may not have, with the line's sigma): its
                     # sigma, which the estimator reads when it solves that frame (later), says now how far it may be
                     # off from the first place after the fit's last
-                    nxt, head = self._burst_place(before, 1, step), self._last_out
-                    if head in self._sigmas and min(abs(head - nxt), MAX_LATE_NS) > self._sigmas[head]:
+                    head = self._last_out
+                    late = float(min(abs(head - self._ref_ns - int(round(self._place_after(before, 1, step)))),
+                                     MAX_LATE_NS))
+                    if head in self._sigmas and late > self._sigmas[head]:
                         self.stats.uncertain += int(self._sigmas[head] == 0)
-                        self._sigmas[head] = float(min(abs(head - nxt), MAX_LATE_NS))
+                        self._sigmas[head] = late
                         self.stats.sigma_max_ns = max(self.stats.sigma_max_ns, self._sigmas[head])
                     self.stats.bursts += 1
                     self.stats.burst_frames += 1
@@ -214,8 +216,7 @@ class FrameClock:
         if self.stats.bursts and n > self._n[-1] + behind and step is not None:
             # numbered past the next place: frames dropped, or the head of a burst still to come (a camera that
             # stalled before stalls again), late by this if nothing was dropped (`stamp_late_ns`)
-            self._late_now = a - (self._place(self._n[-1] + behind) if self._line is not None
-                                  else self._a[-1] + behind * step)
+            self._late_now = a - self._place_after((self._n[-1], self._a[-1]), behind, step)
         if self._line is not None:
             off = a - self._place(n)
             far = max(OFF_LINE_PERIODS * self._line[1], 8 * self._spread)
@@ -348,12 +349,13 @@ class FrameClock:
         step = float(median(np.diff(np.asarray(self._a))))
         return step if step > 0 else None
 
-    def _burst_place(self, before: tuple[int, float], k: int, step: float) -> int:
-        """Host stamp of the k-th frame after the fit's frame `before` (its number and stamp) if none was dropped: on
-        the line, or before a first fit that frame's own stamp plus k steps."""
+    def _place_after(self, before: tuple[int, float], k: int, step: float) -> float:
+        """Place of the k-th frame after the fit's frame `before` (its number and stamp) if none was dropped, relative
+        to the run's first stamp (as `_place`): on the line, or before a first fit that frame's own stamp plus k
+        steps."""
         if self._line is not None:
-            return self._on_line(before[0] + k)
-        return self._ref_ns + int(round(before[1] + k * step))
+            return self._place(before[0] + k)
+        return before[1] + k * step
 
     def _place(self, n: int) -> float:
         """Frame n's place on the fitted line, relative to the run's first stamp (ns, as `a` in `restamp`)."""
