@@ -30,7 +30,6 @@ import hashlib
 import json
 import math
 import os
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from vio import VioError
 from vio.geometry import is_se3
 from vio.io.atomic import replace_atomically
 from vio.loop.features import KeyframeFeatures
-from vio.loop.vocabulary import NPZ_DAMAGED
+from vio.loop.vocabulary import NPZ_DAMAGED, load_npz
 
 FORMAT = "kestrel-vio-map"
 VERSION = 1
@@ -220,11 +219,7 @@ def _stamps_problem(header: dict, t_ns: np.ndarray) -> str | None:
 def load_map(path: str | Path) -> MapData:
     stamp = file_stamp(path)
     try:
-        mode = os.stat(path).st_mode
-        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a folder: said below, as np.load finds it
-            # a pipe: np.load waited for ever for a writer (`vio map info`, and `vio run`'s start check, hung)
-            raise VioError(f"{path}: is not a regular file (a device, pipe or socket), not a map file")
-        z = np.load(path, allow_pickle=False)
+        z = load_npz(path, "a map file")
         if not isinstance(z, np.lib.npyio.NpzFile):  # a single .npy array
             raise VioError(f"{path}: not a Kestrel VIO map (a .npy array, not an .npz archive)")
         with z:

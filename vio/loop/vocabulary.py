@@ -26,6 +26,16 @@ from vio.loop.database import BowVector
 # "zip file version 21.0"); maps (vio.loop.mapfile) are .npz archives too
 NPZ_DAMAGED = (zipfile.BadZipFile, EOFError, zlib.error, tokenize.TokenError, NotImplementedError)
 
+
+def load_npz(path: str | Path, what: str):
+    """np.load of a vocabulary's or a map's file, refusing anything but a regular file first: on a pipe np.load
+    waited for ever for a writer (`vio map info`, `vio run`'s start check, and `vio replay` / `vio run` with [loop]
+    vocabulary naming one, hung). A folder is left to np.load, which says so. OSError (no such file) as np.load's."""
+    mode = os.stat(path).st_mode
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise VioError(f"{path}: is not a regular file (a device, pipe or socket), not {what}")
+    return np.load(path, allow_pickle=False)
+
 FORMAT_VERSION = 1
 DEFAULT_PATH = Path(__file__).with_name("data") / "vocabulary.npz"
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
@@ -132,12 +142,7 @@ class Vocabulary:
     def load(path: str | Path | None = None) -> Vocabulary:
         path = Path(path) if path else DEFAULT_PATH
         try:
-            mode = os.stat(path).st_mode
-            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a folder: said as np.load finds it
-                # a pipe: np.load waited for ever for a writer (`vio replay` / `vio run` with [loop] vocabulary naming
-                # one hung before the flight, as maps did: vio.loop.mapfile.load_map)
-                raise VioError(f"{path}: is not a regular file (a device, pipe or socket), not a vocabulary file")
-            with np.load(path, allow_pickle=False) as z:
+            with load_npz(path, "a vocabulary file") as z:
                 if int(z["format_version"]) != FORMAT_VERSION:
                     raise VioError(f"{path}: vocabulary format {int(z['format_version'])}, expected {FORMAT_VERSION}")
                 k, depth, centres, idf = int(z["k"]), int(z["depth"]), z["centres"], z["idf"]
