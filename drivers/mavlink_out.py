@@ -238,6 +238,9 @@ class MavlinkOutput:
             self.set_camera_mount(T_body_cam0)
         self._mount_warned = False
         self._not_finite_said = False  # the NaN estimate's error line, said once
+        # the newest state was not finite: nothing goes out until a whole one comes (health(): `vio status` said
+        # running at quality 100 meanwhile, a review's finding)
+        self._not_finite_spell = False
         self._clock = clock_ns
         self._period_ns = int(round(1e9 / cfg.rate_hz))
         self._timeout_ns = int(cfg.link_timeout_s * 1e9)
@@ -345,6 +348,7 @@ class MavlinkOutput:
         return {"link_up": self._link_up, "connected": self.connected, "url": self.url,
                 "system_id": self.system_id, "target_system": self.target_system,
                 "withholding_old_poses": self._too_old_spell, "withholding_for": self._withheld_for,
+                "withholding_not_finite": self._not_finite_spell,
                 "withheld_for": st.withheld_for,
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "last_latency_ms": st.last_latency_ms, "land_after_loss_s": self.cfg.land_after_loss_s,
@@ -391,6 +395,7 @@ class MavlinkOutput:
             if state.tracking:
                 state = dataclasses.replace(state, tracking=False, quality=0)
         finite = _sendable(state)
+        self._not_finite_spell = not finite
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
             if not self._not_finite_said:

@@ -1947,3 +1947,46 @@ def test_the_mavlink_counts_are_not_doubled_by_a_close_during_a_status_read(monk
     finally:
         w.close()
         sink.close()
+
+
+def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Path) -> None:
+    """The estimator tracks but its covariance is NaN: the MAVLink output sends nothing (a loss of tracking, one
+    error line), while the status read 'running', quality 100, nothing said. It says why now, quality 0 (what the
+    autopilot gets), and running again once the estimate is whole."""
+    from drivers.mavlink_out import MavlinkOutput
+
+    status = tmp_path / "status.json"
+    cfg = config_from_dict({"run": {"status_file": str(status)}, "source": {"kind": "fake"},
+                            "mavlink": {"mount": "rpy"}})
+    sick = threading.Event()
+    sick.set()
+
+    class NotFinite(ScriptedEstimator):
+        def feed_frame(self, f: StereoFrame) -> NavState | None:
+            st = super().feed_frame(f)
+            if st is not None and sick.is_set():
+                st = dataclasses.replace(st, cov_pose=np.full((6, 6), np.nan))
+            return st
+
+    ap = FakeAutopilot()
+    ap.start()
+    url = f"udpout:127.0.0.1:{ap.port}"
+    svc = Service(cfg, source_factory=lambda: _started(ScriptedSource([], threading.Event(), [])),
+                  estimator_factory=lambda c: NotFinite(c, []),
+                  mavlink_factory=lambda: MavlinkOutput(cfg.mavlink, url).start(), notifier=SdNotifier(""))
+    runner = threading.Thread(target=svc.run)
+    runner.start()
+    try:
+        assert _wait(lambda: _status_warns(status, lambda w: "NaN" in w), 5.0), \
+            {k: _read_status(status).get(k) for k in ("state", "warnings", "estimator")}
+        st = _read_status(status)
+        assert st["state"] != "running" and st["estimator"]["quality"] == 0, (st["state"], st["estimator"])
+        assert st["mavlink"]["states_not_finite"] > 0 and ap.poses() == 0
+        sick.clear()
+        assert _wait(lambda: _read_status(status).get("state") == "running", 3.0), _read_status(status)
+        assert _read_status(status)["estimator"]["quality"] == 100 and ap.poses() > 0
+    finally:
+        svc.request_stop(signal.SIGTERM)
+        runner.join(5.0)
+        ap.stop.set()
+    assert not runner.is_alive()

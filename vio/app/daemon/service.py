@@ -446,6 +446,12 @@ class Service:
             warnings.append("poses withheld: older than [mavlink] max_state_age_ms "
                             f"({self.cfg.mavlink.max_state_age_ms:.0f} ms; the estimator is behind its sensors)")
             tracking = False
+        not_finite = bool(link.get("withholding_not_finite"))
+        if not_finite:
+            # the output refuses a NaN / infinite estimate (a loss of tracking): the status read running, quality 100
+            warnings.append("poses not sent: the estimate holds a NaN or infinite value, or a negative variance "
+                            "(mavlink.states_not_finite)")
+            tracking = False
         refusing = link.get("withholding_replay_poses")
         if refusing:
             # a recorded or simulated source (NOT_THIS_VEHICLE) and an autopilot that is armed or not heard disarmed
@@ -472,7 +478,7 @@ class Service:
             mode = "starting"
         elif not ok:
             mode = "unhealthy"
-        elif not tracking and not withheld and not clock_refused and src.connected and imu_ok and \
+        elif not tracking and not withheld and not clock_refused and not not_finite and src.connected and imu_ok and \
                 not getattr(h, "stopped_for_run", None):
             mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
         elif warnings or not tracking:
