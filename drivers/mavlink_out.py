@@ -566,6 +566,12 @@ class MavlinkOutput:
                 if state is not None and max_age is not None and now - state.t_ns > max_age:
                     self.stats.states_too_old += 1  # aged while it waited (this thread stalled): dropped
                     state = None
+                if state is not None and not state.tracking and self._continue_frame:
+                    # a start in flight chooses its frame at the first tracked pose sent: a lost pose before it went
+                    # out in this process's own frame and the next tracked one in the autopilot's, one reset_counter
+                    # (a review's finding: PX4 fuses any quality at EKF2_EV_QMIN 0)
+                    self.stats.states_not_tracking += 1
+                    state = None
                 refusing = self._replay_refusal()
                 if state is not None and refusing:
                     # unheard (before its first heartbeat, or silent past link_timeout_s) it may be armed: a

@@ -1609,3 +1609,61 @@ def test_a_process_started_on_the_ground_keeps_its_own_frame(ap):
                                out.T_frd_body)
     np.testing.assert_allclose([od.x, od.y, od.z], ours.p_ned, atol=1e-5)
     out.close()
+
+
+class _KeepingLink(_SharedLink):
+    """_SharedLink that keeps the messages it sends, and hands the output the autopilot's messages (its reader)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.msgs: list = []
+        self._enc = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+        self._dec = mavlink.MAVLink(None)
+        self.handler = None
+
+    def send(self, msg) -> bool:
+        if self.connected:
+            self.msgs.append(msg)
+        return super().send(msg)
+
+    def subscribe(self, names, handler) -> None:
+        self.handler = handler
+
+    def from_autopilot(self, msg) -> None:
+        self.handler(self._dec.parse_char(msg.pack(self._enc)), 0)
+
+
+def test_a_lost_pose_does_not_go_out_before_a_start_in_flight_has_chosen_its_frame():
+    """Started in flight (heard armed first), lost_output = 'failed': the first tracked pose did not go out (the link
+    was closed at its slot), and the lost pose after it went out in this process's own frame, the next tracked one in
+    the autopilot's, with one reset_counter: PX4 fuses any quality at EKF2_EV_QMIN 0, so it took a 3.6 m jump as a
+    measurement. Until the frame is chosen (at the first tracked pose sent) no lost pose goes out."""
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"], lost_output="failed"), link=link,
+                        clock_ns=clock, max_state_age_ms=500)
+    try:
+        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+            mavlink.MAV_STATE_ACTIVE, 3))
+        out.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        clock.advance(0.01)
+        out.poll()
+        link.connected = False
+        out.send_state(state(clock.t))  # tracked, its slot comes with no connection
+        for _ in range(5):
+            clock.advance(0.01)
+            out.poll()
+        assert out.stats.states_link_closed == 1
+        link.connected = True
+        for _ in range(3):  # lost: the camera went dark
+            clock.advance(0.04)
+            out.send_state(state(clock.t, tracking=False, quality=0))
+        clock.advance(0.04)
+        out.send_state(state(clock.t))  # tracked again
+        sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert sent and all(abs(m.x - 4.0) < 0.01 and abs(m.y + 3.0) < 0.01 for m in sent), \
+            [(m.x, m.y, m.quality, m.reset_counter) for m in sent]
+    finally:
+        out.close()
