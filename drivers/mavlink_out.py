@@ -275,6 +275,7 @@ class MavlinkOutput:
         # added to the estimator's reset_counter: where this process starts (`counter_file`), and resets forced here
         self._reset_offset = self._first_counter()
         self._last_reset_counter: int | None = None
+        self._counter_sent: int | None = None  # the reset_counter of the newest pose sent (health(): `vio status`)
         # (estimator reset_counter, this process's offset) of the newest tracked state: a lost pose goes out as
         # lost_output's -1/0 only in a frame that was once tracked (an estimator started from the IMU alone, its
         # cameras black from boot, sent its prior's 1 mm covariance with quality -1: a QA sweep)
@@ -353,7 +354,8 @@ class MavlinkOutput:
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "last_latency_ms": st.last_latency_ms, "land_after_loss_s": self.cfg.land_after_loss_s,
                 "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed,
-                "first_tilt_deg": st.first_tilt_deg, **self.counters()}
+                "first_tilt_deg": st.first_tilt_deg, **self.counters(),
+                **({} if self._counter_sent is None else {"reset_counter": self._counter_sent})}
 
     def send_state(self, state: NavState) -> bool:
         """Offer the newest estimate; it is sent in the next slot of the `rate_hz` schedule, or never
@@ -702,6 +704,7 @@ class MavlinkOutput:
             if not self._send(msg, msg.get_type()):
                 return
         self._last_sent_t_ns = state.t_ns
+        self._counter_sent = self._sent_counter(state)
         self.stats.states_sent += 1
         self.stats.last_latency_ms = (now - state.t_ns) / 1e6
 

@@ -1667,3 +1667,20 @@ def test_a_lost_pose_does_not_go_out_before_a_start_in_flight_has_chosen_its_fra
             [(m.x, m.y, m.quality, m.reset_counter) for m in sent]
     finally:
         out.close()
+
+
+def test_the_health_says_the_reset_counter_the_autopilot_got(ap, tmp_path):
+    """`vio status` gave the estimator's reset_counter 'as the autopilot got it' (0) while the autopilot got it past
+    where this process started (counter_file, or a random start): 108 in a `vio run` on V1_01. The output's health
+    has the one it sent (none before the first pose)."""
+    path = tmp_path / "reset_counter"
+    path.write_text("41\n")
+    clock = FakeClock()
+    out = _counted(ap, clock, path)
+    try:
+        assert "reset_counter" not in out.health()
+        out.send_state(state(clock.t, reset_counter=2))
+        sent = ap.of("ODOMETRY", ap.drain())[-1].reset_counter
+        assert sent == 44 and out.health()["reset_counter"] == sent
+    finally:
+        out.close()

@@ -504,7 +504,8 @@ class Service:
                 # what the autopilot gets (the output's checks applied): 0 while nothing tracked goes out
                 "quality": _quality_sent(state, tracking and not refusing, out.quality_out),
                 "initialized": h.initialized if h is not None else None,
-                "reset_counter": state.reset_counter if state is not None else None,  # as the autopilot got it
+                # the estimator's; the autopilot gets it past where this process started: mavlink.reset_counter
+                "reset_counter": state.reset_counter if state is not None else None,
                 # estimator resets so far, as the log counts them: the counter above moves with the next pose only
                 "resets": (h.reset_counter + est.resets_before) if h is not None else None,
                 "daemon_resets": est.resets,
