@@ -226,6 +226,7 @@ class MavlinkOutput:
         self._ap_yaw: tuple[int, float] | None = None  # (arrival ns, ATTITUDE yaw [rad])
         self._align: tuple[np.ndarray, np.ndarray, float] | None = None  # (R about down, shift [m], yaw [rad])
         self._px4_said = False  # the PX4 EKF2_EV_QMIN advice, once
+        self._frame_kept = False  # the frame is the one of the output this one replaced (keep_autopilot_frame)
         if cfg.lost_output == "quality0":
             log.warning("[mavlink] lost_output = 'quality0': a lost pose goes out with quality 0 ('unknown'), which "
                         "ArduPilot (VISO_QUAL_MIN) and PX4 (EKF2_EV_QMIN) fuse at their default 0; 'failed' sends "
@@ -469,6 +470,26 @@ class MavlinkOutput:
             with self._lock:
                 if self.connected and self._replay_refusal() != "armed":
                     self._statustext(mavlink.MAV_SEVERITY_WARNING, why)
+
+    def autopilot_frame(self) -> tuple[tuple[np.ndarray, np.ndarray, float] | None, bool] | None:
+        """Where this output's poses go: (the turn and shift into the autopilot's frame chosen at a start in flight,
+        None for the estimator's own frame; whether that choice is still to come), or None while no autopilot was
+        heard (nothing chosen yet). The daemon hands it to the output it reopens after a failure. Read without the
+        lock: the output failed, and its thread may be stuck holding it."""
+        if self._last_ap_heartbeat_ns is None and not self._frame_kept:
+            return None
+        return self._align, self._continue_frame
+
+    def keep_autopilot_frame(self, frame: tuple[tuple[np.ndarray, np.ndarray, float] | None, bool] | None) -> None:
+        """Send in the frame of the output this one replaces (its autopilot_frame()): the start in flight was the
+        process's, not this output's. A reopened output sent in the estimator's own frame when a tracked pose came
+        before the autopilot's next heartbeat, at its new reset_counter: EKF3 resets to the external nav's position
+        there, and the autopilot's position jumped by all the vehicle had flown before the start (a review's)."""
+        if frame is None:
+            return
+        with self._lock:
+            self._align, self._continue_frame = frame
+            self._frame_kept = True
 
     def force_reset(self) -> None:
         """Bump reset_counter without an estimator reset (e.g. the estimator was re-created and its own
@@ -828,7 +849,7 @@ class MavlinkOutput:
         GPS, by hand), which a LAND would take from its pilot (a review's finding). The autopilot's own failsafe
         acts on its side; a loss after this process has tracked gets land_after_loss_s as ever."""
         with self._pending_lock:
-            if self._tracked_frame is not None or self._lost_since_ns is not None:
+            if self._tracked_frame is not None or self._lost_since_ns is not None or self._frame_kept:
                 return
             self._tracking, self._lost_since_ns, self._land_done = False, now, True
         log.warning("the autopilot is armed and this process has sent no pose yet (started or restarted in "

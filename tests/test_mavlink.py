@@ -1684,3 +1684,51 @@ def test_the_health_says_the_reset_counter_the_autopilot_got(ap, tmp_path):
         assert sent == 44 and out.health()["reset_counter"] == sent
     finally:
         out.close()
+
+
+def test_a_reopened_output_keeps_the_autopilots_frame_of_a_start_in_flight():
+    """The daemon reopens a MAVLink output that failed (an exception from send_state or poll). The new one, fed a
+    tracked pose before the autopilot's next heartbeat, sent in the estimator's own frame at its new reset_counter:
+    EKF3 resets to the external nav's position there, and a process started in flight had its autopilot's position
+    jump by all the vehicle had flown before the start (3.6 m here), what the frame turn is for. It keeps the frame
+    of the output before it now."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.outputs import OutputWorker
+
+    link = _KeepingLink()
+    outs: list[MavlinkOutput] = []
+
+    def make() -> MavlinkOutput:
+        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link,
+                                  random_first_counter=True))
+        return outs[-1]
+
+    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0)
+    try:
+        w._ensure_mavlink()
+        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+            mavlink.MAV_STATE_ACTIVE, 3))
+        w.mav.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        w.mav.poll()
+        w._send(state(time.monotonic_ns()))
+        first = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert [(round(m.x, 3), round(m.y, 3)) for m in first] == [(4.0, -3.0)]
+
+        def broken(s: NavState) -> None:
+            raise OSError("a bug")
+
+        outs[0].send_state = broken  # type: ignore[method-assign]
+        w._send(state(time.monotonic_ns()))
+        assert w.mav is None
+        w._next_open = 0.0
+        w._ensure_mavlink()
+        assert len(outs) == 2
+        time.sleep(0.04)  # past the new output's first send slot
+        w._send(state(time.monotonic_ns()))  # the same pose: the vehicle hovers
+        last = [m for m in link.msgs if m.get_type() == "ODOMETRY"][-1]
+        assert (round(last.x, 3), round(last.y, 3)) == (4.0, -3.0), (last.x, last.y, last.reset_counter)
+    finally:
+        w.close()

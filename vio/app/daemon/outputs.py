@@ -238,6 +238,9 @@ class OutputWorker(Worker):
         # the last why of a withholding among them: the status counts the whole run, as the log does
         self._closed_counts: Counter[str] = Counter()
         self._closed_withheld_for = ""
+        # the frame the closed output sent in (MavlinkOutput.autopilot_frame: a start in flight's turn into the
+        # autopilot's), kept by the one reopened after it
+        self._frame: Any = None
         # the status thread reads the output and the closed counts (link(), sent) while this thread closes one and adds
         # its counts: one step each, or a read in between counted the closing output twice (or not at all)
         self._counts_lock = threading.Lock()
@@ -277,6 +280,9 @@ class OutputWorker(Worker):
             return
         try:
             self.mav = self._open()
+            keep = getattr(self.mav, "keep_autopilot_frame", None)
+            if keep is not None and self._frame is not None:
+                keep(self._frame)
             self._mount_pending = self._mount is not None
             self._backoff = 0.5
         except Exception as e:  # a missing serial port at boot: retry, the autopilot may power up later
@@ -329,6 +335,8 @@ class OutputWorker(Worker):
         try:
             counts = mav.counters()
             why = mav.health().get("withheld_for") or ""
+            frame = getattr(mav, "autopilot_frame", None)
+            self._frame = (frame() if frame is not None else None) or self._frame
         except Exception as e:  # a broken output's counts are lost, not the daemon
             log.warning("MAVLink output's counters lost at its close: %s: %s", type(e).__name__, e)
         with self._counts_lock:
