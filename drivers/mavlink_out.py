@@ -783,9 +783,12 @@ class MavlinkOutput:
         alt_mm = int(round(self.cfg.origin_alt_m * 1000))
         self._send(mavlink.MAVLink_set_gps_global_origin_message(self.target_system, lat, lon, alt_mm, 0),
                    "SET_GPS_GLOBAL_ORIGIN")
-        self._send(mavlink.MAVLink_set_home_position_message(
-            self.target_system, lat, lon, alt_mm, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0),
-            "SET_HOME_POSITION")
+        # not to an armed autopilot: it set its home where it armed (ArduCopter moves an unlocked home to the vehicle
+        # at arming), and RTL flies there; a link lost and back in flight moved it to this origin (a review's finding)
+        if not self._ap_armed:
+            self._send(mavlink.MAVLink_set_home_position_message(
+                self.target_system, lat, lon, alt_mm, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0),
+                "SET_HOME_POSITION")
         self._request_origin()  # the confirmation
 
     def _check_estimates_stopped(self, now: int) -> None:

@@ -1732,3 +1732,30 @@ def test_a_reopened_output_keeps_the_autopilots_frame_of_a_start_in_flight():
         assert (round(last.x, 3), round(last.y, 3)) == (4.0, -3.0), (last.x, last.y, last.reset_counter)
     finally:
         w.close()
+
+
+def test_no_home_is_set_on_an_armed_autopilot(ap):
+    """The origin and home go out at each link-up. An armed autopilot has set its home where it armed (ArduCopter
+    moves an unlocked home to the vehicle at arming) and RTL flies there: a link lost and back in flight (or a
+    restart in flight) moved it to the configured origin, which is only where this process's frame began (a second
+    take-off elsewhere, a start in flight). While it is heard armed only the origin goes out (the same one: a no-op
+    to an EKF that has it, and what a rebooted one needs); home again once it is disarmed."""
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out.poll()
+    ap.drain()
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    for _ in range(4):
+        ap.heartbeat(mavlink.MAV_STATE_ACTIVE, armed)
+        time.sleep(0.01)
+        out.poll()
+        clock.advance(0.6)
+    got = ap.drain()
+    assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and not ap.of("SET_HOME_POSITION", got)
+    for _ in range(4):
+        ap.heartbeat(mavlink.MAV_STATE_STANDBY, 0)
+        time.sleep(0.01)
+        out.poll()
+        clock.advance(0.6)
+    assert ap.of("SET_HOME_POSITION", ap.drain())
+    out.close()
