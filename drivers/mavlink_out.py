@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from drivers.mavlink_frames import (
+    R_NED_WORLD,
     SNAP_DEG,
     VehicleOdometry,
     mount_rotation,
@@ -479,6 +480,16 @@ class MavlinkOutput:
         if self._last_ap_heartbeat_ns is None and not self._frame_kept:
             return None
         return self._align, self._continue_frame
+
+    def world_frame_turn(self) -> np.ndarray | None:
+        """The turn and shift of a start in flight as a transform of the estimator's world (z up, world' = T @ world),
+        or None (poses go in the estimator's own frame). The loop output takes it out of a pose it maps into a map's
+        frame, which is the autopilot's already (vio.loop.output.CorrectedOutput.frame_turn)."""
+        align = self._align
+        if align is None:
+            return None
+        R, shift, _ = align
+        return make_T(R_NED_WORLD @ R @ R_NED_WORLD, R_NED_WORLD @ shift)
 
     def keep_autopilot_frame(self, frame: tuple[tuple[np.ndarray, np.ndarray, float] | None, bool] | None) -> None:
         """Send in the frame of the output this one replaces (its autopilot_frame()): the start in flight was the

@@ -3089,3 +3089,28 @@ def test_a_vocabulary_pipe_a_nan_in_a_map_header_and_partly_infinite_points_are_
         assert main(["map", "info", str(tmp_path / "inf.npz")]) == 1, row
         err = capsys.readouterr().err
         assert "damaged map (stereo points" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_the_loop_worker_says_when_the_correction_is_into_a_loaded_maps_frame():
+    """CorrectedOutput takes a start in flight's turn into the autopilot's frame out of a correction into a loaded map's
+    frame (the autopilot's already), not out of one into the flight's own (a reset's segment joined back to the first):
+    the worker hands over which of the two it is (LoopCloser.relocalised), with the correction, under its lock."""
+    from vio.app.loop_worker import LoopWorker
+
+    class Closer(_StubCloser):
+        def add_keyframe(self, t_ns, T, image, ff, counter):
+            self.graph.estimate_version += 1
+            self.relocalised = t_ns >= 2
+            return True
+
+    w = LoopWorker(Closer(), max_queue=10)
+    try:
+        assert w.correction()[-1] is False
+        w.submit(1, np.eye(4), None, None, 0)
+        w._q.join()
+        assert w.correction()[-1] is False
+        w.submit(2, np.eye(4), None, None, 0)
+        w._q.join()
+        assert w.correction()[-1] is True
+    finally:
+        assert w.close(wait=True, timeout_s=5.0)

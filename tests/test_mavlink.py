@@ -4,6 +4,7 @@ heartbeat and link-loss contracts."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import socket
@@ -1759,3 +1760,82 @@ def test_no_home_is_set_on_an_armed_autopilot(ap):
         clock.advance(0.6)
     assert ap.of("SET_HOME_POSITION", ap.drain())
     out.close()
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_start_in_flight_relocalised_in_the_map_sends_the_maps_frame_not_turned_twice(mode):
+    """A daemon restarted in flight with its map ([map] save's checkpoint, or [map] load) and [loop] output = jump or
+    blend: its poses continue in the autopilot's frame (the turn and shift of a start in flight), and the autopilot's
+    frame is the map's (the process before sent it). Relocalised, the loop output maps the odometry into the map's
+    frame, and the output turned and shifted that once more: 3.2 m and 240 deg of yaw off at the jump's new
+    reset_counter (jump), or walked there at the blend rate. The map's frame goes out as it is now."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link, clock_ns=clock)
+    loop = CorrectedOutput(mode)
+    loop.frame_turn = out.world_frame_turn
+    try:
+        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+            mavlink.MAV_STATE_ACTIVE, 3))
+        out.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        clock.advance(0.01)
+        out.poll()
+        odo = state(clock.t)  # the odometry at (1, 2, 3), level, yaw 0: the vehicle hovers there
+        out.send_state(loop.apply(odo, np.eye(4), 0))
+        # the map's frame is the autopilot's: there the vehicle is at NED (4.05, -3, -1.5) (5 cm from where the
+        # autopilot had it), yaw 120 deg, i.e. world (4.05, 3, 1.5) at yaw -120 deg
+        Rz = so3_exp(np.array([0.0, 0.0, math.radians(-120.0)]))
+        C = make_T(Rz, np.array([4.05, 3.0, 1.5]) - Rz @ odo.T_world_body[:3, 3])
+        unc = CorrectionUncertainty(np.diag([1e-4, 1e-4, 1e-4, 1e-4]), np.array([4.0, 3.0, 1.5]))
+        for _ in range(20):
+            clock.advance(0.1)
+            out.send_state(loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1, own_frame=False,
+                                      in_map=True))
+        sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        for m in sent:
+            w, x, y, z = m.q
+            yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+            assert 4.0 - 1e-3 < m.x < 4.05 + 1e-3 and abs(m.y + 3.0) < 1e-3 and abs(m.z + 1.5) < 1e-3, (m.x, m.y, m.z)
+            assert yaw == pytest.approx(120.0, abs=1e-3)
+        assert sent[-1].x == pytest.approx(4.05, abs=1e-4)
+        assert sent[-1].reset_counter == (1 if mode == "jump" else 0)
+    finally:
+        out.close()
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_start_in_flight_rejoined_after_a_reset_stays_in_the_autopilots_frame(mode):
+    """No map: an estimator reset's segment joined back to the flight's first one comes through loop edges (with an
+    uncertainty) into this process's own frame, the one the output turns into the autopilot's: it stays turned (only
+    a loaded map's frame is the autopilot's already)."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link, clock_ns=clock)
+    loop = CorrectedOutput(mode)
+    loop.frame_turn = out.world_frame_turn
+    try:
+        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+            mavlink.MAV_STATE_ACTIVE, 3))
+        out.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        clock.advance(0.01)
+        out.poll()
+        odo = state(clock.t)
+        out.send_state(loop.apply(odo, np.eye(4), 0))
+        C = make_T(np.eye(3), np.array([0.05, 0.0, 0.0]))  # 5 cm of drift taken out
+        unc = CorrectionUncertainty(np.diag([1e-4, 1e-4, 1e-4, 1e-4]), np.array([1.0, 2.0, 3.0]))
+        for _ in range(10):
+            clock.advance(0.1)
+            out.send_state(loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1, own_frame=False,
+                                      in_map=False))
+        last = [m for m in link.msgs if m.get_type() == "ODOMETRY"][-1]
+        assert np.hypot(last.x - 4.0, last.y + 3.0) == pytest.approx(0.05, abs=1e-4) and abs(last.z + 1.5) < 1e-4
+    finally:
+        out.close()

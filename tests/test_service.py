@@ -1990,3 +1990,22 @@ def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Pat
         runner.join(5.0)
         ap.stop.set()
     assert not runner.is_alive()
+
+
+def test_the_loop_output_takes_the_mavlink_outputs_turn_of_a_start_in_flight() -> None:
+    """The loop output takes the MAVLink output's turn and shift of a start in flight out of a correction into a
+    map's frame (tests/test_mavlink.py::test_a_start_in_flight_relocalised_in_the_map_sends_the_maps_frame_not_
+    turned_twice): the daemon wires the one to the other."""
+    cfg = config_from_dict({"source": {"kind": "fake"}, "loop": {"enabled": True, "output": "jump"}})
+    svc = Service(cfg, source_factory=lambda: ScriptedSource([], threading.Event(), []),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []), mavlink_factory=RecordingMavlink,
+                  notifier=SdNotifier(""))
+    assert svc._loop_output is not None and svc._loop_output.frame_turn == svc.output.frame_turn
+    assert svc.output.frame_turn() is None  # no output open, or one without a turn
+
+    class Turned(RecordingMavlink):
+        def world_frame_turn(self) -> np.ndarray:
+            return np.diag([-1.0, -1.0, 1.0, 1.0])
+
+    svc.output.mav = Turned()
+    np.testing.assert_array_equal(svc._loop_output.frame_turn(), np.diag([-1.0, -1.0, 1.0, 1.0]))

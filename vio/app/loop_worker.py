@@ -62,6 +62,8 @@ class LoopWorker:
         self._segment: tuple[int, bool] = (0, True)  # the correction's odometry segment, and is it its own frame
         # reset_counter of the newest keyframe the correction was taken at (CorrectedOutput.restart)
         self._counter: int | None = None
+        # is the correction's frame a loaded map's (the flight relocalised in it), not the flight's own first segment's
+        self._in_map = False
         self.closures = 0  # accepted closures so far
         # the pose graph's estimate version behind the correction: +1 at each solve (a closure, or loop edges the
         # graph deferred brought in later), not when only a new odometry segment begins
@@ -97,13 +99,14 @@ class LoopWorker:
             with contextlib.suppress(queue.Full):
                 self._q.put_nowait(_Settled(tuple(settled)))
 
-    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool, int | None]:
+    def correction(self) -> tuple[np.ndarray, int, CorrectionUncertainty | None, int, bool, int | None, bool]:
         """(T_world_odom, its version: the pose graph's solves behind it, its uncertainty where the frame came
         through loop edges, the odometry segment it is for, is that segment in a frame of its own, the reset_counter
-        of the newest keyframe it was taken at) as of the last keyframe processed; the arguments of
-        CorrectedOutput.apply."""
+        of the newest keyframe it was taken at, is its frame a loaded map's) as of the last keyframe processed; the
+        arguments of CorrectedOutput.apply."""
         with self._lock:
-            return self._correction.copy(), self._version, self._uncertainty, *self._segment, self._counter
+            return (self._correction.copy(), self._version, self._uncertainty, *self._segment, self._counter,
+                    self._in_map)
 
     def _set_correction(self, counter: int | None = None) -> None:
         """The closer's newest correction, versioned by the pose graph's solves: a new odometry segment (an
@@ -116,8 +119,10 @@ class LoopWorker:
             return
         T, version = self.closer.correction(), self.closer.graph.estimate_version
         unc, seg = self.closer.correction_uncertainty(), self.closer.correction_segment()
+        in_map = self.closer.relocalised
         with self._lock:
             self._correction, self._version, self._uncertainty, self._segment = T, version, unc, seg
+            self._in_map = in_map
             if counter is not None:
                 self._counter = counter
 

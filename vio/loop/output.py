@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -45,6 +46,12 @@ class CorrectionUncertainty:
         G[0, :3] = R[2, :]  # world yaw of a body-frame rotation perturbation: the z row of R
         G[1:, 3:] = R
         return cls(G @ cov_pose @ G.T, T_world_body[:3, 3].copy())
+
+    def moved(self, T: np.ndarray) -> CorrectionUncertainty:
+        """The same uncertainty in a world moved by T (a turn about up and a shift: world' = T @ world)."""
+        G = np.eye(4)
+        G[1:, 1:] = T[:3, :3]
+        return CorrectionUncertainty(G @ self.cov_yaw_position @ G.T, T[:3, :3] @ self.p_world + T[:3, 3])
 
     def added_to(self, state: NavState, quality_sigma_m: float | None = None) -> NavState:
         """`state` (already corrected) with this uncertainty carried to its pose and velocity: a yaw error turns
@@ -106,6 +113,10 @@ class CorrectedOutput:
         self._min_counter: int | None = None
         self.quality_sigma_m = quality_sigma_m  # [backend] quality_sigma_m: quality follows the added covariance
         self._refused_version: int | None = None  # a version whose correction was not finite (said once)
+        # the MAVLink output's turn and shift of a start in flight (MavlinkOutput.world_frame_turn; None: none): it
+        # turns every pose sent into the autopilot's frame, and a loaded map's frame (a checkpoint's) is the
+        # autopilot's already (the process before sent it), so it is taken out of a correction into one here
+        self.frame_turn: Callable[[], np.ndarray | None] | None = None
 
     def _takes(self, segment: int | None, own_frame: bool, counter: int | None) -> bool:
         """Is a new version's correction one for the odometry being sent? Not one of the old estimator's after
@@ -135,11 +146,12 @@ class CorrectedOutput:
 
     def apply(self, state: NavState, T_world_odom: np.ndarray, version: int,
               uncertainty: CorrectionUncertainty | None = None, segment: int | None = None,
-              own_frame: bool = False, counter: int | None = None) -> NavState:
+              own_frame: bool = False, counter: int | None = None, in_map: bool = False) -> NavState:
         """`state` with the correction delivered as the mode says. `segment` is the odometry segment (the loop
         stage's session) the correction was solved for, `own_frame` whether that segment is still in a frame of its
         own (no loop edge joins it to another session), `counter` the reset_counter its newest keyframe was handed
-        over with: LoopWorker.correction() gives all of them."""
+        over with, `in_map` whether the frame it maps into is a loaded map's: LoopWorker.correction() gives all of
+        them."""
         if self.mode == "off":
             return state
         # a gap in states (a stall) is not time to walk in: at most MAX_BLEND_STEP_S of blend per state
@@ -160,6 +172,15 @@ class CorrectedOutput:
             # solve: two reviews' findings.)
             self._version = version
             self._segment = segment
+            # a map's frame only: the flight's own first segment's (a reset's segment joined back to it) is the one
+            # the output turned into the autopilot's
+            turn = self.frame_turn() if self.frame_turn is not None and in_map else None
+            if turn is not None:
+                # turned and shifted again by the output, a relocalised pose went 3.2 m and 240 deg of yaw off the
+                # map's frame at the jump (blend walked there): a review's finding
+                back = np.linalg.inv(turn)
+                T_world_odom = back @ T_world_odom
+                uncertainty = uncertainty.moved(back) if uncertainty is not None else None
             self._target = _yaw_only(T_world_odom)
             self._unc = uncertainty
             if self.mode == "jump":

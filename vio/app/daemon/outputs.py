@@ -346,6 +346,12 @@ class OutputWorker(Worker):
         with contextlib.suppress(Exception):
             mav.close(final=final)
 
+    def frame_turn(self) -> np.ndarray | None:
+        """The MAVLink output's turn and shift of a start in flight in the estimator's world (MavlinkOutput.
+        world_frame_turn), for the loop output (read from the estimator thread); None without one."""
+        turn = getattr(self.mav, "world_frame_turn", None)
+        return turn() if turn is not None else None
+
     @property
     def sent(self) -> int:
         """Pose states that went out on the link (cumulative over reconnects)."""

@@ -161,6 +161,8 @@ class Service:
                                 cfg.backend.quality_sigma_m, cfg.mavlink.stamp_tolerance_ms / 1e3)
         self.output = OutputWorker(self.stop, self.latest, mavlink_factory, rc.trajectory_file, rc.reconnect_max_s,
                                    vision_ok=self.camera_fresh, mount=mount, stamps=stamps)
+        if self._loop_output is not None:  # a map's frame is not turned into the autopilot's a second time
+            self._loop_output.frame_turn = self.output.frame_turn
         self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now,
                                         rc.record_format, rc.record_images, self.latest, lambda: self._last_status,
                                         rc.record_png_level)
