@@ -223,8 +223,9 @@ class MavlinkOutput:
         # resets its position to the external nav's at a reset_counter change; a new process's world starts where
         # the vehicle was, so its position moved by all the vehicle had flown (1.3 m on the SITL, docs/autopilot.md).
         self._continue_frame = False
-        self._ap_local: tuple[int, np.ndarray] | None = None  # (arrival ns, LOCAL_POSITION_NED x, y, z)
-        self._ap_yaw: tuple[int, float] | None = None  # (arrival ns, ATTITUDE yaw [rad])
+        # (arrival ns, LOCAL_POSITION_NED x, y, z, its vx, vy, vz): carried to our first pose's stamp at its velocity
+        self._ap_local: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._ap_yaw: tuple[int, float, float] | None = None  # (arrival ns, ATTITUDE yaw [rad], yawspeed [rad/s])
         self._align: tuple[np.ndarray, np.ndarray, float] | None = None  # (R about down, shift [m], yaw [rad])
         self._px4_said = False  # the PX4 EKF2_EV_QMIN advice, once
         self._frame_kept = False  # the frame is the one of the output this one replaced (keep_autopilot_frame)
@@ -888,14 +889,21 @@ class MavlinkOutput:
                             "(LOCAL_POSITION_NED, ATTITUDE): poses start a new frame, and the autopilot's position "
                             "jumps to it at the reset_counter change")
             else:
-                dyaw = math.remainder(yaw[1] - float(od.rpy[2]), math.tau)
+                # the autopilot's estimate carried to our pose's stamp along its own velocity and yaw rate: taken
+                # as it was on arrival, up to AP_POSE_MAX_AGE_NS older than our pose, it put the frame v * age off
+                # for the rest of the flight (0.25-0.5 m at 5 m/s; a review's finding)
+                p_ap = local[1] + local[2] * (_clamped_age_ns(od.t_ns - local[0]) * 1e-9)
+                yaw_ap = yaw[1] + yaw[2] * (_clamped_age_ns(od.t_ns - yaw[0]) * 1e-9)
+                dyaw = math.remainder(yaw_ap - float(od.rpy[2]), math.tau)
                 c, s_ = math.cos(dyaw), math.sin(dyaw)
                 R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-                shift = local[1] - R @ od.p_ned
+                shift = p_ap - R @ od.p_ned
                 self._align = (R, shift, dyaw)
                 log.info("started in flight: poses continue in the autopilot's frame (its estimate at "
-                         "%.2f, %.2f, %.2f m NED, yaw %.1f deg; ours turned %.1f deg and shifted %.2f m)",
-                         *local[1], math.degrees(yaw[1]), math.degrees(dyaw), float(np.linalg.norm(shift)))
+                         "%.2f, %.2f, %.2f m NED, yaw %.1f deg, carried %.0f ms to our pose at its %.1f m/s; ours "
+                         "turned %.1f deg and shifted %.2f m)", *p_ap, math.degrees(yaw_ap),
+                         (od.t_ns - local[0]) * 1e-6, float(np.linalg.norm(local[2])), math.degrees(dyaw),
+                         float(np.linalg.norm(shift)))
         if self._align is None:
             return od
         R, shift, dyaw = self._align
@@ -1026,9 +1034,10 @@ class MavlinkOutput:
                         else:
                             self._conn.mav.srcSystem = sysid
             elif kind == "LOCAL_POSITION_NED" and msg.get_srcSystem() == self.target_system:
-                self._ap_local = (now, np.array([msg.x, msg.y, msg.z], dtype=float))
+                self._ap_local = (now, np.array([msg.x, msg.y, msg.z], dtype=float),
+                                  np.array([msg.vx, msg.vy, msg.vz], dtype=float))
             elif kind == "ATTITUDE" and msg.get_srcSystem() == self.target_system:
-                self._ap_yaw = (now, float(msg.yaw))
+                self._ap_yaw = (now, float(msg.yaw), float(msg.yawspeed))
             elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
                 self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
                 if self._origin_left > 0:
@@ -1176,6 +1185,12 @@ def restamp_to_host_clock(sink: Callable[[NavState], object]) -> Callable[[NavSt
             offset.append(time.monotonic_ns() - state.t_ns)
         sink(dataclasses.replace(state, t_ns=state.t_ns + offset[0]))
     return push
+
+
+def _clamped_age_ns(dt_ns: int) -> int:
+    """How far the autopilot's estimate is carried to our pose's stamp: at most AP_POSE_MAX_AGE_NS either way (a
+    stamp further off is not extrapolated along a velocity that old)."""
+    return max(-AP_POSE_MAX_AGE_NS, min(AP_POSE_MAX_AGE_NS, int(dt_ns)))
 
 
 def _next_slot(slot_ns: int, period_ns: int, now_ns: int) -> int:

@@ -1587,6 +1587,36 @@ def test_a_process_started_in_flight_continues_in_the_autopilots_frame(ap, caplo
     out.close()
 
 
+def test_a_start_in_flight_carries_the_autopilots_estimate_to_our_first_poses_stamp(ap, caplog):
+    """The autopilot's LOCAL_POSITION_NED and ATTITUDE are up to AP_POSE_MAX_AGE_NS older than our first tracked pose;
+    taken as they were, a vehicle at 5 m/s put the whole frame 1 m off for the rest of the flight (0.2 s here).
+    They are carried to our pose's stamp along the autopilot's own velocity and yaw rate."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    out.poll()
+    ap.drain()
+    ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                               mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+    time.sleep(0.02)
+    out.poll()
+    ap.drain()
+    yaw_ap = math.radians(120.0)
+    ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 5.0, -1.0, 0.5)  # moving at 5.1 m/s
+    ap.conn.mav.attitude_send(1000, 0.0, 0.0, yaw_ap, 0.0, 0.0, 0.4)  # turning at 0.4 rad/s
+    time.sleep(0.02)
+    clock.advance(0.1)
+    out.poll()  # read: their arrival
+    clock.advance(0.2)
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        out.send_state(state(clock.t))  # our first tracked pose, 0.2 s after the autopilot's
+        od = ap.of("ODOMETRY", ap.drain())[-1]
+    np.testing.assert_allclose([od.x, od.y, od.z], [4.0 + 5.0 * 0.2, -3.0 - 1.0 * 0.2, -1.5 + 0.5 * 0.2], atol=1e-5)
+    w, x, y, z = od.q
+    assert math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)) == pytest.approx(yaw_ap + 0.4 * 0.2, abs=1e-5)
+    assert "carried 200 ms to our pose" in caplog.text
+    out.close()
+
+
 def test_a_process_started_on_the_ground_keeps_its_own_frame(ap):
     """Disarmed when first heard (the normal start): nothing is asked and nothing turned."""
     clock = FakeClock()
