@@ -586,13 +586,20 @@ class MavlinkOutput:
             # a replay sets no EKF origin on an armed autopilot either (the review: its origin_lat/lon went out to it),
             # nor on one silent past link_timeout_s, which may have armed since (its 60 tries went on through a loss)
             if self._origin_left > 0 and now >= self._next_origin_ns and self._replay_refusal() is None:
-                self._send_origin()
+                # an armed autopilot is only asked: EKF3 on external nav takes a new origin in flight, which moves
+                # every global position it holds (home and mission stay put in latitude/longitude, so RTL flies
+                # elsewhere) where it had another one (a GPS start, a ground station's): a review's note
+                if self._ap_armed:
+                    self._request_origin()
+                else:
+                    self._send_origin()
                 self._origin_left -= 1
                 self._next_origin_ns = now + 1_000_000_000
                 if self._origin_left == 0:
-                    log.warning("autopilot did not confirm the EKF origin after %d tries (no GPS_GLOBAL_ORIGIN): "
+                    log.warning("autopilot did not confirm the EKF origin after %d tries (no GPS_GLOBAL_ORIGIN)%s: "
                                 "set it from the ground station, or GUIDED/AUTO take-off may be refused",
-                                ORIGIN_MAX_SENDS)
+                                ORIGIN_MAX_SENDS, "; it is armed, so it was only asked, not set in flight"
+                                if self._ap_armed else "")
             self._recheck_origin(now)
             if now >= self._next_send_ns:
                 with self._pending_lock:
@@ -783,6 +790,12 @@ class MavlinkOutput:
         self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
         self._origin_recheck_ns = self._origin_asked_ns = None
         self.stats.origin_confirmed = False
+
+    def _origin_is_ours(self, msg: Any) -> bool:
+        """Whether a GPS_GLOBAL_ORIGIN is the configured origin (to a unit of 1e-7 deg, and the cm ArduPilot keeps)."""
+        return (abs(int(msg.latitude) - int(round(self.cfg.origin_lat_deg * 1e7))) <= 1
+                and abs(int(msg.longitude) - int(round(self.cfg.origin_lon_deg * 1e7))) <= 1
+                and abs(int(msg.altitude) - int(round(self.cfg.origin_alt_m * 1000))) <= 10)  # ArduPilot keeps cm
 
     def _request_origin(self) -> None:
         # an autopilot that already had the origin does not resend it unasked; one without an origin sends nothing
@@ -1046,6 +1059,13 @@ class MavlinkOutput:
                     self.stats.origin_confirmed = True
                     log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
                              msg.longitude * 1e-7, msg.altitude * 1e-3)
+                    if not self._origin_is_ours(msg):
+                        log.warning("the autopilot's EKF origin (%.7f, %.7f, %.1f m) is not [mavlink] origin_lat_deg/"
+                                    "origin_lon_deg/origin_alt_m (%.7f, %.7f, %.1f m)%s", msg.latitude * 1e-7,
+                                    msg.longitude * 1e-7, msg.altitude * 1e-3, self.cfg.origin_lat_deg,
+                                    self.cfg.origin_lon_deg, self.cfg.origin_alt_m,
+                                    ": kept, it is armed (an origin is not changed in flight)" if self._ap_armed
+                                    else "")
             elif (kind == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_NAV_LAND and self._land_done
                   and msg.get_srcSystem() == self.target_system):
                 accepted = msg.result == mavlink.MAV_RESULT_ACCEPTED

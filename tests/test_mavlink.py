@@ -1769,8 +1769,9 @@ def test_no_home_is_set_on_an_armed_autopilot(ap):
     """The origin and home go out at each link-up. An armed autopilot has set its home where it armed (ArduCopter
     moves an unlocked home to the vehicle at arming) and RTL flies there: a link lost and back in flight (or a
     restart in flight) moved it to the configured origin, which is only where this process's frame began (a second
-    take-off elsewhere, a start in flight). While it is heard armed only the origin goes out (the same one: a no-op
-    to an EKF that has it, and what a rebooted one needs); home again once it is disarmed."""
+    take-off elsewhere, a start in flight). Nor the origin: EKF3 on external nav takes a new one in flight, which
+    moves every global position it holds where it had another (a GPS start); it is only asked for while armed.
+    Origin and home again once it is disarmed."""
     clock = FakeClock()
     out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
     out.poll()
@@ -1782,13 +1783,41 @@ def test_no_home_is_set_on_an_armed_autopilot(ap):
         out.poll()
         clock.advance(0.6)
     got = ap.drain()
-    assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and not ap.of("SET_HOME_POSITION", got)
+    assert not ap.of("SET_GPS_GLOBAL_ORIGIN", got) and not ap.of("SET_HOME_POSITION", got)
+    assert [m for m in ap.of("COMMAND_LONG", got) if m.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+            and int(m.param1) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN]
     for _ in range(4):
         ap.heartbeat(mavlink.MAV_STATE_STANDBY, 0)
         time.sleep(0.01)
         out.poll()
         clock.advance(0.6)
-    assert ap.of("SET_HOME_POSITION", ap.drain())
+    got = ap.drain()
+    assert ap.of("SET_HOME_POSITION", got) and ap.of("SET_GPS_GLOBAL_ORIGIN", got)
+    out.close()
+
+
+def test_an_armed_autopilots_other_origin_is_kept_and_said(ap, caplog):
+    """An autopilot heard armed at link-up that holds another EKF origin (a GPS start, a ground station's) keeps it:
+    no SET_GPS_GLOBAL_ORIGIN goes out, and the log says the two differ."""
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out.poll()
+    ap.drain()
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        for _ in range(3):
+            ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            time.sleep(0.01)
+            out.poll()
+            clock.advance(0.6)
+        ap.conn.mav.gps_global_origin_send(473980000, 85460000, 500000)
+        time.sleep(0.02)
+        for _ in range(4):
+            ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            time.sleep(0.01)
+            out.poll()
+            clock.advance(0.6)
+    assert not ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())
+    assert "is not [mavlink] origin" in caplog.text and "kept, it is armed" in caplog.text
     out.close()
 
 
