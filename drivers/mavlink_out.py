@@ -139,10 +139,15 @@ ANOTHER_CLOCK_NS = 2_000_000_000  # pose stamps this far ahead of the host clock
 MAX_LEVER_ARM_M = 2.0  # [mavlink] mount_offset_m: no drone's IMU sits further from its centre
 
 
+# The pose messages' fields are float32 (at most 3.4e38): a larger finite number failed to pack, and the pose was
+# dropped as a send error while the status said running (a review's note); the frame conversion multiplies a little.
+MAX_SENDABLE = 1e30
+
+
 def _sendable(state: NavState) -> bool:
-    """Is every number the pose messages are made of finite, and every variance >= 0?"""
-    return all(bool(np.isfinite(a).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
-                                                      state.cov_pose, state.cov_vel)) and \
+    """Is every number the pose messages are made of finite and within float32's range, and every variance >= 0?"""
+    return all(bool((np.abs(a) < MAX_SENDABLE).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
+                                                                 state.cov_pose, state.cov_vel)) and \
         bool((np.diag(state.cov_pose) >= 0).all() and (np.diag(state.cov_vel) >= 0).all())
 
 
@@ -404,8 +409,9 @@ class MavlinkOutput:
         if not finite:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
             if not self._not_finite_said:
-                log.error("no pose sent: the estimate holds a NaN or infinite value, or a negative variance (pose, "
-                          "velocity or covariance); a loss of tracking until it is whole again")
+                log.error("no pose sent: the estimate holds a NaN or infinite value (or one beyond 1e30), or a "
+                          "negative variance (pose, velocity or covariance); a loss of tracking until it is whole "
+                          "again")
                 self._not_finite_said = True
             # one reason a state: a withheld or too old one is counted there (it stopped the state first)
             self.stats.states_not_finite += not (withheld or too_old)

@@ -383,7 +383,8 @@ def test_lost_tracking_sends_nothing_and_cancels_the_pending_state(ap):
 @pytest.mark.parametrize("lost_output", ["none", "quality0"])
 def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking(ap, lost_output, caplog):
     """NaN compares false both ways: covariance_quality read a NaN covariance as quality 100 and the pose messages
-    carried the NaN (a review's finding). Such a state is a loss of tracking, sent as nothing, not even quality 0."""
+    carried the NaN (a review's finding). Such a state is a loss of tracking, sent as nothing, not even quality 0;
+    so is one with a number beyond the messages' float32 fields."""
     assert covariance_quality(np.full((6, 6), np.nan), 0.05) == 0.0
     clock = FakeClock()
     out = make_out(ap, clock, messages=["ODOMETRY"], **({"lost_output": lost_output} if lost_output != "none"
@@ -392,14 +393,16 @@ def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking
     assert len(ap.of("ODOMETRY", ap.drain())) == 1
     bad = [dict(cov_pose=np.full((6, 6), np.nan)), dict(v_world=np.array([np.inf, 0, 0])),
            dict(cov_pose=np.diag([1e-4] * 3 + [-0.5] * 3)), dict(cov_vel=np.diag([-1.0, 1, 1])),
-           dict(cov_pose=np.full((6, 6), np.nan))]
+           dict(cov_pose=np.full((6, 6), np.nan)),
+           # finite, but beyond the float32 fields: failed to pack, dropped as a send error, the status running
+           dict(v_world=np.array([1e35, 0, 0])), dict(cov_pose=np.eye(6) * 1e36)]
     for kw in bad:
         clock.advance(0.05)
         out.send_state(state(clock.t, **kw))
     got = ap.drain()
     assert not [m for m in got if m.get_type() in ("ODOMETRY", "VISION_POSITION_ESTIMATE")]
     assert [m.text for m in ap.of("STATUSTEXT", got)] == ["VIO tracking lost"]
-    assert out.health()["states_not_finite"] == 5 and "NaN or infinite" in caplog.text
+    assert out.health()["states_not_finite"] == 7 and "NaN or infinite" in caplog.text
     assert covariance_quality(np.diag([1e-4] * 3 + [-0.5] * 3), 0.05) == 0.0  # it read 1: a review's finding
     clock.advance(0.05)
     out.send_state(state(clock.t))
