@@ -890,9 +890,13 @@ class MavlinkOutput:
                     "flight?): not tracking; no LAND is asked for it")
         self._tracking_text("VIO not tracking (restarted?)", mavlink.MAV_SEVERITY_WARNING)
         self._continue_frame = True
+        self._ask_ap_pose(1e6 / AP_POSE_RATE_HZ)
+
+    def _ask_ap_pose(self, interval_us: float) -> None:
+        """Set the autopilot's LOCAL_POSITION_NED and ATTITUDE interval (0: its default), read at a start in flight."""
         for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
             self._send(mavlink.MAVLink_command_long_message(
-                self.target_system, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / AP_POSE_RATE_HZ,
+                self.target_system, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us,
                 0, 0, 0, 0, 0), "COMMAND_LONG")
 
     def _in_autopilot_frame(self, od: VehicleOdometry) -> VehicleOdometry:
@@ -903,6 +907,7 @@ class MavlinkOutput:
             self._continue_frame = False
             now = self._clock()
             local, yaw = self._ap_local, self._ap_yaw
+            self._ask_ap_pose(0)  # read once: their rate back to the autopilot's default (it costs link bandwidth)
             if local is None or yaw is None or now - min(local[0], yaw[0]) > AP_POSE_MAX_AGE_NS:
                 log.warning("started in flight, but the autopilot's own position and attitude did not arrive "
                             "(LOCAL_POSITION_NED, ATTITUDE): poses start a new frame, and the autopilot's position "

@@ -1571,6 +1571,11 @@ def test_a_process_started_in_flight_continues_in_the_autopilots_frame(ap, caplo
         out.send_state(first)
         got = ap.drain()
     od0 = ap.of("ODOMETRY", got)[-1]
+    # read once: their rate goes back to the autopilot's default (0), not 10 Hz on the link for the rest of the flight
+    back = [(m.param1, m.param2) for m in ap.of("COMMAND_LONG", got)
+            if m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert sorted(back) == sorted([(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0.0),
+                                   (mavlink.MAVLINK_MSG_ID_ATTITUDE, 0.0)])
     w, x, y, z = od0.q
     np.testing.assert_allclose([od0.x, od0.y, od0.z], [4.0, -3.0, -1.5], atol=1e-5)
     assert math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)) == pytest.approx(yaw_ap, abs=1e-5)
