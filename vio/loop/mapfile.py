@@ -142,6 +142,9 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
     # one number or a column ended in a TypeError ("internal error")
     if t_ns.ndim != 1 or not np.issubdtype(t_ns.dtype, np.integer):
         return f"keyframe stamps {t_ns.shape} {t_ns.dtype}, one whole number of nanoseconds per keyframe needed"
+    if t_ns.dtype.kind == "u" and t_ns.size and int(t_ns.max()) >= 2**63:
+        # unsigned stamps from 2^63 on wrapped to negative ones in the int64 cast, unsaid (a review's finding)
+        return f"keyframe stamp {int(t_ns.max())} ns is beyond int64 nanoseconds (2^63 - 1, the year 2262)"
     n = len(t_ns)
     if n == 0:
         return "no keyframes"
