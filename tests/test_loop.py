@@ -3137,3 +3137,22 @@ def test_a_map_with_unsigned_stamps_beyond_int64_is_refused_not_wrapped(tmp_path
         err = capsys.readouterr().err
         assert "damaged map (keyframe stamp" in err and "beyond int64" in err, err
         assert len(err.strip().splitlines()) == 1, err
+
+
+def test_a_map_with_complex_or_text_pixels_points_or_poses_is_refused_in_one_line(tmp_path, capsys):
+    """Pixels, points or poses stored as complex numbers loaded with their imaginary parts dropped (only a numpy
+    ComplexWarning on stderr) and text ones said "could not convert string to float" (a review's finding): each
+    is now refused as damaged, naming the array and its type."""
+    from vio.app.cli import main
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + cam + '}')
+    good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                p_cam=np.zeros((5, 3)), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    cases = {"uv": good["uv"] + 1j, "p_cam": good["p_cam"].astype(complex),
+             "kf_T_world_body": good["kf_T_world_body"].astype(str)}
+    for name, bad in cases.items():
+        np.savez(tmp_path / "bad.npz", **{**good, name: bad})
+        assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1, name
+        err = capsys.readouterr().err
+        assert f"damaged map ({name} stored as" in err and len(err.strip().splitlines()) == 1, err

@@ -245,6 +245,10 @@ def load_map(path: str | Path) -> MapData:
                 raise VioError(f"{path}: map format version {header['version']} is newer than this program's "
                                f"({VERSION})")
             off = z["kf_offsets"]
+            for name in ("uv", "p_cam", "kf_T_world_body"):
+                # complex numbers lost their imaginary part in the float cast below, unsaid (a numpy warning only)
+                if z[name].dtype.kind not in "fiu":
+                    raise VioError(f"{path}: damaged map ({name} stored as {z[name].dtype}, real numbers needed)")
             desc, uv, p = z["desc"], z["uv"].astype(np.float64), z["p_cam"].astype(np.float64)
             t_ns, T = z["kf_t_ns"], z["kf_T_world_body"].astype(np.float64)
             problem = _inconsistency(off, desc, uv, p, t_ns, T)
