@@ -1097,3 +1097,38 @@ def test_calib_check_exit_code_tells_a_check_that_could_not_run_from_a_fail(tmp_
         for verbose in ([], ["-v"]):
             assert main([*verbose, "calib", "check", "-", str(data)]) == 4, (err, verbose)
             assert "overall:" not in capsys.readouterr().out
+
+
+def test_a_camera_size_or_focal_length_no_camera_has_is_refused_in_one_line(tmp_path, v101_path, capsys):
+    """A calibration 1e300 pixels wide (a project file or a EuRoC sensor.yaml) was taken: `vio calib show` printed a
+    301-digit width and principal-point offset, `vio calib import euroc` wrote it out; a focal length of 1e300 px the
+    same (a review's finding). CameraCalibration refuses both now, so every reader and importer does, in one line
+    naming the file and camera."""
+    import yaml
+
+    from vio.app.cli import main
+    from vio.sim import default_calibration
+
+    save_calibration(default_calibration(), tmp_path / "c.yaml")
+    cases = {"wide": ("cam0", "resolution", [1e300, 480], "resolution 1e+300x480 is beyond any camera's"),
+             "tall": ("cam1", "resolution", [752, 40000], "resolution 752x40000 is beyond any camera's"),
+             "fx": ("cam0", "intrinsics", [1e300, 200.0, 160.0, 100.0], "focal lengths fx=1e+300"),
+             "fy": ("cam1", "intrinsics", [200.0, 1e6, 160.0, 100.0], "focal lengths fx=200, fy=1e+06 px are over 100")}
+    for name, (cam, key, value, says) in cases.items():
+        d = yaml.safe_load((tmp_path / "c.yaml").read_text())
+        d[cam][key] = value
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(d))
+        assert main(["calib", "show", str(tmp_path / f"{name}.yaml")]) == 1, name
+        err = capsys.readouterr().err
+        assert f"{name}.yaml: {cam}: {says}" in err and len(err.strip().splitlines()) == 1, err
+
+    ds = tmp_path / "ds"
+    for s in ("cam0", "cam1", "imu0"):
+        (ds / "mav0" / s).mkdir(parents=True)
+        shutil.copy(v101_path / "mav0" / s / "sensor.yaml", ds / "mav0" / s / "sensor.yaml")
+    y = ds / "mav0" / "cam0" / "sensor.yaml"
+    y.write_text(y.read_text().replace("resolution: [752, 480]", "resolution: [1.0e+300, 480]"))
+    assert main(["calib", "import", "euroc", str(ds), "-o", str(tmp_path / "out.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "sensor.yaml: resolution 1e+300x480 is beyond any camera's" in err, err
+    assert not (tmp_path / "out.yaml").exists()

@@ -21,6 +21,10 @@ from vio.config import refuse_unknown_keys
 from vio.geometry import inv_T, is_se3
 
 DISTORTION_MODELS = ("radtan", "equidistant", "none")
+# A side longer than this is no camera's (the largest machine-vision sensors are ~15000 pixels wide): a typo or
+# another unit. And a focal length over FOCAL_MAX_SIDES image sides is a field of view under 0.6 deg.
+MAX_IMAGE_SIDE = 32768
+FOCAL_MAX_SIDES = 100
 RADTAN_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV's pinhole model accepts
 _DISTORTION_ALIASES = {
     "radtan": "radtan",
@@ -71,6 +75,13 @@ class CameraCalibration:
             raise VioError(f"distortion coefficients must be finite, got {list(self.distortion)}")
         if not (self.width > 0 and self.height > 0):
             raise VioError(f"resolution must be positive, got {self.width}x{self.height}")
+        if max(self.width, self.height) > MAX_IMAGE_SIDE:
+            # 1e300 pixels wide was taken (calib show printed a 301-digit width and principal point offset)
+            raise VioError(f"resolution {self.width:.6g}x{self.height:.6g} is beyond any camera's (at most "
+                           f"{MAX_IMAGE_SIDE} pixels a side): a typo?")
+        if max(self.fx, self.fy) > FOCAL_MAX_SIDES * max(self.width, self.height):
+            raise VioError(f"focal lengths fx={self.fx:.6g}, fy={self.fy:.6g} px are over {FOCAL_MAX_SIDES} times the "
+                           f"{self.width}x{self.height} image (a field of view under 0.6 deg): a typo?")
         if not (isinstance(self.rate_hz, (int, float)) and 0 < self.rate_hz < math.inf):
             # the time-offset code divides by it; the IMU's was refused already, the camera's passed (a QA sweep)
             raise VioError(f"camera rate_hz must be a positive number, got {self.rate_hz!r}")
