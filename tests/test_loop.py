@@ -2423,7 +2423,10 @@ def test_a_map_with_arrays_of_the_wrong_rank_or_kind_or_sizes_it_cannot_hold_is_
              "desc_scalar": (dict(desc=np.array(0, np.uint8)), "damaged map (descriptors"),
              "deep": (dict(header=np.array("[" * 100000 + "]" * 100000)), "not a Kestrel VIO map (its header"),
              "size_true": (dict(header=np.array(str(hdr).replace("752", "true").replace("480", "true"))),
-                           "damaged map (its header has no camera size")}
+                           "damaged map (its header has no camera size"),
+             # a camera 1e300 pixels wide was taken ("camera 1e+300x480", a review's finding)
+             "size_huge": (dict(header=np.array(str(hdr).replace("752", "1e300"))),
+                           "damaged map (its header has no camera size (whole pixels, at most 32768")}
     for name, (change, _) in cases.items():
         np.savez(tmp_path / f"{name}.npz", **{**good, **change})
     _forged_npy_header(tmp_path / "good.npz", tmp_path / "huge.npz", "desc.npy", (10**13, 32), np.uint8)

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
+from vio.calibration import MAX_IMAGE_SIDE
 from vio.geometry import is_se3
 from vio.io.atomic import replace_atomically
 from vio.loop.features import KeyframeFeatures
@@ -185,10 +186,12 @@ def _header_problem(header: dict, n: int) -> str | None:
     cam = header.get("camera")
     if not isinstance(cam, dict) or not all(type(cam.get(k)) in (int, float) and math.isfinite(cam[k])
                                             and cam[k] > 0 for k in ("width", "height", "fx", "fy", "cx", "cy")) \
-            or not all(float(cam[k]).is_integer() for k in ("width", "height")):  # whole pixels: 752.5 was taken
+            or not all(float(cam[k]).is_integer() and cam[k] <= MAX_IMAGE_SIDE for k in ("width", "height")):
+        # whole pixels: 752.5 was taken; and a camera's size: 1e300 was (map info printed 301 digits)
         # the principal point too: the loader re-expresses the map's pixels in the flight's camera with it; not
         # true/false, which Python counts as ints (`vio map info` said "camera TruexTrue")
-        return "its header has no camera size, focal lengths and principal point"
+        return (f"its header has no camera size (whole pixels, at most {MAX_IMAGE_SIDE} a side), focal lengths and "
+                "principal point")
     if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
         try:
             T = np.array(cam["T_body_cam"], dtype=float)
