@@ -3159,3 +3159,26 @@ def test_a_map_with_complex_or_text_pixels_points_or_poses_is_refused_in_one_lin
         assert main(["map", "info", str(tmp_path / "bad.npz")]) == 1, name
         err = capsys.readouterr().err
         assert f"damaged map ({name} stored as" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_map_saved_over_another_keeps_the_file_s_permissions(tmp_path):
+    """A map (or any file replaced whole) was renamed over by a temporary made with the process's default mode: a map
+    kept private (0600) came back readable to every user (0644), one shared with a group for writing (0664) no longer
+    writable by the group (a review's finding). The replacement now keeps the target's permissions; a new file gets
+    the default as before."""
+    from vio.io.atomic import replace_atomically
+    from vio.loop.mapfile import save_map
+
+    path = tmp_path / "m.npz"
+    save_map(path, *_map_contents())
+    old = os.umask(0o022)
+    try:
+        for mode in (0o600, 0o664, 0o640):
+            os.chmod(path, mode)
+            save_map(path, *_map_contents())
+            assert path.stat().st_mode & 0o7777 == mode, oct(path.stat().st_mode)
+        fresh = tmp_path / "new.txt"
+        replace_atomically(fresh, lambda f: f.write(b"x"), durable=False)
+        assert fresh.stat().st_mode & 0o777 == 0o644
+    finally:
+        os.umask(old)

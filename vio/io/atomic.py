@@ -9,6 +9,7 @@ import errno
 import logging
 import os
 import re
+import stat
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -52,15 +53,28 @@ def fsync_folder(folder: Path) -> None:
 
 def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: bool) -> None:
     """Write `path` whole: `write(f)` into temporary_path(path), then renamed over `path` (the temporary removed on
-    any failure, the old file kept). `durable`: the data are synced before the rename and the folder after it, so
-    that a power cut (a drone's battery pulled) leaves the old file or the whole new one, and not the old one once
-    the new one was said to be written (a rename is in the page cache until the folder is synced). Not durable: a
-    file rewritten every second (the status file) or that a restart can do without (the reset counter), where a
-    sync on a busy SD card would hold the writer for up to seconds. OSError as raised, the old file kept; once
-    renamed, a folder that cannot be synced is only said (logged)."""
+    any failure, the old file kept; its permissions kept by the new one). `durable`: the data are synced before the
+    rename and the folder after it, so that a power cut (a drone's battery pulled) leaves the old file or the whole
+    new one, and not the old one once the new one was said to be written (a rename is in the page cache until the
+    folder is synced). Not durable: a file rewritten every second (the status file) or that a restart can do without
+    (the reset counter), where a sync on a busy SD card would hold the writer for up to seconds. OSError as raised,
+    the old file kept; once renamed, a folder that cannot be synced is only said (logged)."""
     tmp = temporary_path(path)
     try:
-        with open(tmp, "wb") as f:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:  # none there yet (or not to be seen): the process's default
+        mode = None
+    try:
+        # the file renamed over keeps its permissions: a map kept private (0600) came back readable to all (0644),
+        # and one shared with a group for writing (0664) no longer writable by it (a review's finding). Created
+        # private, so that nothing is readable to more than the target's mode allows while it is written.
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666 if mode is None else 0o600)
+        with os.fdopen(fd, "wb") as f:
+            if mode is not None:
+                try:
+                    os.fchmod(f.fileno(), mode)
+                except OSError as e:  # a file system without modes (FAT on an SD card): nothing to keep
+                    log.debug("%s: cannot give it the mode of %s (%s)", tmp, path, e.strerror or e)
             write(f)
             if durable:
                 f.flush()
