@@ -170,6 +170,9 @@ def _break(mav0: Path, case: str) -> str:
     if case == "negative":
         _edit_line(imu, 2, "-5" + lines[1][lines[1].index(","):])
         return f"{imu}:2: time stamp -5 is not positive"
+    if case == "beyond_int64":  # an OverflowError, "internal error" (a review's finding)
+        _edit_line(imu, 6, "99999999999999999999999" + lines[5][lines[5].index(","):])
+        return f"{imu}:6: time stamp '99999999999999999999999' is beyond int64 nanoseconds"
     if case == "cam_clock":
         _restamp(cam0, lambda t: t - 10**12)
         return "do not overlap (different clocks"
@@ -205,7 +208,8 @@ def _break(mav0: Path, case: str) -> str:
 
 
 @pytest.mark.parametrize("case", ["no_mav0", "no_cam1", "no_imu_csv", "columns", "not_number", "bad_stamp",
-                                  "unsorted", "duplicate", "seconds", "microseconds", "negative", "cam_clock",
+                                  "unsorted", "duplicate", "seconds", "microseconds", "negative", "beyond_int64",
+                                  "cam_clock",
                                   "binary", "header_only", "intrinsics", "T_BS", "no_yaml", "yaml_text",
                                   "csv_is_folder", "old_last_line"])
 def test_broken_dataset_errors(v101_path, tmp_path, case):

@@ -213,6 +213,8 @@ def _row_problem(parts: list[str], min_cols: int, max_cols: int | None, numeric:
         return "cut" if parts[0] == "" else "stamp", _stamp_text_problem(parts[0])
     if t <= 0:
         return "stamp", f"time stamp {t} is not positive"
+    if t >= 2**63:  # was an OverflowError ("internal error") where the stamps became int64
+        return "stamp", f"time stamp {_short(parts[0])} is beyond int64 nanoseconds (2^63 - 1, the year 2262)"
     if stamps and t == stamps[-1]:
         if parts == prev_parts:
             return "repeat", ""
