@@ -396,6 +396,8 @@ def test_cut_last_lines_repeats_and_nan_rows_are_repaired_and_noted(v101_path, t
      "distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359]", "radtan distortion needs 4, 5, 8"),
     ("rate_hz: 20", "rate_hz: fast", "rate_hz: value 'fast' is not a number"),
     ("rate_hz: 20", "rate_hz: -20", "camera rate_hz must be a positive number"),  # a QA sweep: accepted
+    # a review's: an OverflowError in the time-offset estimator ("internal error")
+    ("rate_hz: 20", "rate_hz: 1.0e+300", "camera rate_hz = 1e+300 is beyond any camera's"),
     ("T_BS:", "T_XX:", "missing key 'T_BS'"),
 ])
 def test_camera_yaml_errors_name_file_and_key(v101_path, tmp_path, old, new, expected):
@@ -557,3 +559,15 @@ def test_an_image_folder_removed_under_the_writer_is_said_by_the_writer(tmp_path
     assert storage_diagnosis(tmp_path / "rec", said) == ""
     shutil.rmtree(tmp_path / "rec")
     assert storage_diagnosis(tmp_path / "rec") == " (the recording folder was removed)"
+
+
+def test_an_imu_rate_no_imu_has_is_refused_naming_the_file(v101_path, tmp_path):
+    """imu0/sensor.yaml's rate_hz of 1e300 was taken, unsaid (a review's finding); the camera's ended vio replay in
+    an OverflowError (test_camera_yaml_errors_name_file_and_key)."""
+    root = _copy(v101_path, tmp_path / "ds")
+    y = root / "mav0" / "imu0" / "sensor.yaml"
+    assert "rate_hz: 200" in y.read_text()
+    y.write_text(y.read_text().replace("rate_hz: 200", "rate_hz: 1.0e+300"))
+    with pytest.raises(VioError) as e:
+        EurocDataset(root)
+    assert str(e.value).startswith(f"{y}: ") and "IMU rate_hz = 1e+300 is beyond any IMU's" in str(e.value), e.value

@@ -25,6 +25,9 @@ DISTORTION_MODELS = ("radtan", "equidistant", "none")
 # another unit. And a focal length over FOCAL_MAX_SIDES image sides is a field of view under 0.6 deg.
 MAX_IMAGE_SIDE = 32768
 FOCAL_MAX_SIDES = 100
+# the rates a camera or an IMU has (the EuRoC reader's stamp check takes the same: camera to 1 kHz, IMU to 100 kHz)
+MAX_CAMERA_RATE_HZ = 1e3
+MAX_IMU_RATE_HZ = 1e5
 RADTAN_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV's pinhole model accepts
 _DISTORTION_ALIASES = {
     "radtan": "radtan",
@@ -85,6 +88,9 @@ class CameraCalibration:
         if not (isinstance(self.rate_hz, (int, float)) and 0 < self.rate_hz < math.inf):
             # the time-offset code divides by it; the IMU's was refused already, the camera's passed (a QA sweep)
             raise VioError(f"camera rate_hz must be a positive number, got {self.rate_hz!r}")
+        if self.rate_hz > MAX_CAMERA_RATE_HZ:  # 1e300 ended vio replay in an OverflowError (a review's finding)
+            raise VioError(f"camera rate_hz = {self.rate_hz:g} is beyond any camera's (at most "
+                           f"{MAX_CAMERA_RATE_HZ:g} Hz): a typo?")
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
             raise VioError(f"principal point ({self.cx}, {self.cy}) lies outside the {self.width}x{self.height} image")
         n = len(self.distortion)
@@ -159,6 +165,9 @@ class ImuNoise:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise VioError(f"IMU noise {name} must be a positive number, got {v!r}")
+        if self.rate_hz > MAX_IMU_RATE_HZ:  # 1e300 was taken
+            raise VioError(f"IMU rate_hz = {self.rate_hz:g} is beyond any IMU's (at most {MAX_IMU_RATE_HZ:g} Hz): "
+                           "a typo?")
 
     def discrete_sigmas(self) -> dict[str, float]:
         """Per-sample sigmas at `rate_hz`: white noise of one sample and the bias step between samples."""
