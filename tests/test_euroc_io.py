@@ -299,7 +299,9 @@ def test_kestrel_yaml_refuses_a_key_it_does_not_know(tmp_path):
     yaml = tmp_path / "rec" / "mav0" / "kestrel.yaml"
     assert EurocDataset(tmp_path / "rec").calibration.time_offset_ns == _calibration().time_offset_ns
     for text, says in (("time_offset_ms: 5\n", "unknown key 'time_offset_ms' (did you mean 'time_offset_ns'?)"),
-                       ("- 5\n", "mapping")):
+                       ("- 5\n", "mapping"),
+                       # vio replay's "internal error: OverflowError" (a review's finding)
+                       ("time_offset_ns: 99999999999999999999999\n", "is beyond int64 nanoseconds")):
         yaml.write_text(text)
         with pytest.raises(VioError, match=re.escape(says)):
             _ = EurocDataset(tmp_path / "rec").calibration

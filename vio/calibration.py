@@ -405,6 +405,9 @@ def time_offset_ns_from(off: object, where: str) -> int:
         hint = f"; {off!r} s would be {round(off * 1e9)}" if isinstance(off, float) and off == off else ""
         raise VioError(f"{where}: time_offset_ns = {off!r}: whole nanoseconds (t_imu = t_cam + time_offset_ns)"
                        f"{hint}")
+    if not -(2**63) < off < 2**63:  # added to int64 stamps: an OverflowError ("internal error", a review's finding)
+        raise VioError(f"{where}: time_offset_ns = {off!r} is beyond int64 nanoseconds (a camera-IMU offset is "
+                       f"milliseconds: {MAX_TIME_OFFSET_S * 1e3:.0f} ms at most)")
     return int(off)
 
 
