@@ -291,6 +291,14 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
                        (["simulate", str(tmp_path / "s"), "--duration", "-3"], "--duration -3.0 is outside [0.1, 3600"),
                        (["simulate", str(tmp_path / "s"), "--size", "10x10"], "--size width 10 is outside"),
                        (["simulate", str(tmp_path / "s"), "--right-dropout", "1:x"], "expected START:LENGTH"),
+                       # internal errors (numpy's ValueError / OverflowError) or taken unsaid before (a review's)
+                       (["simulate", str(tmp_path / "s"), "--seed", "-1"], "--seed -1 is not a whole number >= 0"),
+                       (["simulate", str(tmp_path / "s"), "--scene-seed", "-3"], "--scene-seed -3 is not a whole"),
+                       (["simulate", str(tmp_path / "s"), "--aliasing", "nan"], "--aliasing nan is outside [0, 1000]"),
+                       (["simulate", str(tmp_path / "s"), "--aliasing", "inf"], "--aliasing inf is outside"),
+                       (["simulate", str(tmp_path / "s"), "--aliasing", "-1"], "--aliasing -1.0 is outside"),
+                       (["simulate", str(tmp_path / "s"), "--recorded-start", "nan"],
+                        "--recorded-start nan is negative or not a number"),
                        # exit 1 after the folder was made and the scene built, before
                        (["simulate", str(tmp_path / "s"), "--scene", "hall", "--aliasing", "1.5"],
                         "--aliasing is for the room scene only")):

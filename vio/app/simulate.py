@@ -87,7 +87,8 @@ _OPTION_OF = {"duration_s": "--duration", "rate_hz": "--rate", "imu_rate_hz": "-
               "stereo_error_px": "--stereo-error", "time_offset_drift_ms": "--time-offset-drift-ms",
               "time_offset_period_s": "--drift-period",
               "stamp_jitter_ms": "--stamp-jitter-ms", "recorded_start_s": "--recorded-start",
-              "stamp_stall_every_s": "--stamp-stalls EVERY_S", "stamp_stall_ms": "--stamp-stalls MS"}
+              "stamp_stall_every_s": "--stamp-stalls EVERY_S", "stamp_stall_ms": "--stamp-stalls MS",
+              "seed": "--seed", "scene_seed": "--scene-seed", "aliasing_period_m": "--aliasing"}
 
 
 def _size(text: str) -> tuple[int, int]:

@@ -135,8 +135,17 @@ class SimConfig:
                 or not math.isfinite(cfg.stamp_stall_every_s):
             raise VioError(f"simulate: stamp stalls need both a mean interval of at least 0.5 s and a length, got "
                            f"every {cfg.stamp_stall_every_s} s for {cfg.stamp_stall_ms} ms")
-        if cfg.recorded_start_s < 0:
-            raise VioError(f"simulate: recorded_start_s = {cfg.recorded_start_s} is negative")
+        if not cfg.recorded_start_s >= 0:  # NaN too
+            raise VioError(f"simulate: recorded_start_s = {cfg.recorded_start_s} is negative or not a number")
+        # numpy seeds are whole numbers >= 0 (-1 ended in "internal error: ValueError"); a repeat period that is not
+        # a length in metres (NaN, inf: an internal error; -1: tiles of 8 texels, unsaid) (a review's finding)
+        for name in ("seed", "scene_seed"):
+            v = getattr(cfg, name)
+            if v is not None and not (isinstance(v, (int, np.integer)) and v >= 0):
+                raise VioError(f"simulate: {name} = {v} is not a whole number >= 0")
+        if cfg.aliasing_period_m is not None and not 0 <= cfg.aliasing_period_m <= 1000:
+            raise VioError(f"simulate: aliasing_period_m = {cfg.aliasing_period_m} is outside [0, 1000] (metres; 0: "
+                           "no repetition)")
         # delays are capped at half a period (keep the cap rare: 8 % of frames at a fifth); over a tenth the
         # frame clock no longer restamps (its spread start bound), which is how a camera that jitters that much is flown
         if cfg.stamp_jitter_ms * 1e-3 * cfg.rate_hz > 0.2:
