@@ -58,7 +58,9 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
     for argv, says in ((["replay", "d", "-o", "t.tum", "--max-frames", "0"], "--max-frames: must be at least 1"),
                        (["calib", "check", "-", "d", "--max-frames", "-3"], "--max-frames: must be at least 1"),
                        (["calib", "time-offset", "d", "--max-offset-ms", "-5"], "must be a positive number"),
-                       (["eval", "e.tum", "g", "--run", "0"], "--run: must be at least 1")):
+                       (["eval", "e.tum", "g", "--run", "0"], "--run: must be at least 1"),
+                       # beyond a C int: "internal error: ValueError" in cv2.setNumThreads (a review's finding)
+                       (["replay", "d", "--threads", "99999999999"], "--threads: 99999999999 is above 1024")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv

@@ -42,6 +42,9 @@ _HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unu
 _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 
+MAX_THREADS = 1024  # more OpenCV threads than any companion computer has cores
+
+
 def _threads(text: str) -> int:
     """--threads: a whole number >= 0."""
     try:
@@ -50,6 +53,8 @@ def _threads(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
     if n < 0:
         raise argparse.ArgumentTypeError(f"{n} is below 0 (0: OpenCV's default pool)")
+    if n > MAX_THREADS:  # beyond a C int, cv2.setNumThreads ended the replay in an internal error (a review's)
+        raise argparse.ArgumentTypeError(f"{n} is above {MAX_THREADS}")
     return n
 
 
