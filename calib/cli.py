@@ -10,7 +10,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from vio.argtypes import positive_float, positive_int
+from vio.argtypes import positive_float, positive_int, seconds_from_start
 from vio.evaluation import require_plot
 from vio.io.outputs import check_new_file as check_output
 
@@ -53,8 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     s = sub.add_parser("imu-noise", help="IMU noise densities and random walks from Allan deviation")
     s.add_argument("dataset", type=Path, help="EuRoC dataset (or its imu0/data.csv)")
-    s.add_argument("--start", type=float, default=None, help="first second to use (from the IMU start)")
-    s.add_argument("--end", type=float, default=None, help="last second to use (from the IMU start)")
+    s.add_argument("--start", type=seconds_from_start, default=None, help="first second to use (from the IMU start)")
+    s.add_argument("--end", type=seconds_from_start, default=None, help="last second to use (from the IMU start)")
     s.add_argument("--plot", type=Path, help="write the Allan deviation plot (PNG)")
     s.add_argument("-o", "--output", type=Path, help="write kalibr-style imu.yaml with the fitted noise")
     s.add_argument("--overwrite", action="store_true", help="replace --output if it exists")

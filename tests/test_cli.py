@@ -60,7 +60,11 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
                        (["calib", "time-offset", "d", "--max-offset-ms", "-5"], "must be a positive number"),
                        (["eval", "e.tum", "g", "--run", "0"], "--run: must be at least 1"),
                        # beyond a C int: "internal error: ValueError" in cv2.setNumThreads (a review's finding)
-                       (["replay", "d", "--threads", "99999999999"], "--threads: 99999999999 is above 1024")):
+                       (["replay", "d", "--threads", "99999999999"], "--threads: 99999999999 is above 1024"),
+                       # "internal error" ValueError / OverflowError, and -5 taken as 0 (a review's finding)
+                       (["calib", "imu-noise", "d", "--start", "nan"], "--start: must be seconds from the recording"),
+                       (["calib", "imu-noise", "d", "--start", "1e300"], "--start: must be seconds"),
+                       (["calib", "imu-noise", "d", "--end", "-5"], "--end: must be seconds")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv

@@ -36,3 +36,22 @@ def positive_float(text: str) -> float:
 
 
 positive_float.__name__ = "positive number"
+
+
+MAX_SECONDS = 1e7  # 115 days: longer than any recording; its nanoseconds fit an int64 with room to spare
+
+
+def seconds_from_start(text: str) -> float:
+    """A time in a recording, in seconds from its start: finite, 0 .. MAX_SECONDS (nan ended `vio calib imu-noise
+    --start` in an internal error, 1e300 in an OverflowError; -5 was taken as 0, unsaid)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not 0 <= v <= MAX_SECONDS:
+        raise argparse.ArgumentTypeError(f"must be seconds from the recording's start, 0 to {MAX_SECONDS:g}, got "
+                                         f"{text}")
+    return v
+
+
+seconds_from_start.__name__ = "seconds from the start"
