@@ -64,7 +64,8 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
                        # "internal error" ValueError / OverflowError, and -5 taken as 0 (a review's finding)
                        (["calib", "imu-noise", "d", "--start", "nan"], "--start: must be seconds from the recording"),
                        (["calib", "imu-noise", "d", "--start", "1e300"], "--start: must be seconds"),
-                       (["calib", "imu-noise", "d", "--end", "-5"], "--end: must be seconds")):
+                       (["calib", "imu-noise", "d", "--end", "-5"], "--end: must be seconds"),
+                       (["demo", "--seed", "-1"], "--seed: must be at least 0")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv

@@ -10,13 +10,15 @@ import os
 import tempfile
 from pathlib import Path
 
+from vio.argtypes import int_at_least
 from vio.sim.motion import PROFILES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=20.0, help="flight length in seconds (default 20)")
     p.add_argument("--profile", choices=PROFILES, default="survey", help="simulated motion profile (default survey)")
-    p.add_argument("--seed", type=int, default=1, help="random seed of the flight")
+    # numpy takes no negative seed: -1 was an error after the temporary folder was made and the scene built
+    p.add_argument("--seed", type=int_at_least(0), default=1, help="random seed of the flight")
     p.add_argument("--keep", metavar="DIR", help="write the dataset and trajectory here instead of a temp folder")
     # `vio -q demo` sets it too (cli.main): -q drew both progress bars, as demo had no way to turn them off
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
