@@ -131,6 +131,9 @@ def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ste
                        "expected a number of seconds") from None
     if not all(math.isfinite(x) for x in shifts):
         raise VioError(f"{chain_path}: timeshift_cam_imu = {shifts}: seconds, finite")
+    if not all(abs(x) * 1e9 < 2**63 for x in shifts):  # 1e300 ended in an OverflowError (a review's finding)
+        raise VioError(f"{chain_path}: timeshift_cam_imu = {[f'{x:g}' for x in shifts]} s is beyond int64 "
+                       "nanoseconds (a camera-IMU offset is milliseconds)")
     if abs(shifts[0] - shifts[1]) > 1e-4:
         notes.add(f"{chain_path}: cam0/cam1 timeshift_cam_imu differ ({shifts[0]:.6f} vs {shifts[1]:.6f} s); "
                   "using cam0's (stereo frames are hardware-synchronised here)")

@@ -111,6 +111,9 @@ def test_kalibr_values_of_the_wrong_type_are_named_in_one_line(tmp_path, capsys)
             r"timeshift_cam_imu = \['abc', 'abc'\]: expected a number of seconds",
         text.replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: foo"):
             r"cam0: intrinsics must be a list \[fx, fy, cx, cy\], got 'foo'",
+        # 'internal error: OverflowError' (a review's finding)
+        text.replace("timeshift_cam_imu: -0.0052", "timeshift_cam_imu: 1.0e+300"):
+            r"timeshift_cam_imu = \['1e\+300', '1e\+300'\] s is beyond int64 nanoseconds",
     }
     f, out = tmp_path / "camchain.yaml", tmp_path / "c.yaml"
     for content, message in cases.items():
