@@ -111,6 +111,11 @@ def test_kalibr_values_of_the_wrong_type_are_named_in_one_line(tmp_path, capsys)
             r"timeshift_cam_imu = \['abc', 'abc'\]: expected a number of seconds",
         text.replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: foo"):
             r"cam0: intrinsics must be a list \[fx, fy, cx, cy\], got 'foo'",
+        # fx = 1 px and a number read from text, unsaid (a review's finding)
+        text.replace("intrinsics: [458.654, 457.296,", "intrinsics: [true, 457.296,"):
+            r"cam0: intrinsics must be four numbers \[fx, fy, cx, cy\], got \[True,",
+        text.replace("intrinsics: [457.587, 456.134,", "intrinsics: ['457.5', 456.134,"):
+            r"cam1: intrinsics must be four numbers",
         # 'internal error: OverflowError' (a review's finding)
         text.replace("timeshift_cam_imu: -0.0052", "timeshift_cam_imu: 1.0e+300"):
             r"timeshift_cam_imu = \['1e\+300', '1e\+300'\] s is beyond int64 nanoseconds",

@@ -304,6 +304,9 @@ def camera_from_dict(d: dict, where: str, kalibr: bool = False) -> CameraCalibra
             raise VioError(f"{where}: intrinsics must be a list [fx, fy, cx, cy], got {intrinsics!r:.40}")
         if len(intrinsics) != 4:
             raise VioError(f"{where}: intrinsics must be [fx, fy, cx, cy], got {len(intrinsics)} values")
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in intrinsics):
+            # float() took true for a focal length of 1 px and the text "458.6" for a number (a review's finding)
+            raise VioError(f"{where}: intrinsics must be four numbers [fx, fy, cx, cy], got {intrinsics!r:.80}")
         fx, fy, cx, cy = (float(x) for x in intrinsics)
         res = list(_need(d, "resolution", where))
         if len(res) != 2 or not all(isinstance(x, int) and not isinstance(x, bool) or
