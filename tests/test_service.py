@@ -160,6 +160,9 @@ def test_status_verdicts() -> None:
     code, verdict = evaluate(_status(pid=int(dead.stdout)), 1001.0, 3.0)
     assert code == EXIT_NOT_RUNNING and verdict.startswith("NOT RUNNING (pid"), verdict
     assert evaluate(_status(pid=os.getpid()), 1001.0, 3.0)[0] == EXIT_HEALTHY
+    # a pid beyond any process's (a damaged file): 'internal error: OverflowError' before (a review's finding)
+    code, verdict = evaluate(_status(pid=10**23), 1001.0, 3.0)
+    assert code == EXIT_NOT_RUNNING and verdict.startswith("NOT RUNNING (pid"), verdict
 
 
 def test_status_json_of_a_daemon_that_is_gone_says_so(tmp_path, capsys) -> None:

@@ -54,7 +54,7 @@ def _pid_gone(pid: Any) -> bool:
         return False
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):  # OverflowError: no process has it (was an internal error)
         return True
     except OSError:  # another user's process (EPERM): it exists
         return False
