@@ -2884,6 +2884,19 @@ def test_train_vocab_cli_writes_the_file_it_names_and_refuses_bad_settings(tmp_p
         assert e.value.code == 2 and "must be at least" in capsys.readouterr().err, bad
     assert main(["-q", "loop", "train-vocab", str(data), "-o", str(data / "mav0" / "voc.npz")]) == 1
     assert "into the recording" in capsys.readouterr().err
+    # internal errors (MemoryError asking 260 PiB, numpy's "maximum dimension", OpenCV's C int) and a branching
+    # beyond the descriptors said as "no ORB corners to speak of" (a review's finding)
+    with pytest.raises(SystemExit) as e:
+        main(["loop", "train-vocab", str(data), "-o", str(tmp_path / "v2.npz"), "--features", "999999999999999"])
+    assert e.value.code == 2 and "--features: must be at most 100000" in capsys.readouterr().err
+    for bad in (["--branching", "64", "--depth", "8"], ["--depth", "99999"]):
+        assert main(["loop", "train-vocab", str(data), "-o", str(tmp_path / "v2.npz"), *bad]) == 2, bad
+        err = capsys.readouterr().err
+        assert "words, more than the 1048576 a vocabulary can have" in err and len(err.strip().splitlines()) == 1, err
+    assert main(["-q", "loop", "train-vocab", str(data), "-o", str(tmp_path / "v2.npz"), "--every", "4",
+                 "--branching", "100000", "--depth", "1"]) == 1
+    assert "--branching 100000 needs 200000 descriptors or more" in capsys.readouterr().err
+    assert not (tmp_path / "v2.npz").exists()
 
 
 def test_train_vocab_reads_16_bit_images_as_the_replay_does(tmp_path, capsys):

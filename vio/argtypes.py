@@ -7,8 +7,8 @@ import argparse
 from collections.abc import Callable
 
 
-def int_at_least(low: int) -> Callable[[str], int]:
-    """An integer >= low."""
+def int_at_least(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An integer >= low (and <= high, when given)."""
     def parse(text: str) -> int:
         try:
             v = int(text)
@@ -16,6 +16,8 @@ def int_at_least(low: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
         if v < low:
             raise argparse.ArgumentTypeError(f"must be at least {low}, got {v}")
+        if high is not None and v > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {v}")
         return v
     parse.__name__ = f"integer >= {low}"  # what argparse names in its "invalid ... value" message
     return parse

@@ -6,12 +6,18 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 
 import numpy as np
 
 from vio.argtypes import int_at_least, positive_int
 
 log = logging.getLogger(__name__)
+
+# A tree of more words is no vocabulary: training samples at most 60000 descriptors, so most words stay empty, and
+# its nodes (1 KB each while trained) outgrow a companion computer's memory (64^8 asked for 260 PiB: a MemoryError)
+MAX_WORDS = 2**20
+MAX_FEATURES = 100_000  # ORB corners per image (beyond a C int: an internal error in OpenCV)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--branching", type=int_at_least(2), default=8, help="children per node (default: 8)")
     t.add_argument("--depth", type=positive_int, default=4,
                    help="levels below the root: branching^depth words (default: 4)")
-    t.add_argument("--features", type=positive_int, default=300, help="ORB corners per image")
+    t.add_argument("--features", type=int_at_least(1, MAX_FEATURES), default=300, help="ORB corners per image")
 
 
 def _descriptors(dataset: str, every: int, n_features: int) -> tuple[list[np.ndarray], int]:
@@ -50,11 +56,14 @@ def _descriptors(dataset: str, every: int, n_features: int) -> tuple[list[np.nda
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from vio import VioError
+    from vio import UsageError, VioError
     from vio.io.outputs import check_new_file
     from vio.loop.vocabulary import train
 
     if args.loop_command == "train-vocab":
+        if args.depth * math.log(args.branching) > math.log(MAX_WORDS):  # before any work; no k^d for a huge d
+            raise UsageError(f"--branching {args.branching} --depth {args.depth}: {args.branching}^{args.depth} words, "
+                             f"more than the {MAX_WORDS} a vocabulary can have (8^4 = 4096 by default)")
         out = Path(args.output)
         check_new_file(out, args.overwrite, *args.datasets)
         desc, tried = [], 0
@@ -68,8 +77,11 @@ def run(args: argparse.Namespace) -> int:
                               "; give more images or a smaller --every"))
         n_desc = sum(len(d) for d in desc)
         if n_desc < 2 * args.branching:
+            # 2700 descriptors and --branching 10^11 were said as "no ORB corners to speak of"
             raise VioError(f"no ORB corners to speak of in the {len(desc)} images read ({n_desc} descriptors): "
-                           "are they dark, blank or out of focus?")
+                           "are they dark, blank or out of focus?" if n_desc < 16 else
+                           f"--branching {args.branching} needs {2 * args.branching} descriptors or more, the "
+                           f"{len(desc)} images read gave {n_desc}: use a smaller --branching or more images")
         voc = train(desc, args.branching, args.depth)
         if voc.n_words > n_desc:  # most words never hold a descriptor: retrieval by a handful of sparse words
             log.warning("%d words from %d descriptors: most words are empty and retrieval poor; use fewer levels "
