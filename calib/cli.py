@@ -215,6 +215,11 @@ def _run_refine(args: argparse.Namespace) -> int:
     run = replay_states(args.dataset, cfg.estimator,
                         calibration=load_calibration(args.calibration) if args.calibration else None)
     est, calib = run.estimator, run.dataset.calibration
+    if not run.frame_states:  # a recording without readable images was said as "no keyframe had enough rotation"
+        st = run.dataset.stats
+        bad = st.missing_images + st.unreadable_images
+        why = f" ({bad} of {len(run.dataset)} frames' images missing or unreadable, warned above)" if bad else ""
+        raise VioError(f"{args.dataset}: the estimator never initialised{why}; nothing was refined")
     refined = est.refinement_stats()
     if args.stereo_only and not refined:
         raise VioError(f"{args.dataset}: the estimator never initialised; nothing was refined")

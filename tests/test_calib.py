@@ -1140,3 +1140,21 @@ def test_a_camera_size_or_focal_length_no_camera_has_is_refused_in_one_line(tmp_
     err = capsys.readouterr().err
     assert "sensor.yaml: resolution 1e+300x480 is beyond any camera's" in err, err
     assert not (tmp_path / "out.yaml").exists()
+
+
+def test_calib_refine_of_a_recording_without_readable_images_says_so(tmp_path, capsys):
+    """`vio calib refine` of a recording whose left images are all missing said 'no keyframe had enough rotation to
+    refine the extrinsics (a hover or straight flight)': the wrong cause, and the wrong remedy (a review's finding).
+    It now says the estimator never initialised and how many images could not be read."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=2.0, width=188, height=120, variant="clean"), progress=False)
+    for png in (data / "mav0" / "cam0" / "data").iterdir():
+        png.unlink()
+    out = tmp_path / "refined.yaml"
+    assert main(["-q", "calib", "refine", str(data), "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "the estimator never initialised (41 of 41 frames' images missing or unreadable" in err, err
+    assert "rotation" not in err and not out.exists()
