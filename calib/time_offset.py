@@ -111,7 +111,12 @@ def visual_rotations(dataset, cam: CameraCalibration, step: int = 1, max_corners
                 infos.append(res[2])
         prev = frame
     if len(t0s) < 10:
-        raise VioError(f"only {len(t0s)} usable frame pairs for the time offset (need 10); too little texture?")
+        # images that could not be read were said as "too little texture?" (a review's finding)
+        stats = getattr(dataset, "stats", None)
+        bad = stats.missing_images + stats.unreadable_images if stats is not None else 0
+        why = f"{bad} of {len(dataset)} frames' images missing or unreadable (warned above)" if bad else \
+            "too little texture?"
+        raise VioError(f"only {len(t0s)} usable frame pairs for the time offset (need 10); {why}")
     return VisualRotations(np.array(t0s, np.int64), np.array(t1s, np.int64), np.array(thetas), np.array(ns),
                            np.array(infos))
 

@@ -1158,3 +1158,18 @@ def test_calib_refine_of_a_recording_without_readable_images_says_so(tmp_path, c
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "the estimator never initialised (41 of 41 frames' images missing or unreadable" in err, err
     assert "rotation" not in err and not out.exists()
+
+
+def test_calib_time_offset_of_a_recording_without_readable_images_says_so(tmp_path, capsys):
+    """`vio calib time-offset` of a recording whose left images are all missing said 'only 0 usable frame pairs ...;
+    too little texture?' (a review's finding): it now says how many images could not be read."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=2.0, width=188, height=120, variant="clean"), progress=False)
+    for png in (data / "mav0" / "cam0" / "data").iterdir():
+        png.unlink()
+    assert main(["-q", "calib", "time-offset", str(data)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "only 0 usable frame pairs" in err and "41 of 41 frames' images missing or unreadable" in err, err
