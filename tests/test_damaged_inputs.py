@@ -423,3 +423,23 @@ def test_no_output_is_written_into_the_recording_it_reads(flight, tmp_path, caps
                  "10"]) == 0
     assert (flight / "est.tum").is_file()
     (flight / "est.tum").unlink()
+
+
+def test_a_device_named_as_a_configuration_calibration_or_trajectory_is_one_line_not_a_hang(tmp_path):
+    """`vio config check /dev/zero`, `vio calib show /dev/urandom`, `vio eval /dev/zero GT` (or a serial port named as
+    `[source] calibration`) read the device for ever, memory growing: no message, no exit (a review's finding). A
+    device is refused in one line; a pipe is still read (`--config <(...)`)."""
+    for args, says in ((["config", "check", "/dev/zero"], "/dev/zero: is a device, not a configuration file"),
+                       (["calib", "show", "/dev/urandom"], "/dev/urandom: is a device, not a calibration file"),
+                       (["eval", "/dev/zero", str(tmp_path)], "/dev/zero: is a device, not a trajectory file")):
+        r = _vio(*args, timeout=60)
+        assert r.returncode != 0 and says in r.stderr, (args, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    fifo = tmp_path / "c.toml"
+    os.mkfifo(fifo)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    p = subprocess.Popen([sys.executable, "-m", "vio.app.cli", "config", "check", str(fifo)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=env)
+    fifo.write_text("[source]\nkind = 'fake'\n")
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 0 and "OK" in out, (out, err)

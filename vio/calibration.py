@@ -19,6 +19,7 @@ import yaml
 from vio import VioError
 from vio.config import refuse_unknown_keys
 from vio.geometry import inv_T, is_se3
+from vio.io.inputs import read_user_file
 
 DISTORTION_MODELS = ("radtan", "equidistant", "none")
 # A side longer than this is no camera's (the largest machine-vision sensors are ~15000 pixels wide): a typo or
@@ -418,7 +419,7 @@ def load_yaml(path: Path) -> dict:
     """Read YAML, tolerating OpenCV's '%YAML:1.0' first line (EuRoC, VINS) that PyYAML rejects."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = read_user_file(path, "calibration").decode("utf-8")
     except OSError as e:
         raise VioError(f"{path}: cannot read ({e.strerror})") from None
     except UnicodeDecodeError as e:

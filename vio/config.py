@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from vio import VioError
+from vio.io.inputs import read_user_file
 from vio.serial_url import split_serial_url
 
 if sys.version_info >= (3, 11):
@@ -793,7 +794,7 @@ def load_config(path: str | Path | None) -> VioConfig:
         return VioConfig()
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        raw = read_user_file(path, "configuration")
     except OSError as e:
         raise VioError(f"{path}: cannot read config ({e.strerror})") from None
     try:

@@ -164,12 +164,14 @@ def load_trajectory(path: str | Path, run: int | None = None) -> Trajectory:
     to, run number `run` (default: the last; `read_tum`).
     """
     from vio.io.euroc import find_mav0, read_groundtruth_csv
+    from vio.io.inputs import refuse_device
 
     path = Path(path)
     if not path.exists():
         raise VioError(f"{path}: file not found")
     if path.is_dir():
         return read_groundtruth_csv(find_mav0(path) / "state_groundtruth_estimate0" / "data.csv").trajectory
+    refuse_device(path, "trajectory")  # /dev/zero was read for ever looking for its first line
     if _looks_like_euroc_csv(path):
         return read_groundtruth_csv(path).trajectory
     return read_tum(path, run)

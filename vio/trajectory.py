@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from vio import VioError
 from vio.geometry import quat_wxyz_to_rot
+from vio.io.inputs import read_user_file
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
     in the log when there are more."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = read_user_file(path, "trajectory", limit=None).decode("utf-8")
     except OSError as e:
         raise VioError(f"{path}: cannot read ({e.strerror})") from None
     except UnicodeDecodeError:
