@@ -431,7 +431,10 @@ def test_a_device_named_as_a_configuration_calibration_or_trajectory_is_one_line
     device is refused in one line; a pipe is still read (`--config <(...)`)."""
     for args, says in ((["config", "check", "/dev/zero"], "/dev/zero: is a device, not a configuration file"),
                        (["calib", "show", "/dev/urandom"], "/dev/urandom: is a device, not a calibration file"),
-                       (["eval", "/dev/zero", str(tmp_path)], "/dev/zero: is a device, not a trajectory file")):
+                       (["eval", "/dev/zero", str(tmp_path)], "/dev/zero: is a device, not a trajectory file"),
+                       (["status", "--file", "/dev/zero"], "/dev/zero: cannot read status: is a device"),
+                       (["batch", str(tmp_path), "-o", str(tmp_path / "r"), "--compare", "/dev/zero"],
+                        "/dev/zero: is a device, not a batch report file")):
         r = _vio(*args, timeout=60)
         assert r.returncode != 0 and says in r.stderr, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from vio import VioError
 from vio.argtypes import positive_int
+from vio.io.inputs import read_user_file
 
 log = logging.getLogger(__name__)
 
@@ -435,7 +436,7 @@ def load_report(path: str | Path) -> dict:
     if p.is_dir():
         p = p / "report.json"
     try:
-        report = json.loads(p.read_text())
+        report = json.loads(read_user_file(p, "batch report", limit=None).decode("utf-8"))  # not a device: a hang
     except OSError as e:
         raise VioError(f"{p}: cannot read the report ({e.strerror})") from None
     except UnicodeDecodeError:  # a binary file: was an internal error

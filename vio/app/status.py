@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from vio.argtypes import positive_float
+from vio.io.inputs import is_device
 
 EXIT_HEALTHY = 0
 EXIT_UNHEALTHY = 1
@@ -42,6 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def read_status(path: Path) -> dict[str, Any]:
     """Parse the status file; OSError / ValueError mean 'not running' to the caller."""
+    if is_device(path):  # /dev/zero was read for ever (a review's finding)
+        raise ValueError("is a device, not a status file")
     data = json.loads(path.read_text())
     if not isinstance(data, dict) or "state" not in data:
         raise ValueError("not a kestrel-vio status file")

@@ -12,14 +12,19 @@ from vio import VioError
 SETTINGS_LIMIT = 64 << 20  # no configuration or calibration file comes near 64 MiB
 
 
-def refuse_device(path: Path, what: str) -> None:
-    """VioError when `path` is a character or block device (reading one never ends); anything else passes, a path
-    that cannot be looked at too (its reader says why)."""
+def is_device(path: Path) -> bool:
+    """Is `path` a character or block device (reading one may never end)? False for a path that cannot be looked at
+    (its reader says why)."""
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        return
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+
+
+def refuse_device(path: Path, what: str) -> None:
+    """VioError naming `path` when it is a device; anything else passes."""
+    if is_device(path):
         raise VioError(f"{path}: is a device, not a {what} file")
 
 
