@@ -389,3 +389,19 @@ def test_a_path_written_with_a_tilde_is_refused_not_made_in_the_working_folder(t
                                     "not expanded in a configuration (the service's home is not yours either): give "
                                     f"the whole path, e.g. {os.path.expanduser('~/kestrel/x')!r}"), r.stderr
         assert not (tmp_path / "~").exists()
+
+
+def test_a_path_over_the_file_system_s_name_limit_is_one_line_in_every_command(tmp_path, capsys):
+    """A file or folder name over 255 bytes met the file system's ENAMETOOLONG in whichever look-up came first:
+    `vio replay`, `batch`, `eval`, `calib import / imu-noise / check`, `loop train-vocab`, `simulate --imu-from`
+    each ended in "internal error: OSError" (a review's finding). One line naming the path now, exit 1."""
+    long = str(tmp_path / ("a" * 300))
+    for argv in (["replay", long, "-o", str(tmp_path / "t.tum")], ["replay", str(tmp_path), "-o", long + ".tum"],
+                 ["batch", long, "-o", str(tmp_path / "r")], ["eval", long, str(tmp_path)],
+                 ["calib", "imu-noise", long], ["calib", "import", "euroc", long, "-o", str(tmp_path / "c.yaml")],
+                 ["calib", "check", "-", long], ["loop", "train-vocab", str(tmp_path), "-o", long + ".npz"],
+                 ["simulate", str(tmp_path / "s"), "--imu-from", long]):
+        assert main(argv) != 0, argv
+        err = capsys.readouterr().err
+        assert "File name too long" in err and "internal error" not in err, (argv, err)
+        assert len(err.strip().splitlines()) == 1, (argv, err)

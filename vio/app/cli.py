@@ -35,8 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
 # Exit codes shared by all commands.
 EXIT_OK = 0
 # OSErrors that are the user's to fix (what they pointed a command at), said in one line, not as internal errors
+# ENAMETOOLONG: a path given over the file system's limits, met in any of the look-ups a command makes (a review's
+# finding: `vio replay`, `batch`, `eval`, `calib import / imu-noise / check`, ... each ended in an internal error)
 _USER_OS_ERRORS = (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.ENOENT, errno.ENOTDIR,
-                   errno.EISDIR, errno.EEXIST)
+                   errno.EISDIR, errno.EEXIST, errno.ENAMETOOLONG)
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_CONFIG = 3
