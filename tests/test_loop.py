@@ -3195,3 +3195,28 @@ def test_a_map_saved_over_another_keeps_the_file_s_permissions(tmp_path):
         assert fresh.stat().st_mode & 0o777 == 0o644
     finally:
         os.umask(old)
+
+
+def test_a_map_with_a_keyframe_or_a_point_beyond_any_flight_is_refused(tmp_path, capsys):
+    """A keyframe 1e300 m from the map's origin, or a stereo point 1e300 m from its camera (finite, rigid, stored as
+    float64) loaded: `vio map info` printed the extent '1e+300' and a flight relocalised on it would be placed there
+    (a review's finding). Refused as damaged in one line; a map of points without depth (NaN) still loads."""
+    from vio.app.cli import main
+
+    cam = '"camera": {"fx": 458.0, "fy": 457.0, "cx": 367.0, "cy": 248.0, "width": 752, "height": 480}'
+    hdr = np.array('{"format": "kestrel-vio-map", "version": 1, ' + cam + '}')
+    good = dict(header=hdr, kf_offsets=np.array([0, 3, 5]), desc=np.zeros((5, 32), np.uint8), uv=np.zeros((5, 2)),
+                p_cam=np.full((5, 3), np.nan), kf_t_ns=np.array([1, 2]), kf_T_world_body=np.tile(np.eye(4), (2, 1, 1)))
+    np.savez(tmp_path / "nodepth.npz", **good)
+    assert main(["map", "info", str(tmp_path / "nodepth.npz")]) == 0
+    capsys.readouterr()
+    far_T = good["kf_T_world_body"].copy()
+    far_T[1, 0, 3] = 1e300
+    far_p = np.zeros((5, 3))
+    far_p[2] = [0.0, 0.0, 1e300]
+    for change, says in ((dict(kf_T_world_body=far_T), "damaged map (a keyframe 1e+300 m from the map's origin"),
+                         (dict(p_cam=far_p), "damaged map (a stereo point 1e+300 m from its camera")):
+        np.savez(tmp_path / "far.npz", **{**good, **change})
+        assert main(["map", "info", str(tmp_path / "far.npz")]) == 1, says
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, err

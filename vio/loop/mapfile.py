@@ -44,6 +44,10 @@ from vio.loop.vocabulary import NPZ_DAMAGED, load_npz
 
 FORMAT = "kestrel-vio-map"
 VERSION = 1
+# what no map holds: a keyframe this far from the map's origin (a VIO map spans kilometres), a stereo point this far
+# from its camera (the front end's max_depth_m is at most 1 km)
+MAX_EXTENT_M = 1e6
+MAX_POINT_M = 1e4
 
 
 @dataclass(frozen=True)
@@ -153,6 +157,10 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         return f"keyframe poses: shape {T.shape} or non-finite values for {n} keyframes"
     if not all(is_se3(Tk, tol=1e-4) for Tk in T):
         return "keyframe poses are not rigid transforms"
+    if np.abs(T[:, :3, 3]).max() > MAX_EXTENT_M:
+        # a keyframe 1e300 m out loaded, and a flight relocalised on it would be placed there (a review's finding)
+        return (f"a keyframe {np.abs(T[:, :3, 3]).max():.3g} m from the map's origin, beyond any flight's "
+                f"({MAX_EXTENT_M:.0e} m)")
     if desc.ndim != 2 or desc.shape[1] != 32 or desc.dtype != np.uint8:  # before len(desc): one number has none
         return f"descriptors {desc.shape} {desc.dtype}, ORB needs (N, 32) uint8"
     if off.ndim != 1 or not np.issubdtype(off.dtype, np.integer) or len(off) != n + 1 or off[0] != 0 \
@@ -164,6 +172,9 @@ def _inconsistency(off: np.ndarray, desc: np.ndarray, uv: np.ndarray, p: np.ndar
         # a point is three finite coordinates or, without stereo depth, three NaN: a row finite in x (what tells a
         # point, KeyframeFeatures.has_3d) and infinite or NaN after it was loaded and fed to the PnP
         return "stereo points neither finite nor NaN (no depth) in all three coordinates"
+    if len(p) and np.nanmax(np.abs(p), initial=0.0) > MAX_POINT_M:  # 1e300 m was loaded and fed to the PnP
+        return (f"a stereo point {np.nanmax(np.abs(p)):.3g} m from its camera, beyond any stereo depth "
+                f"({MAX_POINT_M:.0e} m)")
     return None
 
 
