@@ -573,3 +573,9 @@ def test_an_imu_rate_no_imu_has_is_refused_naming_the_file(v101_path, tmp_path):
     with pytest.raises(VioError) as e:
         EurocDataset(root)
     assert str(e.value).startswith(f"{y}: ") and "IMU rate_hz = 1e+300 is beyond any IMU's" in str(e.value), e.value
+    # a noise density of 1e300: "internal error: OverflowError" in the pre-integration (a review's finding)
+    y.write_text(y.read_text().replace("rate_hz: 1.0e+300", "rate_hz: 200").replace(
+        "gyroscope_noise_density: 1.6968e-04", "gyroscope_noise_density: 1.0e+300"))
+    with pytest.raises(VioError) as e:
+        EurocDataset(root)
+    assert "IMU noise gyroscope_noise_density = 1e+300 is beyond any IMU's" in str(e.value), e.value

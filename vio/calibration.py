@@ -29,6 +29,9 @@ FOCAL_MAX_SIDES = 100
 # the rates a camera or an IMU has (the EuRoC reader's stamp check takes the same: camera to 1 kHz, IMU to 100 kHz)
 MAX_CAMERA_RATE_HZ = 1e3
 MAX_IMU_RATE_HZ = 1e5
+# an IMU noise density or random walk above this is no IMU's (a consumer MEMS's is ~1e-2; x1000 mistakes are still
+# taken here and said by `vio calib check`)
+MAX_IMU_NOISE = 100.0
 RADTAN_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV's pinhole model accepts
 _DISTORTION_ALIASES = {
     "radtan": "radtan",
@@ -166,6 +169,10 @@ class ImuNoise:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise VioError(f"IMU noise {name} must be a positive number, got {v!r}")
+            if name != "rate_hz" and v > MAX_IMU_NOISE:
+                # 1e300 ended vio replay in "internal error: OverflowError" squaring it (a review's finding)
+                raise VioError(f"IMU noise {name} = {v:g} is beyond any IMU's (at most {MAX_IMU_NOISE:g} in kalibr's "
+                               "units, /sqrt(Hz)): in another unit?")
         if self.rate_hz > MAX_IMU_RATE_HZ:  # 1e300 was taken
             raise VioError(f"IMU rate_hz = {self.rate_hz:g} is beyond any IMU's (at most {MAX_IMU_RATE_HZ:g} Hz): "
                            "a typo?")
