@@ -398,6 +398,9 @@ def test_cut_last_lines_repeats_and_nan_rows_are_repaired_and_noted(v101_path, t
      "distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359]", "radtan distortion needs 4, 5, 8"),
     ("rate_hz: 20", "rate_hz: fast", "rate_hz: value 'fast' is not a number"),
     ("rate_hz: 20", "rate_hz: -20", "camera rate_hz must be a positive number"),  # a QA sweep: accepted
+    # a review's: "internal error: SVD did not converge" (p1), and a flight with no stereo match, exit 0 (k1)
+    ("distortion_coefficients: [-0.28340811,", "distortion_coefficients: [-1.0e+10,", "beyond any lens's"),
+    ("0.00019359, 1.76187114e-05]", "1.0e+300, 1.76187114e-05]", "beyond any lens's (at most 1000 in size)"),
     # a review's: an OverflowError in the time-offset estimator ("internal error")
     ("rate_hz: 20", "rate_hz: 1.0e+300", "camera rate_hz = 1e+300 is beyond any camera's"),
     ("T_BS:", "T_XX:", "missing key 'T_BS'"),

@@ -26,6 +26,8 @@ DISTORTION_MODELS = ("radtan", "equidistant", "none")
 # another unit. And a focal length over FOCAL_MAX_SIDES image sides is a field of view under 0.6 deg.
 MAX_IMAGE_SIDE = 32768
 FOCAL_MAX_SIDES = 100
+# OpenCV's coefficients of a real lens are a few units (an OAK's rational model: -9 .. 16); none is a thousand
+MAX_DISTORTION = 1000.0
 # the rates a camera or an IMU has (the EuRoC reader's stamp check takes the same: camera to 1 kHz, IMU to 100 kHz)
 MAX_CAMERA_RATE_HZ = 1e3
 MAX_IMU_RATE_HZ = 1e5
@@ -80,6 +82,10 @@ class CameraCalibration:
         if not all(math.isfinite(d) for d in self.distortion):
             # NaN coefficients loaded fine and ended a replay in "SVD did not converge" (a review's finding)
             raise VioError(f"distortion coefficients must be finite, got {list(self.distortion)}")
+        if any(abs(d) > MAX_DISTORTION for d in self.distortion):
+            # p1 = 1e300 ended a replay in "SVD did not converge", k1 = 1e10 flew on with no stereo match (a review's)
+            raise VioError(f"distortion coefficients {[f'{d:g}' for d in self.distortion]}: beyond any lens's (at "
+                           f"most {MAX_DISTORTION:g} in size): a typo?")
         if not (self.width > 0 and self.height > 0):
             raise VioError(f"resolution must be positive, got {self.width}x{self.height}")
         if max(self.width, self.height) > MAX_IMAGE_SIDE:
