@@ -405,3 +405,23 @@ def test_a_path_over_the_file_system_s_name_limit_is_one_line_in_every_command(t
         err = capsys.readouterr().err
         assert "File name too long" in err and "internal error" not in err, (argv, err)
         assert len(err.strip().splitlines()) == 1, (argv, err)
+
+
+def test_a_file_nested_thousands_deep_is_one_line_not_an_internal_error(tmp_path, capsys):
+    """A configuration, calibration, status file or batch report nested 100000 deep (a damaged or hostile file)
+    ended in "internal error: RecursionError" in tomllib / PyYAML / json (a review's finding)."""
+    deep = "[" * 100000 + "]" * 100000
+    (tmp_path / "c.toml").write_text(f"[mavlink]\nmount_rpy_deg = {deep}\n")
+    (tmp_path / "c.yaml").write_text(f"cam0: {deep}\n")
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "report.json").write_text(f'{{"rows": {deep}}}')
+    (tmp_path / "status.json").write_text(f'{{"state": {deep}}}')
+    for argv, says in ((["config", "check", str(tmp_path / "c.toml")], "not a configuration (nested too deep"),
+                       (["calib", "show", str(tmp_path / "c.yaml")], "not a calibration (nested too deep"),
+                       (["batch", str(tmp_path), "-o", str(tmp_path / "r"), "--compare", str(tmp_path / "rep")],
+                        "not a batch report (nested too deep"),
+                       (["status", "--file", str(tmp_path / "status.json")], "nested too deep to be a status file")):
+        assert main(argv) != 0, argv
+        captured = capsys.readouterr()
+        err = captured.err + captured.out
+        assert says in err and "internal error" not in err, (argv, err)

@@ -445,6 +445,8 @@ def load_yaml(path: Path) -> dict:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise VioError(f"{path}: not valid YAML ({e})") from None
+    except RecursionError:  # lists nested thousands deep: was an internal error (a review's finding)
+        raise VioError(f"{path}: not a calibration (nested too deep to be one)") from None
     if not isinstance(data, dict):
         raise VioError(f"{path}: expected a YAML mapping at top level")
     return data

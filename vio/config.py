@@ -802,6 +802,8 @@ def load_config(path: str | Path | None) -> VioConfig:
         data = tomllib.loads(raw.decode("utf-8-sig"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise VioError(f"{path}: not valid TOML ({e})") from None
+    except RecursionError:  # arrays or tables nested thousands deep: was an internal error (a review's finding)
+        raise VioError(f"{path}: not a configuration (nested too deep to be one)") from None
     return config_from_dict(data, str(path))
 
 

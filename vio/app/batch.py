@@ -443,6 +443,8 @@ def load_report(path: str | Path) -> dict:
         raise VioError(f"{p}: not a batch report (not a text file)") from None
     except json.JSONDecodeError as e:
         raise VioError(f"{p}: not a batch report ({e})") from None
+    except RecursionError:  # nested thousands deep: was an internal error (a review's finding)
+        raise VioError(f"{p}: not a batch report (nested too deep to be one)") from None
     problem = _report_problem(report)
     if problem:  # a JSON of another kind (a status file) failed with a KeyError after the whole batch had run
         raise VioError(f"{p}: not a batch report ({problem})")

@@ -45,7 +45,10 @@ def read_status(path: Path) -> dict[str, Any]:
     """Parse the status file; OSError / ValueError mean 'not running' to the caller."""
     if is_device(path):  # /dev/zero was read for ever (a review's finding)
         raise ValueError("is a device, not a status file")
-    data = json.loads(path.read_text())
+    try:
+        data = json.loads(path.read_text())
+    except RecursionError:  # nested thousands deep: was an internal error (a review's finding)
+        raise ValueError("nested too deep to be a status file") from None
     if not isinstance(data, dict) or "state" not in data:
         raise ValueError("not a kestrel-vio status file")
     return data
