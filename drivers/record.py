@@ -281,6 +281,13 @@ def run(args: argparse.Namespace) -> int:
         if problem:
             raise VioError(f"{args.config}: {problem}")
     fmt = args.format or cfg.run.record_format
+    if src_cfg.kind == "euroc" and src_cfg.dataset:
+        from vio.io.outputs import check_outputs
+
+        # `vio record DATASET --overwrite` of the dataset the euroc source replays deleted its images as it read them
+        # (a review's finding): never into the recording read, --overwrite or not, as `vio run`'s record_dir
+        check_outputs({}, recordings=(src_cfg.dataset,),
+                      folders={"the recording": str(Path(args.out) / "mav0") if fmt == "euroc" else args.out})
     try:
         if fmt == "euroc" and Path(args.out).exists() and not Path(args.out).is_dir():
             raise VioError(f"{args.out}: is a file; vio record writes a folder (EuRoC layout: OUT/mav0/...)")

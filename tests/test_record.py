@@ -497,3 +497,23 @@ def _wait_for(cond, timeout_s: float) -> bool:
         time.sleep(0.05)
     return False
 
+
+
+def test_record_never_writes_into_the_dataset_its_euroc_source_replays(tmp_path: Path, capsys) -> None:
+    """`vio record DATASET --overwrite` with `[source] kind = 'euroc'` replaying DATASET deleted its images as it read
+    them (0 of 41 left, exit 1), and an MCAP file went into its mav0/ (a review's finding). Refused before the
+    source opens, --overwrite or not; the dataset is left whole."""
+    from vio.app.cli import main
+    from vio.sim.generate import SimConfig, simulate
+
+    data = tmp_path / "flight"
+    simulate(data, SimConfig(duration_s=2.0, width=188, height=120, variant="clean"), progress=False)
+    images = sorted((data / "mav0" / "cam0" / "data").iterdir())
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[source]\nkind = 'euroc'\ndataset = '{data}'\nrealtime = false\n")
+    for argv in ([str(data), "--overwrite"], [str(data / "mav0" / "x.mcap"), "--format", "mcap"]):
+        assert main(["-q", "record", *argv, "--config", str(cfg), "--duration", "1"]) == 1, argv
+        err = capsys.readouterr().err
+        assert f"would be written into the recording {data}" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted((data / "mav0" / "cam0" / "data").iterdir()) == images
+    assert not (data / "mav0" / "x.mcap").exists()
