@@ -124,6 +124,15 @@ def test_bad_home_is_a_clear_error():
         SitlCameraSource("tcp:x", (float("nan"), 0.0, 0.0))
 
 
+def test_config_refuses_a_sitl_home_that_is_no_place():
+    """['a', 0, 0] passed `vio config check` and stopped the source at its start (float('a')); a latitude of 1e300
+    or 91 deg passed unsaid (a review's finding)."""
+    base = {"kind": "sitl", "imu": "mavlink", "sitl_url": "tcp:127.0.0.1:5763"}
+    for home in (["a", 0, 0], [1e300, 0, 0], [91.0, 0, 0], [0, 181.0, 0], [0, 0, 1e6], [True, 0, 0]):
+        with pytest.raises(VioError, match=r"sitl_home must be \[lat_deg, lon_deg, alt_m\] \(latitude within"):
+            config_from_dict({"source": {**base, "sitl_home": home}, "mavlink": {"url": "tcp:127.0.0.1:5762"}})
+
+
 def test_config_sitl_needs_the_autopilot_imu():
     with pytest.raises(VioError, match="imu = 'mavlink'"):
         config_from_dict({"source": {"kind": "sitl", "imu": "oak"}})

@@ -733,8 +733,13 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
     if src.kind == "sitl" and src.imu != "mavlink":
         raise VioError(f"{source}: [source] kind = 'sitl' renders cameras only; set imu = 'mavlink' (the SITL's IMU, "
                        "so that images and IMU are of the same flight)")
-    if src.kind == "sitl" and len(src.sitl_home) != 3:
-        raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m]")
+    h = src.sitl_home
+    # ['a', 0, 0] passed the check and stopped the source at its start (float('a')); 1e300 or 91 deg passed unsaid
+    if src.kind == "sitl" and (len(h) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                      and math.isfinite(x) for x in h)
+                               or not (-90 <= h[0] <= 90 and -180 <= h[1] <= 180 and abs(h[2]) <= 10_000)):
+        raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m] (latitude within +-90, "
+                       f"longitude within +-180, altitude within +-10 km), got {h!r}")
     if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
         raise VioError(f"{source}: [loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] "
                        "enabled = true (it would be ignored)")
