@@ -425,3 +425,20 @@ def test_a_file_nested_thousands_deep_is_one_line_not_an_internal_error(tmp_path
         captured = capsys.readouterr()
         err = captured.err + captured.out
         assert says in err and "internal error" not in err, (argv, err)
+
+
+def test_an_empty_path_is_a_usage_error_not_a_missing_option_or_the_working_folder(tmp_path, capsys, monkeypatch):
+    """An empty path (`vio replay D -o "$OUT"` with OUT unset) was taken as not given (no trajectory, exit 0;
+    `--calibration ""` flew the dataset's own) or as the working folder (`vio simulate ""` wrote a dataset into it,
+    `vio batch F -o ""` its report) (a review's finding): a usage error naming the option now."""
+    monkeypatch.chdir(tmp_path)
+    for argv, option in ((["replay", "d", "-o", ""], "--output/-o"), (["replay", "d", "--stats", ""], "--stats"),
+                         (["replay", "d", "--calibration", ""], "--calibration"), (["replay", ""], "dataset"),
+                         (["replay", "d", "--load-map", ""], "--load-map"),
+                         (["eval", "e", "g", "--json", ""], "--json"), (["simulate", ""], "OUT"),
+                         (["batch", "f", "-o", ""], "--output/-o")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == EXIT_USAGE and f"argument {option}: an empty path" in err, (argv, err)
+    assert list(tmp_path.iterdir()) == []

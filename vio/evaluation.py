@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.argtypes import positive_float, positive_int
+from vio.argtypes import path_arg, positive_float, positive_int
 from vio.geometry import closest_yaw, inv_T, make_T, quat_wxyz_to_rot
 from vio.trajectory import Trajectory, read_tum
 
@@ -526,10 +526,10 @@ def _lengths(text: str) -> tuple[float, ...]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("est", help="estimated trajectory (TUM: t x y z qx qy qz qw)")
-    p.add_argument("gt", help="ground truth: TUM file, EuRoC ground-truth csv or EuRoC dataset folder")
-    p.add_argument("--plot", metavar="PNG", help="write a top view and error-over-time plot")
-    p.add_argument("--json", metavar="FILE", help="write all numbers as JSON")
+    p.add_argument("est", type=path_arg, help="estimated trajectory (TUM: t x y z qx qy qz qw)")
+    p.add_argument("gt", type=path_arg, help="ground truth: TUM file, EuRoC ground-truth csv or EuRoC dataset folder")
+    p.add_argument("--plot", type=path_arg, metavar="PNG", help="write a top view and error-over-time plot")
+    p.add_argument("--json", type=path_arg, metavar="FILE", help="write all numbers as JSON")
     p.add_argument("--max-dt-ms", type=positive_float, default=DEFAULT_MAX_DT_MS,
                    help="largest time difference for an estimate/GT pair (default %(default)s)")
     p.add_argument("--interpolate", action="store_true", help="interpolate GT at the estimate stamps")

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from vio import VioError
-from vio.argtypes import positive_int
+from vio.argtypes import path_arg, positive_int
 from vio.io.inputs import read_user_file
 
 log = logging.getLogger(__name__)
@@ -35,21 +35,21 @@ _ROW_FIELDS = ("flight", "path", "ok", "error", "notes", "frames", "poses", "res
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("flights", nargs="+", metavar="FLIGHT", help="EuRoC folders, ROS bags or MCAP files")
-    p.add_argument("--output", "-o", required=True, metavar="DIR", help="report folder (created)")
+    p.add_argument("flights", nargs="+", type=path_arg, metavar="FLIGHT", help="EuRoC folders, ROS bags or MCAP files")
+    p.add_argument("--output", "-o", required=True, type=path_arg, metavar="DIR", help="report folder (created)")
     p.add_argument("--overwrite", action="store_true", help="replace the report already in --output (its "
                    "trajectories go too)")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="local worker processes (default: the number of CPUs)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster: ray://HOST:10001, auto, or local")
-    p.add_argument("--config", metavar="FILE", help="TOML configuration for every replay")
+    p.add_argument("--config", type=path_arg, metavar="FILE", help="TOML configuration for every replay")
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for bags (see vio replay --calib)")
     p.add_argument("--calib-format", default="project", help="format of --calib (default: project)")
     p.add_argument("--left-topic", help="bag topics, as vio replay's (default: [bag] in --config)")
     p.add_argument("--right-topic")
     p.add_argument("--imu-topic")
-    p.add_argument("--compare", metavar="REPORT", help="another batch's report.json (or its folder): what got "
-                   "better or worse")
+    p.add_argument("--compare", type=path_arg, metavar="REPORT", help="another batch's report.json (or its folder): "
+                   "what got better or worse")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vio import UsageError, VioError
-from vio.argtypes import positive_int
+from vio.argtypes import path_arg, positive_int
 from vio.io.outputs import check_outputs
 from vio.types import NavState
 
@@ -59,14 +59,18 @@ def _threads(text: str) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="EuRoC ASL dataset folder (with mav0/), ROS 1 .bag, ROS 2 bag folder or .mcap file")
-    p.add_argument("--output", "-o", metavar="TUM", help="write the trajectory here (TUM: t x y z qx qy qz qw)")
-    p.add_argument("--stats", metavar="JSON", help="write per-frame timings and the real-time factor here")
+    p.add_argument("dataset", type=path_arg,
+                   help="EuRoC ASL dataset folder (with mav0/), ROS 1 .bag, ROS 2 bag folder or .mcap file")
+    p.add_argument("--output", "-o", type=path_arg, metavar="TUM",
+                   help="write the trajectory here (TUM: t x y z qx qy qz qw)")
+    p.add_argument("--stats", type=path_arg, metavar="JSON",
+                   help="write per-frame timings and the real-time factor here")
     p.add_argument("--realtime", action="store_true", help="pace the replay at sensor rate")
     p.add_argument("--mavlink", metavar="URL", help="also send the states to an autopilot (udpout:HOST:PORT, "
                    "/dev/ttyAMA0:921600, ...); implies --realtime")
-    p.add_argument("--config", metavar="FILE", help="TOML configuration (defaults otherwise)")
-    p.add_argument("--calibration", metavar="YAML", help="calibration file instead of the dataset's sensor.yaml")
+    p.add_argument("--config", type=path_arg, metavar="FILE", help="TOML configuration (defaults otherwise)")
+    p.add_argument("--calibration", type=path_arg, metavar="YAML",
+                   help="calibration file instead of the dataset's sensor.yaml")
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for a bag (a bag has none; an MCAP file "
                    "from vio record carries its own): our YAML, or the files `vio calib import` reads, with "
                    "--calib-format")
@@ -77,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imu-topic", help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
     p.add_argument("--view", nargs="?", const="serve", metavar="FILE.rrd|serve",
                    help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
-    p.add_argument("--show-tracks", metavar="DIR", help="write front-end track images (PNG) to DIR")
+    p.add_argument("--show-tracks", type=path_arg, metavar="DIR", help="write front-end track images (PNG) to DIR")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N camera frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--threads", type=_threads, default=1, metavar="N",
@@ -85,16 +89,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "replay that shared the machine with other work came out different in 3 of 6 runs; 0: "
                    "OpenCV's default pool, ~3 %% faster on 2 cores)")
     p.add_argument("--loop", action="store_true", help="run loop closure (as [loop] enabled = true)")
-    p.add_argument("--loop-output", metavar="TUM", help="write the loop-corrected trajectory here (final pose "
-                   "graph; the odometry goes to --output)")
-    p.add_argument("--save-map", metavar="FILE", help="write the loop-closure map here (implies --loop)")
-    p.add_argument("--load-map", metavar="FILE", help="relocalise in this map (implies --loop; poses in "
+    p.add_argument("--loop-output", type=path_arg, metavar="TUM", help="write the loop-corrected trajectory here "
+                   "(final pose graph; the odometry goes to --output)")
+    p.add_argument("--save-map", type=path_arg, metavar="FILE", help="write the loop-closure map here (implies --loop)")
+    p.add_argument("--load-map", type=path_arg, metavar="FILE", help="relocalise in this map (implies --loop; poses in "
                    "--loop-output come out in the map's frame)")
     p.add_argument("--overwrite-map", action="store_true", help="let --save-map (or [map] save) replace a file "
                    "there that this replay does not load (without it such a file is refused: a map grows only "
                    "through --load-map FILE --save-map FILE)")
-    p.add_argument("--loop-plot", metavar="PNG", help="top view of odometry, loop-corrected trajectory, ground "
-                   "truth and the loop edges (implies --loop)")
+    p.add_argument("--loop-plot", type=path_arg, metavar="PNG", help="top view of odometry, loop-corrected "
+                   "trajectory, ground truth and the loop edges (implies --loop)")
 
 
 class TumSink:

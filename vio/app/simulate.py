@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from vio.argtypes import path_arg
 from vio.sim import IMU_MOUNTS
 from vio.sim.motion import PROFILES
 from vio.sim.scene import SCENES
@@ -14,7 +15,7 @@ _VARIANT_HELP = ("realism preset: clean (textured, still images, EuRoC IMU noise
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("out", metavar="OUT", help="dataset folder to create (OUT/mav0/...)")
+    p.add_argument("out", type=path_arg, metavar="OUT", help="dataset folder to create (OUT/mav0/...)")
     p.add_argument("--profile", choices=PROFILES, default="survey", help="flight profile (default: survey)")
     p.add_argument("--duration", type=float, default=30.0, help="flight length in s (default: 30)")
     p.add_argument("--seed", type=int, default=0, help="random seed; equal seeds give identical data")
@@ -67,7 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imu-mount", choices=sorted(IMU_MOUNTS), default="flu",
                    help="how the IMU sits on the vehicle: flu (square: x forward, z up; default) or oak (a "
                         "forward-looking Luxonis OAK: IMU x up, z backwards); the same flight either way")
-    p.add_argument("--imu-from", metavar="EUROC_DIR", default=None,
+    p.add_argument("--imu-from", type=path_arg, metavar="EUROC_DIR", default=None,
                    help="a real recording (EuRoC layout with imu0 and ground truth, e.g. ../shared/data/euroc/"
                         "V1_02_medium_imu_gt): its raw IMU and its ground-truth motion replace --profile and the IMU "
                         "model; the images are rendered along that motion (the variant's image settings apply)")
