@@ -22,7 +22,7 @@ from typing import Any
 from drivers.base import SensorSource
 from drivers.signals import stop_on_signal
 from vio import VioError
-from vio.argtypes import positive_float
+from vio.argtypes import path_arg, positive_float
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
 
@@ -249,8 +249,8 @@ def _open_writer(out: str | Path, calib: StereoCalibration, fmt: str, images: st
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("out", help="output folder (EuRoC ASL layout: OUT/mav0/...), or with --format mcap the "
-                        "MCAP file")
+    parser.add_argument("out", type=path_arg, help="output folder (EuRoC ASL layout: OUT/mav0/...), or with --format "
+                        "mcap the MCAP file")
     parser.add_argument("--source", choices=("oak", "fake", "euroc"), help="overrides [source] kind of the config")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="seconds of data to record (default: "
                         "until Ctrl-C / SIGTERM)")

@@ -436,7 +436,10 @@ def test_an_empty_path_is_a_usage_error_not_a_missing_option_or_the_working_fold
                          (["replay", "d", "--calibration", ""], "--calibration"), (["replay", ""], "dataset"),
                          (["replay", "d", "--load-map", ""], "--load-map"),
                          (["eval", "e", "g", "--json", ""], "--json"), (["simulate", ""], "OUT"),
-                         (["batch", "f", "-o", ""], "--output/-o")):
+                         (["batch", "f", "-o", ""], "--output/-o"),
+                         # vio record "" recorded into the working folder; status --file "" read the default one
+                         (["record", "", "--source", "fake", "--duration", "1"], "out"),
+                         (["status", "--file", ""], "--file")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         err = capsys.readouterr().err

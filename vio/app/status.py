@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from vio.argtypes import positive_float
+from vio.argtypes import path_arg, positive_float
 from vio.io.inputs import is_device
 
 EXIT_HEALTHY = 0
@@ -33,7 +33,8 @@ DEFAULT_STATUS_FILE = "/run/kestrel-vio/status.json"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--file", help=f"status file (default: [run] status_file of --config, else {DEFAULT_STATUS_FILE})")
+    p.add_argument("--file", type=path_arg,
+                   help=f"status file (default: [run] status_file of --config, else {DEFAULT_STATUS_FILE})")
     p.add_argument("--config", help="take the status file path from this TOML config")
     # a number > 0: with nan or inf a hung daemon's last status never went stale and read HEALTHY (a QA walk-through)
     p.add_argument("--stale-s", type=positive_float, default=3.0,
