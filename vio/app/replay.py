@@ -42,6 +42,7 @@ _HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unu
 _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 
+REALTIME_MAX_WAIT_S = 5.0  # realtime: a longer gap in the data is not waited out
 MAX_THREADS = 1024  # more OpenCV threads than any companion computer has cores
 
 
@@ -255,6 +256,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     frames = 0
     t_first = None
     wall0 = time.perf_counter()
+    skipped_s = 0.0  # realtime: data gaps not waited out
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
@@ -269,8 +271,13 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                 t_data = ev.t_ns
                 if t_first is None:
                     t_first = t_data
-                lag = (t_data - t_first) * 1e-9 - (time.perf_counter() - wall0)
-                if lag > 0:
+                lag = (t_data - t_first) * 1e-9 - skipped_s - (time.perf_counter() - wall0)
+                if lag > REALTIME_MAX_WAIT_S:
+                    # a gap in the recording (a clock jump, a recorder paused) was waited out: 1000 s of silence,
+                    # no message, looked like a hang (a review's finding); the data after it follow at once
+                    log.warning("realtime: a gap of %.3g s in the data before t=%d ns: not waited out", lag, t_data)
+                    skipped_s += lag
+                elif lag > 0:
                     time.sleep(lag)
             t0, c0 = time.perf_counter(), time.thread_time()
             if isinstance(ev, ImuSample):
