@@ -69,3 +69,14 @@ def path_arg(text: str) -> str:
 
 
 path_arg.__name__ = "path"
+
+
+def url_arg(text: str) -> str:
+    """A connection or viewer named on the command line: not empty (`--mavlink "$FC"` with FC unset replayed without
+    sending anything, exit 0; `--view ""` showed nothing)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty (a shell variable not set?)")
+    return text
+
+
+url_arg.__name__ = "url"

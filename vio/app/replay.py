@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vio import UsageError, VioError
-from vio.argtypes import path_arg, positive_int
+from vio.argtypes import path_arg, positive_int, url_arg
 from vio.io.outputs import check_outputs
 from vio.types import NavState
 
@@ -67,8 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stats", type=path_arg, metavar="JSON",
                    help="write per-frame timings and the real-time factor here")
     p.add_argument("--realtime", action="store_true", help="pace the replay at sensor rate")
-    p.add_argument("--mavlink", metavar="URL", help="also send the states to an autopilot (udpout:HOST:PORT, "
-                   "/dev/ttyAMA0:921600, ...); implies --realtime")
+    p.add_argument("--mavlink", type=url_arg, metavar="URL", help="also send the states to an autopilot "
+                   "(udpout:HOST:PORT, /dev/ttyAMA0:921600, ...); implies --realtime")
     p.add_argument("--config", type=path_arg, metavar="FILE", help="TOML configuration (defaults otherwise)")
     p.add_argument("--calibration", type=path_arg, metavar="YAML",
                    help="calibration file instead of the dataset's sensor.yaml")
@@ -80,7 +80,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
     p.add_argument("--right-topic", help="bag topic of the right images (default: [bag], /cam1/image_raw)")
     p.add_argument("--imu-topic", help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
-    p.add_argument("--view", nargs="?", const="serve", metavar="FILE.rrd|serve",
+    p.add_argument("--view", nargs="?", const="serve", type=url_arg, metavar="FILE.rrd|serve",
                    help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
     p.add_argument("--show-tracks", type=path_arg, metavar="DIR", help="write front-end track images (PNG) to DIR")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N camera frames")
