@@ -10,7 +10,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from vio.argtypes import positive_float, positive_int, seconds_from_start
+from vio.argtypes import positive_float_up_to, positive_int, seconds_from_start
 from vio.evaluation import require_plot
 from vio.io.outputs import check_new_file as check_output
 
@@ -62,7 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s = sub.add_parser("time-offset", help="estimate the camera-IMU time offset (t_imu = t_cam + offset)")
     s.add_argument("dataset", type=Path)
     s.add_argument("--calibration", type=Path, help="project calibration YAML (default: the dataset's)")
-    s.add_argument("--max-offset-ms", type=positive_float, default=100.0, help="search range +-")
+    # a camera-IMU offset is tens of ms; 1e300 was said as "the IMU does not cover the frames", and 10^5 on a long
+    # recording asked the search grid for gigabytes (a review's finding)
+    s.add_argument("--max-offset-ms", type=positive_float_up_to(1000.0), default=100.0,
+                   help="search range +- (at most 1000)")
     s.add_argument("--plot", type=Path, help="write the rate curves and correlation (PNG)")
 
     s = sub.add_parser("refine", help="refine the camera-IMU extrinsics (and time offset) by replaying a recording",

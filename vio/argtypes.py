@@ -40,6 +40,17 @@ def positive_float(text: str) -> float:
 positive_float.__name__ = "positive number"
 
 
+def positive_float_up_to(high: float) -> Callable[[str], float]:
+    """A finite number > 0 and <= high."""
+    def parse(text: str) -> float:
+        v = positive_float(text)
+        if v > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high:g}, got {text}")
+        return v
+    parse.__name__ = f"positive number up to {high:g}"
+    return parse
+
+
 MAX_SECONDS = 1e7  # 115 days: longer than any recording; its nanoseconds fit an int64 with room to spare
 
 
