@@ -66,7 +66,9 @@ def test_unknown_command_and_missing_arguments_are_usage_errors(capsys):
                        (["calib", "imu-noise", "d", "--start", "1e300"], "--start: must be seconds"),
                        (["calib", "imu-noise", "d", "--end", "-5"], "--end: must be seconds"),
                        (["calib", "time-offset", "d", "--max-offset-ms", "1e300"], "--max-offset-ms: must be at most"),
-                       (["demo", "--seed", "-1"], "--seed: must be at least 0")):
+                       (["demo", "--seed", "-1"], "--seed: must be at least 0"),
+                       # a hung daemon's last status never went stale: HEALTHY
+                       (["status", "--stale-s", "1e300"], "--stale-s: must be at most 3600")):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == EXIT_USAGE and says in capsys.readouterr().err, argv

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from vio.argtypes import path_arg, positive_float
+from vio.argtypes import path_arg, positive_float_up_to
 from vio.io.inputs import is_device
 
 EXIT_HEALTHY = 0
@@ -37,7 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"status file (default: [run] status_file of --config, else {DEFAULT_STATUS_FILE})")
     p.add_argument("--config", help="take the status file path from this TOML config")
     # a number > 0: with nan or inf a hung daemon's last status never went stale and read HEALTHY (a QA walk-through)
-    p.add_argument("--stale-s", type=positive_float, default=3.0,
+    # and at most an hour: 1e300 did the same (a review's finding)
+    p.add_argument("--stale-s", type=positive_float_up_to(3600.0), default=3.0,
                    help="older than this = daemon not running (default 3)")
     p.add_argument("--json", action="store_true", help="print the raw status JSON")
 
