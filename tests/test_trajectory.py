@@ -62,6 +62,7 @@ def test_tum_reader_accepts_other_writers(tmp_path):
     ("# only a header\n", "x.txt: no poses"),
     ("1403636579763555.6 0 0 0 0 0 0 1\n", "x.txt:1: time stamp 1403636579763555.6 is out of range"),  # in ms
     ("1e300 0 0 0 0 0 0 1\n", "x.txt:1: not a number"),
+    ("1 0 0 0 0 0 0 1e300\n", "x.txt:1: quaternion of norm 1e+300"),  # named no file or line (a review's finding)
     ("1e12 0 0 0 0 0 0 1\n", "x.txt:1: time stamp 1e12 is out of range"),
 ])
 def test_tum_errors_name_file_and_line(tmp_path, text, expected):

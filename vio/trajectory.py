@@ -196,6 +196,8 @@ def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
             raise VioError(f"{path}:{i}: non-finite value")
         if math.hypot(*vals[3:7]) < 1e-9:
             raise VioError(f"{path}:{i}: zero quaternion")
+        if math.hypot(*vals[3:7]) > 1e100:  # its square overflows: was "trajectory has an invalid quaternion", no file
+            raise VioError(f"{path}:{i}: quaternion of norm {math.hypot(*vals[3:7]):.3g} (TUM's is a unit quaternion)")
         p.append(vals[0:3])
         q.append([vals[6], vals[3], vals[4], vals[5]])
         if len(t) > 1 and t[-1] <= t[-2]:
