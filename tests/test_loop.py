@@ -2426,7 +2426,10 @@ def test_a_map_with_arrays_of_the_wrong_rank_or_kind_or_sizes_it_cannot_hold_is_
                            "damaged map (its header has no camera size"),
              # a camera 1e300 pixels wide was taken ("camera 1e+300x480", a review's finding)
              "size_huge": (dict(header=np.array(str(hdr).replace("752", "1e300"))),
-                           "damaged map (its header has no camera size (whole pixels, at most 32768")}
+                           "damaged map (its header has no camera size (whole pixels, at most 32768"),
+             "fx_huge": (dict(header=np.array(str(hdr).replace("458.0", "1e300"))),
+                         "damaged map (its header's camera (fx 1e+300, fy 457, cx 367, cy 248 for 752x480) is no"),
+             "cx_out": (dict(header=np.array(str(hdr).replace("367.0", "1e6"))), "damaged map (its header's camera")}
     for name, (change, _) in cases.items():
         np.savez(tmp_path / f"{name}.npz", **{**good, **change})
     _forged_npy_header(tmp_path / "good.npz", tmp_path / "huge.npz", "desc.npy", (10**13, 32), np.uint8)

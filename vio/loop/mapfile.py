@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.calibration import MAX_IMAGE_SIDE
+from vio.calibration import FOCAL_MAX_SIDES, MAX_IMAGE_SIDE
 from vio.geometry import is_se3
 from vio.io.atomic import replace_atomically
 from vio.loop.features import KeyframeFeatures
@@ -203,6 +203,11 @@ def _header_problem(header: dict, n: int) -> str | None:
         # true/false, which Python counts as ints (`vio map info` said "camera TruexTrue")
         return (f"its header has no camera size (whole pixels, at most {MAX_IMAGE_SIDE} a side), focal lengths and "
                 "principal point")
+    side = max(cam["width"], cam["height"])
+    if max(cam["fx"], cam["fy"]) > FOCAL_MAX_SIDES * side or cam["cx"] > cam["width"] or cam["cy"] > cam["height"]:
+        # fx or cx of 1e300 was loaded and the map's pixels re-expressed with it (a review's finding): as a calibration
+        return (f"its header's camera (fx {cam['fx']:.6g}, fy {cam['fy']:.6g}, cx {cam['cx']:.6g}, cy {cam['cy']:.6g} "
+                f"for {cam['width']:.0f}x{cam['height']:.0f}) is no camera's")
     if "T_body_cam" in cam:  # maps before 2026-12-06 do not have it
         try:
             T = np.array(cam["T_body_cam"], dtype=float)
