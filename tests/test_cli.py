@@ -277,6 +277,7 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
     --calib)."""
     for argv, says in ((["batch", "f", "-o", str(tmp_path / "r"), "--workers", "0"], "--workers: must be at least 1"),
                        (["eval", "e.tum", "g", "--max-dt-ms", "0"], "--max-dt-ms: must be a positive number"),
+                       (["eval", "e.tum", "g", "--max-dt-ms", "1e300"], "--max-dt-ms: must be at most 10000"),
                        (["eval", "e.tum", "g", "--max-gap-s", "-1"], "--max-gap-s: must be a positive number"),
                        (["record", str(tmp_path / "o"), "--duration", "0"], "--duration: must be a positive number"),
                        (["demo", "--profile", "bogus"], "invalid choice: 'bogus'"),

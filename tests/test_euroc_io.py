@@ -582,3 +582,14 @@ def test_an_imu_rate_no_imu_has_is_refused_naming_the_file(v101_path, tmp_path):
     with pytest.raises(VioError) as e:
         EurocDataset(root)
     assert "IMU noise gyroscope_noise_density = 1e+300 is beyond any IMU's" in str(e.value), e.value
+
+
+def test_ground_truth_beyond_any_place_on_earth_is_refused(tmp_path):
+    """A ground-truth position of 1e300 m (finite) passed the reader and `vio eval` printed "ATE inf" with exit 0 (a
+    review's note): refused in one line naming the file and line."""
+    from vio.io.euroc import read_groundtruth_csv
+
+    f = tmp_path / "data.csv"
+    f.write_text("#timestamp,x,y,z,qw,qx,qy,qz\n1000,0,0,0,1,0,0,0\n2000,1e300,0,0,1,0,0,0\n")
+    with pytest.raises(VioError, match=r"data\.csv:3: position 1e\+300 0 0 is beyond 1e\+09 m"):
+        read_groundtruth_csv(f)

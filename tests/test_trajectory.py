@@ -64,6 +64,7 @@ def test_tum_reader_accepts_other_writers(tmp_path):
     ("1e300 0 0 0 0 0 0 1\n", "x.txt:1: not a number"),
     ("1 0 0 0 0 0 0 1e300\n", "x.txt:1: quaternion of norm 1e+300"),  # named no file or line (a review's finding)
     ("1e12 0 0 0 0 0 0 1\n", "x.txt:1: time stamp 1e12 is out of range"),
+    ("1 0 1e300 0 0 0 0 1\n", "x.txt:1: position 0 1e+300 0 is beyond 1e+09 m"),  # vio eval said "ATE inf", exit 0
 ])
 def test_tum_errors_name_file_and_line(tmp_path, text, expected):
     (tmp_path / "x.txt").write_text(text)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.argtypes import path_arg, positive_float, positive_int
+from vio.argtypes import path_arg, positive_float, positive_float_up_to, positive_int
 from vio.geometry import closest_yaw, inv_T, make_T, quat_wxyz_to_rot
 from vio.trajectory import Trajectory, read_tum
 
@@ -530,8 +530,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("gt", type=path_arg, help="ground truth: TUM file, EuRoC ground-truth csv or EuRoC dataset folder")
     p.add_argument("--plot", type=path_arg, metavar="PNG", help="write a top view and error-over-time plot")
     p.add_argument("--json", type=path_arg, metavar="FILE", help="write all numbers as JSON")
-    p.add_argument("--max-dt-ms", type=positive_float, default=DEFAULT_MAX_DT_MS,
-                   help="largest time difference for an estimate/GT pair (default %(default)s)")
+    # at most 10 s: 1e300 paired any estimate with any ground-truth pose (a review's note)
+    p.add_argument("--max-dt-ms", type=positive_float_up_to(10_000.0), default=DEFAULT_MAX_DT_MS,
+                   help="largest time difference for an estimate/GT pair, at most 10000 (default %(default)s)")
     p.add_argument("--interpolate", action="store_true", help="interpolate GT at the estimate stamps")
     p.add_argument("--rpe-lengths", type=_lengths, default=DEFAULT_RPE_LENGTHS_M, metavar="M,M,...",
                    help=f"RPE segment lengths in metres (default {','.join(f'{x:g}' for x in DEFAULT_RPE_LENGTHS_M)})")

@@ -149,6 +149,11 @@ def _one_run(path: Path, runs: list[tuple[str | None, list, list, list]], run: i
     return t, p, q
 
 
+# A position no trajectory on Earth has (ECEF coordinates reach 6.4e6 m): beyond it a file is damaged or not in
+# metres, and its squares overflowed into "ATE inf"
+MAX_POSITION_M = 1e9
+
+
 def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
     """Read a TUM trajectory; errors name the file and line.
 
@@ -198,6 +203,9 @@ def read_tum(path: str | Path, run: int | None = None) -> Trajectory:
             raise VioError(f"{path}:{i}: zero quaternion")
         if math.hypot(*vals[3:7]) > 1e100:  # its square overflows: was "trajectory has an invalid quaternion", no file
             raise VioError(f"{path}:{i}: quaternion of norm {math.hypot(*vals[3:7]):.3g} (TUM's is a unit quaternion)")
+        if max(map(abs, vals[0:3])) > MAX_POSITION_M:  # `vio eval` printed "ATE inf" with exit 0 (a review's note)
+            raise VioError(f"{path}:{i}: position {vals[0]:.3g} {vals[1]:.3g} {vals[2]:.3g} is beyond "
+                           f"{MAX_POSITION_M:.0e} m (metres are expected; no place on Earth is that far)")
         p.append(vals[0:3])
         q.append([vals[6], vals[3], vals[4], vals[5]])
         if len(t) > 1 and t[-1] <= t[-2]:

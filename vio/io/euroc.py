@@ -37,7 +37,7 @@ from vio.calibration import (
 from vio.config import refuse_unknown_keys
 from vio.geometry import is_se3
 from vio.io.images import Uint16To8, grey
-from vio.trajectory import Trajectory
+from vio.trajectory import MAX_POSITION_M, Trajectory
 from vio.types import ImuSample, StereoFrame
 
 log = logging.getLogger(__name__)
@@ -322,6 +322,11 @@ def read_groundtruth_csv(path: Path, notes: list[str] | None = None) -> GroundTr
         k = int(np.argmax(off))
         raise VioError(f"{path}:{table.lines[k]}: quaternion q_RS has norm {qn[k]:.4g}, not 1 (columns 5-8 must be "
                        "w, x, y, z of a unit quaternion)")
+    far = np.abs(vals[:, 0:3]).max(axis=1) > MAX_POSITION_M
+    if far.any():
+        k = int(np.argmax(far))
+        raise VioError(f"{path}:{table.lines[k]}: position {' '.join(f'{v:.3g}' for v in vals[k, 0:3])} is beyond "
+                       f"{MAX_POSITION_M:.0e} m (metres are expected; no place on Earth is that far)")
     traj = Trajectory(table.stamps, vals[:, 0:3], vals[:, 3:7])
     if ncols == 16:
         return GroundTruth(traj, vals[:, 7:10], vals[:, 10:13], vals[:, 13:16])
