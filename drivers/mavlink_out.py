@@ -916,8 +916,13 @@ class MavlinkOutput:
                 # the autopilot's estimate carried to our pose's stamp along its own velocity and yaw rate: taken
                 # as it was on arrival, up to AP_POSE_MAX_AGE_NS older than our pose, it put the frame v * age off
                 # for the rest of the flight (0.25-0.5 m at 5 m/s; a review's finding)
-                p_ap = local[1] + local[2] * (_clamped_age_ns(od.t_ns - local[0]) * 1e-9)
-                yaw_ap = yaw[1] + yaw[2] * (_clamped_age_ns(od.t_ns - yaw[0]) * 1e-9)
+                # a pose stamp seconds off this host's clock is on another (a sensor's own; max_state_age_ms off):
+                # its difference said nothing, and clamped it carried the estimate 0.5 s (2.5 m at 5 m/s, a
+                # review's finding); carried to now then, where the pose is being sent
+                t_pose = od.t_ns if abs(od.t_ns - now) <= ANOTHER_CLOCK_NS else now
+                carry_ns = _clamped_age_ns(t_pose - local[0])
+                p_ap = local[1] + local[2] * (carry_ns * 1e-9)
+                yaw_ap = yaw[1] + yaw[2] * (_clamped_age_ns(t_pose - yaw[0]) * 1e-9)
                 dyaw = math.remainder(yaw_ap - float(od.rpy[2]), math.tau)
                 c, s_ = math.cos(dyaw), math.sin(dyaw)
                 R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
@@ -926,7 +931,7 @@ class MavlinkOutput:
                 log.info("started in flight: poses continue in the autopilot's frame (its estimate at "
                          "%.2f, %.2f, %.2f m NED, yaw %.1f deg, carried %.0f ms to our pose at its %.1f m/s; ours "
                          "turned %.1f deg and shifted %.2f m)", *p_ap, math.degrees(yaw_ap),
-                         (od.t_ns - local[0]) * 1e-6, float(np.linalg.norm(local[2])), math.degrees(dyaw),
+                         carry_ns * 1e-6, float(np.linalg.norm(local[2])), math.degrees(dyaw),
                          float(np.linalg.norm(shift)))
         if self._align is None:
             return od

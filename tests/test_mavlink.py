@@ -1906,3 +1906,31 @@ def test_a_start_in_flight_rejoined_after_a_reset_stays_in_the_autopilots_frame(
         assert np.hypot(last.x - 4.0, last.y + 3.0) == pytest.approx(0.05, abs=1e-4) and abs(last.z + 1.5) < 1e-4
     finally:
         out.close()
+
+
+@pytest.mark.parametrize("off_s", [1000.0, -5.0])
+def test_a_start_in_flight_with_pose_stamps_on_another_clock_carries_the_estimate_to_now(ap, caplog, off_s):
+    """Pose stamps not on this host's clock (a sensor's own clock, max_state_age_ms off) say nothing about the
+    autopilot's estimate's age: their difference was clamped to 0.5 s and the estimate carried 2.5 m along a 5 m/s
+    velocity (a review's finding). It is carried to the output's clock now, where the pose is being sent."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    out.poll()
+    ap.drain()
+    ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                               mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+    time.sleep(0.02)
+    out.poll()
+    ap.drain()
+    ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 5.0, 0.0, 0.0)
+    ap.conn.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    time.sleep(0.02)
+    clock.advance(0.1)
+    out.poll()  # read: their arrival
+    clock.advance(0.1)
+    with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+        out.send_state(state(clock.t + int(off_s * 1e9)))
+        od = ap.of("ODOMETRY", ap.drain())[-1]
+    np.testing.assert_allclose([od.x, od.y, od.z], [4.0 + 5.0 * 0.1, -3.0, -1.5], atol=1e-5)
+    assert "carried 100 ms to our pose" in caplog.text
+    out.close()
