@@ -269,6 +269,8 @@ class MavlinkOutput:
         self._link_up = False
         self._origin_left = 0
         self._next_origin_ns = 0
+        # its tries were spent only asking an armed autopilot (unconfirmed): set once it is heard disarmed
+        self._origin_owed = False
         self._origin_recheck_ns: int | None = None  # when to ask for the confirmed origin again (None: not checking)
         self._origin_asked_ns: int | None = None  # when the unanswered request went out
         self._unpackable_said: set[str] = set()  # message types that could not be packed (said once each)
@@ -597,6 +599,7 @@ class MavlinkOutput:
                 # elsewhere) where it had another one (a GPS start, a ground station's): a review's note
                 if self._ap_armed:
                     self._request_origin()
+                    self._origin_owed = True
                 else:
                     self._send_origin()
                 self._origin_left -= 1
@@ -604,8 +607,8 @@ class MavlinkOutput:
                 if self._origin_left == 0:
                     log.warning("autopilot did not confirm the EKF origin after %d tries (no GPS_GLOBAL_ORIGIN)%s: "
                                 "set it from the ground station, or GUIDED/AUTO take-off may be refused",
-                                ORIGIN_MAX_SENDS, "; it is armed, so it was only asked, not set in flight"
-                                if self._ap_armed else "")
+                                ORIGIN_MAX_SENDS, "; it is armed, so it was only asked, not set in flight (set once "
+                                "it is disarmed)" if self._ap_armed else "")
             self._recheck_origin(now)
             if now >= self._next_send_ns:
                 with self._pending_lock:
@@ -794,6 +797,7 @@ class MavlinkOutput:
     def _set_origin_again(self, now: int) -> None:
         """Send the origin and home until confirmed (after a link-up, a restart, a dropped origin)."""
         self._origin_left, self._next_origin_ns = ORIGIN_MAX_SENDS, now
+        self._origin_owed = False
         self._origin_recheck_ns = self._origin_asked_ns = None
         self.stats.origin_confirmed = False
 
@@ -1039,6 +1043,11 @@ class MavlinkOutput:
                 self._last_ap_heartbeat_ns = now
                 self.stats.autopilot_heartbeats += 1
                 self._ap_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                if not self._ap_armed and self._origin_owed and self._origin_left == 0:
+                    # a flight longer than ORIGIN_MAX_SENDS tries spent them all asking; nothing set it after
+                    # landing, for the next take-off (a review's finding)
+                    log.info("autopilot disarmed: setting the EKF origin it did not confirm in flight")
+                    self._set_origin_again(now)
                 if self._ap_armed and self.stats.autopilot_heartbeats == 1 and self._poses_to_armed:
                     self._armed_before_any_pose(now)
                 booting = msg.system_status in BOOTING_STATES
@@ -1070,7 +1079,7 @@ class MavlinkOutput:
             elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
                 self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
                 if self._origin_left > 0:
-                    self._origin_left = 0
+                    self._origin_left, self._origin_owed = 0, False
                     self._origin_recheck_ns = now + ORIGIN_RECHECK_NS
                     self.stats.origin_confirmed = True
                     log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,

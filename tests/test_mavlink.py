@@ -23,7 +23,7 @@ from drivers.mavlink_frames import (
     to_vehicle_odometry,
     upper_triangle,
 )
-from drivers.mavlink_out import MavlinkOutput, mavlink, mavutil, restamp_to_host_clock
+from drivers.mavlink_out import ORIGIN_MAX_SENDS, MavlinkOutput, mavlink, mavutil, restamp_to_host_clock
 from vio import VioError
 from vio.config import MavlinkConfig
 from vio.geometry import make_T, so3_exp
@@ -1933,4 +1933,28 @@ def test_a_start_in_flight_with_pose_stamps_on_another_clock_carries_the_estimat
         od = ap.of("ODOMETRY", ap.drain())[-1]
     np.testing.assert_allclose([od.x, od.y, od.z], [4.0 + 5.0 * 0.1, -3.0, -1.5], atol=1e-5)
     assert "carried 100 ms to our pose" in caplog.text
+    out.close()
+
+
+def test_an_origin_only_asked_for_through_a_long_flight_is_set_once_disarmed(ap):
+    """Heard armed, the origin is only asked for, ORIGIN_MAX_SENDS times; a flight longer than that (a minute) spent
+    them all, and once disarmed nothing set it: no origin and no home for the next take-off (a review's finding)."""
+    clock = FakeClock()
+    out = make_out(ap, clock, origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.0)
+    out.poll()
+    ap.drain()
+    for _ in range(ORIGIN_MAX_SENDS + 5):
+        ap.heartbeat(mavlink.MAV_STATE_ACTIVE, mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        time.sleep(0.005)
+        out.poll()
+        clock.advance(1.0)
+    got = ap.drain()
+    assert not ap.of("SET_GPS_GLOBAL_ORIGIN", got)
+    for _ in range(4):
+        ap.heartbeat(mavlink.MAV_STATE_STANDBY, 0)
+        time.sleep(0.01)
+        out.poll()
+        clock.advance(0.6)
+    got = ap.drain()
+    assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and ap.of("SET_HOME_POSITION", got)
     out.close()
