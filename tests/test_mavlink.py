@@ -1958,3 +1958,48 @@ def test_an_origin_only_asked_for_through_a_long_flight_is_set_once_disarmed(ap)
     got = ap.drain()
     assert ap.of("SET_GPS_GLOBAL_ORIGIN", got) and ap.of("SET_HOME_POSITION", got)
     out.close()
+
+
+def test_the_loop_output_gets_the_turn_of_a_start_in_flight_while_the_output_is_reopened():
+    """OutputWorker.frame_turn (read by the loop output at each new correction) said None while a failed output
+    waited to be reopened (up to reconnect_max_s): a correction into a loaded map's frame taken then kept the turn,
+    and the reopened output, which keeps the frame, turned its poses twice until the next solve."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.outputs import OutputWorker
+
+    link = _KeepingLink()
+    outs: list[MavlinkOutput] = []
+
+    def make() -> MavlinkOutput:
+        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link,
+                                  random_first_counter=True))
+        return outs[-1]
+
+    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0)
+    try:
+        w._ensure_mavlink()
+        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+            mavlink.MAV_STATE_ACTIVE, 3))
+        w.mav.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        w.mav.poll()
+        w._send(state(time.monotonic_ns()))
+        turn = w.frame_turn()
+        assert turn is not None
+
+        def broken(s: NavState) -> None:
+            raise OSError("a bug")
+
+        outs[0].send_state = broken  # type: ignore[method-assign]
+        w._send(state(time.monotonic_ns()))
+        assert w.mav is None
+        got = w.frame_turn()
+        assert got is not None, "no turn while the output is reopened"
+        np.testing.assert_allclose(got, turn)
+        w._next_open = 0.0
+        w._ensure_mavlink()
+        np.testing.assert_allclose(w.frame_turn(), turn)
+    finally:
+        w.close()

@@ -241,6 +241,9 @@ class OutputWorker(Worker):
         # the frame the closed output sent in (MavlinkOutput.autopilot_frame: a start in flight's turn into the
         # autopilot's), kept by the one reopened after it
         self._frame: Any = None
+        # that frame's turn in the estimator's world (MavlinkOutput.world_frame_turn), for the loop output while no
+        # output is open or the reopened one has not taken the frame yet
+        self._turn: np.ndarray | None = None
         # the status thread reads the output and the closed counts (link(), sent) while this thread closes one and adds
         # its counts: one step each, or a read in between counted the closing output twice (or not at all)
         self._counts_lock = threading.Lock()
@@ -337,6 +340,9 @@ class OutputWorker(Worker):
             why = mav.health().get("withheld_for") or ""
             frame = getattr(mav, "autopilot_frame", None)
             self._frame = (frame() if frame is not None else None) or self._frame
+            turn = getattr(mav, "world_frame_turn", None)
+            kept = turn() if turn is not None else None
+            self._turn = kept if kept is not None else self._turn
         except Exception as e:  # a broken output's counts are lost, not the daemon
             log.warning("MAVLink output's counters lost at its close: %s: %s", type(e).__name__, e)
         with self._counts_lock:
@@ -350,7 +356,11 @@ class OutputWorker(Worker):
         """The MAVLink output's turn and shift of a start in flight in the estimator's world (MavlinkOutput.
         world_frame_turn), for the loop output (read from the estimator thread); None without one."""
         turn = getattr(self.mav, "world_frame_turn", None)
-        return turn() if turn is not None else None
+        got = turn() if turn is not None else None
+        # none open (reopening after a failure: up to reconnect_max_s), or the new one has not taken the frame yet:
+        # the closed one's, which the reopened one keeps. None here, a correction into a map's frame taken then stayed
+        # turned twice, once reopened, until the next solve (a review's finding)
+        return got if got is not None else self._turn
 
     @property
     def sent(self) -> int:
