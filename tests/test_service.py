@@ -1952,10 +1952,12 @@ def test_the_mavlink_counts_are_not_doubled_by_a_close_during_a_status_read(monk
         sink.close()
 
 
-def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Path) -> None:
-    """The estimator tracks but its covariance is NaN: the MAVLink output sends nothing (a loss of tracking, one
-    error line), while the status read 'running', quality 100, nothing said. It says why now, quality 0 (what the
-    autopilot gets), and running again once the estimate is whole."""
+@pytest.mark.parametrize(("bad", "says"), [(np.nan, "NaN"), (1e31, "beyond 1e30")])
+def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Path, bad: float, says: str) -> None:
+    """The estimator tracks but its covariance is NaN (or finite beyond 1e30, which float32 fields cannot carry):
+    the MAVLink output sends nothing (a loss of tracking, one error line), while the status read 'running', quality
+    100, nothing said. It says why now, quality 0 (what the autopilot gets), and running again once the estimate is
+    whole. The status named only a NaN, an infinite value or a negative variance for a 1e31 one."""
     from drivers.mavlink_out import MavlinkOutput
 
     status = tmp_path / "status.json"
@@ -1968,7 +1970,7 @@ def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Pat
         def feed_frame(self, f: StereoFrame) -> NavState | None:
             st = super().feed_frame(f)
             if st is not None and sick.is_set():
-                st = dataclasses.replace(st, cov_pose=np.full((6, 6), np.nan))
+                st = dataclasses.replace(st, cov_pose=np.full((6, 6), bad))
             return st
 
     ap = FakeAutopilot()
@@ -1980,9 +1982,10 @@ def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Pat
     runner = threading.Thread(target=svc.run)
     runner.start()
     try:
-        assert _wait(lambda: _status_warns(status, lambda w: "NaN" in w), 5.0), \
+        assert _wait(lambda: _status_warns(status, lambda w: "poses not sent" in w), 5.0), \
             {k: _read_status(status).get(k) for k in ("state", "warnings", "estimator")}
         st = _read_status(status)
+        assert any(says in w for w in st["warnings"]), st["warnings"]
         assert st["state"] != "running" and st["estimator"]["quality"] == 0, (st["state"], st["estimator"])
         assert st["mavlink"]["states_not_finite"] > 0 and ap.poses() == 0
         sick.clear()

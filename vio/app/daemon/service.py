@@ -451,7 +451,8 @@ class Service:
         not_finite = bool(link.get("withholding_not_finite"))
         if not_finite:
             # the output refuses a NaN / infinite estimate (a loss of tracking): the status read running, quality 100
-            warnings.append("poses not sent: the estimate holds a NaN or infinite value, or a negative variance "
+            warnings.append("poses not sent: the estimate holds a NaN or infinite value (or one beyond 1e30, which the "
+                            "messages' float32 fields cannot carry), or a negative variance "
                             "(mavlink.states_not_finite)")
             tracking = False
         refusing = link.get("withholding_replay_poses")
