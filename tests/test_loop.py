@@ -3223,3 +3223,34 @@ def test_a_map_with_a_keyframe_or_a_point_beyond_any_flight_is_refused(tmp_path,
         assert main(["map", "info", str(tmp_path / "far.npz")]) == 1, says
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_map_of_a_start_in_flight_is_saved_in_the_autopilots_frame(loop_flight, tmp_path):
+    """A process started in flight sends its poses turned and shifted into the autopilot's frame, and the next
+    restart that relocalises in its checkpoint takes its own turn out of the correction (the map's frame is taken
+    as the autopilot's). Saved in the process's own frame, the map put that restart's poses off by the first
+    restart's turn (a crash in flight after a restart in flight). The flight's own frame is saved turned; a loaded
+    map's frame is not."""
+    import cv2
+
+    from vio.config import LoopConfig
+    from vio.io.euroc import EurocDataset
+    from vio.loop.closer import LoopCloser
+    from vio.loop.mapfile import load_map
+
+    ds = EurocDataset(loop_flight)
+    closer = LoopCloser(ds.calibration, LoopConfig())
+    img = cv2.imread(str(ds.cam0_files[10]), cv2.IMREAD_GRAYSCALE)
+    poses = [make_T(np.eye(3), [0.5 * k, 0, 0]) for k in range(3)]
+    for k, T in enumerate(poses):
+        closer.add_keyframe(int(1e9 * k), T, img, None)
+    c, s = np.cos(2.0), np.sin(2.0)
+    turn = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [3.0, -1.0, 0.5])
+    closer.save_map(tmp_path / "m.npz", world_turn=turn)
+    m = load_map(tmp_path / "m.npz")
+    np.testing.assert_allclose(np.asarray(m.T_world_body), [turn @ T for T in poses], atol=1e-9)
+    again = LoopCloser(ds.calibration, LoopConfig())
+    again.load_map(m)
+    again.save_map(tmp_path / "m2.npz", world_turn=turn)  # the loaded map's keyframes: its frame, not turned again
+    np.testing.assert_allclose(np.asarray(load_map(tmp_path / "m2.npz").T_world_body), np.asarray(m.T_world_body),
+                               atol=1e-9)

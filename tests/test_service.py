@@ -2015,3 +2015,30 @@ def test_the_loop_output_takes_the_mavlink_outputs_turn_of_a_start_in_flight() -
 
     svc.output.mav = Turned()
     np.testing.assert_array_equal(svc._loop_output.frame_turn(), np.diag([-1.0, -1.0, 1.0, 1.0]))
+
+
+def test_the_map_checkpoint_is_saved_with_the_mavlink_outputs_turn_of_a_start_in_flight(tmp_path: Path) -> None:
+    """The daemon hands the MAVLink output's turn of a start in flight to the map save (LoopCloser.save_map's
+    world_turn: tests/test_loop.py::test_a_map_of_a_start_in_flight_is_saved_in_the_autopilots_frame): a checkpoint
+    in the process's own frame put the next restart's relocalised poses off by this one's turn."""
+    cfg = config_from_dict({"source": {"kind": "fake"}, "loop": {"enabled": True, "output": "jump"},
+                            "map": {"save": str(tmp_path / "m.npz")}})
+    svc = Service(cfg, source_factory=lambda: ScriptedSource([], threading.Event(), []),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []), mavlink_factory=RecordingMavlink,
+                  notifier=SdNotifier(""))
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+    class Turned(RecordingMavlink):
+        def world_frame_turn(self) -> np.ndarray:
+            return turn
+
+    got: dict = {}
+
+    class Closer:
+        def save_map(self, path, prune_m=0.0, prune_deg=0.0, checkpoint=None, **kw):
+            got.update(kw)
+            return {"path": str(path), "keyframes": 1}
+
+    svc.output.mav = Turned()
+    svc._save_checkpoint(Closer())
+    np.testing.assert_array_equal(got.get("world_turn"), turn)

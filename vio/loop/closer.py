@@ -495,7 +495,8 @@ class LoopCloser:
         ref = self._comp(0)
         return [k for k, kf in enumerate(self.keyframes) if self._comp(kf.session) == ref]
 
-    def save_map(self, path, prune_m: float = 0.0, prune_deg: float = 0.0, checkpoint: dict | None = None) -> dict:
+    def save_map(self, path, prune_m: float = 0.0, prune_deg: float = 0.0, checkpoint: dict | None = None,
+                 world_turn: np.ndarray | None = None) -> dict:
         """Write the keyframes whose poses are in the map's frame: those of the first session (a loaded map's,
         else this flight's start) and of every session a loop edge has joined to it. A segment after an
         estimator reset that never relocalised, or a flight that never relocalised in the loaded map, has
@@ -509,7 +510,13 @@ class LoopCloser:
         `checkpoint`: the run's identity, for a save in flight (`vio run`'s `[map] checkpoint_s`): the header marks
         the map as not final. A file this run saved before is compared with what this run left there, as a loaded
         one with what was loaded: another run's save over it in between is kept, and this run writes beside it
-        (the same `alt` name for every later save)."""
+        (the same `alt` name for every later save).
+
+        `world_turn`: the MAVLink output's turn and shift of a start in flight (world' = T @ world): a map of this
+        flight's own frame (none loaded) is saved in the autopilot's frame, where its poses went. A restart that
+        relocalises in it takes the turn back out of its correction (a loaded map's frame is the autopilot's,
+        CorrectedOutput.frame_turn): a checkpoint of a process that had itself started in flight was in that
+        process's own frame, and the next restart's poses went out off by its turn (a review's finding)."""
         from vio.loop.mapfile import file_stamp, save_map
 
         target, conflict = Path(path), ""
@@ -562,7 +569,10 @@ class LoopCloser:
                 notes.append(f"a part of {n} keyframes is joined to the rest by only {joins} loop edges: its place "
                              f"in the map's frame rests on them (it shared few views with the rest)")
                 warn("map %s: %s; fly it where the map's views are, or leave it out", path, notes[-1])
-        h = save_map(target, [self.keyframes[k].t_ns for k in keep], [self.graph.estimate[k] for k in keep],
+        poses = [self.graph.estimate[k] for k in keep]
+        if world_turn is not None and not self.map_keyframes:  # a loaded map's frame is the autopilot's already
+            poses = [world_turn @ T for T in poses]
+        h = save_map(target, [self.keyframes[k].t_ns for k in keep], poses,
                      [self.keyframes[k].feats for k in keep], self.vocab, self.cam, note="; ".join(notes),
                      parts=parts, checkpoint=checkpoint)
         if not conflict:

@@ -260,7 +260,7 @@ class Service:
     def _save_checkpoint(self, closer: Any) -> None:
         """The map so far, marked as a checkpoint of this run ([map] checkpoint_s; in the loop-closure thread)."""
         h = closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg,
-                            checkpoint=self._run_identity)
+                            checkpoint=self._run_identity, world_turn=self.output.frame_turn())
         (log.info if not self.loop or not self.loop.checkpoints else log.debug)(
             "map checkpoint written to %s: %d keyframes (every %.0f s until the map is saved at stop)",
             h["path"], h["keyframes"], self.cfg.map.checkpoint_s)
@@ -310,7 +310,8 @@ class Service:
                 log.error("map not saved: loop closure still busy after the shutdown budget")
             elif self.cfg.map.save:
                 try:
-                    h = self.loop.closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg)
+                    h = self.loop.closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg,
+                                                  world_turn=self.output.frame_turn())
                     log.info("map saved to %s: %d keyframes%s%s", h["path"], h["keyframes"],
                              f", {h['pruned_keyframes']} of this flight's pruned" if h["pruned_keyframes"] else "",
                              f" ({h['note']})" if h["left_out_keyframes"] else "")
