@@ -1610,7 +1610,10 @@ def test_a_start_in_flight_carries_the_autopilots_estimate_to_our_first_poses_st
     ap.drain()
     yaw_ap = math.radians(120.0)
     ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 5.0, -1.0, 0.5)  # moving at 5.1 m/s
-    ap.conn.mav.attitude_send(1000, 0.0, 0.0, yaw_ap, 0.0, 0.0, 0.4)  # turning at 0.4 rad/s
+    # a 30 deg banked turn at 0.4 rad/s about the vertical: body rates q = 0.4 sin 30, r = 0.4 cos 30 (yawspeed alone
+    # read 0.35 rad/s)
+    roll = math.radians(30.0)
+    ap.conn.mav.attitude_send(1000, roll, 0.0, yaw_ap, 0.0, 0.4 * math.sin(roll), 0.4 * math.cos(roll))
     time.sleep(0.02)
     clock.advance(0.1)
     out.poll()  # read: their arrival
