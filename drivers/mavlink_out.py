@@ -115,6 +115,9 @@ class MavlinkStats:
     autopilot_heartbeats: int = 0
     other_heartbeats: int = 0  # ours echoed back, a GCS's, a peripheral's, another vehicle's: not trusted
     origin_confirmed: bool = False  # the autopilot reported GPS_GLOBAL_ORIGIN after we set it
+    # ... and whether that origin is [mavlink] origin_* (None before an answer): an armed autopilot's own origin is
+    # kept, and confirmed said nothing of whose it was (review2's note)
+    origin_ours: bool | None = None
     origin_lost: int = 0  # times a confirmed origin went unreported (the autopilot dropped it) and was set again
     land_requests: int = 0  # MAV_CMD_NAV_LAND sent because tracking was lost land_after_loss_s (all losses)
     land_accepted: bool = False  # the autopilot acknowledged the last loss's LAND request
@@ -364,6 +367,7 @@ class MavlinkOutput:
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "last_latency_ms": st.last_latency_ms, "land_after_loss_s": self.cfg.land_after_loss_s,
                 "land_accepted": st.land_accepted, "origin_confirmed": st.origin_confirmed,
+                "origin_ours": st.origin_ours,
                 "first_tilt_deg": st.first_tilt_deg, **self.counters(),
                 **({} if self._counter_sent is None else {"reset_counter": self._counter_sent})}
 
@@ -1084,7 +1088,8 @@ class MavlinkOutput:
                     self.stats.origin_confirmed = True
                     log.info("autopilot confirmed the EKF origin (%.7f, %.7f, %.1f m)", msg.latitude * 1e-7,
                              msg.longitude * 1e-7, msg.altitude * 1e-3)
-                    if not self._origin_is_ours(msg):
+                    self.stats.origin_ours = self._origin_is_ours(msg)
+                    if not self.stats.origin_ours:
                         log.warning("the autopilot's EKF origin (%.7f, %.7f, %.1f m) is not [mavlink] origin_lat_deg/"
                                     "origin_lon_deg/origin_alt_m (%.7f, %.7f, %.1f m)%s", msg.latitude * 1e-7,
                                     msg.longitude * 1e-7, msg.altitude * 1e-3, self.cfg.origin_lat_deg,

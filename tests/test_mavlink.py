@@ -679,13 +679,13 @@ def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
     assert len(asks) == 5 and asks[0].param1 == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
     o = origins[0]
     assert (o.target_system, o.latitude, o.longitude, o.altitude) == (7, 473977419, 85455938, 488000)
-    assert not out.stats.origin_confirmed
+    assert not out.stats.origin_confirmed and out.health()["origin_ours"] is None
     ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
     time.sleep(0.02)
     for _ in range(10):
         out.poll()
         clock.advance(0.6)
-    assert out.stats.origin_confirmed
+    assert out.stats.origin_confirmed and out.health()["origin_ours"] is True
     assert len(ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())) <= 1  # at most the one already due
     out.close()
 
@@ -1829,6 +1829,8 @@ def test_an_armed_autopilots_other_origin_is_kept_and_said(ap, caplog):
             clock.advance(0.6)
     assert not ap.of("SET_GPS_GLOBAL_ORIGIN", ap.drain())
     assert "is not [mavlink] origin" in caplog.text and "kept, it is armed" in caplog.text
+    # the status says whose it is: confirmed alone read as ours
+    assert out.health()["origin_confirmed"] is True and out.health()["origin_ours"] is False
     out.close()
 
 
