@@ -482,9 +482,12 @@ class Service:
             mode = "starting"
         elif not ok:
             mode = "unhealthy"
-        elif not tracking and not withheld and not clock_refused and not not_finite and src.connected and imu_ok and \
-                not getattr(h, "stopped_for_run", None):
-            mode = "waiting for vision"  # the pipeline runs; no pose until the camera sees something usable
+        elif not tracking and not withheld and not clock_refused and not not_finite and not refusing and \
+                src.connected and imu_ok and not getattr(h, "stopped_for_run", None):
+            # the pipeline runs; no pose until the camera sees something usable. Not while a recorded or simulated
+            # source's poses are refused to an armed autopilot: that, not vision, keeps them from it (degraded; it
+            # read "waiting for vision" whenever the status came before the estimator's start, a flaky test here)
+            mode = "waiting for vision"
         elif warnings or not tracking:
             mode = "degraded"
         else:
