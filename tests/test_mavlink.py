@@ -1728,12 +1728,10 @@ def test_the_health_says_the_reset_counter_the_autopilot_got(ap, tmp_path):
         out.close()
 
 
-def test_a_reopened_output_keeps_the_autopilots_frame_of_a_start_in_flight():
-    """The daemon reopens a MAVLink output that failed (an exception from send_state or poll). The new one, fed a
-    tracked pose before the autopilot's next heartbeat, sent in the estimator's own frame at its new reset_counter:
-    EKF3 resets to the external nav's position there, and a process started in flight had its autopilot's position
-    jump by all the vehicle had flown before the start (3.6 m here), what the frame turn is for. It keeps the frame
-    of the output before it now."""
+def _worker_started_in_flight():
+    """An OutputWorker (over a _KeepingLink) whose output heard the autopilot armed, read its estimate (4, -3, -1.5 m
+    NED, yaw 120 deg) and sent one tracked pose, so that it continues in the autopilot's frame; the link, and the
+    outputs it has made."""
     from vio.app.daemon.buffers import LatestState
     from vio.app.daemon.outputs import OutputWorker
 
@@ -1756,15 +1754,33 @@ def test_a_reopened_output_keeps_the_autopilots_frame_of_a_start_in_flight():
         link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
         w.mav.poll()
         w._send(state(time.monotonic_ns()))
+    except BaseException:
+        w.close()
+        raise
+    return w, link, outs
+
+
+def _fail_the_output(w) -> None:
+    """Make the worker's output raise at its next pose (a bug) and send one: the worker drops it to reopen later."""
+    def broken(s: NavState) -> None:
+        raise OSError("a bug")
+
+    w.mav.send_state = broken  # type: ignore[method-assign]
+    w._send(state(time.monotonic_ns()))
+    assert w.mav is None
+
+
+def test_a_reopened_output_keeps_the_autopilots_frame_of_a_start_in_flight():
+    """The daemon reopens a MAVLink output that failed (an exception from send_state or poll). The new one, fed a
+    tracked pose before the autopilot's next heartbeat, sent in the estimator's own frame at its new reset_counter:
+    EKF3 resets to the external nav's position there, and a process started in flight had its autopilot's position
+    jump by all the vehicle had flown before the start (3.6 m here), what the frame turn is for. It keeps the frame
+    of the output before it now."""
+    w, link, outs = _worker_started_in_flight()
+    try:
         first = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
         assert [(round(m.x, 3), round(m.y, 3)) for m in first] == [(4.0, -3.0)]
-
-        def broken(s: NavState) -> None:
-            raise OSError("a bug")
-
-        outs[0].send_state = broken  # type: ignore[method-assign]
-        w._send(state(time.monotonic_ns()))
-        assert w.mav is None
+        _fail_the_output(w)
         w._next_open = 0.0
         w._ensure_mavlink()
         assert len(outs) == 2
@@ -1969,37 +1985,11 @@ def test_the_loop_output_gets_the_turn_of_a_start_in_flight_while_the_output_is_
     """OutputWorker.frame_turn (read by the loop output at each new correction) said None while a failed output
     waited to be reopened (up to reconnect_max_s): a correction into a loaded map's frame taken then kept the turn,
     and the reopened output, which keeps the frame, turned its poses twice until the next solve."""
-    from vio.app.daemon.buffers import LatestState
-    from vio.app.daemon.outputs import OutputWorker
-
-    link = _KeepingLink()
-    outs: list[MavlinkOutput] = []
-
-    def make() -> MavlinkOutput:
-        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link,
-                                  random_first_counter=True))
-        return outs[-1]
-
-    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0)
+    w, _, _ = _worker_started_in_flight()
     try:
-        w._ensure_mavlink()
-        link.from_autopilot(mavlink.MAVLink_heartbeat_message(
-            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
-            mavlink.MAV_STATE_ACTIVE, 3))
-        w.mav.poll()
-        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
-        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
-        w.mav.poll()
-        w._send(state(time.monotonic_ns()))
         turn = w.frame_turn()
         assert turn is not None
-
-        def broken(s: NavState) -> None:
-            raise OSError("a bug")
-
-        outs[0].send_state = broken  # type: ignore[method-assign]
-        w._send(state(time.monotonic_ns()))
-        assert w.mav is None
+        _fail_the_output(w)
         got = w.frame_turn()
         assert got is not None, "no turn while the output is reopened"
         np.testing.assert_allclose(got, turn)
