@@ -805,11 +805,16 @@ class MavlinkOutput:
         self._origin_recheck_ns = self._origin_asked_ns = None
         self.stats.origin_confirmed = False
 
+    def _origin_units(self) -> tuple[int, int, int]:
+        """The configured origin in the messages' units: latitude and longitude [1e-7 deg], altitude [mm]."""
+        return (int(round(self.cfg.origin_lat_deg * 1e7)), int(round(self.cfg.origin_lon_deg * 1e7)),
+                int(round(self.cfg.origin_alt_m * 1000)))
+
     def _origin_is_ours(self, msg: Any) -> bool:
         """Whether a GPS_GLOBAL_ORIGIN is the configured origin (to a unit of 1e-7 deg, and the cm ArduPilot keeps)."""
-        return (abs(int(msg.latitude) - int(round(self.cfg.origin_lat_deg * 1e7))) <= 1
-                and abs(int(msg.longitude) - int(round(self.cfg.origin_lon_deg * 1e7))) <= 1
-                and abs(int(msg.altitude) - int(round(self.cfg.origin_alt_m * 1000))) <= 10)  # ArduPilot keeps cm
+        lat, lon, alt_mm = self._origin_units()
+        return (abs(int(msg.latitude) - lat) <= 1 and abs(int(msg.longitude) - lon) <= 1
+                and abs(int(msg.altitude) - alt_mm) <= 10)  # ArduPilot keeps cm
 
     def _request_origin(self) -> None:
         # an autopilot that already had the origin does not resend it unasked; one without an origin sends nothing
@@ -818,8 +823,7 @@ class MavlinkOutput:
             float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0), "COMMAND_LONG")
 
     def _send_origin(self) -> None:
-        lat, lon = int(round(self.cfg.origin_lat_deg * 1e7)), int(round(self.cfg.origin_lon_deg * 1e7))
-        alt_mm = int(round(self.cfg.origin_alt_m * 1000))
+        lat, lon, alt_mm = self._origin_units()
         self._send(mavlink.MAVLink_set_gps_global_origin_message(self.target_system, lat, lon, alt_mm, 0),
                    "SET_GPS_GLOBAL_ORIGIN")
         # not to an armed autopilot: it set its home where it armed (ArduCopter moves an unlocked home to the vehicle
