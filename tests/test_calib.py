@@ -147,6 +147,20 @@ def test_another_tool_s_file_given_as_the_calibration_says_how_to_convert_it(v10
         assert re.search(f"^vio calib: error: {re.escape(str(path))}: {says}", err), err
 
 
+def test_a_recordings_kestrel_yaml_given_as_the_calibration_says_where_the_calibration_is(tmp_path, capsys):
+    """A recording's mav0/kestrel.yaml (`vio record` writes it: the time offset only) is the one file named like a
+    Kestrel calibration in a recording; `vio calib check mav0/kestrel.yaml REC` said "missing key 'cam0'" (exit 4),
+    which says not what to give instead (an integrator's walk-through of docs/first-flight.md)."""
+    from vio.app.cli import main
+
+    path = tmp_path / "kestrel.yaml"
+    path.write_text("time_offset_ns: 0\n")
+    assert main(["calib", "show", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert re.search(f"^vio calib: error: {re.escape(str(path))}: a recording's kestrel.yaml .*not a calibration.*"
+                     r"vio calib import euroc DATASET.*vio calib check - DATASET", err), err
+
+
 def test_a_calibration_name_over_the_file_system_s_limit_is_one_line(tmp_path, capsys):
     """The folder check added for a dataset given as the calibration (Path.is_dir) raised on a name over 255 bytes:
     'internal error: OSError: [Errno 36] File name too long', where the read said it in one line before."""

@@ -389,6 +389,10 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> StereoCalibrat
         for keys, what, command in FOREIGN_CALIBRATIONS:
             if any(k in d for k in keys):
                 raise VioError(f"{where}: {what}, not a Kestrel calibration file: convert it with `{command}`")
+        if d and set(d) <= {"time_offset_ns"}:  # "missing key 'cam0'" said not where the calibration is
+            raise VioError(f"{where}: a recording's kestrel.yaml (its time offset only), not a calibration: the "
+                           "recording's calibration is in its sensor.yaml files (`vio calib import euroc DATASET -o "
+                           "OUT.yaml`; `vio calib check - DATASET` reads them as they are)")
     refuse_unknown_keys(d, CALIBRATION_KEYS, where)
     cam0 = camera_from_dict(_need(d, "cam0", where), f"{where}: cam0")
     cam1 = camera_from_dict(_need(d, "cam1", where), f"{where}: cam1")
