@@ -295,6 +295,10 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:  # a name over the file system's limits: was 'internal error: OSError: File name too long'
         raise VioError(f"{args.out}: cannot record there: {e.strerror or e}") from None
     refuse_unwritable(args.out, fmt)
+    if src_cfg.imu == "serial":  # else the port was retried for the whole --duration, the cameras recorded alone
+        from vio.extras import require
+
+        require("serial", "serial", '[source] imu = "serial"')
     source: Any = open_source(src_cfg)
     stop = threading.Event()
 

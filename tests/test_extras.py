@@ -189,6 +189,20 @@ def test_config_check_and_run_refuse_a_source_whose_extra_is_missing(tmp_path, s
         assert f"needs the [{extra}] extra" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_record_with_a_serial_imu_without_its_extra_stops_at_once(tmp_path):
+    """`vio record --config C` with `imu = "serial"` and no pyserial (docs/serial-imu.md's bench test on a plain
+    install) retried the port for the whole --duration, recorded the cameras alone and only then failed (exit 1, a
+    health dump); the OAK's extra was asked for at once. Now both are, before anything is written."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[source]\nkind = "fake"\nimu = "serial"\nserial_port = "/dev/ttyUSB0"\nwidth = 320\n'
+                   "height = 200\n")
+    out = tmp_path / "rec"
+    r = _vio_without(("serial",), "-q", "record", str(out), "--duration", "3", "--config", str(cfg), timeout=60)
+    assert r.returncode == 1, r.stdout + r.stderr
+    _one_line_naming(r.stderr, "serial")
+    assert not out.exists()
+
+
 def test_config_check_and_run_refuse_the_live_view_without_its_extra(tmp_path):
     """`[view] enabled = true` without rerun: config check said OK and `vio run` stopped building its Service
     with exit 1, which systemd restarts for ever (it leaves only exit 3 alone)."""
