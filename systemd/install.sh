@@ -33,8 +33,8 @@ while [[ $# -gt 0 ]]; do
     shift
 done
 
-run() {  # print, and execute unless --dry-run
-    echo "+ $*"
+run() {  # print (quoted as a shell reads it back), and execute unless --dry-run
+    echo "+$(printf ' %q' "$@")"
     if [[ $DRY_RUN -eq 0 ]]; then "$@"; fi
 }
 

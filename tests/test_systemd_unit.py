@@ -130,6 +130,21 @@ def test_install_script_dry_run_shows_every_step() -> None:
     assert r.returncode == 2 and "unknown option" in r.stderr
 
 
+def test_install_script_dry_run_lines_are_the_commands_as_a_shell_reads_them() -> None:
+    """`--dry-run` printed `useradd ... --comment Kestrel VIO service kestrel`: pasted, as its help invites, it was
+    another command (three arguments, the user named 'VIO'). Each line now quotes its arguments."""
+    import shlex
+
+    r = subprocess.run(["bash", str(INSTALL), "--dry-run"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = [shlex.split(ln[2:]) for ln in r.stdout.splitlines() if ln.startswith("+ ")]
+    pip = next(a for a in lines if a[1:3] == ["install", "--upgrade"] and a[-1].endswith("[oak,serial]"))
+    assert Path(pip[-1][:-len("[oak,serial]")]) == INSTALL.parents[1]
+    if subprocess.run(["id", "-u", "kestrel"], capture_output=True).returncode != 0:
+        useradd = next(a for a in lines if a[0] == "useradd")
+        assert useradd[useradd.index("--comment") + 1] == "Kestrel VIO service" and useradd[-1] == "kestrel"
+
+
 @pytest.mark.skipif(shutil.which("shellcheck") is None, reason="shellcheck not installed")
 def test_install_script_shellcheck() -> None:
     r = subprocess.run(["shellcheck", str(INSTALL)], capture_output=True, text=True, timeout=60)
