@@ -258,7 +258,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in OUT")
     parser.add_argument("--format", choices=("euroc", "mcap"), default=None,
                         help="euroc: a folder of PNGs (default); mcap: one file OUT on ROS 2 schemas (Foxglove, "
-                        "`vio replay OUT --calib ...`); default from [run] record_format")
+                        "`vio replay OUT` reads it back with its calibration); default from [run] record_format")
     parser.add_argument("--images", choices=("png", "jpeg", "raw"), default=None,
                         help="mcap images: png lossless, jpeg, raw; default from [run] record_images")
 

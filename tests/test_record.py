@@ -517,3 +517,15 @@ def test_record_never_writes_into_the_dataset_its_euroc_source_replays(tmp_path:
         assert f"would be written into the recording {data}" in err and len(err.strip().splitlines()) == 1, err
     assert sorted((data / "mav0" / "cam0" / "data").iterdir()) == images
     assert not (data / "mav0" / "x.mcap").exists()
+
+
+def test_record_help_says_an_mcap_recording_replays_without_calib(capsys) -> None:
+    """`vio record --help` said an MCAP recording replays with `vio replay OUT --calib ...`; the recorder writes its
+    calibration into the file (kestrel-calibration.yaml, docs/formats.md) and `vio replay OUT` uses it, and our own
+    EuRoC and MCAP recordings replay alike (an integrator's walk-through)."""
+    from vio.app.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["record", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--calib ..." not in out and "vio replay OUT` reads it back with its calibration" in out, out
