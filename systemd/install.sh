@@ -26,7 +26,11 @@ while [[ $# -gt 0 ]]; do
         --dry-run) DRY_RUN=1 ;;
         --enable) ENABLE=1 ;;
         --no-venv) VENV=0 ;;
-        --prefix) PREFIX="$2"; shift ;;
+        --prefix)
+            if [[ $# -lt 2 || -z "$2" || "$2" == -* ]]; then
+                echo "install.sh: --prefix needs a folder (e.g. --prefix /opt/kestrel-vio)" >&2; exit 2
+            fi
+            PREFIX="$2"; shift ;;
         -h|--help) sed -n '2,11p' "$0"; exit 0 ;;
         *) echo "install.sh: unknown option '$1' (try --help)" >&2; exit 2 ;;
     esac
@@ -71,8 +75,10 @@ fi
 run install -d -m 0755 "$PREFIX/docs"
 run install -m 0644 "$SRC"/docs/*.md "$PREFIX/docs/"  # the unit's Documentation= points here
 if [[ "$PREFIX" != /opt/kestrel-vio ]]; then
-    echo "note: the unit file runs /opt/kestrel-vio/venv/bin/vio; with --prefix $PREFIX override ExecStart" \
-        "with 'systemctl edit kestrel-vio'" >&2
+    # a drop-in's ExecStart= adds a second one (refused for Type=notify) unless an empty line clears the first
+    printf '%s\n' "note: the unit file runs /opt/kestrel-vio/venv/bin/vio; with --prefix $PREFIX put these two lines" \
+        "under [Service] in 'sudo systemctl edit kestrel-vio' (the empty ExecStart= clears the unit's own):" \
+        "ExecStart=" "ExecStart=$PREFIX/venv/bin/vio run --config $ETC/config.toml" >&2
 fi
 
 # 3. Configuration: the example is always refreshed beside it, the live file is never overwritten.

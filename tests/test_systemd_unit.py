@@ -145,6 +145,19 @@ def test_install_script_dry_run_lines_are_the_commands_as_a_shell_reads_them() -
         assert useradd[useradd.index("--comment") + 1] == "Kestrel VIO service" and useradd[-1] == "kestrel"
 
 
+def test_install_script_prefix_says_the_drop_in_that_runs_it() -> None:
+    """`--prefix D` said only "override ExecStart with 'systemctl edit kestrel-vio'": a drop-in with one more ExecStart=
+    line is refused by systemd ("more than one ExecStart= setting") unless an empty one clears the unit's first; and
+    `--prefix` with no folder ended in bash's "$2: unbound variable"."""
+    r = subprocess.run(["bash", str(INSTALL), "--dry-run", "--prefix", "/srv/kv"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "ExecStart=\nExecStart=/srv/kv/venv/bin/vio run --config /etc/kestrel-vio/config.toml" in \
+        r.stderr.replace("\n    ", "\n"), r.stderr
+    r = subprocess.run(["bash", str(INSTALL), "--dry-run", "--prefix"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--prefix needs a folder" in r.stderr and "unbound" not in r.stderr, r.stderr
+
+
 @pytest.mark.skipif(shutil.which("shellcheck") is None, reason="shellcheck not installed")
 def test_install_script_shellcheck() -> None:
     r = subprocess.run(["shellcheck", str(INSTALL)], capture_output=True, text=True, timeout=60)
