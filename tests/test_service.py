@@ -192,6 +192,24 @@ def test_status_json_of_a_daemon_that_is_gone_says_so(tmp_path, capsys) -> None:
     assert "camera -" in capsys.readouterr().out
 
 
+def test_status_json_without_a_status_file_prints_the_state_on_stdout(tmp_path, capsys) -> None:
+    """`vio status --json` with no status file printed nothing on stdout (its line went to stderr), so a health
+    check piping it to jq got nothing to read (an integrator's walk-through)."""
+    from vio.app.cli import main
+
+    assert main(["status", "--file", str(tmp_path / "status.json"), "--json"]) == EXIT_NOT_RUNNING
+    cap = capsys.readouterr()
+    out = json.loads(cap.out)
+    assert out["state"] == "not running" and out["healthy"] is False, out
+    assert out["verdict"].startswith("NOT RUNNING (") and "NOT RUNNING (" in cap.err
+    assert main(["status", "--file", str(tmp_path / "status.json")]) == EXIT_NOT_RUNNING
+    assert capsys.readouterr().out == ""  # the text form as before: its line on stderr only
+    (tmp_path / "bad.json").write_text("{not json")
+    assert main(["status", "--file", str(tmp_path / "bad.json"), "--json"]) == EXIT_NOT_RUNNING
+    out = json.loads(capsys.readouterr().out)
+    assert out["state"] == "unknown" and out["verdict"].startswith("UNKNOWN ("), out
+
+
 def test_status_text_names_what_a_person_needs() -> None:
     text = format_status(_status(warnings=["autopilot link down"]), "HEALTHY", 1000.5)
     for needle in ("HEALTHY", "up 1h02m05s", "camera 20.0 Hz", "IMU 200 Hz", "tracks 140", "resets 1",

@@ -250,20 +250,27 @@ def missing_file_text(path: Path) -> str:
     return f"NOT RUNNING ({path} does not exist; is the service started? try: systemctl status kestrel-vio)"
 
 
+def _no_status(args: argparse.Namespace, state: str, text: str) -> int:
+    """No status to show: the line on stderr, and with --json an object on stdout too, so that a script reading
+    `vio status --json` (a health check piping it to jq) gets the state rather than nothing."""
+    print(f"kestrel-vio: {text}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"state": state, "healthy": False, "verdict": text}, indent=1))
+    return EXIT_NOT_RUNNING
+
+
 def run(args: argparse.Namespace) -> int:
     path = _status_path(args)
     if path is None:  # read as '.': "cannot read status: Is a directory"
-        print(f"kestrel-vio: UNKNOWN ([run] status_file is empty in {args.config}: a daemon with this "
-              "configuration writes no status file; set one to use vio status)", file=sys.stderr)
-        return EXIT_NOT_RUNNING
+        return _no_status(args, "unknown", f"UNKNOWN ([run] status_file is empty in {args.config}: a daemon with "
+                          "this configuration writes no status file; set one to use vio status)")
     try:
         status = read_status(path)
     except FileNotFoundError:
-        print(f"kestrel-vio: {missing_file_text(path)}", file=sys.stderr)
-        return EXIT_NOT_RUNNING
+        text = missing_file_text(path)
+        return _no_status(args, "not running" if text.startswith("NOT RUNNING") else "unknown", text)
     except (OSError, ValueError) as e:
-        print(f"kestrel-vio: UNKNOWN ({path}: cannot read status: {e})", file=sys.stderr)
-        return EXIT_NOT_RUNNING
+        return _no_status(args, "unknown", f"UNKNOWN ({path}: cannot read status: {e})")
     now = time.time()
     code, verdict = evaluate(status, now, args.stale_s)
     gone = code == EXIT_NOT_RUNNING and status.get("state") != "stopped"
