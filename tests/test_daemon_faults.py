@@ -749,8 +749,24 @@ def test_a_checkpoint_from_another_boot_is_moved_aside_not_grown_nor_written_ove
     aside = [p for p in tmp_path.iterdir() if p.name.startswith("m.checkpoint-")]
     assert not path.exists() and len(aside) == 1 and "moved to" in caplog.text, caplog.text
     assert load_map(aside[0]).header["checkpoint"]["boot_id"] == "an-earlier-boot"
-    save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)  # a finished map: written over, as before
-    assert service.map_to_grow(cfg, None) is None and path.exists()
+    # a finished map of another run ([map] save left set after the mapping flight) was written over by this run's
+    # first checkpoint (an integrator's walk-through): kept as m.previous.npz, one generation, said
+    save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        assert main(["-q", "config", "check", str(toml)]) == 0
+    assert f"note: map: {path} holds the finished map of" in out.getvalue() and path.exists(), out.getvalue()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert service.map_to_grow(cfg, None) is None
+    previous = tmp_path / "m.previous.npz"
+    assert not path.exists() and len(load_map(previous).t_ns) == 2, caplog.text
+    assert f"moved to {previous}, kept" in caplog.text and "replacing" not in caplog.text, caplog.text
+    save_map(path, [1, 2, 3], np.stack([np.eye(4)] * 3), feats + feats[:1], voc, cam)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert service.map_to_grow(cfg, None) is None
+    assert len(load_map(previous).t_ns) == 3 and "(replacing the older one there)" in caplog.text, caplog.text
+    save_map(path, [1, 2], np.stack([np.eye(4)] * 2), feats, voc, cam)
     # [map] save a hard link of [map] load: the map grown in place (as check_run_config sees it), not another
     # run's checkpoint to move aside (they were compared by real path)
     write("an-earlier-boot")

@@ -827,8 +827,20 @@ def checkpoint_plan(cfg: VioConfig, map_data: Any) -> CheckpointPlan:
         raise VioError(f"[map] save: {e}; vio run would write over it: move it away or set another [map] save") \
             from None
     cp = m.header.get("checkpoint")
-    if not cp:  # a finished map: [map] save writes over it, as it always did
-        return CheckpointPlan()
+    if not cp:
+        # a finished map of another run ([map] save left set after the mapping flight): this run's first checkpoint
+        # wrote over it, and a 21-keyframe map became this flight's 7 (an integrator's walk-through). It is kept as
+        # NAME.previous.npz, one generation (an older one there is replaced: a daemon saving at every boot must not
+        # fill the disk), said
+        p = Path(os.path.realpath(save))
+        aside = p.with_name(f"{p.stem}.previous{p.suffix}")
+        made = m.header.get("created_utc") or "an earlier run"
+        older = " (replacing the older one there)" if aside.exists() else ""
+        return CheckpointPlan("aside", None, aside, (
+            f"map: {save} held the finished map of {made} ({len(m.t_ns)} keyframes), which this run's map would "
+            f"write over: moved to {aside}{older}, kept (load it with [map] load to fly in it)"), (
+            f"map: {save} holds the finished map of {made} ({len(m.t_ns)} keyframes): vio run moves it to {aside}"
+            f"{older} and saves a map of its own there; to grow it instead, set [map] load to the same file"))
     loaded = loaded_key(cfg.map.load)  # as the run that wrote the checkpoint named its own
     if cp.get("boot_id") and cp["boot_id"] == boot_id() and cp.get("loaded") == loaded:
         said = (f"map: {save} is the checkpoint of this daemon's run started {cp.get('started_utc')} (pid "
@@ -876,9 +888,9 @@ def map_to_grow(cfg: VioConfig, map_data: Any) -> Any:
         try:
             os.rename(os.path.realpath(cfg.map.save), plan.aside)
         except OSError as e:
-            raise VioError(f"[map] save: {cfg.map.save} is the checkpoint of a run that did not stop cleanly, and "
-                           f"it cannot be moved aside to {plan.aside} ({e.strerror or e}); it is kept: move it, or "
-                           "load it with [map] load") from None
+            raise VioError(f"[map] save: {cfg.map.save} is the map of another run, and it cannot be moved aside to "
+                           f"{plan.aside} ({e.strerror or e}); it is kept: move it, or load it with [map] load") \
+                from None
         log.warning("%s", plan.said)
     return map_data
 
