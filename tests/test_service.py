@@ -210,6 +210,21 @@ def test_status_json_without_a_status_file_prints_the_state_on_stdout(tmp_path, 
     assert out["state"] == "unknown" and out["verdict"].startswith("UNKNOWN ("), out
 
 
+def test_the_status_files_mavlink_section_keeps_fields_not_known_yet_as_null() -> None:
+    """`origin_ours` is None until the autopilot answers (docs/autopilot.md), but the status file left every None
+    out, so `vio status --json` had no such key at all (an integrator's walk-through); values no JSON reader takes
+    (NaN, lists) stay out."""
+    from types import SimpleNamespace
+
+    from vio.app.daemon.status import _mavlink_health
+
+    out = SimpleNamespace(link_up=True, health=lambda: {"origin_ours": None, "first_tilt_deg": None, "sent": 3,
+                                                         "last_latency_ms": float("nan"), "ids": [1]})
+    h = _mavlink_health(out)
+    assert h == {"origin_ours": None, "first_tilt_deg": None, "sent": 3, "state": "up"}, h
+    assert "mavlink   link up, sent 3" in format_status(_status(mavlink=h), "HEALTHY", 1000.5)
+
+
 def test_status_text_names_what_a_person_needs() -> None:
     text = format_status(_status(warnings=["autopilot link down"]), "HEALTHY", 1000.5)
     for needle in ("HEALTHY", "up 1h02m05s", "camera 20.0 Hz", "IMU 200 Hz", "tracks 140", "resets 1",

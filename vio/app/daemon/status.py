@@ -35,8 +35,10 @@ def _mavlink_health(mav: PoseOutput) -> dict:
         h = mav.health()
     except Exception as e:  # display only
         h = {"health_error": str(e)}
+    # None kept (null: "not known yet", e.g. origin_ours before the autopilot answers, as docs/autopilot.md says);
+    # left out, a script could not tell a field not known yet from one this version does not have
     out = {k: v for k, v in h.items()
-           if isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
+           if v is None or isinstance(v, (int, str, bool)) or (isinstance(v, float) and math.isfinite(v))}
     out["state"] = "up" if mav.link_up else "down"
     return out
 
