@@ -204,6 +204,10 @@ def test_status_json_without_a_status_file_prints_the_state_on_stdout(tmp_path, 
     assert out["verdict"].startswith("NOT RUNNING (") and "NOT RUNNING (" in cap.err
     assert main(["status", "--file", str(tmp_path / "status.json")]) == EXIT_NOT_RUNNING
     assert capsys.readouterr().out == ""  # the text form as before: its line on stderr only
+    # a --config that cannot be read exited 1, which a script reads as "degraded": 3, as for vio run
+    assert main(["status", "--config", str(tmp_path / "missing.toml"), "--json"]) == 3
+    out = json.loads(capsys.readouterr().out)
+    assert out["state"] == "unknown" and "missing.toml" in out["verdict"], out
     (tmp_path / "bad.json").write_text("{not json")
     assert main(["status", "--file", str(tmp_path / "bad.json"), "--json"]) == EXIT_NOT_RUNNING
     out = json.loads(capsys.readouterr().out)

@@ -29,6 +29,7 @@ from vio.io.inputs import is_device
 EXIT_HEALTHY = 0
 EXIT_UNHEALTHY = 1
 EXIT_NOT_RUNNING = 4
+EXIT_CONFIG = 3  # --config cannot be read (vio.app.cli's EXIT_CONFIG)
 DEFAULT_STATUS_FILE = "/run/kestrel-vio/status.json"
 
 
@@ -250,17 +251,24 @@ def missing_file_text(path: Path) -> str:
     return f"NOT RUNNING ({path} does not exist; is the service started? try: systemctl status kestrel-vio)"
 
 
-def _no_status(args: argparse.Namespace, state: str, text: str) -> int:
+def _no_status(args: argparse.Namespace, state: str, text: str, code: int = EXIT_NOT_RUNNING) -> int:
     """No status to show: the line on stderr, and with --json an object on stdout too, so that a script reading
     `vio status --json` (a health check piping it to jq) gets the state rather than nothing."""
     print(f"kestrel-vio: {text}", file=sys.stderr)
     if args.json:
         print(json.dumps({"state": state, "healthy": False, "verdict": text}, indent=1))
-    return EXIT_NOT_RUNNING
+    return code
 
 
 def run(args: argparse.Namespace) -> int:
-    path = _status_path(args)
+    from vio import VioError
+
+    try:
+        path = _status_path(args)
+    except VioError as e:
+        # exit 1 (the CLI's for any error) read as "degraded" to a script watching the exit code (an integrator's
+        # walk-through): a configuration that cannot be read is EXIT_CONFIG, as for vio run and vio config check
+        return _no_status(args, "unknown", f"UNKNOWN (--config: {e})", EXIT_CONFIG)
     if path is None:  # read as '.': "cannot read status: Is a directory"
         return _no_status(args, "unknown", f"UNKNOWN ([run] status_file is empty in {args.config}: a daemon with "
                           "this configuration writes no status file; set one to use vio status)")
