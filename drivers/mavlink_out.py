@@ -147,11 +147,23 @@ MAX_LEVER_ARM_M = 2.0  # [mavlink] mount_offset_m: no drone's IMU sits further f
 MAX_SENDABLE = 1e30
 
 
-def _sendable(state: NavState) -> bool:
-    """Is every number the pose messages are made of finite and within float32's range, and every variance >= 0?"""
-    return all(bool((np.abs(a) < MAX_SENDABLE).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
-                                                                 state.cov_pose, state.cov_vel)) and \
-        bool((np.diag(state.cov_pose) >= 0).all() and (np.diag(state.cov_vel) >= 0).all())
+NOT_FINITE_TEXT = ("the estimate holds a NaN or infinite value (or one beyond 1e30), or a negative variance (pose, "
+                   "velocity or covariance)")
+TIME_USEC_END = 2 ** 64  # the pose messages' time_usec is unsigned 64-bit
+
+
+def _unsendable(state: NavState) -> tuple[str, str] | None:
+    """Why the pose messages cannot carry `state`: (kind, the why in words), or None when they can. Every number
+    must be finite and within float32's range, every variance >= 0, and the stamp within time_usec's unsigned range
+    (a negative one failed to pack and was dropped as a send error, the status saying nothing: a review's note)."""
+    if not (all(bool((np.abs(a) < MAX_SENDABLE).all()) for a in (state.T_world_body, state.v_world, state.omega_body,
+                                                                  state.cov_pose, state.cov_vel))
+            and bool((np.diag(state.cov_pose) >= 0).all() and (np.diag(state.cov_vel) >= 0).all())):
+        return "values", NOT_FINITE_TEXT
+    if not 0 <= int(state.t_ns) // 1000 < TIME_USEC_END:
+        return "stamp", (f"its time stamp t_ns = {int(state.t_ns)} is outside the messages' unsigned time_usec (0 "
+                         "to 2^64 us; a stamp before the clock's zero)")
+    return None
 
 
 def check_mavlink_config(cfg: MavlinkConfig) -> None:
@@ -248,7 +260,8 @@ class MavlinkOutput:
         elif T_body_cam0 is not None:
             self.set_camera_mount(T_body_cam0)
         self._mount_warned = False
-        self._not_finite_said = False  # the NaN estimate's error line, said once
+        self._unsendable_said: set[str] = set()  # the error line of each kind of unsendable state, said once
+        self._unsendable_why: str | None = None  # why the newest state cannot be sent (health(); None: it can)
         # the newest state was not finite: nothing goes out until a whole one comes (health(): `vio status` said
         # running at quality 100 meanwhile, a review's finding)
         self._not_finite_spell = False
@@ -362,7 +375,7 @@ class MavlinkOutput:
         return {"link_up": self._link_up, "connected": self.connected, "url": self.url,
                 "system_id": self.system_id, "target_system": self.target_system,
                 "withholding_old_poses": self._too_old_spell, "withholding_for": self._withheld_for,
-                "withholding_not_finite": self._not_finite_spell,
+                "withholding_not_finite": self._not_finite_spell, "withholding_not_sendable": self._unsendable_why,
                 "withheld_for": st.withheld_for,
                 "poses_to_armed": self._poses_to_armed, "withholding_replay_poses": self._refusing,
                 "last_latency_ms": st.last_latency_ms, "land_after_loss_s": self.cfg.land_after_loss_s,
@@ -410,15 +423,14 @@ class MavlinkOutput:
             self.stats.states_withheld += 1
             if state.tracking:
                 state = dataclasses.replace(state, tracking=False, quality=0)
-        finite = _sendable(state)
-        self._not_finite_spell = not finite
-        if not finite:
+        unsendable = _unsendable(state)
+        finite = unsendable is None
+        self._not_finite_spell, self._unsendable_why = not finite, None if unsendable is None else unsendable[1]
+        if unsendable is not None:
             # never sent, not even as a lost pose: the autopilot would read a NaN covariance as anything
-            if not self._not_finite_said:
-                log.error("no pose sent: the estimate holds a NaN or infinite value (or one beyond 1e30), or a "
-                          "negative variance (pose, velocity or covariance); a loss of tracking until it is whole "
-                          "again")
-                self._not_finite_said = True
+            if unsendable[0] not in self._unsendable_said:
+                log.error("no pose sent: %s; a loss of tracking until it is whole again", unsendable[1])
+                self._unsendable_said.add(unsendable[0])
             # one reason a state: a withheld or too old one is counted there (it stopped the state first)
             self.stats.states_not_finite += not (withheld or too_old)
             state = dataclasses.replace(state, tracking=False, quality=0)

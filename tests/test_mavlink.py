@@ -410,6 +410,33 @@ def test_a_state_with_a_nan_covariance_is_never_sent_and_counts_as_lost_tracking
     out.close()
 
 
+@pytest.mark.parametrize("t_ns", [-5_000_000_000, -1, 2 ** 64 * 1000])
+def test_a_pose_stamped_outside_time_usec_is_withheld_and_said(ap, caplog, t_ns):
+    """ODOMETRY's and VISION_*'s time_usec is unsigned 64-bit: a state stamped before 0 (or past 2^64 us) failed to
+    pack and was dropped as a send error ('ODOMETRY not sent: a field cannot be packed'), the status saying nothing
+    of it. It is withheld as a NaN one is: a loss of tracking, one error line naming the stamp, the status's flag."""
+    clock = FakeClock()
+    out = make_out(ap, clock, messages=["ODOMETRY"])
+    try:
+        with caplog.at_level("INFO", logger="drivers.mavlink_out"):
+            out.send_state(state(t_ns))
+            clock.advance(0.05)
+            out.send_state(state(t_ns + (50_000_000 if t_ns > 0 else -50_000_000)))
+        got = ap.drain()
+        assert not ap.of("ODOMETRY", got)
+        assert "cannot be packed" not in caplog.text
+        assert "time stamp" in caplog.text and str(t_ns) in caplog.text, caplog.text
+        h = out.health()
+        assert h["withholding_not_finite"] and "time stamp" in h["withholding_not_sendable"], h
+        assert h["states_not_finite"] == 2 and h["states_sent"] == 0
+        clock.advance(0.05)
+        out.send_state(state(clock.t))
+        assert len(ap.of("ODOMETRY", ap.drain())) == 1
+        assert not out.health()["withholding_not_finite"] and out.health()["withholding_not_sendable"] is None
+    finally:
+        out.close()
+
+
 def test_a_pending_state_is_never_replaced_by_an_older_one(ap):
     clock = FakeClock()
     out = make_out(ap, clock, messages=["ODOMETRY"])

@@ -1989,12 +1989,14 @@ def test_the_mavlink_counts_are_not_doubled_by_a_close_during_a_status_read(monk
         sink.close()
 
 
-@pytest.mark.parametrize(("bad", "says"), [(np.nan, "NaN"), (1e31, "beyond 1e30")])
-def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Path, bad: float, says: str) -> None:
+@pytest.mark.parametrize(("bad", "says"), [(np.nan, "NaN"), (1e31, "beyond 1e30"), ("stamp", "time stamp")])
+def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Path, bad: float | str,
+                                                                   says: str) -> None:
     """The estimator tracks but its covariance is NaN (or finite beyond 1e30, which float32 fields cannot carry):
     the MAVLink output sends nothing (a loss of tracking, one error line), while the status read 'running', quality
     100, nothing said. It says why now, quality 0 (what the autopilot gets), and running again once the estimate is
-    whole. The status named only a NaN, an infinite value or a negative variance for a 1e31 one."""
+    whole. The status named only a NaN, an infinite value or a negative variance for a 1e31 one; a stamp before 0
+    (time_usec is unsigned) failed to pack, dropped as a send error with nothing in the status."""
     from drivers.mavlink_out import MavlinkOutput
 
     status = tmp_path / "status.json"
@@ -2007,7 +2009,9 @@ def test_a_not_finite_estimate_shows_in_the_status_as_no_pose_sent(tmp_path: Pat
         def feed_frame(self, f: StereoFrame) -> NavState | None:
             st = super().feed_frame(f)
             if st is not None and sick.is_set():
-                st = dataclasses.replace(st, cov_pose=np.full((6, 6), bad))
+                # a stamp before the clock's zero: time_usec is unsigned (it failed to pack, the status said nothing)
+                st = dataclasses.replace(st, t_ns=-st.t_ns) if bad == "stamp" else \
+                    dataclasses.replace(st, cov_pose=np.full((6, 6), bad))
             return st
 
     ap = FakeAutopilot()

@@ -452,8 +452,10 @@ class Service:
         not_finite = bool(link.get("withholding_not_finite"))
         if not_finite:
             # the output refuses a NaN / infinite estimate (a loss of tracking): the status read running, quality 100
-            warnings.append("poses not sent: the estimate holds a NaN or infinite value (or one beyond 1e30, which the "
-                            "messages' float32 fields cannot carry), or a negative variance "
+            why = link.get("withholding_not_sendable") or ""
+            warnings.append(f"poses not sent: {why} (mavlink.states_not_finite)" if why.startswith("its time stamp")
+                            else "poses not sent: the estimate holds a NaN or infinite value (or one beyond 1e30, "
+                            "which the messages' float32 fields cannot carry), or a negative variance "
                             "(mavlink.states_not_finite)")
             tracking = False
         refusing = link.get("withholding_replay_poses")
