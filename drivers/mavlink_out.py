@@ -166,6 +166,30 @@ def _unsendable(state: NavState) -> tuple[str, str] | None:
     return None
 
 
+@dataclass(frozen=True)
+class Continuity:
+    """What an output reopened after a failure goes on from (MavlinkOutput.continuity / continue_from): the closed
+    one's reset_counter, tracking state and loss clock (clock times on the output's clock: one factory makes both),
+    and the autopilot's estimate it read for a start in flight's frame. A reopened output began afresh: a loss went on
+    with no clock of its own (no LAND, no 'tracking lost' for one begun while none was open), and a random first
+    counter could repeat the last one sent at a step (review notes)."""
+
+    reset_offset: int
+    last_reset_counter: int | None
+    last_loop_jumps: int
+    counter_sent: int | None
+    tracked_frame: tuple[int, int] | None
+    last_sent_t_ns: int | None
+    tracking: bool | None
+    lost_since_ns: int | None
+    land_done: bool
+    land_left: int
+    land_accepted: bool
+    ap_local: tuple[int, np.ndarray, np.ndarray] | None
+    ap_yaw: tuple[int, float, float] | None
+    first_tilt_deg: float
+
+
 def check_mavlink_config(cfg: MavlinkConfig) -> None:
     """What the output could never send with (VioError naming the key): checked when `vio run` / `vio config check`
     start, not found by the output thread, which would retry it forever."""
@@ -526,6 +550,35 @@ class MavlinkOutput:
         with self._lock:
             self._align, self._continue_frame = frame
             self._frame_kept = True
+
+    def continuity(self) -> Continuity:
+        """What the output reopened after this one goes on from (the daemon hands it over). Read without the lock:
+        this output failed, and its thread may be stuck holding it."""
+        return Continuity(self._reset_offset, self._last_reset_counter, self._last_loop_jumps, self._counter_sent,
+                          self._tracked_frame, self._last_sent_t_ns, self._tracking, self._lost_since_ns,
+                          self._land_done, self._land_left, self.stats.land_accepted,
+                          self._ap_local, self._ap_yaw, self.stats.first_tilt_deg)
+
+    def continue_from(self, c: Continuity | None) -> None:
+        """Go on from the output this one replaces (its continuity()), before any state: its reset_counter (moved only
+        by the estimator from here), its tracking state and loss clock (a loss goes on, with its LAND; one that begins
+        now is a change), its reading of the autopilot's estimate, its mount check."""
+        if c is None:
+            return
+        with self._lock, self._pending_lock:
+            self._reset_offset, self._last_reset_counter, self._last_loop_jumps = (c.reset_offset, c.last_reset_counter,
+                                                                                   c.last_loop_jumps)
+            self._counter_sent, self._tracked_frame, self._last_sent_t_ns = (c.counter_sent, c.tracked_frame,
+                                                                             c.last_sent_t_ns)
+            self._tracking, self._lost_since_ns = c.tracking, c.lost_since_ns
+            # no estimate from here for NO_ESTIMATE_LOST_NS is a loss (the closed one's last arrival would make the
+            # states that came while none was open, dropped by the daemon, look like silence)
+            self._last_state_at_ns = self._clock()
+            self._land_done, self._land_left, self.stats.land_accepted = c.land_done, c.land_left, c.land_accepted
+            self._next_land_ns = 0
+            self._ap_local, self._ap_yaw, self.stats.first_tilt_deg = c.ap_local, c.ap_yaw, c.first_tilt_deg
+        log.info("reopened output goes on from the one before it: reset_counter offset %d, %s", c.reset_offset,
+                 "tracking" if c.tracking else "no tracking state yet" if c.tracking is None else "tracking lost")
 
     def force_reset(self) -> None:
         """Bump reset_counter without an estimator reset (e.g. the estimator was re-created and its own

@@ -1755,10 +1755,10 @@ def test_the_health_says_the_reset_counter_the_autopilot_got(ap, tmp_path):
         out.close()
 
 
-def _worker_started_in_flight():
+def _worker_started_in_flight(send_pose: bool = True, **cfg):
     """An OutputWorker (over a _KeepingLink) whose output heard the autopilot armed, read its estimate (4, -3, -1.5 m
-    NED, yaw 120 deg) and sent one tracked pose, so that it continues in the autopilot's frame; the link, and the
-    outputs it has made."""
+    NED, yaw 120 deg) and sent one tracked pose, so that it continues in the autopilot's frame (without `send_pose`
+    the frame's choice is still to come); the link, and the outputs it has made. `cfg`: more [mavlink] keys."""
     from vio.app.daemon.buffers import LatestState
     from vio.app.daemon.outputs import OutputWorker
 
@@ -1766,7 +1766,7 @@ def _worker_started_in_flight():
     outs: list[MavlinkOutput] = []
 
     def make() -> MavlinkOutput:
-        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link,
+        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"], **cfg), link=link,
                                   random_first_counter=True))
         return outs[-1]
 
@@ -1780,7 +1780,8 @@ def _worker_started_in_flight():
         link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
         link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
         w.mav.poll()
-        w._send(state(time.monotonic_ns()))
+        if send_pose:
+            w._send(state(time.monotonic_ns()))
     except BaseException:
         w.close()
         raise
@@ -2023,5 +2024,102 @@ def test_the_loop_output_gets_the_turn_of_a_start_in_flight_while_the_output_is_
         w._next_open = 0.0
         w._ensure_mavlink()
         np.testing.assert_allclose(w.frame_turn(), turn)
+    finally:
+        w.close()
+
+
+def _armed_beat(link) -> None:
+    link.from_autopilot(mavlink.MAVLink_heartbeat_message(
+        mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4,
+        mavlink.MAV_STATE_ACTIVE, 3))
+
+
+def _reopen(w) -> None:
+    w._next_open = 0.0
+    w._ensure_mavlink()
+    assert w.mav is not None
+
+
+def _lands(link) -> list:
+    return [m for m in link.msgs if m.get_type() == "COMMAND_LONG" and m.command == mavlink.MAV_CMD_NAV_LAND]
+
+
+def _texts(link) -> list[str]:
+    return [m.text if isinstance(m.text, str) else m.text.decode() for m in link.msgs
+            if m.get_type() == "STATUSTEXT"]
+
+
+@pytest.mark.parametrize("lost_before_failure", [True, False])
+def test_a_reopened_output_keeps_the_loss_clock_of_a_loss_of_tracking(lost_before_failure):
+    """The daemon reopens a MAVLink output that failed (an exception from it). One reopened during a loss of tracking
+    began with no tracking state of its own: the lost states it got were no change, so the loss had no clock, no
+    land_after_loss_s LAND and (a loss that began while none was open) no 'VIO tracking lost'. It goes on from the
+    closed one's tracking state and loss clock."""
+    w, link, outs = _worker_started_in_flight(land_after_loss_s=0.2)
+    try:
+        if lost_before_failure:
+            w._send(state(time.monotonic_ns(), tracking=False, quality=0))
+            assert _texts(link).count("VIO tracking lost") == 1
+        _fail_the_output(w)
+        _reopen(w)
+        _armed_beat(link)
+        w.mav.poll()
+        for _ in range(4):
+            time.sleep(0.08)
+            w._send(state(time.monotonic_ns(), tracking=False, quality=0))
+            w.mav.poll()
+        assert _texts(link).count("VIO tracking lost") == 1, _texts(link)
+        assert _lands(link), _texts(link)
+    finally:
+        w.close()
+
+
+def test_a_reopened_output_moves_reset_counter_only_with_the_estimator(monkeypatch):
+    """A reopened output drew a new random first counter (counter_file empty): after an estimator reset while none
+    was open its pose, a step, could go out at the very counter the autopilot last got (1 in 256), fused as a
+    measurement; and without a reset the counter moved for nothing. It goes on from the closed one's counter."""
+    draws = iter([5, 4])  # the second output's random start meets the first's: rc 1 + 4 == rc 0 + 5
+    monkeypatch.setattr("drivers.mavlink_out.secrets.randbelow", lambda n: next(draws))
+    w, link, outs = _worker_started_in_flight()
+    try:
+        first = [m.reset_counter for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert first == [5]
+        _fail_the_output(w)
+        _reopen(w)
+        time.sleep(0.04)
+        w._send(state(time.monotonic_ns(), reset_counter=1))  # the estimator reset meanwhile: a step
+        sent = [m.reset_counter for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert sent == [5, 6], sent
+        assert "VIO reset" in _texts(link)
+    finally:
+        w.close()
+
+
+def test_a_reopened_output_with_the_frame_still_to_choose_keeps_its_loss():
+    """Started in flight (heard armed before any pose: not tracking, 'VIO not tracking (restarted?)'), the output
+    failed before its first tracked pose chose the frame. The reopened one kept the frame's choice still to come but
+    skipped the loss: no tracking state, so its first tracked pose was no 'VIO tracking regained' either, and a
+    loss after it none of its own until a second change. It goes on from the closed one's loss."""
+    w, link, outs = _worker_started_in_flight(send_pose=False, land_after_loss_s=0.2)
+    try:
+        assert "VIO not tracking (restarted?)" in _texts(link)
+        _fail_the_output(w)
+        _reopen(w)
+        _armed_beat(link)
+        w.mav.poll()
+        w._send(state(time.monotonic_ns(), tracking=False, quality=0))
+        time.sleep(0.3)
+        w.mav.poll()
+        assert not _lands(link)  # a start in flight's own loss asks no LAND (nothing says we flew it)
+        time.sleep(0.04)
+        w._send(state(time.monotonic_ns()))
+        sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert [(round(m.x, 3), round(m.y, 3)) for m in sent] == [(4.0, -3.0)]
+        assert "VIO tracking regained" in _texts(link), _texts(link)
+        for _ in range(4):
+            time.sleep(0.08)
+            w._send(state(time.monotonic_ns(), tracking=False, quality=0))
+            w.mav.poll()
+        assert "VIO tracking lost" in _texts(link) and _lands(link), _texts(link)
     finally:
         w.close()

@@ -244,6 +244,8 @@ class OutputWorker(Worker):
         # that frame's turn in the estimator's world (MavlinkOutput.world_frame_turn), for the loop output while no
         # output is open or the reopened one has not taken the frame yet
         self._turn: np.ndarray | None = None
+        # what the reopened output goes on from (MavlinkOutput.continuity: reset_counter, tracking and loss clock)
+        self._continuity: Any = None
         # the status thread reads the output and the closed counts (link(), sent) while this thread closes one and adds
         # its counts: one step each, or a read in between counted the closing output twice (or not at all)
         self._counts_lock = threading.Lock()
@@ -286,6 +288,9 @@ class OutputWorker(Worker):
             keep = getattr(self.mav, "keep_autopilot_frame", None)
             if keep is not None and self._frame is not None:
                 keep(self._frame)
+            go_on = getattr(self.mav, "continue_from", None)
+            if go_on is not None and self._continuity is not None:
+                go_on(self._continuity)  # the closed one's counter and loss clock (a loss goes on, with its LAND)
             self._mount_pending = self._mount is not None
             self._backoff = 0.5
         except Exception as e:  # a missing serial port at boot: retry, the autopilot may power up later
@@ -340,6 +345,8 @@ class OutputWorker(Worker):
             why = mav.health().get("withheld_for") or ""
             frame = getattr(mav, "autopilot_frame", None)
             self._frame = (frame() if frame is not None else None) or self._frame
+            continuity = getattr(mav, "continuity", None)
+            self._continuity = continuity() if continuity is not None else self._continuity
             turn = getattr(mav, "world_frame_turn", None)
             kept = turn() if turn is not None else None
             self._turn = kept if kept is not None else self._turn
