@@ -530,6 +530,11 @@ class MavlinkOutput:
             return None
         return self._align, self._continue_frame
 
+    def frame_pending(self) -> bool:
+        """Is the frame of a start in flight still to be chosen (at the first tracked pose sent)? world_frame_turn()
+        says None until then, though a turn may come."""
+        return self._continue_frame
+
     def world_frame_turn(self) -> np.ndarray | None:
         """The turn and shift of a start in flight as a transform of the estimator's world (z up, world' = T @ world),
         or None (poses go in the estimator's own frame). The loop output takes it out of a pose it maps into a map's

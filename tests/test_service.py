@@ -2083,3 +2083,64 @@ def test_the_map_checkpoint_is_saved_with_the_mavlink_outputs_turn_of_a_start_in
     svc.output.mav = Turned()
     svc._save_checkpoint(Closer())
     np.testing.assert_array_equal(got.get("world_turn"), turn)
+
+
+def test_no_map_checkpoint_is_written_while_a_start_in_flights_frame_is_to_be_chosen(tmp_path: Path) -> None:
+    """Started in flight, the MAVLink output chooses its frame (the turn and shift into the autopilot's) at its first
+    tracked pose; before that its world_frame_turn is None, and a checkpoint written then was in the flight's own
+    frame while every later save is in the autopilot's: a restart in flight loading it (the autopilot's frame by
+    assumption) sent poses off by the turn. No checkpoint is written until the frame is chosen (one of a loaded map
+    is in that map's frame: written), and the loop stage tries again at the next interval."""
+    cfg = config_from_dict({"source": {"kind": "fake"}, "loop": {"enabled": True, "output": "jump"},
+                            "map": {"save": str(tmp_path / "m.npz")}})
+    svc = Service(cfg, source_factory=lambda: ScriptedSource([], threading.Event(), []),
+                  estimator_factory=lambda c: ScriptedEstimator(c, []), mavlink_factory=RecordingMavlink,
+                  notifier=SdNotifier(""))
+
+    class Pending(RecordingMavlink):
+        def world_frame_turn(self) -> None:
+            return None
+
+        def frame_pending(self) -> bool:
+            return True
+
+    saved: list = []
+
+    class Closer:
+        map_keyframes = 0
+
+        def save_map(self, path, prune_m=0.0, prune_deg=0.0, checkpoint=None, **kw):
+            saved.append(kw)
+            return {"path": str(path), "keyframes": 1}
+
+    svc.output.mav = Pending()
+    assert svc._save_checkpoint(Closer()) is False and not saved
+    loaded = Closer()
+    loaded.map_keyframes = 5
+    svc._save_checkpoint(loaded)
+    assert len(saved) == 1 and saved[0]["world_turn"] is None
+    svc.output.mav = None  # closed after a failure: the frame it kept is still to be chosen
+    svc.output._frame = (None, True)
+    assert svc._save_checkpoint(Closer()) is False and len(saved) == 1
+
+
+def test_a_checkpoint_not_written_is_tried_again_at_the_next_interval() -> None:
+    """A checkpoint callback that wrote nothing (returns False: the frame is to be chosen) leaves the map to
+    checkpoint: the next interval tries again, without waiting for a new keyframe (a hovering vehicle makes none)."""
+    from vio.app.loop_worker import LoopWorker
+
+    calls: list[int] = []
+
+    def checkpoint(closer) -> bool | None:
+        calls.append(1)
+        return False if len(calls) < 3 else None
+
+    closer = type("C", (), {"map_keyframes": 0, "finish": lambda self: None})()
+    w = LoopWorker(closer, checkpoint=checkpoint, checkpoint_s=0.05)
+    try:
+        w._processed = 1  # one keyframe processed since the start
+        assert _wait(lambda: w.checkpoints == 1, 2.0), (len(calls), w.checkpoints)
+        time.sleep(0.2)
+        assert len(calls) == 3 and w.checkpoints == 1
+    finally:
+        w.close(wait=True, timeout_s=1.0)

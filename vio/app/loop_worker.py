@@ -44,9 +44,10 @@ class _Settled:
 
 class LoopWorker:
     def __init__(self, closer, max_queue: int = 64, keep_snapshot: bool = False,
-                 checkpoint: Callable[[object], None] | None = None, checkpoint_s: float = 0.0) -> None:
+                 checkpoint: Callable[[object], bool | None] | None = None, checkpoint_s: float = 0.0) -> None:
         """`checkpoint(closer)`: called in this thread every `checkpoint_s` while keyframes came since the last
-        call (and not after close()); what it raises is logged, the stage goes on."""
+        call (and not after close()); what it raises is logged, the stage goes on; False: nothing written yet, tried
+        again at the next interval."""
         self.closer = closer
         self._checkpoint = checkpoint if checkpoint_s > 0 else None
         self._checkpoint_s = checkpoint_s
@@ -193,9 +194,11 @@ class LoopWorker:
 
     def _write_checkpoint(self) -> None:
         self._next_checkpoint = time.monotonic() + self._checkpoint_s
-        self._checkpointed = self._processed
+        before, self._checkpointed = self._checkpointed, self._processed
         try:
-            self._checkpoint(self.closer)
+            if self._checkpoint(self.closer) is False:  # not written yet (the frame to save in is to be chosen)
+                self._checkpointed = before
+                return
             self.checkpoints += 1
             self._checkpoint_at = time.monotonic()
             if self._checkpoint_error is not None:

@@ -369,6 +369,15 @@ class OutputWorker(Worker):
         # turned twice, once reopened, until the next solve (a review's finding)
         return got if got is not None else self._turn
 
+    def frame_pending(self) -> bool:
+        """Is the MAVLink output's frame of a start in flight still to be chosen (at its first tracked pose)? Then
+        frame_turn() says None though a turn may come: the open output's, or, while none is open, the closed one's,
+        which the reopened one keeps."""
+        pending = getattr(self.mav, "frame_pending", None)
+        if pending is not None:
+            return bool(pending())
+        return self.mav is None and self._frame is not None and bool(self._frame[1])
+
     @property
     def sent(self) -> int:
         """Pose states that went out on the link (cumulative over reconnects)."""

@@ -257,13 +257,21 @@ class Service:
             self.view.loop = self.loop
         self.estimator.loop_output = self._loop_output
 
-    def _save_checkpoint(self, closer: Any) -> None:
-        """The map so far, marked as a checkpoint of this run ([map] checkpoint_s; in the loop-closure thread)."""
+    def _save_checkpoint(self, closer: Any) -> bool:
+        """The map so far, marked as a checkpoint of this run ([map] checkpoint_s; in the loop-closure thread). Not
+        while a start in flight's frame is still to be chosen (False: tried again at the next interval): the map of
+        this flight's own frame is saved turned into the autopilot's, and a checkpoint written before the turn was
+        known was in the flight's own frame while later saves were not (a review's note); a loaded map's frame is its
+        own either way."""
+        if not getattr(closer, "map_keyframes", 0) and self.output.frame_pending():
+            log.debug("map checkpoint deferred: the frame of the start in flight is not chosen yet")
+            return False
         h = closer.save_map(self.cfg.map.save, self.cfg.map.prune_m, self.cfg.map.prune_deg,
                             checkpoint=self._run_identity, world_turn=self.output.frame_turn())
         (log.info if not self.loop or not self.loop.checkpoints else log.debug)(
             "map checkpoint written to %s: %d keyframes (every %.0f s until the map is saved at stop)",
             h["path"], h["keyframes"], self.cfg.map.checkpoint_s)
+        return True
 
     @property
     def workers(self) -> list[Worker]:
