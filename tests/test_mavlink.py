@@ -2123,3 +2123,86 @@ def test_a_reopened_output_with_the_frame_still_to_choose_keeps_its_loss():
         assert "VIO tracking lost" in _texts(link) and _lands(link), _texts(link)
     finally:
         w.close()
+
+
+def _loop_in_flight(mode: str):
+    """A MavlinkOutput (over a _KeepingLink, fake clock) that heard the autopilot armed and read its estimate (4, -3,
+    -1.5 m NED, yaw 120 deg), and a CorrectedOutput in `mode`; the map's frame (the autopilot's) has the vehicle at
+    NED (4.05, -3, -1.5), yaw 120 deg. Returns (clock, link, out, loop, odo, C, unc)."""
+    from vio.loop.output import CorrectedOutput, CorrectionUncertainty
+
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link, clock_ns=clock)
+    loop = CorrectedOutput(mode)
+    _armed_beat(link)
+    out.poll()
+    link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+    link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+    clock.advance(0.01)
+    out.poll()
+    odo = state(clock.t)  # the odometry at (1, 2, 3), level, yaw 0: the vehicle hovers there
+    Rz = so3_exp(np.array([0.0, 0.0, math.radians(-120.0)]))
+    C = make_T(Rz, np.array([4.05, 3.0, 1.5]) - Rz @ odo.T_world_body[:3, 3])
+    unc = CorrectionUncertainty(np.diag([1e-4, 1e-4, 1e-4, 1e-4]), np.array([4.0, 3.0, 1.5]))
+    return clock, link, out, loop, odo, C, unc
+
+
+def _check_in_the_maps_frame(link, mode: str) -> None:
+    sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+    for m in sent:
+        w, x, y, z = m.q
+        yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+        assert 4.0 - 1e-3 < m.x < 4.05 + 1e-3 and abs(m.y + 3.0) < 1e-3 and abs(m.z + 1.5) < 1e-3, \
+            [(round(m.x, 3), round(m.y, 3), m.reset_counter) for m in sent]
+        assert yaw == pytest.approx(120.0, abs=1e-3)
+    assert sent[-1].x == pytest.approx(4.05, abs=1e-4), [(round(m.x, 3), m.reset_counter) for m in sent]
+    steps = [(a.reset_counter, b.reset_counter) for a, b in zip(sent, sent[1:]) if abs(a.x - b.x) > 1e-3]
+    if mode == "jump":  # the 5 cm step comes with a new reset_counter, never without one
+        assert steps and all(a != b for a, b in steps), steps
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_map_correction_taken_before_the_start_in_flights_turn_is_chosen_is_not_turned_twice(mode):
+    """Started in flight with a map: the loop output took a correction into the map's frame (the autopilot's) while
+    the MAVLink output's turn was still to be chosen (frame_turn None: nothing taken out), and the output then chose
+    it at an earlier state of the odometry's own frame, still waiting to be sent: every pose after it went out
+    turned twice, 3.2 m and 240 deg of yaw off (jump) until the next solve. A correction into a map's frame is taken
+    once the turn is chosen."""
+    clock, link, out, loop, odo, C, unc = _loop_in_flight(mode)
+    loop.frame_turn, loop.frame_pending = out.world_frame_turn, out.frame_pending
+    try:
+        first = loop.apply(odo, np.eye(4), 0)  # handed to the output, not sent yet
+        clock.advance(0.005)
+        nxt = loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1, own_frame=False, in_map=True)
+        out.send_state(first)  # its first tracked pose: the turn is chosen from it
+        clock.advance(0.1)
+        out.send_state(nxt)
+        for _ in range(20):
+            clock.advance(0.1)
+            out.send_state(loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1,
+                                      own_frame=False, in_map=True))
+        _check_in_the_maps_frame(link, mode)
+    finally:
+        out.close()
+
+
+@pytest.mark.parametrize("mode", ["jump", "blend"])
+def test_a_map_correction_taken_with_no_output_open_gets_the_turn_chosen_later(mode):
+    """A correction into the map's frame taken while no MAVLink output was open (none opened yet: no turn, none
+    pending) kept the turn the output chose later in (never taken out) until the next solve: its poses went in the
+    autopilot's estimate's frame, not the map's, and the next solve stepped (blend: walked) to the map's. The held
+    correction takes the turn out once there is one."""
+    clock, link, out, loop, odo, C, unc = _loop_in_flight(mode)
+    loop.frame_turn, loop.frame_pending = (lambda: None), (lambda: False)  # no output open
+    try:
+        clock.advance(0.005)
+        s1 = loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1, own_frame=False, in_map=True)
+        loop.frame_turn, loop.frame_pending = out.world_frame_turn, out.frame_pending  # the output is open
+        out.send_state(s1)  # the turn is chosen from the map's pose: ~5 cm from the autopilot's estimate
+        for _ in range(20):
+            clock.advance(0.1)
+            out.send_state(loop.apply(dataclasses.replace(odo, t_ns=clock.t), C, 1, unc, segment=1,
+                                      own_frame=False, in_map=True))
+        _check_in_the_maps_frame(link, mode)
+    finally:
+        out.close()

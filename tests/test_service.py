@@ -2048,6 +2048,7 @@ def test_the_loop_output_takes_the_mavlink_outputs_turn_of_a_start_in_flight() -
                   estimator_factory=lambda c: ScriptedEstimator(c, []), mavlink_factory=RecordingMavlink,
                   notifier=SdNotifier(""))
     assert svc._loop_output is not None and svc._loop_output.frame_turn == svc.output.frame_turn
+    assert svc._loop_output.frame_pending == svc.output.frame_pending
     assert svc.output.frame_turn() is None  # no output open, or one without a turn
 
     class Turned(RecordingMavlink):

@@ -89,6 +89,13 @@ def _yaw_only(C: np.ndarray) -> tuple[np.ndarray, float]:
     return C[:3, 3].copy(), yaw_of(C[:3, :3])
 
 
+def _same_turn(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    """Are two frame turns (or their absence) the same?"""
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.array_equal(a, b))
+
+
 class CorrectedOutput:
     def __init__(self, mode: str = "off", blend_rate_m_s: float = 0.2, blend_rate_deg_s: float = 5.0,
                  quality_sigma_m: float | None = 0.05) -> None:
@@ -117,6 +124,15 @@ class CorrectedOutput:
         # turns every pose sent into the autopilot's frame, and a loaded map's frame (a checkpoint's) is the
         # autopilot's already (the process before sent it), so it is taken out of a correction into one here
         self.frame_turn: Callable[[], np.ndarray | None] | None = None
+        # whether that turn is still to be chosen (MavlinkOutput.frame_pending: a start in flight before its first
+        # tracked pose sent): a correction into a map's frame waits for it, or the turn chosen at a state of the
+        # odometry's own frame still waiting to be sent was applied to map-frame poses too (turned twice)
+        self.frame_pending: Callable[[], bool] | None = None
+        # the correction held into a map's frame as solved (T_world_odom, its uncertainty), and the turn taken out of
+        # it (None: none): taken out again when the output's turn changes (chosen after the correction was taken,
+        # with no output open or before a start in flight's first pose: kept in, never taken out, a review's note)
+        self._in_map: tuple[np.ndarray, CorrectionUncertainty | None] | None = None
+        self._turn_out: np.ndarray | None = None
 
     def _takes(self, segment: int | None, own_frame: bool, counter: int | None) -> bool:
         """Is a new version's correction one for the odometry being sent? Not one of the old estimator's after
@@ -141,8 +157,29 @@ class CorrectedOutput:
         self._t, self._yaw = np.zeros(3), 0.0
         self._target = (np.zeros(3), 0.0)
         self._unc, self._segment = None, None
+        self._in_map, self._turn_out = None, None
         self.remaining_m = self.remaining_deg = 0.0
         self._min_counter = first_counter
+
+    def _hold(self, T_world_odom: np.ndarray, uncertainty: CorrectionUncertainty | None,
+              turn: np.ndarray | None) -> None:
+        """Hold `T_world_odom` (jump: applied at once, a new reset_counter if it moves anything), the output's `turn`
+        taken out of it (a correction into a map's frame)."""
+        self._turn_out = turn
+        if turn is not None:
+            # turned and shifted again by the output, a relocalised pose went 3.2 m and 240 deg of yaw off the
+            # map's frame at the jump (blend walked there): a review's finding
+            back = np.linalg.inv(turn)
+            T_world_odom = back @ T_world_odom
+            uncertainty = uncertainty.moved(back) if uncertainty is not None else None
+        self._target = _yaw_only(T_world_odom)
+        self._unc = uncertainty
+        if self.mode == "jump":
+            turned = abs(_yaw_diff(self._target[1], self._yaw)) > 1e-8
+            # absolute: a relative tolerance let a 9 mm step 1 km from the origin out without a count
+            if turned or not np.allclose(self._target[0], self._t, rtol=0.0, atol=1e-8):
+                self.jumps += 1
+            self._t, self._yaw = self._target
 
     def apply(self, state: NavState, T_world_odom: np.ndarray, version: int,
               uncertainty: CorrectionUncertainty | None = None, segment: int | None = None,
@@ -163,6 +200,8 @@ class CorrectedOutput:
             if version != self._refused_version:
                 log.warning("loop correction version %d is not finite: not applied, the one held is kept", version)
                 self._refused_version = version
+        elif version != self._version and in_map and self.frame_pending is not None and self.frame_pending():
+            pass  # into a map's frame, while the output's turn is still to be chosen: taken once it is
         elif version != self._version and self._takes(segment, own_frame, counter):
             # A new correction comes with a new version (a solve). After an estimator reset the newest segment is in
             # a frame of its own until a closure joins it, and the estimator's reset kept its last pose as the new
@@ -174,21 +213,15 @@ class CorrectedOutput:
             self._segment = segment
             # a map's frame only: the flight's own first segment's (a reset's segment joined back to it) is the one
             # the output turned into the autopilot's
+            self._in_map = (T_world_odom, uncertainty) if in_map else None
             turn = self.frame_turn() if self.frame_turn is not None and in_map else None
-            if turn is not None:
-                # turned and shifted again by the output, a relocalised pose went 3.2 m and 240 deg of yaw off the
-                # map's frame at the jump (blend walked there): a review's finding
-                back = np.linalg.inv(turn)
-                T_world_odom = back @ T_world_odom
-                uncertainty = uncertainty.moved(back) if uncertainty is not None else None
-            self._target = _yaw_only(T_world_odom)
-            self._unc = uncertainty
-            if self.mode == "jump":
-                turned = abs(_yaw_diff(self._target[1], self._yaw)) > 1e-8
-                # absolute: a relative tolerance let a 9 mm step 1 km from the origin out without a count
-                if turned or not np.allclose(self._target[0], self._t, rtol=0.0, atol=1e-8):
-                    self.jumps += 1
-                self._t, self._yaw = self._target
+            self._hold(T_world_odom, uncertainty, turn)
+        elif self._in_map is not None and self.frame_turn is not None:
+            turn = self.frame_turn()
+            if not _same_turn(turn, self._turn_out):  # chosen (or changed) since the correction was taken
+                log.info("loop output: the MAVLink output's frame turn %s since the map correction was taken: taken "
+                         "out of it now", "chosen" if self._turn_out is None else "changed")
+                self._hold(*self._in_map, turn)
         # a state whose position is not finite (refused by the MAVLink output) does not walk the blend: it made the
         # applied correction NaN, and every pose after it, for the rest of the flight (a review's finding)
         if self.mode == "blend" and np.isfinite(state.T_world_body[:3, 3]).all():

@@ -163,6 +163,7 @@ class Service:
                                    vision_ok=self.camera_fresh, mount=mount, stamps=stamps)
         if self._loop_output is not None:  # a map's frame is not turned into the autopilot's a second time
             self._loop_output.frame_turn = self.output.frame_turn
+            self._loop_output.frame_pending = self.output.frame_pending  # a map's correction waits for the turn
         self.recorder = (RecorderWorker(self.stop, self.rec_buf, rc.record_dir, self._calibration_now,
                                         rc.record_format, rc.record_images, self.latest, lambda: self._last_status,
                                         rc.record_png_level)
