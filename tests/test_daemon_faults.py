@@ -562,6 +562,54 @@ def test_a_recreated_estimator_is_a_new_segment_for_the_loop_stage_and_drops_the
     assert w.last_state.reset_counter > 0
 
 
+def test_a_recreated_estimators_step_comes_with_a_new_reset_counter_after_any_number_of_loop_jumps() -> None:
+    """An estimator re-created after its reset() raised starts at its own origin: a step, allowed only with a new
+    reset_counter. Its base was the last published counter + 1, which holds the loop output's jumps already, and the
+    loop output added them again: the counter moved by jumps + 1, the same counter mod 256 after 255 jumps (a
+    long flight's loop closures in [loop] output = jump), so the step went out as a measurement."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.workers import EstimatorWorker
+    from vio.geometry import make_T
+    from vio.loop.output import CorrectedOutput
+
+    class FakeEstimator:
+        last_features = None
+
+        def reset(self, reason: str, bridge: bool = True, keep_bias: bool | None = None) -> None:
+            raise RuntimeError("smoother in a bad state")
+
+        def take_processed(self) -> list:
+            return []
+
+    class FakeLoop:
+        version = 0
+
+        def submit(self, *a) -> bool:
+            return True
+
+        def settle(self, settled) -> None:
+            pass
+
+        def correction(self):  # every solve moves the correction 1 cm: a jump each
+            return make_T(np.eye(3), [0.01 * (self.version % 2), 0, 0]), self.version, None, 0, False, 0
+
+    loop, output = FakeLoop(), CorrectedOutput("jump")
+    w = EstimatorWorker(threading.Event(), FakeEstimator, None, LatestState(), 0.5, loop=loop, loop_output=output)
+    w.estimator = FakeEstimator()
+    t = 10**9
+    for _ in range(255):
+        loop.version += 1
+        t += 10**7
+        w._emit(NavState(t, make_T(np.eye(3), [30.0, 0, 0]), np.zeros(3), cov_pose=np.eye(6) * 1e-6))
+    before = w.last_state.reset_counter
+    assert output.jumps == 255 and before == 255
+    w._reset("test")
+    w._emit(NavState(t + 10**7, np.eye(4), np.zeros(3), cov_pose=np.eye(6) * 1e-6))  # at the new origin: a step
+    after = w.last_state.reset_counter
+    assert after % 256 != before % 256, (before, after)
+    assert after == before + 1
+
+
 def test_frames_never_processed_neither_pile_up_nor_shift_the_latency_of_later_ones() -> None:
     """Arrival times were a queue popped once per processed frame: a frame the estimator dropped (or a reset
     cleared) gave every later frame an older one's arrival (100 ms too much after a 1.6 s IMU outage, for good,

@@ -151,15 +151,18 @@ class CorrectedOutput:
     def restart(self, first_counter: int) -> None:
         """A new estimator took over (the daemon re-created it), its keyframes handed to the loop stage with
         reset_counter >= `first_counter`: its odometry is in a frame of its own, which no correction held so far
-        maps, so none is applied (the caller moves reset_counter), and a solve of the old estimator's keyframes
-        still queued in the loop stage is not taken either (a segment number would not tell: the loop stage can be
-        behind the estimator)."""
+        maps, so none is applied (the caller moves reset_counter past the last one published, jumps included), and
+        a solve of the old estimator's keyframes still queued in the loop stage is not taken either (a segment number
+        would not tell: the loop stage can be behind the estimator)."""
         self._t, self._yaw = np.zeros(3), 0.0
         self._target = (np.zeros(3), 0.0)
         self._unc, self._segment = None, None
         self._in_map, self._turn_out = None, None
         self.remaining_m = self.remaining_deg = 0.0
         self._min_counter = first_counter
+        # the jumps so far are in first_counter already (the last counter published + 1): added again, the counter
+        # moved by jumps + 1 at the new estimator's step, the same one mod 256 after 255 jumps (a review's note)
+        self.jumps = 0
 
     def _hold(self, T_world_odom: np.ndarray, uncertainty: CorrectionUncertainty | None,
               turn: np.ndarray | None) -> None:
