@@ -610,6 +610,57 @@ def test_a_recreated_estimators_step_comes_with_a_new_reset_counter_after_any_nu
     assert after == before + 1
 
 
+def test_a_recreated_estimator_continues_from_the_last_tracked_odometry_pose() -> None:
+    """A new estimator (the old one's reset() raised) started at its own origin: the autopilot got, at the new
+    reset_counter, a position of all that was flown since the start (EKF3 resets to it there: the start in flight's
+    problem, 30 m here). It continues from the old one's last tracked odometry pose (not the loop-corrected one: the
+    output's correction is dropped at the re-creation), as an estimator reset does."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.workers import EstimatorWorker
+    from vio.geometry import make_T
+    from vio.loop.output import CorrectedOutput
+
+    class FakeEstimator:
+        last_features = None
+
+        def __init__(self) -> None:
+            self.anchor = None
+
+        def reset(self, reason: str, bridge: bool = True, keep_bias: bool | None = None) -> None:
+            raise RuntimeError("smoother in a bad state")
+
+        def take_processed(self) -> list:
+            return []
+
+        def continue_from(self, T) -> None:
+            self.anchor = np.array(T)
+
+    class FakeLoop:
+        def submit(self, *a) -> bool:
+            return True
+
+        def settle(self, settled) -> None:
+            pass
+
+        def correction(self):
+            return make_T(np.eye(3), [0.5, 0, 0]), 1, None, 0, False, 0
+
+    made: list = []
+
+    def make():
+        made.append(FakeEstimator())
+        return made[-1]
+
+    w = EstimatorWorker(threading.Event(), make, None, LatestState(), 0.5, loop=FakeLoop(),
+                        loop_output=CorrectedOutput("jump"))
+    w.estimator = make()
+    w._emit(NavState(10**9, make_T(np.eye(3), [30.0, 0, 0]), np.zeros(3), cov_pose=np.eye(6) * 1e-6))
+    w._emit(NavState(2 * 10**9, make_T(np.eye(3), [31.0, 0, 0]), np.zeros(3), tracking=False))  # lost: not it
+    w._reset("test")
+    assert len(made) == 2 and made[1].anchor is not None
+    np.testing.assert_allclose(made[1].anchor[:3, 3], [30.0, 0, 0])
+
+
 def test_frames_never_processed_neither_pile_up_nor_shift_the_latency_of_later_ones() -> None:
     """Arrival times were a queue popped once per processed frame: a frame the estimator dropped (or a reset
     cleared) gave every later frame an older one's arrival (100 ms too much after a 1.6 s IMU outage, for good,

@@ -316,6 +316,25 @@ def test_reset_in_motion_keeps_heading_and_position_through_the_gap():
     assert dyaw_old > 3 * max(dyaw, 0.3) and dpos_old > 3 * dpos
 
 
+def test_a_new_estimator_told_where_to_continue_starts_there():
+    """The daemon makes a new estimator when reset() raises; it started at its own origin (yaw 0, position 0), a step
+    of all that was flown sent to the autopilot (which resets its position to it at the new reset_counter: the start
+    in flight's problem). Told the old one's last pose (continue_from), it starts there, as a reset does: same
+    position and heading, its own roll and pitch; once running, continue_from changes nothing."""
+    from vio.geometry import make_T, roll_pitch_yaw, so3_exp
+
+    est = Estimator(synthetic_calibration())
+    last = make_T(so3_exp(np.array([0.0, 0.0, np.radians(40.0)])), np.array([5.0, -2.0, 1.0]))
+    est.continue_from(last)
+    states, _, _, _ = _run(est, duration_s=2.5, still_s=1.0, seed=3)
+    assert states and est.reset_counter == 0
+    first = states[0].T_world_body
+    np.testing.assert_allclose(first[:3, 3], [5.0, -2.0, 1.0], atol=0.05)
+    assert np.degrees(roll_pitch_yaw(first[:3, :3])[2]) == pytest.approx(40.0, abs=1.0)
+    est.continue_from(np.eye(4))  # running: no effect
+    assert est._state.__class__.__name__ == "_Running"
+
+
 @pytest.mark.parametrize("state_ok", [True, False])
 def test_reset_after_an_implausible_estimate_is_not_bridged(state_ok):
     """An implausible state (speed, bias) must not be carried across the reset; a numerical failure may."""

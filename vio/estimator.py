@@ -764,6 +764,13 @@ class Estimator:
         if self.initialized:
             self.reset(f"{what}: {problem}", bridge=False, keep_bias=False)
 
+    def continue_from(self, T_world_body: np.ndarray) -> None:
+        """Start at this pose's position and heading (with its own roll and pitch), as a reset continues from the last
+        pose: for a new estimator replacing one whose reset() raised (the daemon's), which otherwise started at its
+        own origin, a step of all that was flown at the autopilot's new reset_counter. No effect once running."""
+        if isinstance(self._state, _Waiting) and np.isfinite(T_world_body).all():
+            self._state.anchor = np.array(T_world_body, dtype=float)
+
     def stop_for_run(self, problem: str) -> None:
         """A run-final verdict from outside (`EstimatorHealth.stopped_for_run`): the one on the IMU of an estimator
         this one replaces (the daemon makes a new one when reset() raises, and the sensor is still as wrong as it

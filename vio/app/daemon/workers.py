@@ -12,6 +12,8 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from vio import VioError
 from vio.app.daemon.buffers import LatestState, Output, SensorBuffer, _now_ns
 from vio.app.daemon.protocols import EstimatorApi, Source
@@ -232,6 +234,7 @@ class EstimatorWorker(Worker):
         self.last_input = 0.0
         self._born = time.monotonic()  # for the operator's "first pose after N s" line
         self._reset_base = 0
+        self._last_tracked_pose: np.ndarray | None = None  # the newest tracked state's pose, for a new estimator
         self._resets_before = 0  # estimator resets counted before a re-created estimator (status "resets")
         self._last_imu_t: int | None = None
         self._seen_overflow = 0
@@ -363,6 +366,8 @@ class EstimatorWorker(Worker):
             if self.view is not None:
                 self._to_view(pf)
         for state in _as_states(result):
+            if state.tracking and np.isfinite(state.T_world_body).all():
+                self._last_tracked_pose = state.T_world_body  # the estimator's own frame (no loop correction)
             odometry = None
             if self.loop_output is not None:
                 odometry = state
@@ -394,6 +399,11 @@ class EstimatorWorker(Worker):
             log.warning("estimator reset() failed (%s); creating a new estimator", e)
         verdict = self._stopped_for_run()
         self.estimator = self._make()
+        go_on = getattr(self.estimator, "continue_from", None)
+        if go_on is not None and self._last_tracked_pose is not None:
+            # where the old one's frame had the vehicle last: started at its own origin, the new estimator sent a
+            # position of all that was flown, which the autopilot takes at the new reset_counter (a review's note)
+            go_on(self._last_tracked_pose)
         if verdict and self.estimator is not None:  # the sensor is as wrong as it was: a new start must not fly on it
             self.estimator.stop_for_run(verdict)
             log.error("the new estimator stays stopped for the rest of this run, as the old one was: %s", verdict)
