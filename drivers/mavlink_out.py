@@ -581,7 +581,20 @@ class MavlinkOutput:
             self._last_state_at_ns = self._clock()
             self._land_done, self._land_left, self.stats.land_accepted = c.land_done, c.land_left, c.land_accepted
             self._next_land_ns = 0
-            self._ap_local, self._ap_yaw, self.stats.first_tilt_deg = c.ap_local, c.ap_yaw, c.first_tilt_deg
+            self.stats.first_tilt_deg = c.first_tilt_deg
+            if not self._frame_kept and c.counter_sent is not None:
+                # the closed one sent poses in the process's own frame (it never heard the autopilot): a start in
+                # flight this one's thread took the autopilot's first heartbeat (armed) for before the hand-over
+                # would turn the next pose into the autopilot's frame at the same reset_counter, a step fused as a
+                # measurement
+                if self._continue_frame:
+                    self._ask_ap_pose(0)  # its estimate's rate back to the autopilot's default
+                self._continue_frame, self._align = False, None
+            # the newer reading of the autopilot's estimate (this one's thread may have read one already)
+            self._ap_local = max((r for r in (self._ap_local, c.ap_local) if r is not None), key=lambda r: r[0],
+                                 default=None)
+            self._ap_yaw = max((r for r in (self._ap_yaw, c.ap_yaw) if r is not None), key=lambda r: r[0],
+                               default=None)
         log.info("reopened output goes on from the one before it: reset_counter offset %d, %s", c.reset_offset,
                  "tracking" if c.tracking else "no tracking state yet" if c.tracking is None else "tracking lost")
 

@@ -2206,3 +2206,42 @@ def test_a_map_correction_taken_with_no_output_open_gets_the_turn_chosen_later(m
         _check_in_the_maps_frame(link, mode)
     finally:
         out.close()
+
+
+def test_a_reopened_output_hearing_the_autopilot_armed_before_the_hand_over_keeps_the_processs_frame():
+    """The daemon's factory starts the reopened output's thread before the worker hands it the closed one's frame and
+    counter: a first heartbeat read in between, armed, made it a start in flight (its own output had sent nothing),
+    and its first tracked pose chose a turn into the autopilot's frame at the reset_counter the process had sent its
+    own frame's poses with: a step the autopilot fused as a measurement. The hand-over undoes that choice when the
+    closed one had sent poses (in the process's own frame)."""
+    from vio.app.daemon.buffers import LatestState
+    from vio.app.daemon.outputs import OutputWorker
+
+    link = _KeepingLink()
+    outs: list[MavlinkOutput] = []
+
+    def make() -> MavlinkOutput:
+        outs.append(MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link,
+                                  random_first_counter=True))
+        if len(outs) == 2:  # its thread reads the autopilot before the hand-over
+            _armed_beat(link)
+            link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+            link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0,
+                                                                 0.0))
+            outs[-1].poll()
+        return outs[-1]
+
+    w = OutputWorker(threading.Event(), LatestState(), make, "", 1.0)
+    try:
+        w._ensure_mavlink()
+        w._send(state(time.monotonic_ns()))  # the autopilot not heard yet: the process's own frame
+        _fail_the_output(w)
+        _reopen(w)
+        time.sleep(0.04)
+        w._send(state(time.monotonic_ns()))
+        sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert len(sent) == 2 and len({m.reset_counter for m in sent}) == 1
+        assert [(round(m.x, 3), round(m.y, 3)) for m in sent] == [(1.0, -2.0)] * 2, \
+            [(m.x, m.y, m.reset_counter) for m in sent]
+    finally:
+        w.close()
