@@ -608,6 +608,7 @@ def test_a_recreated_estimators_step_comes_with_a_new_reset_counter_after_any_nu
     after = w.last_state.reset_counter
     assert after % 256 != before % 256, (before, after)
     assert after == before + 1
+    assert w.last_state.loop_jumps == 255  # the status's count of the run's loop jumps goes on
 
 
 def test_a_recreated_estimator_continues_from_the_last_tracked_odometry_pose() -> None:

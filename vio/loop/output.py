@@ -107,7 +107,8 @@ class CorrectedOutput:
         self._t = np.zeros(3)  # applied correction: translation and yaw
         self._yaw = 0.0
         self._version = 0  # of the correction held (each new version is taken; see apply)
-        self.jumps = 0  # reset_counter increments added (jump mode)
+        self.jumps = 0  # reset_counter increments added (jump mode) since the estimator's (re)start
+        self._jumps_before = 0  # those of the estimators before it (restart): in loop_jumps, not in reset_counter
         self._last_t_ns: int | None = None
         # blend: how far the sent pose still is from the held correction's: position at the vehicle, and heading
         self.remaining_m = 0.0
@@ -161,7 +162,9 @@ class CorrectedOutput:
         self.remaining_m = self.remaining_deg = 0.0
         self._min_counter = first_counter
         # the jumps so far are in first_counter already (the last counter published + 1): added again, the counter
-        # moved by jumps + 1 at the new estimator's step, the same one mod 256 after 255 jumps (a review's note)
+        # moved by jumps + 1 at the new estimator's step, the same one mod 256 after 255 jumps (a review's note);
+        # still counted in loop_jumps (the run's, for the status)
+        self._jumps_before += self.jumps
         self.jumps = 0
 
     def _hold(self, T_world_odom: np.ndarray, uncertainty: CorrectionUncertainty | None,
@@ -250,5 +253,5 @@ class CorrectedOutput:
         # correction made the odometry's uncertain axis read as its certain one: a review's finding)
         out = dataclasses.replace(state, T_world_body=C @ state.T_world_body, v_world=R @ state.v_world,
                                   cov_vel=R @ state.cov_vel @ R.T, reset_counter=state.reset_counter + self.jumps,
-                                  loop_jumps=state.loop_jumps + self.jumps)
+                                  loop_jumps=state.loop_jumps + self.jumps + self._jumps_before)
         return out if self._unc is None else self._unc.added_to(out, self.quality_sigma_m)
