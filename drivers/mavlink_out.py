@@ -1162,10 +1162,12 @@ class MavlinkOutput:
                             self._link.set_source_system(sysid)
                         else:
                             self._conn.mav.srcSystem = sysid
-            elif kind == "LOCAL_POSITION_NED" and msg.get_srcSystem() == self.target_system:
+            elif kind in ("LOCAL_POSITION_NED", "ATTITUDE") and not self._from_autopilot(msg):
+                continue  # another component of its system (a second estimator, a companion program): not its own
+            elif kind == "LOCAL_POSITION_NED":
                 self._ap_local = (now, np.array([msg.x, msg.y, msg.z], dtype=float),
                                   np.array([msg.vx, msg.vy, msg.vz], dtype=float))
-            elif kind == "ATTITUDE" and msg.get_srcSystem() == self.target_system:
+            elif kind == "ATTITUDE":
                 self._ap_yaw = (now, float(msg.yaw), _yaw_rate(msg))
             elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
                 self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
@@ -1204,6 +1206,11 @@ class MavlinkOutput:
                         self._autopilot_restarted(now, f"its clock went back from {last / 1e9:.1f} s to "
                                                        f"{msg.ts1 / 1e9:.1f} s since boot")
                         self._ap_running = False  # a booting heartbeat after this is the same restart
+
+    def _from_autopilot(self, msg: Any) -> bool:
+        """Is `msg` the autopilot's own (its system, component 1)? Its estimate places a start in flight's poses: one
+        of another component of its system put every pose of the process in that one's frame (a review's note)."""
+        return msg.get_srcSystem() == self.target_system and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1
 
     def _autopilot_restarted(self, now: int, why: str) -> None:
         """The autopilot rebooted without the link going down: it has lost the EKF origin we set, which is sent

@@ -2245,3 +2245,29 @@ def test_a_reopened_output_hearing_the_autopilot_armed_before_the_hand_over_keep
             [(m.x, m.y, m.reset_counter) for m in sent]
     finally:
         w.close()
+
+
+def test_a_start_in_flight_takes_the_autopilots_own_estimate_not_another_components():
+    """A start in flight places its first pose where the autopilot's own estimate (LOCAL_POSITION_NED, ATTITUDE) has
+    the vehicle. They were taken from any component of the autopilot's system: another onboard component's (a second
+    estimator, a companion program, with the vehicle's system id) put every pose of the process in its frame, 50 m
+    off here. Only the autopilot's (component 1) are read, as for its heartbeat and TIMESYNC."""
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"]), link=link, clock_ns=clock)
+    other = mavlink.MAVLink(None, srcSystem=7, srcComponent=191)
+    dec = mavlink.MAVLink(None)
+    try:
+        _armed_beat(link)
+        out.poll()
+        link.from_autopilot(mavlink.MAVLink_local_position_ned_message(1000, 4.0, -3.0, -1.5, 0.0, 0.0, 0.0))
+        link.from_autopilot(mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(120.0), 0.0, 0.0, 0.0))
+        for m in (mavlink.MAVLink_local_position_ned_message(1000, 40.0, 30.0, -1.5, 0.0, 0.0, 0.0),
+                  mavlink.MAVLink_attitude_message(1000, 0.0, 0.0, math.radians(-60.0), 0.0, 0.0, 0.0)):
+            link.handler(dec.parse_char(m.pack(other)), 0)
+        clock.advance(0.01)
+        out.poll()
+        out.send_state(state(clock.t))
+        sent = [m for m in link.msgs if m.get_type() == "ODOMETRY"]
+        assert [(round(m.x, 3), round(m.y, 3)) for m in sent] == [(4.0, -3.0)]
+    finally:
+        out.close()
