@@ -1186,7 +1186,7 @@ class MavlinkOutput:
                                     ": kept, it is armed (an origin is not changed in flight)" if self._ap_armed
                                     else "")
             elif (kind == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_NAV_LAND and self._land_done
-                  and msg.get_srcSystem() == self.target_system):
+                  and self._from_autopilot(msg)):  # another component's ACK stopped the repeats
                 accepted = msg.result == mavlink.MAV_RESULT_ACCEPTED
                 if accepted and not self.stats.land_accepted:
                     log.info("autopilot accepted LAND")
@@ -1208,8 +1208,9 @@ class MavlinkOutput:
                         self._ap_running = False  # a booting heartbeat after this is the same restart
 
     def _from_autopilot(self, msg: Any) -> bool:
-        """Is `msg` the autopilot's own (its system, component 1)? Its estimate places a start in flight's poses: one
-        of another component of its system put every pose of the process in that one's frame (a review's note)."""
+        """Is `msg` the autopilot's own (its system, component 1)? Its estimate places a start in flight's poses, and
+        its COMMAND_ACK stops the LAND requests: another component's of its system put every pose of the process in
+        that one's frame, or stopped them unsent (review notes)."""
         return msg.get_srcSystem() == self.target_system and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1
 
     def _autopilot_restarted(self, now: int, why: str) -> None:

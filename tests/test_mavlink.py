@@ -2271,3 +2271,34 @@ def test_a_start_in_flight_takes_the_autopilots_own_estimate_not_another_compone
         assert [(round(m.x, 3), round(m.y, 3)) for m in sent] == [(4.0, -3.0)]
     finally:
         out.close()
+
+
+def test_only_the_autopilots_own_ack_stops_the_land_requests():
+    """MAV_CMD_NAV_LAND is repeated until the autopilot accepts it (COMMAND_ACK). An ACK from another component of its
+    system (a companion program answering commands it sees on the link) counted as the autopilot's: the repeats
+    stopped and the status said land_accepted, while the autopilot may never have had the command."""
+    clock, link = FakeClock(), _KeepingLink()
+    out = MavlinkOutput(MavlinkConfig(mount="rpy", messages=["ODOMETRY"], land_after_loss_s=1.0), link=link,
+                        clock_ns=clock)
+    other = mavlink.MAVLink(None, srcSystem=7, srcComponent=191)
+    dec = mavlink.MAVLink(None)
+    try:
+        out.send_state(state(clock.t))  # tracked: a pose before the autopilot is heard, no start in flight
+        _armed_beat(link)
+        out.poll()
+        clock.advance(0.1)
+        out.send_state(state(clock.t, tracking=False, quality=0))
+        for _ in range(3):
+            clock.advance(0.6)
+            _armed_beat(link)
+            out.poll()
+        assert len(_lands(link)) == 1
+        ack = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_RESULT_ACCEPTED)
+        link.handler(dec.parse_char(ack.pack(other)), 0)
+        for _ in range(10):
+            clock.advance(0.6)
+            _armed_beat(link)
+            out.poll()
+        assert not out.stats.land_accepted and len(_lands(link)) == 5
+    finally:
+        out.close()
