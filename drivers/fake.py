@@ -45,6 +45,11 @@ log = logging.getLogger(__name__)
 IMU_CHUNK_S = 120.0  # IMU synthesised per chunk (an endless flight never holds more than two)
 MAX_RENDER_LAG_S = 0.25  # realtime: a frame not rendered this long after its stamp is skipped
 RENDER_AHEAD = 6  # realtime: frames rendered ahead of the clock
+# realtime EuRoC playback: a longer gap in the recording's stamps is shortened to this (not waited out, as `vio replay
+# --realtime` does not wait one out). It stays a gap to the estimator, which restarts across it as after any IMU gap
+# past [run] max_imu_gap_s, and is shorter than [run] source_timeout_s (2 s), past which the daemon would reopen the
+# source and play the recording from its start again.
+GAP_KEPT_S = 1.0
 
 
 def imu_signal(k: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -274,8 +279,8 @@ class FakeSource(SensorSource):
 
 class EurocSource(SensorSource):
     """A EuRoC dataset played as a live source. With `realtime` the stamps are moved onto the host clock
-    (first sample = start time) and released at that pace; otherwise the dataset's stamps are kept and
-    `batch` messages are released per poll()."""
+    (first sample = start time) and released at that pace, a gap in them longer than GAP_KEPT_S shortened to it;
+    otherwise the dataset's stamps are kept and `batch` messages are released per poll()."""
 
     name = "euroc"
 
@@ -288,6 +293,7 @@ class EurocSource(SensorSource):
         self._it: Iterator[ImuSample | StereoFrame] | None = None
         self._pending: ImuSample | StereoFrame | None = None
         self._shift_ns = 0
+        self._last_raw_ns: int | None = None  # realtime: the dataset's stamp of the last message taken
         self._done = False
         self.frames = 0
         self.imu = 0
@@ -304,8 +310,14 @@ class EurocSource(SensorSource):
         self._it = None
 
     def _shifted(self, m: ImuSample | StereoFrame) -> ImuSample | StereoFrame:
-        if not self._shift_ns:
+        if not self.realtime:
             return m
+        if self._last_raw_ns is not None and m.t_ns - self._last_raw_ns > GAP_KEPT_S * 1e9:
+            gap_ns = m.t_ns - self._last_raw_ns
+            log.warning("euroc source: a gap of %.3g s in the recording before t=%d ns: shortened to %g s, not "
+                        "waited out", gap_ns * 1e-9, m.t_ns, GAP_KEPT_S)
+            self._shift_ns -= gap_ns - int(GAP_KEPT_S * 1e9)
+        self._last_raw_ns = max(m.t_ns, self._last_raw_ns or m.t_ns)
         if isinstance(m, ImuSample):
             return ImuSample(m.t_ns + self._shift_ns, m.gyro, m.accel)
         return dataclasses.replace(m, t_ns=m.t_ns + self._shift_ns)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivers import fake
 from drivers.fake import EurocSource, FakeSource
 from drivers.record import record
 from vio import VioError
@@ -529,3 +530,42 @@ def test_record_help_says_an_mcap_recording_replays_without_calib(capsys) -> Non
         main(["record", "--help"])
     out = " ".join(capsys.readouterr().out.split())
     assert "--calib ..." not in out and "vio replay OUT` reads it back with its calibration" in out, out
+
+
+def _with_a_gap(root: Path, gap_ns: int) -> int:
+    """Move every stamp from the middle of the recording on by `gap_ns` (a recorder paused, a clock jump); returns
+    the first moved stamp."""
+    t_cut = None
+    for f in ("imu0", "cam0", "cam1"):
+        p = root / "mav0" / f / "data.csv"
+        lines = p.read_text().splitlines()
+        t_cut = t_cut or int(lines[len(lines) // 2].split(",")[0])
+        p.write_text("\n".join([lines[0]] + [f"{int(t) + (gap_ns if int(t) >= t_cut else 0)},{rest}" for t, rest in
+                                             (ln.split(",", 1) for ln in lines[1:])]) + "\n")
+    return t_cut
+
+
+def test_a_realtime_euroc_source_does_not_wait_out_a_gap_in_the_recording(tmp_path: Path, caplog) -> None:
+    """`vio run` with `[source] kind = "euroc"` waited through a gap in the recording's stamps in real time (an hour's
+    gap, an hour of silence; past [run] source_timeout_s the daemon reopened the source, which played the recording
+    from its start again), where `vio replay --realtime` skips it. The gap is shortened to GAP_KEPT_S (still a gap to
+    the estimator, which restarts across it as after any IMU gap), with one warning."""
+    GAP_KEPT_S = getattr(fake, "GAP_KEPT_S", 1.0)
+
+    record(_fake(), tmp_path / "ds")
+    _with_a_gap(tmp_path / "ds", 3600 * 10**9)
+    n = len(list(EurocDataset(tmp_path / "ds").events()))
+    src = EurocSource(tmp_path / "ds", realtime=True)
+    src.start()
+    got: list = []
+    deadline = time.monotonic() + 1.0 + GAP_KEPT_S + 3.0  # 1 s of data, the shortened gap, a margin
+    with caplog.at_level("WARNING", logger="drivers.fake"):
+        while not src.finished and time.monotonic() < deadline:
+            got += src.poll()
+            time.sleep(0.005)
+    assert src.finished and len(got) == n, f"{len(got)} of {n} messages in {deadline - time.monotonic() + 5:.1f} s"
+    t = np.array([m.t_ns for m in got])
+    steps = np.diff(np.sort(t))
+    assert abs(steps.max() / 1e9 - GAP_KEPT_S) < 0.01 and np.sort(steps)[-2] < 0.01 * 1e9
+    said = [r.getMessage() for r in caplog.records if r.name == "drivers.fake"]
+    assert len(said) == 1 and "a gap of 3.6e+03 s" in said[0] and "not waited out" in said[0], said
