@@ -5,6 +5,7 @@ skipped is, with a warning, and the replay still writes its trajectory."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -463,3 +464,6 @@ def test_a_gap_in_the_data_is_not_waited_out_by_a_realtime_replay(flight, tmp_pa
                                              (ln.split(",", 1) for ln in lines[1:])]) + "\n")
     r = _vio("replay", str(data), "-o", str(tmp_path / "t.tum"), "--no-progress", "--realtime", timeout=90)
     assert r.returncode == 0 and "realtime: a gap of 1e+03 s in the data" in r.stderr, r.stderr[-2000:]
+    # the skipped seconds are not data time: the real-time factor said 300 after the gap
+    m = re.search(r"([0-9.]+) s of data in [0-9.]+ s \(real-time factor ([0-9.]+)\)", r.stdout)
+    assert m and float(m.group(1)) < 5 and 0.5 < float(m.group(2)) < 1.5, r.stdout

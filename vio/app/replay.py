@@ -146,7 +146,7 @@ class TumSink:
 class ReplayResult:
     states: list[NavState]
     frame_stats: list[dict]
-    data_s: float
+    data_s: float  # the replayed frames' span, less the gaps a realtime replay skipped (not data time)
     wall_s: float
     frames: int
     resets: int
@@ -257,6 +257,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     t_first = None
     wall0 = time.perf_counter()
     skipped_s = 0.0  # realtime: data gaps not waited out
+    skips: list[tuple[int, float]] = []  # realtime: (data stamp after a gap not waited out, seconds skipped)
     # IMU beyond the last frame (EuRoC excerpts carry the whole flight's IMU) would only be propagated
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
@@ -277,6 +278,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                     # no message, looked like a hang (a review's finding); the data after it follow at once
                     log.warning("realtime: a gap of %.3g s in the data before t=%d ns: not waited out", lag, t_data)
                     skipped_s += lag
+                    skips.append((t_data, lag))
                 elif lag > 0:
                     time.sleep(lag)
             t0, c0 = time.perf_counter(), time.thread_time()
@@ -336,6 +338,8 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     wall = time.perf_counter() - wall0
     ft = dataset.frame_t[:frames] if frames else np.zeros(0, np.int64)
     data_s = float((ft[-1] - ft[0]) * 1e-9) if len(ft) > 1 else 0.0
+    # a gap skipped between the frames is no data time (the real-time factor said 300 after a 1000 s gap)
+    data_s = max(data_s - sum(lag for t, lag in skips if len(ft) > 1 and ft[0] < t <= ft[-1]), 0.0)
     h = est.health()
     # frames the dataset could not load never reached the estimator
     listed = n_total if t_end is None else int(np.count_nonzero(dataset.frame_t[:n_total] <= t_end))
