@@ -467,3 +467,22 @@ def test_a_gap_in_the_data_is_not_waited_out_by_a_realtime_replay(flight, tmp_pa
     # the skipped seconds are not data time: the real-time factor said 300 after the gap
     m = re.search(r"([0-9.]+) s of data in [0-9.]+ s \(real-time factor ([0-9.]+)\)", r.stdout)
     assert m and float(m.group(1)) < 5 and 0.5 < float(m.group(2)) < 1.5, r.stdout
+
+
+def test_a_right_image_of_the_wrong_size_is_said_and_counted(flight, tmp_path):
+    """One right image of another size made that frame run on the left camera alone, with nothing said at -q and
+    nothing in the stats (a review's finding). It is one warning line and a count in stats.json."""
+    import json
+
+    import cv2
+
+    data = tmp_path / "right"
+    shutil.copytree(flight, data)
+    p = data / "mav0" / "cam1" / "data" / "1600000001450000000.png"  # one the front end reads (a keyframe's)
+    cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), (W // 2, H // 2)))
+    r = _vio(*_replay_args(data))
+    assert r.returncode == 0, r.stderr[-2000:]
+    said = [ln for ln in r.stderr.splitlines() if "right image" in ln]
+    assert len(said) == 1 and f"right image is {W // 2}x{H // 2}, calibration says {W}x{H}" in said[0], r.stderr
+    d = json.loads((data / "stats.json").read_text())
+    assert sum(d["right_image_unusable"].values()) >= 1, d["right_image_unusable"]

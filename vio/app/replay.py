@@ -262,6 +262,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     t_end = int(dataset.frame_t[n_total - 1]) + max(dataset.calibration.time_offset_ns, 0) if n_total else None
     waiting: dict[int, object] = {}  # frames fed but not processed yet (they wait for the IMU), for the writer
     unusable: dict[str, int] = {}
+    right_unusable: dict[str, int] = {}  # frames whose right image could not be used (they ran mono), by reason
     unreadable0 = dataset.stats.unreadable_images
     loop_images: dict[int, np.ndarray] = {}  # frames fed but not processed yet, for the loop worker
     loop_submit_ms: list[float] = []
@@ -303,6 +304,9 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                 if not ff.tracking_ok:  # counted without the figures, so that one cause is one count
                     why = _DETAIL.sub("", ff.reason) or "rejected by the front end"
                     unusable[why] = unusable.get(why, 0) + 1
+                elif ff.reason.startswith("right image unusable"):  # that frame ran mono: nothing said at -q before
+                    why = ff.reason.removeprefix("right image unusable (").removesuffix("): mono only")
+                    right_unusable[why] = right_unusable.get(why, 0) + 1
                 frame_stats.append({"t_ns": t_cam, "frontend_ms": tm.frontend_ms, "backend_ms": tm.backend_ms,
                                     "total_ms": (time.perf_counter() - t0) * 1e3,
                                     "total_cpu_ms": (time.thread_time() - c0) * 1e3, "keyframe": bool(tm.keyframe),
@@ -359,6 +363,7 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
                               else [round(float(x), 2) for x in est.white_scale],
                               "imu_rows_skipped": dict(dataset.stats.imu_rows_skipped),
                               "data_notes": list(dataset.stats.notes),
+                              "right_image_unusable": right_unusable,
                               "estimator": {k: getattr(h, k) for k in _HEALTH_STATS},
                               "calibration_refined": est.refinement_stats(),
                               "stereo_check": est.stereo_check_stats(),
@@ -369,6 +374,11 @@ def replay(dataset, cfg=None, sinks: list[Sink] | None = None, realtime: bool = 
     summary = res.unusable_summary()
     if summary:
         log.warning(summary)
+    if right_unusable:
+        top = sorted(right_unusable.items(), key=lambda kv: -kv[1])
+        log.warning("%d of %d frames ran on the left camera alone, their right image unusable: %s",
+                    sum(right_unusable.values()), listed, ", ".join(f"{n} {why}" for why, n in top[:4])
+                    + (f", {len(top) - 4} other reasons" if len(top) > 4 else ""))
     return res
 
 
