@@ -2145,3 +2145,19 @@ def test_a_checkpoint_not_written_is_tried_again_at_the_next_interval() -> None:
         assert len(calls) == 3 and w.checkpoints == 1
     finally:
         w.close(wait=True, timeout_s=1.0)
+
+
+def test_config_check_refuses_an_output_folder_in_a_pseudo_file_system(tmp_path, capsys) -> None:
+    """`[run] record_dir = "/proc/kestrel"` passed `vio config check` as root (os.access says yes to root in /proc and
+    in read-only folders), and the recorder failed once the sensors were up. The folder is tried with a file made
+    and removed there, as `vio record` does."""
+    from vio.app.cli import main
+
+    if not Path("/proc/self").is_dir():
+        pytest.skip("no /proc here")
+    for key, value in (("record_dir", "/proc/kestrel"), ("trajectory_file", "/proc/kestrel.tum")):
+        cfg = tmp_path / f"{key}.toml"
+        cfg.write_text(f'[source]\nkind = "fake"\n[run]\n{key} = "{value}"\nstatus_file = "{tmp_path / "s.json"}"\n')
+        assert main(["config", "check", str(cfg)]) == 3, key
+        err = capsys.readouterr().err
+        assert f"[run] {key} = '{value}': folder /proc cannot be written" in err, err

@@ -1004,7 +1004,7 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             vocabulary = Vocabulary.load(cfg.loop.vocabulary)
         except VioError as e:
             raise VioError(f"[loop] vocabulary: {e}") from None
-    from vio.io.outputs import NotWritable, check_not_reads, check_outputs
+    from vio.io.outputs import NotWritable, check_not_reads, check_outputs, folder_problem
 
     recording = src.dataset if src.kind == "euroc" else None
     reads = {"[source] calibration": src.calibration, "[loop] vocabulary": cfg.loop.vocabulary,
@@ -1041,8 +1041,11 @@ def check_run_config(cfg: VioConfig, warn: Callable[[str], None] | None = None) 
             raise VioError(f"[run] {key} = {value!r}: {e.strerror or e}") from None
         if existing is not None and not existing.is_dir():
             raise VioError(f"[run] {key} = {value!r}: {existing} is a file, not a folder")
-        if existing is not None and not os.access(existing, os.W_OK):
-            problem = f"[run] {key} = {value!r}: {existing} is not writable"
+        # tried, not only asked: os.access says yes to root in /proc and in a read-only folder
+        unwritable = existing is not None and (not os.access(existing, os.W_OK) and f"{existing} is not writable"
+                                               or folder_problem(existing, made=False))
+        if unwritable:
+            problem = f"[run] {key} = {value!r}: {unwritable}"
             if warn is None:
                 raise VioError(problem)
             # `vio run` flies without that output rather than not at all: a disk gone read-only or full in flight
