@@ -522,3 +522,25 @@ def test_mono16_messages_share_one_scale_decided_on_the_first(bigendian):
     dark = bright // 4
     assert np.array_equal(decode_image(mono16(bright), IMAGE, to8), bright >> 2)
     assert np.array_equal(decode_image(mono16(dark), IMAGE, to8), dark >> 2) and to8.shift == 2
+
+
+def test_an_mcap_cut_short_before_its_first_image_says_it_is_cut_short(tmp_path):
+    """A recording cut short (the recorder killed, a power cut) where only IMU messages were read before the cut was
+    "no left /cam0/image_raw / right /cam1/image_raw topic; the bag has: /imu0": as if the topics were wrong. It
+    says the file is cut short."""
+    from drivers.fake import FakeSource
+    from vio.io.bag import McapWriter
+
+    calib = FakeSource(width=64, height=48, realtime=False).calibration()
+    out = tmp_path / "r.mcap"
+    w = McapWriter(out, "png", calibration=calib)
+    for k in range(100):
+        w.write_imu(ImuSample(10**12 + k * 5_000_000, np.zeros(3), np.array([0.0, 0.0, 9.81])))
+    w.flush()
+    (tmp_path / "cut.mcap").write_bytes(out.read_bytes())  # what a power cut right after the flush leaves
+    w.close()
+    with pytest.raises(VioError) as e:
+        BagDataset(tmp_path / "cut.mcap", None)
+    assert "cut short" in str(e.value) and "no message of the left /cam0/image_raw" in str(e.value), str(e.value)
+    r = _vio("replay", "cut.mcap", "-o", "t.tum", "--no-progress", cwd=tmp_path)
+    assert r.returncode == 1 and "cut short" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

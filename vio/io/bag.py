@@ -353,6 +353,11 @@ class BagDataset(EurocDataset):
         missing = [f"{what} {t}" for what, t, _ in wanted if t not in have]
         if missing:
             listing = ", ".join(f"{t} ({ty}, {n} msgs)" for t, (ty, n) in sorted(have.items())) or "none"
+            if self._bag.truncated:  # only the messages before the cut are known: the topics may well be right
+                raise VioError(f"{self.path}: the file is cut short (no MCAP summary: the recorder stopped mid-write?) "
+                               f"and no message of the {' / '.join(missing)} topic comes before the cut; read before "
+                               f"it: {listing} (if the topics are named otherwise: --left-topic, --right-topic, "
+                               "--imu-topic or [bag] in the config)")
             raise VioError(f"{self.path}: no {' / '.join(missing)} topic; the bag has: {listing} "
                            "(choose with --left-topic, --right-topic, --imu-topic or [bag] in the config)")
         for what, t, types in wanted:
