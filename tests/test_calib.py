@@ -1187,3 +1187,25 @@ def test_calib_time_offset_of_a_recording_without_readable_images_says_so(tmp_pa
     assert main(["-q", "calib", "time-offset", str(data)]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "only 0 usable frame pairs" in err and "41 of 41 frames' images missing or unreadable" in err, err
+
+
+def test_imu_noise_no_imu_has_is_refused_on_import_and_load(tmp_path, capsys):
+    """A noise density of 1e-300 (or a random walk of 1e-20) was taken from kalibr's imu.yaml and from our calibration
+    YAML: the pre-integration then trusted the IMU beyond any sensor, unsaid (a review's finding). Refused in one line
+    naming the key."""
+    from vio.app.cli import main
+
+    imu = tmp_path / "imu.yaml"
+    for key, value in (("gyroscope_noise_density", "1.0e-300"), ("accelerometer_random_walk", "1.0e-20")):
+        text = (DATA / "kalibr_imu.yaml").read_text()
+        imu.write_text(re.sub(rf"{key}: *\S+", f"{key}: {value}", text))
+        assert main(["calib", "import", "kalibr", str(DATA / "kalibr_camchain_imucam.yaml"), str(imu), "-o",
+                     str(tmp_path / "c.yaml"), "--overwrite"]) == 1, key
+        err = capsys.readouterr().err
+        assert f"{key} = {float(value):g} is below any IMU's" in err and len(err.strip().splitlines()) == 1, err
+    ok = import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml", DATA / "kalibr_imu.yaml"])
+    save_calibration(ok[0], tmp_path / "ok.yaml")
+    text = (tmp_path / "ok.yaml").read_text()
+    (tmp_path / "bad.yaml").write_text(re.sub(r"gyroscope_random_walk: *\S+", "gyroscope_random_walk: 1.0e-300", text))
+    with pytest.raises(VioError, match=r"gyroscope_random_walk = 1e-300 is below any IMU's"):
+        load_calibration(tmp_path / "bad.yaml")

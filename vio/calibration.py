@@ -34,6 +34,10 @@ MAX_IMU_RATE_HZ = 1e5
 # an IMU noise density or random walk above this is no IMU's (a consumer MEMS's is ~1e-2; x1000 mistakes are still
 # taken here and said by `vio calib check`)
 MAX_IMU_NOISE = 100.0
+# and below this is no IMU's either: a navigation-grade fibre-optic gyro's noise density is ~3e-7 rad/s/sqrt(Hz) and
+# its bias random walk ~1e-8 (a drone's MEMS: 1e-5 .. 1e-2). 1e-300 was taken and the pre-integration trusted the IMU
+# beyond any sensor (a variance squared to 0); a variance given for a standard deviation is ~1e-8 .. 1e-10.
+MIN_IMU_NOISE = 1e-9
 RADTAN_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV's pinhole model accepts
 _DISTORTION_ALIASES = {
     "radtan": "radtan",
@@ -179,6 +183,9 @@ class ImuNoise:
                 # 1e300 ended vio replay in "internal error: OverflowError" squaring it (a review's finding)
                 raise VioError(f"IMU noise {name} = {v:g} is beyond any IMU's (at most {MAX_IMU_NOISE:g} in kalibr's "
                                "units, /sqrt(Hz)): in another unit?")
+            if name != "rate_hz" and v < MIN_IMU_NOISE:
+                raise VioError(f"IMU noise {name} = {v:g} is below any IMU's (at least {MIN_IMU_NOISE:g} in kalibr's "
+                               "units, /sqrt(Hz)): a typo, a variance for a standard deviation, or another unit?")
         if self.rate_hz > MAX_IMU_RATE_HZ:  # 1e300 was taken
             raise VioError(f"IMU rate_hz = {self.rate_hz:g} is beyond any IMU's (at most {MAX_IMU_RATE_HZ:g} Hz): "
                            "a typo?")
