@@ -38,10 +38,12 @@ class ImportNotes:
     """Things an importer had to approximate or assume; shown to the user and logged."""
 
     messages: list[str] = field(default_factory=list)
+    # the importer's own logger: kalibr, EuRoC and OpenCV notes were logged as calib.depthai_import
+    logger: logging.Logger = field(default=log, repr=False, compare=False)
 
     def add(self, msg: str) -> None:
         self.messages.append(msg)
-        log.warning(msg)
+        self.logger.warning(msg)
 
 
 def opencv_to_radtan(coeffs, where: str, tol: float = 1e-12) -> tuple[float, ...]:

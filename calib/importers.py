@@ -77,7 +77,7 @@ def imu_noise_from_kalibr(path: Path) -> ImuNoise:
 
 def import_kalibr(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[StereoCalibration, ImportNotes]:
     """kalibr camchain-imucam.yaml (or camchain.yaml) [+ imu.yaml]; the order of files does not matter."""
-    notes = ImportNotes()
+    notes = ImportNotes(logger=log)
     chain_path, imu_path = None, None
     for f in files:
         d = load_yaml(f)
@@ -151,7 +151,7 @@ def import_euroc(files: Sequence[Path], cam_rate_hz: float = 20.0) -> tuple[Ster
     """A EuRoC dataset folder, or its cam0, cam1 [, imu0] sensor.yaml files in that order."""
     from vio.io.euroc import find_mav0, read_camera_yaml, read_imu_T_BS, read_imu_yaml
 
-    notes = ImportNotes()
+    notes = ImportNotes(logger=log)
     files = [Path(f) for f in files]
     if len(files) == 1 and files[0].is_dir():
         mav0 = find_mav0(files[0])
@@ -253,7 +253,7 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
     """
     import cv2
 
-    notes = ImportNotes()
+    notes = ImportNotes(logger=log)
     path = _single_file(files, "opencv", "stereo calibration file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)

@@ -1209,3 +1209,14 @@ def test_imu_noise_no_imu_has_is_refused_on_import_and_load(tmp_path, capsys):
     (tmp_path / "bad.yaml").write_text(re.sub(r"gyroscope_random_walk: *\S+", "gyroscope_random_walk: 1.0e-300", text))
     with pytest.raises(VioError, match=r"gyroscope_random_walk = 1e-300 is below any IMU's"):
         load_calibration(tmp_path / "bad.yaml")
+
+
+def test_import_notes_are_logged_under_the_importers_name(caplog):
+    """kalibr, EuRoC and OpenCV import notes were logged under calib.depthai_import (the one module that defined the
+    notes), which sent a log filter or a reader looking at depthai for a kalibr file's warning."""
+    with caplog.at_level("WARNING"):
+        import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml"])
+        import_calibration("opencv", [DATA / "opencv_stereo.yaml"])
+    said = [(r.name, r.getMessage()) for r in caplog.records]
+    assert any("no imu.yaml given" in m for _, m in said) and any("OpenCV stereo files" in m for _, m in said), said
+    assert {name for name, _ in said} == {"calib.importers"}, said
