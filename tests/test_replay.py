@@ -240,3 +240,27 @@ def test_a_full_disk_names_the_trajectory_file():
     tum(NavState(1, np.eye(4), np.zeros(3)))
     with pytest.raises(VioError, match=r"^/dev/full: cannot write the trajectory \(No space left on device\)$"):
         tum.close()
+
+
+def test_calib_on_a_euroc_folder_is_said_and_documented(tmp_path, capsys, caplog):
+    """`vio replay EUROC --calib FILE` (documented for bags only) replaced the folder's sensor.yaml calibration without
+    a word. It is used (what an integrator replaying EuRoC with a kalibr calibration wants), said in one line, and
+    --help says so."""
+    from vio.calibration import save_calibration
+    from vio.io.euroc import EurocDataset
+
+    flight = tmp_path / "f"
+    assert main(["-q", "simulate", str(flight), "--duration", "2", "--size", "188x120", "--no-progress"]) == 0
+    save_calibration(EurocDataset(flight).calibration, tmp_path / "c.yaml")
+    for opt in ("--calib", "--calibration"):
+        caplog.clear()
+        with caplog.at_level("INFO", logger="vio.app.replay"):
+            assert main(["replay", str(flight), "-o", str(tmp_path / "t.tum"), "--no-progress", opt,
+                         str(tmp_path / "c.yaml")]) == 0
+        said = [r.getMessage() for r in caplog.records if "is not used" in r.getMessage()]
+        assert said == [f"calibration: {tmp_path / 'c.yaml'} ({opt}); the recording's own, if it has one, is not "
+                        "used"], said
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "for a EuRoC folder or an MCAP file from vio record it replaces their own" in text, text

@@ -71,10 +71,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(udpout:HOST:PORT, /dev/ttyAMA0:921600, ...); implies --realtime")
     p.add_argument("--config", type=path_arg, metavar="FILE", help="TOML configuration (defaults otherwise)")
     p.add_argument("--calibration", type=path_arg, metavar="YAML",
-                   help="calibration file instead of the dataset's sensor.yaml")
-    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for a bag (a bag has none; an MCAP file "
-                   "from vio record carries its own): our YAML, or the files `vio calib import` reads, with "
-                   "--calib-format")
+                   help="our calibration YAML in place of the recording's own (a EuRoC folder's sensor.yaml files, "
+                   "the one an MCAP file from vio record carries)")
+    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration: our YAML, or the files `vio calib import` "
+                   "reads, with --calib-format; needed for a bag (a bag has none); for a EuRoC folder or an MCAP file "
+                   "from vio record it replaces their own, as --calibration does (said in the log)")
     p.add_argument("--calib-format", default="project", help="format of --calib: project (default), kalibr, euroc, "
                    "opencv, depthai")
     p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
@@ -598,6 +599,9 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
 
     calib = load_calibration(args.calibration) if args.calibration else load_calib_args(args.calib,
                                                                                           args.calib_format)
+    if calib is not None:  # --calib, meant for bags, replaced a EuRoC folder's calibration unsaid
+        log.info("calibration: %s (%s); the recording's own, if it has one, is not used",
+                 " ".join(args.calib or [args.calibration]), "--calib" if args.calib else "--calibration")
     dataset = open_dataset(args.dataset, calib, (args.left_topic, args.right_topic, args.imu_topic), cfg.bag)
     preflight(dataset)  # before any output is opened: a data problem must not empty an earlier run's files
     loop = None
