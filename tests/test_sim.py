@@ -469,3 +469,18 @@ def test_simulate_into_a_file_or_through_one_says_so_before_the_flight_is_built(
         assert f"vio simulate: error: {out}: cannot write the dataset: {tmp_path / 'afile'} is a file, not a folder" \
             in err, err
     assert (tmp_path / "afile").read_text() == "notes\n"
+
+
+def test_drop_frames_1_takes_one_image_or_both_from_every_frame(tmp_path, capsys):
+    """`--drop-frames 1` dropped 15 left and 13 right images of 21 frames, read as 'not all' by a reviewer: the option
+    drops, with probability P, the left, the right or both images of a frame (one of the three, equally likely), so
+    at 1 every frame loses one image or both. --help says it in those words now."""
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "1 takes one image or both from every frame" in text, text
+    assert main(["-q", "simulate", str(tmp_path / "d"), "--duration", "1", "--size", "188x120", "--drop-frames", "1",
+                 "--no-progress"]) == 0
+    rows = [{ln.split(",")[0] for ln in (tmp_path / "d" / "mav0" / c / "data.csv").read_text().splitlines()[1:]}
+            for c in ("cam0", "cam1")]
+    assert not rows[0] & rows[1] and rows[0] and rows[1]  # no frame kept both images; some kept one

@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-offset-ms", type=float, default=0.0,
                    help="camera-IMU time offset: t_imu = t_cam + offset (positive: image stamps early)")
     p.add_argument("--drop-frames", type=float, default=None, metavar="P",
-                   help="probability that a frame loses its left, right or both images")
+                   help="probability that a frame loses an image: its left, its right or both (one of the three, "
+                   "equally likely); 1 takes one image or both from every frame")
     p.add_argument("--camera-model", choices=("radtan", "equidistant"), default="radtan",
                    help="lens model of the simulated cameras (default: radtan, EuRoC's)")
     p.add_argument("--size", default="752x480", help="image size WxH (intrinsics scale with it)")
