@@ -486,3 +486,25 @@ def test_a_right_image_of_the_wrong_size_is_said_and_counted(flight, tmp_path):
     assert len(said) == 1 and f"right image is {W // 2}x{H // 2}, calibration says {W}x{H}" in said[0], r.stderr
     d = json.loads((data / "stats.json").read_text())
     assert sum(d["right_image_unusable"].values()) >= 1, d["right_image_unusable"]
+
+
+def test_a_failed_replay_keeps_an_earlier_trajectory_file(flight, tmp_path):
+    """A replay that ended 'vision never worked' (exit 1) had already replaced an existing -o file with its IMU-only
+    poses: the earlier run's trajectory lost for nothing. Over an existing file the replay streams into OUT.partial
+    and renames it over OUT once it succeeds; failed, OUT is kept and the error line names OUT.partial."""
+    import cv2
+
+    data = _damaged_copy(flight, tmp_path / "grey", "missing_images")
+    for p in (data / "mav0" / "cam0" / "data").iterdir():
+        cv2.imwrite(str(p), np.full((H, W), 128, np.uint8))  # nothing to track
+    out = tmp_path / "t.tum"
+    out.write_text("# an earlier run\n1.0 0 0 0 0 0 0 1\n")
+    r = _vio("-q", "replay", str(data), "-o", str(out), "--no-progress")
+    line = _one_error_line(r)
+    assert "vision never worked" in line and f"the poses so far are in {out}.partial; {out} is kept" in line, line
+    assert out.read_text() == "# an earlier run\n1.0 0 0 0 0 0 0 1\n"
+    assert (tmp_path / "t.tum.partial").read_text().startswith("# timestamp[s]")
+    r = _vio("-q", "replay", str(flight), "-o", str(out), "--no-progress")  # a replay that works replaces it
+    assert r.returncode == 0, r.stderr
+    assert out.read_text().startswith("# timestamp[s]") and len(out.read_text().splitlines()) > 10
+    assert not (tmp_path / "t.tum.partial").exists()  # streamed into again, then renamed

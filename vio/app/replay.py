@@ -104,12 +104,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 class TumSink:
-    """Appends each state's pose to a TUM file as it comes (a crash keeps what was estimated)."""
+    """Appends each state's pose to a TUM file as it comes (a crash keeps what was estimated).
 
-    def __init__(self, path: str | Path) -> None:
+    `keep_existing`: a regular file at `path` is not replaced until the run succeeds (`commit()`): the poses go to
+    PATH.partial, renamed over it then. A replay that failed had replaced an earlier run's trajectory with its own
+    IMU-only poses, lost for nothing; a failed one leaves PATH as it was and its poses in PATH.partial."""
+
+    def __init__(self, path: str | Path, keep_existing: bool = False) -> None:
         from vio.trajectory import format_tum_line
 
         self._fmt = format_tum_line
+        self.final: Path | None = None  # the file the partial one is renamed over at commit()
+        if keep_existing and os.path.isfile(path):  # not a device or pipe (-o /dev/stdout streams as ever)
+            self.final = Path(os.path.realpath(path))  # a link is written through
+            path = f"{self.final}.partial"
         try:
             self._f = open(path, "w")
         except OSError as e:
@@ -136,6 +144,21 @@ class TumSink:
             self._f.close()
         except OSError as e:
             self._failed(e)
+
+    def commit(self) -> None:
+        """The run succeeded: the partial file (if any) replaces the one it was kept beside."""
+        self.close()
+        if self.final is not None:
+            try:
+                os.replace(self._path, self.final)
+            except OSError as e:
+                raise VioError(f"{self.final}: cannot replace it with the trajectory in {self._path} "
+                               f"({e.strerror or e})") from None
+            self._path, self.final = str(self.final), None
+
+    def kept_note(self) -> str:
+        """What a failed run left where (empty when the poses went to the named file itself)."""
+        return "" if self.final is None else f"the poses so far are in {self._path}; {self.final} is kept as it was"
 
     def _failed(self, e: OSError) -> None:
         with contextlib.suppress(OSError):
@@ -621,7 +644,7 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
 
         view = LiveView(args.view, dataset.calibration, cfg.view, loop=loop)
     sinks: list[Sink] = []
-    tum = TumSink(args.output) if args.output else None
+    tum = TumSink(args.output, keep_existing=True) if args.output else None
     if tum is not None:
         sinks.append(tum)
     mav = None
@@ -638,6 +661,10 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
         res = replay(dataset, cfg, sinks, realtime=args.realtime or bool(args.mavlink),
                      show_tracks=args.show_tracks, max_frames=args.max_frames, progress=not args.no_progress,
                      loop=loop, view=view)
+    except BaseException:  # a data error or Ctrl-C mid-replay: where its poses are, beside the file kept
+        if tum is not None and tum.kept_note():
+            log.warning("replay stopped: %s", tum.kept_note())
+        raise
     finally:
         if view is not None:
             view.close()
@@ -645,6 +672,8 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
             tum.close()
         if mav is not None:
             mav.close()
+    if tum is not None and res.vision_problem() is None:  # else an earlier run's file stays (kept_note says so)
+        tum.commit()
     print(f"replay: {res.frames} frames, {len(res.states)} poses, {res.data_s:.1f} s of data in {res.wall_s:.1f} s "
           f"(real-time factor {res.realtime_factor:.2f}), {res.resets} resets")
     if view is not None:
@@ -719,6 +748,8 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
     problem = res.vision_problem()
     if problem and map_problem:
         print(f"vio replay: error: {map_problem}", file=sys.stderr)
+    if problem and tum is not None and tum.kept_note():
+        problem = f"{problem} ({tum.kept_note()})"
     if problem or map_problem:
         raise VioError(problem or map_problem)
     return 0
