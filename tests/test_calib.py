@@ -1220,3 +1220,21 @@ def test_import_notes_are_logged_under_the_importers_name(caplog):
     said = [(r.name, r.getMessage()) for r in caplog.records]
     assert any("no imu.yaml given" in m for _, m in said) and any("OpenCV stereo files" in m for _, m in said), said
     assert {name for name, _ in said} == {"calib.importers"}, said
+
+
+def test_numbers_in_exponent_notation_without_a_dot_are_numbers(tmp_path):
+    """PyYAML follows YAML 1.1, where `5e6` or `1146635e-4` (no dot) is text: `time_offset_ns: 5e6` was refused as
+    "time_offset_ns = '5e6': whole nanoseconds" and an intrinsic written so as "must be four numbers, got [...,
+    '1146635e-4']", numbers to the user and to YAML 1.2 (what kalibr's and OpenCV's writers follow). Read as numbers;
+    a quoted one is still text."""
+    ok = import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml", DATA / "kalibr_imu.yaml"])[0]
+    save_calibration(ok, tmp_path / "ok.yaml")
+    text = (tmp_path / "ok.yaml").read_text()
+    assert "time_offset_ns: -5200000" in text and "- 458.654\n" in text
+    (tmp_path / "e.yaml").write_text(text.replace("time_offset_ns: -5200000", "time_offset_ns: -52e5")
+                                     .replace("- 458.654\n", "- 458654e-3\n"))
+    c = load_calibration(tmp_path / "e.yaml")
+    assert c.time_offset_ns == -5_200_000 and c.cam0.K[0, 0] == 458.654
+    (tmp_path / "q.yaml").write_text(text.replace("- 458.654\n", "- '458654e-3'\n"))
+    with pytest.raises(VioError, match="intrinsics must be four numbers"):
+        load_calibration(tmp_path / "q.yaml")

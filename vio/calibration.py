@@ -9,6 +9,7 @@ camera points into the body (= IMU) frame. `time_offset_ns` follows kalibr's tim
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -439,6 +440,17 @@ def time_offset_ns_from(off: object, where: str) -> int:
     return int(off)
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's floats: under YAML 1.1 `5e6` and `-52e5` (no dot) are text, and
+    `time_offset_ns: 5e6` was refused as "'5e6': whole nanoseconds". Quoted scalars stay text."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
 def load_yaml(path: Path) -> dict:
     """Read YAML, tolerating OpenCV's '%YAML:1.0' first line (EuRoC, VINS) that PyYAML rejects."""
     path = Path(path)
@@ -453,7 +465,7 @@ def load_yaml(path: Path) -> dict:
         lines = lines[1:]
     text = "\n".join(lines).replace("!!opencv-matrix", "")
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_Loader)  # a SafeLoader
     except yaml.YAMLError as e:
         raise VioError(f"{path}: not valid YAML ({e})") from None
     except RecursionError:  # lists nested thousands deep: was an internal error (a review's finding)
