@@ -508,3 +508,18 @@ def test_a_failed_replay_keeps_an_earlier_trajectory_file(flight, tmp_path):
     assert r.returncode == 0, r.stderr
     assert out.read_text().startswith("# timestamp[s]") and len(out.read_text().splitlines()) > 10
     assert not (tmp_path / "t.tum.partial").exists()  # streamed into again, then renamed
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_an_image_that_is_a_pipe_is_skipped_not_waited_on(flight, tmp_path):
+    """An image file that is a named pipe (or a device) made the replay wait for ever in cv2.imread, silent at -q.
+    It is skipped as unreadable, with a warning naming it."""
+    data = tmp_path / "fifo"
+    shutil.copytree(flight, data)
+    for name in ("1600000000000000000.png", "1600000001000000000.png"):  # the first one (the size check) and one
+        p = data / "mav0" / "cam0" / "data" / name
+        p.unlink()
+        os.mkfifo(p)
+    r = _vio(*_replay_args(data), timeout=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "1600000001000000000.png: not a regular file (a pipe, device or folder); skipped" in r.stderr, r.stderr
