@@ -22,7 +22,7 @@ from typing import Any
 from drivers.base import SensorSource
 from drivers.signals import stop_on_signal
 from vio import VioError
-from vio.argtypes import path_arg, positive_float
+from vio.argtypes import MAX_SECONDS, path_arg, positive_float_up_to
 from vio.calibration import StereoCalibration
 from vio.types import ImuSample, StereoFrame
 
@@ -252,8 +252,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=path_arg, help="output folder (EuRoC ASL layout: OUT/mav0/...), or with --format "
                         "mcap the MCAP file")
     parser.add_argument("--source", choices=("oak", "fake", "euroc"), help="overrides [source] kind of the config")
-    parser.add_argument("--duration", type=positive_float, metavar="S", help="seconds of data to record (default: "
-                        "until Ctrl-C / SIGTERM)")
+    parser.add_argument("--duration", type=positive_float_up_to(MAX_SECONDS), metavar="S",
+                        help="seconds of data to record (default: until Ctrl-C / SIGTERM)")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration ([source] section)")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in OUT")
     parser.add_argument("--format", choices=("euroc", "mcap"), default=None,

@@ -280,6 +280,8 @@ def test_option_mistakes_are_usage_errors_in_every_command(tmp_path, capsys):
                        (["eval", "e.tum", "g", "--max-dt-ms", "1e300"], "--max-dt-ms: must be at most 10000"),
                        (["eval", "e.tum", "g", "--max-gap-s", "-1"], "--max-gap-s: must be a positive number"),
                        (["record", str(tmp_path / "o"), "--duration", "0"], "--duration: must be a positive number"),
+                       # an internal OverflowError after the recording had started (and a dataset folder made)
+                       (["record", str(tmp_path / "o"), "--duration", "1e300"], "--duration: must be at most 1e+07"),
                        (["demo", "--profile", "bogus"], "invalid choice: 'bogus'"),
                        (["status", "--stale-s", "nan"], "--stale-s: must be a positive number"),
                        (["status", "--stale-s", "inf"], "--stale-s: must be a positive number")):
