@@ -447,6 +447,9 @@ def test_a_device_named_as_a_configuration_calibration_or_trajectory_is_one_line
     fifo.write_text("[source]\nkind = 'fake'\n")
     out, err = p.communicate(timeout=60)
     assert p.returncode == 0 and "OK" in out, (out, err)
+    # but a status file is the daemon's regular file: `vio status --file PIPE` waited for a writer for ever
+    r = _vio("status", "--file", str(fifo), timeout=60)
+    assert r.returncode == 4 and f"{fifo}: cannot read status: is a pipe, not a status file" in r.stdout + r.stderr, r
 
 
 def test_a_gap_in_the_data_is_not_waited_out_by_a_realtime_replay(flight, tmp_path):

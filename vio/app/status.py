@@ -14,9 +14,11 @@ thread died or is stuck; the systemd watchdog is no longer fed), `stopped`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import stat
 import sys
 import time
 from collections.abc import Callable
@@ -48,6 +50,9 @@ def read_status(path: Path) -> dict[str, Any]:
     """Parse the status file; OSError / ValueError mean 'not running' to the caller."""
     if is_device(path):  # /dev/zero was read for ever (a review's finding)
         raise ValueError("is a device, not a status file")
+    with contextlib.suppress(OSError):  # the daemon writes a regular file: opening a pipe waited for a writer for ever
+        if stat.S_ISFIFO(os.stat(path).st_mode):
+            raise ValueError("is a pipe, not a status file")
     try:
         data = json.loads(path.read_text())
     except RecursionError:  # nested thousands deep: was an internal error (a review's finding)
