@@ -264,3 +264,21 @@ def test_calib_on_a_euroc_folder_is_said_and_documented(tmp_path, capsys, caplog
         main(["replay", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "for a EuRoC folder or an MCAP file from vio record it replaces their own" in text, text
+
+
+def test_an_output_in_a_pseudo_file_system_is_refused_before_the_replay(tmp_path, capsys):
+    """`--stats /proc/s.json` or `--save-map /proc/m.npz` passed the check before the replay as root (os.access says
+    yes to root in /proc and in read-only folders) and failed after it: the map of the whole flight lost ('nothing
+    written'). The folder is tried with a file made and removed there, before the replay."""
+    from pathlib import Path
+
+    if not Path("/proc/self").is_dir():
+        pytest.skip("no /proc here")
+    flight = tmp_path / "f"
+    assert main(["-q", "simulate", str(flight), "--duration", "1", "--size", "188x120", "--no-progress"]) == 0
+    capsys.readouterr()
+    for args in (["--stats", "/proc/s.json"], ["--save-map", "/proc/m.npz"]):
+        assert main(["-q", "replay", str(flight), "--no-progress", *args]) == 1, args
+        out, err = capsys.readouterr()
+        assert "replay:" not in out and f"{args[1]}: cannot write" in err and "folder /proc cannot be written" in err, \
+            (args, out, err)

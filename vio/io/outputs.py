@@ -122,6 +122,11 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             raise VioError(f"{p}: cannot write {what}{via}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
             raise NotWritable(f"{p}: cannot write {what}{via}: folder {folder} is not writable")
+        # tried, not only asked: os.access says yes to root in /proc and in a read-only folder, and the stats or the
+        # map of a whole replay then failed at its end (the map lost)
+        problem = folder_problem(folder, made=False)
+        if problem:
+            raise NotWritable(f"{p}: cannot write {what}{via}: {problem}")
 
 
 def folder_problem(folder: str | Path, made: bool) -> str | None:
