@@ -1006,6 +1006,13 @@ def test_calib_outputs_never_replace_a_file_unasked_nor_fail_after_the_work(tmp_
         ro.chmod(0o555)
         assert main(["calib", "import", "kalibr", *src, "-o", str(ro / "c.yaml")]) == 1
         assert "cannot write there" in capsys.readouterr().err
+    capsys.readouterr()
+    if os.path.isdir("/proc/self"):  # where root cannot write either: the analysis ran, then the write failed
+        for argv in (["calib", "import", "kalibr", *src, "-o", "/proc/c.yaml"],
+                     ["calib", "imu-noise", str(csv), "-o", "/proc/i.yaml"]):
+            assert main(argv) == 1, argv
+            out_, err = capsys.readouterr()
+            assert "/proc/" in err and "cannot write there" in err and not out_, (argv, out_, err)
 
 
 def test_an_identity_camera_imu_extrinsic_is_warned_about_when_flown(caplog):

@@ -174,6 +174,9 @@ def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | 
         raise VioError(f"{path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise VioError(f"{path}: cannot write there (read-only or no permission)")
+    problem = folder_problem(folder, made=False)  # os.access says yes to root in /proc and in a read-only folder
+    if problem:
+        raise VioError(f"{path}: cannot write there ({problem})")
 
 
 DISK_FULL_BYTES = 4 << 20  # below this much free space, a failed image write is taken for a full disk
