@@ -46,6 +46,23 @@ class ImportNotes:
         self.logger.warning(msg)
 
 
+def pinhole_from_K(K: np.ndarray, where: str) -> tuple[float, float, float, float]:
+    """fx, fy, cx, cy of a camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (VioError for another: a skew or
+    another last row was dropped unsaid, and the calibration was of another camera)."""
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    fx = float(K[0, 0])
+    if not np.all(np.isfinite(K)):
+        raise VioError(f"{where} has a non-finite value: {K.tolist()}")
+    if abs(K[0, 1]) > 1e-6 * max(abs(fx), 1.0):
+        raise VioError(f"{where} has a skew of {K[0, 1]:g} px (K[0][1]): Kestrel's pinhole model has none; "
+                       "calibrate without skew (OpenCV's default)")
+    if abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9 or abs(K[2, 2] - 1.0) > 1e-9:
+        raise VioError(f"{where}'s last row is [{K[2, 0]:g}, {K[2, 1]:g}, {K[2, 2]:g}]"
+                       + (f" and K[1][0] = {K[1, 0]:g}" if abs(K[1, 0]) > 1e-9 else "")
+                       + ": not a camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    return fx, float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+
+
 def opencv_to_radtan(coeffs, where: str, tol: float = 1e-12) -> tuple[float, ...]:
     """OpenCV distortion vector (4, 5, 8, 12 or 14 values) -> our radtan coefficients, exactly.
 
@@ -83,7 +100,8 @@ def _camera(handler, socket, T_body_cam: np.ndarray, where: str, notes: ImportNo
         dmodel, dcoef = "radtan", opencv_to_radtan(dist, where)
     else:
         raise VioError(f"{where}: depthai camera model {model.name} is not supported (Perspective or Fisheye)")
-    return CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=w, height=h,
+    fx, fy, cx, cy = pinhole_from_K(K, f"{where}: its camera matrix")
+    return CameraCalibration(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
                              distortion_model=dmodel, distortion=dcoef, T_body_cam=T_body_cam, rate_hz=rate_hz)
 
 

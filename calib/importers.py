@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.depthai_import import ImportNotes, opencv_to_radtan, stereo_from_depthai
+from calib.depthai_import import ImportNotes, opencv_to_radtan, pinhole_from_K, stereo_from_depthai
 from vio import VioError
 from vio.calibration import CameraCalibration, ImuNoise, StereoCalibration, camera_from_dict, load_yaml
 from vio.geometry import inv_T, is_se3, rotation_angle_deg
@@ -300,7 +300,8 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
         else:
             dmodel, dcoef = "radtan", opencv_to_radtan(D[i], f"{where}: D{i + 1}")
         T_body_cam = np.eye(4) if i == 0 else inv_T(T_c1_c0)
-        cams.append(CameraCalibration(fx=K[i][0, 0], fy=K[i][1, 1], cx=K[i][0, 2], cy=K[i][1, 2], width=w,
+        fx, fy, cx, cy = pinhole_from_K(K[i], f"{where}: K{i + 1}")
+        cams.append(CameraCalibration(fx=fx, fy=fy, cx=cx, cy=cy, width=w,
                                       height=h, distortion_model=dmodel, distortion=dcoef,
                                       T_body_cam=T_body_cam, rate_hz=cam_rate_hz))
     return StereoCalibration(cams[0], cams[1], ImuNoise()), notes

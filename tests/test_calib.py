@@ -1245,3 +1245,23 @@ def test_numbers_in_exponent_notation_without_a_dot_are_numbers(tmp_path):
     (tmp_path / "q.yaml").write_text(text.replace("- 458.654\n", "- '458654e-3'\n"))
     with pytest.raises(VioError, match="intrinsics must be four numbers"):
         load_calibration(tmp_path / "q.yaml")
+
+
+def test_an_opencv_camera_matrix_kestrel_cannot_hold_is_refused(tmp_path, capsys):
+    """K1 with a skew (K[0][1] = 5 px) or a last row other than 0 0 1 was imported as fx, fy, cx, cy alone, exit 0:
+    a camera other than the one calibrated, unsaid. Refused in one line naming the file and the key."""
+    from vio.app.cli import main
+
+    text = (DATA / "opencv_stereo.yaml").read_text()
+    src = tmp_path / "stereo.yaml"
+    for old, new, says in (("795.20000000000005, 0., 641.70000000000005", "795.20000000000005, 5., 641.70000000000005",
+                            "K1 has a skew of 5 px"),
+                           ("797.10000000000002, 398.60000000000002, 0., 0., 1. ]",
+                            "797.10000000000002, 398.60000000000002, 0., 0., 2. ]", "K2's last row is [0, 0, 2]")):
+        assert old in text
+        src.write_text(text.replace(old, new))
+        assert main(["calib", "import", "opencv", str(src), "-o", str(tmp_path / "c.yaml"), "--translation-unit",
+                     "mm"]) == 1
+        err = capsys.readouterr().err
+        assert f"{src}: {says}" in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "c.yaml").exists()
