@@ -287,6 +287,11 @@ def import_opencv(files: Sequence[Path], cam_rate_hz: float = 20.0,
                        f"({_one_line_cv(e)})") from None
     finally:
         fs.release()
+    # checked here, by name: "T_body_cam is not a rigid transform" named neither the file nor R / T
+    if not np.all(np.isfinite(t)):
+        raise VioError(f"{where}: T has a non-finite value: {t.tolist()}")
+    if not (np.all(np.isfinite(R)) and is_se3(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))):
+        raise VioError(f"{where}: R is not a rotation matrix (orthonormal, determinant +1): {R.tolist()}")
     if np.linalg.norm(t) > 1.0:
         notes.add(f"{where}: baseline {np.linalg.norm(t):.3f} m is implausible for a drone stereo head; "
                   "was T in mm? (use --translation-unit mm)")

@@ -1265,3 +1265,18 @@ def test_an_opencv_camera_matrix_kestrel_cannot_hold_is_refused(tmp_path, capsys
         err = capsys.readouterr().err
         assert f"{src}: {says}" in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "c.yaml").exists()
+
+
+def test_an_opencv_stereo_rotation_that_is_none_names_the_file(tmp_path, capsys):
+    """An R that is not a rotation (or a T with a NaN) in an OpenCV stereo file ended in "T_body_cam is not a rigid
+    transform", naming neither the file nor R / T."""
+    from vio.app.cli import main
+
+    text = (DATA / "opencv_stereo.yaml").read_text()
+    src = tmp_path / "stereo.yaml"
+    for old, new, says in (("0.9999901500197903", "1.9999901500197903", "R is not a rotation matrix"),
+                           ("data: [ -75.120000000000005", "data: [ .nan", "T has a non-finite value")):
+        src.write_text(text.replace(old, new))
+        assert main(["calib", "import", "opencv", str(src), "-o", str(tmp_path / "c.yaml")]) == 1
+        err = capsys.readouterr().err
+        assert f"{src}: {says}" in err and len(err.strip().splitlines()) == 1, err
