@@ -1280,3 +1280,23 @@ def test_an_opencv_stereo_rotation_that_is_none_names_the_file(tmp_path, capsys)
         assert main(["calib", "import", "opencv", str(src), "-o", str(tmp_path / "c.yaml")]) == 1
         err = capsys.readouterr().err
         assert f"{src}: {says}" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_key_given_twice_in_a_calibration_yaml_is_refused(tmp_path, capsys):
+    """A hand-edited camchain with `intrinsics:` given twice (a new line added, the old one left) was read with the
+    last one, unsaid: PyYAML keeps the last of duplicate keys. Refused in one line naming the key and both lines."""
+    from vio.app.cli import main
+
+    text = (DATA / "kalibr_camchain_imucam.yaml").read_text()
+    old = "  intrinsics: [458.654, 457.296, 367.215, 248.375]\n"
+    assert old in text
+    src = tmp_path / "camchain.yaml"
+    src.write_text(text.replace(old, old + "  intrinsics: [460.0, 459.0, 367.215, 248.375]\n"))
+    line = text[:text.index(old)].count("\n") + 1
+    assert main(["calib", "import", "kalibr", str(src), "-o", str(tmp_path / "c.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert f"{src}: key 'intrinsics' given twice (lines {line} and {line + 1})" in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "c.yaml").exists()
+    ok = import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml"])[0]  # one key per mapping: fine
+    save_calibration(ok, tmp_path / "ok.yaml")
+    assert load_calibration(tmp_path / "ok.yaml").cam0.K[0, 0] == 458.654

@@ -440,9 +440,27 @@ def time_offset_ns_from(off: object, where: str) -> int:
     return int(off)
 
 
+class _DuplicateKey(yaml.YAMLError):
+    """A mapping gives one key twice."""
+
+
 class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader with YAML 1.2's floats: under YAML 1.1 `5e6` and `-52e5` (no dot) are text, and
-    `time_offset_ns: 5e6` was refused as "'5e6': whole nanoseconds". Quoted scalars stay text."""
+    `time_offset_ns: 5e6` was refused as "'5e6': whole nanoseconds". Quoted scalars stay text. A key given twice in
+    one mapping is refused: PyYAML kept the last, unsaid (a camchain edited by hand, `intrinsics:` added below the
+    old line)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[object, int] = {}
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # merge keys (<<) override by design; other key kinds: the constructor's own checks
+            key = self.construct_object(key_node)
+            line = key_node.start_mark.line + 1
+            if key in seen:
+                raise _DuplicateKey(f"key {key!r} given twice (lines {seen[key]} and {line})")
+            seen[key] = line
+        return super().construct_mapping(node, deep)
 
 
 _Loader.add_implicit_resolver(
@@ -462,10 +480,12 @@ def load_yaml(path: Path) -> dict:
         raise VioError(f"{path}: not a text file (byte {e.start} is not UTF-8)") from None
     lines = text.splitlines()
     if lines and lines[0].startswith("%YAML:"):
-        lines = lines[1:]
+        lines[0] = "#"  # a comment, not removed: the lines a message names stay the file's
     text = "\n".join(lines).replace("!!opencv-matrix", "")
     try:
         data = yaml.load(text, Loader=_Loader)  # a SafeLoader
+    except _DuplicateKey as e:
+        raise VioError(f"{path}: {e}") from None
     except yaml.YAMLError as e:
         raise VioError(f"{path}: not valid YAML ({e})") from None
     except RecursionError:  # lists nested thousands deep: was an internal error (a review's finding)
