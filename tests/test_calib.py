@@ -1300,3 +1300,16 @@ def test_a_key_given_twice_in_a_calibration_yaml_is_refused(tmp_path, capsys):
     ok = import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml"])[0]  # one key per mapping: fine
     save_calibration(ok, tmp_path / "ok.yaml")
     assert load_calibration(tmp_path / "ok.yaml").cam0.K[0, 0] == 458.654
+
+
+def test_a_focal_length_no_lens_has_is_refused(tmp_path):
+    """fx = 4.58 px (a typo of 458) for a 752 px wide image was taken (a field of view over 178 deg, or a fisheye
+    seeing 80 rad to its edge), where 100x too long is refused."""
+    ok = import_calibration("kalibr", [DATA / "kalibr_camchain_imucam.yaml"])[0]
+    save_calibration(ok, tmp_path / "ok.yaml")
+    text = (tmp_path / "ok.yaml").read_text()
+    assert "- 458.654\n" in text
+    (tmp_path / "bad.yaml").write_text(text.replace("- 458.654\n", "- 4.58654\n"))
+    with pytest.raises(VioError, match=r"bad\.yaml: cam0: focal lengths fx=4\.58654, fy=457\.296 px: under 1/20 of "
+                       r"the 752x480 image"):
+        load_calibration(tmp_path / "bad.yaml")

@@ -27,6 +27,7 @@ DISTORTION_MODELS = ("radtan", "equidistant", "none")
 # another unit. And a focal length over FOCAL_MAX_SIDES image sides is a field of view under 0.6 deg.
 MAX_IMAGE_SIDE = 32768
 FOCAL_MAX_SIDES = 100
+FOCAL_MIN_FRACTION = 20  # and a focal length under 1/20 of its side is a field of view no lens has (see validate)
 # OpenCV's coefficients of a real lens are a few units (an OAK's rational model: -9 .. 16); none is a thousand
 MAX_DISTORTION = 1000.0
 # the rates a camera or an IMU has (the EuRoC reader's stamp check takes the same: camera to 1 kHz, IMU to 100 kHz)
@@ -100,6 +101,11 @@ class CameraCalibration:
         if max(self.fx, self.fy) > FOCAL_MAX_SIDES * max(self.width, self.height):
             raise VioError(f"focal lengths fx={self.fx:.6g}, fy={self.fy:.6g} px are over {FOCAL_MAX_SIDES} times the "
                            f"{self.width}x{self.height} image (a field of view under 0.6 deg): a typo?")
+        if self.fx < self.width / FOCAL_MIN_FRACTION or self.fy < self.height / FOCAL_MIN_FRACTION:
+            # fx = 4.58 (a typo of 458) was taken: a pinhole's field of view over 168 deg, or an equidistant (fisheye)
+            # lens seeing 10 rad to its image's edge
+            raise VioError(f"focal lengths fx={self.fx:.6g}, fy={self.fy:.6g} px: under 1/{FOCAL_MIN_FRACTION} of the "
+                           f"{self.width}x{self.height} image (a field of view no lens has): a typo?")
         if not (isinstance(self.rate_hz, (int, float)) and 0 < self.rate_hz < math.inf):
             # the time-offset code divides by it; the IMU's was refused already, the camera's passed (a QA sweep)
             raise VioError(f"camera rate_hz must be a positive number, got {self.rate_hz!r}")
