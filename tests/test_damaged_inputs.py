@@ -507,6 +507,12 @@ def test_a_failed_replay_keeps_an_earlier_trajectory_file(flight, tmp_path):
     assert "vision never worked" in line and f"the poses so far are in {out}.partial; {out} is kept" in line, line
     assert out.read_text() == "# an earlier run\n1.0 0 0 0 0 0 0 1\n"
     assert (tmp_path / "t.tum.partial").read_text().startswith("# timestamp[s]")
+    lo = tmp_path / "lo.tum"  # the loop-corrected trajectory, written at the end, replaced it the same way
+    lo.write_text("# an earlier loop-corrected run\n")
+    r = _vio("-q", "replay", str(data), "--loop-output", str(lo), "--no-progress")
+    line = _one_error_line(r)
+    assert f"the loop-corrected poses are in {lo}.partial; {lo} is kept" in line, line
+    assert lo.read_text() == "# an earlier loop-corrected run\n" and (tmp_path / "lo.tum.partial").is_file()
     r = _vio("-q", "replay", str(flight), "-o", str(out), "--no-progress")  # a replay that works replaces it
     assert r.returncode == 0, r.stderr
     assert out.read_text().startswith("# timestamp[s]") and len(out.read_text().splitlines()) > 10

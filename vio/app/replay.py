@@ -719,8 +719,14 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
         except VioError as e:
             print(f"replay: no accuracy figures: {e}")
     loop_dict, draw, map_problem = None, None, None
+    kept = [tum.kept_note()] if tum is not None and tum.kept_note() else []
     if loop is not None:
-        loop_dict, draw = _loop_outputs(loop, res, dataset, args.loop_output, args.loop_plot)
+        loop_path = args.loop_output
+        if loop_path and res.vision_problem() and os.path.isfile(loop_path):  # an earlier run's stays, as for -o
+            real = os.path.realpath(loop_path)
+            loop_path = f"{real}.partial"
+            kept.append(f"the loop-corrected poses are in {loop_path}; {real} is kept as it was")
+        loop_dict, draw = _loop_outputs(loop, res, dataset, loop_path, args.loop_plot)
         if save_map:
             try:
                 h = loop.closer.save_map(save_map, cfg.map.prune_m, cfg.map.prune_deg)
@@ -748,8 +754,8 @@ def _run(args: argparse.Namespace, cfg: VioConfig, save_map: str, load_map: str,
     problem = res.vision_problem()
     if problem and map_problem:
         print(f"vio replay: error: {map_problem}", file=sys.stderr)
-    if problem and tum is not None and tum.kept_note():
-        problem = f"{problem} ({tum.kept_note()})"
+    if problem and kept:
+        problem = f"{problem} ({'; '.join(kept)})"
     if problem or map_problem:
         raise VioError(problem or map_problem)
     return 0
