@@ -593,3 +593,13 @@ def test_ground_truth_beyond_any_place_on_earth_is_refused(tmp_path):
     f.write_text("#timestamp,x,y,z,qw,qx,qy,qz\n1000,0,0,0,1,0,0,0\n2000,1e300,0,0,1,0,0,0\n")
     with pytest.raises(VioError, match=r"data\.csv:3: position 1e\+300 0 0 is beyond 1e\+09 m"):
         read_groundtruth_csv(f)
+
+
+def test_the_daemons_record_dir_of_euroc_recordings_names_one_to_give(tmp_path):
+    """`vio replay RECORD_DIR` (the daemon's [run] record_dir: one EuRoC recording per start, named by its UTC time)
+    said only "no mav0/ folder: not a EuRoC ASL dataset"; a folder of MCAP recordings already named one to give."""
+    for name in ("20261208T010000Z", "20261208T020000Z"):
+        (tmp_path / "recs" / name / "mav0").mkdir(parents=True)
+    with pytest.raises(VioError, match=r"recs: a folder of 2 EuRoC recordings, not a dataset: give one, e.g. vio "
+                       r"replay .*recs/20261208T020000Z"):
+        EurocDataset(tmp_path / "recs")

@@ -507,6 +507,13 @@ def find_mav0(path: str | Path) -> Path:
     if inside:  # a ROS 2 bag folder whose metadata.yaml is missing (`ros2 bag record` cut off by a power cut)
         raise VioError(f"{p}: no mav0/ folder and no metadata.yaml: a ROS 2 bag cut short? give its file alone: "
                        f"vio replay {inside[0]}")
+    try:  # the daemon's record_dir in EuRoC format: one recording per start, each with its mav0/
+        recordings = sorted(d for d in p.iterdir() if (d / "mav0").is_dir())
+    except OSError:
+        recordings = []
+    if recordings:
+        raise VioError(f"{p}: a folder of {len(recordings)} EuRoC recording{'s' if len(recordings) > 1 else ''}, "
+                       f"not a dataset: give one, e.g. vio replay {recordings[-1]}")
     raise VioError(f"{p}: no mav0/ folder: not a EuRoC ASL dataset")
 
 
