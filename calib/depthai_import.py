@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vio import VioError
-from vio.calibration import RADTAN_LENGTHS, CameraCalibration, ImuNoise, StereoCalibration
+from vio.calibration import MIN_IMU_NOISE, RADTAN_LENGTHS, CameraCalibration, ImuNoise, StereoCalibration
 from vio.geometry import inv_T
 
 log = logging.getLogger(__name__)
@@ -127,10 +127,11 @@ def _imu_noise(handler, notes: ImportNotes, rate_hz: float) -> ImuNoise:
         "accelerometer_noise_density": mean(n.accelerometer, "noiseDensity"),
         "accelerometer_random_walk": mean(n.accelerometer, "randomWalk"),
     }
-    missing = [k for k, v in vals.items() if v <= 0]
+    # under MIN_IMU_NOISE is no IMU's (ImuNoise refuses it): garbage where most devices leave 0, taken as not there
+    missing = [k for k, v in vals.items() if v < MIN_IMU_NOISE]
     if missing:
-        notes.add(f"depthai: IMU noise {', '.join(missing)} not in the calibration; using project defaults for "
-                  "those (measure them with `vio calib imu-noise`)")
+        notes.add(f"depthai: IMU noise {', '.join(missing)} not in the calibration (0, or below any IMU's); using "
+                  "project defaults for those (measure them with `vio calib imu-noise`)")
         for k in missing:
             vals[k] = getattr(default, k)
     return ImuNoise(**vals, rate_hz=rate_hz)

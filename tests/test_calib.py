@@ -14,7 +14,7 @@ import pytest
 from calib.importers import import_calibration, write_opencv_stereo
 from calib.show import camera_axes, format_calibration
 from vio import VioError
-from vio.calibration import load_calibration, save_calibration
+from vio.calibration import ImuNoise, load_calibration, save_calibration
 from vio.geometry import inv_T, make_T, so3_exp
 
 DATA = Path(__file__).parent / "data" / "calib"
@@ -1313,3 +1313,18 @@ def test_a_focal_length_no_lens_has_is_refused(tmp_path):
     with pytest.raises(VioError, match=r"bad\.yaml: cam0: focal lengths fx=4\.58654, fy=457\.296 px: under 1/20 of "
                        r"the 752x480 image"):
         load_calibration(tmp_path / "bad.yaml")
+
+
+def test_depthai_imu_noise_below_any_imus_is_taken_as_not_filled_in(tmp_path):
+    """An OAK's EEPROM noise of 1e-20 (garbage where most devices leave 0) was taken; refused now by ImuNoise, it
+    would stop the OAK's import and `vio run` altogether. It is treated as the zeros are: not filled in, the project
+    defaults used, said."""
+    import json
+
+    d = json.loads((DATA.parent / "depthai_calib.json").read_text())
+    for ax in ("x", "y", "z"):
+        d["imuCalibrationParams"]["noise"]["gyroscope"][ax]["noiseDensity"] = 1e-20
+    (tmp_path / "dai.json").write_text(json.dumps(d))
+    calib, notes = import_calibration("depthai", [tmp_path / "dai.json"])
+    assert calib.imu.gyroscope_noise_density == ImuNoise().gyroscope_noise_density
+    assert any("gyroscope_noise_density" in m and "project defaults" in m for m in notes.messages), notes.messages
