@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from vio import VioError
-from vio.calibration import ImuNoise
+from vio.calibration import MIN_IMU_NOISE, ImuNoise
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +115,11 @@ def analyse_imu(imu, rate_hz: float | None = None) -> AllanResult:
     if np.max(dt) > 5.0 / rate_hz:
         log.warning("IMU has gaps up to %.1f ms; Allan deviation assumes even sampling", np.max(dt) * 1e3)
     taus = _log_taus(len(t), rate_hz)
+    for name, data in (("gyro", imu.gyro), ("accel", imu.accel)):
+        for i, ax in enumerate("xyz"):
+            if np.ptp(data[:, i]) == 0:  # its Allan deviation is all 0: an IndexError in the fit (an internal error)
+                raise VioError(f"{name} {ax} reads {data[0, i]:g} in every one of the {len(t)} samples: a stuck or "
+                               "dead axis, or a recording without sensor noise (a simulation): no noise to measure")
     g = [allan_deviation(imu.gyro[:, i], rate_hz, taus) for i in range(3)]
     a = [allan_deviation(imu.accel[:, i], rate_hz, taus) for i in range(3)]
     taus_used = g[0][0]
@@ -122,6 +127,12 @@ def analyse_imu(imu, rate_hz: float | None = None) -> AllanResult:
     accel_adev = np.stack([x[1] for x in a], axis=1)
     gf = [fit_axis(taus_used, gyro_adev[:, i]) for i in range(3)]
     af = [fit_axis(taus_used, accel_adev[:, i]) for i in range(3)]
+    for name, fits in (("gyro", gf), ("accel", af)):
+        for ax, f in zip("xyz", fits):
+            for what, v in (("noise density", f.noise_density), ("random walk", f.random_walk)):
+                if not v >= MIN_IMU_NOISE:  # the file written would be refused by `vio calib import` and replay
+                    raise VioError(f"{name} {ax}: a {what} of {v:.3g} is below any IMU's (at least {MIN_IMU_NOISE:g}): "
+                                   "the axis is stuck or its noise removed (filtered, simulated): no noise to measure")
     noise = ImuNoise(
         gyroscope_noise_density=max(f.noise_density for f in gf),
         gyroscope_random_walk=max(f.random_walk for f in gf),

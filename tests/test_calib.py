@@ -1328,3 +1328,20 @@ def test_depthai_imu_noise_below_any_imus_is_taken_as_not_filled_in(tmp_path):
     calib, notes = import_calibration("depthai", [tmp_path / "dai.json"])
     assert calib.imu.gyroscope_noise_density == ImuNoise().gyroscope_noise_density
     assert any("gyroscope_noise_density" in m and "project defaults" in m for m in notes.messages), notes.messages
+
+
+def test_allan_on_an_axis_without_noise_names_it(tmp_path):
+    """A still recording where an axis reads the same value in every sample (a stuck or dead axis, a simulator's
+    noise-free IMU) ended `vio calib imu-noise` in 'internal error: IndexError'; and one quieter than any IMU wrote
+    noise figures `vio calib import` then refuses. Both are said in one line naming the axis."""
+    from calib.allan import analyse_imu
+    from vio.io.euroc import ImuData
+
+    imu = _synthetic_imu(20.0, 200.0, (1.7e-4, 2e-5), (2e-3, 3e-3), seed=1)
+    gyro = imu.gyro.copy()
+    gyro[:, 2] = 0.001
+    with pytest.raises(VioError, match=r"gyro z reads 0\.001 in every one of the 4000 samples"):
+        analyse_imu(ImuData(imu.t_ns, gyro, imu.accel))
+    gyro[:, 2] = 0.001 + 1e-13 * np.random.default_rng(0).standard_normal(len(gyro))
+    with pytest.raises(VioError, match=r"gyro z: a noise density of [0-9.e+-]+ is below any IMU's"):
+        analyse_imu(ImuData(imu.t_ns, gyro, imu.accel))
