@@ -454,3 +454,19 @@ def test_an_empty_path_is_a_usage_error_not_a_missing_option_or_the_working_fold
         assert e.value.code == EXIT_USAGE and f"argument {option}: " in err and "shell variable not set" in err, \
             (argv, err)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_calib_format_without_calib_or_of_no_format_is_a_usage_error(tmp_path, capsys):
+    """`vio replay D --calib-format kalibr` without --calib was ignored, unsaid (the dataset's own calibration flown),
+    and `--calib-format bogus` was exit 1 listing the formats without 'project', the default."""
+    for argv, says in ((["replay", str(tmp_path), "--calib-format", "kalibr"],
+                        "--calib-format kalibr: there is no --calib to read"),
+                       (["replay", str(tmp_path), "--calib", "c.yaml", "--calib-format", "bogus"],
+                        "invalid choice: 'bogus' (choose from 'project', 'kalibr', 'euroc', 'opencv', 'depthai')"),
+                       (["batch", str(tmp_path), "-o", str(tmp_path / "o"), "--calib-format", "kalibr"],
+                        "--calib-format kalibr: there is no --calib to read")):
+        try:
+            code = main(argv)
+        except SystemExit as e:  # argparse's own usage errors
+            code = e.code
+        assert code == EXIT_USAGE and says in capsys.readouterr().err, argv

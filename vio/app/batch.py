@@ -44,7 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster: ray://HOST:10001, auto, or local")
     p.add_argument("--config", type=path_arg, metavar="FILE", help="TOML configuration for every replay")
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration for bags (see vio replay --calib)")
-    p.add_argument("--calib-format", default="project", help="format of --calib (default: project)")
+    from vio.app.replay import CALIB_FORMATS
+
+    p.add_argument("--calib-format", default=None, choices=CALIB_FORMATS, help="format of --calib (default: project)")
     p.add_argument("--left-topic", help="bag topics, as vio replay's (default: [bag] in --config)")
     p.add_argument("--right-topic")
     p.add_argument("--imu-topic")
@@ -506,9 +508,11 @@ def compare(new: dict, old: dict, tol: float = 0.05) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vio.app.replay import check_calib_format
     from vio.io.outputs import check_outputs
 
-    options = {"config": args.config, "calib": args.calib, "calib_format": args.calib_format,
+    check_calib_format(args)
+    options = {"config": args.config, "calib": args.calib, "calib_format": args.calib_format or "project",
                "topics": (args.left_topic, args.right_topic, args.imu_topic)}
     old = load_report(args.compare) if args.compare else None  # a bad --compare fails before hours of replay
     check_outputs({}, recordings=tuple(args.flights), folders={"the batch report": args.output})

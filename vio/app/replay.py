@@ -42,6 +42,7 @@ _HEALTH_STATS = ("initialized", "reset_counter", "frames_processed", "frames_unu
 _DETAIL = re.compile(r"\s*\([^()]*\d[^()]*\)\s*$")  # "image too dark (mean grey 3.1 < 12)": the figures
 
 
+CALIB_FORMATS = ("project", "kalibr", "euroc", "opencv", "depthai")  # --calib-format: ours, `vio calib import`'s
 REALTIME_MAX_WAIT_S = 5.0  # realtime: a longer gap in the data is not waited out
 MAX_THREADS = 1024  # more OpenCV threads than any companion computer has cores
 
@@ -76,8 +77,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration: our YAML, or the files `vio calib import` "
                    "reads, with --calib-format; needed for a bag (a bag has none); for a EuRoC folder or an MCAP file "
                    "from vio record it replaces their own, as --calibration does (said in the log)")
-    p.add_argument("--calib-format", default="project", help="format of --calib: project (default), kalibr, euroc, "
-                   "opencv, depthai")
+    p.add_argument("--calib-format", default=None, choices=CALIB_FORMATS,
+                   help="format of --calib: project (default), kalibr, euroc, opencv, depthai")
     p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
     p.add_argument("--right-topic", help="bag topic of the right images (default: [bag], /cam1/image_raw)")
     p.add_argument("--imu-topic", help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
@@ -518,11 +519,17 @@ def preflight(dataset) -> None:
         raise VioError(problem)
 
 
-def load_calib_args(files: list[str] | None, fmt: str = "project"):
+def check_calib_format(args: argparse.Namespace) -> None:
+    """--calib-format without --calib was ignored, unsaid: the recording's own calibration was flown."""
+    if args.calib_format is not None and not args.calib:
+        raise UsageError(f"--calib-format {args.calib_format}: there is no --calib to read")
+
+
+def load_calib_args(files: list[str] | None, fmt: str | None = "project"):
     """--calib FILE... in our YAML or any format `vio calib import` reads (None without files)."""
     if not files:
         return None
-    if fmt == "project":
+    if fmt in ("project", None):
         from vio.calibration import load_calibration
 
         if len(files) != 1:
@@ -575,6 +582,7 @@ def run(args: argparse.Namespace) -> int:
     load_map = args.load_map or cfg.map.load
     if args.calibration and args.calib:  # --calib was ignored, unsaid: the replay ran on --calibration alone
         raise UsageError("--calibration and --calib both give the calibration: give one")
+    check_calib_format(args)
     if args.overwrite_map and not save_map:  # it was accepted and did nothing: the user thought a map was written
         raise UsageError("--overwrite-map: there is no map to write; give --save-map FILE (or [map] save)")
     if args.mavlink:  # a connection string that can never open: said before any output file is opened
