@@ -223,6 +223,11 @@ def _run_refine(args: argparse.Namespace) -> int:
         bad = st.missing_images + st.unreadable_images
         why = f" ({bad} of {len(run.dataset)} frames' images missing or unreadable, warned above)" if bad else ""
         raise VioError(f"{args.dataset}: the estimator never initialised{why}; nothing was refined")
+    h = est.health()
+    if h.frames_processed and h.frames_unusable >= h.frames_processed:  # was "no keyframe had enough rotation"
+        top = sorted(h.unusable_reasons.items(), key=lambda kv: -kv[1])
+        raise VioError(f"{args.dataset}: vision never worked ({h.frames_unusable} of {h.frames_processed} frames "
+                       f"unusable: {', '.join(f'{n} {why}' for why, n in top[:4])}); nothing was refined")
     refined = est.refinement_stats()
     if args.stereo_only and not refined:
         raise VioError(f"{args.dataset}: the estimator never initialised; nothing was refined")

@@ -1345,3 +1345,21 @@ def test_allan_on_an_axis_without_noise_names_it(tmp_path):
     gyro[:, 2] = 0.001 + 1e-13 * np.random.default_rng(0).standard_normal(len(gyro))
     with pytest.raises(VioError, match=r"gyro z: a noise density of [0-9.e+-]+ is below any IMU's"):
         analyse_imu(ImuData(imu.t_ns, gyro, imu.accel))
+
+
+def test_calib_refine_on_a_recording_where_vision_never_worked_says_so(tmp_path, capsys):
+    """`vio calib refine` of a recording whose left images carry nothing to track said 'no keyframe had enough
+    rotation ... record with turns about at least two axes': the flight, not the images, blamed."""
+    import cv2
+
+    from vio.app.cli import main
+
+    flight = tmp_path / "f"
+    assert main(["-q", "simulate", str(flight), "--duration", "2", "--size", "188x120", "--no-progress"]) == 0
+    for p in (flight / "mav0" / "cam0" / "data").iterdir():
+        cv2.imwrite(str(p), np.full((120, 188), 128, np.uint8))
+    capsys.readouterr()
+    assert main(["-q", "calib", "refine", str(flight), "-o", str(tmp_path / "r.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "vision never worked (41 of 41 frames unusable: 41 image blurred or textureless)" in err, err
+    assert "rotation" not in err and not (tmp_path / "r.yaml").exists()
