@@ -184,3 +184,13 @@ def test_a_config_saved_with_a_byte_order_mark_is_read(tmp_path, capsys):
     out = capsys.readouterr().out
     assert 'kind = "fake"' in out and "fps = 15" in out
     assert load_config(path).source.fps == 15
+
+
+def test_an_empty_bag_topic_is_a_configuration_error():
+    """`[bag] left_topic = ""` passed `vio config check` and the replay of a bag then said "no left  topic" (an empty
+    --left-topic on the command line is the default instead). Refused naming the key."""
+    from vio.config import config_from_dict
+
+    for key in ("left_topic", "right_topic", "imu_topic"):
+        with pytest.raises(VioError, match=rf"\[bag\] {key} is empty: name the topic \(e\.g\. /"):
+            config_from_dict({"bag": {key: " "}})

@@ -740,6 +740,9 @@ def _check_cross_fields(cfg: VioConfig, source: str) -> None:
                                or not (-90 <= h[0] <= 90 and -180 <= h[1] <= 180 and abs(h[2]) <= 10_000)):
         raise VioError(f"{source}: [source] sitl_home must be [lat_deg, lon_deg, alt_m] (latitude within +-90, "
                        f"longitude within +-180, altitude within +-10 km), got {h!r}")
+    for key in ("left_topic", "right_topic", "imu_topic"):  # "" passed, and a bag's replay said "no left  topic"
+        if not getattr(cfg.bag, key).strip():
+            raise VioError(f"{source}: [bag] {key} is empty: name the topic (e.g. {getattr(BagConfig(), key)})")
     if cfg.loop.output != "off" and not (cfg.loop.enabled or cfg.map.load or cfg.map.save):
         raise VioError(f"{source}: [loop] output = {cfg.loop.output!r} needs the loop stage, which is off: set [loop] "
                        "enabled = true (it would be ignored)")
