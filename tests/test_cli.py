@@ -458,13 +458,18 @@ def test_an_empty_path_is_a_usage_error_not_a_missing_option_or_the_working_fold
 
 def test_calib_format_without_calib_or_of_no_format_is_a_usage_error(tmp_path, capsys):
     """`vio replay D --calib-format kalibr` without --calib was ignored, unsaid (the dataset's own calibration flown),
-    and `--calib-format bogus` was exit 1 listing the formats without 'project', the default."""
+    and `--calib-format bogus` was exit 1 listing the formats without 'project', the default. An empty --left-topic
+    (a shell variable not set) was read as not given."""
     for argv, says in ((["replay", str(tmp_path), "--calib-format", "kalibr"],
                         "--calib-format kalibr: there is no --calib to read"),
                        (["replay", str(tmp_path), "--calib", "c.yaml", "--calib-format", "bogus"],
                         "invalid choice: 'bogus' (choose from 'project', 'kalibr', 'euroc', 'opencv', 'depthai')"),
                        (["batch", str(tmp_path), "-o", str(tmp_path / "o"), "--calib-format", "kalibr"],
-                        "--calib-format kalibr: there is no --calib to read")):
+                        "--calib-format kalibr: there is no --calib to read"),
+                       # read as not given: the [bag] default topic, unsaid
+                       (["replay", str(tmp_path), "--left-topic", ""], "argument --left-topic: empty"),
+                       (["batch", str(tmp_path), "-o", str(tmp_path / "o"), "--imu-topic", " "],
+                        "argument --imu-topic: empty")):
         try:
             code = main(argv)
         except SystemExit as e:  # argparse's own usage errors

@@ -91,3 +91,14 @@ def url_arg(text: str) -> str:
 
 
 url_arg.__name__ = "url"
+
+
+def topic_arg(text: str) -> str:
+    """A bag topic named on the command line: not empty (`--left-topic "$T"` with T unset read the [bag] default,
+    unsaid)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty (a shell variable not set?)")
+    return text
+
+
+topic_arg.__name__ = "topic"

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from vio import VioError
-from vio.argtypes import path_arg, positive_int
+from vio.argtypes import path_arg, positive_int, topic_arg
 from vio.io.inputs import read_user_file
 
 log = logging.getLogger(__name__)
@@ -47,9 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from vio.app.replay import CALIB_FORMATS
 
     p.add_argument("--calib-format", default=None, choices=CALIB_FORMATS, help="format of --calib (default: project)")
-    p.add_argument("--left-topic", help="bag topics, as vio replay's (default: [bag] in --config)")
-    p.add_argument("--right-topic")
-    p.add_argument("--imu-topic")
+    p.add_argument("--left-topic", type=topic_arg, help="bag topics, as vio replay's (default: [bag] in --config)")
+    p.add_argument("--right-topic", type=topic_arg)
+    p.add_argument("--imu-topic", type=topic_arg)
     p.add_argument("--compare", type=path_arg, metavar="REPORT", help="another batch's report.json (or its folder): "
                    "what got better or worse")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

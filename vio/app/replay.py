@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vio import UsageError, VioError
-from vio.argtypes import path_arg, positive_int, url_arg
+from vio.argtypes import path_arg, positive_int, topic_arg, url_arg
 from vio.io.outputs import check_outputs
 from vio.types import NavState
 
@@ -79,9 +79,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "from vio record it replaces their own, as --calibration does (said in the log)")
     p.add_argument("--calib-format", default=None, choices=CALIB_FORMATS,
                    help="format of --calib: project (default), kalibr, euroc, opencv, depthai")
-    p.add_argument("--left-topic", help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
-    p.add_argument("--right-topic", help="bag topic of the right images (default: [bag], /cam1/image_raw)")
-    p.add_argument("--imu-topic", help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
+    p.add_argument("--left-topic", type=topic_arg,
+                   help="bag topic of the left images (default: [bag] left_topic, /cam0/image_raw)")
+    p.add_argument("--right-topic", type=topic_arg,
+                   help="bag topic of the right images (default: [bag], /cam1/image_raw)")
+    p.add_argument("--imu-topic", type=topic_arg, help="bag topic of the IMU (default: [bag] imu_topic, /imu0)")
     p.add_argument("--view", nargs="?", const="serve", type=url_arg, metavar="FILE.rrd|serve",
                    help="stream a live view to Rerun: save to FILE.rrd, or serve a web viewer (default: serve)")
     p.add_argument("--show-tracks", type=path_arg, metavar="DIR", help="write front-end track images (PNG) to DIR")
