@@ -127,3 +127,18 @@ def test_reset_on_a_real_drones_mount_keeps_position_and_heading(v102_flight, tm
           f"{nees.error_position_m[late].max():.3f} m, resets {r.estimator.reset_counter}")
     assert abs(turn_err) < 1.0
     assert nees.error_position_m[late].max() < 0.15
+
+
+def test_a_recording_whose_imu_ends_early_is_refused(source, tmp_path, capsys):
+    """A recording whose IMU stops before its ground truth ends (a gap in its stamps, an IMU log cut short) gave a
+    dataset of 30 s of frames over 1.5 s of IMU, exit 0: the IMU was only checked for gaps inside the span it had."""
+    cut = tmp_path / "cut"
+    for sub in ("imu0", "state_groundtruth_estimate0"):
+        (cut / "mav0" / sub).mkdir(parents=True)
+    lines = (source / "mav0" / "imu0" / "data.csv").read_text().splitlines()
+    (cut / "mav0" / "imu0" / "data.csv").write_text("\n".join(lines[: len(lines) // 2]) + "\n")
+    gt = source / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    (cut / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_text(gt.read_text())
+    rc = main(["simulate", str(tmp_path / "out"), "--size", "94x60", "--no-progress", "--imu-from", str(cut)])
+    err = capsys.readouterr().err
+    assert rc == 1 and "the IMU does not cover 0-4 s of the ground truth" in err and "from 0.00 s to 2.00 s" in err, err

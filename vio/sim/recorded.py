@@ -175,9 +175,14 @@ def build_recorded(cfg, scene: Scene) -> tuple:
     keep = (rec.truth.t_ns >= t0_ns - 100_000_000) & (rec.truth.t_ns <= t1_ns + 100_000_000)  # 0.1 s margin
     # 50 ms of IMU beyond the frames at both ends: the first and last frame must lie inside the IMU's span
     sel = (rec.imu_t_ns >= t0_ns - IMU_MARGIN_NS) & (rec.imu_t_ns <= t1_ns + IMU_MARGIN_NS)
-    if sel.sum() < 2 or np.any(np.diff(rec.imu_t_ns[sel]) > 50_000_000):
+    imu_sel = rec.imu_t_ns[sel]
+    # it must reach both ends too: an IMU that stopped early (a gap, a log cut short) passed, and the dataset had
+    # 30 s of frames over 1.5 s of IMU
+    if len(imu_sel) < 2 or imu_sel[0] > t0_ns or imu_sel[-1] < t1_ns or np.any(np.diff(imu_sel) > 50_000_000):
+        span = "" if len(imu_sel) < 2 else (f" (its samples there run from {(imu_sel[0] - t0_ns) * 1e-9 + start_s:.2f}"
+                                            f" s to {(imu_sel[-1] - t0_ns) * 1e-9 + start_s:.2f} s)")
         raise VioError(f"--imu-from {cfg.imu_from}: the IMU does not cover {start_s:g}-{start_s + duration_s:g} s "
-                       "of the ground truth without gaps over 50 ms")
+                       f"of the ground truth without gaps over 50 ms{span}")
     yaw, shift, margin = _placement(scene, rec.truth.p[keep])
     if margin < CLEARANCE_M:
         raise VioError(f"--imu-from {cfg.imu_from}: the recorded path does not fit in the {cfg.scene} scene "
