@@ -142,3 +142,20 @@ def test_a_recording_whose_imu_ends_early_is_refused(source, tmp_path, capsys):
     rc = main(["simulate", str(tmp_path / "out"), "--size", "94x60", "--no-progress", "--imu-from", str(cut)])
     err = capsys.readouterr().err
     assert rc == 1 and "the IMU does not cover 0-4 s of the ground truth" in err and "from 0.00 s to 2.00 s" in err, err
+
+
+def test_a_gap_in_the_recordings_ground_truth_is_refused(source, tmp_path, capsys):
+    """Ground truth with a 0.5 s hole (a motion-capture dropout) was interpolated in a straight line across it and the
+    images rendered along that line, while the IMU measured the real motion: a flight whose images and IMU disagree,
+    exit 0."""
+    holed = tmp_path / "holed"
+    for sub in ("imu0", "state_groundtruth_estimate0"):
+        (holed / "mav0" / sub).mkdir(parents=True)
+    (holed / "mav0" / "imu0" / "data.csv").write_text((source / "mav0" / "imu0" / "data.csv").read_text())
+    lines = (source / "mav0" / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines()
+    t0 = int(lines[1].split(",")[0])
+    kept = [ln for ln in lines[1:] if not 2.0e9 < int(ln.split(",")[0]) - t0 < 2.5e9]
+    (holed / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_text("\n".join([lines[0], *kept]) + "\n")
+    rc = main(["simulate", str(tmp_path / "out"), "--size", "94x60", "--no-progress", "--imu-from", str(holed)])
+    err = capsys.readouterr().err
+    assert rc == 1 and "the ground truth has a gap of 0.5" in err, err

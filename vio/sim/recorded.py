@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 CLEARANCE_M = 0.3  # the recorded path must stay this far from the scene's walls and boxes
 IMU_MARGIN_NS = 50_000_000
+GT_MAX_STEP_NS = 250_000_000  # a longer step in the ground truth is a dropout, not a pose rate (EuRoC: 5 or 50 ms)
 
 
 @dataclasses.dataclass
@@ -183,6 +184,15 @@ def build_recorded(cfg, scene: Scene) -> tuple:
                                             f" s to {(imu_sel[-1] - t0_ns) * 1e-9 + start_s:.2f} s)")
         raise VioError(f"--imu-from {cfg.imu_from}: the IMU does not cover {start_s:g}-{start_s + duration_s:g} s "
                        f"of the ground truth without gaps over 50 ms{span}")
+    inside = rec.truth.t_ns[keep]
+    steps = np.diff(inside)
+    if len(steps) and steps.max() > GT_MAX_STEP_NS:
+        # interpolated across in a straight line, the images were rendered along a path the IMU never flew
+        k = int(np.argmax(steps))
+        raise VioError(f"--imu-from {cfg.imu_from}: the ground truth has a gap of {steps[k] * 1e-9:.3g} s at "
+                       f"{(inside[k] - rec.truth.t_ns[0]) * 1e-9:.2f} s (a motion-capture dropout?): the images would "
+                       "be rendered along a straight line across it; choose a span without it (--recorded-start, "
+                       "--duration)")
     yaw, shift, margin = _placement(scene, rec.truth.p[keep])
     if margin < CLEARANCE_M:
         raise VioError(f"--imu-from {cfg.imu_from}: the recorded path does not fit in the {cfg.scene} scene "
