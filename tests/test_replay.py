@@ -282,3 +282,14 @@ def test_an_output_in_a_pseudo_file_system_is_refused_before_the_replay(tmp_path
         out, err = capsys.readouterr()
         assert "replay:" not in out and f"{args[1]}: cannot write" in err and "folder /proc cannot be written" in err, \
             (args, out, err)
+
+
+def test_an_output_to_a_device_makes_no_probe_file_beside_it(monkeypatch):
+    """`-o /dev/null` (or /dev/stdout) is written into, not made: trying its folder with a file (what finds /proc
+    unwritable) made and removed a file in /dev as root."""
+    import vio.io.outputs as outputs
+
+    tried: list = []
+    monkeypatch.setattr(outputs, "folder_problem", lambda folder, made: tried.append(str(folder)))
+    outputs.check_outputs({"the trajectory": "/dev/null"})
+    assert tried == []

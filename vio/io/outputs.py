@@ -124,7 +124,8 @@ def check_outputs(paths: dict[str, str | None], reads: dict[str, str | None] | N
             raise NotWritable(f"{p}: cannot write {what}{via}: folder {folder} is not writable")
         # tried, not only asked: os.access says yes to root in /proc and in a read-only folder, and the stats or the
         # map of a whole replay then failed at its end (the map lost)
-        problem = folder_problem(folder, made=False)
+        # (a device or pipe there is written into, not made: /dev is not tried)
+        problem = None if real.exists() and not real.is_file() else folder_problem(folder, made=False)
         if problem:
             raise NotWritable(f"{p}: cannot write {what}{via}: {problem}")
 
