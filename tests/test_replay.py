@@ -292,4 +292,5 @@ def test_an_output_to_a_device_makes_no_probe_file_beside_it(monkeypatch):
     tried: list = []
     monkeypatch.setattr(outputs, "folder_problem", lambda folder, made: tried.append(str(folder)))
     outputs.check_outputs({"the trajectory": "/dev/null"})
+    outputs.check_new_file("/dev/null", True)  # `vio calib imu-noise -o /dev/stdout --overwrite`
     assert tried == []

@@ -175,7 +175,8 @@ def check_new_file(path: str | Path, overwrite: bool, *recordings: str | Path | 
         raise VioError(f"{path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise VioError(f"{path}: cannot write there (read-only or no permission)")
-    problem = folder_problem(folder, made=False)  # os.access says yes to root in /proc and in a read-only folder
+    # os.access says yes to root in /proc and in a read-only folder; a device or pipe is written into, not made
+    problem = None if path.exists() and not path.is_file() else folder_problem(folder, made=False)
     if problem:
         raise VioError(f"{path}: cannot write there ({problem})")
 
