@@ -245,7 +245,10 @@ def format_noise(result: AllanResult, source: str = "", reference: ImuNoise | No
 
 def write_imu_yaml(noise: ImuNoise, path: str | Path) -> None:
     """kalibr imu.yaml (also read by `vio calib import kalibr` and, via rate_hz, as a EuRoC imu sensor.yaml)."""
-    Path(path).write_text(
+    from vio.io.atomic import write_text_whole
+
+    write_text_whole(
+        path,
         "# IMU noise from `vio calib imu-noise` (Allan deviation; continuous-time, kalibr units)\n"
         f"accelerometer_noise_density: {noise.accelerometer_noise_density:.6e}  # m/s^2/sqrt(Hz)\n"
         f"accelerometer_random_walk: {noise.accelerometer_random_walk:.6e}  # m/s^3/sqrt(Hz)\n"

@@ -1363,3 +1363,34 @@ def test_calib_refine_on_a_recording_where_vision_never_worked_says_so(tmp_path,
     err = capsys.readouterr().err
     assert "vision never worked (41 of 41 frames unusable: 41 image blurred or textureless)" in err, err
     assert "rotation" not in err and not (tmp_path / "r.yaml").exists()
+
+
+def test_a_calibration_written_over_an_old_one_keeps_it_when_the_write_fails(tmp_path, monkeypatch) -> None:
+    """save_calibration and write_imu_yaml wrote in place: a write that failed half way (a full SD card, a kill)
+    left a truncated file where the old calibration was (the input review's note). Written whole now, through a
+    link to the file it names; a device is still written into."""
+    import calib.allan as allan
+    import vio.calibration as vc
+    from vio.sim import default_calibration
+
+    calib = default_calibration()
+    path = tmp_path / "calib.yaml"
+    save_calibration(calib, path)
+    old = path.read_text()
+
+    class Unwritable(str):
+        def encode(self, *a, **k):  # the disk filling up half way through the write
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(vc, "calibration_yaml", lambda c: Unwritable(old + "# new"))
+    with pytest.raises((OSError, TypeError)):
+        save_calibration(calib, path)
+    assert path.read_text() == old and sorted(p.name for p in tmp_path.iterdir()) == ["calib.yaml"]
+    monkeypatch.undo()
+    (tmp_path / "link.yaml").symlink_to(path)
+    save_calibration(calib, tmp_path / "link.yaml")  # written through the link: the link stays one
+    assert (tmp_path / "link.yaml").is_symlink() and load_calibration(path).cam0.fx == calib.cam0.fx
+    imu = tmp_path / "imu.yaml"
+    allan.write_imu_yaml(calib.imu, imu)
+    assert "gyroscope_noise_density" in imu.read_text()
+    save_calibration(calib, "/dev/null")  # a device: written into, not replaced

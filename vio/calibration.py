@@ -520,4 +520,6 @@ def calibration_yaml(calib: StereoCalibration) -> str:
 
 
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
-    Path(path).write_text(calibration_yaml(calib))
+    from vio.io.atomic import write_text_whole
+
+    write_text_whole(path, calibration_yaml(calib))

@@ -94,6 +94,21 @@ def replace_atomically(path: Path, write: Callable[[BinaryIO], None], durable: b
                         "file it replaced", path, e.strerror or e)
 
 
+def write_text_whole(path: str | Path, text: str, durable: bool = True) -> None:
+    """A small file a person keeps (a calibration, an IMU noise file) written whole (replace_atomically, through a
+    link to the file it names): written in place, a write that failed half way (a full SD card, a kill) left half
+    of the new file where the old one was. A device or pipe (`-o /dev/stdout`) is written into, as before."""
+    real = Path(os.path.realpath(path))
+    try:
+        regular = stat.S_ISREG(os.stat(real).st_mode)
+    except FileNotFoundError:
+        regular = True  # a new file
+    if not regular:
+        Path(path).write_text(text)
+        return
+    replace_atomically(real, lambda f: f.write(text.encode()), durable)
+
+
 def _alive(pid: int) -> bool:
     """Is a process `pid` running (another user's too)? A pid reused since counts as running: its file is kept, and
     so is one named with pid 0 (os.kill(0) would ask about this process group; no writer has that pid)."""
