@@ -185,7 +185,8 @@ class BackendConfig:
                                     min=1.0, max=100)
     stereo_check_confirm: int = opt(2, "consecutive stereo checks whose reading must stand out before it acts (a "
                                     "passing transient does not)", min=1, max=100)
-    stereo_check_every: int = opt(5, "keyframes between stereo checks (each reads a marginal of the smoother)",
+    stereo_check_every: int = opt(2, "keyframes between stereo checks (each reads a marginal of the smoother): "
+                                  "a drifted pair is found sooner, and the odometry flown before is what it costs",
                                   min=1, max=1000)
     stereo_hold_sigma_rad: float = opt(5e-6, "1-sigma of the priors that hold cam1's rotation (and, times fx, its "
                                        "focal lengths) while checking: a few thousandths of a pixel",
