@@ -569,3 +569,48 @@ def test_a_realtime_euroc_source_does_not_wait_out_a_gap_in_the_recording(tmp_pa
     assert abs(steps.max() / 1e9 - GAP_KEPT_S) < 0.01 and np.sort(steps)[-2] < 0.01 * 1e9
     said = [r.getMessage() for r in caplog.records if r.name == "drivers.fake"]
     assert len(said) == 1 and "a gap of 3.6e+03 s" in said[0] and "not waited out" in said[0], said
+
+
+def test_an_overwrite_that_records_nothing_keeps_the_recording_it_was_to_replace(tmp_path: Path, caplog) -> None:
+    """`vio record OUT --overwrite` deleted the old recording as the writer opened, before any data came: a source
+    that failed at once left nothing where a recording had been (the input review's note). The old one is kept beside
+    until the new one has data, and put back when it ends with none; a recording with data replaces it whole."""
+    record(_fake(), tmp_path / "ds", duration_s=0.5)
+    old = sorted(p.name for p in (tmp_path / "ds" / "mav0" / "cam0" / "data").iterdir())
+    assert old
+    stopped = threading.Event()
+    stopped.set()  # the source fails (or the user stops) before its first message
+    with caplog.at_level("WARNING", logger="vio.io.euroc"):
+        stats = record(_fake(), tmp_path / "ds", stop=stopped, overwrite=True,
+                       calibration=EurocDataset(tmp_path / "ds").calibration)
+    assert stats.frames == 0 and stats.imu == 0
+    assert sorted(p.name for p in (tmp_path / "ds" / "mav0" / "cam0" / "data").iterdir()) == old
+    assert "nothing was recorded; the recording that was there is kept" in caplog.text, caplog.text
+    assert sorted(p.name for p in (tmp_path / "ds").iterdir()) == ["mav0"]
+    again = record(_fake(), tmp_path / "ds", duration_s=0.3, overwrite=True)
+    assert again.frames > 0 and len(EurocDataset(tmp_path / "ds")) == again.frames
+    assert sorted(p.name for p in (tmp_path / "ds").iterdir()) == ["mav0"]  # the old one removed once data came
+
+
+def test_an_mcap_overwrite_that_records_nothing_keeps_the_file_it_was_to_replace(tmp_path: Path, caplog) -> None:
+    """The same for `vio record OUT.mcap --overwrite`: the file was truncated as the writer opened."""
+    pytest.importorskip("mcap")
+    out = tmp_path / "r.mcap"
+    record(_fake(), out, duration_s=0.3, fmt="mcap")
+    old = out.read_bytes()
+    stopped = threading.Event()
+    stopped.set()
+    with caplog.at_level("WARNING", logger="vio.io.bag"):
+        record(_fake(), out, stop=stopped, overwrite=True, fmt="mcap",
+               calibration=EurocDataset(_recorded(tmp_path)).calibration)
+    assert out.read_bytes() == old and "nothing was recorded; the file that was there is kept" in caplog.text
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("r.")) == ["r.mcap"]
+    record(_fake(), out, duration_s=0.6, fmt="mcap", overwrite=True)  # the fake source repeats itself: longer
+    assert len(out.read_bytes()) > len(old) and not (tmp_path / "r.mcap.replaced").exists()
+
+
+def _recorded(tmp_path: Path) -> Path:
+    """A small EuRoC recording of the fake source (for its calibration)."""
+    if not (tmp_path / "cal" / "mav0").is_dir():
+        record(_fake(), tmp_path / "cal", duration_s=0.2)
+    return tmp_path / "cal"

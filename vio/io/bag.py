@@ -669,6 +669,13 @@ class McapWriter:
         self.ts = _typestore()
         self.path = Path(path)
         self.compression = compression
+        # a file there (`vio record OUT.mcap --overwrite`) is kept beside until this one has a message (`close`): it
+        # was truncated here, before any data came, so a source that failed at once left nothing of either
+        self._replaced: Path | None = None
+        self.messages = 0
+        if self.path.is_file():
+            self._replaced = self.path.with_name(self.path.name + ".replaced")
+            os.replace(self.path, self._replaced)
         self._f = open(self.path, "wb")
         # PNG/JPEG are compressed already: zstd over them costs CPU for ~nothing; raw images and IMU do compress
         chunk_compression = writer.CompressionType.ZSTD if compression == "raw" else writer.CompressionType.NONE
@@ -696,6 +703,7 @@ class McapWriter:
         data = self.ts.serialize_cdr(msg, msgtype)
         self._w.add_message(self._channel(topic, msgtype), log_time=int(t_ns), data=bytes(data),
                             publish_time=int(t_ns))
+        self.messages += 1
 
     def write_frame(self, frame: StereoFrame, topics: BagTopics = BagTopics()) -> None:
         for topic, img, fid in ((topics.left, frame.left, "cam0"), (topics.right, frame.right_image(), "cam1")):
@@ -731,6 +739,15 @@ class McapWriter:
             return
         self._w.finish()
         self._f.close()
+        old, self._replaced = self._replaced, None
+        if old is None:
+            return
+        if self.messages:
+            old.unlink()
+            return
+        os.replace(old, self.path)  # nothing recorded: the file that was there is put back
+        log.warning("%s: nothing was recorded; the file that was there is kept (it is replaced only with data)",
+                    self.path)
 
     def __enter__(self) -> McapWriter:
         return self

@@ -906,11 +906,20 @@ class EurocWriter:
         self._png_params = png_write_params(int(png_level))
         self.root = Path(root)
         self.mav0 = self.root / "mav0"
+        # the recording --overwrite replaces, kept beside until this one has data (`close`)
+        self._replaced: Path | None = None
         if self.mav0.exists() and any(self.mav0.iterdir()):
             if not overwrite:
                 raise VioError(f"{self.root}: already holds a dataset; refusing to overwrite recorded data")
-            # the old recording goes whole: its images beside the new CSVs made one dataset of two (a review's)
-            shutil.rmtree(self.mav0)
+            # the old recording goes whole: its images beside the new CSVs made one dataset of two (a review's). It
+            # was deleted here, before any data came: a source that failed at once (a camera unplugged, a serial
+            # port taken) left nothing where a recording had been (an input review's note). It is moved beside
+            # (mav0.replaced, an older one there left by a killed run removed) and removed once this recording
+            # closes with data, put back if it closes with none.
+            self._replaced = self.root / "mav0.replaced"
+            if self._replaced.exists():
+                shutil.rmtree(self._replaced)
+            os.rename(self.mav0, self._replaced)
         for sub in ("cam0/data", "cam1/data", "imu0"):
             (self.mav0 / sub).mkdir(parents=True, exist_ok=True)
         (self.mav0 / "cam0" / "sensor.yaml").write_text(_camera_yaml(calibration.cam0, "cam0"))
@@ -971,6 +980,17 @@ class EurocWriter:
         for f in (*self._cam, self._imu, self._gt):
             if f is not None:
                 f.close()
+        old, self._replaced = self._replaced, None
+        if old is None:
+            return
+        if self.frames_written or self.imu_written:
+            shutil.rmtree(old)
+            return
+        # nothing recorded: the recording --overwrite was to replace is put back rather than lost for nothing
+        shutil.rmtree(self.mav0)
+        os.rename(old, self.mav0)
+        log.warning("%s: nothing was recorded; the recording that was there is kept (--overwrite replaces it only "
+                    "with data)", self.root)
 
     def __enter__(self) -> EurocWriter:
         return self
