@@ -119,6 +119,13 @@ def test_compare_names_better_and_worse():
     old["flights"][0].update(path="/day1/f", frames=601)
     new["flights"][0].update(path="/day2/f", frames=550)
     assert "another recording? path /day1/f -> /day2/f; frames 601 -> 550" in compare(new, old)
+    # a NaN ATE on one side read "same" (NaN compares false with everything; the input review's note): a figure
+    # that came back is better, one that went is worse, NaN on both sides the same
+    text = compare(rep(0.1, float("nan")), rep(float("nan"), 0.1))
+    lines = {ln.split("|")[1].strip(): ln for ln in text.splitlines() if ln.startswith("| a") or ln.startswith("| b")}
+    assert lines["a"].rstrip().endswith("better |") and lines["b"].rstrip().endswith("worse |"), text
+    assert "1 better, 1 worse, 0 the same" in compare(rep(0.1, float("nan")), rep(float("nan"), 0.1))
+    assert "0 better, 0 worse, 2 the same" in compare(rep(float("nan"), 0.1), rep(float("nan"), 0.1))
 
 
 def test_cli_batch_local_with_compare(flights, tmp_path):

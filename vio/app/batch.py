@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -466,6 +467,15 @@ def _report_problem(report: object) -> str | None:
     return None
 
 
+def _finite(x) -> float | None:
+    """A report's figure, None where there is none (null, NaN, inf, not a number)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
 def compare(new: dict, old: dict, tol: float = 0.05) -> str:
     """Markdown: per flight (by name) ATE, RPE, resets and real-time factor before -> after, and a verdict.
     A change of more than `tol` (relative) in ATE or RPE, or any change in resets or success, counts."""
@@ -480,9 +490,14 @@ def compare(new: dict, old: dict, tol: float = 0.05) -> str:
         else:
             score = 0
             for key in ("ate_m", "rpe_pct"):
-                a, b = o[key], r[key]
-                if a is not None and b is not None and abs(b - a) > tol * max(abs(a), 1e-9):
-                    score += 1 if b < a else -1
+                a, b = _finite(o[key]), _finite(r[key])
+                if a is not None and b is not None:
+                    if abs(b - a) > tol * max(abs(a), 1e-9):
+                        score += 1 if b < a else -1
+                elif (a is None) != (b is None) and o["ok"] == r["ok"]:
+                    # a figure on one side only (NaN in a report: NaN compares false with everything, so a flight
+                    # whose ATE came back read "same", the input review's note); a success change scores below
+                    score += 1 if a is None else -1
             if (o["resets"] or 0) != (r["resets"] or 0):
                 score += 1 if (r["resets"] or 0) < (o["resets"] or 0) else -1
             if o["ok"] != r["ok"]:
