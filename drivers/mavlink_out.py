@@ -1169,7 +1169,7 @@ class MavlinkOutput:
                                   np.array([msg.vx, msg.vy, msg.vz], dtype=float))
             elif kind == "ATTITUDE":
                 self._ap_yaw = (now, float(msg.yaw), _yaw_rate(msg))
-            elif kind == "GPS_GLOBAL_ORIGIN" and msg.get_srcSystem() == self.target_system:
+            elif kind == "GPS_GLOBAL_ORIGIN" and self._from_autopilot(msg):  # not another component's repeat
                 self._origin_asked_ns = None  # a recheck answered (or the first confirmation)
                 if self._origin_left > 0:
                     self._origin_left, self._origin_owed = 0, False
@@ -1208,9 +1208,9 @@ class MavlinkOutput:
                         self._ap_running = False  # a booting heartbeat after this is the same restart
 
     def _from_autopilot(self, msg: Any) -> bool:
-        """Is `msg` the autopilot's own (its system, component 1)? Its estimate places a start in flight's poses, and
-        its COMMAND_ACK stops the LAND requests: another component's of its system put every pose of the process in
-        that one's frame, or stopped them unsent (review notes)."""
+        """Is `msg` the autopilot's own (its system, component 1)? Its estimate places a start in flight's poses, its
+        COMMAND_ACK stops the LAND requests and its GPS_GLOBAL_ORIGIN confirms the origin: another component's of its
+        system put every pose of the process in that one's frame, or stopped them unsent (review notes)."""
         return msg.get_srcSystem() == self.target_system and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1
 
     def _autopilot_restarted(self, now: int, why: str) -> None:

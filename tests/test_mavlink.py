@@ -707,6 +707,14 @@ def test_origin_is_repeated_after_link_up_until_the_autopilot_confirms_it(ap):
     o = origins[0]
     assert (o.target_system, o.latitude, o.longitude, o.altitude) == (7, 473977419, 85455938, 488000)
     assert not out.stats.origin_confirmed and out.health()["origin_ours"] is None
+    # another component of the autopilot's system (a companion program repeating what it heard) is not the autopilot
+    # confirming its EKF origin: the repeats stopped on it (outfix's note)
+    ap.conn.mav.srcComponent = 191
+    ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
+    ap.conn.mav.srcComponent = 1
+    time.sleep(0.02)
+    out.poll()
+    assert not out.stats.origin_confirmed
     ap.conn.mav.gps_global_origin_send(473977419, 85455938, 488000)
     time.sleep(0.02)
     for _ in range(10):
