@@ -1630,11 +1630,9 @@ def test_a_process_started_in_flight_continues_in_the_autopilots_frame(ap, caplo
     out.close()
 
 
-def test_a_start_in_flight_carries_the_autopilots_estimate_to_our_first_poses_stamp(ap, caplog):
-    """The autopilot's LOCAL_POSITION_NED and ATTITUDE are up to AP_POSE_MAX_AGE_NS older than our first tracked pose;
-    taken as they were, a vehicle at 5 m/s put the whole frame 1 m off for the rest of the flight (0.2 s here).
-    They are carried to our pose's stamp along the autopilot's own velocity and yaw rate."""
-    clock = FakeClock()
+def _heard_armed(ap, clock) -> MavlinkOutput:
+    """An ODOMETRY output that has heard the autopilot armed in GUIDED (a process starting in flight), the messages
+    of its link-up drained."""
     out = make_out(ap, clock, messages=["ODOMETRY"])
     out.poll()
     ap.drain()
@@ -1643,6 +1641,15 @@ def test_a_start_in_flight_carries_the_autopilots_estimate_to_our_first_poses_st
     time.sleep(0.02)
     out.poll()
     ap.drain()
+    return out
+
+
+def test_a_start_in_flight_carries_the_autopilots_estimate_to_our_first_poses_stamp(ap, caplog):
+    """The autopilot's LOCAL_POSITION_NED and ATTITUDE are up to AP_POSE_MAX_AGE_NS older than our first tracked pose;
+    taken as they were, a vehicle at 5 m/s put the whole frame 1 m off for the rest of the flight (0.2 s here).
+    They are carried to our pose's stamp along the autopilot's own velocity and yaw rate."""
+    clock = FakeClock()
+    out = _heard_armed(ap, clock)
     yaw_ap = math.radians(120.0)
     ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 5.0, -1.0, 0.5)  # moving at 5.1 m/s
     # a 30 deg banked turn at 0.4 rad/s about the vertical: body rates q = 0.4 sin 30, r = 0.4 cos 30 (yawspeed alone
@@ -1971,14 +1978,7 @@ def test_a_start_in_flight_with_pose_stamps_on_another_clock_carries_the_estimat
     autopilot's estimate's age: their difference was clamped to 0.5 s and the estimate carried 2.5 m along a 5 m/s
     velocity (a review's finding). It is carried to the output's clock now, where the pose is being sent."""
     clock = FakeClock()
-    out = make_out(ap, clock, messages=["ODOMETRY"])
-    out.poll()
-    ap.drain()
-    ap.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                               mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
-    time.sleep(0.02)
-    out.poll()
-    ap.drain()
+    out = _heard_armed(ap, clock)
     ap.conn.mav.local_position_ned_send(1000, 4.0, -3.0, -1.5, 5.0, 0.0, 0.0)
     ap.conn.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     time.sleep(0.02)
