@@ -9,6 +9,7 @@ import errno
 import logging
 import os
 import re
+import shutil
 import stat
 import time
 from collections.abc import Callable
@@ -99,14 +100,35 @@ def write_text_whole(path: str | Path, text: str, durable: bool = True) -> None:
     link to the file it names): written in place, a write that failed half way (a full SD card, a kill) left half
     of the new file where the old one was. A device or pipe (`-o /dev/stdout`) is written into, as before."""
     real = Path(os.path.realpath(path))
-    try:
-        regular = stat.S_ISREG(os.stat(real).st_mode)
-    except FileNotFoundError:
-        regular = True  # a new file
-    if not regular:
+    if real.exists() and not real.is_file():
         Path(path).write_text(text)
         return
     replace_atomically(real, lambda f: f.write(text.encode()), durable)
+
+
+def set_aside(path: Path) -> Path:
+    """Move the recording at `path` (a folder or a file) to PATH.replaced, where `settle_aside` finds it: an
+    `--overwrite` that deleted it at once lost it when the new recording then got no data. One left there by a killed
+    run is removed first (that run's recording, at `path`, had replaced it)."""
+    aside = path.with_name(path.name + ".replaced")
+    if aside.is_dir():
+        shutil.rmtree(aside)
+    os.replace(path, aside)
+    return aside
+
+
+def settle_aside(aside: Path, path: Path, has_data: bool) -> bool:
+    """After the recording at `path` closed: the one `set_aside` kept is removed when it has data, else put back in
+    its place (True: put back; the caller says so)."""
+    def remove(p: Path) -> None:
+        shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+
+    if has_data:
+        remove(aside)
+        return False
+    remove(path)
+    os.replace(aside, path)
+    return True
 
 
 def _alive(pid: int) -> bool:

@@ -36,6 +36,7 @@ import yaml
 
 from vio import VioError
 from vio.calibration import StereoCalibration, calibration_from_dict, calibration_units_problem, calibration_yaml
+from vio.io.atomic import set_aside, settle_aside
 from vio.io.euroc import (
     DatasetStats,
     EurocDataset,
@@ -674,8 +675,7 @@ class McapWriter:
         self._replaced: Path | None = None
         self.messages = 0
         if self.path.is_file():
-            self._replaced = self.path.with_name(self.path.name + ".replaced")
-            os.replace(self.path, self._replaced)
+            self._replaced = set_aside(self.path)
         self._f = open(self.path, "wb")
         # PNG/JPEG are compressed already: zstd over them costs CPU for ~nothing; raw images and IMU do compress
         chunk_compression = writer.CompressionType.ZSTD if compression == "raw" else writer.CompressionType.NONE
@@ -740,14 +740,9 @@ class McapWriter:
         self._w.finish()
         self._f.close()
         old, self._replaced = self._replaced, None
-        if old is None:
-            return
-        if self.messages:
-            old.unlink()
-            return
-        os.replace(old, self.path)  # nothing recorded: the file that was there is put back
-        log.warning("%s: nothing was recorded; the file that was there is kept (it is replaced only with data)",
-                    self.path)
+        if old is not None and settle_aside(old, self.path, self.messages > 0):  # nothing recorded: put back
+            log.warning("%s: nothing was recorded; the file that was there is kept (it is replaced only with data)",
+                        self.path)
 
     def __enter__(self) -> McapWriter:
         return self

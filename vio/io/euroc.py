@@ -17,8 +17,6 @@ import functools
 import logging
 import math
 import os
-import shutil
-import stat
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +35,7 @@ from vio.calibration import (
 )
 from vio.config import refuse_unknown_keys
 from vio.geometry import is_se3
+from vio.io.atomic import set_aside, settle_aside
 from vio.io.images import Uint16To8, grey
 from vio.trajectory import MAX_POSITION_M, Trajectory
 from vio.types import ImuSample, StereoFrame
@@ -467,18 +466,10 @@ def imu_units_problem(imu: ImuData, where: str | Path = "IMU") -> str | None:
     return f"{where}: {problem}" if problem else None
 
 
-def _regular_file(path: Path) -> bool:
-    """Whether `path` is a regular file (after links): cv2.imread of a named pipe waited for a writer for ever."""
-    try:
-        return stat.S_ISREG(os.stat(path).st_mode)
-    except OSError:
-        return False
-
-
 def _imread(path: Path) -> np.ndarray | None:
-    """cv2.imread(path, IMREAD_UNCHANGED), None for what is not a regular file (a pipe, a device) as for what it
-    cannot read."""
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if _regular_file(path) else None
+    """cv2.imread(path, IMREAD_UNCHANGED), None for what is not a regular file (a pipe, a device: cv2.imread of a
+    named pipe waited for a writer for ever) as for what it cannot read."""
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if Path(path).is_file() else None
 
 
 def image_size_problem(where, img: np.ndarray, calib: CameraCalibration, hint: str) -> str | None:
@@ -758,14 +749,11 @@ class EurocDataset:
     def _load(self, path: Path | None) -> np.ndarray | None:
         if path is None:
             return None
-        if not _regular_file(path):
-            self.stats.unreadable_images += 1
-            self._warn(f"{path}: not a regular file (a pipe, device or folder); skipped")
-            return None
-        img = self._read_grey(path)
+        img = self._read_grey(path)  # None for what is not a regular file too (_imread): why, asked only then
         if img is None:
             self.stats.unreadable_images += 1
-            self._warn(f"{path}: unreadable image; skipped")
+            self._warn(f"{path}: unreadable image; skipped" if Path(path).is_file()
+                       else f"{path}: not a regular file (a pipe, device or folder); skipped")
             return None
         if img.dtype == np.uint16:
             img = self._to8.convert(img)
@@ -916,10 +904,7 @@ class EurocWriter:
             # port taken) left nothing where a recording had been (an input review's note). It is moved beside
             # (mav0.replaced, an older one there left by a killed run removed) and removed once this recording
             # closes with data, put back if it closes with none.
-            self._replaced = self.root / "mav0.replaced"
-            if self._replaced.exists():
-                shutil.rmtree(self._replaced)
-            os.rename(self.mav0, self._replaced)
+            self._replaced = set_aside(self.mav0)
         for sub in ("cam0/data", "cam1/data", "imu0"):
             (self.mav0 / sub).mkdir(parents=True, exist_ok=True)
         (self.mav0 / "cam0" / "sensor.yaml").write_text(_camera_yaml(calibration.cam0, "cam0"))
@@ -981,16 +966,10 @@ class EurocWriter:
             if f is not None:
                 f.close()
         old, self._replaced = self._replaced, None
-        if old is None:
-            return
-        if self.frames_written or self.imu_written:
-            shutil.rmtree(old)
-            return
         # nothing recorded: the recording --overwrite was to replace is put back rather than lost for nothing
-        shutil.rmtree(self.mav0)
-        os.rename(old, self.mav0)
-        log.warning("%s: nothing was recorded; the recording that was there is kept (--overwrite replaces it only "
-                    "with data)", self.root)
+        if old is not None and settle_aside(old, self.mav0, bool(self.frames_written or self.imu_written)):
+            log.warning("%s: nothing was recorded; the recording that was there is kept (--overwrite replaces it only "
+                        "with data)", self.root)
 
     def __enter__(self) -> EurocWriter:
         return self
