@@ -31,7 +31,6 @@ from vio.io.inputs import is_device
 EXIT_HEALTHY = 0
 EXIT_UNHEALTHY = 1
 EXIT_NOT_RUNNING = 4
-EXIT_CONFIG = 3  # --config cannot be read (vio.app.cli's EXIT_CONFIG)
 DEFAULT_STATUS_FILE = "/run/kestrel-vio/status.json"
 
 
@@ -267,6 +266,7 @@ def _no_status(args: argparse.Namespace, state: str, text: str, code: int = EXIT
 
 def run(args: argparse.Namespace) -> int:
     from vio import VioError
+    from vio.app.cli import EXIT_CONFIG
 
     try:
         path = _status_path(args)
