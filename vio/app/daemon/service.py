@@ -461,11 +461,9 @@ class Service:
         not_finite = bool(link.get("withholding_not_finite"))
         if not_finite:
             # the output refuses a NaN / infinite estimate (a loss of tracking): the status read running, quality 100
-            why = link.get("withholding_not_sendable") or ""
-            warnings.append(f"poses not sent: {why} (mavlink.states_not_finite)" if why.startswith("its time stamp")
-                            else "poses not sent: the estimate holds a NaN or infinite value (or one beyond 1e30, "
-                            "which the messages' float32 fields cannot carry), or a negative variance "
-                            "(mavlink.states_not_finite)")
+            # the output's own words (drivers.mavlink_out._unsendable: the values, or the stamp), not a second copy
+            why = link.get("withholding_not_sendable") or "the estimate cannot be carried by the pose messages"
+            warnings.append(f"poses not sent: {why} (mavlink.states_not_finite)")
             tracking = False
         refusing = link.get("withholding_replay_poses")
         if refusing:
